@@ -1,0 +1,32 @@
+# Mechanics behind the README's two commands. Everything runs from a local virtualenv (.venv).
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+DATA   ?= $(firstword $(wildcard ../shared/data/realsense_shelf))
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
+
+.PHONY: setup demo test bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# torch first, pinned: the local CPU wheel (an unpinned torch downloads CUDA builds)
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[server,client,dev]'
+	touch $@
+
+setup: $(VENV)/.installed
+
+# Main job: start the service on an embedded default and stream a sample capture into it.
+demo: setup
+	$(PY) -m client.cli demo $(if $(DATA),$(DATA),) --out out/demo
+
+test: setup
+	$(PY) -m pytest -q tests
+
+bench: setup
+	$(PY) -m pip install -q -e '.[bench]'
+	$(PY) bench/fold.py
+
+clean:
+	rm -rf $(VENV) .numba_cache out

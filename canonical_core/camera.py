@@ -1,0 +1,257 @@
+"""Pinhole cameras in OpenCV axes (x right, y down, z forward), camera-to-world poses.
+
+Conventions (see DESIGN.md): ``K`` is in pixels, pixel (u, v) is column u, row v with its centre
+at (u, v); ``c2w`` maps camera coordinates to world coordinates. Poses are validated: finite,
+rotation orthonormal to 1e-3, determinant +1.
+
+Example:
+    >>> import torch
+    >>> cam = Camera(K=[[500, 0, 320], [0, 500, 240], [0, 0, 1]], c2w=torch.eye(4), width=640, height=480)
+    >>> uv, z = cam.project(cam.lift(torch.tensor([[320.0, 240.0]]), torch.tensor([2.0])))
+    >>> uv.tolist(), z.tolist()
+    ([[320.0, 240.0]], [2.0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+ROTATION_TOLERANCE = 1e-3
+
+# OpenGL/NeRF camera axes (x right, y up, z backward) -> OpenCV axes (x right, y down, z forward).
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def _as_float64(value, field: str) -> np.ndarray:
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{field}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+    return array
+
+
+def validate_intrinsics(K, field: str = "K") -> np.ndarray:
+    """Check a 3x3 pinhole matrix and return it as float64.
+
+    Raises ValueError naming ``field`` for a wrong shape, non-finite values, a non-positive focal
+    length, skew or a bottom row other than [0, 0, 1].
+    """
+    K = _as_float64(K, field)
+    if K.shape != (3, 3):
+        raise ValueError(f"{field}: expected shape [3, 3], got {list(K.shape)}")
+    if not np.isfinite(K).all():
+        raise ValueError(f"{field}: contains NaN or inf")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"{field}: focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}")
+    if K[0, 1] != 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise ValueError(f"{field}: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+    return K
+
+
+def validate_pose(c2w, field: str = "c2w") -> np.ndarray:
+    """Check a 4x4 rigid transform and return it as float64.
+
+    Raises ValueError naming ``field`` for a wrong shape, NaN/inf, a bottom row other than
+    [0, 0, 0, 1], a rotation that is not orthonormal to 1e-3, or a determinant other than +1.
+    """
+    T = _as_float64(c2w, field)
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    if T.shape != (4, 4):
+        raise ValueError(f"{field}: expected shape [4, 4] (or [3, 4]), got {list(T.shape)}")
+    if not np.isfinite(T).all():
+        raise ValueError(f"{field}: contains NaN or inf")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise ValueError(f"{field}: bottom row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    R = T[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > ROTATION_TOLERANCE:
+        raise ValueError(f"{field}: rotation is not orthonormal (max |R^T R - I| = {err:.3g} > {ROTATION_TOLERANCE})")
+    det = np.linalg.det(R)
+    if det < 0:
+        raise ValueError(f"{field}: rotation has determinant {det:.3f}; expected +1 (a reflection, not a rotation)")
+    return T
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), scalar first, [..., 4] -> rotation matrices [..., 3, 3]."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A validated pinhole camera.
+
+    Attributes:
+        K: intrinsics, float32 [3, 3] (fx, fy, cx, cy in pixels).
+        c2w: camera-to-world pose, float32 [4, 4], OpenCV axes.
+        width, height: image size in pixels.
+
+    Construct from anything array-like (lists, numpy, torch); inputs are validated and stored as
+    float32 tensors. The float64 originals are kept for geometry that needs the precision.
+    """
+
+    K: Tensor  # [3, 3]
+    c2w: Tensor  # [4, 4]
+    width: int
+    height: int
+
+    def __init__(self, K, c2w, width: int, height: int):
+        K64 = validate_intrinsics(K)
+        T64 = validate_pose(c2w)
+        for name, value in (("width", width), ("height", height)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        object.__setattr__(self, "K", torch.from_numpy(K64.astype(np.float32)))
+        object.__setattr__(self, "c2w", torch.from_numpy(T64.astype(np.float32)))
+        object.__setattr__(self, "width", int(width))
+        object.__setattr__(self, "height", int(height))
+        object.__setattr__(self, "_K64", K64)
+        object.__setattr__(self, "_c2w64", T64)
+
+    # -- constructors -------------------------------------------------------------------------
+    @classmethod
+    def from_w2c(cls, K, w2c, width: int, height: int) -> "Camera":
+        """Build from a world-to-camera (view) matrix."""
+        w2c = validate_pose(w2c, "w2c")
+        return cls(K, np.linalg.inv(w2c), width, height)
+
+    @classmethod
+    def from_opengl(cls, K, c2w_gl, width: int, height: int) -> "Camera":
+        """Build from an OpenGL/NeRF camera-to-world pose (y up, z backward)."""
+        return cls(K, validate_pose(c2w_gl, "c2w") @ OPENGL_TO_OPENCV, width, height)
+
+    @classmethod
+    def from_tum(cls, K, tum_pose, width: int, height: int) -> "Camera":
+        """Build from a TUM pose line ``tx ty tz qx qy qz qw`` (camera-to-world, scalar last)."""
+        p = _as_float64(tum_pose, "pose")
+        if p.shape != (7,):
+            raise ValueError(f"pose: expected 7 values tx ty tz qx qy qz qw, got shape {list(p.shape)}")
+        if not np.isfinite(p).all() or np.linalg.norm(p[3:]) < 1e-8:
+            raise ValueError(f"pose: expected finite values and a non-zero quaternion, got {p.tolist()}")
+        T = np.eye(4)
+        T[:3, :3] = quaternion_to_matrix(np.array([p[6], p[3], p[4], p[5]]))
+        T[:3, 3] = p[:3]
+        return cls(K, T, width, height)
+
+    # -- derived ------------------------------------------------------------------------------
+    @property
+    def fx(self) -> float:
+        return float(self._K64[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self._K64[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self._K64[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self._K64[1, 2])
+
+    @property
+    def w2c(self) -> Tensor:  # [4, 4]
+        """World-to-camera (view) matrix, float32."""
+        return torch.from_numpy(np.linalg.inv(self._c2w64).astype(np.float32))
+
+    @property
+    def center(self) -> Tensor:  # [3]
+        """Camera centre in world coordinates."""
+        return self.c2w[:3, 3].clone()
+
+    def K64(self) -> np.ndarray:  # [3, 3]
+        return self._K64.copy()
+
+    def c2w64(self) -> np.ndarray:  # [4, 4]
+        return self._c2w64.copy()
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by ``factor`` (pixel centres stay consistent)."""
+        if not factor > 0:
+            raise ValueError(f"factor: expected a positive number, got {factor!r}")
+        K = self._K64.copy()
+        K[0, 0] *= factor
+        K[1, 1] *= factor
+        # pixel centre convention: centre of pixel u is at u, so edges are at -0.5 and W - 0.5.
+        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+        w = max(1, int(round(self.width * factor)))
+        h = max(1, int(round(self.height * factor)))
+        return Camera(K, self._c2w64, w, h)
+
+    def with_pose(self, c2w) -> "Camera":
+        return Camera(self._K64, c2w, self.width, self.height)
+
+    # -- geometry -----------------------------------------------------------------------------
+    def lift(
+        self,
+        uv: Tensor,  # [N, 2] pixel coordinates (u = column, v = row)
+        depth: Tensor,  # [N] z-depth along the optical axis
+    ) -> Tensor:  # [N, 3] world points
+        """Back-project pixels with z-depth to world points: x = c2w (z K^-1 [u, v, 1])."""
+        uv = torch.as_tensor(uv, dtype=torch.float32)
+        depth = torch.as_tensor(depth, dtype=torch.float32)
+        if uv.ndim != 2 or uv.shape[-1] != 2:
+            raise ValueError(f"uv: expected shape [N, 2], got {list(uv.shape)}")
+        if depth.shape != uv.shape[:1]:
+            raise ValueError(f"depth: expected shape [{uv.shape[0]}], got {list(depth.shape)}")
+        x = (uv[:, 0] - self.cx) / self.fx * depth
+        y = (uv[:, 1] - self.cy) / self.fy * depth
+        pc = torch.stack([x, y, depth], -1)
+        return pc @ self.c2w[:3, :3].T + self.c2w[:3, 3]
+
+    def project(
+        self,
+        points: Tensor,  # [N, 3] world points
+    ) -> tuple[Tensor, Tensor]:  # uv [N, 2], z [N]
+        """Project world points: returns pixel coordinates and z-depth (<= 0 means behind)."""
+        points = torch.as_tensor(points, dtype=torch.float32)
+        if points.ndim != 2 or points.shape[-1] != 3:
+            raise ValueError(f"points: expected shape [N, 3], got {list(points.shape)}")
+        w2c = self.w2c
+        pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+        u = pc[:, 0] / safe * self.fx + self.cx
+        v = pc[:, 1] / safe * self.fy + self.cy
+        return torch.stack([u, v], -1), z
+
+    def pixel_rays(self) -> Tensor:  # [H, W, 3]
+        """Camera-frame directions with z = 1 for every pixel centre (row-major)."""
+        v, u = torch.meshgrid(
+            torch.arange(self.height, dtype=torch.float32),
+            torch.arange(self.width, dtype=torch.float32),
+            indexing="ij",
+        )
+        return torch.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, torch.ones_like(u)], -1)
+
+    def to_dict(self) -> dict:
+        return {"K": self._K64.tolist(), "c2w": self._c2w64.tolist(), "width": self.width, "height": self.height}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        return cls(d["K"], d["c2w"], d["width"], d["height"])
+
+    def __repr__(self) -> str:
+        return (
+            f"Camera({self.width}x{self.height}, fx={self.fx:.2f}, fy={self.fy:.2f}, "
+            f"cx={self.cx:.2f}, cy={self.cy:.2f}, center={self._c2w64[:3, 3].round(4).tolist()})"
+        )

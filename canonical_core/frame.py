@@ -1,0 +1,129 @@
+"""A posed camera frame: the unit that is folded into a scene.
+
+Example:
+    >>> import numpy as np, torch
+    >>> cam = Camera(K=[[500, 0, 32], [0, 500, 24], [0, 0, 1]], c2w=np.eye(4), width=64, height=48)
+    >>> f = Frame(rgb=np.zeros((48, 64, 3), np.uint8), camera=cam, depth=np.ones((48, 64), np.float32))
+    >>> f.rgb.shape, f.has_depth
+    (torch.Size([48, 64, 3]), True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .camera import Camera
+
+MAX_IMAGE_PIXELS = 4096 * 4096
+
+
+def _tensor(value, field: str) -> Tensor:
+    if isinstance(value, Tensor):
+        return value.detach().cpu()
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(value))
+    raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
+
+
+def _float_map(value, field: str, shape: tuple[int, int], allow_nonfinite: bool) -> Tensor:
+    t = _tensor(value, field)
+    if not (t.is_floating_point()):
+        raise ValueError(f"{field}: expected a float array (metres), got dtype {t.dtype}")
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{field}: expected shape {list(shape)} to match the image, got {list(t.shape)}")
+    t = t.to(torch.float32)
+    if not allow_nonfinite and not torch.isfinite(t).all():
+        raise ValueError(f"{field}: contains NaN or inf")
+    return t.contiguous()
+
+
+def _channel_map(value, field: str) -> Tensor:
+    t = _tensor(value, field)
+    if t.ndim != 3 or min(t.shape) < 1:
+        raise ValueError(f"{field}: expected shape [H', W', C], got {list(t.shape)}")
+    if not t.is_floating_point():
+        raise ValueError(f"{field}: expected a float array, got dtype {t.dtype}")
+    t = t.to(torch.float32)
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{field}: contains NaN or inf")
+    return t.contiguous()
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One posed observation, validated on construction.
+
+    Attributes:
+        rgb: uint8 [H, W, 3].
+        camera: the frame's `Camera`; its width/height must match the image.
+        depth: optional float32 [H, W] z-depth in metres; 0 or non-finite = missing (stored as 0).
+        depth_std: optional float32 [H, W] per-pixel depth standard deviation in metres (>= 0).
+        features: optional float32 [H', W', C] client-supplied features (resized when used).
+        labels: optional float32 [H', W', S] client-supplied label scores (e.g. class probabilities).
+        frame_id: optional free-form identifier.
+    """
+
+    rgb: Tensor  # [H, W, 3] uint8
+    camera: Camera
+    depth: Tensor | None = None  # [H, W] float32
+    depth_std: Tensor | None = None  # [H, W] float32
+    features: Tensor | None = None  # [H', W', C] float32
+    labels: Tensor | None = None  # [H', W', S] float32
+    frame_id: str | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.camera, Camera):
+            raise ValueError(f"camera: expected a Camera, got {type(self.camera).__name__}")
+        rgb = _tensor(self.rgb, "rgb")
+        if rgb.ndim != 3 or rgb.shape[-1] != 3:
+            raise ValueError(f"rgb: expected shape [H, W, 3], got {list(rgb.shape)}")
+        if rgb.dtype != torch.uint8:
+            raise ValueError(f"rgb: expected dtype uint8, got {rgb.dtype}")
+        H, W = int(rgb.shape[0]), int(rgb.shape[1])
+        if H * W > MAX_IMAGE_PIXELS:
+            raise ValueError(f"rgb: image of {W}x{H} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
+        if (self.camera.width, self.camera.height) != (W, H):
+            raise ValueError(
+                f"camera: size {self.camera.width}x{self.camera.height} does not match the rgb image {W}x{H}"
+            )
+        object.__setattr__(self, "rgb", rgb.contiguous())
+        if self.depth is not None:
+            depth = _float_map(self.depth, "depth", (H, W), allow_nonfinite=True)
+            if (depth < 0).any():
+                raise ValueError("depth: negative values (depth is metres along the optical axis; 0 = missing)")
+            depth = torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth))
+            object.__setattr__(self, "depth", depth)
+        if self.depth_std is not None:
+            if self.depth is None:
+                raise ValueError("depth_std: given without depth")
+            std = _float_map(self.depth_std, "depth_std", (H, W), allow_nonfinite=False)
+            if (std < 0).any():
+                raise ValueError("depth_std: negative standard deviations")
+            object.__setattr__(self, "depth_std", std)
+        if self.features is not None:
+            object.__setattr__(self, "features", _channel_map(self.features, "features"))
+        if self.labels is not None:
+            labels = _channel_map(self.labels, "labels")
+            object.__setattr__(self, "labels", labels)
+        if self.frame_id is not None and not isinstance(self.frame_id, str):
+            raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+    @property
+    def has_depth(self) -> bool:
+        return self.depth is not None
+
+    def __repr__(self) -> str:
+        extras = [n for n in ("depth", "depth_std", "features", "labels") if getattr(self, n) is not None]
+        return f"Frame({self.width}x{self.height}, id={self.frame_id!r}, with={extras}, {self.camera!r})"

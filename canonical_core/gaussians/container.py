@@ -1,0 +1,110 @@
+"""The Gaussian container that the decoder produces and the renderer and exporters consume."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
+
+
+def rgb_to_sh_dc(rgb: Tensor) -> Tensor:  # [..., 3] -> [..., 3]
+    """Colour in [0, 1] -> degree-0 SH coefficient (the 3DGS convention: colour = 0.5 + C0 * dc)."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_dc_to_rgb(dc: Tensor) -> Tensor:  # [..., 3] -> [..., 3]
+    return dc * SH_C0 + 0.5
+
+
+def sh_degree_from_bases(num_bases: int) -> int:
+    degree = int(round(num_bases**0.5)) - 1
+    if (degree + 1) ** 2 != num_bases or not 0 <= degree <= 3:
+        raise ValueError(f"sh: expected 1, 4, 9 or 16 SH bases per channel, got {num_bases}")
+    return degree
+
+
+@dataclass(eq=False)
+class Gaussians:
+    """A set of 3D Gaussians (the 3DGS parametrisation, activated values).
+
+    Attributes:
+        means: [N, 3] centres, world coordinates.
+        scales: [N, 3] standard deviations along the principal axes (linear, not log).
+        quats: [N, 4] unit rotations, (w, x, y, z).
+        opacities: [N] in [0, 1].
+        sh: [N, K, 3] spherical-harmonics colour coefficients, K = (degree + 1)^2, DC first.
+        features: optional [N, L] fused features (the "feature splat" channels).
+        labels: optional [N, S] fused label scores.
+    """
+
+    means: Tensor  # [N, 3]
+    scales: Tensor  # [N, 3]
+    quats: Tensor  # [N, 4]
+    opacities: Tensor  # [N]
+    sh: Tensor  # [N, K, 3]
+    features: Tensor | None = None  # [N, L]
+    labels: Tensor | None = None  # [N, S]
+
+    def __post_init__(self):
+        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        expected = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,)}
+        for name, shape in expected.items():
+            t = getattr(self, name)
+            if not isinstance(t, Tensor) or tuple(t.shape) != shape:
+                got = list(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(f"{name}: expected shape {list(shape)}, got {got}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise ValueError(f"sh: expected shape [{n}, K, 3], got {list(self.sh.shape)}")
+        sh_degree_from_bases(self.sh.shape[1])
+        for name in ("features", "labels"):
+            t = getattr(self, name)
+            if t is not None and (t.ndim != 2 or t.shape[0] != n):
+                raise ValueError(f"{name}: expected shape [{n}, C], got {list(t.shape)}")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_bases(self.sh.shape[1])
+
+    @property
+    def colors(self) -> Tensor:  # [N, 3]
+        """View-independent colour (the DC term), clamped to [0, 1]."""
+        return sh_dc_to_rgb(self.sh[:, 0]).clamp(0.0, 1.0)
+
+    @classmethod
+    def empty(cls, sh_degree: int = 0, feature_dim: int | None = None, label_dim: int | None = None) -> "Gaussians":
+        k = (sh_degree + 1) ** 2
+        return cls(
+            means=torch.zeros(0, 3),
+            scales=torch.zeros(0, 3),
+            quats=torch.zeros(0, 4),
+            opacities=torch.zeros(0),
+            sh=torch.zeros(0, k, 3),
+            features=None if feature_dim is None else torch.zeros(0, feature_dim),
+            labels=None if label_dim is None else torch.zeros(0, label_dim),
+        )
+
+    def map(self, fn) -> "Gaussians":
+        """Apply ``fn`` to every tensor field (optional fields that are None stay None)."""
+        return replace(self, **{f.name: (None if getattr(self, f.name) is None else fn(getattr(self, f.name))) for f in fields(self)})
+
+    def index(self, idx: Tensor) -> "Gaussians":
+        """A subset (boolean mask or integer indices)."""
+        return self.map(lambda t: t[idx])
+
+    def to(self, *args, **kwargs) -> "Gaussians":
+        return self.map(lambda t: t.to(*args, **kwargs))
+
+    def detach(self) -> "Gaussians":
+        return self.map(Tensor.detach)
+
+    def __repr__(self) -> str:
+        extra = "".join(
+            f", {name}={getattr(self, name).shape[1]}" for name in ("features", "labels") if getattr(self, name) is not None
+        )
+        return f"Gaussians(n={len(self)}, sh_degree={self.sh_degree}{extra})"

@@ -1,0 +1,193 @@
+"""Gaussian export/import: the standard 3DGS PLY layout and antimatter15's 32-byte `.splat`.
+
+PLY (binary little-endian, float32): ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2
+rot_0..3`` with opacity as a logit, scales as logs and rotation as a (w, x, y, z) quaternion, which
+is what common splat viewers read. ``f_rest_*`` is channel-major (all R coefficients, then G, then
+B), as the reference 3DGS code writes it. Fused features and label scores travel as extra
+``feat_*`` / ``label_*`` properties, which viewers ignore.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .container import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb, sh_degree_from_bases
+
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
+              "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "ushort": "<u2"}
+_OPACITY_EPS = 1e-6
+
+
+def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
+    n = len(g)
+    k = g.sh.shape[1]
+    sh = g.sh.detach().cpu().float().numpy()
+    cols: dict[str, np.ndarray] = {}
+    means = g.means.detach().cpu().float().numpy()
+    for i, a in enumerate("xyz"):
+        cols[a] = means[:, i]
+    for a in ("nx", "ny", "nz"):
+        cols[a] = np.zeros(n, np.float32)
+    for c in range(3):
+        cols[f"f_dc_{c}"] = sh[:, 0, c]
+    rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))  # channel-major, as 3DGS writes it
+    for j in range(rest.shape[1]):
+        cols[f"f_rest_{j}"] = rest[:, j]
+    op = g.opacities.detach().cpu().double().numpy().clip(_OPACITY_EPS, 1 - _OPACITY_EPS)
+    cols["opacity"] = np.log(op / (1 - op)).astype(np.float32)
+    scales = np.log(g.scales.detach().cpu().double().numpy().clip(1e-12, None)).astype(np.float32)
+    for i in range(3):
+        cols[f"scale_{i}"] = scales[:, i]
+    q = g.quats.detach().cpu().float().numpy()
+    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+    for i in range(4):
+        cols[f"rot_{i}"] = q[:, i]
+    for prefix, t in (("feat", g.features), ("label", g.labels)):
+        if t is not None:
+            arr = t.detach().cpu().float().numpy()
+            for j in range(arr.shape[1]):
+                cols[f"{prefix}_{j}"] = arr[:, j]
+    return cols
+
+
+def _atomic_write(path: str | os.PathLike, payload: list[bytes]) -> None:
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        for chunk in payload:
+            f.write(chunk)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def ply_bytes(g: Gaussians) -> bytes:
+    """The PLY file as bytes (header + binary body)."""
+    cols = _ply_columns(g)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
+    header += [f"property float {name}" for name in cols]
+    header.append("end_header")
+    body = np.empty(len(g), dtype=[(name, "<f4") for name in cols])
+    for name, values in cols.items():
+        body[name] = values
+    return ("\n".join(header) + "\n").encode("ascii") + body.tobytes()
+
+
+def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
+    """Write ``g`` in the standard 3DGS PLY layout (atomically: temp file, fsync, rename)."""
+    _atomic_write(path, [ply_bytes(g)])
+
+
+def _parse_ply(data: bytes) -> dict[str, np.ndarray]:
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError("ply: not a PLY file (missing 'ply' magic or 'end_header')")
+    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt, count, props, in_vertex = None, None, [], False
+    for line in lines:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            in_vertex = parts[1] == "vertex"
+            if in_vertex:
+                count = int(parts[2])
+        elif parts[0] == "property" and in_vertex:
+            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
+                raise ValueError(f"ply: unsupported vertex property type {' '.join(parts[1:-1])!r}")
+            props.append((parts[-1], _PLY_TYPES[parts[1]]))
+    if fmt != "binary_little_endian":
+        raise ValueError(f"ply: only binary_little_endian is supported, got {fmt!r}")
+    if count is None:
+        raise ValueError("ply: no vertex element")
+    dtype = np.dtype(props)
+    body = data[end + len(b"end_header\n"):]
+    if len(body) < dtype.itemsize * count:
+        raise ValueError(f"ply: body holds {len(body)} bytes, expected {dtype.itemsize * count} for {count} vertices")
+    arr = np.frombuffer(body, dtype=dtype, count=count)
+    return {name: arr[name].astype(np.float32) for name in dtype.names}
+
+
+def _stack(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray | None:
+    names = sorted((n for n in cols if n.startswith(prefix) and n[len(prefix):].isdigit()), key=lambda n: int(n[len(prefix):]))
+    if not names:
+        return None
+    return np.stack([cols[n] for n in names], 1)
+
+
+def load_ply(path: str | os.PathLike) -> Gaussians:
+    """Read a 3DGS-layout PLY (as written by `save_ply` or 3DGS training code)."""
+    cols = _parse_ply(Path(path).read_bytes())
+    missing = [n for n in ("x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0") if n not in cols]
+    if missing:
+        raise ValueError(f"ply: missing 3DGS properties {missing}")
+    n = len(cols["x"])
+    dc = _stack(cols, "f_dc_")
+    rest = _stack(cols, "f_rest_")
+    k = 1 + (0 if rest is None else rest.shape[1] // 3)
+    sh_degree_from_bases(k)
+    sh = np.zeros((n, k, 3), np.float32)
+    sh[:, 0] = dc
+    if rest is not None:
+        sh[:, 1:] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
+    feats, labels = _stack(cols, "feat_"), _stack(cols, "label_")
+    return Gaussians(
+        means=torch.from_numpy(np.stack([cols["x"], cols["y"], cols["z"]], 1)),
+        scales=torch.from_numpy(np.exp(_stack(cols, "scale_"))),
+        quats=torch.from_numpy(_stack(cols, "rot_")),
+        opacities=torch.sigmoid(torch.from_numpy(cols["opacity"])),
+        sh=torch.from_numpy(sh),
+        features=None if feats is None else torch.from_numpy(feats),
+        labels=None if labels is None else torch.from_numpy(labels),
+    )
+
+
+SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+assert SPLAT_DTYPE.itemsize == 32
+
+
+def splat_bytes(g: Gaussians) -> bytes:
+    """antimatter15 `.splat`: 32 bytes per splat, most important (volume x opacity) first."""
+    scales = g.scales.detach().cpu().float().numpy()
+    opac = g.opacities.detach().cpu().float().numpy()
+    order = np.argsort(-(scales.prod(1) * opac), kind="stable")
+    rec = np.empty(len(g), SPLAT_DTYPE)
+    rec["position"] = g.means.detach().cpu().float().numpy()[order]
+    rec["scale"] = scales[order]
+    rgb = sh_dc_to_rgb(g.sh[:, 0].detach().cpu().float()).numpy()[order]
+    rec["rgba"][:, :3] = np.clip(np.round(rgb * 255), 0, 255)
+    rec["rgba"][:, 3] = np.clip(np.round(opac[order] * 255), 0, 255)
+    q = g.quats.detach().cpu().float().numpy()[order]
+    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+    rec["rot"] = np.clip(np.round(q * 128 + 128), 0, 255)
+    return rec.tobytes()
+
+
+def save_splat(g: Gaussians, path: str | os.PathLike) -> None:
+    """Write the antimatter15 `.splat` layout (atomically). View-dependent SH is dropped (DC only)."""
+    _atomic_write(path, [splat_bytes(g)])
+
+
+def load_splat(path: str | os.PathLike) -> Gaussians:
+    """Read a `.splat` file (colours and rotations come back quantised to 8 bits)."""
+    data = Path(path).read_bytes()
+    if len(data) % SPLAT_DTYPE.itemsize:
+        raise ValueError(f"splat: file size {len(data)} is not a multiple of 32 bytes")
+    rec = np.frombuffer(data, SPLAT_DTYPE)
+    rgba = rec["rgba"].astype(np.float32) / 255.0
+    q = (rec["rot"].astype(np.float32) - 128.0) / 128.0
+    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+
+    return Gaussians(
+        means=torch.from_numpy(rec["position"].copy()),
+        scales=torch.from_numpy(rec["scale"].copy()),
+        quats=torch.from_numpy(q),
+        opacities=torch.from_numpy(rgba[:, 3].copy()),
+        sh=rgb_to_sh_dc(torch.from_numpy(rgba[:, None, :3].copy())),
+    )

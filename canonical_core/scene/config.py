@@ -1,0 +1,83 @@
+"""Scene settings: one validated, serialisable record shared by the fold, the batch reference and decode."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Literal, get_args
+
+Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
+FeatureBackend = Literal["default", "client"]
+
+# Voxel indices are packed into one int64 key with 21 bits per axis: a lattice of +-2^20 voxels
+# per axis around the fixed origin (+-4 km at 4 mm), which is "unbounded" for any capture.
+KEY_BITS = 21
+KEY_OFFSET = 1 << (KEY_BITS - 1)
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Settings of a scene.
+
+    Attributes:
+        voxel_size: edge length of the sparse lattice's voxels, in the scene's unit (metres).
+        feature_dim: L, channels of the fused features (the default extractor's output size).
+        feature_backend: ``default`` (training-free extractor) or ``client`` (use ``Frame.features``,
+            resized to the image and projected to ``feature_dim`` channels).
+        weighting: ablation mode of the aggregation rule (``full`` is the paper's rule).
+        depth_sigma0, depth_sigma2, depth_sigma_ref: sensor noise model for supplied depth without a
+            std: sigma(z) = sigma0 + sigma2 * (z - ref)^2 metres (structured-light/ToF sensors).
+        depth_edge_weight: adds weight * (largest depth jump to a 4-neighbour) to sigma, so
+            "flying pixels" on depth discontinuities get low reliability.
+        near, far: depth range accepted from frames, metres; outside it a pixel is ignored.
+        eps: the epsilon of F_scene = sum W F / (R_scene + eps).
+        max_voxels: cap on the number of voxels (None = unbounded); a fold that would exceed it
+            raises instead of folding part of a frame.
+    """
+
+    voxel_size: float
+    feature_dim: int = 16
+    feature_backend: FeatureBackend = "default"
+    weighting: Weighting = "full"
+    depth_sigma0: float = 0.0012
+    depth_sigma2: float = 0.0019
+    depth_sigma_ref: float = 0.4
+    depth_edge_weight: float = 0.5
+    near: float = 0.05
+    far: float = 20.0
+    eps: float = 1e-8
+    max_voxels: int | None = None
+
+    def __post_init__(self):
+        def positive(name, value):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
+
+        positive("voxel_size", self.voxel_size)
+        positive("far", self.far)
+        positive("eps", self.eps)
+        for name in ("depth_sigma0", "depth_sigma2", "depth_edge_weight", "near", "depth_sigma_ref"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
+        if self.near >= self.far:
+            raise ValueError(f"near: must be below far ({self.near} >= {self.far})")
+        if isinstance(self.feature_dim, bool) or not isinstance(self.feature_dim, int) or not 1 <= self.feature_dim <= 512:
+            raise ValueError(f"feature_dim: expected an integer in [1, 512], got {self.feature_dim!r}")
+        if self.weighting not in get_args(Weighting):
+            raise ValueError(f"weighting: expected one of {list(get_args(Weighting))}, got {self.weighting!r}")
+        if self.feature_backend not in get_args(FeatureBackend):
+            raise ValueError(f"feature_backend: expected one of {list(get_args(FeatureBackend))}, got {self.feature_backend!r}")
+        if self.max_voxels is not None and (isinstance(self.max_voxels, bool) or not isinstance(self.max_voxels, int) or self.max_voxels <= 0):
+            raise ValueError(f"max_voxels: expected a positive integer or None, got {self.max_voxels!r}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SceneConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{unknown[0]}: unknown scene setting (known: {sorted(known)})")
+        return cls(**d)
