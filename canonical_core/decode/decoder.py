@@ -1,0 +1,117 @@
+"""Dec: scene fields -> 3D Gaussians, initialised at an analytic solution.
+
+For each voxel with support:
+    r        = 1 - exp(-R_scene)
+    opacity  = sigmoid(MonotoneOpacity(r))            (non-decreasing in r for any parameters)
+    mean     = representative lifted point + voxel_size * offset(F_scene)
+    Sigma    = weighted second moments of the lifted points, per-axis std scaled by the footprint
+               gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
+    colour   = fused colour + delta(F_scene)           (SH DC)
+The heads on F_scene start at zero, so an untrained decoder is the analytic solution.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from ..gaussians import Gaussians, rgb_to_sh_dc
+
+# A Gaussian whose integral footprint 2*pi*sigma^2 equals the area a^2 of the patch it stands for has
+# sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio makes
+# neighbouring voxels' Gaussians close the surface instead of leaving see-through gaps.
+FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
+
+
+class MonotoneOpacity(nn.Module):
+    """logit(r) = a r + b + sum_k w_k tanh(u_k r + c_k) with a, w_k, u_k >= 0 (clamped in forward).
+
+    Non-negativity is enforced in the forward pass, so the map is non-decreasing in r for *any*
+    parameter values (a property under test). At initialisation w_k = 0, so it is the analytic
+    line a r + b; training can bend it.
+    """
+
+    def __init__(self, slope: float = 10.0, bias: float = -3.0, hidden: int = 8):
+        super().__init__()
+        self.a = nn.Parameter(torch.tensor(float(slope)))
+        self.b = nn.Parameter(torch.tensor(float(bias)))
+        self.u = nn.Parameter(torch.linspace(1.0, 8.0, hidden))
+        self.c = nn.Parameter(torch.linspace(-4.0, 0.0, hidden))
+        self.w = nn.Parameter(torch.zeros(hidden))
+
+    def forward(self, r: Tensor) -> Tensor:  # [N] -> [N] logits
+        r = r[:, None]
+        bent = torch.tanh(self.u.clamp_min(0.0) * r + self.c) @ self.w.clamp_min(0.0)
+        return self.a.clamp_min(0.0) * r[:, 0] + self.b + bent
+
+
+def matrix_to_quaternion(R: Tensor) -> Tensor:  # [N, 3, 3] -> [N, 4] (w, x, y, z), w >= 0
+    """Rotation matrices to unit quaternions (numerically stable branch per matrix)."""
+    m = R
+    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cands = torch.stack(
+        [
+            torch.stack([1 + trace, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+            torch.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], -1),
+            torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], -1),
+            torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], -1),
+        ],
+        1,
+    )  # [N, 4 candidates, 4]; candidate k has component k equal to 4 q_k^2, largest is most stable
+    diag = torch.stack([trace, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
+    pick = diag.argmax(-1)
+    q = cands[torch.arange(R.shape[0]), pick]
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return torch.where(q[:, :1] < 0, -q, q)
+
+
+class GaussianDecoder(nn.Module):
+    """Decoder from fused scene fields to Gaussians (see module docstring for the equations).
+
+    Args:
+        feature_dim: L, channels of F_scene.
+        min_thickness, min_extent, max_extent: clamps of the per-axis std in voxel units (smallest
+            axis >= min_thickness, the other two >= min_extent, all <= max_extent).
+    """
+
+    def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = 0.3,
+                 max_extent: float = 1.0, opacity_slope: float = 10.0, opacity_bias: float = -3.0):
+        super().__init__()
+        self.feature_dim = feature_dim
+        self.min_thickness, self.min_extent, self.max_extent = min_thickness, min_extent, max_extent
+        self.opacity = MonotoneOpacity(opacity_slope, opacity_bias)
+        self.offset = nn.Linear(feature_dim, 3)
+        self.log_scale_delta = nn.Linear(feature_dim, 3)
+        self.color_delta = nn.Linear(feature_dim, 3)
+        for head in (self.offset, self.log_scale_delta, self.color_delta):
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
+
+    def forward(self, fields: dict[str, Tensor], voxel_size: float) -> Gaussians:
+        """Decode every voxel of ``fields`` (the dict returned by ``Scene.fields``)."""
+        support = fields["reliability"]
+        feats = fields["features"]
+        r = 1.0 - torch.exp(-support)
+        opacities = torch.sigmoid(self.opacity(r))
+        means = fields["representative_position"] + voxel_size * self.offset(feats)
+        cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units
+        cov = 0.5 * (cov + cov.transpose(1, 2))
+        eigval, eigvec = torch.linalg.eigh(cov.double())  # ascending: axis 0 is the surface normal
+        std = eigval.clamp_min(0.0).sqrt().float() * FOOTPRINT_GAIN
+        lo = torch.tensor([self.min_thickness, self.min_extent, self.min_extent])
+        std = torch.minimum(torch.maximum(std, lo), torch.tensor(self.max_extent))
+        scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
+        rot = eigvec.float()
+        rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0]), rot)
+        colors = (fields["color"] + self.color_delta(feats)).clamp(0.0, 1.0)
+        return Gaussians(
+            means=means,
+            scales=scales,
+            quats=matrix_to_quaternion(rot),
+            opacities=opacities,
+            sh=rgb_to_sh_dc(colors)[:, None, :],
+            features=feats,
+            labels=fields.get("labels"),
+        )

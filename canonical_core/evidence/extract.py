@@ -1,0 +1,116 @@
+"""Ext: a frame -> its view-centric evidence (lifted points, colours, features, reliability)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+
+from ..frame import Frame
+from ..scene.config import SceneConfig
+from .features import DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features
+from .reliability import AppearanceUncertainty, positional_uncertainty
+
+
+@dataclass
+class FrameEvidence:
+    """Per-observation evidence of one frame, only at pixels with valid depth, in row-major order.
+
+    Attributes:
+        rows, cols: [M] int64 pixel coordinates (v, u).
+        points: [M, 3] float32 lifted world points x = Pi^-1(m, D(m)).
+        colors: [M, 3] float32 RGB in [0, 1].
+        features: [M, L] float32 F_view.
+        u_pos: [M] float32 positional uncertainty in voxel units.
+        reliability: [M] float32 R_view in (0, 1].
+        labels: optional [M, S] float32 label scores.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    features: np.ndarray
+    u_pos: np.ndarray
+    reliability: np.ndarray
+    labels: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.rows.shape[0])
+
+
+@numba.njit(parallel=True, cache=True)
+def _lift_kernel(rgb, depth, rows, cols, fx, fy, cx, cy, R, t, points, colors):
+    for i in numba.prange(rows.shape[0]):
+        v, u = rows[i], cols[i]
+        z = depth[v, u]
+        xc = (np.float32(u) - cx) / fx * z
+        yc = (np.float32(v) - cy) / fy * z
+        for a in range(3):
+            points[i, a] = R[a, 0] * xc + R[a, 1] * yc + R[a, 2] * z + t[a]
+            colors[i, a] = np.float32(rgb[v, u, a]) / np.float32(255.0)
+
+
+def lift_pixels(frame: Frame, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points [M, 3] and colours [M, 3] of the given pixels (numba; same maths as Camera.lift)."""
+    cam = frame.camera
+    c2w = cam.c2w.numpy()
+    points = np.empty((rows.shape[0], 3), np.float32)
+    colors = np.empty((rows.shape[0], 3), np.float32)
+    _lift_kernel(frame.rgb.numpy(), frame.depth.numpy(), rows, cols, np.float32(cam.fx), np.float32(cam.fy),
+                 np.float32(cam.cx), np.float32(cam.cy), np.ascontiguousarray(c2w[:3, :3]),
+                 np.ascontiguousarray(c2w[:3, 3]), points, colors)
+    return points, colors
+
+
+def frame_features(frame: Frame, rows: np.ndarray, cols: np.ndarray, config: SceneConfig) -> np.ndarray:  # [M, L]
+    """F_view at the given pixels from the configured backend, with ``config.feature_dim`` channels."""
+    if config.feature_backend == "client":
+        if frame.features is None:
+            raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+        feats = sample_client_features(frame.features.numpy(), rows, cols, (frame.height, frame.width))
+    else:
+        feats = default_features_at(frame.rgb.numpy(), rows, cols)
+    if feats.shape[1] != config.feature_dim:
+        feats = feats @ projection_matrix(feats.shape[1], config.feature_dim)
+    return np.ascontiguousarray(feats, dtype=np.float32)
+
+
+def extract_evidence(
+    frame: Frame,
+    config: SceneConfig,
+    appearance: AppearanceUncertainty | None = None,
+) -> FrameEvidence:
+    """Evidence of one frame with depth: every pixel whose depth lies in (near, far).
+
+    Raises ValueError (naming the field) when the frame has no depth, or the session's feature
+    backend needs client features the frame does not carry.
+    """
+    if frame.depth is None:
+        raise ValueError("depth: this frame has no depth; RGB-only frames need the multi-view depth stage")
+    depth = frame.depth.numpy()
+    rows, cols = np.nonzero((depth > config.near) & (depth < config.far))
+    features = frame_features(frame, rows, cols, config)
+    points, colors = lift_pixels(frame, rows, cols)
+    u_pos = positional_uncertainty(
+        depth, rows, cols, config.voxel_size,
+        depth_std=None if frame.depth_std is None else frame.depth_std.numpy(),
+        sigma0=config.depth_sigma0, sigma2=config.depth_sigma2, z_ref=config.depth_sigma_ref,
+        edge_weight=config.depth_edge_weight,
+    )
+    log_r = -u_pos
+    if appearance is not None and not appearance.is_zero:
+        with torch.no_grad():
+            log_r = log_r - appearance(torch.from_numpy(features)).numpy()
+    labels = None
+    if frame.labels is not None:
+        labels = np.ascontiguousarray(sample_client_features(frame.labels.numpy(), rows, cols, (frame.height, frame.width)))
+    return FrameEvidence(
+        rows=rows, cols=cols, points=points, colors=colors, features=features, u_pos=u_pos,
+        reliability=np.exp(log_r).astype(np.float32), labels=labels,
+    )
+
+
+__all__ = ["FrameEvidence", "extract_evidence", "lift_pixels", "frame_features", "DEFAULT_FEATURE_DIM"]

@@ -1,0 +1,188 @@
+"""Training-free per-pixel descriptors (the default F_view backend) and client-feature sampling.
+
+The default descriptor is 16 channels built from 13 raw pixels around each pixel: a centre cross
+(the pixel and its 4 neighbours) and a ring of 8 samples at radius ``RING_RADIUS``:
+
+    [0:3]   opponent colour of the centre cross   (Y - 0.5, R - G, B - (R + G) / 2)
+    [3:6]   opponent colour of the ring mean        (context)
+    [6:14]  ring luminance minus centre luminance, divided by (ring contrast + 0.05)
+            (the local texture pattern, invariant to exposure changes)
+    [14]    ring contrast (root mean square of the ring's luminance differences)
+    [15]    centre-surround luminance difference
+
+scaled per block and L2-normalised, so cos(F_a, F_b) is a dot product. Observations of one surface
+point from two nearby views get similar descriptors; a mixed pixel on a depth edge or a
+mis-registered observation does not. ``default_features_reference`` is the whole-image PyTorch
+definition; ``default_features_at`` is the numba fast path evaluated only at the pixels a fold uses,
+held to the reference by the tests.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+DEFAULT_FEATURE_DIM = 16
+RING_RADIUS = 3
+# (dv, du) offsets: the 8-ring at RING_RADIUS, in a fixed order.
+RING_OFFSETS = np.array(
+    [(-RING_RADIUS, -RING_RADIUS), (-RING_RADIUS, 0), (-RING_RADIUS, RING_RADIUS), (0, RING_RADIUS),
+     (RING_RADIUS, RING_RADIUS), (RING_RADIUS, 0), (RING_RADIUS, -RING_RADIUS), (0, -RING_RADIUS)],
+    dtype=np.int64,
+)
+CROSS_OFFSETS = np.array([(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)], dtype=np.int64)
+# block weights: colour dominates, texture and context refine (chosen so that colour alone
+# decides between clearly different surfaces and texture breaks ties on similar colours).
+W_COLOUR, W_CONTEXT, W_PATTERN, W_ENERGY, W_SURROUND = 1.0, 0.5, 0.35, 1.0, 1.0
+CONTRAST_FLOOR = 0.05
+
+
+def _opponent(rgb: Tensor) -> Tensor:  # [..., 3] in [0, 1] -> [..., 3]
+    r, g, b = rgb.unbind(-1)
+    y = 0.299 * r + 0.587 * g + 0.114 * b
+    return torch.stack([y - 0.5, r - g, b - 0.5 * (r + g)], -1)
+
+
+def default_features_reference(
+    rgb: Tensor,  # [H, W, 3] uint8
+) -> Tensor:  # [H, W, 16] float32, unit norm
+    """The default descriptor at every pixel (pure PyTorch; borders replicate-padded).
+
+    Example:
+        >>> f = default_features_reference(torch.zeros(8, 8, 3, dtype=torch.uint8))
+        >>> f.shape, bool(torch.allclose(f.norm(dim=-1), torch.ones(8, 8)))
+        (torch.Size([8, 8, 16]), True)
+    """
+    if rgb.ndim != 3 or rgb.shape[-1] != 3 or rgb.dtype != torch.uint8:
+        raise ValueError(f"rgb: expected uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
+    H, W = rgb.shape[:2]
+    img = rgb.float() / 255.0
+    pad = RING_RADIUS
+    padded = F.pad(img.permute(2, 0, 1)[None], (pad, pad, pad, pad), mode="replicate")[0].permute(1, 2, 0)
+
+    def shifted(dv: int, du: int) -> Tensor:  # [H, W, 3]: img[v + dv, u + du], clamped
+        return padded[pad + dv: pad + dv + H, pad + du: pad + du + W]
+
+    centre = torch.stack([shifted(int(dv), int(du)) for dv, du in CROSS_OFFSETS]).mean(0)
+    ring = torch.stack([shifted(int(dv), int(du)) for dv, du in RING_OFFSETS])  # [8, H, W, 3]
+    luma = torch.tensor([0.299, 0.587, 0.114])
+    yc = centre @ luma
+    yr = ring @ luma  # [8, H, W]
+    diff = yr - yc
+    energy = diff.square().mean(0).sqrt()
+    pattern = (diff / (energy + CONTRAST_FLOOR)).permute(1, 2, 0)
+    context = ring.mean(0)
+    surround = context @ luma - yc
+    feat = torch.cat(
+        [
+            W_COLOUR * _opponent(centre),
+            W_CONTEXT * _opponent(context),
+            W_PATTERN * pattern,
+            W_ENERGY * energy[..., None],
+            W_SURROUND * surround[..., None],
+        ],
+        -1,
+    )
+    return feat / feat.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+_RING_DV = tuple(int(x) for x in RING_OFFSETS[:, 0])
+_RING_DU = tuple(int(x) for x in RING_OFFSETS[:, 1])
+
+
+@numba.njit(parallel=True, cache=True)
+def _default_features_kernel(rgb, rows, cols, out):
+    # Flat indexing with constant offsets and integer sums of the raw uint8 samples: the same
+    # values as the reference up to float rounding, at a fraction of the per-pixel cost.
+    H, W = rgb.shape[0], rgb.shape[1]
+    flat = rgb.reshape(-1)
+    inv255 = np.float32(1.0 / 255.0)
+    for i in numba.prange(rows.shape[0]):
+        v, u = rows[i], cols[i]
+        v0, v1 = max(v - 1, 0), min(v + 1, H - 1)
+        u0, u1 = max(u - 1, 0), min(u + 1, W - 1)
+        p0, p1, p2 = (v * W + u) * 3, (v0 * W + u) * 3, (v1 * W + u) * 3
+        p3, p4 = (v * W + u0) * 3, (v * W + u1) * 3
+        sr = np.int32(flat[p0]) + np.int32(flat[p1]) + np.int32(flat[p2]) + np.int32(flat[p3]) + np.int32(flat[p4])
+        sg = np.int32(flat[p0 + 1]) + np.int32(flat[p1 + 1]) + np.int32(flat[p2 + 1]) + np.int32(flat[p3 + 1]) + np.int32(flat[p4 + 1])
+        sb = np.int32(flat[p0 + 2]) + np.int32(flat[p1 + 2]) + np.int32(flat[p2 + 2]) + np.int32(flat[p3 + 2]) + np.int32(flat[p4 + 2])
+        cr = np.float32(sr) * inv255 / np.float32(5.0)
+        cg = np.float32(sg) * inv255 / np.float32(5.0)
+        cb = np.float32(sb) * inv255 / np.float32(5.0)
+        yc = np.float32(0.299) * cr + np.float32(0.587) * cg + np.float32(0.114) * cb
+        rr = 0
+        rg = 0
+        rb = 0
+        e2 = np.float32(0.0)
+        for k in range(8):
+            p = (min(max(v + _RING_DV[k], 0), H - 1) * W + min(max(u + _RING_DU[k], 0), W - 1)) * 3
+            r, g, b = np.int32(flat[p]), np.int32(flat[p + 1]), np.int32(flat[p + 2])
+            rr += r
+            rg += g
+            rb += b
+            d = (np.float32(0.299) * np.float32(r) + np.float32(0.587) * np.float32(g) + np.float32(0.114) * np.float32(b)) * inv255 - yc
+            out[i, 6 + k] = d  # scaled below, once the ring contrast is known
+            e2 += d * d
+        mr = np.float32(rr) * inv255 / np.float32(8.0)
+        mg = np.float32(rg) * inv255 / np.float32(8.0)
+        mb = np.float32(rb) * inv255 / np.float32(8.0)
+        energy = np.sqrt(e2 / np.float32(8.0))
+        yr = np.float32(0.299) * mr + np.float32(0.587) * mg + np.float32(0.114) * mb
+        out[i, 0] = np.float32(W_COLOUR) * (yc - np.float32(0.5))
+        out[i, 1] = np.float32(W_COLOUR) * (cr - cg)
+        out[i, 2] = np.float32(W_COLOUR) * (cb - np.float32(0.5) * (cr + cg))
+        out[i, 3] = np.float32(W_CONTEXT) * (yr - np.float32(0.5))
+        out[i, 4] = np.float32(W_CONTEXT) * (mr - mg)
+        out[i, 5] = np.float32(W_CONTEXT) * (mb - np.float32(0.5) * (mr + mg))
+        scale = np.float32(W_PATTERN) / (energy + np.float32(CONTRAST_FLOOR))
+        for k in range(8):
+            out[i, 6 + k] *= scale
+        out[i, 14] = np.float32(W_ENERGY) * energy
+        out[i, 15] = np.float32(W_SURROUND) * (yr - yc)
+        n2 = np.float32(0.0)
+        for c in range(16):
+            n2 += out[i, c] * out[i, c]
+        inv_norm = np.float32(1.0) / max(np.sqrt(n2), np.float32(1e-12))
+        for c in range(16):
+            out[i, c] *= inv_norm
+
+
+def default_features_at(
+    rgb: np.ndarray,  # [H, W, 3] uint8
+    rows: np.ndarray,  # [M] int pixel rows (v)
+    cols: np.ndarray,  # [M] int pixel columns (u)
+) -> np.ndarray:  # [M, 16] float32
+    """The default descriptor at selected pixels (numba fast path of `default_features_reference`)."""
+    out = np.empty((rows.shape[0], DEFAULT_FEATURE_DIM), np.float32)
+    _default_features_kernel(np.ascontiguousarray(rgb), rows.astype(np.int64), cols.astype(np.int64), out)
+    return out
+
+
+def projection_matrix(in_dim: int, out_dim: int) -> np.ndarray:  # [in_dim, out_dim] float32
+    """A fixed orthonormal-column projection (seeded by the sizes) that maps descriptors to L channels.
+
+    Rows are orthonormal when ``in_dim <= out_dim`` (so cosines are preserved exactly); otherwise
+    columns are orthonormal (a random subspace, cosines preserved on average).
+    """
+    rng = np.random.default_rng(1_000_003 * in_dim + out_dim)
+    a = rng.standard_normal((max(in_dim, out_dim), min(in_dim, out_dim)))
+    q, _ = np.linalg.qr(a)
+    return (q if in_dim >= out_dim else q.T).astype(np.float32)
+
+
+def sample_client_features(
+    features: np.ndarray,  # [H', W', C] float32
+    rows: np.ndarray,  # [M] pixel rows of the full-size image
+    cols: np.ndarray,  # [M] pixel columns
+    image_size: tuple[int, int],  # (H, W) of the frame's image
+) -> np.ndarray:  # [M, C]
+    """Nearest-neighbour lookup of a client feature map of any resolution at full-image pixels."""
+    H, W = image_size
+    h, w = features.shape[:2]
+    # pixel-centre convention: full-image pixel u covers [u - 0.5, u + 0.5] -> map centres.
+    fr = np.clip(np.floor((rows + 0.5) * (h / H)).astype(np.int64), 0, h - 1)
+    fc = np.clip(np.floor((cols + 0.5) * (w / W)).astype(np.int64), 0, w - 1)
+    return features[fr, fc]

@@ -1,0 +1,230 @@
+"""Numba kernels of the streaming fold: an open-addressing int64 -> voxel-index hash and one pass
+that decides representatives, rescales on replacement and accumulates the weighted sums.
+
+Layout: voxel keys pack (i, j, k) + KEY_OFFSET into 21 bits each; ``table`` holds voxel indices
+(-1 = empty) and the key is read back from ``keys[index]``, so the table costs 4 bytes a slot.
+Positions are accumulated in *local voxel units* (offset from the voxel centre, in [-0.5, 0.5]),
+which keeps second moments well conditioned in float32 wherever the voxel sits in the world.
+
+Weighting modes (the ablations): 0 full, 1 no_reliability, 2 no_similarity, 3 average. Modes 1 and 3
+treat every reliability as 1, so the representative is the voxel's first observation.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .config import KEY_BITS, KEY_OFFSET
+
+MODE_CODES = {"full": 0, "no_reliability": 1, "no_similarity": 2, "average": 3}
+_KEY_LIMIT = 1 << KEY_BITS
+_HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+
+
+@numba.njit(inline="always")
+def _slot(key, mask):
+    h = np.uint64(key) * _HASH_MULT
+    return np.int64((h >> np.uint64(29)) & np.uint64(mask))
+
+
+@numba.njit(inline="always")
+def _find(table, keys, key, mask):
+    """Index of ``key`` (>= 0), or -1 - slot of the empty slot where it would go."""
+    s = _slot(key, mask)
+    while True:
+        idx = table[s]
+        if idx < 0:
+            return -1 - s
+        if keys[idx] == key:
+            return idx
+        s = (s + 1) & mask
+
+
+@numba.njit(inline="always")
+def _voxel_coord(x, inv_voxel):
+    return np.int64(np.floor(x * inv_voxel))
+
+
+@numba.njit(inline="always")
+def _pack(i, j, k):
+    a, b, c = i + KEY_OFFSET, j + KEY_OFFSET, k + KEY_OFFSET
+    if a < 0 or b < 0 or c < 0 or a >= _KEY_LIMIT or b >= _KEY_LIMIT or c >= _KEY_LIMIT:
+        return np.int64(-1)
+    return (a << (2 * KEY_BITS)) | (b << KEY_BITS) | c
+
+
+@numba.njit(cache=True)
+def voxel_keys_kernel(points, inv_voxel, out):
+    """Keys of the voxels holding ``points`` ([M, 3] float32); -1 outside the lattice."""
+    for i in range(points.shape[0]):
+        out[i] = _pack(_voxel_coord(points[i, 0], inv_voxel), _voxel_coord(points[i, 1], inv_voxel),
+                       _voxel_coord(points[i, 2], inv_voxel))
+
+
+@numba.njit(cache=True)
+def rebuild_table_kernel(table, keys, n_voxels):
+    table[:] = -1
+    mask = table.shape[0] - 1
+    for idx in range(n_voxels):
+        table[-1 - _find(table, keys, keys[idx], mask)] = idx
+
+
+@numba.njit(cache=True)
+def resolve_kernel(obs_keys, table, keys, local_table, new_keys, obs_voxel):
+    """Phase A (reads the scene, writes only scratch): map observations to existing voxels, and
+    number the keys not yet in the scene in first-occurrence order. Returns the count of new keys.
+
+    obs_voxel[i] = voxel index (>= 0), -2 - j for the j-th new key, or -1 outside the lattice.
+    """
+    mask = table.shape[0] - 1
+    local_mask = local_table.shape[0] - 1
+    local_table[:] = -1
+    n_new = 0
+    for i in range(obs_keys.shape[0]):
+        key = obs_keys[i]
+        if key < 0:
+            obs_voxel[i] = -1
+            continue
+        r = _find(table, keys, key, mask)
+        if r >= 0:
+            obs_voxel[i] = r
+            continue
+        r = _find(local_table, new_keys, key, local_mask)
+        if r >= 0:
+            obs_voxel[i] = -2 - r
+        else:
+            local_table[-1 - r] = n_new
+            new_keys[n_new] = key
+            obs_voxel[i] = -2 - n_new
+            n_new += 1
+    return n_new
+
+
+@numba.njit(inline="always")
+def _inv_norm(a):
+    n2 = np.float32(0.0)
+    for c in range(a.shape[0]):
+        n2 += a[c] * a[c]
+    return np.float32(1.0) / np.sqrt(n2) if n2 > np.float32(1e-20) else np.float32(0.0)
+
+
+@numba.njit(inline="always")
+def _dot(a, b):
+    d = np.float32(0.0)
+    for c in range(a.shape[0]):
+        d += a[c] * b[c]
+    return d
+
+
+@numba.njit(cache=True, parallel=True)
+def fold_kernel(
+    # scene state (rows >= n_voxels are zero)
+    table, keys, rep_r, rep_f, rep_pos, rep_rgb, r_sum, f_sum, rgb_sum, pos_sum, pos_sq,
+    label_sum, label_w, n_obs, stamp, local,
+    n_voxels, frame_no, mode, inv_voxel,
+    # the frame's evidence and phase A's result
+    new_keys, n_new, obs_voxel, rel, feat, rgb, points, labels, has_labels,
+    # scratch [M]
+    touched, best, feat_inv_norm, rep_inv_norm, n_threads,
+):
+    """Phase B: insert the new voxels, pick each touched voxel's frame-best observation, replace
+    representatives that it beats (rescaling the old sums by max(0, cos(old rep, new rep))), then
+    accumulate W = R * max(0, cos(F, F_rep)) weighted sums. Returns (touched, switches).
+
+    The accumulation is split across threads by voxel (vi % threads), and each voxel sums its
+    observations in frame order, so the result is bit-identical for any thread count."""
+    mask = table.shape[0] - 1
+    for j in range(n_new):
+        vi = n_voxels + j
+        keys[vi] = new_keys[j]
+        table[-1 - _find(table, keys, new_keys[j], mask)] = vi
+        rep_r[vi] = np.float32(-1.0)  # below any reliability: the first observation takes it
+    uses_rel = mode == 0 or mode == 2
+    uses_sim = mode == 0 or mode == 1
+    M = obs_voxel.shape[0]
+    for i in numba.prange(M):
+        feat_inv_norm[i] = _inv_norm(feat[i])
+    # 1) frame-local best observation per voxel (first maximum wins, as in the batch rule)
+    n_touched = 0
+    for i in range(M):
+        vi = obs_voxel[i]
+        if vi == -1:
+            continue
+        if vi < -1:
+            vi = n_voxels + (-2 - vi)
+            obs_voxel[i] = vi
+        r = rel[i] if uses_rel else np.float32(1.0)
+        if stamp[vi] != frame_no:
+            stamp[vi] = frame_no
+            local[vi] = n_touched
+            touched[n_touched] = vi
+            best[n_touched] = i
+            n_touched += 1
+        else:
+            b = best[local[vi]]
+            rb = rel[b] if uses_rel else np.float32(1.0)
+            if r > rb:
+                best[local[vi]] = i
+    # 2) representatives: a strictly more reliable observation replaces the running one
+    switches = 0
+    for t in numba.prange(n_touched):
+        vi = touched[t]
+        b = best[t]
+        rb = rel[b] if uses_rel else np.float32(1.0)
+        if rb > rep_r[vi]:
+            if n_obs[vi] > 0:
+                switches += 1
+                s = np.float32(1.0)
+                if uses_sim:
+                    s = max(np.float32(0.0), _dot(rep_f[vi], feat[b]) * _inv_norm(rep_f[vi]) * feat_inv_norm[b])
+                if s != np.float32(1.0):
+                    r_sum[vi] *= s
+                    label_w[vi] *= s
+                    for c in range(f_sum.shape[1]):
+                        f_sum[vi, c] *= s
+                    for c in range(3):
+                        rgb_sum[vi, c] *= s
+                        pos_sum[vi, c] *= s
+                    for c in range(6):
+                        pos_sq[vi, c] *= s
+                    for c in range(label_sum.shape[1]):
+                        label_sum[vi, c] *= s
+            rep_r[vi] = rb
+            rep_f[vi, :] = feat[b]
+            rep_pos[vi, :] = points[b]
+            rep_rgb[vi, :] = rgb[b]
+        rep_inv_norm[t] = _inv_norm(rep_f[vi])
+    # 3) weighted sums, each voxel in observation order (deterministic), voxels split over threads
+    for tid in numba.prange(n_threads):
+        for i in range(M):
+            vi = obs_voxel[i]
+            if vi < 0 or vi % n_threads != tid:
+                continue
+            w = rel[i] if uses_rel else np.float32(1.0)
+            if uses_sim:
+                cos = _dot(feat[i], rep_f[vi]) * feat_inv_norm[i] * rep_inv_norm[local[vi]]
+                w = w * max(np.float32(0.0), cos)
+            n_obs[vi] += 1
+            r_sum[vi] += w
+            for c in range(f_sum.shape[1]):
+                f_sum[vi, c] += w * feat[i, c]
+            lx = points[i, 0] * inv_voxel - (np.floor(points[i, 0] * inv_voxel) + np.float32(0.5))
+            ly = points[i, 1] * inv_voxel - (np.floor(points[i, 1] * inv_voxel) + np.float32(0.5))
+            lz = points[i, 2] * inv_voxel - (np.floor(points[i, 2] * inv_voxel) + np.float32(0.5))
+            for c in range(3):
+                rgb_sum[vi, c] += w * rgb[i, c]
+            pos_sum[vi, 0] += w * lx
+            pos_sum[vi, 1] += w * ly
+            pos_sum[vi, 2] += w * lz
+            pos_sq[vi, 0] += w * lx * lx
+            pos_sq[vi, 1] += w * lx * ly
+            pos_sq[vi, 2] += w * lx * lz
+            pos_sq[vi, 3] += w * ly * ly
+            pos_sq[vi, 4] += w * ly * lz
+            pos_sq[vi, 5] += w * lz * lz
+            if has_labels:
+                label_w[vi] += w
+                for c in range(label_sum.shape[1]):
+                    label_sum[vi, c] += w * labels[i, c]
+    return n_touched, switches
