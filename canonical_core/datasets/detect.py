@@ -1,0 +1,53 @@
+"""Detect a capture's layout from the files it holds, and load it with the matching loader.
+
+Example:
+    >>> seq = load_dataset("../shared/data/slambook_rgbd5", K=(518.0, 519.0, 325.5, 253.5))  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from .sequence import FrameSequence
+from .transforms_json import load_transforms_json
+from .tsdf_fusion import find_frames_folder, load_tsdf_fusion
+from .tum import load_tum
+
+Layout = Literal["transforms_json", "tum", "tsdf_fusion"]
+
+
+def detect_layout(path: str | Path) -> Layout:
+    """Which loader reads ``path``: a transforms.json (file or in the folder) -> "transforms_json";
+    groundtruth.txt, or pose.txt with a color/ folder -> "tum"; frame-*.pose.txt (in the folder or
+    one subfolder) -> "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
+    path = Path(path)
+    if path.is_file() and path.suffix == ".json":
+        return "transforms_json"
+    if not path.is_dir():
+        raise ValueError(f"{path}: not a folder or a transforms.json file")
+    if (path / "transforms.json").is_file():
+        return "transforms_json"
+    if (path / "groundtruth.txt").is_file() or ((path / "pose.txt").is_file() and (path / "color").is_dir()):
+        return "tum"
+    if find_frames_folder(path) is not None:
+        return "tsdf_fusion"
+    raise ValueError(
+        f"{path}: no known capture layout (looked for transforms.json; groundtruth.txt or pose.txt + color/; "
+        "frame-*.pose.txt)"
+    )
+
+
+_LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusion": load_tsdf_fusion}
+
+
+def load_dataset(path: str | Path, **kwargs) -> FrameSequence:
+    """Load any supported capture: detects the layout (`detect_layout`) and passes ``kwargs`` on
+    (e.g. ``K=`` for TUM, ``intrinsics=`` for 7-Scenes, ``stride=`` / ``max_frames=`` for all).
+
+    Example:
+        >>> seq = load_dataset("../shared/data/realsense_shelf", max_frames=4)  # doctest: +SKIP
+        >>> len(seq)  # doctest: +SKIP
+        4
+    """
+    return _LOADERS[detect_layout(path)](path, **kwargs)

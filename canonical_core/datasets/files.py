@@ -1,0 +1,281 @@
+"""Reading and writing the files that capture layouts are made of: images, depth maps, matrices.
+
+Every reader raises ``ValueError`` naming the file and the problem, so a loader's error says which
+file of a capture is missing or broken.
+
+Example:
+    >>> import tempfile, numpy as np
+    >>> from pathlib import Path
+    >>> p = Path(tempfile.mkdtemp()) / "d.png"
+    >>> write_depth(p, np.array([[0.0, 0.5]], np.float32), depth_scale=1000.0)
+    >>> read_depth(p, depth_scale=1000.0).tolist()
+    [[0.0, 0.5]]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from ..camera import Camera, validate_intrinsics
+from ..frame import Frame
+from .distortion import undistort_image
+
+# uint16 depth code for "no measurement" besides 0: 7-Scenes writes 65535 for invalid pixels, and no
+# sensor at a mm (or TUM's 1/5000 m) scale measures 65.5 m (13.1 m), so it is never a real depth.
+DEPTH_INVALID_CODE = 65535
+_PGM_SUFFIXES = (".pgm", ".pnm")
+
+
+def _open_image(path: Path, header_only: bool = False) -> Image.Image:
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        image = Image.open(path)
+        if not header_only:
+            image.load()
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise ValueError(f"{path}: unreadable image ({exc})") from None
+    return image
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file, reading only its header."""
+    with _open_image(Path(path), header_only=True) as image:
+        return image.size
+
+
+def read_rgb(path: str | Path) -> np.ndarray:  # [H, W, 3] uint8
+    """Read an 8-bit colour (or grey, palette, RGBA: alpha dropped) image as uint8 RGB [H, W, 3]."""
+    path = Path(path)
+    image = _open_image(path)
+    if image.mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr"):
+        raise ValueError(f"{path}: expected an 8-bit colour image, got PIL mode {image.mode!r}")
+    return np.array(image.convert("RGB"))  # a writable copy: torch warns on read-only arrays
+
+
+def read_pgm(path: str | Path) -> np.ndarray:  # [H, W] uint16
+    """Read a binary (P5) PGM as raw integers [H, W] uint16.
+
+    Written here rather than left to Pillow: Pillow rescales samples to 0..65535 when the header's
+    maxval is not 65535 (e.g. 4095), which would corrupt depth in millimetres. 16-bit samples are
+    big-endian, as the Netpbm format defines.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    data = path.read_bytes()
+    tokens: list[bytes] = []
+    pos = 0
+    while len(tokens) < 4:  # magic, width, height, maxval; '#' comments may sit between them
+        while pos < len(data) and data[pos : pos + 1].isspace():
+            pos += 1
+        if data[pos : pos + 1] == b"#":
+            pos = data.find(b"\n", pos)
+            if pos < 0:
+                break
+            continue
+        start = pos
+        while pos < len(data) and not data[pos : pos + 1].isspace():
+            pos += 1
+        if start == pos:
+            break
+        tokens.append(data[start:pos])
+    if len(tokens) < 4 or tokens[0] != b"P5":
+        raise ValueError(f"{path}: not a binary PGM (expected header 'P5 width height maxval', got {tokens[:4]})")
+    try:
+        width, height, maxval = (int(t) for t in tokens[1:])
+    except ValueError:
+        raise ValueError(f"{path}: malformed PGM header {tokens}") from None
+    if width <= 0 or height <= 0 or not 0 < maxval < 65536:
+        raise ValueError(f"{path}: invalid PGM header: width={width}, height={height}, maxval={maxval}")
+    pos += 1  # exactly one whitespace byte separates the header from the samples
+    dtype = np.dtype(">u2") if maxval > 255 else np.dtype("u1")
+    count = width * height
+    if len(data) - pos < count * dtype.itemsize:
+        raise ValueError(f"{path}: truncated PGM: {len(data) - pos} bytes of samples, expected {count * dtype.itemsize}")
+    samples = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
+    return samples.reshape(height, width).astype(np.uint16)
+
+
+def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:  # [H, W] float32 metres
+    """Read a 16-bit depth image (PNG/TIFF, or binary PGM) as float32 metres: value / depth_scale.
+
+    0 and 65535 (the 7-Scenes invalid code) become 0 = missing.
+
+    Example:
+        >>> d = read_depth("frame-000015.depth.png", depth_scale=1000.0)  # doctest: +SKIP
+    """
+    path = Path(path)
+    if not depth_scale > 0:
+        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    if path.suffix.lower() in _PGM_SUFFIXES:
+        raw = read_pgm(path)
+    else:
+        image = _open_image(path)
+        if image.mode not in ("I;16", "I;16B", "I;16L", "I"):
+            raise ValueError(f"{path}: expected a 16-bit single-channel depth image, got PIL mode {image.mode!r}")
+        raw = np.asarray(image)
+        if raw.dtype != np.uint16:  # mode "I" is int32: accept it only when it holds 16-bit values
+            if raw.size and (raw.min() < 0 or raw.max() > DEPTH_INVALID_CODE):
+                raise ValueError(f"{path}: depth values {raw.min()}..{raw.max()} do not fit 16 bits")
+            raw = raw.astype(np.uint16)
+    metres = raw.astype(np.float64) / depth_scale
+    metres[(raw == 0) | (raw == DEPTH_INVALID_CODE)] = 0.0
+    return metres.astype(np.float32)
+
+
+def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
+    """Write uint8 [H, W, 3] as PNG (lossless, so a re-read equals the input)."""
+    Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), mode="RGB").save(path, format="PNG")
+
+
+def write_depth(path: str | Path, depth: np.ndarray, depth_scale: float) -> None:
+    """Write float metres [H, W] as a uint16 PNG of round(depth * depth_scale); 0 = missing.
+
+    Raises ValueError when a depth does not fit (>= 65535 / depth_scale metres) or is negative.
+    """
+    if not depth_scale > 0:
+        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    depth = np.asarray(depth, dtype=np.float64)
+    depth = np.where(np.isfinite(depth), depth, 0.0)
+    raw = np.round(depth * depth_scale)
+    if raw.size and (raw.min() < 0 or raw.max() >= DEPTH_INVALID_CODE):
+        raise ValueError(
+            f"{path}: depth {depth.min():g}..{depth.max():g} m does not fit a uint16 PNG at depth_scale={depth_scale:g} "
+            f"(valid 0..{(DEPTH_INVALID_CODE - 1) / depth_scale:g} m)"
+        )
+    Image.fromarray(raw.astype(np.uint16)).save(path, format="PNG")
+
+
+def read_text(path: str | Path) -> str:
+    """A text file's contents; ValueError naming the file when it is missing or not text."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable text file ({exc})") from None
+
+
+def read_numbers(path: str | Path, count: int) -> np.ndarray:  # [count] float64
+    """Read exactly ``count`` whitespace-separated numbers from a text file ('#' starts a comment)."""
+    text = read_text(path)
+    words = [w for line in text.splitlines() for w in line.split("#", 1)[0].split()]
+    if len(words) != count:
+        raise ValueError(f"{path}: expected {count} numbers, got {len(words)}")
+    return parse_floats(words, str(path))
+
+
+def parse_floats(words: Sequence[str], where: str) -> np.ndarray:  # [len(words)] float64
+    """Words -> float64 array; ValueError naming ``where`` and the offending word."""
+    try:
+        return np.array([float(w) for w in words])
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def read_matrix(path: str | Path, rows: int, cols: int) -> np.ndarray:  # [rows, cols] float64
+    """Read a rows x cols matrix written as text (one row a line, as tsdf-fusion and 7-Scenes do)."""
+    return read_numbers(path, rows * cols).reshape(rows, cols)
+
+
+def write_matrix(path: str | Path, matrix: np.ndarray) -> None:
+    """Write a matrix as text, one row a line, with enough digits to re-read float64 exactly."""
+    lines = (" ".join(f"{x:.17g}" for x in row) for row in np.asarray(matrix, dtype=np.float64))
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def as_intrinsics(value, field: str = "intrinsics") -> np.ndarray:  # [3, 3] float64
+    """A 3x3 K from a 3x3 array-like or a 4-vector (fx, fy, cx, cy), validated.
+
+    Example:
+        >>> as_intrinsics((585, 585, 320, 240)).tolist()
+        [[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]]
+    """
+    array = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64)
+    if array.shape == (4,):
+        fx, fy, cx, cy = array
+        array = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    elif array.shape != (3, 3):
+        raise ValueError(f"{field}: expected a 3x3 matrix or (fx, fy, cx, cy), got shape {list(array.shape)}")
+    return validate_intrinsics(array, field)
+
+
+def find_one(folders: Sequence[Path], patterns: Sequence[str]) -> Path | None:
+    """The first file matching ``patterns`` (in order) in ``folders`` (in order), or None.
+
+    Raises ValueError when one pattern matches several files in a folder (which one is meant?).
+    """
+    for folder in folders:
+        for pattern in patterns:
+            hits = sorted(p for p in folder.glob(pattern) if p.is_file())
+            if len(hits) > 1:
+                raise ValueError(f"{folder}: several files match {pattern!r}: {[h.name for h in hits]}")
+            if hits:
+                return hits[0]
+    return None
+
+
+def read_intrinsics_file(path: Path) -> np.ndarray:  # [3, 3] float64
+    """Read and validate a 3x3 intrinsics text file."""
+    return validate_intrinsics(read_matrix(path, 3, 3), str(path))
+
+
+def select(items: Sequence, stride: int, max_frames: int | None) -> list:
+    """Every ``stride``-th item, at most ``max_frames`` of them (input checks name the argument)."""
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"stride: expected a positive integer, got {stride!r}")
+    if max_frames is not None and (
+        isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1
+    ):
+        raise ValueError(f"max_frames: expected a positive integer or None, got {max_frames!r}")
+    return list(items[::stride][:max_frames])
+
+
+@dataclass(frozen=True, eq=False)
+class RGBDFile:
+    """One frame on disk, resolved and checked but not read: ``load()`` reads the images.
+
+    Attributes:
+        frame_id: the frame's identifier (file stem or timestamp).
+        color: colour image path.
+        depth: depth image path, or None for an RGB-only frame.
+        K: [3, 3] float64 intrinsics; c2w: [4, 4] float64 camera-to-world, OpenCV axes.
+        depth_scale: raw depth units per metre (metres = value / depth_scale).
+        size: expected (width, height) when the layout states it, else taken from the image.
+        distortion: OpenCV (k1, k2, p1, p2, k3) to undo on load, or None for a pinhole image.
+    """
+
+    frame_id: str
+    color: Path
+    depth: Path | None
+    K: np.ndarray
+    c2w: np.ndarray
+    depth_scale: float = 1000.0
+    size: tuple[int, int] | None = None
+    distortion: tuple[float, ...] | None = None
+
+    def load(self) -> Frame:
+        rgb = read_rgb(self.color)
+        depth = None if self.depth is None else read_depth(self.depth, self.depth_scale)
+        height, width = rgb.shape[:2]
+        if depth is not None and depth.shape != (height, width):
+            raise ValueError(
+                f"{self.depth}: depth size {depth.shape[1]}x{depth.shape[0]} does not match "
+                f"the colour image {self.color} ({width}x{height})"
+            )
+        if self.size is not None and self.size != (width, height):
+            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
+        if self.distortion is not None:
+            rgb = undistort_image(rgb, self.K, self.distortion, mode="bilinear")
+            if depth is not None:
+                # nearest: interpolating across a depth edge would invent surfaces between objects
+                depth = undistort_image(depth, self.K, self.distortion, mode="nearest")
+        camera = Camera(self.K, self.c2w, width, height)
+        return Frame(rgb=rgb, camera=camera, depth=depth, frame_id=self.frame_id)

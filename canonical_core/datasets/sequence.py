@@ -1,0 +1,71 @@
+"""`FrameSequence`: a lazily-loading, sliceable sequence of `Frame`s.
+
+A loader resolves a capture into sources (a frame id and a way to read it) up front, so missing
+files and malformed poses fail at load time; images are read only when a frame is indexed.
+
+Example:
+    >>> from canonical_core.datasets import synthetic_rgbd
+    >>> seq = synthetic_rgbd(num_frames=4, width=64, height=48)
+    >>> len(seq), seq.frame_ids[:2], len(seq[1:3]), seq[-1].frame_id
+    (4, ['000000', '000001'], 2, '000003')
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Sequence
+from typing import Protocol, overload
+
+from ..frame import Frame
+
+
+class FrameSource(Protocol):
+    """Anything with a ``frame_id`` and a ``load()`` that returns the `Frame`."""
+
+    frame_id: str
+
+    def load(self) -> Frame: ...
+
+
+class FrameSequence(Sequence[Frame]):
+    """Frames of one capture, read on access.
+
+    Args:
+        name: a human-readable name (usually the capture's folder name).
+        sources: one `FrameSource` per frame, in order.
+
+    ``seq[i]`` (negative too) reads and returns frame i; ``seq[a:b:c]`` returns a FrameSequence
+    without reading anything; ``seq.frame_ids`` lists ids without reading images.
+    """
+
+    def __init__(self, name: str, sources: Sequence[FrameSource]):
+        if not isinstance(name, str):
+            raise ValueError(f"name: expected a string, got {type(name).__name__}")
+        self.name = name
+        self._sources = tuple(sources)
+
+    @property
+    def frame_ids(self) -> list[str]:
+        return [s.frame_id for s in self._sources]
+
+    def __len__(self) -> int:
+        return len(self._sources)
+
+    @overload
+    def __getitem__(self, index: int) -> Frame: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> "FrameSequence": ...
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return FrameSequence(self.name, self._sources[index])
+        i = operator.index(index)  # TypeError for non-integers, as list does
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame index {i} out of range for {len(self)} frames")
+        return self._sources[i].load()
+
+    def __repr__(self) -> str:
+        ids = self.frame_ids
+        shown = ids if len(ids) <= 4 else ids[:2] + ["..."] + ids[-1:]
+        return f"FrameSequence({self.name!r}, {len(self)} frames, ids={shown})"

@@ -1,0 +1,39 @@
+"""Fixtures shared across the suite: the real captures in ../shared/data (skipped when absent)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import Camera, Frame
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shelf_dir() -> Path:
+    path = DATA / "realsense_shelf"
+    if not path.is_dir():
+        pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def shelf_frames(shelf_dir) -> list[Frame]:
+    """All 50 shelf frames (640x480, sensor depth), loaded once."""
+    from canonical_core.datasets import load_tsdf_fusion
+
+    return list(load_tsdf_fusion(shelf_dir))
+
+
+def make_frame(depth, rgb=None, features=None, depth_std=None, labels=None, fx=1.0, c2w=None) -> Frame:
+    """A small hand-made frame: pixel (u, v) lifts to ((u - cx) z / fx, (v - cy) z / fx, z), cx = cy = 0."""
+    depth = np.asarray(depth, np.float32)
+    h, w = depth.shape
+    rgb = np.full((h, w, 3), 128, np.uint8) if rgb is None else np.asarray(rgb, np.uint8)
+    cam = Camera(K=[[fx, 0, 0], [0, fx, 0], [0, 0, 1]], c2w=np.eye(4) if c2w is None else c2w, width=w, height=h)
+    as_t = lambda a: None if a is None else torch.as_tensor(np.asarray(a, np.float32))  # noqa: E731
+    return Frame(rgb=rgb, camera=cam, depth=depth, depth_std=as_t(depth_std), features=as_t(features), labels=as_t(labels))

@@ -1,0 +1,96 @@
+"""FrameSequence behaviour, layout detection, and the shared PGM / depth readers."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from canonical_core.datasets import FrameSequence, load_dataset, synthetic_rgbd, write_tsdf_fusion
+from canonical_core.datasets.files import read_depth, read_pgm
+
+
+def test_sequence_indexing(tiny_tsdf):
+    seq = load_dataset(tiny_tsdf)
+    assert len(seq) == 3 and seq[-1].frame_id == seq[2].frame_id == "frame-000002"
+    assert seq[np.int64(1)].frame_id == "frame-000001"
+    part = seq[::2]
+    assert isinstance(part, FrameSequence) and part.frame_ids == ["frame-000000", "frame-000002"]
+    assert part.name == seq.name and "3 frames" in repr(seq)
+    assert [f.frame_id for f in seq] == seq.frame_ids
+    with pytest.raises(IndexError, match="frame index 3 out of range for 3 frames"):
+        seq[3]
+    with pytest.raises(IndexError):
+        seq[-4]
+    with pytest.raises(TypeError):
+        seq["0"]
+
+
+def test_sequence_is_lazy(tiny_tsdf, tmp_path):
+    copy = shutil.copytree(tiny_tsdf, tmp_path / "cap")
+    seq = load_dataset(copy)
+    for png in copy.glob("*.png"):
+        png.unlink()
+    assert seq.frame_ids == ["frame-000000", "frame-000001", "frame-000002"]  # no image needed
+    with pytest.raises(ValueError, match=r"frame-000001\.color\.png: file not found"):
+        seq[1]
+
+
+def test_detect_and_dispatch(shelf_path, slambook_path, slambook_K, tiny_tsdf):
+    assert load_dataset(shelf_path, max_frames=2).frame_ids == ["frame-000015", "frame-000017"]
+    assert load_dataset(slambook_path, K=slambook_K).frame_ids == ["1", "2", "3", "4", "5"]
+    assert len(load_dataset(tiny_tsdf, stride=2)) == 2
+
+
+def test_detect_transforms_json(tmp_path):
+    seq = write_tsdf_fusion(synthetic_rgbd(num_frames=1, width=16, height=12), tmp_path)
+    (tmp_path / "transforms.json").write_text(
+        '{"fl_x": 12.8, "w": 16, "h": 12, "frames": [{"file_path": "frame-000000.color.png", '
+        '"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}'
+    )
+    for path in (seq, tmp_path / "transforms.json"):
+        f = load_dataset(path)[0]
+        assert f.frame_id == "frame-000000.color" and f.depth is None  # transforms.json wins
+        assert np.allclose(f.camera.c2w64(), np.diag([1.0, -1, -1, 1]))  # OpenGL -> OpenCV
+
+
+def test_nothing_matches(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ValueError, match=rf"{tmp_path}: no known capture layout"):
+        load_dataset(tmp_path)
+    with pytest.raises(ValueError, match="not a folder or a transforms.json"):
+        load_dataset(tmp_path / "missing")
+
+
+def _pgm(path, values, maxval, comment=b""):
+    dtype = ">u2" if maxval > 255 else "u1"
+    h, w = values.shape
+    path.write_bytes(b"P5\n" + comment + b"%d %d\n%d\n" % (w, h, maxval) + values.astype(dtype).tobytes())
+
+
+def test_pgm_keeps_raw_values(tmp_path):
+    # Pillow 13 rescales samples to 0..65535 when maxval is not 65535; depth must stay in raw units
+    values = np.array([[0, 1000, 4095], [300, 1, 2]])
+    _pgm(tmp_path / "d.pgm", values, 4095, comment=b"# a comment\n")
+    assert read_pgm(tmp_path / "d.pgm").tolist() == values.tolist()
+    assert np.allclose(read_depth(tmp_path / "d.pgm", 1000.0), values / 1000.0)
+    _pgm(tmp_path / "b.pgm", np.array([[7, 255]]), 255)
+    assert read_pgm(tmp_path / "b.pgm").tolist() == [[7, 255]]
+
+
+def test_pgm_and_depth_errors(tmp_path):
+    (tmp_path / "t.pgm").write_bytes(b"P5\n4 4\n65535\n" + b"\x00" * 10)
+    with pytest.raises(ValueError, match=r"t\.pgm: truncated PGM"):
+        read_pgm(tmp_path / "t.pgm")
+    (tmp_path / "a.pgm").write_bytes(b"P2\n1 1\n255\n7\n")
+    with pytest.raises(ValueError, match=r"a\.pgm: not a binary PGM"):
+        read_pgm(tmp_path / "a.pgm")
+    with pytest.raises(ValueError, match=r"x\.pgm: file not found"):
+        read_depth(tmp_path / "x.pgm", 1000.0)
+    with pytest.raises(ValueError, match="depth_scale: expected a positive number, got 0"):
+        read_depth(tmp_path / "a.pgm", 0)
+    Image.new("RGB", (2, 2)).save(tmp_path / "c.png")
+    with pytest.raises(ValueError, match=r"c\.png: expected a 16-bit single-channel depth image, got PIL mode 'RGB'"):
+        read_depth(tmp_path / "c.png", 1000.0)

@@ -1,0 +1,91 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import SceneConfig
+from canonical_core.camera import quaternion_to_matrix
+from canonical_core.decode import FOOTPRINT_GAIN, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion
+from canonical_core.scene import Scene
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_opacity_is_non_decreasing_in_support_for_any_weights(seed):
+    head = MonotoneOpacity()
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in head.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 5)  # negative values included
+    support = torch.linspace(0, 20, 2001)
+    opacity = torch.sigmoid(head(1 - torch.exp(-support)))
+    assert (opacity[1:] - opacity[:-1] >= -1e-7).all()
+
+
+def test_opacity_initialisation_is_the_analytic_line():
+    head = MonotoneOpacity(slope=10.0, bias=-3.0)
+    r = torch.linspace(0, 1, 11)
+    assert torch.allclose(head(r), 10 * r - 3)
+
+
+def test_quaternion_round_trip():
+    q = torch.randn(200, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    q = q / q.norm(dim=1, keepdim=True)
+    R = torch.from_numpy(quaternion_to_matrix(q.numpy()))
+    q2 = matrix_to_quaternion(R)
+    assert torch.allclose(q2.abs(), q.abs(), atol=1e-9) and ((q2 * q).sum(1).abs() > 1 - 1e-9).all()
+
+
+def fields_of_planar_voxel(voxel=0.1):
+    """One voxel whose points spread over the z = const plane (uniform in x, y)."""
+    xs, ys = np.meshgrid(np.linspace(-0.04, 0.04, 9), np.linspace(-0.04, 0.04, 9))
+    pts = np.stack([xs.ravel() + 0.05, ys.ravel() + 0.05, np.full(81, 0.05)], 1)
+    cov = np.cov(pts.T, bias=True)
+    return {
+        "reliability": torch.tensor([3.0]),
+        "features": torch.randn(1, 4),
+        "representative_position": torch.tensor([[0.05, 0.05, 0.05]]),
+        "position_cov": torch.from_numpy(cov[None]).float(),
+        "color": torch.tensor([[0.2, 0.4, 0.6]]),
+    }, cov
+
+
+def test_analytic_initialisation():
+    dec = GaussianDecoder(feature_dim=4)
+    fields, cov = fields_of_planar_voxel()
+    g = dec(fields, voxel_size=0.1)
+    assert torch.equal(g.means, fields["representative_position"])  # offset head starts at zero
+    assert torch.allclose(g.colors, fields["color"], atol=1e-6)
+    assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(10 * (1 - math.exp(-3)) - 3))), rel=1e-5)
+    # smallest axis along the plane normal (clamped thickness), in-plane std = moment std x gain
+    R = torch.from_numpy(quaternion_to_matrix(g.quats.numpy()))[0]
+    normal_axis = R[:, g.scales[0].argmin()]
+    assert abs(normal_axis[2].item()) > 0.999
+    assert g.scales[0].min().item() == pytest.approx(0.05 * 0.1, rel=1e-5)
+    in_plane = math.sqrt(cov[0, 0]) * FOOTPRINT_GAIN
+    assert sorted(g.scales[0].tolist())[1:] == pytest.approx([in_plane, in_plane], rel=1e-4)
+
+
+def test_scales_are_clamped_to_the_voxel_scale():
+    dec = GaussianDecoder(feature_dim=4)
+    fields, _ = fields_of_planar_voxel()
+    fields["position_cov"] = torch.eye(3)[None] * 10.0  # absurdly wide
+    assert dec(fields, voxel_size=0.1).scales.max().item() == pytest.approx(0.1)
+    fields["position_cov"] = torch.zeros(1, 3, 3)  # a single observation
+    s = dec(fields, voxel_size=0.1).scales[0]
+    assert sorted(s.tolist()) == pytest.approx([0.005, 0.03, 0.03])
+
+
+def test_level_of_detail_keeps_best_supported(shelf_frames):
+    scene = Scene(SceneConfig(voxel_size=0.004))
+    for f in shelf_frames[:3]:
+        scene.fold(f)
+    support = scene.fields(sort=False)["reliability"]
+    full = scene.decode()
+    top = scene.decode(max_gaussians=1000)
+    assert len(full) == int((support > 0).sum()) and len(top) == 1000
+    threshold = torch.sort(support, descending=True).values[999]
+    assert (scene.decode(min_support=threshold.item()).opacities.numel()) <= 1000
+    assert top.opacities.min() >= full.opacities.min()
+    with pytest.raises(ValueError, match="max_gaussians"):
+        scene.decode(max_gaussians=-1)

@@ -1,0 +1,51 @@
+import numpy as np
+import torch
+
+from canonical_core import SceneConfig
+from canonical_core.evidence import AppearanceUncertainty, extract_evidence, positional_uncertainty, positional_uncertainty_reference
+
+from ..conftest import make_frame
+
+
+def test_fast_u_pos_equals_reference_with_holes_and_edges():
+    rng = np.random.default_rng(0)
+    depth = (0.3 + rng.random((20, 30)) * 0.1).astype(np.float32)
+    depth[rng.random((20, 30)) < 0.4] = 0  # holes say nothing about edges
+    depth[5:9, 10:14] += 0.5  # a real depth step
+    std = (rng.random((20, 30)) * 0.003).astype(np.float32)
+    rows, cols = np.nonzero(depth > 0)
+    for s in (None, std):
+        fast = positional_uncertainty(depth, rows, cols, 0.004, depth_std=s)
+        ref = positional_uncertainty_reference(torch.from_numpy(depth), 0.004, None if s is None else torch.from_numpy(s))
+        assert np.allclose(fast, ref.numpy()[rows, cols], rtol=1e-5, atol=1e-5)
+
+
+def test_u_pos_is_in_voxel_units_so_reliability_ignores_the_unit():
+    depth = np.full((6, 6), 2.0, np.float32)
+    ev_m = extract_evidence(make_frame(depth, depth_std=np.full((6, 6), 0.01)), SceneConfig(voxel_size=0.02))
+    ev_cm = extract_evidence(make_frame(depth * 100, depth_std=np.full((6, 6), 1.0)), SceneConfig(voxel_size=2.0, far=1e4))
+    assert np.allclose(ev_m.u_pos, 0.5) and np.allclose(ev_m.reliability, ev_cm.reliability)
+    assert np.allclose(ev_m.reliability, np.exp(-0.5))
+
+
+def test_sensor_model_makes_far_and_edge_pixels_less_reliable():
+    depth = np.full((10, 10), 0.5, np.float32)
+    depth[:, 5:] = 1.5  # a step: columns 4 and 5 are edge pixels
+    ev = extract_evidence(make_frame(depth), SceneConfig(voxel_size=0.004))
+    r = ev.reliability.reshape(10, 10)
+    assert r[5, 0] > r[5, 9] > 0  # nearer is more reliable (sigma grows with z^2)
+    assert r[5, 4] < 1e-3 * r[5, 0] and r[5, 5] < 1e-3 * r[5, 9]  # flying pixels on the step
+
+
+def test_appearance_uncertainty_starts_at_zero_and_can_lower_reliability():
+    app = AppearanceUncertainty(16)
+    f = torch.randn(7, 16)
+    assert app.is_zero and torch.equal(app(f), torch.zeros(7))
+    depth = np.full((6, 6), 1.0, np.float32)
+    frame = make_frame(depth)
+    base = extract_evidence(frame, SceneConfig(voxel_size=0.01), app).reliability
+    with torch.no_grad():
+        app.mlp[2].bias.fill_(0.7)
+    assert not app.is_zero
+    lowered = extract_evidence(frame, SceneConfig(voxel_size=0.01), app).reliability
+    assert np.allclose(lowered, base * np.exp(-0.7), rtol=1e-5)

@@ -1,0 +1,49 @@
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import Camera, Frame
+
+CAM = Camera([[50.0, 0, 8], [0, 50.0, 6], [0, 0, 1]], np.eye(4), 16, 12)
+RGB = np.zeros((12, 16, 3), np.uint8)
+
+
+def test_valid_frame_and_missing_depth_normalised():
+    depth = np.ones((12, 16), np.float32)
+    depth[0, 0], depth[0, 1] = np.nan, np.inf
+    f = Frame(rgb=RGB, camera=CAM, depth=depth, features=np.zeros((3, 4, 5), np.float32), labels=torch.zeros(6, 8, 2))
+    assert f.depth[0, 0] == 0 and f.depth[0, 1] == 0 and f.depth[1, 1] == 1
+    assert f.features.shape == (3, 4, 5) and f.labels.shape == (6, 8, 2) and f.has_depth
+
+
+@pytest.mark.parametrize(
+    "kwargs, field, message",
+    [
+        (dict(rgb=np.zeros((12, 16), np.uint8)), "rgb", "shape"),
+        (dict(rgb=np.zeros((12, 16, 3), np.float32)), "rgb", "uint8"),
+        (dict(rgb=[[0]]), "rgb", "numpy"),
+        (dict(rgb=np.zeros((10, 16, 3), np.uint8)), "camera", "does not match"),
+        (dict(camera="cam"), "camera", "Camera"),
+        (dict(depth=np.ones((12, 15), np.float32)), "depth", "shape"),
+        (dict(depth=np.ones((12, 16), np.uint16)), "depth", "float"),
+        (dict(depth=-np.ones((12, 16), np.float32)), "depth", "negative"),
+        (dict(depth=np.ones((12, 16), np.float32), depth_std=np.full((12, 16), np.nan, np.float32)), "depth_std", "NaN"),
+        (dict(depth=np.ones((12, 16), np.float32), depth_std=-np.ones((12, 16), np.float32)), "depth_std", "negative"),
+        (dict(depth_std=np.ones((12, 16), np.float32)), "depth_std", "without depth"),
+        (dict(features=np.zeros((4, 5), np.float32)), "features", "shape"),
+        (dict(features=np.full((4, 5, 2), np.inf, np.float32)), "features", "NaN"),
+        (dict(labels=np.zeros((4, 5, 2), np.int64)), "labels", "float"),
+        (dict(frame_id=5), "frame_id", "string"),
+    ],
+)
+def test_validation_names_field_and_problem(kwargs, field, message):
+    args = dict(rgb=RGB, camera=CAM) | kwargs
+    with pytest.raises(ValueError) as err:
+        Frame(**args)
+    assert str(err.value).startswith(field) and message in str(err.value)
+
+
+def test_image_too_large_is_rejected():
+    big = Camera([[50.0, 0, 8], [0, 50.0, 6], [0, 0, 1]], np.eye(4), 5000, 4000)
+    with pytest.raises(ValueError, match="rgb: image of 5000x4000"):
+        Frame(rgb=torch.zeros(4000, 5000, 3, dtype=torch.uint8), camera=big)
