@@ -1,0 +1,43 @@
+"""Shared pieces of the benchmarks: the machine header and a plain-text table printer."""
+
+from __future__ import annotations
+
+import os
+import platform
+
+import numpy as np
+
+
+def machine_summary() -> str:
+    """One paragraph naming the machine, so every printed table says where it ran."""
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    import numba
+    import torch
+
+    return (f"machine: {platform.node()} | {cpu} | {os.cpu_count()} cores | {platform.system()} {platform.release()}\n"
+            f"python {platform.python_version()} | torch {torch.__version__} ({torch.get_num_threads()} threads) | "
+            f"numba {numba.__version__} ({numba.get_num_threads()} threads) | numpy {np.__version__}\n")
+
+
+def stats_ms(values) -> str:
+    v = np.asarray(values, dtype=np.float64)
+    return f"{np.median(v):.2f} / {v.min():.2f} / {v.max():.2f}"
+
+
+def print_table(title: str, rows: list[dict]) -> None:
+    """Print ``rows`` (dicts with the same keys) as an aligned Markdown table under ``title``."""
+    if not rows:
+        return
+    cols = list(rows[0])
+    width = {c: max(len(c), *(len(str(r.get(c, ""))) for r in rows)) for c in cols}
+    print(f"### {title}")
+    print("| " + " | ".join(c.ljust(width[c]) for c in cols) + " |")
+    print("|" + "|".join("-" * (width[c] + 2) for c in cols) + "|")
+    for r in rows:
+        print("| " + " | ".join(str(r.get(c, "")).ljust(width[c]) for c in cols) + " |")
+    print()

@@ -1,0 +1,137 @@
+"""Fold benchmark: ms per frame, growth behaviour on a long stream, bytes per voxel, Open3D peer.
+
+    python bench/fold.py [--data ../shared/data/realsense_shelf] [--voxel 0.004] [--long 510]
+
+Prints tables (medians, min, max) and the machine they ran on. Never asserts timings. Open3D's
+VoxelBlockGrid TSDF integration runs on the same frames and voxel size in the same run when the
+`bench` extra is installed (``pip install -e '.[bench]'``; Debian needs ``libusb-1.0-0``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine_summary, print_table, stats_ms  # noqa: E402
+
+from canonical_core import Frame, SceneConfig  # noqa: E402
+from canonical_core.camera import quaternion_to_matrix  # noqa: E402
+from canonical_core.datasets import load_dataset, synthetic_rgbd  # noqa: E402
+from canonical_core.evidence import extract_evidence  # noqa: E402
+from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available  # noqa: E402
+from canonical_core.scene import Scene  # noqa: E402
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def downscale(frame: Frame, factor: int) -> Frame:
+    """Nearest-neighbour downscale by an integer factor (depth must not be interpolated)."""
+    rgb = frame.rgb[factor // 2:: factor, factor // 2:: factor]
+    depth = frame.depth[factor // 2:: factor, factor // 2:: factor]
+    cam = frame.camera.scaled(1.0 / factor)
+    return Frame(rgb=rgb.contiguous(), camera=cam, depth=depth.contiguous(), frame_id=frame.frame_id)
+
+
+def jittered(frame: Frame, rng: np.random.Generator, translation: float, angle: float) -> Frame:
+    """The frame with its pose perturbed by a small random rigid motion (a long, slowly growing stream)."""
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    a = rng.normal(0.0, angle)
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(np.r_[np.cos(a / 2), np.sin(a / 2) * axis])
+    T[:3, 3] = rng.normal(0.0, translation, 3)
+    return dataclasses.replace(frame, camera=frame.camera.with_pose(frame.camera.c2w64() @ T))
+
+
+def time_folds(frames, config: SceneConfig) -> tuple[list[float], Scene]:
+    scene = Scene(config)
+    ms = []
+    for f in frames:
+        t0 = time.perf_counter()
+        scene.fold(f)
+        ms.append((time.perf_counter() - t0) * 1000)
+    return ms, scene
+
+
+def time_evidence(frames, config: SceneConfig) -> list[float]:
+    ms = []
+    for f in frames:
+        t0 = time.perf_counter()
+        extract_evidence(f, config)
+        ms.append((time.perf_counter() - t0) * 1000)
+    return ms
+
+
+def time_open3d(frames, voxel: float) -> list[float]:
+    tsdf = Open3DTSDF(voxel)
+    ms = []
+    for f in frames:
+        t0 = time.perf_counter()
+        tsdf.integrate(f)
+        ms.append((time.perf_counter() - t0) * 1000)
+    return ms
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default: the shelf capture)")
+    p.add_argument("--voxel", type=float, default=0.004)
+    p.add_argument("--long", type=int, default=510, help="frames in the long-stream test")
+    p.add_argument("--repeats", type=int, default=3, help="passes over the frames per measurement")
+    args = p.parse_args(argv)
+
+    frames = list(load_dataset(args.data)) if args.data.is_dir() else list(synthetic_rgbd(num_frames=50, width=640, height=480))
+    name = args.data.name if args.data.is_dir() else "synthetic (../shared/data not found)"
+    print(machine_summary())
+    print(f"data: {name}, {len(frames)} frames, {frames[0].width}x{frames[0].height}; voxel {args.voxel * 1000:g} mm; "
+          f"feature dim 16; each row: {args.repeats} passes over all frames, fresh scene per pass\n")
+    config = SceneConfig(voxel_size=args.voxel)
+    time_folds(frames[:2], config)  # compile / load the numba cache outside the measurement
+
+    rows = []
+    have_o3d = open3d_available()
+    for label, factor in (("640x480", 1), ("320x240", 2)):
+        fs = frames if factor == 1 else [downscale(f, factor) for f in frames]
+        fold_ms, ev_ms, o3d_ms, scene = [], [], [], None
+        for _ in range(args.repeats):
+            ms, scene = time_folds(fs, config)
+            fold_ms += ms
+            ev_ms += time_evidence(fs, config)
+            if have_o3d:
+                o3d_ms += time_open3d(fs, args.voxel)
+        row = {"size": label, "fold ms (med/min/max)": stats_ms(fold_ms), "of which evidence ms": stats_ms(ev_ms)}
+        if have_o3d:
+            row["Open3D integrate ms"] = stats_ms(o3d_ms)
+            row["ratio ours/Open3D (median)"] = f"{np.median(fold_ms) / np.median(o3d_ms):.2f}"
+        row["voxels"] = f"{len(scene):,}"
+        row["bytes/voxel"] = f"{scene.bytes_per_voxel():.0f}"
+        row["allocated bytes/voxel"] = f"{scene.memory_bytes() / len(scene):.0f}"
+        rows.append(row)
+    print_table("Fold per frame (evidence + aggregation)", rows)
+    if not have_o3d:
+        print("Open3D not installed: install the `bench` extra for the peer column.\n")
+
+    rng = np.random.default_rng(0)
+    stream = [jittered(frames[k % len(frames)], rng, translation=0.002, angle=np.deg2rad(0.3)) for k in range(args.long)]
+    ms, scene = time_folds(stream, config)
+    early, late = np.median(ms[5:16]), np.median(ms[args.long - 16: args.long - 5])
+    print_table(
+        f"Long stream: {args.long} frames cycling the capture with 2 mm / 0.3 deg pose jitter",
+        [{"window": "frames 5-15 (at 10)", "median ms": f"{early:.2f}", "voxels at end": f"{len(scene):,}"},
+         {"window": f"frames {args.long - 16}-{args.long - 6} (at {args.long - 10})", "median ms": f"{late:.2f}",
+          "voxels at end": f"{len(scene):,}"},
+         {"window": "ratio late/early", "median ms": f"{late / early:.2f}", "voxels at end": ""},
+         {"window": "max over the stream (growth spikes)", "median ms": f"{max(ms):.1f}", "voxels at end": ""}],
+    )
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(2)
+    main()

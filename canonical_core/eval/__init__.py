@@ -1,0 +1,1 @@
+"""Evaluation: metrics, protocols and baselines (the classical peer lives in `open3d_tsdf`)."""
