@@ -1,12 +1,14 @@
 """Dec: scene fields -> 3D Gaussians, initialised at an analytic solution.
 
 For each voxel with support:
-    r        = 1 - exp(-R_scene)
-    opacity  = sigmoid(MonotoneOpacity(r))            (non-decreasing in r for any parameters)
+    r        = 1 - exp(-R_scene),   q = 1 - exp(-free-space evidence)
+    opacity  = sigmoid(support(r) - penalty(q))       (support, penalty: monotone heads, so opacity is
+                                                       non-decreasing in R_scene and non-increasing in
+                                                       free-space evidence for any parameters)
     mean     = representative lifted point + voxel_size * offset(F_scene)
     Sigma    = weighted second moments of the lifted points, per-axis std scaled by the footprint
                gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
-    colour   = fused colour + delta(F_scene)           (SH DC)
+    colour   = streamed SH fit (DC = fused colour at degree 0) + delta(F_scene) on the DC term
 The heads on F_scene start at zero, so an untrained decoder is the analytic solution.
 """
 
@@ -17,7 +19,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ..gaussians import Gaussians, rgb_to_sh_dc
+from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
 
 # A Gaussian whose integral footprint 2*pi*sigma^2 equals the area a^2 of the patch it stands for has
 # sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio makes
@@ -77,11 +79,13 @@ class GaussianDecoder(nn.Module):
     """
 
     def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = 0.3,
-                 max_extent: float = 1.0, opacity_slope: float = 10.0, opacity_bias: float = -3.0):
+                 max_extent: float = 1.0, opacity_slope: float = 10.0, opacity_bias: float = -3.0,
+                 free_space_slope: float = 4.0):
         super().__init__()
         self.feature_dim = feature_dim
         self.min_thickness, self.min_extent, self.max_extent = min_thickness, min_extent, max_extent
         self.opacity = MonotoneOpacity(opacity_slope, opacity_bias)
+        self.free_space_penalty = MonotoneOpacity(free_space_slope, 0.0)
         self.offset = nn.Linear(feature_dim, 3)
         self.log_scale_delta = nn.Linear(feature_dim, 3)
         self.color_delta = nn.Linear(feature_dim, 3)
@@ -94,7 +98,10 @@ class GaussianDecoder(nn.Module):
         support = fields["reliability"]
         feats = fields["features"]
         r = 1.0 - torch.exp(-support)
-        opacities = torch.sigmoid(self.opacity(r))
+        logit = self.opacity(r)
+        if "free_space" in fields:
+            logit = logit - self.free_space_penalty(1.0 - torch.exp(-fields["free_space"]))
+        opacities = torch.sigmoid(logit)
         means = fields["representative_position"] + voxel_size * self.offset(feats)
         cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units
         cov = 0.5 * (cov + cov.transpose(1, 2))
@@ -105,13 +112,14 @@ class GaussianDecoder(nn.Module):
         scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
         rot = eigvec.float()
         rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0]), rot)
-        colors = (fields["color"] + self.color_delta(feats)).clamp(0.0, 1.0)
+        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["color"])[:, None, :]
+        sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
         return Gaussians(
             means=means,
             scales=scales,
             quats=matrix_to_quaternion(rot),
             opacities=opacities,
-            sh=rgb_to_sh_dc(colors)[:, None, :],
+            sh=sh,
             features=feats,
             labels=fields.get("labels"),
         )

@@ -113,4 +113,17 @@ def extract_evidence(
     )
 
 
-__all__ = ["FrameEvidence", "extract_evidence", "lift_pixels", "frame_features", "DEFAULT_FEATURE_DIM"]
+def observation_sh_basis(evidence: FrameEvidence, camera, degree: int) -> np.ndarray:  # [M, (degree + 1)^2]
+    """SH basis of each observation's view direction (camera centre -> lifted point), 3DGS convention.
+
+    Degree 0 needs no basis (no view dependence): it returns an all-zero [M, 1] placeholder."""
+    from ..rendering.sh import sh_basis  # the renderer's definition, so fit and render agree
+
+    if degree == 0:
+        return np.zeros((len(evidence), 1), np.float32)
+    dirs = torch.from_numpy(evidence.points) - camera.center
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return np.ascontiguousarray(sh_basis(dirs, degree).numpy(), dtype=np.float32)
+
+
+__all__ = ["FrameEvidence", "extract_evidence", "lift_pixels", "frame_features", "observation_sh_basis", "DEFAULT_FEATURE_DIM"]

@@ -7,6 +7,8 @@ For the observations Omega(v) of voxel v (all frames, in frame order then pixel 
 and the same W accumulate colour, position moments and label scores. Ablation modes:
 ``no_reliability`` (R := 1: W = max(0, cos), representative = first observation),
 ``no_similarity`` (W = R), ``average`` (W = 1, representative = first observation).
+Free-space evidence is summed over every (voxel, frame) pair with `see_through_reference`, the
+PyTorch definition of the test the streaming kernels apply.
 Kept for tests, ablations and evaluation; the service uses the streaming `Scene.fold`.
 """
 
@@ -18,10 +20,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..evidence import AppearanceUncertainty, extract_evidence
+from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..frame import Frame
 from .config import KEY_BITS, KEY_OFFSET, SceneConfig
-from .fields import fields_from_sums
+from .fields import fields_from_sums, unpack_keys
+from .free_space import SeeThroughMap, see_through_map
 
 
 def voxel_keys(points: Tensor, voxel_size: float) -> Tensor:  # [M, 3] float32 -> [M] int64, -1 outside
@@ -32,12 +35,34 @@ def voxel_keys(points: Tensor, voxel_size: float) -> Tensor:  # [M, 3] float32 -
     return torch.where(inside, keys, torch.full_like(keys, -1))
 
 
+def see_through_reference(
+    centres: Tensor,  # [V, 3] voxel centres, world
+    m: SeeThroughMap,
+    near: float,
+) -> Tensor:  # [V] see-through evidence of one frame
+    """Evidence a frame's see-through map gives each voxel centre (0 where it is not seen through)."""
+    P = torch.from_numpy(m.w2c)
+    pc = centres @ P[:, :3].T + P[:, 3]
+    z = pc[:, 2]
+    safe = torch.where(z > near, z, torch.ones_like(z))
+    fx, fy, cx, cy = torch.from_numpy(m.intrinsics)
+    iu = torch.floor(fx * pc[:, 0] / safe + cx + 0.5).long()
+    iv = torch.floor(fy * pc[:, 1] / safe + cy + 0.5).long()
+    h, w = m.threshold.shape
+    inside = (z > near) & (iu >= 0) & (iv >= 0) & (iu < w) & (iv < h)
+    iu, iv = iu.clamp(0, w - 1), iv.clamp(0, h - 1)
+    thr = torch.from_numpy(m.threshold)[iv, iu]
+    seen = inside & (thr > 0) & (z < thr)
+    return torch.where(seen, torch.from_numpy(m.weight)[iv, iu] * m.area_scale / (safe * safe), torch.zeros_like(z))
+
+
 def aggregate_batch(
     frames: Iterable[Frame],
     config: SceneConfig,
     appearance: AppearanceUncertainty | None = None,
 ) -> dict[str, Tensor]:
     """The batch rule over ``frames``; returns the same fields as `Scene.fields` (sorted by key)."""
+    frames = list(frames)
     evidence = [extract_evidence(f, config, appearance) for f in frames]
     if not evidence:
         raise ValueError("frames: expected at least one frame")
@@ -46,6 +71,7 @@ def aggregate_batch(
     rel = torch.from_numpy(np.concatenate([e.reliability for e in evidence]))
     feat = torch.from_numpy(np.concatenate([e.features for e in evidence]))
     rgb = torch.from_numpy(np.concatenate([e.colors for e in evidence]))
+    basis = torch.from_numpy(np.concatenate([observation_sh_basis(e, f.camera, config.sh_degree) for e, f in zip(evidence, frames)]))
     label_dims = {e.labels.shape[1] for e in evidence if e.labels is not None}
     if len(label_dims) > 1:
         raise ValueError(f"labels: frames carry different label channel counts {sorted(label_dims)}")
@@ -56,7 +82,8 @@ def aggregate_batch(
 
     keys = voxel_keys(points, config.voxel_size)
     inside = keys >= 0
-    points, rel, feat, rgb, labels, has_label, keys = (t[inside] for t in (points, rel, feat, rgb, labels, has_label, keys))
+    points, rel, feat, rgb, basis, labels, has_label, keys = (
+        t[inside] for t in (points, rel, feat, rgb, basis, labels, has_label, keys))
     uniq, inv = torch.unique(keys, return_inverse=True)
     V, M = uniq.numel(), keys.numel()
 
@@ -83,6 +110,13 @@ def aggregate_batch(
         return out if x.ndim == 2 else out[:, 0]
 
     lw = torch.where(has_label, w, torch.zeros_like(w))
+    k = basis.shape[1] if config.sh_degree > 0 else 1
+    rows, cols = torch.triu_indices(k, k)
+    free = torch.zeros(V)
+    if config.free_space:
+        centres = (unpack_keys(uniq).float() + 0.5) * torch.tensor(config.voxel_size, dtype=torch.float32)
+        for f in frames:
+            free += see_through_reference(centres, see_through_map(f, config), config.near)
     sums = {
         "keys": uniq,
         "rep_r": r_sel[rep],
@@ -94,8 +128,11 @@ def aggregate_batch(
         "rgb_sum": wsum(rgb),
         "pos_sum": wsum(local),
         "pos_sq": wsum(sq),
+        "sh_a": wsum(basis[:, rows[1:]] * basis[:, cols[1:]]),
+        "sh_b": wsum((basis[:, 1:, None] * (rgb - 0.5)[:, None, :]).reshape(M, -1)),
+        "free": free,
         "n_obs": torch.bincount(inv, minlength=V).to(torch.int32),
         "label_sum": torch.zeros((V, S)).index_add_(0, inv, lw[:, None] * labels),
         "label_w": torch.zeros(V).index_add_(0, inv, lw),
     }
-    return fields_from_sums(sums, config.voxel_size, config.eps, sort=True)
+    return fields_from_sums(sums, config, sort=True)

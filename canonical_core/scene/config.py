@@ -33,6 +33,16 @@ class SceneConfig:
         eps: the epsilon of F_scene = sum W F / (R_scene + eps).
         max_voxels: cap on the number of voxels (None = unbounded); a fold that would exceed it
             raises instead of folding part of a frame.
+        sh_degree: degree of the per-voxel spherical-harmonics colour fit (0 = view-independent).
+        sh_regularization: ridge weight, relative to R_scene, pulling the SH fit's higher
+            coefficients toward zero (i.e. toward the DC colour) where few view directions were seen.
+        free_space: fold free-space ("seen-through") evidence and use it in decoding.
+        free_space_margin, free_space_sigmas: a voxel is seen through by a ray whose surface lies
+            beyond margin * voxel_size + sigmas * sigma(depth) behind the voxel's centre.
+        free_space_cell: pixels per side of the cells of a frame's coarse see-through map.
+        free_space_history: frames whose maps are kept so voxels created later get their evidence.
+        free_space_dominance: decoding drops voxels whose free-space evidence exceeds this
+            multiple of their support R_scene.
     """
 
     voxel_size: float
@@ -47,6 +57,14 @@ class SceneConfig:
     far: float = 20.0
     eps: float = 1e-8
     max_voxels: int | None = None
+    sh_degree: int = 1
+    sh_regularization: float = 0.05
+    free_space: bool = True
+    free_space_margin: float = 2.0
+    free_space_sigmas: float = 3.0
+    free_space_cell: int = 8
+    free_space_history: int = 64
+    free_space_dominance: float = 1.0
 
     def __post_init__(self):
         def positive(name, value):
@@ -56,7 +74,8 @@ class SceneConfig:
         positive("voxel_size", self.voxel_size)
         positive("far", self.far)
         positive("eps", self.eps)
-        for name in ("depth_sigma0", "depth_sigma2", "depth_edge_weight", "near", "depth_sigma_ref"):
+        for name in ("depth_sigma0", "depth_sigma2", "depth_edge_weight", "near", "depth_sigma_ref",
+                     "sh_regularization", "free_space_margin", "free_space_sigmas", "free_space_dominance"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
@@ -68,6 +87,12 @@ class SceneConfig:
             raise ValueError(f"weighting: expected one of {list(get_args(Weighting))}, got {self.weighting!r}")
         if self.feature_backend not in get_args(FeatureBackend):
             raise ValueError(f"feature_backend: expected one of {list(get_args(FeatureBackend))}, got {self.feature_backend!r}")
+        for name, lo, hi in (("sh_degree", 0, 3), ("free_space_cell", 1, 64), ("free_space_history", 1, 100_000)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{name}: expected an integer in [{lo}, {hi}], got {v!r}")
+        if not isinstance(self.free_space, bool):
+            raise ValueError(f"free_space: expected true or false, got {self.free_space!r}")
         if self.max_voxels is not None and (isinstance(self.max_voxels, bool) or not isinstance(self.max_voxels, int) or self.max_voxels <= 0):
             raise ValueError(f"max_voxels: expected a positive integer or None, got {self.max_voxels!r}")
 

@@ -117,20 +117,31 @@ def _dot(a, b):
     return d
 
 
+@numba.njit(inline="always")
+def _scale_row(row, s):
+    for c in range(row.shape[0]):
+        row[c] *= s
+
+
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
-    # scene state (rows >= n_voxels are zero)
+    # scene state (rows >= n_voxels are zero; local is -1 outside a fold)
     table, keys, rep_r, rep_f, rep_pos, rep_rgb, r_sum, f_sum, rgb_sum, pos_sum, pos_sq,
-    label_sum, label_w, n_obs, stamp, local,
-    n_voxels, frame_no, mode, inv_voxel,
+    sh_a, sh_b, label_sum, label_w, n_obs, local,
+    n_voxels, mode, inv_voxel,
     # the frame's evidence and phase A's result
-    new_keys, n_new, obs_voxel, rel, feat, rgb, points, labels, has_labels,
+    new_keys, n_new, obs_voxel, rel, feat, rgb, points, sh_basis, labels, has_labels,
     # scratch [M]
     touched, best, feat_inv_norm, rep_inv_norm, n_threads,
 ):
     """Phase B: insert the new voxels, pick each touched voxel's frame-best observation, replace
     representatives that it beats (rescaling the old sums by max(0, cos(old rep, new rep))), then
     accumulate W = R * max(0, cos(F, F_rep)) weighted sums. Returns (touched, switches).
+
+    Besides F, colour and position moments, W accumulates the normal equations of the per-voxel
+    SH colour fit: sh_a = upper triangle of sum W b b^T without its (0, 0) entry (= C0^2 R_scene),
+    sh_b = sum W b_k (c - 1/2) for k >= 1 (the DC row is C0 (sum W c - R_scene / 2)); b is the
+    observation's SH basis of its view direction.
 
     The accumulation is split across threads by voxel (vi % threads), and each voxel sums its
     observations in frame order, so the result is bit-identical for any thread count."""
@@ -142,6 +153,8 @@ def fold_kernel(
         rep_r[vi] = np.float32(-1.0)  # below any reliability: the first observation takes it
     uses_rel = mode == 0 or mode == 2
     uses_sim = mode == 0 or mode == 1
+    has_label_arrays = label_sum.shape[1] > 0
+    K = sh_basis.shape[1]
     M = obs_voxel.shape[0]
     for i in numba.prange(M):
         feat_inv_norm[i] = _inv_norm(feat[i])
@@ -155,8 +168,7 @@ def fold_kernel(
             vi = n_voxels + (-2 - vi)
             obs_voxel[i] = vi
         r = rel[i] if uses_rel else np.float32(1.0)
-        if stamp[vi] != frame_no:
-            stamp[vi] = frame_no
+        if local[vi] < 0:
             local[vi] = n_touched
             touched[n_touched] = vi
             best[n_touched] = i
@@ -180,16 +192,15 @@ def fold_kernel(
                     s = max(np.float32(0.0), _dot(rep_f[vi], feat[b]) * _inv_norm(rep_f[vi]) * feat_inv_norm[b])
                 if s != np.float32(1.0):
                     r_sum[vi] *= s
-                    label_w[vi] *= s
-                    for c in range(f_sum.shape[1]):
-                        f_sum[vi, c] *= s
-                    for c in range(3):
-                        rgb_sum[vi, c] *= s
-                        pos_sum[vi, c] *= s
-                    for c in range(6):
-                        pos_sq[vi, c] *= s
-                    for c in range(label_sum.shape[1]):
-                        label_sum[vi, c] *= s
+                    _scale_row(f_sum[vi], s)
+                    _scale_row(rgb_sum[vi], s)
+                    _scale_row(pos_sum[vi], s)
+                    _scale_row(pos_sq[vi], s)
+                    _scale_row(sh_a[vi], s)
+                    _scale_row(sh_b[vi], s)
+                    if has_label_arrays:
+                        label_w[vi] *= s
+                        _scale_row(label_sum[vi], s)
             rep_r[vi] = rb
             rep_f[vi, :] = feat[b]
             rep_pos[vi, :] = points[b]
@@ -223,8 +234,21 @@ def fold_kernel(
             pos_sq[vi, 3] += w * ly * ly
             pos_sq[vi, 4] += w * ly * lz
             pos_sq[vi, 5] += w * lz * lz
+            if K > 1:
+                idx = 0
+                for p in range(K):
+                    wb = w * sh_basis[i, p]
+                    for q in range(p, K):
+                        if p > 0 or q > 0:
+                            sh_a[vi, idx] += wb * sh_basis[i, q]
+                            idx += 1
+                    if p > 0:
+                        for c in range(3):
+                            sh_b[vi, 3 * (p - 1) + c] += wb * (rgb[i, c] - np.float32(0.5))
             if has_labels:
                 label_w[vi] += w
                 for c in range(label_sum.shape[1]):
                     label_sum[vi, c] += w * labels[i, c]
+    for t in range(n_touched):
+        local[touched[t]] = -1
     return n_touched, switches

@@ -25,16 +25,18 @@ import numba
 import numpy as np
 import torch
 
-from ..evidence import AppearanceUncertainty, extract_evidence
+from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..decode import GaussianDecoder
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
-from .fields import fields_from_sums
+from .fields import fields_from_sums, sh_sum_widths
+from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map,
+                         update_chunk_boxes_kernel)
 from .kernels import MODE_CODES, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
 
 FORMAT_NAME = "canonicalgs-scene"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class CapacityError(ValueError):
@@ -67,24 +69,26 @@ class Scene:
         (0, 0)
     """
 
-    _ROW_SHAPES = {  # name -> (dtype, trailing shape as a function of (L, S))
-        "keys": (np.int64, lambda L, S: ()),
-        "rep_r": (np.float32, lambda L, S: ()),
-        "rep_f": (np.float32, lambda L, S: (L,)),
-        "rep_pos": (np.float32, lambda L, S: (3,)),
-        "rep_rgb": (np.float32, lambda L, S: (3,)),
-        "r_sum": (np.float32, lambda L, S: ()),
-        "f_sum": (np.float32, lambda L, S: (L,)),
-        "rgb_sum": (np.float32, lambda L, S: (3,)),
-        "pos_sum": (np.float32, lambda L, S: (3,)),
-        "pos_sq": (np.float32, lambda L, S: (6,)),
-        "label_sum": (np.float32, lambda L, S: (S,)),
-        "label_w": (np.float32, lambda L, S: ()),
-        "n_obs": (np.int32, lambda L, S: ()),
-        "stamp": (np.int32, lambda L, S: ()),  # scratch: last frame that touched the voxel
-        "local": (np.int32, lambda L, S: ()),  # scratch: the voxel's slot in the frame's touched list
+    _ROW_SHAPES = {  # name -> (dtype, trailing shape as a function of (L, S, (sh_a, sh_b) widths))
+        "keys": (np.int64, lambda L, S, W: ()),
+        "rep_r": (np.float32, lambda L, S, W: ()),
+        "rep_f": (np.float32, lambda L, S, W: (L,)),
+        "rep_pos": (np.float32, lambda L, S, W: (3,)),
+        "rep_rgb": (np.float32, lambda L, S, W: (3,)),
+        "r_sum": (np.float32, lambda L, S, W: ()),
+        "f_sum": (np.float32, lambda L, S, W: (L,)),
+        "rgb_sum": (np.float32, lambda L, S, W: (3,)),
+        "pos_sum": (np.float32, lambda L, S, W: (3,)),
+        "pos_sq": (np.float32, lambda L, S, W: (6,)),
+        "sh_a": (np.float32, lambda L, S, W: (W[0],)),
+        "sh_b": (np.float32, lambda L, S, W: (W[1],)),
+        "free": (np.float32, lambda L, S, W: ()),
+        "label_sum": (np.float32, lambda L, S, W: (S,)),
+        "label_w": (np.float32, lambda L, S, W: ()),
+        "n_obs": (np.int32, lambda L, S, W: ()),
+        "local": (np.int32, lambda L, S, W: ()),  # scratch: slot in the frame's touched list, -1 between folds
     }
-    _SCRATCH = ("stamp", "local")
+    _SCRATCH = ("local",)
 
     def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15):
         if not isinstance(config, SceneConfig):
@@ -98,12 +102,15 @@ class Scene:
         self._state = self._allocate(initial_capacity)
         self._table = np.full(_next_pow2(2 * initial_capacity), -1, np.int32)
         self._scratch_m = 0
+        self._chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+        self._chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+        self._history = SeeThroughHistory(config.free_space_history)
 
     # -- state management ---------------------------------------------------------------------
     def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
-        L, S = self.config.feature_dim, self.label_dim
-        state = {name: np.zeros((capacity, *shape(L, S)), dtype) for name, (dtype, shape) in self._ROW_SHAPES.items()}
-        state["stamp"][:] = -1
+        L, S, W = self.config.feature_dim, self.label_dim, sh_sum_widths(self.config.sh_degree)
+        state = {name: np.zeros((capacity, *shape(L, S, W)), dtype) for name, (dtype, shape) in self._ROW_SHAPES.items()}
+        state["local"][:] = -1
         return state
 
     @property
@@ -117,6 +124,10 @@ class Scene:
             for name, arr in self._state.items():
                 new[name][: self._n] = arr[: self._n]
             self._state = new
+            for name in ("_chunk_lo", "_chunk_hi"):
+                grown = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+                grown[: getattr(self, name).shape[0]] = getattr(self, name)
+                setattr(self, name, grown)
         if 2 * n_voxels > self._table.shape[0]:
             self._table = np.empty(_next_pow2(2 * n_voxels), np.int32)
             rebuild_table_kernel(self._table, self._state["keys"], self._n)
@@ -163,14 +174,18 @@ class Scene:
         self._reserve(self._n + n_new)
         s = self._state
         labels = ev.labels if ev.labels is not None else np.zeros((m, self.label_dim), np.float32)
+        basis = observation_sh_basis(ev, frame.camera, self.config.sh_degree)
         n_touched, switches = fold_kernel(
             self._table, s["keys"], s["rep_r"], s["rep_f"], s["rep_pos"], s["rep_rgb"], s["r_sum"], s["f_sum"],
-            s["rgb_sum"], s["pos_sum"], s["pos_sq"], s["label_sum"], s["label_w"], s["n_obs"], s["stamp"], s["local"],
-            self._n, self.frames, MODE_CODES[self.config.weighting], inv_voxel,
-            new_keys, n_new, obs_voxel, ev.reliability, ev.features, ev.colors, ev.points, labels, ev.labels is not None,
-            self._touched[:m], self._best[:m], self._feat_inv_norm[:m], self._rep_inv_norm[:m],
+            s["rgb_sum"], s["pos_sum"], s["pos_sq"], s["sh_a"], s["sh_b"], s["label_sum"], s["label_w"], s["n_obs"],
+            s["local"], self._n, MODE_CODES[self.config.weighting], inv_voxel,
+            new_keys, n_new, obs_voxel, ev.reliability, ev.features, ev.colors, ev.points, basis, labels,
+            ev.labels is not None, self._touched[:m], self._best[:m], self._feat_inv_norm[:m], self._rep_inv_norm[:m],
             numba.get_num_threads(),
         )
+        update_chunk_boxes_kernel(s["keys"], self._n, self._n + n_new, self._chunk_lo, self._chunk_hi)
+        if self.config.free_space:
+            self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
         self.frames += 1
         return FoldReport(
@@ -182,6 +197,19 @@ class Scene:
             ms=(time.perf_counter() - t0) * 1000.0,
         )
 
+    def _fold_free_space(self, frame: Frame, first_new: int, n_voxels: int) -> None:
+        """The frame's see-through evidence for every voxel in its frustum (the new ones included),
+        then the earlier frames' evidence for the voxels this frame created (see free_space.py)."""
+        m = see_through_map(frame, self.config)
+        s, voxel, near = self._state, np.float32(self.config.voxel_size), np.float32(self.config.near)
+        frame_free_space_kernel(s["keys"], s["free"], self._chunk_lo, self._chunk_hi, n_voxels, voxel, m.w2c,
+                                m.intrinsics, m.threshold, m.weight, np.float32(m.area_scale), near)
+        h = self._history
+        if h.count and n_voxels > first_new:
+            history_free_space_kernel(s["keys"], s["free"], first_new, n_voxels, voxel, h.order(), h.w2c, h.intrinsics,
+                                      h.threshold, h.weight, h.dims, h.area, near)
+        h.push(m)
+
     # -- reading ------------------------------------------------------------------------------
     def __len__(self) -> int:
         return self._n
@@ -192,7 +220,7 @@ class Scene:
 
     def fields(self, sort: bool = True) -> dict[str, torch.Tensor]:
         """Scene fields (see `fields_from_sums`), sorted by voxel key unless ``sort=False``."""
-        return fields_from_sums(self.sums(), self.config.voxel_size, self.config.eps, sort=sort)
+        return fields_from_sums(self.sums(), self.config, sort=sort)
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
@@ -202,7 +230,10 @@ class Scene:
         if min_support < 0:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
         f = self.fields(sort=False)
-        keep = torch.nonzero(f["reliability"] > min_support).squeeze(1)
+        supported = f["reliability"] > min_support
+        if self.config.free_space:  # voxels that more rays saw through than saw at are not surface
+            supported &= f["free_space"] <= self.config.free_space_dominance * f["reliability"]
+        keep = torch.nonzero(supported).squeeze(1)
         if max_gaussians is not None and keep.numel() > max_gaussians:
             top = torch.argsort(f["reliability"][keep], descending=True, stable=True)[:max_gaussians]
             keep = keep[torch.sort(top).values]
@@ -228,6 +259,7 @@ class Scene:
         header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
                   "frames": self.frames, "label_dim": self.label_dim, "voxels": self._n}
         arrays = {f"state.{k}": v for k, v in self.sums().items()}
+        arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
             for k, v in module.state_dict().items():
                 arrays[f"{prefix}.{k}"] = v.detach().cpu().numpy()
@@ -265,6 +297,9 @@ class Scene:
                 scene._state[name][:n] = npz[f"state.{name}"]
         scene._n, scene.frames = n, int(header["frames"])
         rebuild_table_kernel(scene._table, scene._state["keys"], n)
+        update_chunk_boxes_kernel(scene._state["keys"], 0, n, scene._chunk_lo, scene._chunk_hi)
+        scene._history = SeeThroughHistory.from_arrays(
+            scene.config.free_space_history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

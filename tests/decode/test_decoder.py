@@ -80,10 +80,12 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=0.004))
     for f in shelf_frames[:3]:
         scene.fold(f)
-    support = scene.fields(sort=False)["reliability"]
+    fields = scene.fields(sort=False)
+    support = fields["reliability"]
     full = scene.decode()
     top = scene.decode(max_gaussians=1000)
-    assert len(full) == int((support > 0).sum()) and len(top) == 1000
+    surface = (support > 0) & (fields["free_space"] <= scene.config.free_space_dominance * support)
+    assert len(full) == int(surface.sum()) < len(support) and len(top) == 1000
     threshold = torch.sort(support, descending=True).values[999]
     assert (scene.decode(min_support=threshold.item()).opacities.numel()) <= 1000
     assert top.opacities.min() >= full.opacities.min()

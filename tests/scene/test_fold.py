@@ -44,6 +44,9 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
         assert torch.allclose(stream[name], batch[name], rtol=1e-4, atol=1e-6), name
     assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=1e-9)
     assert torch.equal(stream["observations"], batch["observations"])
+    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
+    assert torch.allclose(stream["free_space"], batch["free_space"], rtol=1e-4, atol=1e-3)
+    assert (batch["free_space"] > 0).sum() > 100  # real captures do see through some voxels
 
 
 @pytest.mark.parametrize("mode", ["no_reliability", "no_similarity", "average"])

@@ -1,0 +1,218 @@
+"""Free-space evidence: what each frame saw *through*, folded into the scene as negative evidence.
+
+Each frame is reduced to a coarse see-through map: per cell of ``cell x cell`` pixels, the nearest
+valid depth d_min (conservative at holes and depth edges) and the threshold
+``d_min - (margin * voxel + sigmas * sigma(d_min))`` in front of which a voxel centre is seen through
+(sigma from the frame's depth std or the sensor noise model, so noisier depth carves less). A voxel
+whose centre projects into a cell in front of its threshold gains
+
+    w = exp(-sigma / voxel) * valid_fraction(cell) * fx * fy * voxel^2 / z^2
+
+i.e. the reliability of the rays times the number of valid rays that pass through the voxel, which
+is the unit of R_scene (reliability-weighted pixel observations), so the two can be compared.
+
+Order independence: voxel centres are fixed, so the test of (voxel, frame) never changes. A fold
+tests every voxel in the frame's frustum, including the voxels it creates (chunk AABBs cull the
+rest, so the cost is bounded by the chunks the frustum meets), and tests the voxels it creates
+against a bounded history of earlier frames' maps. With the history holding all frames, every voxel
+ends with the same sum whatever the frame order (up to float summation order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from .config import KEY_BITS, KEY_OFFSET, SceneConfig
+
+CHUNK = 1024  # voxels per chunk of the insertion-ordered state; each chunk keeps its voxel AABB
+_MASK = (1 << KEY_BITS) - 1
+
+
+@dataclass
+class SeeThroughMap:
+    """A frame's coarse see-through map and the coarse camera that indexes it."""
+
+    threshold: np.ndarray  # [h, w] float32: depth in front of which a voxel is seen through (0 = no data)
+    weight: np.ndarray  # [h, w] float32: exp(-sigma / voxel) * valid fraction of the cell
+    w2c: np.ndarray  # [3, 4] float32 world-to-camera
+    intrinsics: np.ndarray  # [4] float32 coarse fx, fy, cx, cy
+    area_scale: float  # full-resolution fx * fy * voxel^2
+
+
+@numba.njit(parallel=True, cache=True)
+def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_ref, voxel, margin, sigmas, thr, wcell):
+    H, W = depth.shape
+    h, w = thr.shape
+    for cy in numba.prange(h):
+        for cx in range(w):
+            dmin = np.float32(np.inf)
+            smin = np.float32(0.0)
+            n = 0
+            for v in range(cy * cell, min((cy + 1) * cell, H)):
+                for u in range(cx * cell, min((cx + 1) * cell, W)):
+                    z = depth[v, u]
+                    if z > near and z < far:
+                        n += 1
+                        if z < dmin:
+                            dmin = z
+                            smin = std[v, u] if has_std else sigma0 + sigma2 * (z - z_ref) * (z - z_ref)
+            if n == 0:
+                thr[cy, cx] = 0.0
+                wcell[cy, cx] = 0.0
+            else:
+                thr[cy, cx] = dmin - (margin * voxel + sigmas * smin)
+                wcell[cy, cx] = np.exp(-smin / voxel) * n / (cell * cell)
+
+
+def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
+    """The coarse see-through map of a frame with depth (see module docstring)."""
+    c = config.free_space_cell
+    H, W = frame.height, frame.width
+    h, w = -(-H // c), -(-W // c)
+    thr = np.empty((h, w), np.float32)
+    wcell = np.empty((h, w), np.float32)
+    std = frame.depth_std.numpy() if frame.depth_std is not None else np.zeros((1, 1), np.float32)
+    _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.near),
+                       np.float32(config.far), np.float32(config.depth_sigma0), np.float32(config.depth_sigma2),
+                       np.float32(config.depth_sigma_ref), np.float32(config.voxel_size),
+                       np.float32(config.free_space_margin), np.float32(config.free_space_sigmas), thr, wcell)
+    cam = frame.camera
+    coarse = np.array([cam.fx / c, cam.fy / c, (cam.cx + 0.5) / c - 0.5, (cam.cy + 0.5) / c - 0.5], np.float32)
+    w2c = np.linalg.inv(cam.c2w64())[:3].astype(np.float32)
+    return SeeThroughMap(thr, wcell, w2c, coarse, float(cam.fx * cam.fy * config.voxel_size**2))
+
+
+@numba.njit(inline="always")
+def _voxel_centre(key, voxel):
+    i = ((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET
+    j = ((key >> KEY_BITS) & _MASK) - KEY_OFFSET
+    k = (key & _MASK) - KEY_OFFSET
+    return (np.float32(i) + np.float32(0.5)) * voxel, (np.float32(j) + np.float32(0.5)) * voxel, (np.float32(k) + np.float32(0.5)) * voxel
+
+
+@numba.njit(inline="always")
+def _see_through(x, y, z, P, intr, thr, wcell, area_scale, near):
+    zc = P[2, 0] * x + P[2, 1] * y + P[2, 2] * z + P[2, 3]
+    if zc <= near:
+        return np.float32(0.0)
+    xc = P[0, 0] * x + P[0, 1] * y + P[0, 2] * z + P[0, 3]
+    yc = P[1, 0] * x + P[1, 1] * y + P[1, 2] * z + P[1, 3]
+    iu = int(np.floor(intr[0] * xc / zc + intr[2] + np.float32(0.5)))
+    iv = int(np.floor(intr[1] * yc / zc + intr[3] + np.float32(0.5)))
+    if iu < 0 or iv < 0 or iv >= thr.shape[0] or iu >= thr.shape[1]:
+        return np.float32(0.0)
+    t = thr[iv, iu]
+    if t <= np.float32(0.0) or zc >= t:
+        return np.float32(0.0)
+    return wcell[iv, iu] * area_scale / (zc * zc)
+
+
+@numba.njit(inline="always")
+def _box_outside_frustum(lo, hi, voxel, P, intr, h, w, near):
+    """True when all 8 corners of the voxel box [lo, hi + 1) * voxel lie outside one frustum plane."""
+    out = np.zeros(5, np.int64)
+    for corner in range(8):
+        x = (lo[0] if corner & 1 == 0 else hi[0] + 1) * voxel
+        y = (lo[1] if corner & 2 == 0 else hi[1] + 1) * voxel
+        z = (lo[2] if corner & 4 == 0 else hi[2] + 1) * voxel
+        xc = P[0, 0] * x + P[0, 1] * y + P[0, 2] * z + P[0, 3]
+        yc = P[1, 0] * x + P[1, 1] * y + P[1, 2] * z + P[1, 3]
+        zc = P[2, 0] * x + P[2, 1] * y + P[2, 2] * z + P[2, 3]
+        out[0] += zc < near
+        out[1] += intr[0] * xc + (intr[2] + 0.5) * zc < 0  # left of u = -0.5
+        out[2] += intr[0] * xc + (intr[2] + 0.5 - w) * zc > 0  # right of u = w - 0.5
+        out[3] += intr[1] * yc + (intr[3] + 0.5) * zc < 0
+        out[4] += intr[1] * yc + (intr[3] + 0.5 - h) * zc > 0
+    for p in range(5):
+        if out[p] == 8:
+            return True
+    return False
+
+
+@numba.njit(parallel=True, cache=True)
+def frame_free_space_kernel(keys, free, chunk_lo, chunk_hi, n_voxels, voxel, P, intr, thr, wcell, area_scale, near):
+    """Add one frame's see-through evidence to every voxel of the chunks its frustum meets."""
+    n_chunks = (n_voxels + CHUNK - 1) // CHUNK
+    h, w = thr.shape
+    for ch in numba.prange(n_chunks):
+        if _box_outside_frustum(chunk_lo[ch], chunk_hi[ch], voxel, P, intr, h, w, near):
+            continue
+        for vi in range(ch * CHUNK, min((ch + 1) * CHUNK, n_voxels)):
+            x, y, z = _voxel_centre(keys[vi], voxel)
+            free[vi] += _see_through(x, y, z, P, intr, thr, wcell, area_scale, near)
+
+
+@numba.njit(parallel=True, cache=True)
+def history_free_space_kernel(keys, free, first, last, voxel, order, P, intr, thr, wcell, dims, area, near):
+    """Add the evidence of earlier frames (history entries ``order``, oldest first) to voxels [first, last)."""
+    for vi in numba.prange(first, last):
+        x, y, z = _voxel_centre(keys[vi], voxel)
+        acc = free[vi]
+        for e in order:
+            acc += _see_through(x, y, z, P[e], intr[e], thr[e, : dims[e, 0], : dims[e, 1]],
+                                wcell[e, : dims[e, 0], : dims[e, 1]], area[e], near)
+        free[vi] = acc
+
+
+@numba.njit(cache=True)
+def update_chunk_boxes_kernel(keys, first, last, chunk_lo, chunk_hi):
+    """Grow the voxel-index AABBs of the chunks holding voxels [first, last)."""
+    for vi in range(first, last):
+        ch = vi // CHUNK
+        key = keys[vi]
+        ijk = (((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET, ((key >> KEY_BITS) & _MASK) - KEY_OFFSET,
+               (key & _MASK) - KEY_OFFSET)
+        for a in range(3):
+            if vi % CHUNK == 0 or ijk[a] < chunk_lo[ch, a]:
+                chunk_lo[ch, a] = ijk[a]
+            if vi % CHUNK == 0 or ijk[a] > chunk_hi[ch, a]:
+                chunk_hi[ch, a] = ijk[a]
+
+
+class SeeThroughHistory:
+    """A ring buffer of the last ``capacity`` frames' see-through maps (for voxels created later)."""
+
+    def __init__(self, capacity: int, shape: tuple[int, int] = (1, 1)):
+        self.capacity = capacity
+        self.count = 0
+        self.head = 0  # next slot to write
+        h, w = shape
+        self.threshold = np.zeros((capacity, h, w), np.float32)
+        self.weight = np.zeros((capacity, h, w), np.float32)
+        self.w2c = np.zeros((capacity, 3, 4), np.float32)
+        self.intrinsics = np.zeros((capacity, 4), np.float32)
+        self.dims = np.zeros((capacity, 2), np.int64)
+        self.area = np.zeros(capacity, np.float32)
+
+    def order(self) -> np.ndarray:  # [count] slot indices, oldest first
+        return (self.head - self.count + np.arange(self.count)) % self.capacity
+
+    def push(self, m: SeeThroughMap) -> None:
+        h, w = m.threshold.shape
+        if h > self.threshold.shape[1] or w > self.threshold.shape[2]:  # a larger frame: widen the maps
+            for name in ("threshold", "weight"):
+                old = getattr(self, name)
+                new = np.zeros((self.capacity, max(h, old.shape[1]), max(w, old.shape[2])), np.float32)
+                new[:, : old.shape[1], : old.shape[2]] = old
+                setattr(self, name, new)
+        s = self.head
+        self.threshold[s, :h, :w], self.weight[s, :h, :w] = m.threshold, m.weight
+        self.w2c[s], self.intrinsics[s], self.dims[s], self.area[s] = m.w2c, m.intrinsics, (h, w), m.area_scale
+        self.head = (self.head + 1) % self.capacity
+        self.count = min(self.count + 1, self.capacity)
+
+    _ARRAYS = ("threshold", "weight", "w2c", "intrinsics", "dims", "area")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in self._ARRAYS} | {"ring": np.array([self.count, self.head], np.int64)}
+
+    @classmethod
+    def from_arrays(cls, capacity: int, arrays: dict[str, np.ndarray]) -> "SeeThroughHistory":
+        hist = cls(capacity)
+        for name in cls._ARRAYS:
+            setattr(hist, name, np.array(arrays[name]))
+        hist.count, hist.head = (int(x) for x in arrays["ring"])
+        return hist
