@@ -1,7 +1,7 @@
 """Dec: scene fields -> 3D Gaussians, initialised at an analytic solution.
 
 For each voxel with support:
-    r        = 1 - exp(-R_scene),   q = 1 - exp(-free-space evidence)
+    r        = 1 - exp(-R_scene),   q = free / (free + R_scene)  (share of rays that saw through)
     opacity  = sigmoid(support(r) - penalty(q))       (support, penalty: monotone heads, so opacity is
                                                        non-decreasing in R_scene and non-increasing in
                                                        free-space evidence for any parameters)
@@ -25,6 +25,9 @@ from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
 # sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio makes
 # neighbouring voxels' Gaussians close the surface instead of leaving see-through gaps.
 FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
+# The same argument for a voxel's whole face (a = 1 voxel): the smallest in-plane std that still
+# closes the surface between neighbouring voxels, whatever few samples a voxel holds.
+FULL_VOXEL_EXTENT = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 class MonotoneOpacity(nn.Module):
@@ -78,7 +81,7 @@ class GaussianDecoder(nn.Module):
             axis >= min_thickness, the other two >= min_extent, all <= max_extent).
     """
 
-    def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = 0.3,
+    def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = FULL_VOXEL_EXTENT,
                  max_extent: float = 1.0, opacity_slope: float = 10.0, opacity_bias: float = -3.0,
                  free_space_slope: float = 4.0):
         super().__init__()
@@ -100,7 +103,8 @@ class GaussianDecoder(nn.Module):
         r = 1.0 - torch.exp(-support)
         logit = self.opacity(r)
         if "free_space" in fields:
-            logit = logit - self.free_space_penalty(1.0 - torch.exp(-fields["free_space"]))
+            free = fields["free_space"]
+            logit = logit - self.free_space_penalty(free / (free + support).clamp_min(1e-12))
         opacities = torch.sigmoid(logit)
         means = fields["representative_position"] + voxel_size * self.offset(feats)
         cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units

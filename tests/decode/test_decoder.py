@@ -6,7 +6,7 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.camera import quaternion_to_matrix
-from canonical_core.decode import FOOTPRINT_GAIN, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion
+from canonical_core.decode import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion
 from canonical_core.scene import Scene
 
 
@@ -38,7 +38,7 @@ def test_quaternion_round_trip():
 
 def fields_of_planar_voxel(voxel=0.1):
     """One voxel whose points spread over the z = const plane (uniform in x, y)."""
-    xs, ys = np.meshgrid(np.linspace(-0.04, 0.04, 9), np.linspace(-0.04, 0.04, 9))
+    xs, ys = np.meshgrid(np.linspace(-0.049, 0.049, 9), np.linspace(-0.049, 0.049, 9))  # wider than the extent clamp
     pts = np.stack([xs.ravel() + 0.05, ys.ravel() + 0.05, np.full(81, 0.05)], 1)
     cov = np.cov(pts.T, bias=True)
     return {
@@ -73,7 +73,7 @@ def test_scales_are_clamped_to_the_voxel_scale():
     assert dec(fields, voxel_size=0.1).scales.max().item() == pytest.approx(0.1)
     fields["position_cov"] = torch.zeros(1, 3, 3)  # a single observation
     s = dec(fields, voxel_size=0.1).scales[0]
-    assert sorted(s.tolist()) == pytest.approx([0.005, 0.03, 0.03])
+    assert sorted(s.tolist()) == pytest.approx([0.005, 0.1 * FULL_VOXEL_EXTENT, 0.1 * FULL_VOXEL_EXTENT])
 
 
 def test_level_of_detail_keeps_best_supported(shelf_frames):

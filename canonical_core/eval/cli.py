@@ -1,0 +1,78 @@
+"""``canonical eval``: the evaluation protocol from the command line (argparse).
+
+    canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise 0.05,0.1,0.25,0.5]
+
+`add_eval_parser` registers the subcommand on a subparsers object (the ``canonical`` console
+script hooks it in); ``python -m canonical_core.eval DATASET ...`` runs it standalone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from .methods import METHODS
+from .protocol import STABILITY_VIEWS
+
+
+def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
+    def parse(text: str) -> list:
+        if text.strip().lower() in ("", "none"):
+            return []
+        try:
+            return [kind(part) for part in text.split(",") if part.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: expected a comma-separated list, got {text!r}") from None
+
+    return parse
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    parser.add_argument("dataset", type=Path, help="capture folder (tsdf-fusion/7-Scenes, TUM, transforms.json)")
+    parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
+    parser.add_argument("--methods", type=_list(str, "methods"), default=None,
+                        help=f"comma-separated subset of {','.join(METHODS)} (default: all)")
+    parser.add_argument("--noise", type=_list(float, "noise"), default=[],
+                        help="depth-noise levels, sigma / median depth (e.g. 0.05,0.1,0.25,0.5; default none)")
+    parser.add_argument("--scale", type=float, default=1.0, help="image downscale factor in (0, 1] (default 1)")
+    parser.add_argument("--voxel-size", type=float, default=None, help="voxel edge in metres (default: 6 pixel footprints at the median depth)")
+    parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=list(STABILITY_VIEWS),
+                        help="input counts of the feature-stability curve, the largest is the reference (default 2..12; 'none' skips)")
+    parser.add_argument("--no-extrapolation", action="store_true", help="skip the extrapolation split")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar, no tables on stdout")
+    return parser
+
+
+def add_eval_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``eval`` on ``subparsers`` (from ``ArgumentParser.add_subparsers()``); the parsed
+    namespace carries ``func=run_eval``."""
+    parser = subparsers.add_parser("eval", help="evaluate methods on held-out views of a dataset",
+                                   description=__doc__.split("\n\n")[0])
+    configure_parser(parser)
+    parser.set_defaults(func=run_eval)
+    return parser
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """Run `evaluate` with the parsed arguments; prints results.md unless --quiet. Returns 0, or 2
+    (with the message on stderr) for invalid arguments."""
+    from .run import evaluate
+
+    try:
+        evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, out_dir=args.out,
+                 progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
+                 stability_views=args.stability_views, extrapolation=not args.no_extrapolation)
+    except (ValueError, ImportError) as exc:
+        print(f"canonical eval: error: {exc}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        print((Path(args.out) / "results.md").read_text())
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = configure_parser(argparse.ArgumentParser(prog="python -m canonical_core.eval", description=__doc__.split("\n\n")[0]))
+    return run_eval(parser.parse_args(argv))

@@ -1,0 +1,159 @@
+"""The methods under evaluation: each builds a renderable model from input frames.
+
+``METHODS`` maps a name to a `Method`:
+- ``canonical``: the full method, `Scene` with the paper's weighting, decoded analytically;
+- ``no_reliability``, ``no_similarity``, ``average``: the aggregation ablations (SceneConfig.weighting);
+- ``plain_decoding``: the same fused voxels as ``canonical``, but every Gaussian gets one opacity,
+  the analytic head's value at full support (no reliability-conditioned opacity);
+- ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
+- ``open3d_tsdf``: Open3D TSDF fusion + ray-cast colour (needs the ``bench`` extra).
+
+Example:
+    >>> from canonical_core.datasets import synthetic_rgbd
+    >>> frames = list(synthetic_rgbd(num_frames=2, width=64, height=48))
+    >>> model, ms = build("canonical", frames, voxel_size=0.02)
+    >>> view = model.render(frames[0].camera)
+    >>> view.rgb.shape, model.gaussians > 0
+    (torch.Size([48, 64, 3]), True)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from ..frame import Frame
+from ..gaussians import Gaussians
+from ..rendering import render
+from ..scene import Scene, SceneConfig
+from ..scene.config import Weighting
+from .baselines import full_support_opacity, gaussian_merge, pixel_aligned
+from .open3d_tsdf import Open3DTSDF, open3d_available
+
+
+@dataclass
+class View:
+    """What a method shows at a camera."""
+
+    rgb: Tensor  # [H, W, 3] in [0, 1], black where nothing is drawn
+    alpha: Tensor  # [H, W] in [0, 1], accumulated opacity (1 / 0 for a ray cast hit / miss)
+    features: Tensor | None = None  # [H, W, C] feature splat, when requested
+
+
+class Model(Protocol):
+    @property
+    def gaussians(self) -> int | None: ...  # None for models that are not Gaussians
+
+    def render(self, camera: Camera, features: bool = False) -> View: ...
+
+
+@dataclass
+class SplatModel:
+    """Gaussians, rendered with `canonical_core.rendering.render` on a black background."""
+
+    splats: Gaussians
+
+    @property
+    def gaussians(self) -> int:
+        return len(self.splats)
+
+    def render(self, camera: Camera, features: bool = False) -> View:
+        out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "alpha"))
+        return View(rgb=out.rgb, alpha=out.alpha, features=out.features)
+
+
+@dataclass
+class TSDFModel:
+    """The Open3D peer, rendered by ray casting."""
+
+    tsdf: Open3DTSDF
+
+    @property
+    def gaussians(self) -> None:
+        return None
+
+    def render(self, camera: Camera, features: bool = False) -> View:
+        if features:
+            raise ValueError("features: the open3d_tsdf peer carries no features")
+        rgb, depth = self.tsdf.ray_cast(camera)
+        return View(rgb=rgb, alpha=(depth > 0).float())
+
+
+# (input frames, voxel size, whether feature splats are needed) -> model
+Builder = Callable[[Sequence[Frame], float, bool], Model]
+
+
+@dataclass(frozen=True)
+class Method:
+    """A method: its builder, whether it can splat features, and why it cannot run here (if so)."""
+
+    build: Builder
+    features: bool
+    unavailable: Callable[[], str | None] = lambda: None
+
+
+def _scene(weighting: Weighting, uniform_opacity: bool = False) -> Builder:
+    def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
+        scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting))
+        for frame in frames:
+            scene.fold(frame)
+        splats = scene.decode()
+        if uniform_opacity:
+            splats = replace(splats, opacities=torch.full_like(splats.opacities, full_support_opacity(scene.decoder)))
+        return SplatModel(splats)
+
+    return build
+
+
+def _splats(make: Callable[[Sequence[Frame], float, bool], Gaussians]) -> Builder:
+    return lambda frames, voxel_size, features: SplatModel(make(frames, voxel_size, features))
+
+
+def _tsdf(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
+    # rays stop past the farthest input depth (plus the truncation band)
+    depth_max = max(float(f.depth.max()) for f in frames) + 8 * voxel_size
+    tsdf = Open3DTSDF(voxel_size, depth_max=depth_max, block_count=1024)
+    for frame in frames:
+        tsdf.integrate(frame)
+    return TSDFModel(tsdf)
+
+
+def _open3d_missing() -> str | None:
+    return None if open3d_available() else "needs Open3D (pip install 'canonicalgs-fusion[bench]')"
+
+
+METHODS: dict[str, Method] = {
+    "canonical": Method(_scene("full"), features=True),
+    "no_reliability": Method(_scene("no_reliability"), features=True),
+    "no_similarity": Method(_scene("no_similarity"), features=True),
+    "average": Method(_scene("average"), features=True),
+    "plain_decoding": Method(_scene("full", uniform_opacity=True), features=True),
+    "pixel_aligned": Method(_splats(pixel_aligned), features=True),
+    "gaussian_merge": Method(_splats(gaussian_merge), features=True),
+    "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),
+}
+
+
+def check_methods(names: Sequence[str]) -> list[str]:
+    """Validate method names (order kept, duplicates dropped)."""
+    if isinstance(names, str) or not names:
+        raise ValueError(f"methods: expected a non-empty list of names from {list(METHODS)}, got {names!r}")
+    for name in names:
+        if name not in METHODS:
+            raise ValueError(f"methods: unknown method {name!r}; expected some of {list(METHODS)}")
+    return list(dict.fromkeys(names))
+
+
+def build(name: str, frames: Sequence[Frame], voxel_size: float, features: bool = False) -> tuple[Model, float]:
+    """Build method ``name`` from ``frames``; returns the model and the wall time in ms (for the
+    scene methods: fold of every frame + decode)."""
+    (name,) = check_methods([name])
+    t0 = time.perf_counter()
+    model = METHODS[name].build(frames, voxel_size, features)
+    return model, (time.perf_counter() - t0) * 1000.0

@@ -1,0 +1,108 @@
+"""Image metrics of the evaluation: PSNR (all pixels or a mask), SSIM, coverage, feature cosine.
+
+Images are float tensors [H, W, C] with values in [0, 1] (peak signal 1). A pixel is *covered*
+when the method drew something there: accumulated opacity >= ``COVERAGE_THRESHOLD``.
+
+Example:
+    >>> import torch
+    >>> a = torch.full((16, 16, 3), 0.5)
+    >>> psnr(a, a), round(psnr(a, a + 0.1), 2), round(ssim(a, a), 6)
+    (inf, 20.0, 1.0)
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+COVERAGE_THRESHOLD = 0.5  # alpha at or above which a pixel counts as covered
+
+# SSIM as defined by Wang, Bovik, Sheikh and Simoncelli (2004): an 11x11 Gaussian window with
+# sigma 1.5, C1 = (K1 L)^2, C2 = (K2 L)^2 with K1 = 0.01, K2 = 0.03 and dynamic range L = 1,
+# statistics over "valid" windows (no padding), the SSIM map averaged over windows and channels.
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+def _check_pair(pred: Tensor, target: Tensor) -> None:
+    for name, t in (("pred", pred), ("target", target)):
+        if not isinstance(t, Tensor) or t.ndim != 3:
+            got = list(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name}: expected an image tensor [H, W, C], got {got}")
+    if pred.shape != target.shape:
+        raise ValueError(f"pred: shape {list(pred.shape)} differs from target {list(target.shape)}")
+
+
+def psnr(
+    pred: Tensor,  # [H, W, C] in [0, 1]
+    target: Tensor,  # [H, W, C] in [0, 1]
+    mask: Tensor | None = None,  # [H, W] bool: only these pixels count
+) -> float:
+    """Peak signal-to-noise ratio in dB, -10 log10(MSE), over all pixels or the ``mask``ed ones.
+
+    Returns ``inf`` for identical images and ``nan`` for an empty mask (no pixel to compare).
+    """
+    _check_pair(pred, target)
+    err = (pred.double() - target.double()) ** 2  # [H, W, C]
+    if mask is not None:
+        if mask.shape != pred.shape[:2] or mask.dtype != torch.bool:
+            raise ValueError(f"mask: expected a bool tensor of shape {list(pred.shape[:2])}, got {mask.dtype} {list(mask.shape)}")
+        if not bool(mask.any()):
+            return math.nan
+        err = err[mask]
+    mse = float(err.mean())
+    return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
+
+
+def _gaussian_window(size: int, sigma: float) -> Tensor:  # [size] float64, sums to 1
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    w = torch.exp(-(x**2) / (2 * sigma**2))
+    return w / w.sum()
+
+
+def ssim(
+    pred: Tensor,  # [H, W, C] in [0, 1]
+    target: Tensor,  # [H, W, C] in [0, 1]
+) -> float:
+    """Mean structural similarity (Wang et al. 2004; constants above), 1.0 for identical images."""
+    _check_pair(pred, target)
+    h, w, c = pred.shape
+    if min(h, w) < SSIM_WINDOW:
+        raise ValueError(f"pred: SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {w}x{h}")
+    g = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA)
+    kx = g.view(1, 1, 1, -1).repeat(c, 1, 1, 1)  # separable window, one filter per channel
+    ky = g.view(1, 1, -1, 1).repeat(c, 1, 1, 1)
+
+    def blur(t: Tensor) -> Tensor:  # [1, C, H, W] -> [1, C, H - 10, W - 10]
+        return F.conv2d(F.conv2d(t, kx, groups=c), ky, groups=c)
+
+    x = pred.double().permute(2, 0, 1)[None]
+    y = target.double().permute(2, 0, 1)[None]
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return float((num / den).mean())
+
+
+def covered(alpha: Tensor) -> Tensor:  # [H, W] -> [H, W] bool
+    """Pixels where a method drew something: accumulated opacity >= ``COVERAGE_THRESHOLD``."""
+    return alpha >= COVERAGE_THRESHOLD
+
+
+def coverage(alpha: Tensor) -> float:  # [H, W] -> fraction of covered pixels in [0, 1]
+    return float(covered(alpha).double().mean())
+
+
+def cosine_map(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:  # [H, W, C] x2 -> [H, W]
+    """Per-pixel cosine similarity of two feature maps (0 where either vector is zero)."""
+    _check_pair(a, b)
+    a, b = a.double(), b.double()
+    return (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(eps)

@@ -1,0 +1,230 @@
+"""Writing the evaluation: results.json, results.md (tables), PNG plots (matplotlib, Agg) and image
+grids (Pillow).
+
+Files in the output folder:
+- ``results.json``: the results dict (non-finite numbers written as null);
+- ``results.md``: protocol, main table, PSNR pivot, noise tables, extrapolation, stability;
+- ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, extrapolation) vs input views per method;
+- ``noise_psnr.png``: PSNR vs depth-noise level per method, one panel per N (with --noise);
+- ``stability.png``: feature-splat cosine to the reference vs input views (when computed);
+- ``grid_N{N}.png``: ground truth and every method at a few held-out frames, clean depth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+GRID_TILE_WIDTH = 320  # pixels: tiles of the image grids are downscaled to at most this width
+_HEADER = 18  # pixels: label band above each grid column
+
+
+def require_matplotlib() -> None:
+    """Raise early (before a long run) when the plotting dependency is missing."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ImportError("matplotlib: the evaluation plots need the eval extra (pip install 'canonicalgs-fusion[eval]')") from None
+
+
+def _finite(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _num(value, digits: int = 2, suffix: str = "") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.{digits}f}{suffix}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def _relative(value, clean) -> str:
+    if value is None or clean in (None, 0):
+        return "-"
+    return f"{100.0 * (value - clean) / abs(clean):+.1f} %"
+
+
+def _metric_rows(runs: Sequence[dict]) -> list[list[str]]:
+    return [[r["method"], str(r["views"]), _num(r["psnr"]), _num(r["psnr_covered"]), _num(r["coverage"], 3),
+             _num(r["ssim"], 3), "-" if r["gaussians"] is None else str(r["gaussians"]), _num(r["fold_ms"], 0),
+             _num(r["render_ms"], 0)] for r in runs]
+
+
+_METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "coverage", "SSIM", "Gaussians", "fold+decode ms", "render ms"]
+
+
+def markdown(results: Mapping) -> str:
+    """results.md: the protocol and every table."""
+    views = sorted(int(k) for k in results["inputs"])
+    methods = results["methods"]
+    clean = [r for r in results["runs"] if r["noise"] == 0]
+    by_key = {(r["method"], r["views"], r["noise"]): r for r in results["runs"]}
+    width, height = results["image_size"]
+    lines = [
+        f"# Evaluation: {results['dataset']}",
+        "",
+        f"{results['frames']} frames, images {width}x{height} (scale {results['scale']:g}), voxel size {results['voxel_size']:g}.",
+        "Metrics are means over the held-out frames; background black; covered = accumulated alpha >= 0.5.",
+        "",
+        "Held-out positions (frame ids): " + ", ".join(f"{p} ({i})" for p, i in zip(results["heldout"], results["heldout_ids"])),
+        "",
+        *(f"- inputs N={n}: {results['inputs'][str(n)]}" for n in views),
+    ]
+    if results["skipped"]:
+        lines += ["", *(f"- skipped `{m}`: {why}" for m, why in results["skipped"].items())]
+
+    lines += ["", "## Held-out views, clean depth", "", *_table(_METRIC_HEADER, _metric_rows(
+        sorted(clean, key=lambda r: (r["views"], methods.index(r["method"])))))]
+    lines += ["", "## PSNR all pixels / covered pixels (dB) vs input views", "", *_table(
+        ["method", *(f"N={n}" for n in views)],
+        [[m, *(f"{_num(by_key[m, n, 0.0]['psnr'])} / {_num(by_key[m, n, 0.0]['psnr_covered'])}" for n in views)]
+         for m in methods])]
+
+    levels = results["noise_levels"]
+    if levels:
+        for metric, label in (("psnr", "PSNR dB"), ("ssim", "SSIM")):
+            digits = 2 if metric == "psnr" else 3
+            rows = []
+            for m in methods:
+                for n in views:
+                    base = by_key[m, n, 0.0][metric]
+                    rows.append([m, str(n), _num(base, digits), *(
+                        f"{_num(by_key[m, n, lv][metric], digits)} ({_relative(by_key[m, n, lv][metric], base)})" for lv in levels)])
+            lines += ["", f"## Depth noise: {label} (relative change from clean)", "",
+                      "sigma = level x the frame's median depth, zero-mean Gaussian, fixed seeds.", "", *_table(
+                          ["method", "N", "clean", *(f"{lv:g}" for lv in levels)], rows)]
+
+    extra = results["extrapolation"]
+    if extra is not None:
+        lines += ["", "## Extrapolation (targets span 20 % more than the inputs), clean depth", "",
+                  *(f"- inputs N={k}: {v} (target span / input span = {extra['span_ratio'][k]:.2f})" for k, v in extra["inputs"].items()),
+                  "", *_table(_METRIC_HEADER, _metric_rows(
+                      sorted(extra["runs"], key=lambda r: (r["views"], methods.index(r["method"])))))]
+    else:
+        lines += ["", "Extrapolation split: not run (disabled, or the sequence has too few free frames for it)."]
+
+    if results["stability"]:
+        counts = sorted(int(k) for k in results["stability_inputs"])
+        cos = {(r["method"], r["views"]): r["cosine"] for r in results["stability"]}
+        stab_methods = list(dict.fromkeys(r["method"] for r in results["stability"]))
+        lines += ["", f"## Feature stability: mean cosine to the {counts[-1]}-view feature splat (covered pixels)", "",
+                  *_table(["method", *(f"N={n}" for n in counts)], [[m, *(_num(cos[m, n], 3) for n in counts)] for m in stab_methods])]
+    return "\n".join(lines) + "\n"
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _series(runs: Sequence[dict], method: str, key: str, x: str = "views") -> tuple[list, list]:
+    pts = sorted((r[x], r[key]) for r in runs if r["method"] == method and r[key] is not None)
+    return [p[0] for p in pts], [p[1] for p in pts]
+
+
+def plot_views(results: Mapping, path: Path) -> None:
+    """PSNR vs input views per method: all pixels, covered pixels, extrapolation (if run)."""
+    plt = _pyplot()
+    clean = [r for r in results["runs"] if r["noise"] == 0]
+    panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered")]
+    if results["extrapolation"] is not None:
+        panels.append(("PSNR, extrapolation", results["extrapolation"]["runs"], "psnr"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    for ax, (title, runs, key) in zip(axes[0], panels):
+        for m in results["methods"]:
+            ax.plot(*_series(runs, m, key), marker="o", label=m)
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(sorted(int(k) for k in results["inputs"]), [str(k) for k in sorted(int(k) for k in results["inputs"])])
+        ax.set(title=title, xlabel="input views N", ylabel="dB")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=8)
+    fig.suptitle(results["dataset"])
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_noise(results: Mapping, path: Path) -> None:
+    """PSNR vs depth-noise level per method (0 = clean), one panel per N."""
+    plt = _pyplot()
+    views = sorted(int(k) for k in results["inputs"])
+    fig, axes = plt.subplots(1, len(views), figsize=(4.5 * len(views), 4), squeeze=False)
+    for ax, n in zip(axes[0], views):
+        runs = [r for r in results["runs"] if r["views"] == n]
+        for m in results["methods"]:
+            ax.plot(*_series(runs, m, "psnr", x="noise"), marker="o", label=m)
+        ax.set(title=f"N={n}", xlabel="depth noise sigma / median depth", ylabel="PSNR dB")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_stability(results: Mapping, path: Path) -> None:
+    """Feature-splat cosine to the reference vs input views per method."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for m in dict.fromkeys(r["method"] for r in results["stability"]):
+        ax.plot(*_series(results["stability"], m, "cosine"), marker="o", label=m)
+    ax.set(title="feature stability", xlabel="input views N", ylabel="mean cosine to the reference splat")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def image_grid(columns: Mapping[str, Sequence[np.ndarray]]) -> Image.Image:
+    """Columns of uint8 [H, W, 3] images (one row per held-out frame) under their names."""
+    names = list(columns)
+    h, w = columns[names[0]][0].shape[:2]
+    factor = min(1.0, GRID_TILE_WIDTH / w)
+    tw, th = max(1, round(w * factor)), max(1, round(h * factor))
+    rows = max(len(v) for v in columns.values())
+    canvas = Image.new("RGB", (tw * len(names), _HEADER + th * rows), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default()
+    for c, name in enumerate(names):
+        draw.text((c * tw + 4, 3), name, fill="black", font=font)
+        for r, img in enumerate(columns[name]):
+            canvas.paste(Image.fromarray(img).resize((tw, th), Image.BOX), (c * tw, _HEADER + r * th))
+    return canvas
+
+
+def write_report(results: Mapping, grids: Mapping[int, Mapping[str, Sequence[np.ndarray]]], out_dir: Path) -> list[Path]:
+    """Write every file listed in the module docstring; returns their paths."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [out_dir / "results.json", out_dir / "results.md", out_dir / "psnr_vs_views.png"]
+    written[0].write_text(json.dumps(_finite(results), indent=1, allow_nan=False))
+    written[1].write_text(markdown(results))
+    plot_views(results, written[2])
+    if results["noise_levels"]:
+        written.append(out_dir / "noise_psnr.png")
+        plot_noise(results, written[-1])
+    if results["stability"]:
+        written.append(out_dir / "stability.png")
+        plot_stability(results, written[-1])
+    for n, columns in grids.items():
+        written.append(out_dir / f"grid_N{n}.png")
+        image_grid(columns).save(written[-1])
+    return written

@@ -1,0 +1,236 @@
+"""`evaluate`: the whole protocol on one dataset -> results.json, results.md, plots and image grids.
+
+Per method and number of input views N (inputs and held-out frames from `protocol`), every
+held-out frame is rendered from the method's model and compared with its image (black background):
+PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, SSIM, each the mean over
+the held-out frames; the number of Gaussians; build time (fold + decode for the scene methods) and
+the mean render time. Then the same with depth noise on the inputs, the extrapolation split, and
+the feature-stability curve (mean cosine of the feature splat from N views to the one from the
+reference, the largest stability N, over pixels covered in both).
+
+Depth noise: sigma = level x the frame's median valid depth, zero-mean Gaussian, added to valid
+pixels; values that drop to <= 0 become missing. The generator of the frame at position p and
+level l is seeded with (round(l * 1e6), p), so every method and every N sees the same noisy frame.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from tqdm import tqdm
+
+from ..frame import Frame
+from ..datasets import FrameSequence, load_dataset
+from .methods import METHODS, Model, build, check_methods
+from .metrics import cosine_map, covered, coverage, psnr, ssim
+from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
+from .report import require_matplotlib, write_report
+
+VOXEL_PIXELS = 6.0  # default voxel edge in pixel footprints at the median depth (4 mm on the shelf)
+
+
+def resize_frame(frame: Frame, scale: float) -> Frame:
+    """The frame resized by ``scale``: colour area-averaged, depth nearest (no mixing across
+    edges or holes), camera via `Camera.scaled`; client features and labels are dropped."""
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
+        raise ValueError(f"scale: expected a number in (0, 1], got {scale!r}")
+    if scale == 1:
+        return frame
+    camera = frame.camera.scaled(scale)
+    size = (camera.width, camera.height)
+    rgb = np.asarray(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
+
+    def nearest(t: torch.Tensor | None) -> np.ndarray | None:
+        return None if t is None else np.asarray(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
+
+    return Frame(rgb=rgb, camera=camera, depth=nearest(frame.depth), depth_std=nearest(frame.depth_std),
+                 frame_id=frame.frame_id)
+
+
+def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:
+    """Zero-mean Gaussian depth noise with sigma = ``level`` x the median valid depth (module docstring)."""
+    if frame.depth is None:
+        raise ValueError("depth: the noise protocol needs frames with depth")
+    if not (isinstance(level, (int, float)) and math.isfinite(level) and level >= 0):
+        raise ValueError(f"noise: expected non-negative levels, got {level!r}")
+    if level == 0:
+        return frame
+    depth = frame.depth.numpy().astype(np.float64)
+    valid = depth > 0
+    if not valid.any():
+        return frame
+    sigma = level * float(np.median(depth[valid]))
+    rng = np.random.default_rng([int(round(level * 1e6)), int(position)])
+    noisy = np.where(valid, depth + sigma * rng.standard_normal(depth.shape), 0.0)
+    return replace(frame, depth=np.where(noisy > 0, noisy, 0.0).astype(np.float32), depth_std=None)
+
+
+def default_voxel_size(frames: Sequence[Frame]) -> float:
+    """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth, 2 significant digits."""
+    depths = torch.cat([f.depth[f.depth > 0] for f in frames if f.depth is not None])
+    if depths.numel() == 0:
+        raise ValueError("dataset: no valid depth in the input frames")
+    focal = float(np.mean([(f.camera.fx + f.camera.fy) / 2 for f in frames]))
+    size = VOXEL_PIXELS * float(depths.median()) / focal
+    return float(f"{size:.2g}")
+
+
+def _nanmean(values: Sequence[float]) -> float | None:
+    finite = [v for v in values if not math.isnan(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def score(model: Model, targets: Sequence[Frame]) -> tuple[dict, list[np.ndarray]]:
+    """Metrics of ``model`` at the ``targets`` (means over targets) and its uint8 renders."""
+    rows, images = [], []
+    for frame in targets:
+        t0 = time.perf_counter()
+        view = model.render(frame.camera)
+        ms = (time.perf_counter() - t0) * 1000.0
+        gt = frame.rgb.float() / 255.0
+        rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, covered(view.alpha)), coverage(view.alpha),
+                     ssim(view.rgb, gt), ms))
+        images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
+    p, pc, cov, s, ms = zip(*rows)
+    metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),
+               "ssim": float(np.mean(s)), "gaussians": model.gaussians, "render_ms": float(np.mean(ms))}
+    return metrics, images
+
+
+def stability(name: str, inputs: Mapping[int, Sequence[int]], frames: Mapping[int, Frame], targets: Sequence[Frame],
+              voxel_size: float, bar: tqdm) -> list[dict]:
+    """Mean cosine of the feature splat from each N to the reference (largest N) at the targets,
+    pooled over the pixels covered in both renders."""
+    def splat(n: int) -> list:
+        model, _ = build(name, [frames[p] for p in inputs[n]], voxel_size, features=True)
+        bar.set_postfix_str(f"stability {name} N={n}")
+        bar.update()
+        return [model.render(f.camera, features=True) for f in targets]
+
+    counts = sorted(inputs)
+    reference = splat(counts[-1])
+    out = []
+    for n in counts:
+        views = reference if n == counts[-1] else splat(n)
+        total, pixels = 0.0, 0
+        for view, ref in zip(views, reference):
+            mask = covered(view.alpha) & covered(ref.alpha)
+            total += float(cosine_map(view.features, ref.features)[mask].sum())
+            pixels += int(mask.sum())
+        out.append({"method": name, "views": n, "cosine": total / pixels if pixels else None})
+    return out
+
+
+def evaluate(
+    dataset: str | Path | FrameSequence,
+    views: Sequence[int] = (2, 4, 8, 16),
+    methods: Sequence[str] | None = None,
+    noise: Sequence[float] = (),
+    out_dir: str | Path = "eval_out",
+    progress: bool = True,
+    scale: float = 1.0,
+    voxel_size: float | None = None,
+    stability_views: Sequence[int] = STABILITY_VIEWS,
+    extrapolation: bool = True,
+) -> dict:
+    """Run the protocol (module docstring) and write results.json, results.md, PNG plots and image
+    grids into ``out_dir``; returns the results dict (the JSON content).
+
+    Args:
+        dataset: a path any loader reads (`load_dataset`), or a FrameSequence.
+        views: input counts N.
+        methods: names from `METHODS` (default: all); ones that cannot run here are skipped with a note.
+        noise: depth-noise levels (fractions of the median depth) besides the clean run.
+        scale: image downscale factor in (0, 1] (for quick runs).
+        voxel_size: voxel edge in the scene's unit; default `default_voxel_size` of the inputs.
+        stability_views: input counts of the feature-stability curve (empty: skip it).
+        extrapolation: also run the extrapolation split (when the sequence allows it).
+    """
+    require_matplotlib()
+    sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
+    methods = check_methods(list(METHODS) if methods is None else methods)
+    noise = sorted(set(float(level) for level in noise))
+    for level in noise:
+        if not (math.isfinite(level) and level > 0):
+            raise ValueError(f"noise: expected positive levels, got {level!r}")
+    if voxel_size is not None and not voxel_size > 0:
+        raise ValueError(f"voxel_size: expected a positive number, got {voxel_size!r}")
+    n = len(sequence)
+    split = interpolation_split(n, views)
+    extra: Split | None = extrapolation_split(n, views, split.heldout) if extrapolation else None
+    skipped = {m: reason for m in methods if (reason := METHODS[m].unavailable())}
+    runnable = [m for m in methods if m not in skipped]
+    feature_methods = [m for m in runnable if METHODS[m].features]
+    stab = stability_inputs(n, split.heldout, stability_views) if feature_methods and len(stability_views) else {}
+
+    input_sets = [*split.inputs.values(), *(extra.inputs.values() if extra else ()), *stab.values()]
+    positions = sorted(set(split.heldout).union(*input_sets))
+    frames = {p: resize_frame(sequence[p], scale) for p in positions}
+    targets = [frames[p] for p in split.heldout]
+    if voxel_size is None:
+        voxel_size = default_voxel_size([frames[p] for p in split.inputs[max(split.inputs)]])
+
+    grid_at = sorted({0, len(targets) // 2, len(targets) - 1})
+    grid_targets = [split.heldout[i] for i in grid_at]
+    grids: dict[int, dict[str, list[np.ndarray]]] = {
+        n_views: {"ground truth": [targets[i].rgb.numpy() for i in grid_at]} for n_views in split.inputs}
+
+    steps = len(runnable) * len(split.inputs) * (1 + len(noise) + (extra is not None)) + len(feature_methods) * len(stab)
+    bar = tqdm(total=steps, disable=not progress, file=sys.stderr, desc="eval", unit="run", dynamic_ncols=True)
+    bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
+    for name in runnable:  # warm-up: JIT compilation and caches stay out of the timings
+        build(name, [frames[split.inputs[min(split.inputs)][0]]], voxel_size)[0].render(targets[0].camera)
+
+    def run(name: str, inputs: Sequence[Frame], n_views: int, level: float = 0.0, keep_grid: bool = False) -> dict:
+        model, build_ms = build(name, inputs, voxel_size)
+        metrics, images = score(model, targets)
+        bar.set_postfix_str(f"{name} N={n_views} noise={level:g}: {metrics['psnr']:.2f} dB")
+        bar.update()
+        if keep_grid:
+            grids[n_views][name] = [images[i] for i in grid_at]
+        return {"method": name, "views": n_views, "noise": level, **metrics, "fold_ms": build_ms}
+
+    runs = []
+    for level in [0.0, *noise]:
+        noisy = {p: add_depth_noise(frames[p], level, p) for p in set().union(*split.inputs.values())}
+        for n_views, inputs in split.inputs.items():
+            for name in runnable:
+                runs.append(run(name, [noisy[p] for p in inputs], n_views, level, keep_grid=level == 0))
+    extrapolation_runs = [run(name, [frames[p] for p in inputs], n_views)
+                          for n_views, inputs in (extra.inputs.items() if extra else ()) for name in runnable]
+    stability_rows = [row for name in feature_methods for row in stability(name, stab, frames, targets, voxel_size, bar)]
+    bar.close()
+
+    results = {
+        "dataset": sequence.name,
+        "frames": n,
+        "frame_ids": sequence.frame_ids,
+        "image_size": [targets[0].width, targets[0].height],
+        "scale": scale,
+        "voxel_size": voxel_size,
+        "heldout": list(split.heldout),
+        "heldout_ids": [sequence.frame_ids[p] for p in split.heldout],
+        "inputs": {str(k): list(v) for k, v in split.inputs.items()},
+        "methods": runnable,
+        "skipped": skipped,
+        "noise_levels": noise,
+        "runs": runs,
+        "extrapolation": None if extra is None else {
+            "inputs": {str(k): list(v) for k, v in extra.inputs.items()},
+            "span_ratio": {str(k): extra.span_ratio(k) for k in extra.inputs},
+            "runs": extrapolation_runs,
+        },
+        "stability_inputs": {str(k): list(v) for k, v in stab.items()},
+        "stability": stability_rows,
+        "grid_heldout": grid_targets,
+    }
+    write_report(results, grids, Path(out_dir))
+    return results

@@ -1,0 +1,5 @@
+"""Rendering: ``render(gaussians, camera, ...)`` with a PyTorch reference, a numba CPU path and gsplat on CUDA."""
+
+from .renderer import Backend, Output, RenderResult, render
+
+__all__ = ["Backend", "Output", "RenderResult", "render"]

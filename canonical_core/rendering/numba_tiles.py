@@ -1,0 +1,187 @@
+"""Fast CPU backend: numba projection, tile binning and per-tile compositing (float32, no autograd).
+
+Same image model and arithmetic as the reference: the splat geometry comes from the same source
+(`splat_geometry`), the per-pixel expressions are written alike, and the transmittance is
+accumulated in float64 and rounded as torch.cumprod does, so the two agree to float rounding.
+All kernels are compiled with ``cache=True``: set NUMBA_CACHE_DIR (the Makefile does) to keep
+the machine code across processes.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from ..gaussians import Gaussians
+from .projection import Blend, Channel, channel_values, world_to_camera
+from .splat_geometry import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, TILE_SIZE, project_numba, slope_bounds
+
+# float32 constants so the kernel rounds like the reference's float32 tensors.
+_MAX_ALPHA = np.float32(MAX_ALPHA)
+_MIN_ALPHA = np.float32(MIN_ALPHA)
+_MIN_TRANSMITTANCE = np.float32(MIN_TRANSMITTANCE)
+_TILE_PIXELS = TILE_SIZE * TILE_SIZE
+
+
+@numba.njit(parallel=True, cache=True)
+def bin_splats_by_tile(
+    boxes: np.ndarray,  # [N, 4] int32 pixel boxes (u_lo, u_hi, v_lo, v_hi); empty where lo > hi
+    tiles_x: int,
+    num_tiles: int,
+    num_chunks: int,
+) -> tuple[np.ndarray, np.ndarray]:  # tile_starts [T + 1] int64, splat_ids [K] int32
+    """Counting sort of (tile, splat) pairs by tile; each tile lists its splats in input order.
+
+    Each of ``num_chunks`` parallel tasks counts and fills one contiguous run of splats; runs are
+    laid out in order within every tile, which keeps the input order.
+    """
+    n = boxes.shape[0]
+    chunk = -(-n // num_chunks)
+    cursors = np.zeros((num_chunks, num_tiles), np.int64)
+    for k in numba.prange(num_chunks):
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            if boxes[i, 0] <= boxes[i, 1]:
+                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
+                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
+                        cursors[k, ty * tiles_x + tx] += 1
+    tile_starts = np.empty(num_tiles + 1, np.int64)
+    total = 0
+    for tile in range(num_tiles):
+        tile_starts[tile] = total
+        for k in range(num_chunks):
+            count = cursors[k, tile]
+            cursors[k, tile] = total
+            total += count
+    tile_starts[num_tiles] = total
+    splat_ids = np.empty(total, np.int32)
+    for k in numba.prange(num_chunks):
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            if boxes[i, 0] <= boxes[i, 1]:
+                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
+                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
+                        splat_ids[cursors[k, ty * tiles_x + tx]] = i
+                        cursors[k, ty * tiles_x + tx] += 1
+    return tile_starts, splat_ids
+
+
+@numba.njit(parallel=True, cache=True)
+def composite_tiles(
+    tile_starts: np.ndarray,  # [T + 1] int64
+    splat_ids: np.ndarray,  # [K] int32, per tile in input order
+    means2d: np.ndarray,  # [N, 2] float32
+    conics: np.ndarray,  # [N, 3] float32
+    opacities: np.ndarray,  # [N] float32
+    depths: np.ndarray,  # [N] float32
+    boxes: np.ndarray,  # [N, 4] int32
+    supports: np.ndarray,  # [N] float32 q cut-off (see project_numba)
+    values: np.ndarray,  # [N, D] float32
+    tiles_x: int,
+    out_values: np.ndarray,  # [H, W, D] float32
+    out_depth_sums: np.ndarray,  # [H, W] float32
+    out_weight_sums: np.ndarray,  # [H, W] float32
+    out_transmittance: np.ndarray,  # [H, W] float32
+) -> None:
+    """Blend each tile's splats front to back. Splat-outer within the tile: each splat visits only
+    the pixels of its box; every pixel still sees the splats in depth order, as pixel-outer would."""
+    height, width, num_channels = out_values.shape
+    for tile in numba.prange(tile_starts.shape[0] - 1):
+        ids = splat_ids[tile_starts[tile] : tile_starts[tile + 1]]
+        # mergesort is stable: equal depths keep input order, as the reference's global sort.
+        ids = ids[np.argsort(depths[ids], kind="mergesort")]
+        u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
+        u1, v1 = min(u0 + TILE_SIZE, width), min(v0 + TILE_SIZE, height)
+        transmittance = np.ones(_TILE_PIXELS)  # float64, as torch.cumprod accumulates
+        done = np.zeros(_TILE_PIXELS, np.bool_)
+        active = (u1 - u0) * (v1 - v0)
+        # float64 sums: the reference's float32 matmul is then the only rounding left in the test
+        accum = np.zeros((_TILE_PIXELS, num_channels))
+        depth_sum = np.zeros(_TILE_PIXELS)
+        weight_sum = np.zeros(_TILE_PIXELS)  # not 1 - T: 1 - alpha is rounded to float32 in T
+        for i in ids:
+            mu, mv = means2d[i, 0], means2d[i, 1]
+            a, b2, c = conics[i, 0], conics[i, 1] + conics[i, 1], conics[i, 2]
+            opacity, depth, support = opacities[i], depths[i], supports[i]
+            for v in range(max(boxes[i, 2], v0), min(boxes[i, 3] + 1, v1)):
+                dy = mv - np.float32(v)
+                for u in range(max(boxes[i, 0], u0), min(boxes[i, 1] + 1, u1)):
+                    p = (v - v0) * TILE_SIZE + (u - u0)
+                    if done[p]:
+                        continue
+                    dx = mu - np.float32(u)
+                    q = a * dx * dx + b2 * dx * dy + c * dy * dy
+                    if not q <= support:  # alpha < 1/255 beyond: skip the exp
+                        continue
+                    alpha = min(_MAX_ALPHA, opacity * np.exp(np.float32(-0.5) * q))
+                    if alpha < _MIN_ALPHA:
+                        continue
+                    # 3DGS: stop before the splat that would take the transmittance below 1e-4.
+                    next_transmittance = transmittance[p] * (np.float32(1.0) - alpha)
+                    if np.float32(next_transmittance) < _MIN_TRANSMITTANCE:
+                        done[p] = True
+                        active -= 1
+                        continue
+                    weight = alpha * np.float32(transmittance[p])
+                    for channel in range(num_channels):
+                        accum[p, channel] += weight * values[i, channel]
+                    depth_sum[p] += weight * depth
+                    weight_sum[p] += weight
+                    transmittance[p] = next_transmittance
+            if active == 0:
+                break
+        for v in range(v0, v1):
+            for u in range(u0, u1):
+                p = (v - v0) * TILE_SIZE + (u - u0)
+                for channel in range(num_channels):
+                    out_values[v, u, channel] = accum[p, channel]
+                out_depth_sums[v, u] = depth_sum[p]
+                out_weight_sums[v, u] = weight_sum[p]
+                out_transmittance[v, u] = np.float32(transmittance[p])
+
+
+def render_numba(
+    gaussians: Gaussians,
+    camera: Camera,
+    channels: Sequence[Channel],
+    near_plane: float,
+    num_threads: int,
+) -> Blend:
+    """Project and composite on ``num_threads`` threads; returns CPU float32 tensors."""
+
+    def array(t: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
+
+    with torch.no_grad():
+        gaussians = gaussians.detach().to("cpu", torch.float32)
+        values = array(channel_values(gaussians, camera, channels))
+    n = len(gaussians)
+    width, height = camera.width, camera.height
+    tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
+    f32 = np.float32
+    view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
+    means2d, conics = np.zeros((n, 2), f32), np.zeros((n, 3), f32)
+    depths, boxes, supports = np.zeros(n, f32), np.zeros((n, 4), np.int32), np.zeros(n, f32)
+    out_values = np.zeros((height, width, values.shape[1]), f32)
+    out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
+    out_transmittance = np.ones((height, width), f32)
+    previous_threads = numba.get_num_threads()
+    numba.set_num_threads(min(num_threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        project_numba(
+            array(gaussians.means), array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities), view,
+            (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
+            tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
+            f32(near_plane), width, height, means2d, conics, depths, boxes, supports,
+        )  # fmt: skip
+        tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
+        composite_tiles(
+            tile_starts, splat_ids, means2d, conics, array(gaussians.opacities), depths, boxes, supports, values, tiles_x,
+            out_values, out_depth_sums, out_weight_sums, out_transmittance,
+        )  # fmt: skip
+    finally:
+        numba.set_num_threads(previous_threads)
+    return Blend(*(torch.from_numpy(a) for a in (out_values, out_depth_sums, out_weight_sums, out_transmittance)))

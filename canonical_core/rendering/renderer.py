@@ -1,0 +1,148 @@
+"""``render``: one entry point for rasterizing Gaussians at a camera, on any backend."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Sequence, get_args
+
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from ..gaussians import Gaussians
+from .gsplat_backend import composite_gsplat, gsplat_available
+from .numba_tiles import render_numba
+from .projection import Blend, Channel, project_splats
+from .reference import composite_reference
+
+Output = Literal["rgb", "depth", "alpha", "features", "labels"]
+Backend = Literal["auto", "reference", "numba", "gsplat"]
+
+
+@dataclass
+class RenderResult:
+    """Rendered maps; a field is None unless it was requested in ``outputs``.
+
+    Attributes:
+        rgb: [H, W, 3] colour in [0, 1], background composited behind.
+        depth: [H, W] expected view-space depth sum(w_i z_i) / sum(w_i); 0 where alpha is 0.
+        alpha: [H, W] accumulated opacity, 1 - final transmittance.
+        features: [H, W, C] composited features sum(w_i f_i) (no background, not normalised).
+        labels: [H, W] int64 argmax of the composited label scores; -1 where alpha is 0.
+    """
+
+    rgb: Tensor | None = None  # [H, W, 3]
+    depth: Tensor | None = None  # [H, W]
+    alpha: Tensor | None = None  # [H, W]
+    features: Tensor | None = None  # [H, W, C]
+    labels: Tensor | None = None  # [H, W] int64
+
+
+def _check_outputs(outputs: Sequence[str], gaussians: Gaussians) -> tuple[str, ...]:
+    if isinstance(outputs, str) or not outputs:
+        raise ValueError(f"outputs: expected a non-empty sequence of {list(get_args(Output))}, got {outputs!r}")
+    for name in outputs:
+        if name not in get_args(Output):
+            raise ValueError(f"outputs: unknown output {name!r}; expected some of {list(get_args(Output))}")
+        if name in ("features", "labels") and getattr(gaussians, name) is None:
+            raise ValueError(f"{name}: requested in outputs, but the Gaussians carry no {name}")
+    return tuple(dict.fromkeys(outputs))
+
+
+def _background(background) -> Tensor:  # [3] float64
+    if background is None:
+        return torch.zeros(3, dtype=torch.float64)
+    background = torch.as_tensor(background, dtype=torch.float64)
+    if background.shape != (3,):
+        raise ValueError(f"background: expected an rgb colour of shape [3], got {list(background.shape)}")
+    return background
+
+
+
+def _channel_width(gaussians: Gaussians, channel: Channel) -> int:
+    return 3 if channel == "rgb" else getattr(gaussians, channel).shape[1]
+
+
+def _resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in get_args(Backend):
+        raise ValueError(f"backend: expected one of {list(get_args(Backend))}, got {backend!r}")
+    if backend == "auto":
+        return "gsplat" if device.type == "cuda" and gsplat_available() else "numba"
+    if backend == "gsplat" and not (device.type == "cuda" and gsplat_available()):
+        raise ValueError(f"backend: 'gsplat' needs the gsplat package and CUDA tensors (Gaussians are on {device})")
+    return backend
+
+
+def render(
+    gaussians: Gaussians,
+    camera: Camera,
+    outputs: Sequence[Output] = ("rgb", "depth", "alpha"),
+    background: Tensor | Sequence[float] | None = None,  # [3] rgb, default black
+    backend: Backend = "auto",
+    near_plane: float = 0.01,
+    num_threads: int | None = None,
+) -> RenderResult:
+    """Rasterize 3D Gaussians at ``camera`` by front-to-back alpha compositing (3DGS).
+
+    The image model (EWA projection, 0.3 px^2 low-pass, 3-sigma support, 1/255 and 1e-4 cut-offs)
+    is documented in ``canonical_core.rendering.splat_geometry``.
+
+    Args:
+        gaussians: N Gaussians; ``features`` / ``labels`` must be present to render them.
+        camera: pinhole camera (OpenCV axes, pixel (u, v) centred at (u, v)); sets H and W.
+        outputs: which maps to compute, any of "rgb", "depth", "alpha", "features", "labels".
+            RGB, features and labels are composited in the same pass.
+        background: rgb colour behind the Gaussians, composited as rgb + T_final * background.
+        backend: "reference" (PyTorch, differentiable, O(splats x pixels) per tile), "numba"
+            (fast CPU, float32, no autograd), "gsplat" (CUDA) or "auto" (gsplat for CUDA tensors
+            when it is installed, else numba).
+        near_plane: Gaussians whose mean is closer than this view-space depth are culled.
+        num_threads: CPU threads for the numba backend (default ``torch.get_num_threads()``).
+
+    Returns:
+        RenderResult with the requested maps on the Gaussians' device, each [H, W] or [H, W, C].
+
+    Raises:
+        ValueError: unknown output or backend, features/labels requested but absent, a background
+            that is not [3], a non-positive near plane or thread count.
+    """
+    if not isinstance(gaussians, Gaussians):
+        raise ValueError(f"gaussians: expected Gaussians, got {type(gaussians).__name__}")
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
+    outputs = _check_outputs(outputs, gaussians)
+    background = _background(background)
+    if not near_plane > 0:
+        raise ValueError(f"near_plane: expected a positive distance, got {near_plane!r}")
+    num_threads = torch.get_num_threads() if num_threads is None else num_threads
+    if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
+        raise ValueError(f"num_threads: expected a positive integer, got {num_threads!r}")
+    device = gaussians.means.device
+    backend = _resolve_backend(backend, device)
+    channels: tuple[Channel, ...] = tuple(c for c in ("rgb", "features", "labels") if c in outputs)
+
+    if backend == "gsplat":
+        blend = composite_gsplat(gaussians, camera, channels, near_plane)
+    elif backend == "reference":
+        blend = composite_reference(project_splats(gaussians, camera, channels, near_plane), camera.width, camera.height)
+    else:
+        blend = Blend(*(t.to(device) for t in render_numba(gaussians, camera, channels, near_plane, num_threads)))
+
+    alpha = 1 - blend.transmittance
+    covered = blend.weight_sums > 0
+    result = RenderResult()
+    widths = [_channel_width(gaussians, c) for c in channels]
+    split = dict(zip(channels, blend.values.split(widths, -1))) if channels else {}
+    if "rgb" in outputs:
+        result.rgb = (split["rgb"] + blend.transmittance[..., None] * background.to(blend.values)).clamp(0.0, 1.0)
+    if "depth" in outputs:
+        safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
+        result.depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
+    if "alpha" in outputs:
+        result.alpha = alpha
+    if "features" in outputs:
+        result.features = split["features"]
+    if "labels" in outputs:
+        result.labels = torch.where(covered, split["labels"].argmax(-1), -1)
+    return result
+

@@ -1,0 +1,231 @@
+"""The ``canonical`` command line.
+
+    canonical serve [--host H] [--port P] [--data-dir D] [--threads N]
+    canonical stream DATASET --url URL (--session ID | --voxel-size S) [--stride K] [--max-frames N] [--scale F]
+    canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
+    canonical export --url URL --session ID -o scene.ply|scene.splat
+    canonical sessions --url URL
+
+Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
+write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
+The CLI talks to the service over HTTP (`client.sdk`); ``serve`` starts it through uvicorn by import
+string, so nothing here imports ``server``. Datasets are read client-side with canonical_core.datasets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .sdk import CanonicalError, Client
+
+
+@dataclass(frozen=True)
+class Command:
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    help: str
+
+
+def _add_connection(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", default=os.environ.get("CANONICAL_URL", "http://127.0.0.1:8000"),
+                   help="service base URL (default: $CANONICAL_URL or http://127.0.0.1:8000)")
+    p.add_argument("--token", default=None, help="bearer token (default: $CANONICAL_API_TOKEN)")
+
+
+def _client(args) -> Client:
+    return Client(args.url, token=args.token)
+
+
+# -- serve --------------------------------------------------------------------------------------
+def add_serve(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default=None, help="bind address (default: $CANONICAL_HOST or 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="port (default: $CANONICAL_PORT or 8000)")
+    p.add_argument("--data-dir", default=None, help="session storage (default: $CANONICAL_DATA_DIR or ./data)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads per job (default: $CANONICAL_THREADS or all)")
+    p.add_argument("--log-level", default="info")
+
+
+def run_serve(args) -> int:
+    import uvicorn
+
+    # Settings travel as CANONICAL_* variables to the service's own settings class (server.settings).
+    for name in ("host", "port", "data_dir", "threads"):
+        value = getattr(args, name)
+        if value is not None:
+            os.environ[f"CANONICAL_{name.upper()}"] = str(value)
+    if args.threads:
+        os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+    host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
+    port = int(os.environ.get("CANONICAL_PORT", "8000"))
+    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level)
+    return 0
+
+
+# -- stream -------------------------------------------------------------------------------------
+def add_stream(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json)")
+    _add_connection(p)
+    target = p.add_mutually_exclusive_group(required=True)
+    target.add_argument("--session", help="stream into this existing session")
+    target.add_argument("--voxel-size", type=float, help="create a new session with this voxel size")
+    p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5)")
+
+
+def frame_arrays(frame, scale: float = 1.0) -> dict:
+    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized."""
+    camera = frame.camera
+    rgb = frame.rgb.numpy()
+    depth = None if frame.depth is None else frame.depth.numpy()
+    if scale != 1.0:
+        from PIL import Image
+
+        camera = camera.scaled(scale)
+        size = (camera.width, camera.height)
+        rgb = np.array(Image.fromarray(rgb).resize(size, Image.BILINEAR))
+        if depth is not None:  # nearest: averaging depth across edges invents surfaces
+            depth = np.array(Image.fromarray(np.ascontiguousarray(depth, np.float32)).resize(size, Image.NEAREST))
+    out = {"rgb": rgb, "K": camera.K64(), "c2w": camera.c2w64(), "depth": depth, "frame_id": frame.frame_id}
+    if scale == 1.0:
+        for name in ("depth_std", "features", "labels"):
+            value = getattr(frame, name)
+            if value is not None:
+                out[name] = value.numpy()
+    return out
+
+
+def run_stream(args) -> int:
+    from tqdm import tqdm
+
+    from canonical_core.datasets import load_dataset
+
+    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
+    with _client(args) as client:
+        session = client.session(args.session) if args.session else client.create_session(voxel_size=args.voxel_size)
+        print(f"session {session.id}", file=sys.stderr)
+        t0, new = time.perf_counter(), 0
+        with tqdm(total=len(frames), unit="frame", desc=frames.name) as bar:
+            for i in range(len(frames)):
+                report = session.add_frame(**frame_arrays(frames[i], args.scale))
+                new += report["new_voxels"]
+                bar.set_postfix(voxels=new, refresh=False)
+                bar.update()
+        elapsed = time.perf_counter() - t0
+        stats = session.stats()
+    print(f"{len(frames)} frames in {elapsed:.1f} s ({len(frames) / max(elapsed, 1e-9):.2f} frames/s); "
+          f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels, {stats['gaussians']} Gaussians")
+    return 0
+
+
+# -- render -------------------------------------------------------------------------------------
+def add_render(p: argparse.ArgumentParser) -> None:
+    _add_connection(p)
+    p.add_argument("--session", required=True)
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--frame-like", metavar="DATASET:INDEX", help="the camera of frame INDEX of DATASET")
+    where.add_argument("--pose", metavar="FILE", help="4x4 camera-to-world text file (OpenCV axes); needs --K, --width, --height")
+    p.add_argument("--K", help="fx,fy,cx,cy (with --pose)")
+    p.add_argument("--width", type=int)
+    p.add_argument("--height", type=int)
+    p.add_argument("--max-gaussians", type=int, default=None)
+    p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
+    p.add_argument("-o", "--output", required=True, help="PNG file to write")
+
+
+def view_camera(args) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """K, c2w, width, height from --frame-like or --pose/--K/--width/--height."""
+    if args.frame_like:
+        path, sep, index = args.frame_like.rpartition(":")
+        if not sep or not index.lstrip("-").isdigit():
+            raise SystemExit(f"--frame-like: expected DATASET:INDEX, got {args.frame_like!r}")
+        from canonical_core.datasets import load_dataset
+
+        camera = load_dataset(path)[int(index)].camera
+        return camera.K64(), camera.c2w64(), camera.width, camera.height
+    if not (args.K and args.width and args.height):
+        raise SystemExit("--pose needs --K fx,fy,cx,cy, --width and --height")
+    fx, fy, cx, cy = (float(x) for x in args.K.split(","))
+    c2w = np.loadtxt(args.pose, dtype=np.float64)
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), c2w, args.width, args.height
+
+
+def run_render(args) -> int:
+    K, c2w, width, height = view_camera(args)
+    background = None if args.background is None else [float(x) for x in args.background.split(",")]
+    with _client(args) as client:
+        png = client.session(args.session).render_png(K, c2w, width, height, args.max_gaussians, background)
+    Path(args.output).write_bytes(png)
+    print(f"wrote {args.output} ({width}x{height})")
+    return 0
+
+
+# -- export -------------------------------------------------------------------------------------
+def add_export(p: argparse.ArgumentParser) -> None:
+    _add_connection(p)
+    p.add_argument("--session", required=True)
+    p.add_argument("--max-gaussians", type=int, default=None)
+    p.add_argument("-o", "--output", required=True, help="file ending in .ply or .splat")
+
+
+def run_export(args) -> int:
+    suffix = Path(args.output).suffix.lower()
+    if suffix not in (".ply", ".splat"):
+        raise SystemExit(f"-o: expected a .ply or .splat file name, got {args.output!r}")
+    with _client(args) as client:
+        session = client.session(args.session)
+        path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
+    print(f"wrote {path} ({path.stat().st_size} bytes)")
+    return 0
+
+
+# -- sessions -----------------------------------------------------------------------------------
+def add_sessions(p: argparse.ArgumentParser) -> None:
+    _add_connection(p)
+
+
+def run_sessions(args) -> int:
+    with _client(args) as client:
+        sessions = client.sessions()
+    print(f"{'id':<24} {'frames':>7} {'voxels':>9}  created")
+    for s in sessions:
+        print(f"{s['id']:<24} {s['frames']:>7} {s['voxels']:>9}  {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(s['created']))}")
+    return 0
+
+
+COMMANDS: dict[str, Command] = {
+    "serve": Command(add_serve, run_serve, "run the service (uvicorn)"),
+    "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
+    "render": Command(add_render, run_render, "render a session at a camera to a PNG"),
+    "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
+    "sessions": Command(add_sessions, run_sessions, "list sessions"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="canonical", description="CanonicalGS Fusion: service and client.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, command in COMMANDS.items():
+        command.add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command].run(args) or 0
+    except CanonicalError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

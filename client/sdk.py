@@ -1,0 +1,222 @@
+"""Python SDK for the CanonicalGS Fusion service: numpy in, numpy out, HTTP only.
+
+Example:
+    >>> client = Client("http://127.0.0.1:8000")                       # doctest: +SKIP
+    >>> session = client.create_session(voxel_size=0.008)               # doctest: +SKIP
+    >>> session.add_frame(rgb, K, c2w, depth=depth)["new_voxels"]       # doctest: +SKIP
+    >>> view = session.render(K, c2w, 640, 480)                         # doctest: +SKIP
+    >>> view["rgb"].shape, view["depth"].dtype                          # doctest: +SKIP
+    ((480, 640, 3), dtype('float32'))
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import time
+from pathlib import Path
+
+import httpx
+import msgpack
+import numpy as np
+
+MSGPACK = "application/msgpack"
+_DTYPES = {"uint8": "<u1", "uint16": "<u2", "float16": "<f2", "float32": "<f4"}
+
+
+class CanonicalError(Exception):
+    """A 4xx/5xx answer: ``status``, ``code``, ``message`` and the offending ``field`` (or None)."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None):
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message, self.field = status, code, message, field
+
+
+# -- the array codec (the server has its own; the client never imports server/) ---------------------
+def encode_array(a) -> dict:
+    a = np.asarray(a)
+    if a.dtype == np.float64:
+        a = a.astype(np.float32)
+    if a.dtype.name not in _DTYPES:
+        raise ValueError(f"array: dtype {a.dtype} cannot travel; use uint8, uint16, float16 or float32")
+    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": np.ascontiguousarray(a, _DTYPES[a.dtype.name]).tobytes()}
+
+
+def decode_array(obj: dict) -> np.ndarray:
+    dtype = np.dtype(_DTYPES[obj["dtype"]])
+    return np.frombuffer(obj["data"], dtype).reshape(obj["shape"]).astype(dtype.newbyteorder("="))
+
+
+def _matrix(m, shape: tuple[int, int]) -> list:
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"expected a {shape[0]}x{shape[1]} matrix, got shape {list(a.shape)}")
+    return a.tolist()
+
+
+def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background) -> dict:
+    body = {"K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4)), "width": int(width), "height": int(height)}
+    if max_gaussians is not None:
+        body["max_gaussians"] = int(max_gaussians)
+    if background is not None:
+        body["background"] = [float(x) for x in background]
+    return body
+
+
+class Session:
+    """One session of a `Client`; get it from `Client.create_session` or `Client.session`."""
+
+    def __init__(self, client: "Client", session_id: str):
+        self.client, self.id = client, session_id
+
+    @property
+    def _path(self) -> str:
+        return f"/v1/sessions/{self.id}"
+
+    def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None) -> dict:
+        """Fold one frame. ``rgb`` uint8 [H,W,3] array or PNG/JPEG bytes; ``K`` 3x3; ``c2w`` 4x4 OpenCV
+        camera-to-world; ``depth`` float [H,W] metres; ``depth_std`` float [H,W]; ``features`` /
+        ``labels`` float [H',W',C]. Returns the fold report (frame_index, new_voxels, ...)."""
+        msg: dict = {"rgb": bytes(rgb) if isinstance(rgb, (bytes, bytearray)) else encode_array(rgb),
+                     "K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4))}
+        for name, value in (("depth", depth), ("depth_std", depth_std), ("features", features), ("labels", labels)):
+            if value is not None:
+                value = np.asarray(value)
+                msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
+        if frame_id is not None:
+            msg["frame_id"] = str(frame_id)
+        body = msgpack.packb(msg, use_bin_type=True)
+        return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
+
+    def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None) -> dict:
+        """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}."""
+        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background))
+
+    def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None) -> bytes:
+        return self.client._request("POST", f"{self._path}/render", json=_view(K, c2w, width, height, max_gaussians, background),
+                                    headers={"Accept": "image/png"}).content
+
+    def features(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
+        """{"features": float16 [H,W,C], "alpha": float32 [H,W]}."""
+        return self._arrays("features", _view(K, c2w, width, height, max_gaussians, None))
+
+    def features_preview_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        return self.client._request("POST", f"{self._path}/features", params={"preview": "png"},
+                                    json=_view(K, c2w, width, height, max_gaussians, None)).content
+
+    def segmentation(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
+        """{"labels": uint16 [H,W] (65535 where nothing is drawn), "alpha": float32 [H,W]}."""
+        return self._arrays("segmentation", _view(K, c2w, width, height, max_gaussians, None))
+
+    def segmentation_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        return self.client._request("POST", f"{self._path}/segmentation", json=_view(K, c2w, width, height, max_gaussians, None),
+                                    headers={"Accept": "image/png"}).content
+
+    def _arrays(self, route: str, body: dict) -> dict:
+        r = self.client._request("POST", f"{self._path}/{route}", json=body, headers={"Accept": MSGPACK})
+        return {k: decode_array(v) for k, v in msgpack.unpackb(r.content, raw=False).items()}
+
+    def export_ply(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        return self._export(".ply", path, max_gaussians)
+
+    def export_splat(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        return self._export(".splat", path, max_gaussians)
+
+    def _export(self, suffix: str, path, max_gaussians) -> Path:
+        params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
+        data = self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content
+        path = Path(path)
+        tmp = path.with_name(path.name + ".part")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+        return path
+
+    def stats(self) -> dict:
+        return self.client._request("GET", self._path).json()
+
+    def digest(self) -> dict:
+        return self.client._request("GET", f"{self._path}/digest").json()
+
+    def delete(self) -> None:
+        self.client._request("DELETE", self._path)
+
+    def __repr__(self) -> str:
+        return f"Session({self.id!r})"
+
+
+class Client:
+    """A connection to the service.
+
+    Args:
+        url: base URL, e.g. ``http://127.0.0.1:8000``.
+        token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
+        timeout: seconds per request.
+        max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each).
+    """
+
+    def __init__(self, url: str, token: str | None = None, timeout: float = 120.0, max_retries: int = 8, max_wait: float = 10.0):
+        token = token if token is not None else os.environ.get("CANONICAL_API_TOKEN") or None
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
+        self.max_retries, self.max_wait = max_retries, max_wait
+
+    def _request(self, method: str, path: str, **kwargs) -> httpx.Response:
+        for attempt in range(self.max_retries + 1):
+            r = self._http.request(method, path, **kwargs)
+            if r.status_code != 429 or attempt == self.max_retries:
+                break
+            time.sleep(self._retry_after(r, attempt))
+        if r.status_code >= 400:
+            raise self._error(r)
+        return r
+
+    def _retry_after(self, r: httpx.Response, attempt: int) -> float:
+        try:
+            wait = float(r.headers.get("Retry-After", ""))
+        except ValueError:
+            wait = 0.25 * 2**attempt
+        return min(self.max_wait, wait if math.isfinite(wait) and wait >= 0 else 1.0)
+
+    @staticmethod
+    def _error(r: httpx.Response) -> CanonicalError:
+        try:
+            err = r.json()["error"]
+            return CanonicalError(r.status_code, err.get("code", "error"), err.get("message", ""), err.get("field"))
+        except (ValueError, KeyError, TypeError):
+            return CanonicalError(r.status_code, "error", r.text[:500])
+
+    def create_session(self, voxel_size: float, **settings) -> Session:
+        """A new session; ``settings`` are SceneConfig fields (feature_dim, weighting, near, far, max_voxels, ...)."""
+        r = self._request("POST", "/v1/sessions", json={"voxel_size": voxel_size, **settings})
+        return Session(self, r.json()["id"])
+
+    def session(self, session_id: str) -> Session:
+        """An existing session (checked: raises CanonicalError 404 when unknown)."""
+        self._request("GET", f"/v1/sessions/{session_id}")
+        return Session(self, session_id)
+
+    def sessions(self) -> list[dict]:
+        return self._request("GET", "/v1/sessions").json()["sessions"]
+
+    def health(self) -> dict:
+        return self._request("GET", "/healthz").json()
+
+    def metrics(self) -> str:
+        return self._request("GET", "/metrics").text
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def png_to_array(data: bytes) -> np.ndarray:
+    """PNG bytes -> numpy (uint8 [H,W,3] for colour, [H,W] for palette/grey)."""
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)))

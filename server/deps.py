@@ -1,0 +1,81 @@
+"""Typed dependencies shared by the routes, and the bounded job queue that runs compute off the loop."""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated, Callable, TypeVar
+
+from fastapi import Depends, Request
+from fastapi.concurrency import run_in_threadpool
+
+from .errors import ApiError
+from .metrics import Metrics
+from .settings import Settings
+from .store import Session, SessionStore, configure_thread
+
+T = TypeVar("T")
+
+
+class JobQueue:
+    """Runs compute in the threadpool; more than ``limit`` jobs running or waiting -> 429 + Retry-After.
+
+    ``active`` is only touched on the event loop, so it needs no lock. A job that waits for a
+    session's lock (folds into one session are serialised) counts as waiting.
+    """
+
+    def __init__(self, limit: int, threads: int | None, retry_after_s: int = 1):
+        self.limit, self.threads, self.retry_after_s = limit, threads, retry_after_s
+        self.active = 0
+
+    async def run(self, fn: Callable[..., T], *args, **kwargs) -> T:
+        if self.active >= self.limit:
+            raise ApiError(429, "busy", f"queue: {self.active} jobs running or waiting, the limit is {self.limit}; retry later",
+                           None, {"Retry-After": str(self.retry_after_s)})
+        self.active += 1
+        try:
+            return await run_in_threadpool(self._call, fn, args, kwargs)
+        finally:
+            self.active -= 1
+
+    def _call(self, fn, args, kwargs):
+        configure_thread(self.threads)
+        return fn(*args, **kwargs)
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_store(request: Request) -> SessionStore:
+    return request.app.state.store
+
+
+def get_jobs(request: Request) -> JobQueue:
+    return request.app.state.jobs
+
+
+def get_metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+StoreDep = Annotated[SessionStore, Depends(get_store)]
+JobsDep = Annotated[JobQueue, Depends(get_jobs)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+
+
+def get_session(session_id: str, store: StoreDep) -> Session:
+    return store.get(session_id)  # SessionNotFound -> 404
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+
+
+def require_token(request: Request, settings: SettingsDep) -> None:
+    """With ``api_token`` set, require ``Authorization: Bearer <token>`` (401 otherwise)."""
+    if settings.api_token is None:
+        return
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    if scheme.lower() != "bearer" or not secrets.compare_digest(token.strip().encode(), settings.api_token.get_secret_value().encode()):
+        raise ApiError(401, "unauthorized", "Authorization: missing or wrong bearer token", "Authorization",
+                       {"WWW-Authenticate": "Bearer"})

@@ -1,0 +1,102 @@
+"""One error shape for every failure: ``{"error": {"code", "message", "field"}}``.
+
+Library errors are ValueErrors whose message starts with the offending field and ": "; they become
+422 (409 for CapacityError). Bad input never reaches a 500.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from canonical_core.scene import CapacityError
+
+from .store import SessionNotFound, TooManySessions
+from .wire import WireError
+
+log = logging.getLogger("canonical.server")
+
+_FIELD = re.compile(r"^([A-Za-z_][\w.\[\]-]*): ")
+_HTTP_CODES = {400: "bad_request", 401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
+               406: "not_acceptable", 409: "conflict", 413: "too_large", 415: "unsupported_media_type",
+               422: "invalid_value", 429: "busy"}
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, code: str, message: str, field: str | None = None, headers: dict | None = None):
+        super().__init__(message)
+        self.status, self.code, self.message, self.field, self.headers = status, code, message, field, headers
+
+
+def error_response(status: int, code: str, message: str, field: str | None = None, headers: dict | None = None) -> JSONResponse:
+    return JSONResponse({"error": {"code": code, "message": message, "field": field}}, status_code=status, headers=headers)
+
+
+def field_of(message: str) -> str | None:
+    """The field a library message names (``"c2w: rotation is not orthonormal"`` -> ``"c2w"``)."""
+    match = _FIELD.match(message)
+    return match.group(1) if match else None
+
+
+def from_value_error(exc: ValueError) -> ApiError:
+    message = str(exc)
+    if isinstance(exc, WireError):
+        return ApiError(exc.status, exc.code, message, exc.field)
+    if isinstance(exc, CapacityError):
+        return ApiError(409, "capacity", message, field_of(message) or "max_voxels")
+    return ApiError(422, "invalid_value", message, field_of(message))
+
+
+def _validation_field(loc) -> str:
+    parts = [str(p) for p in loc if p not in ("body", "query", "path", "header")]
+    return ".".join(parts) if parts else "body"
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def _api(request: Request, exc: ApiError):
+        return error_response(exc.status, exc.code, exc.message, exc.field, exc.headers)
+
+    @app.exception_handler(ValueError)
+    async def _value(request: Request, exc: ValueError):
+        err = from_value_error(exc)
+        return error_response(err.status, err.code, err.message, err.field)
+
+    @app.exception_handler(SessionNotFound)
+    async def _not_found(request: Request, exc: SessionNotFound):
+        return error_response(404, "not_found", "session_id: no such session", "session_id")
+
+    @app.exception_handler(TooManySessions)
+    async def _too_many(request: Request, exc: TooManySessions):
+        return error_response(409, "too_many_sessions", str(exc), "max_sessions")
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        errors = exc.errors()
+        first = errors[0] if errors else {"loc": (), "msg": "invalid request", "type": ""}
+        field = _validation_field(first.get("loc", ()))
+        msg = first.get("msg", "invalid value")
+        if first.get("type") == "extra_forbidden":
+            msg = "unknown field"
+        elif first.get("type") == "missing":
+            msg = "required field is missing"
+        status, code = 422, "invalid_value"
+        if first.get("type") == "json_invalid":
+            status, code, field = 400, "malformed_body", "body"
+        return error_response(status, code, f"{field}: {msg}", field)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        field = "path" if exc.status_code == 404 else "method" if exc.status_code == 405 else None
+        message = f"{request.method} {request.url.path}: {exc.detail}"
+        return error_response(exc.status_code, _HTTP_CODES.get(exc.status_code, "error"), message, field, exc.headers)
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, exc: Exception):
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return error_response(500, "internal", f"internal error ({type(exc).__name__}); the request was not applied")

@@ -1,0 +1,90 @@
+"""Fold frames into a session: msgpack (the SDK's format) or multipart/form-data (curl users)."""
+
+from __future__ import annotations
+
+import email.parser
+import email.policy
+import json
+import time
+
+from fastapi import APIRouter, Depends, Request
+
+from .. import wire
+from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
+from ..errors import ApiError
+from ..schemas import ErrorBody, FoldReportOut
+
+router = APIRouter(prefix="/v1/sessions", tags=["frames"], dependencies=[Depends(require_token)])
+
+MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
+CAMERA_FIELDS = ("K", "c2w", "depth_scale", "frame_id", "width", "height")
+
+
+def media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+
+def parse_multipart(content_type: str, body: bytes) -> dict:
+    """multipart/form-data with parts ``rgb`` (or ``image``; PNG/JPEG), optional ``depth`` (16-bit PNG)
+    and ``camera`` (JSON: K, c2w, depth_scale, frame_id, width, height) -> a frame message."""
+    parser = email.parser.BytesParser(policy=email.policy.HTTP)
+    try:
+        msg = parser.parsebytes(b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body)
+        parts = list(msg.iter_parts()) if msg.is_multipart() else []
+    except Exception as exc:  # the stdlib parser raises assorted errors on garbage
+        raise wire.WireError("body", f"malformed multipart body ({exc})", 400, "malformed_body") from None
+    if not parts:
+        raise wire.WireError("body", "malformed multipart body (no boundary or no parts)", 400, "malformed_body")
+    out: dict = {}
+    for part in parts:
+        name = part.get_param("name", header="content-disposition")
+        payload = part.get_payload(decode=True) or b""
+        if name == "image":
+            name = "rgb"
+        if name in ("rgb", "depth"):
+            out[name] = payload
+        elif name == "camera":
+            try:
+                camera = json.loads(payload)
+            except ValueError as exc:
+                raise wire.WireError("camera", f"not valid JSON ({exc})") from None
+            if not isinstance(camera, dict):
+                raise wire.WireError("camera", f"expected a JSON object with {list(CAMERA_FIELDS)}")
+            unknown = sorted(k for k in camera if k not in CAMERA_FIELDS)
+            if unknown:
+                raise wire.WireError(unknown[0], f"unknown camera field (known: {list(CAMERA_FIELDS)})")
+            out.update(camera)
+        else:
+            raise wire.WireError(str(name), "unknown form part (expected rgb, depth, camera)")
+    if "camera" not in [p.get_param("name", header="content-disposition") for p in parts]:
+        raise wire.WireError("camera", "required form part is missing (JSON with K and c2w)")
+    return out
+
+
+@router.post("/{session_id}/frames", response_model=FoldReportOut,
+             responses={c: {"model": ErrorBody} for c in (400, 401, 404, 409, 413, 415, 422, 429)},
+             openapi_extra={"requestBody": {"content": {"application/msgpack": {}, "multipart/form-data": {}}}})
+async def add_frame(request: Request, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
+                    metrics: MetricsDep) -> FoldReportOut:
+    """Validate, log (fsync) and fold one posed frame; the report says what changed."""
+    kind = media_type(request)
+    if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
+        raise ApiError(415, "unsupported_media_type",
+                       f"Content-Type: expected application/msgpack or multipart/form-data, got {kind or 'none'!r}",
+                       "Content-Type")
+    body = await request.body()
+
+    def fold():
+        if kind == "multipart/form-data":
+            msg = parse_multipart(request.headers["content-type"], body)
+            record = wire.pack(msg)
+        else:
+            msg, record = wire.unpack(body), body
+        frame = wire.frame_from_message(msg, settings.max_image_pixels)  # validated before it is logged
+        return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds)
+
+    t0 = time.perf_counter()
+    report = await jobs.run(fold)
+    metrics.fold_seconds.observe(time.perf_counter() - t0)
+    metrics.frames_total += 1
+    return FoldReportOut(**report.to_dict())

@@ -1,0 +1,32 @@
+"""Liveness and Prometheus metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import PlainTextResponse
+
+from ..deps import JobsDep, MetricsDep, StoreDep, require_token
+from ..metrics import CONTENT_TYPE
+from ..schemas import Health
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", response_model=Health)
+async def healthz(store: StoreDep) -> Health:
+    """Liveness (no token needed)."""
+    return Health(status="ok", sessions=len(store))
+
+
+@router.get("/metrics", response_class=PlainTextResponse, dependencies=[Depends(require_token)])
+async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainTextResponse:
+    """Prometheus text format: fold/view latency histograms, frames, sessions, voxels, queue."""
+    totals = store.totals()
+    gauges = {
+        "canonical_sessions": ("Sessions held.", totals["sessions"]),
+        "canonical_voxels": ("Voxels over all sessions.", totals["voxels"]),
+        "canonical_frames": ("Frames folded over all sessions (including before a restart).", totals["frames"]),
+        "canonical_jobs_active": ("Compute jobs running or waiting.", jobs.active),
+        "canonical_jobs_limit": ("The queue limit (more jobs get 429).", jobs.limit),
+    }
+    return PlainTextResponse(metrics.exposition(gauges), media_type=CONTENT_TYPE)

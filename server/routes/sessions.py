@@ -1,0 +1,45 @@
+"""Create, list, inspect and delete sessions."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from canonical_core import SceneConfig
+
+from ..deps import JobsDep, SessionDep, StoreDep, require_token
+from ..schemas import Deleted, Digest, ErrorBody, SessionCreate, SessionCreated, SessionList, SessionStats, SessionSummary
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
+                   responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 422: {"model": ErrorBody}})
+
+
+@router.post("", status_code=201, response_model=SessionCreated, responses={409: {"model": ErrorBody}})
+async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) -> SessionCreated:  # type: ignore[valid-type]
+    """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required)."""
+    config = SceneConfig(**body.model_dump(exclude_unset=True))  # ValueError naming the field -> 422
+    session = await jobs.run(store.create, config)
+    return SessionCreated(id=session.id, config=config.to_dict())
+
+
+@router.get("", response_model=SessionList)
+async def list_sessions(store: StoreDep) -> SessionList:
+    return SessionList(sessions=[SessionSummary(**s.summary()) for s in store.list()])
+
+
+@router.get("/{session_id}", response_model=SessionStats)
+async def session_stats(session: SessionDep, jobs: JobsDep) -> SessionStats:
+    """Frames, voxels, Gaussians (decodes if the cache is cold), bytes in memory and on disk."""
+    return SessionStats(**await jobs.run(session.stats))
+
+
+@router.get("/{session_id}/digest", response_model=Digest)
+async def session_digest(session: SessionDep, jobs: JobsDep) -> Digest:
+    """sha256 of the scene's raw sums: two sessions fused from the same frames have the same digest."""
+    return Digest(**await jobs.run(session.digest))
+
+
+@router.delete("/{session_id}", response_model=Deleted)
+async def delete_session(session: SessionDep, store: StoreDep, jobs: JobsDep) -> Deleted:
+    """Delete the session and its files."""
+    await jobs.run(store.delete, session.id)
+    return Deleted(id=session.id)

@@ -1,0 +1,163 @@
+"""Views of a session at a camera: rendered image, feature splat, label map (POST JSON or GET query)."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import Response
+
+from canonical_core import Camera
+from canonical_core.rendering import render
+
+from .. import wire
+from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
+from ..errors import ApiError
+from ..schemas import ErrorBody, ViewRequest
+
+router = APIRouter(prefix="/v1/sessions", tags=["views"], dependencies=[Depends(require_token)])
+
+MSGPACK = "application/msgpack"
+PNG = "image/png"
+_ERRORS = {c: {"model": ErrorBody} for c in (401, 404, 409, 413, 422, 429)}
+
+
+def _responses(*media: str) -> dict:
+    return {200: {"content": {m: {} for m in media}}, **_ERRORS}
+
+
+def wants_msgpack(request: Request) -> bool:
+    """The first of PNG / msgpack that Accept lists; PNG when it lists neither (browsers, */*)."""
+    for item in request.headers.get("accept", "").split(","):
+        kind = item.split(";")[0].strip().lower()
+        if kind in (MSGPACK, "application/x-msgpack", "application/vnd.msgpack"):
+            return True
+        if kind == PNG:
+            return False
+    return False
+
+
+def _numbers(text: str, field: str, count: int) -> list[float]:
+    try:
+        values = [float(x) for x in text.replace(" ", "").split(",")]
+    except ValueError:
+        raise ApiError(422, "invalid_value", f"{field}: expected {count} comma-separated numbers, got {text!r}", field) from None
+    if len(values) != count:
+        raise ApiError(422, "invalid_value", f"{field}: expected {count} comma-separated numbers, got {len(values)}", field)
+    return values
+
+
+def view_from_query(
+    pose: Annotated[str, Query(description="c2w as 16 comma-separated numbers, row-major (OpenCV axes)")],
+    K: Annotated[str, Query(description="fx,fy,cx,cy in pixels")],
+    width: Annotated[int, Query(gt=0)],
+    height: Annotated[int, Query(gt=0)],
+    max_gaussians: Annotated[int | None, Query(ge=0)] = None,
+    background: Annotated[str | None, Query(description="r,g,b in [0, 1]")] = None,
+) -> ViewRequest:
+    p = _numbers(pose, "pose", 16)
+    fx, fy, cx, cy = _numbers(K, "K", 4)
+    return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=[p[0:4], p[4:8], p[8:12], p[12:16]],
+                       width=width, height=height, max_gaussians=max_gaussians,
+                       background=None if background is None else _numbers(background, "background", 3))
+
+
+QueryView = Annotated[ViewRequest, Depends(view_from_query)]
+
+
+def _camera(view: ViewRequest, max_pixels: int) -> Camera:
+    wire.check_pixels(view.width, view.height, "width", max_pixels)
+    return Camera(view.K, view.c2w, view.width, view.height)  # ValueError naming K / c2w -> 422
+
+
+async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encode) -> Response:
+    camera = _camera(view, settings.max_image_pixels)
+    outputs = {"render": ("rgb", "depth", "alpha"), "features": ("features", "alpha"), "segmentation": ("labels", "alpha")}[kind]
+    if kind == "segmentation" and session.scene.label_dim == 0:
+        raise _no_labels()
+
+    def job():
+        gaussians, label_dim = session.gaussians(view.max_gaussians)
+        if kind == "segmentation" and label_dim == 0:
+            raise _no_labels()
+        result = render(gaussians, camera, outputs, background=view.background, num_threads=settings.threads)
+        maps = {name: getattr(result, name).numpy() for name in outputs}
+        return encode(maps), len(gaussians)
+
+    t0 = time.perf_counter()
+    (content, media), n = await jobs.run(job)
+    metrics.view_seconds[kind].observe(time.perf_counter() - t0)
+    return Response(content, media_type=media, headers={"X-Canonical-Gaussians": str(n)})
+
+
+def _no_labels() -> ApiError:
+    return ApiError(409, "no_labels", "labels: this session has no fused labels; send frames with 'labels' to segment", "labels")
+
+
+def _render_encoder(request: Request):
+    if wants_msgpack(request):
+        return lambda m: (wire.pack({"rgb": wire.encode_array(wire.to_uint8(m["rgb"])),
+                                     "depth": wire.encode_array(m["depth"].astype(np.float32)),
+                                     "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
+    return lambda m: (wire.encode_png(wire.to_uint8(m["rgb"])), PNG)
+
+
+def _features_encoder(preview: str | None):
+    if preview is not None:
+        if preview != "png":
+            raise ApiError(422, "invalid_value", f"preview: expected 'png', got {preview!r}", "preview")
+        return lambda m: (wire.encode_png(wire.feature_preview(m["features"], m["alpha"])), PNG)
+    return lambda m: (wire.pack({"features": wire.encode_array(m["features"].astype(np.float16)),
+                                 "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
+
+
+def _segmentation_encoder(request: Request):
+    if wants_msgpack(request):
+        return lambda m: (wire.pack({"labels": wire.encode_array(wire.labels_to_uint16(m["labels"])),
+                                     "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
+    return lambda m: (wire.encode_label_png(m["labels"]), PNG)
+
+
+@router.post("/{session_id}/render", response_class=Response, responses=_responses(PNG, MSGPACK))
+async def render_post(view: ViewRequest, request: Request, session: SessionDep, settings: SettingsDep,
+                      jobs: JobsDep, metrics: MetricsDep) -> Response:
+    """Render at a camera. ``Accept: image/png`` (default) -> PNG; ``application/msgpack`` -> rgb uint8
+    [H,W,3], depth float32 [H,W] (0 where nothing is drawn), alpha float32 [H,W]."""
+    return await _view("render", session, view, settings, jobs, metrics, _render_encoder(request))
+
+
+@router.get("/{session_id}/render", response_class=Response, responses=_responses(PNG, MSGPACK))
+async def render_get(view: QueryView, request: Request, session: SessionDep, settings: SettingsDep,
+                     jobs: JobsDep, metrics: MetricsDep) -> Response:
+    """Render from query parameters (for browsers): ``?pose=16 numbers&K=fx,fy,cx,cy&width=&height=``."""
+    return await _view("render", session, view, settings, jobs, metrics, _render_encoder(request))
+
+
+@router.post("/{session_id}/features", response_class=Response, responses=_responses(MSGPACK, PNG))
+async def features_post(view: ViewRequest, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
+                        metrics: MetricsDep, preview: str | None = None) -> Response:
+    """Feature splat: msgpack ``features`` float16 [H,W,C] (composited, not normalised) and ``alpha``
+    float32 [H,W]; with ``?preview=png`` a PCA-to-RGB picture."""
+    return await _view("features", session, view, settings, jobs, metrics, _features_encoder(preview))
+
+
+@router.get("/{session_id}/features", response_class=Response, responses=_responses(MSGPACK, PNG))
+async def features_get(view: QueryView, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
+                       metrics: MetricsDep, preview: str | None = None) -> Response:
+    return await _view("features", session, view, settings, jobs, metrics, _features_encoder(preview))
+
+
+@router.post("/{session_id}/segmentation", response_class=Response, responses=_responses(PNG, MSGPACK))
+async def segmentation_post(view: ViewRequest, request: Request, session: SessionDep, settings: SettingsDep,
+                            jobs: JobsDep, metrics: MetricsDep) -> Response:
+    """Label map from fused labels: a palette PNG (index 0 = nothing drawn, k + 1 = label k; fixed
+    palette) or msgpack ``labels`` uint16 [H,W] (65535 = nothing drawn) + ``alpha``. 409 without labels."""
+    return await _view("segmentation", session, view, settings, jobs, metrics, _segmentation_encoder(request))
+
+
+@router.get("/{session_id}/segmentation", response_class=Response, responses=_responses(PNG, MSGPACK))
+async def segmentation_get(view: QueryView, request: Request, session: SessionDep, settings: SettingsDep,
+                           jobs: JobsDep, metrics: MetricsDep) -> Response:
+    return await _view("segmentation", session, view, settings, jobs, metrics, _segmentation_encoder(request))

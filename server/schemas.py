@@ -1,0 +1,109 @@
+"""Request and response models of the JSON routes."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from canonical_core import SceneConfig
+
+
+def _session_create_model() -> type[BaseModel]:
+    # Mirrors SceneConfig's fields (names, types, defaults) so the API follows the library without a
+    # hand-kept copy; SceneConfig itself still does the value checks (e.g. voxel_size > 0).
+    hints = typing.get_type_hints(SceneConfig)
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(SceneConfig):
+        default = ... if f.default is dataclasses.MISSING else f.default
+        fields[f.name] = (hints[f.name], default)
+    return create_model(
+        "SessionCreate",
+        __config__=ConfigDict(extra="forbid"),
+        __doc__="Scene settings of a new session (canonical_core.SceneConfig); voxel_size is required.",
+        **fields,
+    )
+
+
+SessionCreate = _session_create_model()
+
+
+class SessionCreated(BaseModel):
+    id: str
+    config: dict[str, Any]
+
+
+class SessionSummary(BaseModel):
+    id: str
+    frames: int
+    voxels: int
+    created: float
+
+
+class SessionList(BaseModel):
+    sessions: list[SessionSummary]
+
+
+class SessionStats(SessionSummary):
+    gaussians: int
+    memory_bytes: int
+    disk_bytes: int
+    label_dim: int
+    snapshot_frames: int
+    config: dict[str, Any]
+
+
+class Digest(BaseModel):
+    id: str
+    frames: int
+    voxels: int
+    sha256: str
+
+
+class Deleted(BaseModel):
+    id: str
+    deleted: bool = True
+
+
+class FoldReportOut(BaseModel):
+    frame_index: int
+    observations: int
+    new_voxels: int
+    updated_voxels: int
+    representative_switches: int
+    ms: float
+
+
+Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
+Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=3, max_length=4)]
+
+
+class ViewRequest(BaseModel):
+    """A camera to render at: K (pixels), c2w (OpenCV camera-to-world), image size."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    K: Matrix3
+    c2w: Matrix4
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    max_gaussians: int | None = Field(None, ge=0, description="level of detail: the best-supported N Gaussians")
+    background: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
+        None, description="rgb in [0, 1] behind the Gaussians (default black)")
+
+
+class ErrorDetail(BaseModel):
+    code: str
+    message: str
+    field: str | None
+
+
+class ErrorBody(BaseModel):
+    error: ErrorDetail
+
+
+class Health(BaseModel):
+    status: str
+    sessions: int

@@ -1,0 +1,31 @@
+"""The service's settings: one class, read from ``CANONICAL_*`` environment variables.
+
+Example:
+    >>> Settings(data_dir="/tmp/x", queue_limit=4).queue_limit
+    4
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Service settings (env prefix ``CANONICAL_``, e.g. ``CANONICAL_DATA_DIR``, ``CANONICAL_API_TOKEN``)."""
+
+    model_config = SettingsConfigDict(env_prefix="CANONICAL_", extra="ignore")
+
+    data_dir: Path = Field(Path("./data"), description="where sessions are stored (one folder per session)")
+    api_token: SecretStr | None = Field(None, description="when set, every route but /healthz needs 'Authorization: Bearer <token>'")
+    max_body_bytes: int = Field(64 * 1024 * 1024, gt=0, description="larger request bodies get 413")
+    max_image_pixels: int = Field(4096 * 4096, gt=0, description="larger images (frames or requested views) get 413")
+    max_sessions: int = Field(64, gt=0, description="creating one more session gets 409")
+    snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
+    snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
+    queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")
+    threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)

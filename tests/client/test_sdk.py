@@ -1,0 +1,114 @@
+"""The SDK against a real service: numpy in, numpy out, errors as CanonicalError, 429 retries."""
+
+from __future__ import annotations
+
+import io
+import threading
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from canonical_core import load_ply, load_splat
+from client.sdk import CanonicalError, Client, Session, decode_array, encode_array
+
+VOXEL = 0.008
+
+
+def test_array_codec_roundtrip():
+    for a in (np.arange(12, dtype=np.uint8).reshape(2, 2, 3), np.linspace(0, 1, 6, dtype=np.float16).reshape(3, 2),
+              np.array([[1, 65535]], np.uint16), np.random.default_rng(0).random((4, 5, 2)).astype(np.float32)):
+        b = decode_array(encode_array(a))
+        assert b.dtype == a.dtype and np.array_equal(a, b)
+    assert decode_array(encode_array(np.ones(3))).dtype == np.float32  # float64 travels as float32
+    with pytest.raises(ValueError, match="int64"):
+        encode_array(np.ones(3, np.int64))
+
+
+def test_session_roundtrip(server, frames, tmp_path):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL, feature_dim=8)
+        for i, kwargs in enumerate(frames[:2]):
+            report = session.add_frame(**kwargs)
+            assert report["frame_index"] == i and report["new_voxels"] > 0
+        assert client.session(session.id).id == session.id
+        assert session.id in [s["id"] for s in client.sessions()]
+
+        kwargs = frames[0]
+        h, w = kwargs["rgb"].shape[:2]
+        view = session.render(kwargs["K"], kwargs["c2w"], w, h)
+        assert view["rgb"].dtype == np.uint8 and view["rgb"].shape == (h, w, 3)
+        assert view["depth"].dtype == np.float32 and view["alpha"].dtype == np.float32
+        png = Image.open(io.BytesIO(session.render_png(kwargs["K"], kwargs["c2w"], w, h)))
+        assert np.array_equal(np.asarray(png), view["rgb"])
+        feats = session.features(kwargs["K"], kwargs["c2w"], w // 2, h // 2)
+        assert feats["features"].dtype == np.float16 and feats["features"].shape == (h // 2, w // 2, 8)
+
+        stats = session.stats()
+        assert stats["frames"] == 2 and stats["config"]["feature_dim"] == 8
+        ply = load_ply(session.export_ply(tmp_path / "s.ply"))
+        splat = load_splat(session.export_splat(tmp_path / "s.splat"))
+        assert len(ply) == len(splat) == stats["gaussians"]
+        assert len(load_ply(session.export_ply(tmp_path / "lod.ply", max_gaussians=100))) == 100
+
+        with pytest.raises(CanonicalError) as err:
+            session.add_frame(kwargs["rgb"], kwargs["K"], np.full((4, 4), np.nan), depth=kwargs["depth"])
+        assert (err.value.status, err.value.code, err.value.field) == (422, "invalid_value", "c2w")
+        assert session.stats()["frames"] == 2
+
+        session.delete()
+        with pytest.raises(CanonicalError) as err:
+            client.session(session.id)
+        assert err.value.status == 404 and err.value.field == "session_id"
+
+
+def test_burst_gets_429_and_the_sdk_retries_through(server, frames):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        session.add_frame(**frames[0])
+    kwargs = frames[0]
+    h, w = kwargs["rgb"].shape[:2]
+    body = {"K": kwargs["K"].tolist(), "c2w": kwargs["c2w"].tolist(), "width": w, "height": h}
+    url = f"{server.url}/v1/sessions/{session.id}/render"
+
+    # raw burst: with a one-job queue some requests are refused with 429 + Retry-After
+    n = 8
+    barrier, results = threading.Barrier(n), []
+
+    def raw():
+        with httpx.Client(timeout=60) as http:
+            barrier.wait()
+            r = http.post(url, json=body)
+            results.append((r.status_code, r.headers.get("retry-after"), r.json()["error"]["code"] if r.status_code != 200 else None))
+
+    threads = [threading.Thread(target=raw) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    statuses = sorted(s for s, _, _ in results)
+    assert set(statuses) <= {200, 429} and 200 in statuses and 429 in statuses, statuses
+    assert all(retry == "1" and code == "busy" for s, retry, code in results if s == 429)
+
+    # the SDK honours Retry-After and gets every request through
+    barrier, ok, errors = threading.Barrier(n), [], []
+
+    def sdk():
+        try:
+            with Client(server.url, max_retries=20) as c:
+                s = Session(c, session.id)  # no request yet: the burst starts at the barrier
+                barrier.wait()
+                ok.append(s.render(kwargs["K"], kwargs["c2w"], w, h)["rgb"].shape)
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=sdk) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and ok == [(h, w, 3)] * n
+    with Client(server.url) as client:
+        assert 'canonical_http_responses_total{status="429"}' in client.metrics()
+        client.session(session.id).delete()

@@ -1,0 +1,105 @@
+"""Test harness: a real service in a subprocess (``python -m client.cli serve``) on a free loopback port,
+and the shelf frames downscaled to 320x240 as `Session.add_frame` keyword arguments."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from client.cli import frame_arrays
+
+REPO = Path(__file__).resolve().parents[2]
+TOKEN = "test-token-5f1c"
+VOXEL = 0.008  # coarse enough to be fast; quality is not under test
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """One service process. ``settings`` become CANONICAL_* environment variables."""
+
+    def __init__(self, data_dir: Path, log_path: Path, token: str | None = None, **settings):
+        self.data_dir, self.log_path, self.token, self.settings = Path(data_dir), Path(log_path), token, settings
+        self.proc: subprocess.Popen | None = None
+        self.port = 0
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 120.0) -> "ServerProcess":
+        self.port = free_port()
+        env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+        env.update({f"CANONICAL_{k.upper()}": str(v) for k, v in self.settings.items()})
+        if self.token:
+            env["CANONICAL_API_TOKEN"] = self.token
+        env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
+        cmd = [sys.executable, "-m", "client.cli", "serve", "--port", str(self.port), "--data-dir", str(self.data_dir),
+               "--threads", "1", "--log-level", "warning"]
+        self._log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=self._log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log()}")
+            try:
+                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        self.kill9()
+        raise RuntimeError(f"server did not come up in {timeout} s:\n{self.log()}")
+
+    def kill9(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        self._close_log()
+
+    def stop(self) -> None:
+        """SIGTERM (graceful: uvicorn runs the shutdown, which snapshots), SIGKILL after 30 s."""
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.kill9()
+        self._close_log()
+
+    def _close_log(self) -> None:
+        if getattr(self, "_log", None) and not self._log.closed:
+            self._log.close()
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")[-5000:] if self.log_path.exists() else ""
+
+
+def small_frames(shelf_dir, count: int = 10, step: int = 5) -> list[dict]:
+    """``count`` shelf frames (every ``step``-th, read lazily: only those), at 320x240, as add_frame kwargs."""
+    from canonical_core.datasets import load_tsdf_fusion
+
+    return [frame_arrays(f, 0.5) for f in load_tsdf_fusion(shelf_dir, stride=step, max_frames=count)]
+
+
+def msgpack_frame(kwargs: dict) -> dict:
+    """The wire message of an add_frame kwargs dict (what the SDK sends), for tests that tamper with it."""
+    from client.sdk import encode_array
+
+    msg = {"rgb": encode_array(kwargs["rgb"]), "K": kwargs["K"].tolist(), "c2w": kwargs["c2w"].tolist()}
+    if kwargs.get("depth") is not None:
+        msg["depth"] = encode_array(kwargs["depth"])
+    if kwargs.get("frame_id") is not None:
+        msg["frame_id"] = kwargs["frame_id"]
+    return msg

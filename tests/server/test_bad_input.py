@@ -1,0 +1,238 @@
+"""Bad input: each case gets the right 4xx, a message naming the field, and leaves the session as it was."""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+from PIL import Image
+
+from client.sdk import encode_array
+
+from .harness import TOKEN, VOXEL, msgpack_frame
+
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+MSGPACK = {**AUTH, "Content-Type": "application/msgpack"}
+
+
+@pytest.fixture(scope="module")
+def target(client, frames):
+    session = client.create_session(voxel_size=VOXEL)
+    for kwargs in frames[:2]:
+        session.add_frame(**kwargs)
+    yield session
+    session.delete()
+
+
+def png(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+class Ctx:
+    def __init__(self, url: str, session_id: str, frame: dict):
+        self.url, self.sid, self.frame = url, session_id, frame
+
+    def msg(self, **changes) -> dict:
+        m = copy.deepcopy(msgpack_frame(self.frame))
+        for k, v in changes.items():
+            if v is None:
+                m.pop(k, None)
+            else:
+                m[k] = v
+        return m
+
+    def post_frame(self, msg=None, body: bytes | None = None, headers=MSGPACK, session_id: str | None = None):
+        body = msgpack.packb(msg, use_bin_type=True) if body is None else body
+        return httpx.post(f"{self.url}/v1/sessions/{session_id or self.sid}/frames", content=body, headers=headers, timeout=60)
+
+    def multipart(self, files: dict, data: dict):
+        return httpx.post(f"{self.url}/v1/sessions/{self.sid}/frames", files=files, data=data, headers=AUTH, timeout=60)
+
+    def view_body(self, **changes) -> dict:
+        h, w = self.frame["rgb"].shape[:2]
+        body = {"K": self.frame["K"].tolist(), "c2w": self.frame["c2w"].tolist(), "width": w, "height": h, **changes}
+        return {k: v for k, v in body.items() if v is not None}
+
+    def view(self, route: str = "render", **changes):
+        body = json.dumps(self.view_body(**changes))  # NaN passes as the (non-standard) NaN token
+        return httpx.post(f"{self.url}/v1/sessions/{self.sid}/{route}", content=body,
+                          headers={**AUTH, "Content-Type": "application/json"}, timeout=60)
+
+    def create(self, body=None, content: bytes | None = None):
+        if content is not None:
+            return httpx.post(f"{self.url}/v1/sessions", content=content, headers={**AUTH, "Content-Type": "application/json"})
+        return httpx.post(f"{self.url}/v1/sessions", json=body, headers=AUTH)
+
+
+def _rotated(c2w: np.ndarray, scale: float) -> list:
+    t = np.array(c2w, dtype=np.float64)
+    t[:3, :3] *= scale
+    return t.tolist()
+
+
+def _nan_pose(c2w: np.ndarray) -> list:
+    t = np.array(c2w, dtype=np.float64)
+    t[0, 3] = np.nan
+    return t.tolist()
+
+
+def _reflection(c2w: np.ndarray) -> list:
+    t = np.array(c2w, dtype=np.float64)
+    t[:3, 0] *= -1
+    return t.tolist()
+
+
+def _with_K(K: np.ndarray, **entries) -> list:
+    k = np.array(K, dtype=np.float64)
+    for (i, j), v in ((( 0, 0), entries.get("fx")), ((0, 2), entries.get("cx"))):
+        if v is not None:
+            k[i, j] = v
+    return k.tolist()
+
+
+def _depth_png(c: Ctx) -> bytes:
+    return png(np.round(c.frame["depth"].astype(np.float64) * 1000).astype(np.uint16))
+
+
+CASES = [
+    # (id, request, status, field)
+    ("malformed msgpack", lambda c: c.post_frame(body=b"\xc1\x00garbage"), 400, "body"),
+    ("msgpack not a map", lambda c: c.post_frame(body=msgpack.packb([1, 2, 3])), 400, "body"),
+    ("truncated msgpack", lambda c: c.post_frame(body=msgpack.packb(c.msg(), use_bin_type=True)[:-100]), 400, "body"),
+    ("rgb wrong dtype", lambda c: c.post_frame(c.msg(rgb=encode_array(c.frame["rgb"].astype(np.float32)))), 422, "rgb"),
+    ("rgb wrong shape", lambda c: c.post_frame(c.msg(rgb=encode_array(np.zeros((240, 320, 4), np.uint8)))), 422, "rgb"),
+    ("rgb data length", lambda c: c.post_frame(c.msg(rgb={**encode_array(c.frame["rgb"]), "shape": [240, 321, 3]})), 422, "rgb"),
+    ("rgb unknown dtype", lambda c: c.post_frame(c.msg(rgb={**encode_array(c.frame["rgb"]), "dtype": "int8"})), 422, "rgb"),
+    ("rgb non-image bytes", lambda c: c.post_frame(c.msg(rgb=b"this is not a png at all")), 422, "rgb"),
+    ("depth shape mismatch", lambda c: c.post_frame(c.msg(depth=encode_array(c.frame["depth"][:200]))), 422, "depth"),
+    ("depth wrong dtype", lambda c: c.post_frame(c.msg(depth=encode_array(c.frame["depth"].astype(np.uint8)))), 422, "depth"),
+    ("depth negative", lambda c: c.post_frame(c.msg(depth=encode_array(-c.frame["depth"]))), 422, "depth"),
+    ("depth png without scale", lambda c: c.post_frame(c.msg(depth=_depth_png(c))), 422, "depth_scale"),
+    ("depth_scale zero", lambda c: c.post_frame(c.msg(depth=_depth_png(c), depth_scale=0)), 422, "depth_scale"),
+    ("depth_scale a string", lambda c: c.post_frame(c.msg(depth=_depth_png(c), depth_scale="mm")), 422, "depth_scale"),
+    ("depth png is colour", lambda c: c.post_frame(c.msg(depth=png(c.frame["rgb"]), depth_scale=1000)), 422, "depth"),
+    ("c2w NaN", lambda c: c.post_frame(c.msg(c2w=_nan_pose(c.frame["c2w"]))), 422, "c2w"),
+    ("c2w not a rotation", lambda c: c.post_frame(c.msg(c2w=_rotated(c.frame["c2w"], 1.1))), 422, "c2w"),
+    ("c2w reflection", lambda c: c.post_frame(c.msg(c2w=_reflection(c.frame["c2w"]))), 422, "c2w"),
+    ("c2w wrong shape", lambda c: c.post_frame(c.msg(c2w=[[1, 0, 0], [0, 1, 0]])), 422, "c2w"),
+    ("c2w not numbers", lambda c: c.post_frame(c.msg(c2w="identity")), 422, "c2w"),
+    ("K zero focal", lambda c: c.post_frame(c.msg(K=_with_K(c.frame["K"], fx=0.0))), 422, "K"),
+    ("K for another image", lambda c: c.post_frame(c.msg(K=_with_K(c.frame["K"], cx=640.0))), 422, "K"),
+    ("declared size mismatch", lambda c: c.post_frame(c.msg(width=640, height=480)), 422, "camera"),
+    ("missing c2w", lambda c: c.post_frame(c.msg(c2w=None)), 422, "c2w"),
+    ("missing rgb", lambda c: c.post_frame(c.msg(rgb=None)), 422, "rgb"),
+    ("unknown frame field", lambda c: c.post_frame(c.msg(dpeth=1)), 422, "dpeth"),
+    ("frame_id not a string", lambda c: c.post_frame(c.msg(frame_id=7)), 422, "frame_id"),
+    ("features wrong ndim", lambda c: c.post_frame(c.msg(features=encode_array(np.zeros((4, 4), np.float32)))), 422, "features"),
+    ("labels NaN", lambda c: c.post_frame(c.msg(labels=encode_array(np.full((4, 4, 2), np.nan, np.float32)))), 422, "labels"),
+    ("oversize body", lambda c: c.post_frame(body=b"\x00" * (5 * 1024 * 1024)), 413, "body"),
+    ("oversize image png", lambda c: c.post_frame(c.msg(rgb=png(np.zeros((1000, 1000, 3), np.uint8)))), 413, "rgb"),
+    ("oversize image array", lambda c: c.post_frame(c.msg(rgb={"dtype": "uint8", "shape": [1000, 1000, 3], "data": b""})), 413, "rgb"),
+    ("unknown session", lambda c: c.post_frame(c.msg(), session_id="no-such-session"), 404, "session_id"),
+    ("wrong content type", lambda c: c.post_frame(c.msg(), headers={**AUTH, "Content-Type": "text/plain"}), 415, "Content-Type"),
+    ("no token", lambda c: c.post_frame(c.msg(), headers={"Content-Type": "application/msgpack"}), 401, "Authorization"),
+    ("bad token", lambda c: c.post_frame(c.msg(), headers={**MSGPACK, "Authorization": "Bearer nope"}), 401, "Authorization"),
+    ("multipart without camera", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")}, {}), 422, "camera"),
+    ("multipart camera not JSON", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")}, {"camera": "{K:"}), 422, "camera"),
+    ("multipart unknown part", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")},
+                                                     {"camera": json.dumps({"K": c.frame["K"].tolist()}), "extra": "1"}), 422, "extra"),
+    ("render NaN pose", lambda c: c.view(c2w=_nan_pose(c.frame["c2w"])), 422, "c2w"),
+    ("render zero focal", lambda c: c.view(K=_with_K(c.frame["K"], fx=0.0)), 422, "K"),
+    ("render too large", lambda c: c.view(width=4000, height=4000), 413, "width"),
+    ("render negative width", lambda c: c.view(width=-3), 422, "width"),
+    ("render missing K", lambda c: c.view(K=None), 422, "K"),
+    ("render background shape", lambda c: c.view(background=[1, 1]), 422, "background"),
+    ("features bad preview", lambda c: httpx.post(f"{c.url}/v1/sessions/{c.sid}/features?preview=jpg",
+                                                  json=c.view_body(), headers=AUTH), 422, "preview"),
+    ("render GET bad pose", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
+                                                params={"pose": "1,0,0", "K": "300,300,160,120", "width": 32, "height": 24},
+                                                headers=AUTH), 422, "pose"),
+    ("segmentation without labels", lambda c: c.view("segmentation"), 409, "labels"),
+    ("create unknown setting", lambda c: c.create({"voxel_size": 0.01, "voxle_size": 0.02}), 422, "voxle_size"),
+    ("create voxel_size zero", lambda c: c.create({"voxel_size": 0}), 422, "voxel_size"),
+    ("create voxel_size negative", lambda c: c.create({"voxel_size": -0.01}), 422, "voxel_size"),
+    ("create missing voxel_size", lambda c: c.create({"feature_dim": 8}), 422, "voxel_size"),
+    ("create bad weighting", lambda c: c.create({"voxel_size": 0.01, "weighting": "median"}), 422, "weighting"),
+    ("create near above far", lambda c: c.create({"voxel_size": 0.01, "near": 5, "far": 1}), 422, "near"),
+    ("create malformed JSON", lambda c: c.create(content=b"{voxel_size: 1"), 400, "body"),
+]
+
+
+def _state(session) -> tuple:
+    stats, digest = session.stats(), session.digest()
+    return stats["frames"], stats["voxels"], stats["disk_bytes"], stats["gaussians"], digest["sha256"]
+
+
+def test_matrix_is_large_enough():
+    assert len(CASES) >= 20
+
+
+@pytest.mark.parametrize("make, status, field", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input(server, client, target, frames, make, status, field):
+    before = _state(target)
+    sessions_before = len(client.sessions())
+    r = make(Ctx(server.url, target.id, frames[2]))
+    assert r.status_code == status, r.text
+    error = r.json()["error"]
+    assert error["field"] == field, error
+    assert field in error["message"] and error["code"]
+    assert _state(target) == before
+    assert len(client.sessions()) == sessions_before
+
+
+def test_capacity_409_leaves_session_and_log_unchanged(client, frames):
+    session = client.create_session(voxel_size=VOXEL, max_voxels=6000)
+    session.add_frame(**frames[0])
+    before = _state(session)
+    r = httpx.post(f"{client._http.base_url}/v1/sessions/{session.id}/frames", headers=MSGPACK,
+                   content=msgpack.packb(msgpack_frame(frames[1]), use_bin_type=True))
+    assert r.status_code == 409, r.text
+    assert r.json()["error"]["field"] == "max_voxels" and "max_voxels" in r.json()["error"]["message"]
+    assert _state(session) == before  # the log record was cut off again (disk_bytes unchanged)
+    session.delete()
+
+
+def test_too_many_sessions_409(server, client):
+    created = []
+    try:
+        for _ in range(25):
+            r = httpx.post(f"{server.url}/v1/sessions", json={"voxel_size": 0.05}, headers=AUTH)
+            if r.status_code != 201:
+                break
+            created.append(r.json()["id"])
+        assert r.status_code == 409 and r.json()["error"]["field"] == "max_sessions"
+    finally:
+        for sid in created:
+            httpx.delete(f"{server.url}/v1/sessions/{sid}", headers=AUTH)
+
+
+def test_unknown_route_and_method(server):
+    r = httpx.get(f"{server.url}/v1/nothing", headers=AUTH)
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found"
+    r = httpx.put(f"{server.url}/v1/sessions", headers=AUTH)
+    assert r.status_code == 405 and r.json()["error"]["field"] == "method"
+
+
+def test_fold_time_error_leaves_log_unchanged(client, frames):
+    """A frame that passes decoding but fails inside the fold (here: a client-features session sent a
+    frame without features) is logged first, then cut off again: the session and its files are as before."""
+    session = client.create_session(voxel_size=VOXEL, feature_backend="client", feature_dim=8)
+    kwargs = frames[0]
+    h, w = kwargs["rgb"].shape[:2]
+    feats = np.random.default_rng(0).standard_normal((h // 4, w // 4, 12)).astype(np.float16)
+    session.add_frame(**kwargs, features=feats)
+    before = _state(session)
+    r = httpx.post(f"{client._http.base_url}/v1/sessions/{session.id}/frames", headers=MSGPACK,
+                   content=msgpack.packb(msgpack_frame(frames[1]), use_bin_type=True))
+    assert r.status_code == 422 and r.json()["error"]["field"] == "features", r.text
+    assert _state(session) == before
+    session.add_frame(**frames[1], features=feats)
+    assert session.stats()["frames"] == 2
+    session.delete()

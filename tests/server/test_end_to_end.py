@@ -1,0 +1,167 @@
+"""End to end against a real service process: create, stream real shelf frames, views, exports, delete."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from canonical_core import load_ply
+from client.sdk import CanonicalError, png_to_array
+
+from .harness import TOKEN, VOXEL
+
+pytestmark = pytest.mark.slow
+
+# Measured: 10 frames at 320x240, 8 mm voxels, rendered at frame 0's pose on black: 12.7 dB
+# all-pixel PSNR (uncovered borders count). The floor sits 1.5 dB below that.
+PSNR_FLOOR_DB = 11.2
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) / 255.0 - b.astype(np.float64) / 255.0) ** 2)
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+
+
+def view_of(kwargs: dict) -> tuple:
+    h, w = kwargs["rgb"].shape[:2]
+    return kwargs["K"], kwargs["c2w"], w, h
+
+
+def test_stream_render_export_delete(client, server, frames, reference, tmp_path):
+    session = client.create_session(voxel_size=VOXEL)
+    assert any(s["id"] == session.id for s in client.sessions())
+    for i, kwargs in enumerate(frames):
+        report = session.add_frame(**kwargs)
+        assert report["frame_index"] == i
+        assert set(report) >= {"frame_index", "new_voxels", "updated_voxels", "representative_switches", "ms"}
+    assert session.digest()["sha256"] == reference[len(frames)]["sha256"]  # deterministic across sessions
+
+    K, c2w, w, h = view_of(frames[0])
+    png = session.render_png(K, c2w, w, h)
+    image = Image.open(io.BytesIO(png))
+    assert image.format == "PNG" and image.size == (w, h) and image.mode == "RGB"
+    quality = psnr(np.asarray(image), frames[0]["rgb"])
+    assert quality > PSNR_FLOOR_DB, quality
+
+    view = session.render(K, c2w, w, h)
+    assert view["rgb"].dtype == np.uint8 and view["rgb"].shape == (h, w, 3)
+    assert np.array_equal(view["rgb"], np.asarray(image))  # the PNG is the same picture
+    assert view["depth"].dtype == np.float32 and view["alpha"].shape == (h, w)
+    covered = view["alpha"] > 0.5
+    assert covered.mean() > 0.5
+    sensor = frames[0]["depth"]
+    both = covered & (sensor > 0)
+    assert np.median(np.abs(view["depth"][both] - sensor[both])) < 3 * VOXEL
+
+    lod = session.render(K, c2w, w, h, max_gaussians=500, background=[1, 1, 1])
+    assert lod["alpha"].mean() < view["alpha"].mean()
+    assert (lod["rgb"][lod["alpha"] < 1e-3] == 255).all()  # white where nothing is drawn
+
+    feats = session.features(K, c2w, w, h)
+    stats = session.stats()
+    assert feats["features"].dtype == np.float16
+    assert feats["features"].shape == (h, w, stats["config"]["feature_dim"])
+    assert feats["alpha"].shape == (h, w) and np.allclose(feats["alpha"], view["alpha"], atol=1e-6)
+    assert np.isfinite(feats["features"].astype(np.float32)).all()
+    preview = Image.open(io.BytesIO(session.features_preview_png(K, c2w, w, h)))
+    assert preview.size == (w, h) and preview.mode == "RGB"
+
+    with pytest.raises(CanonicalError) as err:
+        session.segmentation(K, c2w, w, h)
+    assert err.value.status == 409 and err.value.field == "labels"
+
+    ply = session.export_ply(tmp_path / "scene.ply")
+    gaussians = load_ply(ply)
+    assert len(gaussians) == stats["gaussians"] > 1000
+    splat = session.export_splat(tmp_path / "scene.splat")
+    assert splat.stat().st_size == 32 * stats["gaussians"]
+
+    assert stats["frames"] == len(frames) and stats["voxels"] >= stats["gaussians"]
+    assert stats["memory_bytes"] > 0 and stats["disk_bytes"] > 0
+
+    folder = server.data_dir / "sessions" / session.id
+    assert folder.is_dir()
+    session.delete()
+    assert not folder.exists()
+    assert all(s["id"] != session.id for s in client.sessions())
+    with pytest.raises(CanonicalError) as err:
+        session.stats()
+    assert err.value.status == 404
+
+
+def test_get_render_matches_post(client, server, frames):
+    session = client.create_session(voxel_size=VOXEL)
+    session.add_frame(**frames[0])
+    K, c2w, w, h = view_of(frames[0])
+    params = {"pose": ",".join(repr(float(x)) for x in np.asarray(c2w).ravel()),
+              "K": f"{K[0][0]},{K[1][1]},{K[0][2]},{K[1][2]}", "width": w, "height": h}
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params=params, headers=headers)
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert r.content == session.render_png(K, c2w, w, h)
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/features", params={**params, "preview": "png"}, headers=headers)
+    assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).size == (w, h)
+    session.delete()
+
+
+def test_multipart_frame_equals_msgpack_frame(client, server, frames, reference):
+    """curl-style upload: PNG colour + 16-bit depth PNG (mm) + JSON camera; fuses to the same state."""
+    kwargs = frames[0]
+    rgb_png, depth_png = io.BytesIO(), io.BytesIO()
+    Image.fromarray(kwargs["rgb"]).save(rgb_png, format="PNG")
+    Image.fromarray(np.round(kwargs["depth"].astype(np.float64) * 1000).astype(np.uint16)).save(depth_png, format="PNG")
+    camera = {"K": kwargs["K"].tolist(), "c2w": kwargs["c2w"].tolist(), "depth_scale": 1000, "frame_id": "curl"}
+    session = client.create_session(voxel_size=VOXEL)
+    r = httpx.post(f"{server.url}/v1/sessions/{session.id}/frames", headers={"Authorization": f"Bearer {TOKEN}"},
+                   files={"rgb": ("c.png", rgb_png.getvalue(), "image/png"), "depth": ("d.png", depth_png.getvalue(), "image/png")},
+                   data={"camera": json.dumps(camera)})
+    assert r.status_code == 200, r.text
+    assert r.json()["frame_index"] == 0
+    assert session.digest()["sha256"] == reference[1]["sha256"]
+    session.delete()
+
+    # encoded images inside msgpack too: JPEG colour (lossy, so only the frame count is compared)
+    jpeg = io.BytesIO()
+    Image.fromarray(kwargs["rgb"]).save(jpeg, format="JPEG", quality=90)
+    session = client.create_session(voxel_size=VOXEL)
+    report = session.add_frame(jpeg.getvalue(), kwargs["K"], kwargs["c2w"], depth=kwargs["depth"])
+    assert report["frame_index"] == 0 and report["new_voxels"] > 0
+    session.delete()
+
+
+def test_labels_segmentation(client, frames):
+    """Frames carrying label scores (3 classes: image thirds) -> label maps as palette PNG and uint16."""
+    session = client.create_session(voxel_size=VOXEL)
+    for kwargs in frames[:2]:
+        h, w = kwargs["rgb"].shape[:2]
+        labels = np.zeros((h, w, 3), np.float32)
+        labels[np.arange(h)[:, None], np.arange(w)[None, :], np.minimum(np.arange(w) * 3 // w, 2)[None, :]] = 1.0
+        session.add_frame(**kwargs, labels=labels)
+    assert session.stats()["label_dim"] == 3
+    K, c2w, w, h = view_of(frames[0])
+    seg = session.segmentation(K, c2w, w, h)
+    assert seg["labels"].dtype == np.uint16 and seg["labels"].shape == (h, w)
+    drawn = seg["alpha"] > 0.5
+    assert set(np.unique(seg["labels"][drawn])) <= {0, 1, 2}
+    assert (seg["labels"][seg["alpha"] == 0] == 65535).all()
+    # the left third of the view is mostly class 0, the right third class 2
+    assert np.mean(seg["labels"][:, : w // 4][drawn[:, : w // 4]] == 0) > 0.8
+    assert np.mean(seg["labels"][:, -w // 4 :][drawn[:, -w // 4 :]] == 2) > 0.8
+    png = png_to_array(session.segmentation_png(K, c2w, w, h))
+    assert png.shape == (h, w)
+    assert np.array_equal(png.astype(np.int64) - 1, np.where(seg["labels"] == 65535, -1, seg["labels"].astype(np.int64)))
+    session.delete()
+
+
+def test_health_and_metrics(client, server):
+    assert httpx.get(f"{server.url}/healthz").json()["status"] == "ok"  # no token needed
+    assert httpx.get(f"{server.url}/metrics").status_code == 401
+    text = client.metrics()
+    for name in ("canonical_fold_seconds_bucket", "canonical_fold_seconds_count", "canonical_frames_folded_total",
+                 "canonical_sessions", "canonical_voxels", "# TYPE canonical_fold_seconds histogram"):
+        assert name in text
