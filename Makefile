@@ -2,7 +2,6 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-DATA   ?= $(firstword $(wildcard ../shared/data/realsense_shelf))
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
 .PHONY: setup demo test bench clean
@@ -19,7 +18,7 @@ setup: $(VENV)/.installed
 
 # Main job: start the service on an embedded default and stream a sample capture into it.
 demo: setup
-	$(PY) -m client.cli demo $(if $(DATA),$(DATA),) --out out/demo
+	$(PY) -m client.cli demo --out out/demo
 
 test: setup
 	$(PY) -m pytest -q tests

@@ -5,6 +5,7 @@
     canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical sessions --url URL
+    canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
 
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
@@ -103,26 +104,34 @@ def frame_arrays(frame, scale: float = 1.0) -> dict:
     return out
 
 
-def run_stream(args) -> int:
+def stream_frames(session, frames, scale: float = 1.0) -> float:
+    """Post every frame with a progress bar; returns the elapsed seconds."""
     from tqdm import tqdm
 
+    t0, new = time.perf_counter(), 0
+    with tqdm(total=len(frames), unit="frame", desc=frames.name) as bar:
+        for i in range(len(frames)):
+            report = session.add_frame(**frame_arrays(frames[i], scale))
+            new += report["new_voxels"]
+            bar.set_postfix(voxels=new, refresh=False)
+            bar.update()
+    return time.perf_counter() - t0
+
+
+def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
+    return (f"{n} frames in {elapsed:.1f} s ({n / max(elapsed, 1e-9):.2f} frames/s); "
+            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels, {stats['gaussians']} Gaussians")
+
+
+def run_stream(args) -> int:
     from canonical_core.datasets import load_dataset
 
     frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     with _client(args) as client:
         session = client.session(args.session) if args.session else client.create_session(voxel_size=args.voxel_size)
         print(f"session {session.id}", file=sys.stderr)
-        t0, new = time.perf_counter(), 0
-        with tqdm(total=len(frames), unit="frame", desc=frames.name) as bar:
-            for i in range(len(frames)):
-                report = session.add_frame(**frame_arrays(frames[i], args.scale))
-                new += report["new_voxels"]
-                bar.set_postfix(voxels=new, refresh=False)
-                bar.update()
-        elapsed = time.perf_counter() - t0
-        stats = session.stats()
-    print(f"{len(frames)} frames in {elapsed:.1f} s ({len(frames) / max(elapsed, 1e-9):.2f} frames/s); "
-          f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels, {stats['gaussians']} Gaussians")
+        elapsed = stream_frames(session, frames, args.scale)
+        print(_stream_summary(len(frames), elapsed, session, session.stats()))
     return 0
 
 
@@ -201,12 +210,96 @@ def run_sessions(args) -> int:
     return 0
 
 
+# -- demo ---------------------------------------------------------------------------------------
+SHARED_SHELF = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def add_demo(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", nargs="?", default=None,
+                   help="a capture to fuse (default: ../shared/data/realsense_shelf, else a generated sample)")
+    p.add_argument("--out", default="out/demo", help="folder for the render, comparison, PLY and the service's data")
+    p.add_argument("--voxel-size", type=float, default=None, help="default: 4 mm for the shelf, 2 cm for the sample")
+    p.add_argument("--port", type=int, default=0, help="port of the embedded service (default: a free one)")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_service(port: int, data_dir: Path):
+    """The service as a child process (the same `canonical serve` a user runs); waits for /healthz."""
+    import subprocess
+
+    import httpx
+
+    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir", str(data_dir),
+                             "--log-level", "warning"], cwd=Path(__file__).resolve().parents[1])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"the service exited with code {proc.returncode} before it was ready")
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    proc.kill()
+    raise SystemExit("the service did not become ready within 120 s")
+
+
+def run_demo(args) -> int:
+    from PIL import Image
+
+    from canonical_core.datasets import load_dataset, synthetic_rgbd, write_tsdf_fusion
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.dataset:
+        path, voxel = Path(args.dataset), args.voxel_size or 0.004
+    elif SHARED_SHELF.is_dir():
+        path, voxel = SHARED_SHELF, args.voxel_size or 0.004
+    else:  # no data on this machine: generate a small RGB-D sequence (textured boxes, exact depth)
+        path, voxel = out / "sample", args.voxel_size or 0.02
+        if not path.is_dir():
+            write_tsdf_fusion(synthetic_rgbd(num_frames=24, width=320, height=240), path)
+    frames = load_dataset(path)
+    port = args.port or _free_port()
+    print(f"demo: fusing {len(frames)} frames of {path} at {voxel * 1000:g} mm voxels through a service on port {port}")
+    service = _start_service(port, out / "data")
+    try:
+        with Client(f"http://127.0.0.1:{port}") as client:
+            session = client.create_session(voxel_size=voxel)
+            elapsed = stream_frames(session, frames)
+            print(_stream_summary(len(frames), elapsed, session, session.stats()))
+            view = frames[len(frames) // 2]
+            cam = view.camera
+            rendered = session.render(cam.K64(), cam.c2w64(), cam.width, cam.height)
+            session.export_ply(out / "scene.ply")
+    finally:
+        service.terminate()
+        service.wait(timeout=60)
+    rgb = rendered["rgb"]  # uint8 [H, W, 3] on the wire
+    truth = view.rgb.numpy()
+    Image.fromarray(rgb).save(out / "render.png")
+    Image.fromarray(np.concatenate([truth, rgb], 1)).save(out / "comparison.png")
+    mse = float(np.mean((rgb.astype(np.float64) - truth) ** 2)) / 255.0**2
+    print(f"rendered frame {view.frame_id} (an input view): PSNR {10 * np.log10(1 / max(mse, 1e-12)):.2f} dB")
+    print(f"wrote {out / 'render.png'}, {out / 'comparison.png'} (truth | render) and {out / 'scene.ply'}")
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "serve": Command(add_serve, run_serve, "run the service (uvicorn)"),
     "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
     "render": Command(add_render, run_render, "render a session at a camera to a PNG"),
     "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
+    "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
 }
 
 

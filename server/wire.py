@@ -20,11 +20,11 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from canonical_core import Camera, Frame
+from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16
 
 DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "float16": np.dtype("<f2"), "float32": np.dtype("<f4")}
 FLOATS = ("float16", "float32")
 IMAGE_FORMATS = ("PNG", "JPEG")
-DEPTH_INVALID_CODE = 65535  # as canonical_core.datasets reads 16-bit depth: 0 and 65535 mean "no measurement"
 FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "frame_id", "width", "height")
 NO_LABEL = 65535  # uint16 label maps: pixels that nothing covers
 
@@ -126,13 +126,6 @@ def decode_depth_png(data: bytes, depth_scale, field: str = "depth", max_pixels:
     return depth_from_uint16(raw, depth_scale)
 
 
-def depth_from_uint16(raw: np.ndarray, depth_scale) -> np.ndarray:
-    # the same conversion as canonical_core.datasets.files.read_depth (float64, then float32)
-    metres = raw.astype(np.float64) / depth_scale
-    metres[(raw == 0) | (raw == DEPTH_INVALID_CODE)] = 0.0
-    return metres.astype(np.float32)
-
-
 def encode_png(image: np.ndarray, compress_level: int = 3) -> bytes:
     """uint8 [H, W, 3] (or [H, W]) -> PNG bytes."""
     buf = io.BytesIO()
@@ -170,28 +163,6 @@ def encode_label_png(labels: np.ndarray) -> bytes:
 def labels_to_uint16(labels: np.ndarray) -> np.ndarray:
     """int [H, W] labels (-1 = none) -> uint16 with NO_LABEL (65535) for none."""
     return np.where(labels < 0, NO_LABEL, labels).astype(np.uint16)
-
-
-def feature_preview(features: np.ndarray, alpha: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8
-    """PCA of the covered pixels' features onto 3 channels, each stretched to its 1st-99th percentile.
-
-    TODO(library): this is the one piece of arithmetic in server/; it belongs in canonical_core
-    (e.g. ``canonical_core.rendering.feature_preview``) and should be called from there once it exists.
-    """
-    h, w, c = features.shape
-    covered = alpha > 1e-3
-    out = np.zeros((h, w, 3), np.uint8)
-    if covered.sum() < 2:
-        return out
-    f = features[covered].astype(np.float64) / alpha[covered, None]  # composited sums -> weighted means
-    f -= f.mean(0)
-    _, _, vt = np.linalg.svd(f[:: max(1, len(f) // 20000)], full_matrices=False)
-    proj = f @ vt[: min(3, c)].T
-    if proj.shape[1] < 3:
-        proj = np.pad(proj, ((0, 0), (0, 3 - proj.shape[1])))
-    lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
-    out[covered] = to_uint8((proj - lo) / np.where(hi > lo, hi - lo, 1.0))
-    return out
 
 
 # -- frames -------------------------------------------------------------------------------------

@@ -124,6 +124,11 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:  # [H, W] fl
             if raw.size and (raw.min() < 0 or raw.max() > DEPTH_INVALID_CODE):
                 raise ValueError(f"{path}: depth values {raw.min()}..{raw.max()} do not fit 16 bits")
             raw = raw.astype(np.uint16)
+    return depth_from_uint16(raw, depth_scale)
+
+
+def depth_from_uint16(raw: np.ndarray, depth_scale: float) -> np.ndarray:  # [H, W] uint16 -> float32 metres
+    """Metres = value / depth_scale; 0 and 65535 (the 7-Scenes invalid code) become 0 = missing."""
     metres = raw.astype(np.float64) / depth_scale
     metres[(raw == 0) | (raw == DEPTH_INVALID_CODE)] = 0.0
     return metres.astype(np.float32)

@@ -14,6 +14,7 @@ to float tolerance; elsewhere the deviation is measured by the tests and the fol
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -241,6 +242,16 @@ class Scene:
         with torch.no_grad():
             return self.decoder(f, self.config.voxel_size)
 
+    def digest(self) -> str:
+        """sha256 of the whole fused state (sums, free-space history, frame count): equal iff two
+        scenes would decode and fold on identically."""
+        h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|".encode())
+        arrays = {f"state.{k}": v for k, v in self.sums().items()} | {f"history.{k}": v for k, v in self._history.to_arrays().items()}
+        for name, array in sorted(arrays.items()):
+            h.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
+            h.update(np.ascontiguousarray(array).tobytes())
+        return h.hexdigest()
+
     def memory_bytes(self) -> int:
         return int(sum(a.nbytes for a in self._state.values()) + self._table.nbytes)
 
@@ -268,7 +279,7 @@ class Scene:
         return buf.getvalue()
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the snapshot atomically (temp file, fsync, rename)."""
+        """Write the snapshot atomically (temp file, fsync, rename, fsync of the folder)."""
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
         with open(tmp, "wb") as f:
@@ -276,6 +287,11 @@ class Scene:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)  # the rename itself must survive a crash
+        finally:
+            os.close(folder)
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "Scene":

@@ -11,6 +11,7 @@ from fastapi.responses import Response
 
 from canonical_core import Camera
 from canonical_core.rendering import render
+from canonical_core.rendering.preview import feature_preview
 
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
@@ -108,7 +109,7 @@ def _features_encoder(preview: str | None):
     if preview is not None:
         if preview != "png":
             raise ApiError(422, "invalid_value", f"preview: expected 'png', got {preview!r}", "preview")
-        return lambda m: (wire.encode_png(wire.feature_preview(m["features"], m["alpha"])), PNG)
+        return lambda m: (wire.encode_png(feature_preview(m["features"], m["alpha"])), PNG)
     return lambda m: (wire.pack({"features": wire.encode_array(m["features"].astype(np.float16)),
                                  "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
 

@@ -49,3 +49,16 @@ def test_appearance_uncertainty_starts_at_zero_and_can_lower_reliability():
     assert not app.is_zero
     lowered = extract_evidence(frame, SceneConfig(voxel_size=0.01), app).reliability
     assert np.allclose(lowered, base * np.exp(-0.7), rtol=1e-5)
+
+
+def test_observation_sh_basis_equals_the_renderers_definition():
+    from canonical_core.evidence import observation_sh_basis
+    from canonical_core.rendering.sh import sh_basis
+
+    frame = make_frame(np.random.default_rng(0).uniform(0.5, 2.0, (7, 9)), fx=5.0)
+    ev = extract_evidence(frame, SceneConfig(voxel_size=0.01))
+    dirs = torch.from_numpy(ev.points) - frame.camera.center
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    for degree in (1, 2, 3):
+        assert np.allclose(observation_sh_basis(ev, frame.camera, degree), sh_basis(dirs, degree).numpy(), atol=1e-6)
+    assert observation_sh_basis(ev, frame.camera, 0).shape == (len(ev), 1)

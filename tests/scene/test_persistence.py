@@ -61,3 +61,10 @@ def test_rejects_foreign_and_future_files(folded, tmp_path):
     data = buf.getvalue()
     with pytest.raises(ValueError, match="version 9 is not supported"):
         Scene.from_bytes(data)
+
+
+def test_digest_tracks_the_whole_state(folded, shelf_frames):
+    loaded = Scene.from_bytes(folded.to_bytes())
+    assert loaded.digest() == folded.digest()
+    loaded.fold(shelf_frames[10])
+    assert loaded.digest() != folded.digest()

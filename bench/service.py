@@ -1,0 +1,131 @@
+"""Service benchmark: frames/s over HTTP vs in-process fold, and render latency under 4 clients.
+
+    python bench/service.py [--data ../shared/data/realsense_shelf] [--frames 30] [--renders 40]
+
+Starts the real service (`canonical serve`, uvicorn) on a free loopback port with a temporary data
+directory, streams the same frames through the Python client that it folds in-process, and prints
+tables with medians and the machine. Never asserts timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from common import machine_summary, print_table, stats_ms  # noqa: E402
+
+from canonical_core import SceneConfig  # noqa: E402
+from canonical_core.datasets import load_dataset  # noqa: E402
+from canonical_core.scene import Scene  # noqa: E402
+from client.cli import _free_port, _start_service, frame_arrays  # noqa: E402
+from client.sdk import Client  # noqa: E402
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def in_process(frames, voxel: float) -> list[float]:
+    scene = Scene(SceneConfig(voxel_size=voxel))
+    ms = []
+    for f in frames:
+        t0 = time.perf_counter()
+        scene.fold(f)
+        ms.append((time.perf_counter() - t0) * 1000)
+    return ms
+
+
+def over_http(url: str, payloads: list[dict], voxel: float) -> tuple[list[float], list[float], str]:
+    """Client-side round trip ms and the server's own fold ms per frame."""
+    with Client(url) as client:
+        session = client.create_session(voxel_size=voxel)
+        total, server = [], []
+        for p in payloads:
+            t0 = time.perf_counter()
+            report = session.add_frame(**p)
+            total.append((time.perf_counter() - t0) * 1000)
+            server.append(report["ms"])
+        return total, server, session.id
+
+
+def render_latency(url: str, session_id: str, cameras, clients: int, per_client: int) -> list[float]:
+    lat: list[float] = []
+    lock = threading.Lock()
+
+    def worker(k: int) -> None:
+        with Client(url) as client:
+            session = client.session(session_id)
+            for j in range(per_client):
+                cam = cameras[(k * per_client + j) % len(cameras)]
+                t0 = time.perf_counter()
+                session.render(cam.K64(), cam.c2w64(), cam.width, cam.height)
+                with lock:
+                    lat.append((time.perf_counter() - t0) * 1000)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return lat
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--voxel", type=float, default=0.004)
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--renders", type=int, default=40, help="renders in total across the 4 clients")
+    p.add_argument("--scale", type=float, default=1.0, help="also resize frames (e.g. 0.5 for 320x240)")
+    args = p.parse_args(argv)
+
+    frames = list(load_dataset(args.data, max_frames=args.frames))
+    payloads = [frame_arrays(f, args.scale) for f in frames]
+    if args.scale != 1.0:
+        from client.cli import frame_arrays as _  # noqa: F401  (payloads already resized)
+        from canonical_core import Camera, Frame
+
+        frames = [Frame(rgb=p_["rgb"], camera=Camera(p_["K"], p_["c2w"], p_["rgb"].shape[1], p_["rgb"].shape[0]),
+                        depth=p_["depth"]) for p_ in payloads]
+    print(machine_summary())
+    print(f"data: {args.data.name}, {len(frames)} frames at {frames[0].width}x{frames[0].height}, voxel {args.voxel * 1000:g} mm\n")
+    in_process(frames[:2], args.voxel)  # compile / load kernels outside the measurement
+    local = in_process(frames, args.voxel)
+
+    with tempfile.TemporaryDirectory() as data_dir:
+        port = _free_port()
+        service = _start_service(port, Path(data_dir))
+        try:
+            url = f"http://127.0.0.1:{port}"
+            over_http(url, payloads[:2], args.voxel)  # warm the service's kernels
+            total, server, sid = over_http(url, payloads, args.voxel)
+            cams = [f.camera for f in frames]
+            render_latency(url, sid, cams[:2], clients=1, per_client=2)  # warm decode cache and renderer
+            lat = render_latency(url, sid, cams, clients=4, per_client=max(1, args.renders // 4))
+        finally:
+            service.terminate()
+            service.wait(timeout=60)
+
+    fps_local = 1000 / statistics.median(local)
+    fps_http = 1000 / statistics.median(total)
+    print_table("Fold: in-process vs over HTTP (same frames, same order)", [
+        {"path": "in-process Scene.fold", "ms/frame (med/min/max)": stats_ms(local), "frames/s (median)": f"{fps_local:.1f}"},
+        {"path": "HTTP round trip (client)", "ms/frame (med/min/max)": stats_ms(total), "frames/s (median)": f"{fps_http:.1f}"},
+        {"path": "  of which server fold", "ms/frame (med/min/max)": stats_ms(server), "frames/s (median)": ""},
+        {"path": "overhead ratio HTTP / in-process", "ms/frame (med/min/max)": f"{statistics.median(total) / statistics.median(local):.2f}",
+         "frames/s (median)": ""},
+    ])
+    lat = np.asarray(lat)
+    print_table(f"Render latency, 4 concurrent clients, {frames[0].width}x{frames[0].height}, {len(lat)} renders", [
+        {"p50 ms": f"{np.percentile(lat, 50):.0f}", "p99 ms": f"{np.percentile(lat, 99):.0f}", "max ms": f"{lat.max():.0f}"}])
+
+
+if __name__ == "__main__":
+    main()
