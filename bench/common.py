@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+import time
 
 import numpy as np
 
@@ -22,6 +23,16 @@ def machine_summary() -> str:
     return (f"machine: {platform.node()} | {cpu} | {os.cpu_count()} cores | {platform.system()} {platform.release()}\n"
             f"python {platform.python_version()} | torch {torch.__version__} ({torch.get_num_threads()} threads) | "
             f"numba {numba.__version__} ({numba.get_num_threads()} threads) | numpy {np.__version__}\n")
+
+
+def time_each(fn, items) -> list[float]:
+    """Milliseconds of ``fn(item)`` for each item, in order."""
+    ms = []
+    for item in items:
+        t0 = time.perf_counter()
+        fn(item)
+        ms.append((time.perf_counter() - t0) * 1000)
+    return ms
 
 
 def stats_ms(values) -> str:

@@ -12,14 +12,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine_summary, print_table, stats_ms  # noqa: E402
+from common import machine_summary, print_table, stats_ms, time_each  # noqa: E402
 
 from canonical_core import Frame, SceneConfig  # noqa: E402
 from canonical_core.camera import quaternion_to_matrix  # noqa: E402
@@ -52,31 +51,11 @@ def jittered(frame: Frame, rng: np.random.Generator, translation: float, angle: 
 
 def time_folds(frames, config: SceneConfig) -> tuple[list[float], Scene]:
     scene = Scene(config)
-    ms = []
-    for f in frames:
-        t0 = time.perf_counter()
-        scene.fold(f)
-        ms.append((time.perf_counter() - t0) * 1000)
-    return ms, scene
-
-
-def time_evidence(frames, config: SceneConfig) -> list[float]:
-    ms = []
-    for f in frames:
-        t0 = time.perf_counter()
-        extract_evidence(f, config)
-        ms.append((time.perf_counter() - t0) * 1000)
-    return ms
+    return time_each(scene.fold, frames), scene
 
 
 def time_open3d(frames, voxel: float) -> list[float]:
-    tsdf = Open3DTSDF(voxel)
-    ms = []
-    for f in frames:
-        t0 = time.perf_counter()
-        tsdf.integrate(f)
-        ms.append((time.perf_counter() - t0) * 1000)
-    return ms
+    return time_each(Open3DTSDF(voxel).integrate, frames)
 
 
 def main(argv=None) -> None:
@@ -103,7 +82,7 @@ def main(argv=None) -> None:
         for _ in range(args.repeats):
             ms, scene = time_folds(fs, config)
             fold_ms += ms
-            ev_ms += time_evidence(fs, config)
+            ev_ms += time_each(lambda f: extract_evidence(f, config), fs)
             if have_o3d:
                 o3d_ms += time_open3d(fs, args.voxel)
         row = {"size": label, "fold ms (med/min/max)": stats_ms(fold_ms), "of which evidence ms": stats_ms(ev_ms)}

@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import machine_summary, print_table, stats_ms  # noqa: E402
+from common import machine_summary, print_table, stats_ms, time_each  # noqa: E402
 
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
@@ -33,13 +33,7 @@ DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / 
 
 
 def in_process(frames, voxel: float) -> list[float]:
-    scene = Scene(SceneConfig(voxel_size=voxel))
-    ms = []
-    for f in frames:
-        t0 = time.perf_counter()
-        scene.fold(f)
-        ms.append((time.perf_counter() - t0) * 1000)
-    return ms
+    return time_each(Scene(SceneConfig(voxel_size=voxel)).fold, frames)
 
 
 def over_http(url: str, payloads: list[dict], voxel: float) -> tuple[list[float], list[float], str]:
@@ -88,8 +82,7 @@ def main(argv=None) -> None:
 
     frames = list(load_dataset(args.data, max_frames=args.frames))
     payloads = [frame_arrays(f, args.scale) for f in frames]
-    if args.scale != 1.0:
-        from client.cli import frame_arrays as _  # noqa: F401  (payloads already resized)
+    if args.scale != 1.0:  # fold the same resized frames in-process that travel over HTTP
         from canonical_core import Camera, Frame
 
         frames = [Frame(rgb=p_["rgb"], camera=Camera(p_["K"], p_["c2w"], p_["rgb"].shape[1], p_["rgb"].shape[0]),

@@ -1,0 +1,190 @@
+"""Rasterizer benchmark: ms per frame of render() for the numba and reference backends.
+
+Usage: NUMBA_CACHE_DIR=.numba_cache python bench/render.py [--quick]
+
+Prints a table; asserts nothing. The scene is synthetic but shaped like a decoded capture:
+Gaussians on a back wall, a floor and two boxes 2-4 m in front of the camera, flattened along
+the surface normal, 0.7-3 px (at 640x480) across, opacity 0.3-1, degree-1 SH colour. Timings are
+wall-clock medians after warm-up on a machine that may be shared: read them with the load
+average printed at the top.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from canonical_core.camera import Camera  # noqa: E402
+from canonical_core.gaussians import Gaussians  # noqa: E402
+from canonical_core.rendering import render  # noqa: E402
+
+FOCAL_AT_640 = 525.0
+
+
+def make_camera(width: int, height: int) -> Camera:
+    f = FOCAL_AT_640 * width / 640
+    return Camera(K=[[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], c2w=np.eye(4), width=width, height=height)
+
+
+def make_scene(n: int, feature_dim: int = 0, seed: int = 0) -> Gaussians:
+    """n Gaussians on surfaces in front of an identity camera (z forward, y down)."""
+    rng = np.random.default_rng(seed)
+    surface = rng.choice(4, size=n, p=[0.45, 0.25, 0.15, 0.15])
+    a, b = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    means = np.empty((n, 3))
+    normals = np.empty((n, 3))
+    wall = surface == 0  # back wall at z = 4
+    means[wall] = np.stack([2.2 * a[wall], 1.6 * b[wall], np.full(wall.sum(), 4.0)], 1)
+    normals[wall] = [0, 0, 1]
+    floor = surface == 1  # floor 1 m below the camera
+    means[floor] = np.stack([2.2 * a[floor], np.full(floor.sum(), 1.0), 2.5 + 1.5 * b[floor]], 1)
+    normals[floor] = [0, 1, 0]
+    for k, (cx, cy, cz, s) in zip((2, 3), ((-0.6, 0.4, 2.0, 0.5), (0.7, 0.2, 2.8, 0.7))):
+        box = surface == k  # front faces of two boxes
+        means[box] = np.stack([cx + s * a[box], cy + s * b[box], np.full(box.sum(), cz)], 1)
+        normals[box] = [0, 0, 1]
+    depth = means[:, 2]
+    pixel_sigma = rng.uniform(0.7, 3.0, n)  # standard deviation in pixels at 640x480
+    tangent_scale = pixel_sigma * depth / FOCAL_AT_640
+    scales = np.stack([tangent_scale, tangent_scale * rng.uniform(0.5, 1.0, n), tangent_scale * 0.1], 1)
+    # Rotate local z onto the surface normal, then spin about it.
+    quats = np.zeros((n, 4))
+    spin = rng.uniform(0, np.pi, n)
+    quats[:, 0] = np.cos(spin / 2)
+    quats[:, 3] = np.sin(spin / 2)
+    up = normals[:, 1] == 1  # floor: local z -> world y is a 90 degree turn about x
+    turn = np.array([np.cos(-np.pi / 4), np.sin(-np.pi / 4), 0, 0])
+    quats[up] = quat_multiply(np.broadcast_to(turn, (up.sum(), 4)), quats[up])
+    sh = np.zeros((n, 4, 3))
+    sh[:, 0] = (rng.uniform(0.1, 0.9, (n, 3)) - 0.5) / 0.28209479177387814
+    sh[:, 1:] = rng.normal(0, 0.1, (n, 3, 3))
+    t = lambda x: torch.as_tensor(x, dtype=torch.float32)  # noqa: E731
+    return Gaussians(
+        means=t(means), scales=t(scales), quats=t(quats), opacities=t(rng.uniform(0.3, 1.0, n)), sh=t(sh),
+        features=t(rng.normal(0, 1, (n, feature_dim))) if feature_dim else None,
+    )  # fmt: skip
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:  # [N, 4] wxyz
+    w1, x1, y1, z1 = p.T
+    w2, x2, y2, z2 = q.T
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], 1)  # fmt: skip
+
+
+RESOLUTIONS = ((256, 256), (640, 480))
+SIZES = (10_000, 50_000, 170_000)
+FEATURE_DIM = 32
+TARGETS_MS = {(170_000, (256, 256), "rgb"): 50, (170_000, (640, 480), "rgb"): 120, (170_000, (256, 256), "rgb+32f"): 90}
+OUTPUTS = {"rgb": ("rgb", "depth", "alpha"), "rgb+32f": ("rgb", "depth", "alpha", "features")}
+
+
+def machine() -> str:
+    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                  if line.startswith("model name")), platform.processor())  # fmt: skip
+    return "\n".join([
+        f"platform   {platform.platform()}, Python {platform.python_version()}",
+        f"cpu        {model}, {os.cpu_count()} logical cores ({len(os.sched_getaffinity(0))} usable)",
+        f"versions   torch {torch.__version__}, numba {numba.__version__} ({numba.threading_layer()} threads), numpy {np.__version__}",
+        f"load avg   {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1/5/15 min; other work on the machine skews timings)",
+    ])  # fmt: skip
+
+
+def resident_bytes(field: str) -> int:
+    """VmRSS (now) or VmHWM (peak since the last reset) of this process, from /proc."""
+    line = next(line for line in Path("/proc/self/status").read_text().splitlines() if line.startswith(field + ":"))
+    return int(line.split()[1]) * 1024
+
+
+def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> tuple[list[float], int]:
+    """Milliseconds per render after a warm-up, and the peak memory the renders added (bytes)."""
+    render(gaussians, camera, outputs, backend=backend, num_threads=threads)  # warm-up
+    Path("/proc/self/clear_refs").write_text("5")  # resets the peak RSS (VmHWM) to the current RSS
+    before = resident_bytes("VmRSS")
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        render(gaussians, camera, outputs, backend=backend, num_threads=threads)
+        times.append(1000 * (time.perf_counter() - start))
+    return times, resident_bytes("VmHWM") - before
+
+
+FRESH_PROCESS = """
+import sys, time
+start = time.perf_counter()
+import torch
+from canonical_core.rendering import render
+imported = time.perf_counter()
+scene, camera, outputs = torch.load(sys.argv[1], weights_only=False)
+first = time.perf_counter()
+render(scene, camera, outputs, num_threads=int(sys.argv[2]))
+print(imported - start, time.perf_counter() - first)
+"""
+
+
+def fresh_process(scene: Gaussians, camera: Camera, outputs, threads: int, workdir: Path) -> tuple[float, float]:
+    """Seconds to import and to render once in a new interpreter (the numba cache is warm)."""
+    path = workdir / "scene.pt"
+    torch.save((scene, camera, outputs), path)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    out = subprocess.run([sys.executable, "-c", FRESH_PROCESS, str(path), str(threads)], env=env, check=True,
+                         capture_output=True, text=True).stdout.split()  # fmt: skip
+    return float(out[0]), float(out[1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="170k Gaussians only, fewer repeats")
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    sizes = SIZES[-1:] if args.quick else SIZES
+    repeats = 3 if args.quick else args.repeats
+    threads = sorted({1, min(2, os.cpu_count() or 1)})
+    render(Gaussians.empty(), make_camera(16, 16))  # starts numba's thread pool, which machine() names
+    print(machine())
+    print(f"\nms per frame, median / min / max of {repeats} after one warm-up (target: the 2-thread row)\n")
+    print(f"{'backend':<10}{'gaussians':>10}{'image':>10}{'channels':>10}{'threads':>8}{'median':>9}{'min':>8}{'max':>8}"
+          f"{'peak MB':>9}  target")  # fmt: skip
+    scenes = {n: make_scene(n, FEATURE_DIM) for n in sizes}
+    for n in sizes:
+        for width, height in RESOLUTIONS:
+            camera = make_camera(width, height)
+            for channels, outputs in OUTPUTS.items():
+                runs = [("numba", t) for t in threads]
+                if n == SIZES[0] and width == 256:  # the reference is O(splats x pixels): small cases only
+                    runs.append(("reference", threads[-1]))
+                for backend, t in runs:
+                    torch.set_num_threads(t)
+                    times, peak = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "numba" else 3)
+                    target = TARGETS_MS.get((n, (width, height), channels))
+                    note = f"<= {target} ms" if target and backend == "numba" and t == 2 else ""
+                    print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}"
+                          f"{statistics.median(times):>9.1f}{min(times):>8.1f}{max(times):>8.1f}{peak / 2**20:>9.0f}  {note}")  # fmt: skip
+    print("\npeak MB: resident memory the timed renders added at their peak (VmHWM - VmRSS)")
+    print("\nfirst call in a fresh process (numba cache warm), 2 threads: seconds")
+    print(f"{'gaussians':>10}{'image':>10}{'channels':>10}{'import':>8}{'render':>8}{'total':>8}  target")
+    with tempfile.TemporaryDirectory() as workdir:
+        for n in sorted({sizes[0], sizes[-1]}):
+            for width, height in RESOLUTIONS:
+                imported, first = fresh_process(scenes[n], make_camera(width, height), OUTPUTS["rgb"], threads[-1], Path(workdir))
+                note = "total <= 1.5 s" if (n, width) == (sizes[-1], 256) else ""
+                print(f"{n:>10}{f'{width}x{height}':>10}{'rgb':>10}{imported:>8.2f}{first:>8.2f}{imported + first:>8.2f}  {note}")
+    print(f"\nbenchmark process peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
