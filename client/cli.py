@@ -287,8 +287,11 @@ def run_demo(args) -> int:
     truth = view.rgb.numpy()
     Image.fromarray(rgb).save(out / "render.png")
     Image.fromarray(np.concatenate([truth, rgb], 1)).save(out / "comparison.png")
-    mse = float(np.mean((rgb.astype(np.float64) - truth) ** 2)) / 255.0**2
-    print(f"rendered frame {view.frame_id} (an input view): PSNR {10 * np.log10(1 / max(mse, 1e-12)):.2f} dB")
+    sq_err = ((rgb.astype(np.float64) - truth) / 255.0) ** 2
+    covered = rendered["alpha"] > 0.5  # pixels the scene covers; nothing was seen at the others
+    psnr = lambda mse: 10 * np.log10(1 / max(float(mse), 1e-12))  # noqa: E731
+    print(f"rendered frame {view.frame_id} (an input view): PSNR {psnr(sq_err.mean()):.2f} dB over all pixels, "
+          f"covered PSNR {psnr(sq_err[covered].mean()):.2f} dB on the {100 * covered.mean():.0f} % of pixels the scene covers")
     print(f"wrote {out / 'render.png'}, {out / 'comparison.png'} (truth | render) and {out / 'scene.ply'}")
     return 0
 
