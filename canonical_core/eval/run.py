@@ -46,10 +46,10 @@ def resize_frame(frame: Frame, scale: float) -> Frame:
         return frame
     camera = frame.camera.scaled(scale)
     size = (camera.width, camera.height)
-    rgb = np.asarray(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
+    rgb = np.array(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
 
     def nearest(t: torch.Tensor | None) -> np.ndarray | None:
-        return None if t is None else np.asarray(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
+        return None if t is None else np.array(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
 
     return Frame(rgb=rgb, camera=camera, depth=nearest(frame.depth), depth_std=nearest(frame.depth_std),
                  frame_id=frame.frame_id)
@@ -169,7 +169,8 @@ def evaluate(
     skipped = {m: reason for m in methods if (reason := METHODS[m].unavailable())}
     runnable = [m for m in methods if m not in skipped]
     feature_methods = [m for m in runnable if METHODS[m].features]
-    stab = stability_inputs(n, split.heldout, stability_views) if feature_methods and len(stability_views) else {}
+    stab = stability_inputs(n, split.heldout, stability_views) if feature_methods else {}
+    stab_methods = feature_methods if stab else []
 
     input_sets = [*split.inputs.values(), *(extra.inputs.values() if extra else ()), *stab.values()]
     positions = sorted(set(split.heldout).union(*input_sets))
@@ -183,7 +184,7 @@ def evaluate(
     grids: dict[int, dict[str, list[np.ndarray]]] = {
         n_views: {"ground truth": [targets[i].rgb.numpy() for i in grid_at]} for n_views in split.inputs}
 
-    steps = len(runnable) * len(split.inputs) * (1 + len(noise) + (extra is not None)) + len(feature_methods) * len(stab)
+    steps = len(runnable) * len(split.inputs) * (1 + len(noise) + (extra is not None)) + len(stab_methods) * len(stab)
     bar = tqdm(total=steps, disable=not progress, file=sys.stderr, desc="eval", unit="run", dynamic_ncols=True)
     bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
     for name in runnable:  # warm-up: JIT compilation and caches stay out of the timings
@@ -206,7 +207,7 @@ def evaluate(
                 runs.append(run(name, [noisy[p] for p in inputs], n_views, level, keep_grid=level == 0))
     extrapolation_runs = [run(name, [frames[p] for p in inputs], n_views)
                           for n_views, inputs in (extra.inputs.items() if extra else ()) for name in runnable]
-    stability_rows = [row for name in feature_methods for row in stability(name, stab, frames, targets, voxel_size, bar)]
+    stability_rows = [row for name in stab_methods for row in stability(name, stab, frames, targets, voxel_size, bar)]
     bar.close()
 
     results = {

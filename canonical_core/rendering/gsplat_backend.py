@@ -52,4 +52,6 @@ def composite_gsplat(
         rasterize_mode="classic",
     )
     rendered, alpha = rendered[0], alpha[0, ..., 0]
-    return Blend(values=rendered[..., :-1], depth_sums=rendered[..., -1] * alpha, weight_sums=alpha, transmittance=1 - alpha)
+    return Blend(
+        values=rendered[..., :-1], depth_sums=rendered[..., -1] * alpha, weight_sums=alpha, transmittance=1 - alpha
+    )

@@ -19,7 +19,10 @@ from torch import Tensor
 from ..camera import Camera
 from ..gaussians import Gaussians
 from .projection import Blend, Channel, channel_values, world_to_camera
-from .splat_geometry import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, TILE_SIZE, project_numba, slope_bounds
+from .splat_geometry import (
+    CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, OPACITY, SPLAT_RECORD, SUPPORT,
+    TILE_SIZE, U, V, project_numba, slope_bounds,
+)  # fmt: skip
 
 # float32 constants so the kernel rounds like the reference's float32 tensors.
 _MAX_ALPHA = np.float32(MAX_ALPHA)
@@ -73,12 +76,8 @@ def bin_splats_by_tile(
 def composite_tiles(
     tile_starts: np.ndarray,  # [T + 1] int64
     splat_ids: np.ndarray,  # [K] int32, per tile in input order
-    means2d: np.ndarray,  # [N, 2] float32
-    conics: np.ndarray,  # [N, 3] float32
-    opacities: np.ndarray,  # [N] float32
-    depths: np.ndarray,  # [N] float32
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba
     boxes: np.ndarray,  # [N, 4] int32
-    supports: np.ndarray,  # [N] float32 q cut-off (see project_numba)
     values: np.ndarray,  # [N, D] float32
     tiles_x: int,
     out_values: np.ndarray,  # [H, W, D] float32
@@ -92,7 +91,7 @@ def composite_tiles(
     for tile in numba.prange(tile_starts.shape[0] - 1):
         ids = splat_ids[tile_starts[tile] : tile_starts[tile + 1]]
         # mergesort is stable: equal depths keep input order, as the reference's global sort.
-        ids = ids[np.argsort(depths[ids], kind="mergesort")]
+        ids = ids[np.argsort(splats[ids, DEPTH], kind="mergesort")]
         u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
         u1, v1 = min(u0 + TILE_SIZE, width), min(v0 + TILE_SIZE, height)
         transmittance = np.ones(_TILE_PIXELS)  # float64, as torch.cumprod accumulates
@@ -103,9 +102,9 @@ def composite_tiles(
         depth_sum = np.zeros(_TILE_PIXELS)
         weight_sum = np.zeros(_TILE_PIXELS)  # not 1 - T: 1 - alpha is rounded to float32 in T
         for i in ids:
-            mu, mv = means2d[i, 0], means2d[i, 1]
-            a, b2, c = conics[i, 0], conics[i, 1] + conics[i, 1], conics[i, 2]
-            opacity, depth, support = opacities[i], depths[i], supports[i]
+            splat = splats[i]
+            mu, mv, depth, opacity, support = splat[U], splat[V], splat[DEPTH], splat[OPACITY], splat[SUPPORT]
+            a, b2, c = splat[CONIC_A], splat[CONIC_B] + splat[CONIC_B], splat[CONIC_C]
             for v in range(max(boxes[i, 2], v0), min(boxes[i, 3] + 1, v1)):
                 dy = mv - np.float32(v)
                 for u in range(max(boxes[i, 0], u0), min(boxes[i, 1] + 1, u1)):
@@ -163,8 +162,7 @@ def render_numba(
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
     f32 = np.float32
     view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
-    means2d, conics = np.zeros((n, 2), f32), np.zeros((n, 3), f32)
-    depths, boxes, supports = np.zeros(n, f32), np.zeros((n, 4), np.int32), np.zeros(n, f32)
+    splats, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
     out_values = np.zeros((height, width, values.shape[1]), f32)
     out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
     out_transmittance = np.ones((height, width), f32)
@@ -175,13 +173,16 @@ def render_numba(
             array(gaussians.means), array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities), view,
             (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
             tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
-            f32(near_plane), width, height, means2d, conics, depths, boxes, supports,
+            f32(near_plane), width, height, splats, boxes,
         )  # fmt: skip
         tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
-        composite_tiles(
-            tile_starts, splat_ids, means2d, conics, array(gaussians.opacities), depths, boxes, supports, values, tiles_x,
-            out_values, out_depth_sums, out_weight_sums, out_transmittance,
-        )  # fmt: skip
+        # Tiles differ a lot in work (measured 34 % / 66 % between the image's halves on a
+        # scene with a floor): hand them out one at a time instead of in equal contiguous halves.
+        with numba.parallel_chunksize(1):
+            composite_tiles(
+                tile_starts, splat_ids, splats, boxes, values, tiles_x,
+                out_values, out_depth_sums, out_weight_sums, out_transmittance,
+            )  # fmt: skip
     finally:
         numba.set_num_threads(previous_threads)
     return Blend(*(torch.from_numpy(a) for a in (out_values, out_depth_sums, out_weight_sums, out_transmittance)))

@@ -17,7 +17,9 @@ from torch import Tensor
 from ..camera import Camera
 from ..gaussians import Gaussians
 from .sh import sh_to_rgb
-from .splat_geometry import BOX_PADDING, LOW_PASS, MIN_ALPHA, MIN_QUAT_NORM2, SUPPORT_SIGMAS, TILE_SIZE, camera_point, screen_geometry, slope_bounds
+from .splat_geometry import (
+    BOX_PADDING, LOW_PASS, MIN_ALPHA, MIN_QUAT_NORM2, SUPPORT_SIGMAS, TILE_SIZE, camera_point, screen_geometry, slope_bounds,
+)  # fmt: skip
 
 Channel = Literal["rgb", "features", "labels"]
 
@@ -42,7 +44,7 @@ class Blend(NamedTuple):
 
     values: Tensor  # [H, W, D] sum of w_i v_i
     depth_sums: Tensor  # [H, W] sum of w_i z_i
-    weight_sums: Tensor  # [H, W] sum of w_i (= 1 - transmittance, but without its cancellation)
+    weight_sums: Tensor  # [H, W] sum of w_i: 1 - transmittance in exact arithmetic, precise where alpha is small
     transmittance: Tensor  # [H, W] product of (1 - alpha_i) over the blended splats
 
 

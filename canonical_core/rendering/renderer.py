@@ -124,7 +124,8 @@ def render(
     if backend == "gsplat":
         blend = composite_gsplat(gaussians, camera, channels, near_plane)
     elif backend == "reference":
-        blend = composite_reference(project_splats(gaussians, camera, channels, near_plane), camera.width, camera.height)
+        splats = project_splats(gaussians, camera, channels, near_plane)
+        blend = composite_reference(splats, camera.width, camera.height)
     else:
         blend = Blend(*(t.to(device) for t in render_numba(gaussians, camera, channels, near_plane, num_threads)))
 
@@ -134,7 +135,8 @@ def render(
     widths = [_channel_width(gaussians, c) for c in channels]
     split = dict(zip(channels, blend.values.split(widths, -1))) if channels else {}
     if "rgb" in outputs:
-        result.rgb = (split["rgb"] + blend.transmittance[..., None] * background.to(blend.values)).clamp(0.0, 1.0)
+        behind = blend.transmittance[..., None] * background.to(blend.values)
+        result.rgb = (split["rgb"] + behind).clamp(0.0, 1.0)
     if "depth" in outputs:
         safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
         result.depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))

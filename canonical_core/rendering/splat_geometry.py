@@ -9,8 +9,8 @@ The image model (3DGS, Kerbl et al. 2023), with pixel (u, v) centred at (u, v):
   tile-quantised bounding squares (as 3DGS does) keeps the image independent of the tiling.
 - Front-to-back compositing in order of view-space depth (ties: input order); a pixel stops
   before the splat that would take its transmittance below 1e-4.
-Culling removes only what contributes nothing: means closer than the near plane, opacity below
-1/255, non-finite geometry, and splats whose support box misses the image.
+Culling: means closer than the near plane (as in 3DGS); besides that only what cannot contribute:
+opacity below 1/255, non-finite geometry (overflow), and support boxes that miss the image.
 
 `camera_point` and `screen_geometry` use arithmetic operators only, so the same source runs on
 torch tensors (the reference, with autograd) and, compiled by numba, on float32 scalars (the fast
@@ -88,7 +88,7 @@ def screen_geometry(x, y, z, u_slope, v_slope, qw, qx, qy, qz, quat_norm2, sx, s
     return u, v, var_v / det, -cov_uv / det, var_u / det, var_u, var_v
 
 
-def slope_bounds(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[float, float, float, float]:
+def slope_bounds(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[float, ...]:
     """Clamp range of x/z and y/z for the Jacobian: the image plus the margin on each side."""
     margin_u = JACOBIAN_CLAMP_MARGIN * width / fx
     margin_v = JACOBIAN_CLAMP_MARGIN * height / fy
@@ -104,6 +104,12 @@ _camera_point = numba.njit(camera_point)
 _screen_geometry = numba.njit(screen_geometry)
 
 
+# Columns of the fast path's packed splat records (one or two cache lines per splat in the
+# tile loop): pixel centre, conic, view depth, opacity, and the q beyond which alpha < 1/255.
+U, V, CONIC_A, CONIC_B, CONIC_C, DEPTH, OPACITY, SUPPORT = range(8)
+SPLAT_RECORD = 8
+
+
 @numba.njit(parallel=True, cache=True)
 def project_numba(
     means: np.ndarray,  # [N, 3] float32
@@ -116,18 +122,14 @@ def project_numba(
     near_plane: float,
     width: int,
     height: int,
-    out_means2d: np.ndarray,  # [N, 2] float32
-    out_conics: np.ndarray,  # [N, 3] float32
-    out_depths: np.ndarray,  # [N] float32
+    out_splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records (columns above)
     out_boxes: np.ndarray,  # [N, 4] int32 pixel box u_lo, u_hi, v_lo, v_hi; empty (lo > hi) if culled
-    out_support: np.ndarray,  # [N] float32 q beyond which alpha < 1/255 for certain (<= 9)
 ) -> None:
     fx, fy, cx, cy = intrinsics
     low_pass = np.float32(LOW_PASS)
     for i in numba.prange(means.shape[0]):
         out_boxes[i, 0], out_boxes[i, 1], out_boxes[i, 2], out_boxes[i, 3] = 0, -1, 0, -1
         x, y, z = _camera_point(means[i, 0], means[i, 1], means[i, 2], view)
-        out_depths[i] = z
         opacity = opacities[i]
         if not (z >= near_plane and opacity >= np.float32(MIN_ALPHA)):
             continue
@@ -145,16 +147,17 @@ def project_numba(
             continue
         # The same box rule as projection.pixel_boxes, so both backends bin into the same tiles.
         support_q = min(SUPPORT_SIGMAS**2, max(0.0, 2.0 * math.log(255.0 * opacity)))
-        # With a margin for rounding, so that skipping q > support leaves the image unchanged; it
-        # is 9 exactly for opacities above 0.35, where the q <= 9 test itself decides.
-        out_support[i] = min(np.float32(SUPPORT_SIGMAS**2), np.float32(support_q + 1e-4))
         half_u = math.sqrt(support_q * var_u) + BOX_PADDING
         half_v = math.sqrt(support_q * var_v) + BOX_PADDING
         u_lo, u_hi = max(math.ceil(u - half_u), 0.0), min(math.floor(u + half_u), width - 1.0)
         v_lo, v_hi = max(math.ceil(v - half_v), 0.0), min(math.floor(v + half_v), height - 1.0)
         if u_lo > u_hi or v_lo > v_hi:
             continue
-        out_means2d[i, 0], out_means2d[i, 1] = u, v
-        out_conics[i, 0], out_conics[i, 1], out_conics[i, 2] = a, b, c
+        record = out_splats[i]
+        record[U], record[V], record[DEPTH], record[OPACITY] = u, v, z, opacity
+        record[CONIC_A], record[CONIC_B], record[CONIC_C] = a, b, c
+        # With a margin for rounding, so that skipping q > support leaves the image unchanged; it
+        # is 9 exactly for opacities above 0.35, where the q <= 9 test itself decides.
+        record[SUPPORT] = min(np.float32(SUPPORT_SIGMAS**2), np.float32(support_q + 1e-4))
         out_boxes[i, 0], out_boxes[i, 1] = int(u_lo), int(u_hi)
         out_boxes[i, 2], out_boxes[i, 3] = int(v_lo), int(v_hi)

@@ -122,7 +122,7 @@ def aggregate_batch(
         "rep_r": r_sel[rep],
         "rep_f": feat[rep],
         "rep_pos": points[rep],
-        "rep_rgb": rgb[rep],
+        "rep_rgb": torch.round(rgb[rep] * 255.0).to(torch.uint8),
         "r_sum": wsum(torch.ones(M)),
         "f_sum": wsum(feat) if L else torch.zeros(V, 0),
         "rgb_sum": wsum(rgb),

@@ -67,6 +67,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     """
     voxel_size, eps = config.voxel_size, config.eps
     t = {k: torch.as_tensor(v) for k, v in sums.items()}
+    t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
         order = torch.argsort(t["keys"], stable=True)
         t = {k: v[order] for k, v in t.items()}
@@ -95,6 +96,6 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "free_space": t["free"],
         "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.sh_regularization),
     }
-    if "label_sum" in t and t["label_sum"].shape[1] > 0:
+    if t["label_sum"].shape[1] > 0:
         out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]
     return out

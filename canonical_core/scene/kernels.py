@@ -204,7 +204,8 @@ def fold_kernel(
             rep_r[vi] = rb
             rep_f[vi, :] = feat[b]
             rep_pos[vi, :] = points[b]
-            rep_rgb[vi, :] = rgb[b]
+            for c in range(3):  # colours are u8 / 255, so this round trip is exact
+                rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
         rep_inv_norm[t] = _inv_norm(rep_f[vi])
     # 3) weighted sums, each voxel in observation order (deterministic), voxels split over threads
     for tid in numba.prange(n_threads):

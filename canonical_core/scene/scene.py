@@ -57,8 +57,15 @@ class FoldReport:
         return asdict(self)
 
 
+MAX_TABLE_LOAD = 0.7  # linear probing stays at ~2 probes per hit up to here, and the table at <= 12 B/voxel
+
+
 def _next_pow2(n: int) -> int:
     return 1 << max(4, int(n - 1).bit_length())
+
+
+def _table_size(n_voxels: int) -> int:
+    return _next_pow2(int(n_voxels / MAX_TABLE_LOAD) + 1)
 
 
 class Scene:
@@ -75,7 +82,7 @@ class Scene:
         "rep_r": (np.float32, lambda L, S, W: ()),
         "rep_f": (np.float32, lambda L, S, W: (L,)),
         "rep_pos": (np.float32, lambda L, S, W: (3,)),
-        "rep_rgb": (np.float32, lambda L, S, W: (3,)),
+        "rep_rgb": (np.uint8, lambda L, S, W: (3,)),  # input colours are 8-bit: lossless
         "r_sum": (np.float32, lambda L, S, W: ()),
         "f_sum": (np.float32, lambda L, S, W: (L,)),
         "rgb_sum": (np.float32, lambda L, S, W: (3,)),
@@ -101,7 +108,7 @@ class Scene:
         self.label_dim = 0
         self._n = 0
         self._state = self._allocate(initial_capacity)
-        self._table = np.full(_next_pow2(2 * initial_capacity), -1, np.int32)
+        self._table = np.full(_table_size(initial_capacity), -1, np.int32)
         self._scratch_m = 0
         self._chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self._chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
@@ -112,6 +119,8 @@ class Scene:
         L, S, W = self.config.feature_dim, self.label_dim, sh_sum_widths(self.config.sh_degree)
         state = {name: np.zeros((capacity, *shape(L, S, W)), dtype) for name, (dtype, shape) in self._ROW_SHAPES.items()}
         state["local"][:] = -1
+        if not S:  # label weights exist only once a frame brought labels (saves 4 bytes a voxel)
+            state["label_w"] = np.zeros(0, np.float32)
         return state
 
     @property
@@ -119,7 +128,7 @@ class Scene:
         return int(self._state["keys"].shape[0])
 
     def _reserve(self, n_voxels: int) -> None:
-        """Grow the rows (x1.5, amortised) and the hash table (load <= 1/2) to hold ``n_voxels``."""
+        """Grow the rows (x1.5, amortised) and the hash table (load <= MAX_TABLE_LOAD) to hold ``n_voxels``."""
         if n_voxels > self.capacity:
             new = self._allocate(max(n_voxels, int(self.capacity * 1.5)))
             for name, arr in self._state.items():
@@ -129,13 +138,14 @@ class Scene:
                 grown = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
                 grown[: getattr(self, name).shape[0]] = getattr(self, name)
                 setattr(self, name, grown)
-        if 2 * n_voxels > self._table.shape[0]:
-            self._table = np.empty(_next_pow2(2 * n_voxels), np.int32)
+        if n_voxels > MAX_TABLE_LOAD * self._table.shape[0]:
+            self._table = np.empty(_table_size(n_voxels), np.int32)
             rebuild_table_kernel(self._table, self._state["keys"], self._n)
 
     def _set_label_dim(self, S: int) -> None:
         self.label_dim = S
         self._state["label_sum"] = np.zeros((self.capacity, S), np.float32)
+        self._state["label_w"] = np.zeros(self.capacity, np.float32)
 
     def _scratch(self, m: int) -> None:
         if m > self._scratch_m:
@@ -217,7 +227,8 @@ class Scene:
 
     def sums(self) -> dict[str, np.ndarray]:
         """The raw per-voxel sums (copies, insertion order, scratch excluded)."""
-        return {k: v[: self._n].copy() for k, v in self._state.items() if k not in self._SCRATCH}
+        return {k: v[: self._n].copy() for k, v in self._state.items()
+                if k not in self._SCRATCH and not (k == "label_w" and not self.label_dim)}
 
     def fields(self, sort: bool = True) -> dict[str, torch.Tensor]:
         """Scene fields (see `fields_from_sums`), sorted by voxel key unless ``sort=False``."""
@@ -256,9 +267,10 @@ class Scene:
         return int(sum(a.nbytes for a in self._state.values()) + self._table.nbytes)
 
     def bytes_per_voxel(self) -> float:
-        """State bytes per stored voxel row (rows + hash slots at the current load), excluding slack."""
-        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self._state.values())
-        return row + self._table.nbytes / max(self.capacity, 1)
+        """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes
+        per stored voxel (row slack reserved for growth is excluded; `memory_bytes` includes it)."""
+        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self._state.values() if a.shape[0] == self.capacity)
+        return row + self._table.nbytes / max(self._n, 1)
 
     def stats(self) -> dict:
         return {"frames": self.frames, "voxels": self._n, "memory_bytes": self.memory_bytes(),
@@ -309,7 +321,7 @@ class Scene:
             scene._set_label_dim(int(header["label_dim"]))
         n = int(header["voxels"])
         for name in scene._state:
-            if name not in cls._SCRATCH:
+            if f"state.{name}" in npz.files:
                 scene._state[name][:n] = npz[f"state.{name}"]
         scene._n, scene.frames = n, int(header["frames"])
         rebuild_table_kernel(scene._table, scene._state["keys"], n)
