@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import resource
 import statistics
 import subprocess
 import sys
@@ -26,7 +24,8 @@ import numba
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine_summary  # noqa: E402
 
 from canonical_core.camera import Camera  # noqa: E402
 from canonical_core.gaussians import Gaussians  # noqa: E402
@@ -37,7 +36,8 @@ FOCAL_AT_640 = 525.0
 
 def make_camera(width: int, height: int) -> Camera:
     f = FOCAL_AT_640 * width / 640
-    return Camera(K=[[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], c2w=np.eye(4), width=width, height=height)
+    K = [[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]
+    return Camera(K=K, c2w=np.eye(4), width=width, height=height)
 
 
 def make_scene(n: int, feature_dim: int = 0, seed: int = 0) -> Gaussians:
@@ -94,37 +94,28 @@ OUTPUTS = {"rgb": ("rgb", "depth", "alpha"), "rgb+32f": ("rgb", "depth", "alpha"
 
 
 def machine() -> str:
-    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), platform.processor())  # fmt: skip
-    return "\n".join([
-        f"platform   {platform.platform()}, Python {platform.python_version()}",
-        f"cpu        {model}, {os.cpu_count()} logical cores ({len(os.sched_getaffinity(0))} usable)",
-        f"versions   torch {torch.__version__}, numba {numba.__version__} ({numba.threading_layer()} threads), numpy {np.__version__}",
-        f"load avg   {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1/5/15 min; other work on the machine skews timings)",
-    ])  # fmt: skip
+    return machine_summary() + (
+        f"numba threading layer: {numba.threading_layer()} | load average "
+        f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (1/5/15 min: other work on the machine skews timings)"
+    )
 
 
-def resident_bytes(field: str) -> int:
-    """VmRSS (now) or VmHWM (peak since the last reset) of this process, from /proc."""
-    line = next(line for line in Path("/proc/self/status").read_text().splitlines() if line.startswith(field + ":"))
-    return int(line.split()[1]) * 1024
-
-
-def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> tuple[list[float], int]:
-    """Milliseconds per render after a warm-up, and the peak memory the renders added (bytes)."""
-    render(gaussians, camera, outputs, backend=backend, num_threads=threads)  # warm-up
-    Path("/proc/self/clear_refs").write_text("5")  # resets the peak RSS (VmHWM) to the current RSS
-    before = resident_bytes("VmRSS")
+def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> list[float]:
+    """Milliseconds per render, after a warm-up render."""
+    render(gaussians, camera, outputs, backend=backend, num_threads=threads)
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         render(gaussians, camera, outputs, backend=backend, num_threads=threads)
         times.append(1000 * (time.perf_counter() - start))
-    return times, resident_bytes("VmHWM") - before
+    return times
 
 
+# Run in a fresh interpreter: seconds to import, seconds of the first render (numba cache warm),
+# then the resident memory a second render adds at its peak (VmHWM after resetting it to VmRSS).
 FRESH_PROCESS = """
 import sys, time
+from pathlib import Path
 start = time.perf_counter()
 import torch
 from canonical_core.rendering import render
@@ -132,18 +123,20 @@ imported = time.perf_counter()
 scene, camera, outputs = torch.load(sys.argv[1], weights_only=False)
 first = time.perf_counter()
 render(scene, camera, outputs, num_threads=int(sys.argv[2]))
-print(imported - start, time.perf_counter() - first)
+rendered = time.perf_counter()
+def status(field):
+    return next(int(l.split()[1]) * 1024 for l in Path("/proc/self/status").read_text().splitlines() if l.startswith(field))
+Path("/proc/self/clear_refs").write_text("5")
+before = status("VmRSS:")
+render(scene, camera, outputs, num_threads=int(sys.argv[2]))
+print(imported - start, rendered - first, status("VmHWM:") - before)
 """
 
 
-def fresh_process(scene: Gaussians, camera: Camera, outputs, threads: int, workdir: Path) -> tuple[float, float]:
-    """Seconds to import and to render once in a new interpreter (the numba cache is warm)."""
-    path = workdir / "scene.pt"
+def fresh_process(scene: Gaussians, camera: Camera, outputs, threads: int, path: Path, env: dict) -> list[float]:
     torch.save((scene, camera, outputs), path)
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
-    out = subprocess.run([sys.executable, "-c", FRESH_PROCESS, str(path), str(threads)], env=env, check=True,
-                         capture_output=True, text=True).stdout.split()  # fmt: skip
-    return float(out[0]), float(out[1])
+    command = [sys.executable, "-c", FRESH_PROCESS, str(path), str(threads)]
+    return [float(x) for x in subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout.split()]
 
 
 def main() -> None:
@@ -156,9 +149,9 @@ def main() -> None:
     threads = sorted({1, min(2, os.cpu_count() or 1)})
     render(Gaussians.empty(), make_camera(16, 16))  # starts numba's thread pool, which machine() names
     print(machine())
-    print(f"\nms per frame, median / min / max of {repeats} after one warm-up (target: the 2-thread row)\n")
-    print(f"{'backend':<10}{'gaussians':>10}{'image':>10}{'channels':>10}{'threads':>8}{'median':>9}{'min':>8}{'max':>8}"
-          f"{'peak MB':>9}  target")  # fmt: skip
+    print(f"\nms per frame: median / min / max of {repeats} after a warm-up render (targets apply to 2 threads)\n")
+    header = f"{'backend':<10}{'gaussians':>10}{'image':>10}{'channels':>10}{'threads':>8}{'median':>9}{'min':>8}{'max':>8}"
+    print(header + "  target")
     scenes = {n: make_scene(n, FEATURE_DIM) for n in sizes}
     for n in sizes:
         for width, height in RESOLUTIONS:
@@ -169,21 +162,25 @@ def main() -> None:
                     runs.append(("reference", threads[-1]))
                 for backend, t in runs:
                     torch.set_num_threads(t)
-                    times, peak = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "numba" else 3)
-                    target = TARGETS_MS.get((n, (width, height), channels))
-                    note = f"<= {target} ms" if target and backend == "numba" and t == 2 else ""
-                    print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}"
-                          f"{statistics.median(times):>9.1f}{min(times):>8.1f}{max(times):>8.1f}{peak / 2**20:>9.0f}  {note}")  # fmt: skip
-    print("\npeak MB: resident memory the timed renders added at their peak (VmHWM - VmRSS)")
-    print("\nfirst call in a fresh process (numba cache warm), 2 threads: seconds")
-    print(f"{'gaussians':>10}{'image':>10}{'channels':>10}{'import':>8}{'render':>8}{'total':>8}  target")
+                    times = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "numba" else 3)
+                    target = TARGETS_MS.get((n, (width, height), channels)) if backend == "numba" and t == 2 else None
+                    print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}{statistics.median(times):>9.1f}"
+                          f"{min(times):>8.1f}{max(times):>8.1f}  {f'<= {target} ms' if target else ''}")  # fmt: skip
+
+    print(f"\nfresh process, numba {threads[-1]} threads: seconds to import and to render once (numba cache warm),")
+    print("and the peak resident memory one more render adds (glibc told to unmap freed blocks, so it shows)\n")
+    print(f"{'gaussians':>10}{'image':>10}{'channels':>10}{'import s':>10}{'render s':>10}{'sum s':>8}{'peak MB':>9}  target")
+    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
     with tempfile.TemporaryDirectory() as workdir:
-        for n in sorted({sizes[0], sizes[-1]}):
+        for n in sizes:
             for width, height in RESOLUTIONS:
-                imported, first = fresh_process(scenes[n], make_camera(width, height), OUTPUTS["rgb"], threads[-1], Path(workdir))
-                note = "total <= 1.5 s" if (n, width) == (sizes[-1], 256) else ""
-                print(f"{n:>10}{f'{width}x{height}':>10}{'rgb':>10}{imported:>8.2f}{first:>8.2f}{imported + first:>8.2f}  {note}")
-    print(f"\nbenchmark process peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10:.0f} MB")
+                for channels, outputs in OUTPUTS.items():
+                    camera = make_camera(width, height)
+                    path = Path(workdir) / "scene.pt"
+                    imported, first, peak = fresh_process(scenes[n], camera, outputs, threads[-1], path, env)
+                    note = "sum <= 1.5 s" if (n, width, channels) == (SIZES[-1], 256, "rgb") else ""
+                    print(f"{n:>10}{f'{width}x{height}':>10}{channels:>10}{imported:>10.2f}{first:>10.2f}"
+                          f"{imported + first:>8.2f}{peak / 2**20:>9.0f}  {note}")  # fmt: skip
 
 
 if __name__ == "__main__":

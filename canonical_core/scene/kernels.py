@@ -131,8 +131,8 @@ def fold_kernel(
     n_voxels, mode, inv_voxel,
     # the frame's evidence and phase A's result
     new_keys, n_new, obs_voxel, rel, feat, rgb, points, sh_basis, labels, has_labels,
-    # scratch [M]
-    touched, best, feat_inv_norm, rep_inv_norm, n_threads,
+    # scratch [M] ([M + 1] for start)
+    touched, best, feat_inv_norm, rep_inv_norm, obs_slot, start, order,
 ):
     """Phase B: insert the new voxels, pick each touched voxel's frame-best observation, replace
     representatives that it beats (rescaling the old sums by max(0, cos(old rep, new rep))), then
@@ -143,8 +143,9 @@ def fold_kernel(
     sh_b = sum W b_k (c - 1/2) for k >= 1 (the DC row is C0 (sum W c - R_scene / 2)); b is the
     observation's SH basis of its view direction.
 
-    The accumulation is split across threads by voxel (vi % threads), and each voxel sums its
-    observations in frame order, so the result is bit-identical for any thread count."""
+    The frame's observations are grouped by voxel (a stable counting sort), then voxels are summed
+    in parallel, each over its own observations in frame order: a voxel's rows stay in cache while
+    it is summed, and the result is bit-identical for any thread count."""
     mask = table.shape[0] - 1
     for j in range(n_new):
         vi = n_voxels + j
@@ -173,7 +174,9 @@ def fold_kernel(
             touched[n_touched] = vi
             best[n_touched] = i
             n_touched += 1
+            obs_slot[i] = n_touched - 1
         else:
+            obs_slot[i] = local[vi]
             b = best[local[vi]]
             rb = rel[b] if uses_rel else np.float32(1.0)
             if r > rb:
@@ -207,15 +210,29 @@ def fold_kernel(
             for c in range(3):  # colours are u8 / 255, so this round trip is exact
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
         rep_inv_norm[t] = _inv_norm(rep_f[vi])
-    # 3) weighted sums, each voxel in observation order (deterministic), voxels split over threads
-    for tid in numba.prange(n_threads):
-        for i in range(M):
-            vi = obs_voxel[i]
-            if vi < 0 or vi % n_threads != tid:
-                continue
+    # 3) group observations by voxel, keeping frame order within each voxel (counting sort)
+    start[: n_touched + 1] = 0
+    for i in range(M):
+        if obs_voxel[i] >= 0:
+            start[obs_slot[i] + 1] += 1
+    for t in range(n_touched):
+        start[t + 1] += start[t]
+    for i in range(M):
+        if obs_voxel[i] >= 0:
+            t = obs_slot[i]
+            order[start[t]] = i
+            start[t] += 1
+    for t in range(n_touched, 0, -1):  # the fill advanced each start to the next one's: shift back
+        start[t] = start[t - 1]
+    start[0] = 0
+    # 4) weighted sums, voxels in parallel, each voxel's observations in frame order
+    for t in numba.prange(n_touched):
+        vi = touched[t]
+        for j in range(start[t], start[t + 1]):
+            i = order[j]
             w = rel[i] if uses_rel else np.float32(1.0)
             if uses_sim:
-                cos = _dot(feat[i], rep_f[vi]) * feat_inv_norm[i] * rep_inv_norm[local[vi]]
+                cos = _dot(feat[i], rep_f[vi]) * feat_inv_norm[i] * rep_inv_norm[t]
                 w = w * max(np.float32(0.0), cos)
             n_obs[vi] += 1
             r_sum[vi] += w

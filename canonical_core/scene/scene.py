@@ -157,6 +157,9 @@ class Scene:
             self._best = np.empty(self._scratch_m, np.int32)
             self._feat_inv_norm = np.empty(self._scratch_m, np.float32)
             self._rep_inv_norm = np.empty(self._scratch_m, np.float32)
+            self._obs_slot = np.empty(self._scratch_m, np.int32)
+            self._start = np.empty(self._scratch_m + 1, np.int32)
+            self._order = np.empty(self._scratch_m, np.int32)
             self._local_table = np.empty(_next_pow2(2 * self._scratch_m), np.int32)
 
     # -- folding ------------------------------------------------------------------------------
@@ -192,7 +195,7 @@ class Scene:
             s["local"], self._n, MODE_CODES[self.config.weighting], inv_voxel,
             new_keys, n_new, obs_voxel, ev.reliability, ev.features, ev.colors, ev.points, basis, labels,
             ev.labels is not None, self._touched[:m], self._best[:m], self._feat_inv_norm[:m], self._rep_inv_norm[:m],
-            numba.get_num_threads(),
+            self._obs_slot[:m], self._start[: m + 1], self._order[:m],
         )
         update_chunk_boxes_kernel(s["keys"], self._n, self._n + n_new, self._chunk_lo, self._chunk_hi)
         if self.config.free_space:

@@ -1,0 +1,44 @@
+"""Spherical harmonics: an orthonormal real basis (checks every constant) and the 3DGS colour rule."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from canonical_core.gaussians import SH_C0
+from canonical_core.rendering.sh import sh_basis, sh_to_rgb
+
+
+def fibonacci_sphere(n: int) -> torch.Tensor:  # [n, 3] near-uniform unit vectors
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5**0.5) * i
+    r = torch.sqrt(1 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+
+
+def test_basis_is_orthonormal_over_the_sphere():
+    dirs = fibonacci_sphere(40_000)
+    basis = sh_basis(dirs, 3)  # [n, 16]
+    gram = basis.T @ basis * (4 * math.pi / len(dirs))
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=1e-3)
+
+
+def test_degree_one_colour_follows_the_view_direction():
+    sh = torch.zeros(1, 4, 3)
+    sh[0, 0] = 0.2 / SH_C0  # DC: 0.5 + 0.2
+    sh[0, 3] = torch.tensor([1.0, 0.0, -1.0])  # the x-linear basis function, -C1 x
+    c1 = math.sqrt(3 / (4 * math.pi))
+    seen_along_x = sh_to_rgb(sh, torch.tensor([[2.0, 0.0, 0.0]]))[0]  # direction need not be unit
+    assert torch.allclose(seen_along_x, torch.tensor([0.7 - c1, 0.7, 0.7 + c1]))
+    seen_along_z = sh_to_rgb(sh, torch.tensor([[0.0, 0.0, 1.0]]))[0]
+    assert torch.allclose(seen_along_z, torch.tensor([0.7, 0.7, 0.7]))
+
+
+def test_colour_is_clamped_below_at_zero_only():
+    sh = torch.zeros(2, 1, 3)
+    sh[0, 0] = -5.0
+    sh[1, 0] = 5.0
+    rgb = sh_to_rgb(sh, torch.zeros(2, 3))
+    assert (rgb[0] == 0).all() and torch.allclose(rgb[1], torch.full((3,), 0.5 + 5 * SH_C0))
