@@ -74,6 +74,8 @@ class FoldReportOut(BaseModel):
     updated_voxels: int
     representative_switches: int
     ms: float
+    pending: bool = Field(False, description="a frame without depth waiting for a partner view (folded later)")
+    also_folded: int = Field(0, description="earlier waiting frames this call folded")
 
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]

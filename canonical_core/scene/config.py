@@ -41,6 +41,10 @@ class SceneConfig:
             beyond margin * voxel_size + sigmas * sigma(depth) behind the voxel's centre.
         free_space_cell: pixels per side of the cells of a frame's coarse see-through map.
         free_space_history: frames whose maps are kept so voxels created later get their evidence.
+        depth_sources: source views a frame without depth is swept against (plane sweep).
+        depth_hypotheses: K, depth hypotheses of the sweep (uniform in inverse depth).
+        source_window: recent views kept for the sweep (and frames without depth that may wait
+            for a partner at once).
         free_space_dominance: decoding drops voxels whose free-space evidence exceeds this
             multiple of their support R_scene. 2, not 1: the see-through weight counts rays as if
             the voxel faced the camera, which overstates it up to 2x for surfaces seen at 60 deg.
@@ -66,6 +70,9 @@ class SceneConfig:
     free_space_cell: int = 8
     free_space_history: int = 64
     free_space_dominance: float = 2.0
+    depth_sources: int = 2
+    depth_hypotheses: int = 64
+    source_window: int = 4
 
     def __post_init__(self):
         def positive(name, value):
@@ -88,7 +95,8 @@ class SceneConfig:
             raise ValueError(f"weighting: expected one of {list(get_args(Weighting))}, got {self.weighting!r}")
         if self.feature_backend not in get_args(FeatureBackend):
             raise ValueError(f"feature_backend: expected one of {list(get_args(FeatureBackend))}, got {self.feature_backend!r}")
-        for name, lo, hi in (("sh_degree", 0, 3), ("free_space_cell", 1, 64), ("free_space_history", 1, 100_000)):
+        for name, lo, hi in (("sh_degree", 0, 3), ("free_space_cell", 1, 64), ("free_space_history", 1, 100_000),
+                             ("depth_sources", 1, 8), ("depth_hypotheses", 2, 512), ("source_window", 1, 64)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{name}: expected an integer in [{lo}, {hi}], got {v!r}")

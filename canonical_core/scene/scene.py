@@ -14,6 +14,7 @@ to float tolerance; elsewhere the deviation is measured by the tests and the fol
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
@@ -26,7 +27,9 @@ import numba
 import numpy as np
 import torch
 
+from ..camera import Camera
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
+from ..evidence.mvs import SourceWindow, depth_range_from_points, estimate_depth
 from ..decode import GaussianDecoder
 from ..frame import Frame
 from ..gaussians import Gaussians
@@ -37,7 +40,7 @@ from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, hist
 from .kernels import MODE_CODES, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
 
 FORMAT_NAME = "canonicalgs-scene"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 class CapacityError(ValueError):
@@ -46,12 +49,21 @@ class CapacityError(ValueError):
 
 @dataclass(frozen=True)
 class FoldReport:
+    """What one `Scene.fold` call did.
+
+    ``frame_index`` is the frame's arrival index. A frame without depth and without a usable source
+    view yet is ``pending``: accepted and kept, and folded (its depth estimated) by the call whose
+    frame gives it a partner; that call counts it in ``also_folded``.
+    """
+
     frame_index: int
     observations: int
     new_voxels: int
     updated_voxels: int
     representative_switches: int
     ms: float
+    pending: bool = False
+    also_folded: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -113,6 +125,8 @@ class Scene:
         self._chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self._chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self._history = SeeThroughHistory(config.free_space_history)
+        self._window = SourceWindow(config.source_window)
+        self._pending: list[Frame] = []
 
     # -- state management ---------------------------------------------------------------------
     def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
@@ -164,10 +178,22 @@ class Scene:
 
     # -- folding ------------------------------------------------------------------------------
     def fold(self, frame: Frame) -> FoldReport:
-        """Fold one frame into the scene. Raises ValueError (the scene unchanged) on bad input."""
+        """Fold one frame into the scene. Raises ValueError (the scene unchanged) on bad input.
+
+        Frames without depth get it from a plane sweep against the session's recent views (its
+        uncertainty becomes the frame's depth std, so reliability follows as with sensor depth).
+        """
         t0 = time.perf_counter()
         if not isinstance(frame, Frame):
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
+        if frame.depth is None:
+            return self._fold_without_depth(frame, t0)
+        counts = self._fold_with_depth(frame)
+        self.frames += 1
+        return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0)
+
+    def _fold_with_depth(self, frame: Frame) -> tuple[int, int, int, int]:
+        """(observations, new voxels, updated voxels, representative switches) of folding ``frame``."""
         ev = extract_evidence(frame, self.config, self.appearance)
         if ev.labels is not None and self.label_dim and ev.labels.shape[1] != self.label_dim:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
@@ -201,15 +227,54 @@ class Scene:
         if self.config.free_space:
             self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
+        return int((obs_voxel >= 0).sum()), int(n_new), int(n_touched - n_new), int(switches)
+
+    def _check_foldable(self, frame: Frame) -> None:
+        """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
+        if self.config.feature_backend == "client" and frame.features is None:
+            raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+        if frame.labels is not None and self.label_dim and frame.labels.shape[-1] != self.label_dim:
+            raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
+
+    def _sources_for(self, camera: Camera):
+        """Source views for a sweep at ``camera``, never the camera's own view."""
+        same = lambda v: np.array_equal(v.camera.c2w64(), camera.c2w64())  # noqa: E731
+        return [v for v in self._window.select(camera, k=self.config.depth_sources + 1) if not same(v)][: self.config.depth_sources]
+
+    def _with_estimated_depth(self, frame: Frame, sources) -> Frame:
+        near_far = None
+        if self._n:  # the swept range from what the scene already holds (a subsample is enough)
+            step = max(1, self._n // 20_000)
+            near_far = depth_range_from_points(frame.camera, self._state["rep_pos"][: self._n: step])
+        near, far = near_far if near_far is not None else (None, None)
+        depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses)
+        return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std))
+
+    def _fold_without_depth(self, frame: Frame, t0: float) -> FoldReport:
+        self._check_foldable(frame)
+        index = self.frames
+        sources = self._sources_for(frame.camera)
+        if not sources:
+            if len(self._pending) >= self.config.source_window:
+                raise ValueError(f"depth: the frame has no depth and no earlier view overlaps it, and "
+                                 f"{len(self._pending)} frames already wait for a partner")
+            self._window.add(frame)
+            self._pending.append(frame)
+            self.frames += 1
+            return FoldReport(index, 0, 0, 0, 0, ms=(time.perf_counter() - t0) * 1000.0, pending=True)
+        estimated = self._with_estimated_depth(frame, sources)
+        counts = self._fold_with_depth(estimated)
+        self._window.add(frame, depth=estimated.depth)
         self.frames += 1
-        return FoldReport(
-            frame_index=self.frames - 1,
-            observations=int((obs_voxel >= 0).sum()),
-            new_voxels=int(n_new),
-            updated_voxels=int(n_touched - n_new),
-            representative_switches=int(switches),
-            ms=(time.perf_counter() - t0) * 1000.0,
-        )
+        also = 0
+        for waiting in list(self._pending):  # frames that waited for a partner: fold them now, in order
+            waiting_sources = self._sources_for(waiting.camera)
+            if waiting_sources:
+                self._fold_with_depth(self._with_estimated_depth(waiting, waiting_sources))
+                self._pending.remove(waiting)
+                also += 1
+        return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, also_folded=also)
+
 
     def _fold_free_space(self, frame: Frame, first_new: int, n_voxels: int) -> None:
         """The frame's see-through evidence for every voxel in its frustum (the new ones included),
@@ -256,12 +321,22 @@ class Scene:
         with torch.no_grad():
             return self.decoder(f, self.config.voxel_size)
 
+    def _snapshot_arrays(self) -> dict[str, np.ndarray]:
+        """Every array of the fused state: sums, free-space history, source window, waiting frames."""
+        arrays = {f"state.{k}": v for k, v in self.sums().items()}
+        arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
+        arrays |= {f"window.{k}": v for k, v in self._window.to_arrays().items()}
+        for i, f in enumerate(self._pending):
+            arrays |= {f"pending.{i}.rgb": f.rgb.numpy(), f"pending.{i}.K": f.camera.K64(), f"pending.{i}.c2w": f.camera.c2w64(),
+                       f"pending.{i}.id": np.frombuffer((f.frame_id or "").encode(), np.uint8)}
+            arrays |= {f"pending.{i}.{name}": getattr(f, name).numpy() for name in ("features", "labels") if getattr(f, name) is not None}
+        return arrays
+
     def digest(self) -> str:
         """sha256 of the whole fused state (sums, free-space history, frame count): equal iff two
         scenes would decode and fold on identically."""
         h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|".encode())
-        arrays = {f"state.{k}": v for k, v in self.sums().items()} | {f"history.{k}": v for k, v in self._history.to_arrays().items()}
-        for name, array in sorted(arrays.items()):
+        for name, array in sorted(self._snapshot_arrays().items()):
             h.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
             h.update(np.ascontiguousarray(array).tobytes())
         return h.hexdigest()
@@ -283,9 +358,8 @@ class Scene:
     def to_bytes(self) -> bytes:
         """One self-contained, versioned snapshot (an .npz with a JSON header)."""
         header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
-                  "frames": self.frames, "label_dim": self.label_dim, "voxels": self._n}
-        arrays = {f"state.{k}": v for k, v in self.sums().items()}
-        arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
+                  "frames": self.frames, "label_dim": self.label_dim, "voxels": self._n, "pending": len(self._pending)}
+        arrays = self._snapshot_arrays()
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
             for k, v in module.state_dict().items():
                 arrays[f"{prefix}.{k}"] = v.detach().cpu().numpy()
@@ -331,6 +405,14 @@ class Scene:
         update_chunk_boxes_kernel(scene._state["keys"], 0, n, scene._chunk_lo, scene._chunk_hi)
         scene._history = SeeThroughHistory.from_arrays(
             scene.config.free_space_history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
+        scene._window = SourceWindow.from_arrays({k[len("window."):]: npz[k] for k in npz.files if k.startswith("window.")})
+        for i in range(int(header.get("pending", 0))):
+            rgb, K, c2w = npz[f"pending.{i}.rgb"], npz[f"pending.{i}.K"], npz[f"pending.{i}.c2w"]
+            scene._pending.append(Frame(
+                rgb=rgb.copy(), camera=Camera(K, c2w, rgb.shape[1], rgb.shape[0]),
+                features=npz[f"pending.{i}.features"].copy() if f"pending.{i}.features" in npz.files else None,
+                labels=npz[f"pending.{i}.labels"].copy() if f"pending.{i}.labels" in npz.files else None,
+                frame_id=npz[f"pending.{i}.id"].tobytes().decode() or None))
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

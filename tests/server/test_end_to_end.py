@@ -165,3 +165,16 @@ def test_health_and_metrics(client, server):
     for name in ("canonical_fold_seconds_bucket", "canonical_fold_seconds_count", "canonical_frames_folded_total",
                  "canonical_sessions", "canonical_voxels", "# TYPE canonical_fold_seconds histogram"):
         assert name in text
+
+
+def test_rgb_only_session_end_to_end(client, frames):
+    """A session fed only RGB frames (depth withheld) folds every frame through the service."""
+    session = client.create_session(voxel_size=VOXEL)
+    reports = [session.add_frame(rgb=f["rgb"], K=f["K"], c2w=f["c2w"]) for f in frames[:4]]
+    assert reports[0]["pending"] and reports[1]["also_folded"] == 1
+    assert all(r["observations"] > 0 for r in reports[1:])
+    stats = session.stats()
+    assert stats["frames"] == 4 and stats["voxels"] > 1000 and stats["gaussians"] > 1000
+    out = session.render(*view_of(frames[1]))
+    assert out["alpha"].mean() > 0.3
+    session.delete()
