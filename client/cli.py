@@ -6,6 +6,7 @@
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical sessions --url URL
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
+    canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
 
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
@@ -24,6 +25,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from canonical_core.eval.cli import configure_parser, run_eval
 
 from .sdk import CanonicalError, Client
 
@@ -303,6 +306,7 @@ COMMANDS: dict[str, Command] = {
     "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
     "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
+    "eval": Command(configure_parser, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),
 }
 
 

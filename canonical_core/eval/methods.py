@@ -43,7 +43,8 @@ class View:
 
     rgb: Tensor  # [H, W, 3] in [0, 1], black where nothing is drawn
     alpha: Tensor  # [H, W] in [0, 1], accumulated opacity (1 / 0 for a ray cast hit / miss)
-    features: Tensor | None = None  # [H, W, C] feature splat, when requested
+    depth: Tensor | None = None  # [H, W] z-depth, 0 where nothing is drawn (with rgb)
+    features: Tensor | None = None  # [H, W, C] feature splat, when requested (instead of rgb and depth)
 
 
 class Model(Protocol):
@@ -64,8 +65,8 @@ class SplatModel:
         return len(self.splats)
 
     def render(self, camera: Camera, features: bool = False) -> View:
-        out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "alpha"))
-        return View(rgb=out.rgb, alpha=out.alpha, features=out.features)
+        out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "depth", "alpha"))
+        return View(rgb=out.rgb, alpha=out.alpha, depth=out.depth, features=out.features)
 
 
 @dataclass
@@ -82,7 +83,7 @@ class TSDFModel:
         if features:
             raise ValueError("features: the open3d_tsdf peer carries no features")
         rgb, depth = self.tsdf.ray_cast(camera)
-        return View(rgb=rgb, alpha=(depth > 0).float())
+        return View(rgb=rgb, alpha=(depth > 0).float(), depth=depth)
 
 
 # (input frames, voxel size, whether feature splats are needed) -> model
@@ -98,9 +99,9 @@ class Method:
     unavailable: Callable[[], str | None] = lambda: None
 
 
-def _scene(weighting: Weighting, uniform_opacity: bool = False) -> Builder:
+def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
     def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
-        scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting))
+        scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting, **settings))
         for frame in frames:
             scene.fold(frame)
         splats = scene.decode()
@@ -134,6 +135,8 @@ METHODS: dict[str, Method] = {
     "no_similarity": Method(_scene("no_similarity"), features=True),
     "average": Method(_scene("average"), features=True),
     "plain_decoding": Method(_scene("full", uniform_opacity=True), features=True),
+    "no_free_space": Method(_scene("full", free_space=False), features=True),
+    "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
     "pixel_aligned": Method(_splats(pixel_aligned), features=True),
     "gaussian_merge": Method(_splats(gaussian_merge), features=True),
     "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),

@@ -101,6 +101,23 @@ def coverage(alpha: Tensor) -> float:  # [H, W] -> fraction of covered pixels in
     return float(covered(alpha).double().mean())
 
 
+def depth_agreement(
+    depth: Tensor,  # [H, W] rendered z-depth, 0 = nothing drawn
+    alpha: Tensor,  # [H, W] accumulated opacity
+    sensor: Tensor,  # [H, W] measured z-depth of the target frame, 0 = missing
+    tolerance: float,
+) -> float:
+    """Share of covered pixels with a sensor depth whose rendered depth is within ``tolerance`` of
+    it (a floater / misplaced-surface measure); ``nan`` when no pixel qualifies."""
+    if depth.shape != alpha.shape or sensor.shape != alpha.shape:
+        raise ValueError(f"depth: expected depth, alpha and sensor of one shape, got {list(depth.shape)}, "
+                         f"{list(alpha.shape)}, {list(sensor.shape)}")
+    mask = covered(alpha) & (sensor > 0)
+    if not bool(mask.any()):
+        return math.nan
+    return float(((depth[mask] - sensor[mask]).abs() <= tolerance).double().mean())
+
+
 def cosine_map(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:  # [H, W, C] x2 -> [H, W]
     """Per-pixel cosine similarity of two feature maps (0 where either vector is zero)."""
     _check_pair(a, b)

@@ -61,11 +61,11 @@ def _relative(value, clean) -> str:
 
 def _metric_rows(runs: Sequence[dict]) -> list[list[str]]:
     return [[r["method"], str(r["views"]), _num(r["psnr"]), _num(r["psnr_covered"]), _num(r["coverage"], 3),
-             _num(r["ssim"], 3), "-" if r["gaussians"] is None else str(r["gaussians"]), _num(r["fold_ms"], 0),
+             _num(r["ssim"], 3), _num(r["depth_agreement"], 3), "-" if r["gaussians"] is None else str(r["gaussians"]), _num(r["fold_ms"], 0),
              _num(r["render_ms"], 0)] for r in runs]
 
 
-_METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "coverage", "SSIM", "Gaussians", "fold+decode ms", "render ms"]
+_METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "coverage", "SSIM", "depth agree", "Gaussians", "fold+decode ms", "render ms"]
 
 
 def markdown(results: Mapping) -> str:
@@ -79,7 +79,10 @@ def markdown(results: Mapping) -> str:
         f"# Evaluation: {results['dataset']}",
         "",
         f"{results['frames']} frames, images {width}x{height} (scale {results['scale']:g}), voxel size {results['voxel_size']:g}.",
-        "Metrics are means over the held-out frames; background black; covered = accumulated alpha >= 0.5.",
+        "Metrics are means over the held-out frames; background black; covered = accumulated alpha >= 0.5;",
+        "depth agree = share of covered pixels with sensor depth whose rendered depth is within 2 voxels of it.",
+        "Inputs for N views: round(linspace(0, n - 1, N)). Held-out: for each target in linspace(2, n - 3, 10) the "
+        "nearest position that is not an input for any N here and not already held out (ties to the lower one).",
         "",
         "Held-out positions (frame ids): " + ", ".join(f"{p} ({i})" for p, i in zip(results["heldout"], results["heldout_ids"])),
         "",

@@ -2,11 +2,13 @@
 
 Per method and number of input views N (inputs and held-out frames from `protocol`), every
 held-out frame is rendered from the method's model and compared with its image (black background):
-PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, SSIM, each the mean over
-the held-out frames; the number of Gaussians; build time (fold + decode for the scene methods) and
-the mean render time. Then the same with depth noise on the inputs, the extrapolation split, and
-the feature-stability curve (mean cosine of the feature splat from N views to the one from the
-reference, the largest stability N, over pixels covered in both).
+PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, SSIM, depth agreement
+(share of covered pixels whose rendered depth is within 2 voxels of the held-out frame's sensor
+depth, where it has one: a floater measure), each the mean over the held-out frames; the number of
+Gaussians; the build time (fold + decode for the scene methods) and the mean render time. Then the
+same with depth noise on the inputs, the extrapolation split, and the feature-stability curve (mean
+cosine of the feature splat from N views to the one from the reference, the largest stability N,
+over pixels covered in both).
 
 Depth noise: sigma = level x the frame's median valid depth, zero-mean Gaussian, added to valid
 pixels; values that drop to <= 0 become missing. The generator of the frame at position p and
@@ -27,14 +29,15 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from ..frame import Frame
 from ..datasets import FrameSequence, load_dataset
+from ..frame import Frame
 from .methods import METHODS, Model, build, check_methods
-from .metrics import cosine_map, covered, coverage, psnr, ssim
+from .metrics import cosine_map, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
 
 VOXEL_PIXELS = 6.0  # default voxel edge in pixel footprints at the median depth (4 mm on the shelf)
+DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
 
 
 def resize_frame(frame: Frame, scale: float) -> Frame:
@@ -88,7 +91,7 @@ def _nanmean(values: Sequence[float]) -> float | None:
     return float(np.mean(finite)) if finite else None
 
 
-def score(model: Model, targets: Sequence[Frame]) -> tuple[dict, list[np.ndarray]]:
+def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> tuple[dict, list[np.ndarray]]:
     """Metrics of ``model`` at the ``targets`` (means over targets) and its uint8 renders."""
     rows, images = [], []
     for frame in targets:
@@ -96,12 +99,15 @@ def score(model: Model, targets: Sequence[Frame]) -> tuple[dict, list[np.ndarray
         view = model.render(frame.camera)
         ms = (time.perf_counter() - t0) * 1000.0
         gt = frame.rgb.float() / 255.0
+        agree = math.nan if frame.depth is None else depth_agreement(
+            view.depth, view.alpha, frame.depth, DEPTH_TOLERANCE_VOXELS * voxel_size)
         rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, covered(view.alpha)), coverage(view.alpha),
-                     ssim(view.rgb, gt), ms))
+                     ssim(view.rgb, gt), agree, ms))
         images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
-    p, pc, cov, s, ms = zip(*rows)
+    p, pc, cov, s, agree, ms = zip(*rows)
     metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),
-               "ssim": float(np.mean(s)), "gaussians": model.gaussians, "render_ms": float(np.mean(ms))}
+               "ssim": float(np.mean(s)), "depth_agreement": _nanmean(agree), "gaussians": model.gaussians,
+               "render_ms": float(np.mean(ms))}
     return metrics, images
 
 
@@ -157,10 +163,10 @@ def evaluate(
     require_matplotlib()
     sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
     methods = check_methods(list(METHODS) if methods is None else methods)
-    noise = sorted(set(float(level) for level in noise))
     for level in noise:
-        if not (math.isfinite(level) and level > 0):
+        if isinstance(level, bool) or not isinstance(level, (int, float)) or not (math.isfinite(level) and level > 0):
             raise ValueError(f"noise: expected positive levels, got {level!r}")
+    noise = sorted(set(float(level) for level in noise))
     if voxel_size is not None and not voxel_size > 0:
         raise ValueError(f"voxel_size: expected a positive number, got {voxel_size!r}")
     n = len(sequence)
@@ -186,13 +192,14 @@ def evaluate(
 
     steps = len(runnable) * len(split.inputs) * (1 + len(noise) + (extra is not None)) + len(stab_methods) * len(stab)
     bar = tqdm(total=steps, disable=not progress, file=sys.stderr, desc="eval", unit="run", dynamic_ncols=True)
-    bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
+    if progress:
+        bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
     for name in runnable:  # warm-up: JIT compilation and caches stay out of the timings
         build(name, [frames[split.inputs[min(split.inputs)][0]]], voxel_size)[0].render(targets[0].camera)
 
     def run(name: str, inputs: Sequence[Frame], n_views: int, level: float = 0.0, keep_grid: bool = False) -> dict:
         model, build_ms = build(name, inputs, voxel_size)
-        metrics, images = score(model, targets)
+        metrics, images = score(model, targets, voxel_size)
         bar.set_postfix_str(f"{name} N={n_views} noise={level:g}: {metrics['psnr']:.2f} dB")
         bar.update()
         if keep_grid:

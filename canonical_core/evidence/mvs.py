@@ -15,7 +15,8 @@ it is seen: the probability mass of the hypotheses seen by at least one source i
 hypothesis nearest to D is seen; every other pixel gets depth 0 (missing), never a guess.
 The sweep runs at ``scale`` x the image resolution; D and U_pos are then upsampled to the image:
 bilinearly where the four surrounding sweep pixels are valid and agree (depth spread <= 5 % of the
-nearest), from the nearest sweep pixel across depth edges (no interpolated "flying" depths).
+nearest), from the nearest sweep pixel across depth edges (no interpolated "flying" depths); U_pos
+is the spread of the upsampled (bilinearly mixed) distribution about that depth (`upsample_depth`).
 
 Reliability follows exactly as with supplied depth: pass ``depth_std=uncertainty`` (metres) to
 `reliability.positional_uncertainty`, which converts it to voxel units and adds the depth-edge term.
@@ -41,7 +42,7 @@ from torch import Tensor, nn
 
 from ..camera import Camera
 from ..frame import Frame
-from .matching import MATCHING_FEATURE_DIM, MATCHING_SCALE, dequantize, matching_features, resize_image
+from .matching import MATCHING_SCALE, dequantize, matching_features, sweep_luminance
 
 DEFAULT_SCALE = 0.5
 DEFAULT_NUM_HYPOTHESES = 64
@@ -97,10 +98,10 @@ class SourceView:
         cam = frame.camera.scaled(scale) if scale != 1 else frame.camera
         if min(cam.width, cam.height) < 2:
             raise ValueError(f"scale: {scale} leaves a {cam.width}x{cam.height} sweep image; need at least 2x2")
-        image = resize_image(frame.rgb, (cam.height, cam.width))
+        luma = sweep_luminance(frame.rgb, (cam.height, cam.width))
         if depth is None:
             depth = frame.depth
-        return cls(camera=cam, features=matching_features(image), frame_id=frame.frame_id,
+        return cls(camera=cam, features=matching_features(luma), frame_id=frame.frame_id,
                    median_depth=_median_depth(depth), scale=float(scale))
 
     @property
@@ -140,6 +141,10 @@ def depth_hypotheses(near: float, far: float, num: int = DEFAULT_NUM_HYPOTHESES)
 
 
 def _range_from_values(z: np.ndarray, low: float, high: float, margin: float, min_count: int):
+    if not (0 <= low < high <= 100):
+        raise ValueError(f"low, high: expected percentiles 0 <= low < high <= 100, got {low!r}, {high!r}")
+    if not (0 <= margin < 1):
+        raise ValueError(f"margin: expected a fraction in [0, 1), got {margin!r}")
     z = z[np.isfinite(z) & (z > 0)]
     if z.size < min_count:
         return None
@@ -166,7 +171,8 @@ def depth_range_from_points(
     if pts.shape[0] == 0:
         return None
     uv, z = camera.project(pts)
-    inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5)
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 0) & (u >= -0.5) & (u <= camera.width - 0.5) & (v >= -0.5) & (v <= camera.height - 0.5)
     return _range_from_values(z[inside].numpy().astype(np.float64), low, high, margin, min_count)
 
 
@@ -188,6 +194,22 @@ def _source_transform(reference: Camera, source: Camera) -> tuple[np.ndarray, np
     return np.ascontiguousarray(Ks @ rel[:3, :3] @ Kr_inv), np.ascontiguousarray(Ks @ rel[:3, 3])
 
 
+@numba.njit(inline="always")
+def _tap_dot(ref, src, v, u, yy, xx, cache_y, cache_x, cache_d, slot):
+    # <q_ref(v, u), q_src(yy, xx)> in integers, remembered for the last few source pixels: successive
+    # hypotheses walk along the epipolar line less than a pixel apart and share most of their taps
+    for e in range(cache_y.shape[0]):
+        if cache_y[e] == yy and cache_x[e] == xx:
+            return cache_d[e], slot
+    d = 0
+    for c in range(ref.shape[2]):
+        d += np.int32(ref[v, u, c]) * np.int32(src[yy, xx, c])
+    cache_y[slot] = yy
+    cache_x[slot] = xx
+    cache_d[slot] = d
+    return d, (slot + 1) % cache_y.shape[0]
+
+
 @numba.njit(parallel=True, cache=True)
 def _sweep_source_kernel(ref, src, A, b, hyps, min_z, dots, count):
     # dots[v, u, k] += <q_ref(v, u), bilinear q_src at the projection of hypothesis k> (raw int8 units)
@@ -195,7 +217,12 @@ def _sweep_source_kernel(ref, src, A, b, hyps, min_z, dots, count):
     hs, ws = src.shape[0], src.shape[1]
     K = hyps.shape[0]
     for v in numba.prange(h):
+        cache_y = np.empty(8, np.int64)
+        cache_x = np.empty(8, np.int64)
+        cache_d = np.empty(8, np.int64)
         for u in range(w):
+            cache_y[:] = -1
+            slot = 0
             a0 = A[0, 0] * u + A[0, 1] * v + A[0, 2]
             a1 = A[1, 0] * u + A[1, 1] * v + A[1, 2]
             a2 = A[2, 0] * u + A[2, 1] * v + A[2, 2]
@@ -212,16 +239,10 @@ def _sweep_source_kernel(ref, src, A, b, hyps, min_z, dots, count):
                 y0 = min(int(y), hs - 2)
                 fx = x - x0
                 fy = y - y0
-                d00 = 0
-                d01 = 0
-                d10 = 0
-                d11 = 0
-                for c in range(L):
-                    r = np.int32(ref[v, u, c])
-                    d00 += r * np.int32(src[y0, x0, c])
-                    d01 += r * np.int32(src[y0, x0 + 1, c])
-                    d10 += r * np.int32(src[y0 + 1, x0, c])
-                    d11 += r * np.int32(src[y0 + 1, x0 + 1, c])
+                d00, slot = _tap_dot(ref, src, v, u, y0, x0, cache_y, cache_x, cache_d, slot)
+                d01, slot = _tap_dot(ref, src, v, u, y0, x0 + 1, cache_y, cache_x, cache_d, slot)
+                d10, slot = _tap_dot(ref, src, v, u, y0 + 1, x0, cache_y, cache_x, cache_d, slot)
+                d11, slot = _tap_dot(ref, src, v, u, y0 + 1, x0 + 1, cache_y, cache_x, cache_d, slot)
                 s = (1.0 - fy) * ((1.0 - fx) * d00 + fx * d01) + fy * ((1.0 - fx) * d10 + fx * d11)
                 dots[v, u, k] += s
                 count[v, u, k] += 1
@@ -414,12 +435,20 @@ def _is_identity(refine) -> bool:
 # ---------------------------------------------------------------------------------------------
 def upsample_depth(
     depth: np.ndarray,  # [h, w] sweep-resolution depth, 0 = missing
-    uncertainty: np.ndarray,  # [h, w]
+    uncertainty: np.ndarray,  # [h, w] U_pos at sweep resolution
     size: tuple[int, int],  # (H, W)
     edge_jump: float = EDGE_RELATIVE_JUMP,
 ) -> tuple[np.ndarray, np.ndarray]:  # [H, W] float32 each
-    """Bilinear where the 4 surrounding sweep pixels are valid and within ``edge_jump`` (relative)
-    of each other; otherwise the nearest sweep pixel (possibly missing). Pixel-centre convention."""
+    """Upsample the depth distribution: each image pixel's P is the bilinear mixture of the P of the
+    (valid) sweep pixels around it (pixel-centre convention).
+
+    Depth: the mixture's mean where the four sweep pixels are valid and within ``edge_jump``
+    (relative) of each other; elsewhere the nearest sweep pixel's depth (0 if it has none), so a
+    depth edge never gets in-between "flying" depths. U_pos: sqrt of the mixture's second moment
+    about that depth, sum_t w_t (U_t^2 + (D_t - D)^2) over the valid taps (weights renormalised):
+    where the taps agree this is about the taps' U_pos; next to an edge it includes the jump,
+    because that is how unsure the upsampled depth is there.
+    """
     h, w = depth.shape
     H, W = size
     ys = np.clip((np.arange(H) + 0.5) * (h / H) - 0.5, 0, h - 1)
@@ -428,20 +457,23 @@ def upsample_depth(
     x0 = np.minimum(np.floor(xs).astype(np.int64), max(w - 2, 0))
     y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
     fy, fx = (ys - y0)[:, None], (xs - x0)[None, :]
-    taps = [(y0[:, None], x0[None, :]), (y0[:, None], x1[None, :]), (y1[:, None], x0[None, :]), (y1[:, None], x1[None, :])]
+    r0, r1, c0, c1 = y0[:, None], y1[:, None], x0[None, :], x1[None, :]
+    taps = [(r0, c0), (r0, c1), (r1, c0), (r1, c1)]
     wts = [(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx]
-    dt = [depth[r, c] for r, c in taps]
-    ut = [uncertainty[r, c] for r, c in taps]
+    d64, u64 = depth.astype(np.float64), uncertainty.astype(np.float64)
+    dt = [d64[r, c] for r, c in taps]
+    ut = [u64[r, c] for r, c in taps]
+    wv = [np.where(d > 0, wt, 0.0) for wt, d in zip(wts, dt)]  # weights of valid taps
+    wsum = sum(wv)
     lo = np.minimum(np.minimum(dt[0], dt[1]), np.minimum(dt[2], dt[3]))
     hi = np.maximum(np.maximum(dt[0], dt[1]), np.maximum(dt[2], dt[3]))
     smooth = (lo > 0) & (hi - lo <= edge_jump * lo)
-    d_lin = sum(wt * d for wt, d in zip(wts, dt))
-    u_lin = sum(wt * x for wt, x in zip(wts, ut))
+    d_mix = sum(wt * d for wt, d in zip(wv, dt)) / np.maximum(wsum, 1e-12)
     yn = np.clip(np.rint(ys).astype(np.int64), 0, h - 1)[:, None]
     xn = np.clip(np.rint(xs).astype(np.int64), 0, w - 1)[None, :]
-    d_out = np.where(smooth, d_lin, depth[yn, xn])
-    u_out = np.where(smooth, u_lin, uncertainty[yn, xn])
-    u_out = np.where(d_out > 0, u_out, 0.0)
+    d_out = np.where(smooth, d_mix, d64[yn, xn])
+    m2 = sum(wt * (u * u + (d - d_out) ** 2) for wt, u, d in zip(wv, ut, dt)) / np.maximum(wsum, 1e-12)
+    u_out = np.where(d_out > 0, np.sqrt(m2), 0.0)
     return d_out.astype(np.float32), u_out.astype(np.float32)
 
 
@@ -582,9 +614,11 @@ class SelectionRule:
     that overlaps and has a non-zero baseline is returned (the first frames of a stream, a camera
     that barely moves): its depth will be uncertain, and U_pos says so.
 
-    The defaults come from the shelf capture (median AbsRel with 2 sources at baseline ratios
-    ~0.09 / 0.17 / 0.23: 0.07 / 0.052 / 0.076; wider baselines change the appearance too much,
-    narrower ones do not separate the hypotheses).
+    The defaults come from the shelf capture (4 frames, one source on each side 6 / 8 / 10 frames
+    away, baseline ratio ~0.14 / 0.19 / 0.24: median AbsRel 0.058 / 0.052 / 0.076; 4 frames away,
+    ~0.1: 0.07). Wider baselines change the appearance too much, narrower ones do not separate
+    the hypotheses; in a stream, target ratios 0.12-0.2 and window capacities 4-6 gave the same
+    median AbsRel within 0.001.
     """
 
     min_ratio: float = 0.04
@@ -699,7 +733,13 @@ class SourceWindow:
     another kept view; ties: the older). So a slowly moving camera keeps views spread over a useful
     range of baselines instead of its last few, nearly identical, frames.
 
-    Memory: h * w * L bytes per view (640x480 frames at scale 0.5: 6.1 MB); ``nbytes`` tells.
+    Memory: h * w * L bytes per view (640x480 frames at scale 0.5: 7.7 MB); ``nbytes`` tells.
+
+    A session uses it as: ``view = window.view_of(frame)``; ``sources = window.select(view, k)``;
+    if ``sources`` is empty (the first frame), keep the frame pending and ``window.add(view)``; else
+    ``estimate_depth(frame, sources, reference=view, ...)`` and ``window.add(view, depth=estimated)``,
+    then estimate the pending frame against ``window.select(pending_view)`` (`mvs_eval.stream_depth`
+    does exactly this).
     """
 
     def __init__(self, capacity: int = 4, scale: float = DEFAULT_SCALE, rule: SelectionRule | None = None,
@@ -727,7 +767,7 @@ class SourceWindow:
         return sum(v.nbytes for v in self.views)
 
     def typical_depth(self) -> float:
-        """Median of the views' known typical depths (the newest few), else ``default_depth``."""
+        """Median of the views' known typical depths, else ``default_depth`` (metres)."""
         known = [v.median_depth for v in self.views if math.isfinite(v.median_depth)]
         return float(np.median(known)) if known else self.default_depth
 

@@ -56,7 +56,8 @@ def downscale_frame(frame: Frame, factor: int) -> Frame:
     K[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
     K[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
     cam = type(frame.camera)(K, frame.camera.c2w64(), W // factor, H // factor)
-    return Frame(rgb=np.ascontiguousarray(np.rint(rgb).astype(np.uint8)), camera=cam, depth=depth, frame_id=frame.frame_id)
+    rgb = np.ascontiguousarray(np.rint(rgb).astype(np.uint8))
+    return Frame(rgb=rgb, camera=cam, depth=depth, frame_id=frame.frame_id)
 
 
 @dataclass
@@ -84,13 +85,18 @@ class FrameDepthResult:
         return float(np.median(self.abs_rel)) if self.abs_rel.size else math.nan
 
 
-def compare_to_sensor(depth: np.ndarray, uncertainty: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def compare_to_sensor(
+    depth: np.ndarray,  # [H, W] estimate, 0 = missing
+    uncertainty: np.ndarray,  # [H, W]
+    sensor: np.ndarray,  # [H, W] ground truth, 0 = missing
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(AbsRel [M], U_pos [M], coverage) on the pixels where the sensor has depth."""
     gt = np.asarray(sensor, np.float64)
     has_gt = np.isfinite(gt) & (gt > 0)
     both = has_gt & (depth > 0)
     coverage = float(both.sum() / max(has_gt.sum(), 1))
-    return (np.abs(depth[both] - gt[both]) / gt[both]).astype(np.float64), uncertainty[both].astype(np.float64), coverage
+    abs_rel = np.abs(depth[both] - gt[both]) / gt[both]
+    return abs_rel.astype(np.float64), uncertainty[both].astype(np.float64), coverage
 
 
 def sparsification(

@@ -1,0 +1,31 @@
+"""The ``eval`` subcommand: argument parsing, hooking into a parent parser, a tiny run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from canonical_core.datasets import synthetic_rgbd, write_tsdf_fusion
+from canonical_core.eval.cli import add_eval_parser, main, run_eval
+
+
+def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
+    parser = argparse.ArgumentParser(prog="canonical")
+    add_eval_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["eval", "data/x", "--views", "2,4,8,16", "--out", str(tmp_path),
+                              "--methods", "canonical,open3d_tsdf", "--noise", "0.05,0.1,0.25,0.5"])
+    assert args.func is run_eval
+    assert args.views == [2, 4, 8, 16] and args.methods == ["canonical", "open3d_tsdf"]
+    assert args.noise == [0.05, 0.1, 0.25, 0.5] and args.scale == 1.0 and args.stability_views == list(range(2, 13))
+    assert parser.parse_args(["eval", "x", "--out", "o", "--stability-views", "none"]).stability_views == []
+
+
+def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
+    data = write_tsdf_fusion(synthetic_rgbd(num_frames=14, width=40, height=30), tmp_path / "cap")
+    out = tmp_path / "out"
+    assert main([str(data), "--views", "2", "--out", str(out), "--methods", "canonical", "--voxel-size", "0.05",
+                 "--stability-views", "none", "--no-extrapolation"]) == 0
+    assert "## Held-out views, clean depth" in capsys.readouterr().out
+    assert json.loads((out / "results.json").read_text())["runs"][0]["method"] == "canonical"
+    assert main([str(data), "--views", "2", "--out", str(out), "--methods", "nerf", "--quiet"]) == 2
+    assert "methods" in capsys.readouterr().err

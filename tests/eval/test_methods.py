@@ -1,0 +1,93 @@
+"""Methods: the registry, plain decoding, and the Open3D peer's ray cast."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import Camera, Frame
+from canonical_core.datasets import synthetic_rgbd
+from canonical_core.decode import GaussianDecoder
+from canonical_core.eval.baselines import full_support_opacity
+from canonical_core.eval.methods import METHODS, build, check_methods
+from canonical_core.eval.metrics import covered, psnr
+from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available
+
+needs_open3d = pytest.mark.skipif(not open3d_available(), reason="needs the bench extra (open3d)")
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(synthetic_rgbd(num_frames=4, width=64, height=48))
+
+
+def test_registry_names_the_issue_methods():
+    assert list(METHODS) == ["canonical", "no_reliability", "no_similarity", "average", "plain_decoding",
+                             "no_free_space", "no_view_dependence", "pixel_aligned", "gaussian_merge", "open3d_tsdf"]
+    assert check_methods(["average", "canonical", "average"]) == ["average", "canonical"]
+    with pytest.raises(ValueError, match="methods"):
+        check_methods(["canonical", "nerf"])
+    with pytest.raises(ValueError, match="methods"):
+        check_methods("canonical")
+
+
+def test_plain_decoding_is_canonical_with_one_opacity(frames):
+    canonical, _ = build("canonical", frames[:2], 0.02)
+    plain, ms = build("plain_decoding", frames[:2], 0.02)
+    assert ms > 0
+    assert torch.equal(canonical.splats.means, plain.splats.means)
+    assert not torch.allclose(canonical.splats.opacities, plain.splats.opacities)
+    assert torch.allclose(plain.splats.opacities, torch.tensor(full_support_opacity(GaussianDecoder(16))))
+
+
+def test_scene_methods_render_rgb_and_features(frames):
+    model, _ = build("no_similarity", frames[:2], 0.02)
+    view = model.render(frames[2].camera, features=True)
+    assert view.features.shape == (48, 64, 16) and view.alpha.shape == (48, 64)
+    view = model.render(frames[2].camera)
+    assert view.rgb.shape == (48, 64, 3) and view.features is None
+    assert float(view.alpha.max()) > 0.5
+
+
+@needs_open3d
+def test_tsdf_ray_cast_finds_the_integrated_surface(frames):
+    frame = frames[1]
+    tsdf = Open3DTSDF(0.01, block_count=256)
+    tsdf.integrate(frame)
+    rgb, depth = tsdf.ray_cast(frame.camera)
+    hit = depth > 0
+    seen = frame.depth > 0
+    # at 64x48 a pixel is 2-3 voxels wide, so TSDF borders and grazing surfaces lose some pixels
+    assert float((hit & seen).sum()) > 0.65 * float(seen.sum())
+    assert float((hit & ~seen).sum()) < 0.01 * hit.numel()
+    # Open3D's rule samples the voxel below the ray point (floor), so depth is good to a voxel
+    assert float((depth - frame.depth)[hit & seen].abs().median()) < 0.01
+    assert psnr(rgb, frame.rgb.float() / 255, hit) > 14.0
+    away = Camera(K=frame.camera.K, c2w=frame.camera.c2w64() @ np.diag([-1.0, 1.0, -1.0, 1.0]), width=64, height=48)
+    assert float(tsdf.ray_cast(away)[1].max()) == 0.0  # looking away from the scene: nothing
+
+
+@needs_open3d
+def test_tsdf_ray_cast_of_a_wall_and_the_weight_threshold():
+    cam = Camera(K=[[40, 0, 15.5], [0, 40, 11.5], [0, 0, 1]], c2w=np.eye(4), width=32, height=24)
+    wall = Frame(rgb=np.full((24, 32, 3), 200, np.uint8), camera=cam, depth=np.full((24, 32), 0.5, np.float32))
+    tsdf = Open3DTSDF(0.01, block_count=64)
+    tsdf.integrate(wall)
+    rgb, depth = tsdf.ray_cast(cam)
+    assert float((depth > 0).float().mean()) > 0.85  # the outermost pixels have no crossing
+    assert torch.allclose(depth[depth > 0], torch.tensor(0.5), atol=0.01)
+    assert torch.allclose(rgb[depth > 0], torch.tensor(200 / 255), atol=1e-3)
+    assert float(tsdf.ray_cast(cam, weight_threshold=2.0)[1].max()) == 0.0  # one frame has weight 1
+    tsdf.integrate(wall)
+    assert float((tsdf.ray_cast(cam, weight_threshold=2.0)[1] > 0).float().mean()) > 0.85
+
+
+@needs_open3d
+def test_tsdf_method_has_no_gaussians_and_no_features(frames):
+    model, _ = build("open3d_tsdf", frames[:2], 0.02)
+    assert model.gaussians is None
+    view = model.render(frames[2].camera)
+    assert covered(view.alpha).any() and float(view.rgb[~covered(view.alpha)].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="features"):
+        model.render(frames[2].camera, features=True)
