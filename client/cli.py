@@ -7,6 +7,7 @@
     canonical sessions --url URL
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
+    canonical depth DATASET --out DIR [--sources 2]   (plane-sweep depth + uncertainty pictures)
 
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
@@ -299,6 +300,27 @@ def run_demo(args) -> int:
     return 0
 
 
+# -- depth --------------------------------------------------------------------------------------
+def add_depth(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (its depth, if any, is only compared against)")
+    p.add_argument("--out", required=True, help="folder for <frame>.depth.png and <frame>.uncertainty.png")
+    p.add_argument("--sources", type=int, default=2, help="source views per frame (default 2)")
+    p.add_argument("--stride", type=int, default=1)
+    p.add_argument("--max-frames", type=int, default=None)
+
+
+def run_depth(args) -> int:
+    from canonical_core.datasets import load_dataset
+    from canonical_core.evidence import write_depth_previews
+
+    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
+    rows = write_depth_previews(frames, args.out, num_sources=args.sources)
+    errors = [r["median_abs_rel"] for r in rows if r.get("median_abs_rel") is not None]
+    summary = f"; median AbsRel vs the sensor {np.median(errors):.4f}" if errors else ""
+    print(f"wrote depth and uncertainty pictures of {len(rows)} frames to {args.out}{summary}")
+    return 0
+
+
 COMMANDS: dict[str, Command] = {
     "serve": Command(add_serve, run_serve, "run the service (uvicorn)"),
     "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
@@ -306,6 +328,7 @@ COMMANDS: dict[str, Command] = {
     "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
     "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
+    "depth": Command(add_depth, run_depth, "estimate depth + uncertainty of a dataset's frames by plane sweep, write pictures"),
     "eval": Command(configure_parser, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),
 }
 

@@ -241,13 +241,14 @@ class Scene:
         same = lambda v: np.array_equal(v.camera.c2w64(), camera.c2w64())  # noqa: E731
         return [v for v in self._window.select(camera, k=self.config.depth_sources + 1) if not same(v)][: self.config.depth_sources]
 
-    def _with_estimated_depth(self, frame: Frame, sources) -> Frame:
+    def _with_estimated_depth(self, frame: Frame, sources, view=None) -> Frame:
         near_far = None
         if self._n:  # the swept range from what the scene already holds (a subsample is enough)
             step = max(1, self._n // 20_000)
             near_far = depth_range_from_points(frame.camera, self._state["rep_pos"][: self._n: step])
         near, far = near_far if near_far is not None else (None, None)
-        depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses)
+        depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses,
+                                    reference=view)
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std))
 
     def _fold_without_depth(self, frame: Frame, t0: float) -> FoldReport:
@@ -262,9 +263,10 @@ class Scene:
             self._pending.append(frame)
             self.frames += 1
             return FoldReport(index, 0, 0, 0, 0, ms=(time.perf_counter() - t0) * 1000.0, pending=True)
-        estimated = self._with_estimated_depth(frame, sources)
+        view = self._window.view_of(frame)  # matching features once: the sweep's reference and the window's view
+        estimated = self._with_estimated_depth(frame, sources, view)
         counts = self._fold_with_depth(estimated)
-        self._window.add(frame, depth=estimated.depth)
+        self._window.add(view, depth=estimated.depth)
         self.frames += 1
         also = 0
         for waiting in list(self._pending):  # frames that waited for a partner: fold them now, in order

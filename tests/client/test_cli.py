@@ -68,3 +68,11 @@ def test_demo_without_shared_data_fuses_a_generated_sample(tmp_path, monkeypatch
     assert Image.open(out / "render.png").size == (320, 240)
     assert Image.open(out / "comparison.png").size == (640, 240)
     assert len(load_ply(out / "scene.ply")) > 1000
+
+
+def test_depth_command_writes_pictures(shelf_dir, tmp_path, capsys):
+    out = tmp_path / "depth"
+    assert cli.main(["depth", str(shelf_dir), "--out", str(out), "--stride", "20", "--max-frames", "2"]) == 0
+    assert "median AbsRel" in capsys.readouterr().out
+    for name in ("frame-000015.depth.png", "frame-000015.uncertainty.png"):
+        assert Image.open(out / name).size[0] >= 640
