@@ -126,8 +126,8 @@ def test_bad_frame_leaves_scene_unchanged():
     before = scene.sums()
     with pytest.raises(ValueError, match="features: this session uses client-supplied features"):
         scene.fold(make_frame(np.full((2, 2), 1.0)))
-    with pytest.raises(ValueError, match="depth: this frame has no depth"):
-        scene.fold(Frame(rgb=good.rgb, camera=good.camera))
+    with pytest.raises(ValueError, match="features: this session uses client-supplied features"):
+        scene.fold(Frame(rgb=good.rgb, camera=good.camera))  # no depth either: refused before it could wait
     assert scene.frames == 1 and all(np.array_equal(before[k], scene.sums()[k]) for k in before)
 
 
