@@ -66,8 +66,8 @@ def run_serve(args) -> int:
         value = getattr(args, name)
         if value is not None:
             os.environ[f"CANONICAL_{name.upper()}"] = str(value)
-    if args.threads:
-        os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+    # threads reach the service as CANONICAL_THREADS (numba.set_num_threads per worker thread):
+    # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
     host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
     port = int(os.environ.get("CANONICAL_PORT", "8000"))
     uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level)
