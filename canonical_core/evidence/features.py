@@ -157,7 +157,7 @@ def default_features_at(
 ) -> np.ndarray:  # [M, 16] float32
     """The default descriptor at selected pixels (numba fast path of `default_features_reference`)."""
     out = np.empty((rows.shape[0], DEFAULT_FEATURE_DIM), np.float32)
-    _default_features_kernel(np.ascontiguousarray(rgb), rows.astype(np.int64), cols.astype(np.int64), out)
+    _default_features_kernel(np.ascontiguousarray(rgb), rows.astype(np.int64, copy=False), cols.astype(np.int64, copy=False), out)
     return out
 
 

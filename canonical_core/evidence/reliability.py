@@ -56,7 +56,7 @@ def positional_uncertainty(
     """U_pos at the given pixels (numba; `positional_uncertainty_reference` is the torch definition)."""
     out = np.empty(rows.shape[0], np.float32)
     std = depth_std if depth_std is not None else np.zeros((1, 1), np.float32)
-    _positional_uncertainty_kernel(depth, std, depth_std is not None, rows.astype(np.int64), cols.astype(np.int64),
+    _positional_uncertainty_kernel(depth, std, depth_std is not None, rows.astype(np.int64, copy=False), cols.astype(np.int64, copy=False),
                                    np.float32(sigma0), np.float32(sigma2), np.float32(z_ref),
                                    np.float32(edge_weight), np.float32(1.0 / voxel_size), out)
     return out
