@@ -41,6 +41,24 @@ class FrameEvidence:
         return int(self.rows.shape[0])
 
 
+@numba.njit(cache=True)
+def valid_depth_pixels(depth, near, far):  # [H, W] float32 -> rows [M], cols [M] int64, row-major
+    """Pixels whose depth lies in (near, far): np.nonzero of the mask in one pass, no [H, W] temporaries."""
+    n = 0
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            n += near < depth[v, u] < far
+    rows = np.empty(n, np.int64)
+    cols = np.empty(n, np.int64)
+    k = 0
+    for v in range(depth.shape[0]):
+        for u in range(depth.shape[1]):
+            if near < depth[v, u] < far:
+                rows[k], cols[k] = v, u
+                k += 1
+    return rows, cols
+
+
 @numba.njit(parallel=True, cache=True)
 def _lift_kernel(rgb, depth, rows, cols, fx, fy, cx, cy, R, t, points, colors):
     for i in numba.prange(rows.shape[0]):
@@ -91,7 +109,7 @@ def extract_evidence(
     if frame.depth is None:
         raise ValueError("depth: this frame has no depth; RGB-only frames need the multi-view depth stage")
     depth = frame.depth.numpy()
-    rows, cols = np.nonzero((depth > config.near) & (depth < config.far))
+    rows, cols = valid_depth_pixels(depth, np.float32(config.near), np.float32(config.far))
     features = frame_features(frame, rows, cols, config)
     points, colors = lift_pixels(frame, rows, cols)
     u_pos = positional_uncertainty(

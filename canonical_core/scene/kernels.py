@@ -70,35 +70,88 @@ def rebuild_table_kernel(table, keys, n_voxels):
         table[-1 - _find(table, keys, keys[idx], mask)] = idx
 
 
-@numba.njit(cache=True)
-def resolve_kernel(obs_keys, table, keys, local_table, new_keys, obs_voxel):
-    """Phase A (reads the scene, writes only scratch): map observations to existing voxels, and
-    number the keys not yet in the scene in first-occurrence order. Returns the count of new keys.
+class VoxelRows:
+    """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
 
-    obs_voxel[i] = voxel index (>= 0), -2 - j for the j-th new key, or -1 outside the lattice.
+    One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
+    state in a few adjacent cache lines: the fold reads and writes ~270 bytes per voxel, and with
+    a dozen separate arrays each voxel cost a dozen cache misses.
+
+    Columns, in order: rep_r, rep_f [L], rep_pos [3] | r_sum, f_sum [L], rgb_sum [3], pos_sum [3],
+    pos_sq [6], sh_a [Wa], sh_b [Wb], and with S label channels label_w, label_sum [S]. Everything
+    from r_sum on is a weighted sum (rescaled together when a representative is replaced).
+    """
+
+    def __init__(self, feature_dim: int, sh_widths: tuple[int, int], label_dim: int = 0):
+        widths = {"rep_r": 0, "rep_f": feature_dim, "rep_pos": 3, "r_sum": 0, "f_sum": feature_dim, "rgb_sum": 3,
+                  "pos_sum": 3, "pos_sq": 6, "sh_a": sh_widths[0], "sh_b": sh_widths[1]}
+        if label_dim:
+            widths |= {"label_w": 0, "label_sum": label_dim}
+        self.columns: dict[str, tuple[int, int]] = {}  # name -> (first column, width; 0 = a scalar field)
+        col = 0
+        for name, width in widths.items():
+            self.columns[name] = (col, width)
+            col += max(width, 1)
+        self.width = col
+        self.label_dim = label_dim
+
+    def field(self, rows: np.ndarray, name: str) -> np.ndarray:
+        """View of one field of ``rows`` ([V, width]): [V] for scalars, [V, width] otherwise."""
+        first, width = self.columns[name]
+        return rows[:, first] if width == 0 else rows[:, first: first + width]
+
+    def offsets(self) -> tuple[int, ...]:
+        """(rep_f, rep_pos, r_sum, f_sum, rgb_sum, pos_sum, pos_sq, sh_a, sh_b, label_w, label_sum) columns for the kernel
+        (rep_r is column 0; label columns are -1 without labels)."""
+        names = ("rep_f", "rep_pos", "r_sum", "f_sum", "rgb_sum", "pos_sum", "pos_sq", "sh_a", "sh_b", "label_w", "label_sum")
+        return tuple(self.columns[n][0] if n in self.columns else -1 for n in names)
+
+
+@numba.njit(cache=True)
+def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
+                   frame_keys, touched, new_keys, obs_slot, best, start):
+    """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
+
+    Each distinct key of the frame gets a slot t (first-occurrence order): obs_slot[i] = t (-1
+    outside the lattice), touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
+    scene (new_keys[j]); best[t] = the slot's most reliable observation (first maximum wins, as in
+    the batch rule); start[t + 1] = the slot's observation count. Dedupe happens in a frame-local
+    table first, so the scene's (large, cache-cold) table is probed once per voxel, not per pixel.
+    Returns (slots, new keys).
     """
     mask = table.shape[0] - 1
     local_mask = local_table.shape[0] - 1
     local_table[:] = -1
+    n_touched = 0
     n_new = 0
+    start[0] = 0
     for i in range(obs_keys.shape[0]):
         key = obs_keys[i]
         if key < 0:
-            obs_voxel[i] = -1
+            obs_slot[i] = -1
             continue
+        t = _find(local_table, frame_keys, key, local_mask)
+        if t >= 0:
+            obs_slot[i] = t
+            start[t + 1] += 1
+            if uses_rel and rel[i] > rel[best[t]]:
+                best[t] = i
+            continue
+        t = n_touched
+        n_touched += 1
+        local_table[-1 - _find(local_table, frame_keys, key, local_mask)] = t
+        frame_keys[t] = key
+        obs_slot[i] = t
+        start[t + 1] = 1
+        best[t] = i
         r = _find(table, keys, key, mask)
         if r >= 0:
-            obs_voxel[i] = r
-            continue
-        r = _find(local_table, new_keys, key, local_mask)
-        if r >= 0:
-            obs_voxel[i] = -2 - r
+            touched[t] = r
         else:
-            local_table[-1 - r] = n_new
             new_keys[n_new] = key
-            obs_voxel[i] = -2 - n_new
+            touched[t] = -2 - n_new
             n_new += 1
-    return n_new
+    return n_touched, n_new
 
 
 @numba.njit(inline="always")
@@ -117,156 +170,141 @@ def _dot(a, b):
     return d
 
 
-@numba.njit(inline="always")
-def _scale_row(row, s):
-    for c in range(row.shape[0]):
-        row[c] *= s
-
-
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
-    # scene state (rows >= n_voxels are zero; local is -1 outside a fold)
-    table, keys, rep_r, rep_f, rep_pos, rep_rgb, r_sum, f_sum, rgb_sum, pos_sum, pos_sq,
-    sh_a, sh_b, label_sum, label_w, n_obs, local,
-    n_voxels, mode, inv_voxel,
-    # the frame's evidence and phase A's result
-    new_keys, n_new, obs_voxel, rel, feat, rgb, points, sh_basis, labels, has_labels,
-    # scratch [M] ([M + 1] for start)
-    touched, best, feat_inv_norm, rep_inv_norm, obs_slot, start, order,
+    # scene state (rows >= n_voxels are zero)
+    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, mode, inv_voxel,
+    # phase A's result
+    n_touched, touched, new_keys, n_new, obs_slot, best, start,
+    # the frame's evidence
+    rel, feat, rgb, points, sh_basis, labels, has_labels,
+    # scratch [M]
+    feat_inv_norm, rep_inv_norm, order,
 ):
-    """Phase B: insert the new voxels, pick each touched voxel's frame-best observation, replace
-    representatives that it beats (rescaling the old sums by max(0, cos(old rep, new rep))), then
-    accumulate W = R * max(0, cos(F, F_rep)) weighted sums. Returns (touched, switches).
+    """Phase B: insert the new voxels, replace representatives that the frame-best observation
+    beats (rescaling the old sums by max(0, cos(old rep, new rep))), then accumulate
+    W = R * max(0, cos(F, F_rep)) weighted sums into each voxel's row (`VoxelRows`). Returns the
+    representative switches.
 
     Besides F, colour and position moments, W accumulates the normal equations of the per-voxel
     SH colour fit: sh_a = upper triangle of sum W b b^T without its (0, 0) entry (= C0^2 R_scene),
     sh_b = sum W b_k (c - 1/2) for k >= 1 (the DC row is C0 (sum W c - R_scene / 2)); b is the
     observation's SH basis of its view direction.
 
-    The frame's observations are grouped by voxel (a stable counting sort), then voxels are summed
-    in parallel, each over its own observations in frame order: a voxel's rows stay in cache while
-    it is summed, and the result is bit-identical for any thread count."""
+    Observations are put in voxel order (a stable counting sort), then voxels are summed in
+    parallel, each over its own observations in frame order: the result is bit-identical for any
+    thread count."""
+    REP_F, REP_POS, R_SUM, F_SUM, RGB_SUM, POS_SUM, POS_SQ, SH_A, SH_B, LABEL_W, LABEL_SUM = offsets
+    L = feat.shape[1]
+    S = labels.shape[1]
+    D = rows.shape[1]
     mask = table.shape[0] - 1
     for j in range(n_new):
         vi = n_voxels + j
         keys[vi] = new_keys[j]
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
-        rep_r[vi] = np.float32(-1.0)  # below any reliability: the first observation takes it
+        rows[vi, 0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
     uses_rel = mode == 0 or mode == 2
     uses_sim = mode == 0 or mode == 1
-    has_label_arrays = label_sum.shape[1] > 0
     K = sh_basis.shape[1]
-    M = obs_voxel.shape[0]
+    M = obs_slot.shape[0]
+    for t in range(n_touched):
+        if touched[t] < 0:
+            touched[t] = n_voxels + (-2 - touched[t])
     for i in numba.prange(M):
         feat_inv_norm[i] = _inv_norm(feat[i])
-    # 1) frame-local best observation per voxel (first maximum wins, as in the batch rule)
-    n_touched = 0
-    for i in range(M):
-        vi = obs_voxel[i]
-        if vi == -1:
-            continue
-        if vi < -1:
-            vi = n_voxels + (-2 - vi)
-            obs_voxel[i] = vi
-        r = rel[i] if uses_rel else np.float32(1.0)
-        if local[vi] < 0:
-            local[vi] = n_touched
-            touched[n_touched] = vi
-            best[n_touched] = i
-            n_touched += 1
-            obs_slot[i] = n_touched - 1
-        else:
-            obs_slot[i] = local[vi]
-            b = best[local[vi]]
-            rb = rel[b] if uses_rel else np.float32(1.0)
-            if r > rb:
-                best[local[vi]] = i
-    # 2) representatives: a strictly more reliable observation replaces the running one
+    # 1) representatives: a strictly more reliable observation replaces the running one
     switches = 0
     for t in numba.prange(n_touched):
         vi = touched[t]
+        row = rows[vi]
         b = best[t]
         rb = rel[b] if uses_rel else np.float32(1.0)
-        if rb > rep_r[vi]:
+        if rb > row[0]:
             if n_obs[vi] > 0:
                 switches += 1
-                s = np.float32(1.0)
                 if uses_sim:
-                    s = max(np.float32(0.0), _dot(rep_f[vi], feat[b]) * _inv_norm(rep_f[vi]) * feat_inv_norm[b])
-                if s != np.float32(1.0):
-                    r_sum[vi] *= s
-                    _scale_row(f_sum[vi], s)
-                    _scale_row(rgb_sum[vi], s)
-                    _scale_row(pos_sum[vi], s)
-                    _scale_row(pos_sq[vi], s)
-                    _scale_row(sh_a[vi], s)
-                    _scale_row(sh_b[vi], s)
-                    if has_label_arrays:
-                        label_w[vi] *= s
-                        _scale_row(label_sum[vi], s)
-            rep_r[vi] = rb
-            rep_f[vi, :] = feat[b]
-            rep_pos[vi, :] = points[b]
+                    s = max(np.float32(0.0), _dot(row[REP_F: REP_F + L], feat[b]) * _inv_norm(row[REP_F: REP_F + L]) * feat_inv_norm[b])
+                    if s != np.float32(1.0):
+                        for c in range(R_SUM, D):
+                            row[c] *= s
+            row[0] = rb
+            for c in range(L):
+                row[REP_F + c] = feat[b, c]
             for c in range(3):  # colours are u8 / 255, so this round trip is exact
+                row[REP_POS + c] = points[b, c]
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
-        rep_inv_norm[t] = _inv_norm(rep_f[vi])
-    # 3) group observations by voxel, keeping frame order within each voxel (counting sort)
-    start[: n_touched + 1] = 0
-    for i in range(M):
-        if obs_voxel[i] >= 0:
-            start[obs_slot[i] + 1] += 1
+        rep_inv_norm[t] = _inv_norm(row[REP_F: REP_F + L])
+    # 2) observations in voxel order, frame order within each voxel (phase A counted them)
     for t in range(n_touched):
         start[t + 1] += start[t]
     for i in range(M):
-        if obs_voxel[i] >= 0:
-            t = obs_slot[i]
+        t = obs_slot[i]
+        if t >= 0:
             order[start[t]] = i
             start[t] += 1
     for t in range(n_touched, 0, -1):  # the fill advanced each start to the next one's: shift back
         start[t] = start[t - 1]
     start[0] = 0
-    # 4) weighted sums, voxels in parallel, each voxel's observations in frame order
+    # 3) weighted sums, voxels in parallel, each voxel's observations in frame order; the
+    # fixed-size sums go through registers and are added to the row once per voxel
     for t in numba.prange(n_touched):
         vi = touched[t]
+        row = rows[vi]
+        rep_f, f_sum = row[REP_F: REP_F + L], row[F_SUM: F_SUM + L]
+        n_obs[vi] += start[t + 1] - start[t]
+        r_acc = c0 = c1 = c2 = px = py = pz = qxx = qxy = qxz = qyy = qyz = qzz = np.float32(0.0)
         for j in range(start[t], start[t + 1]):
             i = order[j]
+            f = feat[i]
             w = rel[i] if uses_rel else np.float32(1.0)
             if uses_sim:
-                cos = _dot(feat[i], rep_f[vi]) * feat_inv_norm[i] * rep_inv_norm[t]
-                w = w * max(np.float32(0.0), cos)
-            n_obs[vi] += 1
-            r_sum[vi] += w
-            for c in range(f_sum.shape[1]):
-                f_sum[vi, c] += w * feat[i, c]
+                w = w * max(np.float32(0.0), _dot(f, rep_f) * feat_inv_norm[i] * rep_inv_norm[t])
+            r_acc += w
+            for c in range(L):
+                f_sum[c] += w * f[c]
+            c0 += w * rgb[i, 0]
+            c1 += w * rgb[i, 1]
+            c2 += w * rgb[i, 2]
             lx = points[i, 0] * inv_voxel - (np.floor(points[i, 0] * inv_voxel) + np.float32(0.5))
             ly = points[i, 1] * inv_voxel - (np.floor(points[i, 1] * inv_voxel) + np.float32(0.5))
             lz = points[i, 2] * inv_voxel - (np.floor(points[i, 2] * inv_voxel) + np.float32(0.5))
-            for c in range(3):
-                rgb_sum[vi, c] += w * rgb[i, c]
-            pos_sum[vi, 0] += w * lx
-            pos_sum[vi, 1] += w * ly
-            pos_sum[vi, 2] += w * lz
-            pos_sq[vi, 0] += w * lx * lx
-            pos_sq[vi, 1] += w * lx * ly
-            pos_sq[vi, 2] += w * lx * lz
-            pos_sq[vi, 3] += w * ly * ly
-            pos_sq[vi, 4] += w * ly * lz
-            pos_sq[vi, 5] += w * lz * lz
+            wx, wy, wz = w * lx, w * ly, w * lz
+            px += wx
+            py += wy
+            pz += wz
+            qxx += wx * lx
+            qxy += wx * ly
+            qxz += wx * lz
+            qyy += wy * ly
+            qyz += wy * lz
+            qzz += wz * lz
             if K > 1:
-                idx = 0
+                idx = SH_A
                 for p in range(K):
                     wb = w * sh_basis[i, p]
                     for q in range(p, K):
                         if p > 0 or q > 0:
-                            sh_a[vi, idx] += wb * sh_basis[i, q]
+                            row[idx] += wb * sh_basis[i, q]
                             idx += 1
                     if p > 0:
                         for c in range(3):
-                            sh_b[vi, 3 * (p - 1) + c] += wb * (rgb[i, c] - np.float32(0.5))
+                            row[SH_B + 3 * (p - 1) + c] += wb * (rgb[i, c] - np.float32(0.5))
             if has_labels:
-                label_w[vi] += w
-                for c in range(label_sum.shape[1]):
-                    label_sum[vi, c] += w * labels[i, c]
-    for t in range(n_touched):
-        local[touched[t]] = -1
-    return n_touched, switches
+                row[LABEL_W] += w
+                for c in range(S):
+                    row[LABEL_SUM + c] += w * labels[i, c]
+        row[R_SUM] += r_acc
+        row[RGB_SUM] += c0
+        row[RGB_SUM + 1] += c1
+        row[RGB_SUM + 2] += c2
+        row[POS_SUM] += px
+        row[POS_SUM + 1] += py
+        row[POS_SUM + 2] += pz
+        row[POS_SQ] += qxx
+        row[POS_SQ + 1] += qxy
+        row[POS_SQ + 2] += qxz
+        row[POS_SQ + 3] += qyy
+        row[POS_SQ + 4] += qyz
+        row[POS_SQ + 5] += qzz
+    return switches

@@ -37,7 +37,7 @@ from .config import SceneConfig
 from .fields import fields_from_sums, sh_sum_widths
 from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map,
                          update_chunk_boxes_kernel)
-from .kernels import MODE_CODES, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
+from .kernels import MODE_CODES, VoxelRows, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
 
 FORMAT_NAME = "canonicalgs-scene"
 FORMAT_VERSION = 3
@@ -89,26 +89,13 @@ class Scene:
         (0, 0)
     """
 
-    _ROW_SHAPES = {  # name -> (dtype, trailing shape as a function of (L, S, (sh_a, sh_b) widths))
-        "keys": (np.int64, lambda L, S, W: ()),
-        "rep_r": (np.float32, lambda L, S, W: ()),
-        "rep_f": (np.float32, lambda L, S, W: (L,)),
-        "rep_pos": (np.float32, lambda L, S, W: (3,)),
-        "rep_rgb": (np.uint8, lambda L, S, W: (3,)),  # input colours are 8-bit: lossless
-        "r_sum": (np.float32, lambda L, S, W: ()),
-        "f_sum": (np.float32, lambda L, S, W: (L,)),
-        "rgb_sum": (np.float32, lambda L, S, W: (3,)),
-        "pos_sum": (np.float32, lambda L, S, W: (3,)),
-        "pos_sq": (np.float32, lambda L, S, W: (6,)),
-        "sh_a": (np.float32, lambda L, S, W: (W[0],)),
-        "sh_b": (np.float32, lambda L, S, W: (W[1],)),
-        "free": (np.float32, lambda L, S, W: ()),
-        "label_sum": (np.float32, lambda L, S, W: (S,)),
-        "label_w": (np.float32, lambda L, S, W: ()),
-        "n_obs": (np.int32, lambda L, S, W: ()),
-        "local": (np.int32, lambda L, S, W: ()),  # scratch: slot in the frame's touched list, -1 between folds
+    # per-voxel arrays beside the float32 record (`VoxelRows`): name -> (dtype, trailing shape)
+    _ARRAYS = {
+        "keys": (np.int64, ()),
+        "rep_rgb": (np.uint8, (3,)),  # input colours are 8-bit: lossless
+        "free": (np.float32, ()),  # written by the free-space kernels, which scan it with the keys
+        "n_obs": (np.int32, ()),
     }
-    _SCRATCH = ("local",)
 
     def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15):
         if not isinstance(config, SceneConfig):
@@ -117,7 +104,7 @@ class Scene:
         self.appearance = AppearanceUncertainty(config.feature_dim)
         self.decoder = GaussianDecoder(config.feature_dim)
         self.frames = 0
-        self.label_dim = 0
+        self._layout = VoxelRows(config.feature_dim, sh_sum_widths(config.sh_degree))
         self._n = 0
         self._state = self._allocate(initial_capacity)
         self._table = np.full(_table_size(initial_capacity), -1, np.int32)
@@ -129,12 +116,13 @@ class Scene:
         self._pending: list[Frame] = []
 
     # -- state management ---------------------------------------------------------------------
+    @property
+    def label_dim(self) -> int:
+        return self._layout.label_dim
+
     def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
-        L, S, W = self.config.feature_dim, self.label_dim, sh_sum_widths(self.config.sh_degree)
-        state = {name: np.zeros((capacity, *shape(L, S, W)), dtype) for name, (dtype, shape) in self._ROW_SHAPES.items()}
-        state["local"][:] = -1
-        if not S:  # label weights exist only once a frame brought labels (saves 4 bytes a voxel)
-            state["label_w"] = np.zeros(0, np.float32)
+        state = {name: np.zeros((capacity, *shape), dtype) for name, (dtype, shape) in self._ARRAYS.items()}
+        state["rows"] = np.zeros((capacity, self._layout.width), np.float32)
         return state
 
     @property
@@ -157,15 +145,18 @@ class Scene:
             rebuild_table_kernel(self._table, self._state["keys"], self._n)
 
     def _set_label_dim(self, S: int) -> None:
-        self.label_dim = S
-        self._state["label_sum"] = np.zeros((self.capacity, S), np.float32)
-        self._state["label_w"] = np.zeros(self.capacity, np.float32)
+        """Widen every row by the label columns (zero so far) once the first frame with S labels arrives."""
+        old = self._layout
+        self._layout = VoxelRows(self.config.feature_dim, sh_sum_widths(self.config.sh_degree), S)
+        rows = np.zeros((self.capacity, self._layout.width), np.float32)
+        rows[:, : old.width] = self._state["rows"]  # the label columns come last
+        self._state["rows"] = rows
 
     def _scratch(self, m: int) -> None:
         if m > self._scratch_m:
             self._scratch_m = max(m, 1024)
             self._obs_keys = np.empty(self._scratch_m, np.int64)
-            self._obs_voxel = np.empty(self._scratch_m, np.int32)
+            self._frame_keys = np.empty(self._scratch_m, np.int64)
             self._new_keys = np.empty(self._scratch_m, np.int64)
             self._touched = np.empty(self._scratch_m, np.int32)
             self._best = np.empty(self._scratch_m, np.int32)
@@ -199,10 +190,12 @@ class Scene:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
         m = len(ev)
         self._scratch(m)
-        obs_keys, obs_voxel, new_keys = self._obs_keys[:m], self._obs_voxel[:m], self._new_keys[:m]
+        obs_keys, obs_slot, new_keys = self._obs_keys[:m], self._obs_slot[:m], self._new_keys[:m]
         inv_voxel = np.float32(1.0 / self.config.voxel_size)
         voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
-        n_new = resolve_kernel(obs_keys, self._table, self._state["keys"], self._local_table, new_keys, obs_voxel)
+        n_touched, n_new = resolve_kernel(
+            obs_keys, ev.reliability, self.config.weighting in ("full", "no_similarity"), self._table, self._state["keys"],
+            self._local_table, self._frame_keys, self._touched, new_keys, obs_slot, self._best, self._start)
         cap = self.config.max_voxels
         if cap is not None and self._n + n_new > cap:
             raise CapacityError(
@@ -215,19 +208,18 @@ class Scene:
         s = self._state
         labels = ev.labels if ev.labels is not None else np.zeros((m, self.label_dim), np.float32)
         basis = observation_sh_basis(ev, frame.camera, self.config.sh_degree)
-        n_touched, switches = fold_kernel(
-            self._table, s["keys"], s["rep_r"], s["rep_f"], s["rep_pos"], s["rep_rgb"], s["r_sum"], s["f_sum"],
-            s["rgb_sum"], s["pos_sum"], s["pos_sq"], s["sh_a"], s["sh_b"], s["label_sum"], s["label_w"], s["n_obs"],
-            s["local"], self._n, MODE_CODES[self.config.weighting], inv_voxel,
-            new_keys, n_new, obs_voxel, ev.reliability, ev.features, ev.colors, ev.points, basis, labels,
-            ev.labels is not None, self._touched[:m], self._best[:m], self._feat_inv_norm[:m], self._rep_inv_norm[:m],
-            self._obs_slot[:m], self._start[: m + 1], self._order[:m],
+        switches = fold_kernel(
+            self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(),
+            MODE_CODES[self.config.weighting], inv_voxel,
+            n_touched, self._touched, new_keys, n_new, obs_slot, self._best, self._start,
+            ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
+            self._feat_inv_norm[:m], self._rep_inv_norm[:m], self._order[:m],
         )
         update_chunk_boxes_kernel(s["keys"], self._n, self._n + n_new, self._chunk_lo, self._chunk_hi)
         if self.config.free_space:
             self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
-        return int((obs_voxel >= 0).sum()), int(n_new), int(n_touched - n_new), int(switches)
+        return int((obs_slot >= 0).sum()), int(n_new), int(n_touched - n_new), int(switches)
 
     def _check_foldable(self, frame: Frame) -> None:
         """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
@@ -245,7 +237,7 @@ class Scene:
         near_far = None
         if self._n:  # the swept range from what the scene already holds (a subsample is enough)
             step = max(1, self._n // 20_000)
-            near_far = depth_range_from_points(frame.camera, self._state["rep_pos"][: self._n: step])
+            near_far = depth_range_from_points(frame.camera, self._layout.field(self._state["rows"][: self._n: step], "rep_pos"))
         near, far = near_far if near_far is not None else (None, None)
         depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses,
                                     reference=view)
@@ -297,8 +289,22 @@ class Scene:
 
     def sums(self) -> dict[str, np.ndarray]:
         """The raw per-voxel sums (copies, insertion order, scratch excluded)."""
-        return {k: v[: self._n].copy() for k, v in self._state.items()
-                if k not in self._SCRATCH and not (k == "label_w" and not self.label_dim)}
+        n = self._n
+        out = {k: v[:n].copy() for k, v in self._state.items() if k != "rows"}
+        rows = self._state["rows"][:n]
+        out |= {name: np.ascontiguousarray(self._layout.field(rows, name)) for name in self._layout.columns}
+        if not self.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
+            out["label_sum"] = np.zeros((n, 0), np.float32)
+        return out
+
+    def _set_sums(self, sums: dict[str, np.ndarray]) -> None:
+        """Inverse of `sums` on a fresh scene with enough capacity (snapshot loading)."""
+        n = len(sums["keys"])
+        for name in self._ARRAYS:
+            self._state[name][:n] = sums[name]
+        for name in self._layout.columns:
+            self._layout.field(self._state["rows"][:n], name)[...] = sums[name]
+        self._n = n
 
     def fields(self, sort: bool = True) -> dict[str, torch.Tensor]:
         """Scene fields (see `fields_from_sums`), sorted by voxel key unless ``sort=False``."""
@@ -399,10 +405,8 @@ class Scene:
         if header["label_dim"]:
             scene._set_label_dim(int(header["label_dim"]))
         n = int(header["voxels"])
-        for name in scene._state:
-            if f"state.{name}" in npz.files:
-                scene._state[name][:n] = npz[f"state.{name}"]
-        scene._n, scene.frames = n, int(header["frames"])
+        scene._set_sums({k[len("state."):]: npz[k] for k in npz.files if k.startswith("state.")})
+        scene.frames = int(header["frames"])
         rebuild_table_kernel(scene._table, scene._state["keys"], n)
         update_chunk_boxes_kernel(scene._state["keys"], 0, n, scene._chunk_lo, scene._chunk_hi)
         scene._history = SeeThroughHistory.from_arrays(
