@@ -1,5 +1,5 @@
 """Dec: scene fields -> Gaussians (monotone opacity head, analytic initialisation)."""
 
-from .decoder import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion
+from .decoder import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion, support_unit
 
-__all__ = ["FOOTPRINT_GAIN", "FULL_VOXEL_EXTENT", "GaussianDecoder", "MonotoneOpacity", "matrix_to_quaternion"]
+__all__ = ["FOOTPRINT_GAIN", "FULL_VOXEL_EXTENT", "GaussianDecoder", "MonotoneOpacity", "matrix_to_quaternion", "support_unit"]

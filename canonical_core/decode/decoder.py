@@ -1,7 +1,7 @@
 """Dec: scene fields -> 3D Gaussians, initialised at an analytic solution.
 
 For each voxel with support:
-    r        = 1 - exp(-R_scene),   q = free / (free + R_scene)  (share of rays that saw through)
+    r        = 1 - exp(-R_scene / R_unit),   q = free / (free + R_scene)  (share of rays that saw through)
     opacity  = sigmoid(support(r) - penalty(q))       (support, penalty: monotone heads, so opacity is
                                                        non-decreasing in R_scene and non-increasing in
                                                        free-space evidence for any parameters)
@@ -10,6 +10,10 @@ For each voxel with support:
                gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
     colour   = streamed SH fit (DC = fused colour at degree 0) + delta(F_scene) on the DC term
 The heads on F_scene start at zero, so an untrained decoder is the analytic solution.
+
+R_unit is the scene's typical weight of one observation (`support_unit`): support is counted in
+"typical observations", so a capture whose every reliability is low (a noisy depth sensor, a far
+scene) is not rendered see-through as a whole; within a scene, opacity still grows with R_scene.
 """
 
 from __future__ import annotations
@@ -22,12 +26,16 @@ from torch import Tensor, nn
 from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
 
 # A Gaussian whose integral footprint 2*pi*sigma^2 equals the area a^2 of the patch it stands for has
-# sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio makes
-# neighbouring voxels' Gaussians close the surface instead of leaving see-through gaps.
+# sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio turns
+# the spread of a voxel's points into the Gaussian's (it sets the thickness along the normal).
 FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
-# The same argument for a voxel's whole face (a = 1 voxel): the smallest in-plane std that still
-# closes the surface between neighbouring voxels, whatever few samples a voxel holds.
-FULL_VOXEL_EXTENT = 1.0 / math.sqrt(2.0 * math.pi)
+# The smallest in-plane std, in voxels. Two face-neighbours covering a surface must both still be
+# opaque at the face they share, or the surface shows see-through seams: at sigma = 1/2 voxel each
+# keeps exp(-1/2) = 61 % of its peak alpha there, so two fully supported neighbours let at most
+# (1 - 0.61)^2 = 15 % through (at the equal-area 1/sqrt(2 pi) it was 46 % each and 29 % through,
+# seen as speckle on real captures). Points inside a voxel never spread wider than this, so in-plane
+# extents are this clamp and the moments set the orientation and the thickness.
+FULL_VOXEL_EXTENT = 0.5
 
 
 class MonotoneOpacity(nn.Module):
@@ -72,6 +80,23 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:  # [N, 3, 3] -> [N, 4] (w, x, y, 
     return torch.where(q[:, :1] < 0, -q, q)
 
 
+def support_unit(
+    reliability: Tensor,  # [V] R_scene
+    observations: Tensor,  # [V] observations folded into each voxel
+) -> float:
+    """The typical weight one observation adds to R_scene: the median over voxels of R_scene / count.
+
+    Example:
+        >>> support_unit(torch.tensor([0.5, 1.0, 3.0]), torch.tensor([1, 2, 3]))
+        0.5
+    """
+    seen = observations > 0
+    if not bool(seen.any()):
+        return 1.0
+    unit = float(torch.median(reliability[seen] / observations[seen].to(reliability.dtype)))
+    return unit if unit > 1e-6 else 1e-6
+
+
 class GaussianDecoder(nn.Module):
     """Decoder from fused scene fields to Gaussians (see module docstring for the equations).
 
@@ -96,11 +121,14 @@ class GaussianDecoder(nn.Module):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
 
-    def forward(self, fields: dict[str, Tensor], voxel_size: float) -> Gaussians:
-        """Decode every voxel of ``fields`` (the dict returned by ``Scene.fields``)."""
+    def forward(self, fields: dict[str, Tensor], voxel_size: float, support_unit: float = 1.0) -> Gaussians:
+        """Decode every voxel of ``fields`` (the dict returned by ``Scene.fields``); R_scene is
+        counted in units of ``support_unit`` (see `support_unit`)."""
+        if not support_unit > 0:
+            raise ValueError(f"support_unit: expected > 0, got {support_unit}")
         support = fields["reliability"]
         feats = fields["features"]
-        r = 1.0 - torch.exp(-support)
+        r = 1.0 - torch.exp(-support / support_unit)
         logit = self.opacity(r)
         if "free_space" in fields:
             free = fields["free_space"]

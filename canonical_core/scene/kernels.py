@@ -83,22 +83,22 @@ class VoxelRows:
     """
 
     def __init__(self, feature_dim: int, sh_widths: tuple[int, int], label_dim: int = 0):
-        widths = {"rep_r": 0, "rep_f": feature_dim, "rep_pos": 3, "r_sum": 0, "f_sum": feature_dim, "rgb_sum": 3,
-                  "pos_sum": 3, "pos_sq": 6, "sh_a": sh_widths[0], "sh_b": sh_widths[1]}
+        shapes = {"rep_r": (), "rep_f": (feature_dim,), "rep_pos": (3,), "r_sum": (), "f_sum": (feature_dim,),
+                  "rgb_sum": (3,), "pos_sum": (3,), "pos_sq": (6,), "sh_a": (sh_widths[0],), "sh_b": (sh_widths[1],)}
         if label_dim:
-            widths |= {"label_w": 0, "label_sum": label_dim}
-        self.columns: dict[str, tuple[int, int]] = {}  # name -> (first column, width; 0 = a scalar field)
+            shapes |= {"label_w": (), "label_sum": (label_dim,)}
+        self.columns: dict[str, tuple[int, tuple[int, ...]]] = {}  # name -> (first column, field shape per voxel)
         col = 0
-        for name, width in widths.items():
-            self.columns[name] = (col, width)
-            col += max(width, 1)
+        for name, shape in shapes.items():
+            self.columns[name] = (col, shape)
+            col += shape[0] if shape else 1
         self.width = col
         self.label_dim = label_dim
 
     def field(self, rows: np.ndarray, name: str) -> np.ndarray:
-        """View of one field of ``rows`` ([V, width]): [V] for scalars, [V, width] otherwise."""
-        first, width = self.columns[name]
-        return rows[:, first] if width == 0 else rows[:, first: first + width]
+        """View of one field of ``rows`` ([V, width]): [V] for scalars, [V, n] for vectors (n may be 0)."""
+        first, shape = self.columns[name]
+        return rows[:, first] if not shape else rows[:, first: first + shape[0]]
 
     def offsets(self) -> tuple[int, ...]:
         """(rep_f, rep_pos, r_sum, f_sum, rgb_sum, pos_sum, pos_sq, sh_a, sh_b, label_w, label_sum) columns for the kernel

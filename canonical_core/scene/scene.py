@@ -30,7 +30,7 @@ import torch
 from ..camera import Camera
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..evidence.mvs import SourceWindow, depth_range_from_points, estimate_depth
-from ..decode import GaussianDecoder
+from ..decode import GaussianDecoder, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
@@ -40,7 +40,7 @@ from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, hist
 from .kernels import MODE_CODES, VoxelRows, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
 
 FORMAT_NAME = "canonicalgs-scene"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
 
 
 class CapacityError(ValueError):
@@ -106,6 +106,7 @@ class Scene:
         self.frames = 0
         self._layout = VoxelRows(config.feature_dim, sh_sum_widths(config.sh_degree))
         self._n = 0
+        self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds
         self._state = self._allocate(initial_capacity)
         self._table = np.full(_table_size(initial_capacity), -1, np.int32)
         self._scratch_m = 0
@@ -219,7 +220,11 @@ class Scene:
         if self.config.free_space:
             self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
-        return int((obs_slot >= 0).sum()), int(n_new), int(n_touched - n_new), int(switches)
+        n_obs = int((obs_slot >= 0).sum())
+        if n_touched:
+            self._density_sum += n_obs / n_touched
+            self._density_frames += 1
+        return n_obs, int(n_new), int(n_touched - n_new), int(switches)
 
     def _check_foldable(self, frame: Frame) -> None:
         """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
@@ -310,6 +315,12 @@ class Scene:
         """Scene fields (see `fields_from_sums`), sorted by voxel key unless ``sort=False``."""
         return fields_from_sums(self.sums(), self.config, sort=sort)
 
+    def observations_per_view(self) -> float:
+        """Mean observations one frame adds to a voxel it touches (pixels per voxel footprint, holes
+        included). With `support_unit` it makes R_scene's decoding unit "one typical view", so opacity
+        does not depend on image resolution or voxel size, only on how many views support a voxel."""
+        return self._density_sum / self._density_frames if self._density_frames else 1.0
+
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
         best-supported ones (level of detail)."""
@@ -318,6 +329,7 @@ class Scene:
         if min_support < 0:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
         f = self.fields(sort=False)
+        unit = support_unit(f["reliability"], f["observations"]) * self.observations_per_view()
         supported = f["reliability"] > min_support
         if self.config.free_space:  # voxels that more rays saw through than saw at are not surface
             supported &= f["free_space"] <= self.config.free_space_dominance * f["reliability"]
@@ -327,7 +339,7 @@ class Scene:
             keep = keep[torch.sort(top).values]
         f = {k: v[keep] for k, v in f.items()}
         with torch.no_grad():
-            return self.decoder(f, self.config.voxel_size)
+            return self.decoder(f, self.config.voxel_size, unit)
 
     def _snapshot_arrays(self) -> dict[str, np.ndarray]:
         """Every array of the fused state: sums, free-space history, source window, waiting frames."""
@@ -343,7 +355,7 @@ class Scene:
     def digest(self) -> str:
         """sha256 of the whole fused state (sums, free-space history, frame count): equal iff two
         scenes would decode and fold on identically."""
-        h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|".encode())
+        h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|density={self._density_sum!r},{self._density_frames}|".encode())
         for name, array in sorted(self._snapshot_arrays().items()):
             h.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
             h.update(np.ascontiguousarray(array).tobytes())
@@ -366,7 +378,8 @@ class Scene:
     def to_bytes(self) -> bytes:
         """One self-contained, versioned snapshot (an .npz with a JSON header)."""
         header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
-                  "frames": self.frames, "label_dim": self.label_dim, "voxels": self._n, "pending": len(self._pending)}
+                  "frames": self.frames, "label_dim": self.label_dim, "voxels": self._n, "pending": len(self._pending),
+                  "density": [self._density_sum, self._density_frames]}
         arrays = self._snapshot_arrays()
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
             for k, v in module.state_dict().items():
@@ -399,14 +412,16 @@ class Scene:
             raise ValueError(f"snapshot: not a readable scene file ({exc})") from None
         if header.get("format") != FORMAT_NAME:
             raise ValueError(f"snapshot: unknown format {header.get('format')!r}")
-        if header.get("version") != FORMAT_VERSION:
-            raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected {FORMAT_VERSION})")
+        if header.get("version") not in (3, FORMAT_VERSION):
+            raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected 3 or {FORMAT_VERSION})")
         scene = cls(SceneConfig.from_dict(header["config"]), initial_capacity=max(int(header["voxels"]), 16))
         if header["label_dim"]:
             scene._set_label_dim(int(header["label_dim"]))
         n = int(header["voxels"])
         scene._set_sums({k[len("state."):]: npz[k] for k in npz.files if k.startswith("state.")})
         scene.frames = int(header["frames"])
+        density_sum, density_frames = header.get("density", [0.0, 0])
+        scene._density_sum, scene._density_frames = float(density_sum), int(density_frames)
         rebuild_table_kernel(scene._table, scene._state["keys"], n)
         update_chunk_boxes_kernel(scene._state["keys"], 0, n, scene._chunk_lo, scene._chunk_hi)
         scene._history = SeeThroughHistory.from_arrays(

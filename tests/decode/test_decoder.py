@@ -6,7 +6,8 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.camera import quaternion_to_matrix
-from canonical_core.decode import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion
+from canonical_core.decode import (FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion,
+                                   support_unit)
 from canonical_core.scene import Scene
 
 
@@ -36,10 +37,11 @@ def test_quaternion_round_trip():
     assert torch.allclose(q2.abs(), q.abs(), atol=1e-9) and ((q2 * q).sum(1).abs() > 1 - 1e-9).all()
 
 
-def fields_of_planar_voxel(voxel=0.1):
-    """One voxel whose points spread over the z = const plane (uniform in x, y)."""
-    xs, ys = np.meshgrid(np.linspace(-0.049, 0.049, 9), np.linspace(-0.049, 0.049, 9))  # wider than the extent clamp
-    pts = np.stack([xs.ravel() + 0.05, ys.ravel() + 0.05, np.full(81, 0.05)], 1)
+def fields_of_planar_voxel(voxel=0.1, thickness=0.0):
+    """One voxel whose points spread over the z = const plane (uniform in x, y), +-thickness in z."""
+    xs, ys = np.meshgrid(np.linspace(-0.049, 0.049, 9), np.linspace(-0.049, 0.049, 9))
+    zs = np.where(np.arange(81) % 2 == 0, thickness, -thickness)
+    pts = np.stack([xs.ravel() + 0.05, ys.ravel() + 0.05, zs + 0.05], 1)
     cov = np.cov(pts.T, bias=True)
     return {
         "reliability": torch.tensor([3.0]),
@@ -57,13 +59,38 @@ def test_analytic_initialisation():
     assert torch.equal(g.means, fields["representative_position"])  # offset head starts at zero
     assert torch.allclose(g.colors, fields["color"], atol=1e-6)
     assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(10 * (1 - math.exp(-3)) - 3))), rel=1e-5)
-    # smallest axis along the plane normal (clamped thickness), in-plane std = moment std x gain
+    # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never
+    # spread past the seam-closing clamp, so both in-plane stds are the clamp
     R = torch.from_numpy(quaternion_to_matrix(g.quats.numpy()))[0]
     normal_axis = R[:, g.scales[0].argmin()]
     assert abs(normal_axis[2].item()) > 0.999
     assert g.scales[0].min().item() == pytest.approx(0.05 * 0.1, rel=1e-5)
-    in_plane = math.sqrt(cov[0, 0]) * FOOTPRINT_GAIN
-    assert sorted(g.scales[0].tolist())[1:] == pytest.approx([in_plane, in_plane], rel=1e-4)
+    assert math.sqrt(cov[0, 0]) * FOOTPRINT_GAIN < FULL_VOXEL_EXTENT
+    assert sorted(g.scales[0].tolist())[1:] == pytest.approx([0.1 * FULL_VOXEL_EXTENT] * 2, rel=1e-4)
+
+
+def test_thickness_is_the_moment_std_times_the_footprint_gain():
+    fields, cov = fields_of_planar_voxel(thickness=0.01)  # z std 0.01 (0.1 voxel): above the 0.05 clamp
+    g = GaussianDecoder(feature_dim=4)(fields, voxel_size=0.1)
+    assert g.scales[0].min().item() == pytest.approx(math.sqrt(cov[2, 2]) * FOOTPRINT_GAIN, rel=1e-4)
+
+
+def test_support_unit_is_the_median_weight_per_observation():
+    assert support_unit(torch.tensor([0.5, 1.0, 3.0, 7.0]), torch.tensor([1, 2, 3, 0])) == pytest.approx(0.5)
+    assert support_unit(torch.zeros(0), torch.zeros(0, dtype=torch.int64)) == 1.0  # empty scene: any unit
+
+
+def test_opacity_is_invariant_to_a_global_reliability_scale():
+    # a capture whose every reliability is 10x lower (a noisier sensor) decodes to the same opacities
+    dec = GaussianDecoder(feature_dim=4)
+    fields, _ = fields_of_planar_voxel()
+    fields["reliability"] = torch.tensor([0.2, 1.0, 3.0, 9.0])
+    fields = {k: v.expand(4, *v.shape[1:]) if k != "reliability" else v for k, v in fields.items()}
+    bright = dec(fields, voxel_size=0.1, support_unit=0.5).opacities
+    dim = dec({**fields, "reliability": fields["reliability"] / 10}, voxel_size=0.1, support_unit=0.05).opacities
+    assert torch.allclose(bright, dim, atol=1e-6) and (bright[1:] > bright[:-1]).all()
+    with pytest.raises(ValueError, match="support_unit"):
+        dec(fields, voxel_size=0.1, support_unit=0.0)
 
 
 def test_scales_are_clamped_to_the_voxel_scale():

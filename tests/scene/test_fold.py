@@ -49,6 +49,20 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
     assert (batch["free_space"] > 0).sum() > 100  # real captures do see through some voxels
 
 
+@pytest.mark.parametrize("sh_degree", [0, 2])
+def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
+    # degree 0 has zero-width SH sums: they must stay [V, 0] fields, not become scalar columns
+    frames = [with_std(f, 0.001 * (1 + k)) for k, f in enumerate(shelf_frames[:2])]
+    config = SceneConfig(voxel_size=VOXEL, depth_edge_weight=0.0, sh_degree=sh_degree)
+    scene = fold_all(frames, config)[0]
+    k = (sh_degree + 1) ** 2
+    assert scene.sums()["sh_a"].shape == (len(scene), k * (k + 1) // 2 - 1)
+    stream, batch = scene.fields(), aggregate_batch(frames, config)
+    assert stream["sh"].shape == (len(scene), k, 3)
+    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
+    assert len(scene.decode()) > 0
+
+
 @pytest.mark.parametrize("mode", ["no_reliability", "no_similarity", "average"])
 def test_ablation_modes_stream_exactly(shelf_frames, mode):
     # these modes never rescale (first-observation or similarity-free representatives)

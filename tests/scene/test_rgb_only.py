@@ -39,8 +39,10 @@ def test_estimated_geometry_agrees_with_the_sensor(rgb_scene, shelf_frames):
     both = (out.alpha > 0.5) & (sensor > 0)
     rel = ((out.depth[both] - sensor[both]).abs() / sensor[both]).median().item()
     assert both.float().mean() > 0.2
-    # measured 0.053: the sweep's own error plus 8 mm voxels (~2 % at 0.4 m); a wrong pose or scale is > 0.2
-    assert rel < 0.08
+    # measured 0.091: the sweep's own error plus 8 mm voxels (~2 % at 0.4 m), plus floaters that decoding
+    # support relative to the scene's typical view makes more opaque (0.053 with absolute support,
+    # which in turn lost a fifth of the PSNR under depth noise); a wrong pose or scale is > 0.2
+    assert rel < 0.11
 
 
 def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_path):
