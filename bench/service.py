@@ -26,7 +26,7 @@ from common import machine_summary, print_table, stats_ms, time_each  # noqa: E4
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
-from client.cli import _free_port, _start_service, frame_arrays  # noqa: E402
+from client.cli import frame_arrays, free_port, start_service  # noqa: E402
 from client.sdk import Client  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
@@ -93,8 +93,8 @@ def main(argv=None) -> None:
     local = in_process(frames, args.voxel)
 
     with tempfile.TemporaryDirectory() as data_dir:
-        port = _free_port()
-        service = _start_service(port, Path(data_dir))
+        port = free_port()
+        service = start_service(port, Path(data_dir))
         try:
             url = f"http://127.0.0.1:{port}"
             over_http(url, payloads[:2], args.voxel)  # warm the service's kernels

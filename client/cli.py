@@ -226,7 +226,7 @@ def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=0, help="port of the embedded service (default: a free one)")
 
 
-def _free_port() -> int:
+def free_port() -> int:
     import socket
 
     with socket.socket() as s:
@@ -234,26 +234,35 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start_service(port: int, data_dir: Path):
+def wait_until_healthy(url: str, proc, timeout: float) -> None:
+    """Poll ``url``/healthz until it answers 200; RuntimeError if ``proc`` exits or ``timeout`` s pass."""
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the service exited with code {proc.returncode} before it was ready")
+        try:
+            if httpx.get(f"{url}/healthz", timeout=1.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.1)
+    raise RuntimeError(f"the service did not become ready within {timeout:g} s")
+
+
+def start_service(port: int, data_dir: Path):
     """The service as a child process (the same `canonical serve` a user runs); waits for /healthz."""
     import subprocess
 
-    import httpx
-
     proc = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir", str(data_dir),
                              "--log-level", "warning"], cwd=Path(__file__).resolve().parents[1])
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit(f"the service exited with code {proc.returncode} before it was ready")
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    proc.kill()
-    raise SystemExit("the service did not become ready within 120 s")
+    try:
+        wait_until_healthy(f"http://127.0.0.1:{port}", proc, timeout=120.0)
+    except RuntimeError as exc:
+        proc.kill()
+        raise SystemExit(str(exc)) from None
+    return proc
 
 
 def run_demo(args) -> int:
@@ -272,9 +281,9 @@ def run_demo(args) -> int:
         if not path.is_dir():
             write_tsdf_fusion(synthetic_rgbd(num_frames=24, width=320, height=240), path)
     frames = load_dataset(path)
-    port = args.port or _free_port()
+    port = args.port or free_port()
     print(f"demo: fusing {len(frames)} frames of {path} at {voxel * 1000:g} mm voxels through a service on port {port}")
-    service = _start_service(port, out / "data")
+    service = start_service(port, out / "data")
     try:
         with Client(f"http://127.0.0.1:{port}") as client:
             session = client.create_session(voxel_size=voxel)

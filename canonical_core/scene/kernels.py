@@ -107,8 +107,18 @@ class VoxelRows:
         return tuple(self.columns[n][0] if n in self.columns else -1 for n in names)
 
 
+@numba.njit(inline="always")
+def _uses_reliability(mode):
+    return mode == 0 or mode == 2
+
+
+@numba.njit(inline="always")
+def _uses_similarity(mode):
+    return mode == 0 or mode == 1
+
+
 @numba.njit(cache=True)
-def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
+def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
                    frame_keys, touched, new_keys, obs_slot, best, start):
     """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
 
@@ -119,6 +129,7 @@ def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
     table first, so the scene's (large, cache-cold) table is probed once per voxel, not per pixel.
     Returns (slots, new keys).
     """
+    uses_rel = _uses_reliability(mode)
     mask = table.shape[0] - 1
     local_mask = local_table.shape[0] - 1
     local_table[:] = -1
@@ -204,8 +215,8 @@ def fold_kernel(
         keys[vi] = new_keys[j]
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
         rows[vi, 0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
-    uses_rel = mode == 0 or mode == 2
-    uses_sim = mode == 0 or mode == 1
+    uses_rel = _uses_reliability(mode)
+    uses_sim = _uses_similarity(mode)
     K = sh_basis.shape[1]
     M = obs_slot.shape[0]
     for t in range(n_touched):

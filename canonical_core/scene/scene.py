@@ -194,8 +194,9 @@ class Scene:
         obs_keys, obs_slot, new_keys = self._obs_keys[:m], self._obs_slot[:m], self._new_keys[:m]
         inv_voxel = np.float32(1.0 / self.config.voxel_size)
         voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
+        mode = MODE_CODES[self.config.weighting]
         n_touched, n_new = resolve_kernel(
-            obs_keys, ev.reliability, self.config.weighting in ("full", "no_similarity"), self._table, self._state["keys"],
+            obs_keys, ev.reliability, mode, self._table, self._state["keys"],
             self._local_table, self._frame_keys, self._touched, new_keys, obs_slot, self._best, self._start)
         cap = self.config.max_voxels
         if cap is not None and self._n + n_new > cap:
@@ -210,8 +211,7 @@ class Scene:
         labels = ev.labels if ev.labels is not None else np.zeros((m, self.label_dim), np.float32)
         basis = observation_sh_basis(ev, frame.camera, self.config.sh_degree)
         switches = fold_kernel(
-            self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(),
-            MODE_CODES[self.config.weighting], inv_voxel,
+            self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(), mode, inv_voxel,
             n_touched, self._touched, new_keys, n_new, obs_slot, self._best, self._start,
             ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
             self._feat_inv_norm[:m], self._rep_inv_norm[:m], self._order[:m],

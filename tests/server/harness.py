@@ -5,25 +5,16 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 
-from client.cli import frame_arrays
+from client.cli import frame_arrays, free_port, wait_until_healthy
 
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "test-token-5f1c"
 VOXEL = 0.008  # coarse enough to be fast; quality is not under test
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class ServerProcess:
@@ -49,18 +40,12 @@ class ServerProcess:
                "--threads", "1", "--log-level", "warning"]
         self._log = open(self.log_path, "ab")
         self.proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=self._log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log()}")
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.1)
-        self.kill9()
-        raise RuntimeError(f"server did not come up in {timeout} s:\n{self.log()}")
+        try:
+            wait_until_healthy(self.url, self.proc, timeout)
+        except RuntimeError as exc:
+            self.kill9()
+            raise RuntimeError(f"{exc}:\n{self.log()}") from None
+        return self
 
     def kill9(self) -> None:
         if self.proc and self.proc.poll() is None:
