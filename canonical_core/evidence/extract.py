@@ -41,18 +41,24 @@ class FrameEvidence:
         return int(self.rows.shape[0])
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def valid_depth_pixels(depth, near, far):  # [H, W] float32 -> rows [M], cols [M] int64, row-major
-    """Pixels whose depth lies in (near, far): np.nonzero of the mask in one pass, no [H, W] temporaries."""
-    n = 0
-    for v in range(depth.shape[0]):
-        for u in range(depth.shape[1]):
+    """Pixels whose depth lies in (near, far): np.nonzero of the mask without [H, W] temporaries,
+    rows counted and filled in parallel (each row's pixels land at its prefix-sum offset)."""
+    H, W = depth.shape
+    first = np.zeros(H + 1, np.int64)
+    for v in numba.prange(H):
+        n = 0
+        for u in range(W):
             n += near < depth[v, u] < far
-    rows = np.empty(n, np.int64)
-    cols = np.empty(n, np.int64)
-    k = 0
-    for v in range(depth.shape[0]):
-        for u in range(depth.shape[1]):
+        first[v + 1] = n
+    for v in range(H):
+        first[v + 1] += first[v]
+    rows = np.empty(first[H], np.int64)
+    cols = np.empty(first[H], np.int64)
+    for v in numba.prange(H):
+        k = first[v]
+        for u in range(W):
             if near < depth[v, u] < far:
                 rows[k], cols[k] = v, u
                 k += 1

@@ -20,13 +20,12 @@ def _edge_jump(depth, v, u):
     H, W = depth.shape
     z = depth[v, u]
     jump = np.float32(0.0)
-    for dv in range(-1, 2):
-        for du in range(-1, 2):
-            vv, uu = v + dv, u + du
-            if 0 <= vv < H and 0 <= uu < W:
-                zn = depth[vv, uu]
-                if zn > 0:  # missing neighbours (0) say nothing about an edge
-                    jump = max(jump, abs(zn - z))
+    v0, v1, u0, u1 = max(v - 1, 0), min(v + 1, H - 1), max(u - 1, 0), min(u + 1, W - 1)
+    for vv in range(v0, v1 + 1):
+        for uu in range(u0, u1 + 1):
+            zn = depth[vv, uu]
+            # missing neighbours (0) say nothing about an edge (a select, not a branch)
+            jump = max(jump, abs(zn - z) if zn > 0 else np.float32(0.0))
     return jump
 
 

@@ -94,20 +94,22 @@ def _voxel_centre(key, voxel):
 
 
 @numba.njit(inline="always")
-def _see_through(x, y, z, P, intr, thr, wcell, area_scale, near):
-    zc = P[2, 0] * x + P[2, 1] * y + P[2, 2] * z + P[2, 3]
+def _see_through(x, y, z, P, intr, thr, wcell, e, h, w, area_scale, near):
+    """Evidence of map ``e`` (camera P[e], intr[e]; the first [h, w] cells of thr[e], wcell[e])
+    that the point is seen through."""
+    zc = P[e, 2, 0] * x + P[e, 2, 1] * y + P[e, 2, 2] * z + P[e, 2, 3]
     if zc <= near:
         return np.float32(0.0)
-    xc = P[0, 0] * x + P[0, 1] * y + P[0, 2] * z + P[0, 3]
-    yc = P[1, 0] * x + P[1, 1] * y + P[1, 2] * z + P[1, 3]
-    iu = int(np.floor(intr[0] * xc / zc + intr[2] + np.float32(0.5)))
-    iv = int(np.floor(intr[1] * yc / zc + intr[3] + np.float32(0.5)))
-    if iu < 0 or iv < 0 or iv >= thr.shape[0] or iu >= thr.shape[1]:
+    xc = P[e, 0, 0] * x + P[e, 0, 1] * y + P[e, 0, 2] * z + P[e, 0, 3]
+    yc = P[e, 1, 0] * x + P[e, 1, 1] * y + P[e, 1, 2] * z + P[e, 1, 3]
+    iu = int(np.floor(intr[e, 0] * xc / zc + intr[e, 2] + np.float32(0.5)))
+    iv = int(np.floor(intr[e, 1] * yc / zc + intr[e, 3] + np.float32(0.5)))
+    if iu < 0 or iv < 0 or iv >= h or iu >= w:
         return np.float32(0.0)
-    t = thr[iv, iu]
+    t = thr[e, iv, iu]
     if t <= np.float32(0.0) or zc >= t:
         return np.float32(0.0)
-    return wcell[iv, iu] * area_scale / (zc * zc)
+    return wcell[e, iv, iu] * area_scale / (zc * zc)
 
 
 @numba.njit(inline="always")
@@ -137,12 +139,14 @@ def frame_free_space_kernel(keys, free, chunk_lo, chunk_hi, n_voxels, voxel, P, 
     """Add one frame's see-through evidence to every voxel of the chunks its frustum meets."""
     n_chunks = (n_voxels + CHUNK - 1) // CHUNK
     h, w = thr.shape
+    # the frame's map as map 0 of a stack of one
+    P1, intr1, thr1, wcell1 = P.reshape(1, 3, 4), intr.reshape(1, 4), thr.reshape(1, h, w), wcell.reshape(1, h, w)
     for ch in numba.prange(n_chunks):
         if _box_outside_frustum(chunk_lo[ch], chunk_hi[ch], voxel, P, intr, h, w, near):
             continue
         for vi in range(ch * CHUNK, min((ch + 1) * CHUNK, n_voxels)):
             x, y, z = _voxel_centre(keys[vi], voxel)
-            free[vi] += _see_through(x, y, z, P, intr, thr, wcell, area_scale, near)
+            free[vi] += _see_through(x, y, z, P1, intr1, thr1, wcell1, 0, h, w, area_scale, near)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -152,8 +156,7 @@ def history_free_space_kernel(keys, free, first, last, voxel, order, P, intr, th
         x, y, z = _voxel_centre(keys[vi], voxel)
         acc = free[vi]
         for e in order:
-            acc += _see_through(x, y, z, P[e], intr[e], thr[e, : dims[e, 0], : dims[e, 1]],
-                                wcell[e, : dims[e, 0], : dims[e, 1]], area[e], near)
+            acc += _see_through(x, y, z, P, intr, thr, wcell, e, dims[e, 0], dims[e, 1], area[e], near)
         free[vi] = acc
 
 

@@ -54,10 +54,10 @@ def _pack(i, j, k):
     return (a << (2 * KEY_BITS)) | (b << KEY_BITS) | c
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def voxel_keys_kernel(points, inv_voxel, out):
     """Keys of the voxels holding ``points`` ([M, 3] float32); -1 outside the lattice."""
-    for i in range(points.shape[0]):
+    for i in numba.prange(points.shape[0]):
         out[i] = _pack(_voxel_coord(points[i, 0], inv_voxel), _voxel_coord(points[i, 1], inv_voxel),
                        _voxel_coord(points[i, 2], inv_voxel))
 
@@ -117,17 +117,17 @@ def _uses_similarity(mode):
     return mode == 0 or mode == 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
-                   frame_keys, touched, new_keys, obs_slot, best, start):
+                   frame_keys, touched, new_keys, obs_slot, best, head, tail, next_obs):
     """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
 
     Each distinct key of the frame gets a slot t (first-occurrence order): obs_slot[i] = t (-1
     outside the lattice), touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
     scene (new_keys[j]); best[t] = the slot's most reliable observation (first maximum wins, as in
-    the batch rule); start[t + 1] = the slot's observation count. Dedupe happens in a frame-local
-    table first, so the scene's (large, cache-cold) table is probed once per voxel, not per pixel.
-    Returns (slots, new keys).
+    the batch rule). The slot's observations form a chain in frame order: head[t], next_obs[i]
+    (-1 ends it; tail is scratch). Dedupe happens in a frame-local table first, so the scene's
+    (large, cache-cold) table is probed once per voxel, not per pixel. Returns (slots, new keys).
     """
     uses_rel = _uses_reliability(mode)
     mask = table.shape[0] - 1
@@ -135,31 +135,37 @@ def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
     local_table[:] = -1
     n_touched = 0
     n_new = 0
-    start[0] = 0
+    last_key, last_t = np.int64(-1), -1
     for i in range(obs_keys.shape[0]):
         key = obs_keys[i]
         if key < 0:
             obs_slot[i] = -1
             continue
-        t = _find(local_table, frame_keys, key, local_mask)
+        next_obs[i] = -1
+        # neighbouring pixels of a row mostly fall in one voxel: skip the probe for a repeat
+        t = last_t if key == last_key else _find(local_table, frame_keys, key, local_mask)
+        last_key = key
         if t >= 0:
+            last_t = t
             obs_slot[i] = t
-            start[t + 1] += 1
+            next_obs[tail[t]] = i
+            tail[t] = i
             if uses_rel and rel[i] > rel[best[t]]:
                 best[t] = i
             continue
         t = n_touched
+        last_t = t
         n_touched += 1
         local_table[-1 - _find(local_table, frame_keys, key, local_mask)] = t
         frame_keys[t] = key
         obs_slot[i] = t
-        start[t + 1] = 1
-        best[t] = i
-        r = _find(table, keys, key, mask)
-        if r >= 0:
-            touched[t] = r
-        else:
-            new_keys[n_new] = key
+        head[t] = tail[t] = best[t] = i
+    # the scene's table is probed once per distinct key, in parallel (the probes are cache misses)
+    for t in numba.prange(n_touched):
+        touched[t] = _find(table, keys, frame_keys[t], mask)
+    for t in range(n_touched):  # new voxels are numbered in first-occurrence order
+        if touched[t] < 0:
+            new_keys[n_new] = frame_keys[t]
             touched[t] = -2 - n_new
             n_new += 1
     return n_touched, n_new
@@ -186,11 +192,11 @@ def fold_kernel(
     # scene state (rows >= n_voxels are zero)
     table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, mode, inv_voxel,
     # phase A's result
-    n_touched, touched, new_keys, n_new, obs_slot, best, start,
+    n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
     rel, feat, rgb, points, sh_basis, labels, has_labels,
     # scratch [M]
-    feat_inv_norm, rep_inv_norm, order,
+    feat_inv_norm, rep_inv_norm,
 ):
     """Phase B: insert the new voxels, replace representatives that the frame-best observation
     beats (rescaling the old sums by max(0, cos(old rep, new rep))), then accumulate
@@ -202,9 +208,8 @@ def fold_kernel(
     sh_b = sum W b_k (c - 1/2) for k >= 1 (the DC row is C0 (sum W c - R_scene / 2)); b is the
     observation's SH basis of its view direction.
 
-    Observations are put in voxel order (a stable counting sort), then voxels are summed in
-    parallel, each over its own observations in frame order: the result is bit-identical for any
-    thread count."""
+    Voxels are summed in parallel, each over its own observations in frame order (phase A's
+    chains): the result is bit-identical for any thread count."""
     REP_F, REP_POS, R_SUM, F_SUM, RGB_SUM, POS_SUM, POS_SQ, SH_A, SH_B, LABEL_W, LABEL_SUM = offsets
     L = feat.shape[1]
     S = labels.shape[1]
@@ -218,7 +223,7 @@ def fold_kernel(
     uses_rel = _uses_reliability(mode)
     uses_sim = _uses_similarity(mode)
     K = sh_basis.shape[1]
-    M = obs_slot.shape[0]
+    M = feat.shape[0]
     for t in range(n_touched):
         if touched[t] < 0:
             touched[t] = n_voxels + (-2 - touched[t])
@@ -246,27 +251,19 @@ def fold_kernel(
                 row[REP_POS + c] = points[b, c]
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
         rep_inv_norm[t] = _inv_norm(row[REP_F: REP_F + L])
-    # 2) observations in voxel order, frame order within each voxel (phase A counted them)
-    for t in range(n_touched):
-        start[t + 1] += start[t]
-    for i in range(M):
-        t = obs_slot[i]
-        if t >= 0:
-            order[start[t]] = i
-            start[t] += 1
-    for t in range(n_touched, 0, -1):  # the fill advanced each start to the next one's: shift back
-        start[t] = start[t - 1]
-    start[0] = 0
-    # 3) weighted sums, voxels in parallel, each voxel's observations in frame order; the
-    # fixed-size sums go through registers and are added to the row once per voxel
+    # 2) weighted sums, voxels in parallel, each voxel's observations in frame order (phase A's
+    # chains); the fixed-size sums go through registers and are added to the row once per voxel
     for t in numba.prange(n_touched):
         vi = touched[t]
         row = rows[vi]
         rep_f, f_sum = row[REP_F: REP_F + L], row[F_SUM: F_SUM + L]
-        n_obs[vi] += start[t + 1] - start[t]
         r_acc = c0 = c1 = c2 = px = py = pz = qxx = qxy = qxz = qyy = qyz = qzz = np.float32(0.0)
-        for j in range(start[t], start[t + 1]):
-            i = order[j]
+        a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = np.float32(0.0)
+        s1r = s1g = s1b = s2r = s2g = s2b = s3r = s3g = s3b = np.float32(0.0)
+        count = 0
+        i = head[t]
+        while i >= 0:
+            count += 1
             f = feat[i]
             w = rel[i] if uses_rel else np.float32(1.0)
             if uses_sim:
@@ -290,7 +287,29 @@ def fold_kernel(
             qyy += wy * ly
             qyz += wy * lz
             qzz += wz * lz
-            if K > 1:
+            if K == 4:  # degree 1 (the default): the 18 sums in registers, same order as below
+                wb0, wb1, wb2, wb3 = w * sh_basis[i, 0], w * sh_basis[i, 1], w * sh_basis[i, 2], w * sh_basis[i, 3]
+                b1, b2, b3 = sh_basis[i, 1], sh_basis[i, 2], sh_basis[i, 3]
+                r0, g0, bl0 = rgb[i, 0] - np.float32(0.5), rgb[i, 1] - np.float32(0.5), rgb[i, 2] - np.float32(0.5)
+                a01 += wb0 * b1
+                a02 += wb0 * b2
+                a03 += wb0 * b3
+                a11 += wb1 * b1
+                a12 += wb1 * b2
+                a13 += wb1 * b3
+                a22 += wb2 * b2
+                a23 += wb2 * b3
+                a33 += wb3 * b3
+                s1r += wb1 * r0
+                s1g += wb1 * g0
+                s1b += wb1 * bl0
+                s2r += wb2 * r0
+                s2g += wb2 * g0
+                s2b += wb2 * bl0
+                s3r += wb3 * r0
+                s3g += wb3 * g0
+                s3b += wb3 * bl0
+            elif K > 1:
                 idx = SH_A
                 for p in range(K):
                     wb = w * sh_basis[i, p]
@@ -305,6 +324,8 @@ def fold_kernel(
                 row[LABEL_W] += w
                 for c in range(S):
                     row[LABEL_SUM + c] += w * labels[i, c]
+            i = next_obs[i]
+        n_obs[vi] += count
         row[R_SUM] += r_acc
         row[RGB_SUM] += c0
         row[RGB_SUM + 1] += c1
@@ -318,4 +339,9 @@ def fold_kernel(
         row[POS_SQ + 3] += qyy
         row[POS_SQ + 4] += qyz
         row[POS_SQ + 5] += qzz
+        if K == 4:
+            for c, a in enumerate((a01, a02, a03, a11, a12, a13, a22, a23, a33)):
+                row[SH_A + c] += a
+            for c, a in enumerate((s1r, s1g, s1b, s2r, s2g, s2b, s3r, s3g, s3b)):
+                row[SH_B + c] += a
     return switches

@@ -164,8 +164,9 @@ class Scene:
             self._feat_inv_norm = np.empty(self._scratch_m, np.float32)
             self._rep_inv_norm = np.empty(self._scratch_m, np.float32)
             self._obs_slot = np.empty(self._scratch_m, np.int32)
-            self._start = np.empty(self._scratch_m + 1, np.int32)
-            self._order = np.empty(self._scratch_m, np.int32)
+            self._head = np.empty(self._scratch_m, np.int32)
+            self._tail = np.empty(self._scratch_m, np.int32)
+            self._next_obs = np.empty(self._scratch_m, np.int32)
             self._local_table = np.empty(_next_pow2(2 * self._scratch_m), np.int32)
 
     # -- folding ------------------------------------------------------------------------------
@@ -197,7 +198,7 @@ class Scene:
         mode = MODE_CODES[self.config.weighting]
         n_touched, n_new = resolve_kernel(
             obs_keys, ev.reliability, mode, self._table, self._state["keys"],
-            self._local_table, self._frame_keys, self._touched, new_keys, obs_slot, self._best, self._start)
+            self._local_table[: _next_pow2(2 * m)], self._frame_keys, self._touched, new_keys, obs_slot, self._best, self._head, self._tail, self._next_obs)
         cap = self.config.max_voxels
         if cap is not None and self._n + n_new > cap:
             raise CapacityError(
@@ -212,9 +213,9 @@ class Scene:
         basis = observation_sh_basis(ev, frame.camera, self.config.sh_degree)
         switches = fold_kernel(
             self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(), mode, inv_voxel,
-            n_touched, self._touched, new_keys, n_new, obs_slot, self._best, self._start,
+            n_touched, self._touched, new_keys, n_new, self._best, self._head, self._next_obs,
             ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
-            self._feat_inv_norm[:m], self._rep_inv_norm[:m], self._order[:m],
+            self._feat_inv_norm[:m], self._rep_inv_norm[:m],
         )
         update_chunk_boxes_kernel(s["keys"], self._n, self._n + n_new, self._chunk_lo, self._chunk_hi)
         if self.config.free_space:
