@@ -25,6 +25,8 @@ class SceneConfig:
         feature_backend: ``default`` (training-free extractor) or ``client`` (use ``Frame.features``,
             resized to the image and projected to ``feature_dim`` channels).
         weighting: ablation mode of the aggregation rule (``full`` is the paper's rule).
+            ``no_reliability`` and ``average`` treat every reliability as 1, in the free-space
+            evidence too (see `uses_reliability`).
         depth_sigma0, depth_sigma2, depth_sigma_ref: sensor noise model for supplied depth without a
             std: sigma(z) = sigma0 + sigma2 * (z - ref)^2 metres (structured-light/ToF sensors).
         depth_edge_weight: adds weight * (largest depth jump to a 4-neighbour) to sigma, so
@@ -73,6 +75,11 @@ class SceneConfig:
     depth_sources: int = 2
     depth_hypotheses: int = 64
     source_window: int = 4
+
+    @property
+    def uses_reliability(self) -> bool:
+        """Whether the weighting uses R_view (the fold kernels read the same from the mode code)."""
+        return self.weighting in ("full", "no_similarity")
 
     def __post_init__(self):
         def positive(name, value):

@@ -9,7 +9,9 @@ whose centre projects into a cell in front of its threshold gains
     w = exp(-sigma / voxel) * valid_fraction(cell) * fx * fy * voxel^2 / z^2
 
 i.e. the reliability of the rays times the number of valid rays that pass through the voxel, which
-is the unit of R_scene (reliability-weighted pixel observations), so the two can be compared.
+is the unit of R_scene (reliability-weighted pixel observations), so the two can be compared. The
+ablations that treat reliability as 1 (``no_reliability``, ``average``) count rays unweighted
+here too, so support and free-space evidence stay in one unit.
 
 Order independence: voxel centres are fixed, so the test of (voxel, frame) never changes. A fold
 tests every voxel in the frame's frustum, including the voxels it creates (chunk AABBs cull the
@@ -43,7 +45,7 @@ class SeeThroughMap:
 
 
 @numba.njit(parallel=True, cache=True)
-def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_ref, voxel, margin, sigmas, thr, wcell):
+def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_ref, voxel, margin, sigmas, weighted, thr, wcell):
     H, W = depth.shape
     h, w = thr.shape
     for cy in numba.prange(h):
@@ -64,7 +66,7 @@ def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_r
                 wcell[cy, cx] = 0.0
             else:
                 thr[cy, cx] = dmin - (margin * voxel + sigmas * smin)
-                wcell[cy, cx] = np.exp(-smin / voxel) * n / (cell * cell)
+                wcell[cy, cx] = (np.exp(-smin / voxel) if weighted else np.float32(1.0)) * n / (cell * cell)
 
 
 def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
@@ -78,7 +80,8 @@ def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
     _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.near),
                        np.float32(config.far), np.float32(config.depth_sigma0), np.float32(config.depth_sigma2),
                        np.float32(config.depth_sigma_ref), np.float32(config.voxel_size),
-                       np.float32(config.free_space_margin), np.float32(config.free_space_sigmas), thr, wcell)
+                       np.float32(config.free_space_margin), np.float32(config.free_space_sigmas),
+                       config.uses_reliability, thr, wcell)
     cam = frame.camera
     coarse = np.array([cam.fx / c, cam.fy / c, (cam.cx + 0.5) / c - 0.5, (cam.cy + 0.5) / c - 0.5], np.float32)
     w2c = np.linalg.inv(cam.c2w64())[:3].astype(np.float32)

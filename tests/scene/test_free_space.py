@@ -63,6 +63,25 @@ def test_streaming_free_space_and_sh_equal_batch_and_ignore_order():
     assert torch.allclose(fields["sh"], batch["sh"], atol=1e-4)
 
 
+@pytest.mark.parametrize("weighting", ["no_reliability", "average"])
+def test_ablations_without_reliability_count_see_through_rays_unweighted(weighting):
+    # with reliability the rays count exp(-sigma / voxel) each; the ablations that set every
+    # reliability to 1 must count them as 1 too, or support and free space are in different units
+    sigma = 0.02
+    frames = [wall_frame(x, floater=(k == 0)) for k, x in enumerate([0.0, 0.08, -0.08])]
+    frames = [Frame(rgb=f.rgb, camera=f.camera, depth=f.depth, depth_std=torch.full_like(f.depth, sigma)) for f in frames]
+    scenes = {w: Scene(SceneConfig(voxel_size=VOXEL, weighting=w)) for w in ("full", weighting)}
+    for scene in scenes.values():
+        for f in frames:
+            scene.fold(f)
+    full, ablated = (scenes[w].fields(sort=True) for w in ("full", weighting))
+    assert torch.equal(full["keys"], ablated["keys"])
+    seen_through = full["free_space"] > 0
+    assert seen_through.sum() >= 4
+    ratio = full["free_space"][seen_through] / ablated["free_space"][seen_through]
+    assert torch.allclose(ratio, torch.full_like(ratio, float(np.exp(-sigma / VOXEL))), rtol=1e-5)
+
+
 def test_history_bounds_the_retroactive_evidence():
     offsets = [0.0, 0.08, -0.08, 0.15, -0.15]
     frames = [wall_frame(x, floater=(k == 4)) for k, x in enumerate(offsets)]
