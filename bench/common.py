@@ -20,9 +20,13 @@ def machine_summary() -> str:
     import numba
     import torch
 
+    load = ""
+    if hasattr(os, "getloadavg"):
+        load = (f"load average {' / '.join(f'{x:.2f}' for x in os.getloadavg())} (1 / 5 / 15 min: other work on "
+                "the machine skews timings)\n")
     return (f"machine: {platform.node()} | {cpu} | {os.cpu_count()} cores | {platform.system()} {platform.release()}\n"
             f"python {platform.python_version()} | torch {torch.__version__} ({torch.get_num_threads()} threads) | "
-            f"numba {numba.__version__} ({numba.get_num_threads()} threads) | numpy {np.__version__}\n")
+            f"numba {numba.__version__} ({numba.get_num_threads()} threads) | numpy {np.__version__}\n" + load)
 
 
 def time_each(fn, items) -> list[float]:

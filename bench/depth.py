@@ -15,7 +15,6 @@ frames ("stream"); sparsification (AUSE, the certain-half ratio) and a sharpness
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -38,12 +37,12 @@ from canonical_core.evidence.mvs import (  # noqa: E402
     upsample_depth,
 )
 from canonical_core.evidence.mvs_eval import (  # noqa: E402
-    downscale_frame,
     offline_depth,
     stream_depth,
     summarize,
     without_depth,
 )
+from canonical_core.frame import resize_frame  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 NEAR, FAR = 0.2, 2.0
@@ -134,17 +133,13 @@ def main(argv=None) -> None:
         seq = synthetic_rgbd(num_frames=50, width=640, height=480)
         name = "synthetic (../shared/data not found)"
     print(machine_summary())
-    load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    if load:
-        print(f"load average at start: {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min; "
-              f"other processes share these cores, so timings vary with it)\n")
     idx = (min(12, len(seq) - 3), min(20, len(seq) - 2), min(28, len(seq) - 1))
     full = [without_depth(seq[i]) for i in idx]
     print(f"data: {name}; reference frame {full[1].frame_id}, sources {full[0].frame_id} and {full[2].frame_id}; "
           f"matching features L = {MATCHING_FEATURE_DIM} (int8); near/far {NEAR}/{FAR} m; {args.repeats} repeats\n")
     rows = []
     for label, factor in (("320x240", 2), ("640x480", 1)):
-        frames = [downscale_frame(f, factor) for f in full]
+        frames = [resize_frame(f, 1.0 / factor) for f in full]
         sources = [SourceView.from_frame(frames[0]), SourceView.from_frame(frames[2])]
         time_stage(frames[1], sources, 8, 1)  # compile / load the numba cache outside the measurement
         for K in (32, 64):

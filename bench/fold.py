@@ -25,17 +25,10 @@ from canonical_core.camera import quaternion_to_matrix  # noqa: E402
 from canonical_core.datasets import load_dataset, synthetic_rgbd  # noqa: E402
 from canonical_core.evidence import extract_evidence  # noqa: E402
 from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available  # noqa: E402
+from canonical_core.eval.run import resize_frame  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
-
-
-def downscale(frame: Frame, factor: int) -> Frame:
-    """Nearest-neighbour downscale by an integer factor (depth must not be interpolated)."""
-    rgb = frame.rgb[factor // 2:: factor, factor // 2:: factor]
-    depth = frame.depth[factor // 2:: factor, factor // 2:: factor]
-    cam = frame.camera.scaled(1.0 / factor)
-    return Frame(rgb=rgb.contiguous(), camera=cam, depth=depth.contiguous(), frame_id=frame.frame_id)
 
 
 def jittered(frame: Frame, rng: np.random.Generator, translation: float, angle: float) -> Frame:
@@ -81,7 +74,7 @@ def main(argv=None) -> None:
     rows = []
     have_o3d = open3d_available()
     for label, factor in (("640x480", 1), ("320x240", 2)):
-        fs = frames if factor == 1 else [downscale(f, factor) for f in frames]
+        fs = [resize_frame(f, 1.0 / factor) for f in frames]
         fold_ms, ev_ms, o3d_ms, agg_ms, scene = [], [], [], [], None
         for _ in range(args.repeats):
             ms, scene = time_folds(fs, config)
@@ -117,9 +110,10 @@ def main(argv=None) -> None:
         for name, cfg in variants.items():
             ms, scene = time_folds(stream, cfg)
             early, late, ratios = windows[name]
-            early += ms[early_at - half: early_at + half + 1]
-            late += ms[late_at - half: late_at + half + 1]
-            ratios.append(np.median(late[-2 * half - 1:]) / np.median(early[-2 * half - 1:]))
+            run_early, run_late = ms[early_at - half: early_at + half + 1], ms[late_at - half: late_at + half + 1]
+            early += run_early
+            late += run_late
+            ratios.append(np.median(run_late) / np.median(run_early))
             longest = max(longest, max(ms))
     rows = []
     for name, (early, late, ratios) in windows.items():

@@ -17,7 +17,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numba
@@ -25,10 +24,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine_summary  # noqa: E402
+from common import machine_summary, time_each  # noqa: E402
 
 from canonical_core.camera import Camera  # noqa: E402
-from canonical_core.gaussians import Gaussians  # noqa: E402
+from canonical_core.gaussians import Gaussians, rgb_to_sh_dc  # noqa: E402
 from canonical_core.rendering import render  # noqa: E402
 
 FOCAL_AT_640 = 525.0
@@ -70,7 +69,7 @@ def make_scene(n: int, feature_dim: int = 0, seed: int = 0) -> Gaussians:
     turn = np.array([np.cos(-np.pi / 4), np.sin(-np.pi / 4), 0, 0])
     quats[up] = quat_multiply(np.broadcast_to(turn, (up.sum(), 4)), quats[up])
     sh = np.zeros((n, 4, 3))
-    sh[:, 0] = (rng.uniform(0.1, 0.9, (n, 3)) - 0.5) / 0.28209479177387814
+    sh[:, 0] = rgb_to_sh_dc(rng.uniform(0.1, 0.9, (n, 3)))
     sh[:, 1:] = rng.normal(0, 0.1, (n, 3, 3))
     t = lambda x: torch.as_tensor(x, dtype=torch.float32)  # noqa: E731
     return Gaussians(
@@ -94,21 +93,14 @@ OUTPUTS = {"rgb": ("rgb", "depth", "alpha"), "rgb+32f": ("rgb", "depth", "alpha"
 
 
 def machine() -> str:
-    return machine_summary() + (
-        f"numba threading layer: {numba.threading_layer()} | load average "
-        f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (1/5/15 min: other work on the machine skews timings)"
-    )
+    return machine_summary() + f"numba threading layer: {numba.threading_layer()}"
 
 
 def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> list[float]:
     """Milliseconds per render, after a warm-up render."""
-    render(gaussians, camera, outputs, backend=backend, num_threads=threads)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        render(gaussians, camera, outputs, backend=backend, num_threads=threads)
-        times.append(1000 * (time.perf_counter() - start))
-    return times
+    draw = lambda _: render(gaussians, camera, outputs, backend=backend, num_threads=threads)  # noqa: E731
+    draw(None)
+    return time_each(draw, range(repeats))
 
 
 # Run in a fresh interpreter: seconds to import, seconds of the first render (numba cache warm),

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from PIL import Image
 from torch import Tensor
 
 from .camera import Camera
@@ -127,3 +128,21 @@ class Frame:
     def __repr__(self) -> str:
         extras = [n for n in ("depth", "depth_std", "features", "labels") if getattr(self, n) is not None]
         return f"Frame({self.width}x{self.height}, id={self.frame_id!r}, with={extras}, {self.camera!r})"
+
+
+def resize_frame(frame: Frame, scale: float) -> Frame:
+    """The frame resized by ``scale``: colour area-averaged, depth nearest (no mixing across
+    edges or holes), camera via `Camera.scaled`; client features and labels are dropped."""
+    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
+        raise ValueError(f"scale: expected a number in (0, 1], got {scale!r}")
+    if scale == 1:
+        return frame
+    camera = frame.camera.scaled(scale)
+    size = (camera.width, camera.height)
+    rgb = np.array(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
+
+    def nearest(t: Tensor | None) -> np.ndarray | None:
+        return None if t is None else np.array(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
+
+    return Frame(rgb=rgb, camera=camera, depth=nearest(frame.depth), depth_std=nearest(frame.depth_std),
+                 frame_id=frame.frame_id)

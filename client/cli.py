@@ -27,8 +27,6 @@ from typing import Callable
 
 import numpy as np
 
-from canonical_core.eval.cli import configure_parser, run_eval
-
 from .sdk import CanonicalError, Client
 
 
@@ -330,6 +328,20 @@ def run_depth(args) -> int:
     return 0
 
 
+# -- eval ---------------------------------------------------------------------------------------
+# canonical_core (torch) is imported only when `eval` is the command: the other commands start fast.
+def add_eval(p: argparse.ArgumentParser) -> None:
+    from canonical_core.eval.cli import configure_parser
+
+    configure_parser(p)
+
+
+def run_eval(args) -> int:
+    from canonical_core.eval import cli
+
+    return cli.run_eval(args)
+
+
 COMMANDS: dict[str, Command] = {
     "serve": Command(add_serve, run_serve, "run the service (uvicorn)"),
     "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
@@ -338,20 +350,25 @@ COMMANDS: dict[str, Command] = {
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
     "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
     "depth": Command(add_depth, run_depth, "estimate depth + uncertainty of a dataset's frames by plane sweep, write pictures"),
-    "eval": Command(configure_parser, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),
+    "eval": Command(add_eval, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``canonical`` parser; with ``only``, just that command gets its arguments (the others
+    are listed by name and help), so a command never pays for another's imports."""
     parser = argparse.ArgumentParser(prog="canonical", description="CanonicalGS Fusion: service and client.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, command in COMMANDS.items():
-        command.add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+        p = sub.add_parser(name, help=command.help, description=command.help)
+        if only is None or name == only:
+            command.add_arguments(p)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(only=argv[0] if argv else "").parse_args(argv)
     try:
         return COMMANDS[args.command].run(args) or 0
     except CanonicalError as exc:

@@ -26,6 +26,8 @@ moment-matched covariance mean_i(Sigma_i + (mu_i - mu)(mu_i - mu)^T).
 
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Sequence
 
 import numpy as np
@@ -56,8 +58,7 @@ def _cat(parts: Sequence[Gaussians]) -> Gaussians:
         tensors = [getattr(p, name) for p in parts]
         return None if tensors[0] is None else torch.cat(tensors)
 
-    return Gaussians(means=cat("means"), scales=cat("scales"), quats=cat("quats"), opacities=cat("opacities"),
-                     sh=cat("sh"), features=cat("features"))
+    return Gaussians(**{f.name: cat(f.name) for f in dataclasses.fields(Gaussians)})
 
 
 def _covariances(scales: Tensor, rotations: Tensor) -> Tensor:  # [N, 3], [N, 3, 3] -> [N, 3, 3]

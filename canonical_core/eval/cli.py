@@ -2,8 +2,9 @@
 
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise 0.05,0.1,0.25,0.5]
 
-`add_eval_parser` registers the subcommand on a subparsers object (the ``canonical`` console
-script hooks it in); ``python -m canonical_core.eval DATASET ...`` runs it standalone.
+`configure_parser` adds its arguments to a parser (the ``canonical`` console script's ``eval``),
+`add_eval_parser` registers the subcommand on any subparsers object, and
+``python -m canonical_core.eval DATASET ...`` runs it standalone.
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 COVERAGE_THRESHOLD = 0.5  # alpha at or above which a pixel counts as covered
+DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
 
 # SSIM as defined by Wang, Bovik, Sheikh and Simoncelli (2004): an 11x11 Gaussian window with
 # sigma 1.5, C1 = (K1 L)^2, C2 = (K2 L)^2 with K1 = 0.01, K2 = 0.03 and dynamic range L = 1,

@@ -94,9 +94,6 @@ class Open3DTSDF:
         self.grid.integrate(blocks, depth, color, intrinsic, extrinsic, 1.0, self.depth_max, TRUNCATION_VOXELS)
         self._volume = None
 
-    def voxel_count(self) -> int:
-        return int(self.grid.hashmap().size()) * BLOCK_RESOLUTION**3
-
     def voxels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The allocated blocks, sorted by packed key: keys [B] int64, tsdf [B, 16, 16, 16] (in
         [-1, 1], truncation units), weight [B, 16, 16, 16], colour [B, 16, 16, 16, 3] in [0, 1] (Open3D

@@ -20,6 +20,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from .metrics import COVERAGE_THRESHOLD, DEPTH_TOLERANCE_VOXELS
+from .protocol import EXTRAPOLATION_RATIO, HELDOUT_COUNT
+
 GRID_TILE_WIDTH = 320  # pixels: tiles of the image grids are downscaled to at most this width
 _HEADER = 18  # pixels: label band above each grid column
 
@@ -79,10 +82,11 @@ def markdown(results: Mapping) -> str:
         f"# Evaluation: {results['dataset']}",
         "",
         f"{results['frames']} frames, images {width}x{height} (scale {results['scale']:g}), voxel size {results['voxel_size']:g}.",
-        "Metrics are means over the held-out frames; background black; covered = accumulated alpha >= 0.5;",
-        "depth agree = share of covered pixels with sensor depth whose rendered depth is within 2 voxels of it.",
-        "Inputs for N views: round(linspace(0, n - 1, N)). Held-out: for each target in linspace(2, n - 3, 10) the "
-        "nearest position that is not an input for any N here and not already held out (ties to the lower one).",
+        f"Metrics are means over the held-out frames; background black; covered = accumulated alpha >= {COVERAGE_THRESHOLD:g};",
+        f"depth agree = share of covered pixels with sensor depth whose rendered depth is within {DEPTH_TOLERANCE_VOXELS:g} "
+        "voxels of it.",
+        f"Inputs for N views: round(linspace(0, n - 1, N)). Held-out: for each target in linspace(2, n - 3, {HELDOUT_COUNT}) "
+        "the nearest position that is not an input for any N here and not already held out (ties to the lower one).",
         "",
         "Held-out positions (frame ids): " + ", ".join(f"{p} ({i})" for p, i in zip(results["heldout"], results["heldout_ids"])),
         "",
@@ -114,7 +118,7 @@ def markdown(results: Mapping) -> str:
 
     extra = results["extrapolation"]
     if extra is not None:
-        lines += ["", "## Extrapolation (targets span 20 % more than the inputs), clean depth", "",
+        lines += ["", f"## Extrapolation (targets span {EXTRAPOLATION_RATIO - 1:.0%} more than the inputs), clean depth", "",
                   *(f"- inputs N={k}: {v} (target span / input span = {extra['span_ratio'][k]:.2f})" for k, v in extra["inputs"].items()),
                   "", *_table(_METRIC_HEADER, _metric_rows(
                       sorted(extra["runs"], key=lambda r: (r["views"], methods.index(r["method"])))))]

@@ -26,36 +26,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 from tqdm import tqdm
 
 from ..datasets import FrameSequence, load_dataset
-from ..frame import Frame
+from ..frame import Frame, resize_frame
 from .methods import METHODS, Model, build, check_methods
-from .metrics import cosine_map, covered, coverage, depth_agreement, psnr, ssim
+from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
 
 VOXEL_PIXELS = 6.0  # default voxel edge in pixel footprints at the median depth (4 mm on the shelf)
-DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
-
-
-def resize_frame(frame: Frame, scale: float) -> Frame:
-    """The frame resized by ``scale``: colour area-averaged, depth nearest (no mixing across
-    edges or holes), camera via `Camera.scaled`; client features and labels are dropped."""
-    if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
-        raise ValueError(f"scale: expected a number in (0, 1], got {scale!r}")
-    if scale == 1:
-        return frame
-    camera = frame.camera.scaled(scale)
-    size = (camera.width, camera.height)
-    rgb = np.array(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
-
-    def nearest(t: torch.Tensor | None) -> np.ndarray | None:
-        return None if t is None else np.array(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
-
-    return Frame(rgb=rgb, camera=camera, depth=nearest(frame.depth), depth_std=nearest(frame.depth_std),
-                 frame_id=frame.frame_id)
 
 
 def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:

@@ -90,14 +90,19 @@ def dct_basis() -> np.ndarray:  # [M, n, n] float64
 _BASIS_FLAT = torch.from_numpy(dct_basis().reshape(len(_ORDERS), -1).astype(np.float32))  # [M, n*n]
 
 
+def _rgb_tensor(rgb: Tensor | np.ndarray) -> Tensor:  # [H, W, 3] uint8, checked
+    t = torch.as_tensor(np.asarray(rgb) if not isinstance(rgb, Tensor) else rgb)
+    if t.ndim != 3 or t.shape[-1] != 3 or t.dtype != torch.uint8:
+        raise ValueError(f"rgb: expected uint8 [H, W, 3], got {t.dtype} {list(t.shape)}")
+    return t
+
+
 def resize_image(
     rgb: Tensor | np.ndarray,  # [H, W, 3] uint8
     size: tuple[int, int],  # (h, w)
 ) -> Tensor:  # [h, w, 3] float32 in [0, 1]
     """Anti-aliased bilinear resize (pixel-centre convention, as `Camera.scaled`)."""
-    t = torch.as_tensor(np.asarray(rgb) if not isinstance(rgb, Tensor) else rgb)
-    if t.ndim != 3 or t.shape[-1] != 3 or t.dtype != torch.uint8:
-        raise ValueError(f"rgb: expected uint8 [H, W, 3], got {t.dtype} {list(t.shape)}")
+    t = _rgb_tensor(rgb)
     img = t.permute(2, 0, 1)[None].float() / 255.0
     if tuple(img.shape[-2:]) != tuple(size):
         img = F.interpolate(img, size=tuple(size), mode="bilinear", antialias=True, align_corners=False)
@@ -148,9 +153,7 @@ def sweep_luminance(
     anti-aliased bilinear resize of `resize_image` on the luminance. Both keep pixel centres where
     `Camera.scaled` puts them.
     """
-    t = torch.as_tensor(np.asarray(rgb) if not isinstance(rgb, Tensor) else rgb)
-    if t.ndim != 3 or t.shape[-1] != 3 or t.dtype != torch.uint8:
-        raise ValueError(f"rgb: expected uint8 [H, W, 3], got {t.dtype} {list(t.shape)}")
+    t = _rgb_tensor(rgb)
     H, W = int(t.shape[0]), int(t.shape[1])
     h, w = int(size[0]), int(size[1])
     if 0 <= H - 2 * h <= 1 and 0 <= W - 2 * w <= 1 and h > 0 and w > 0:
@@ -166,12 +169,7 @@ def sweep_luminance(
 def _box_blur(y: Tensor, f: int) -> Tensor:  # [1, 1, h, w] -> same; symmetric box of width f (replicate borders)
     if f == 1:
         return y
-    if f % 2:
-        k = torch.full((f,), 1.0 / f)
-    else:  # even width: f + 1 taps with half weights at the ends, so the blur stays centred
-        k = torch.ones(f + 1)
-        k[0] = k[-1] = 0.5
-        k = k / f
+    k = torch.from_numpy(_blur_taps(f))
     r = (k.numel() - 1) // 2
     y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
     return F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
@@ -210,6 +208,7 @@ def _blur_taps(f: int) -> np.ndarray:  # [T] float32, the 1D box of `_box_blur`
         return np.ones(1, np.float32)
     if f % 2:
         return np.full(f, 1.0 / f, np.float32)
+    # even width: f + 1 taps with half weights at the ends, so the blur stays centred
     k = np.ones(f + 1, np.float32)
     k[0] = k[-1] = 0.5
     return k / f

@@ -155,6 +155,12 @@ def _range_from_values(z: np.ndarray, low: float, high: float, margin: float, mi
     return near, far
 
 
+def _on_image(camera: Camera, uv: Tensor, z: Tensor) -> Tensor:  # `Camera.project`'s [N, 2], [N] -> [N] bool
+    """Projections in front of ``camera`` that land on its image."""
+    u, v = uv[:, 0], uv[:, 1]
+    return (z > 1e-9) & (u >= -0.5) & (u <= camera.width - 0.5) & (v >= -0.5) & (v <= camera.height - 0.5)
+
+
 def depth_range_from_points(
     camera: Camera,
     points,  # [N, 3] world points the scene already holds (e.g. voxel representatives)
@@ -171,9 +177,7 @@ def depth_range_from_points(
     if pts.shape[0] == 0:
         return None
     uv, z = camera.project(pts)
-    u, v = uv[:, 0], uv[:, 1]
-    inside = (z > 0) & (u >= -0.5) & (u <= camera.width - 0.5) & (v >= -0.5) & (v <= camera.height - 0.5)
-    return _range_from_values(z[inside].numpy().astype(np.float64), low, high, margin, min_count)
+    return _range_from_values(z[_on_image(camera, uv, z)].numpy().astype(np.float64), low, high, margin, min_count)
 
 
 def depth_range_from_depth(depth, low: float = 2.0, high: float = 98.0, margin: float = 0.25,
@@ -366,6 +370,7 @@ class LogitScale(nn.Module):
 def _distribution_kernel(logits, count, hyps, depth, unc, seen_mass, valid):
     h, w, K = logits.shape
     for v in numba.prange(h):
+        p = np.empty(K)  # the pixel's unnormalised probabilities, reused by the second pass
         for u in range(w):
             m = logits[v, u, 0]
             for k in range(1, K):
@@ -374,18 +379,17 @@ def _distribution_kernel(logits, count, hyps, depth, unc, seen_mass, valid):
             s1 = 0.0
             vis = 0.0
             for k in range(K):
-                p = math.exp(np.float64(logits[v, u, k]) - m)
-                z += p
-                s1 += p * hyps[k]
+                p[k] = math.exp(np.float64(logits[v, u, k]) - m)
+                z += p[k]
+                s1 += p[k] * hyps[k]
                 if count[v, u, k] > 0:
-                    vis += p
+                    vis += p[k]
             mean = s1 / z
             s2 = 0.0
             best = 0
             best_gap = 1e300
             for k in range(K):
-                p = math.exp(np.float64(logits[v, u, k]) - m)
-                s2 += p * (hyps[k] - mean) ** 2
+                s2 += p[k] * (hyps[k] - mean) ** 2
                 gap = abs(1.0 / hyps[k] - 1.0 / mean)
                 if gap < best_gap:
                     best_gap = gap
@@ -503,10 +507,15 @@ class DepthEstimate:
     sources: list = field(default_factory=list)
 
 
+def _typical_depth(views: Sequence[SourceView]) -> float | None:
+    """Median of the views' known typical depths (metres), None when none knows one."""
+    known = [v.median_depth for v in views if math.isfinite(v.median_depth)]
+    return float(np.median(known)) if known else None
+
+
 def _resolve_range(near, far, views: Sequence[SourceView]) -> tuple[float, float]:
     if near is None or far is None:
-        known = [v.median_depth for v in views if math.isfinite(v.median_depth)]
-        z = float(np.median(known)) if known else None
+        z = _typical_depth(views)
         default_near, default_far = (0.4 * z, 3.0 * z) if z else (0.1, 10.0)
         if near is None:
             near = default_near if far is None else min(default_near, 0.5 * float(far))
@@ -647,25 +656,14 @@ class SelectionRule:
         return cls(*a)
 
 
-def _grid_rays(camera: Camera, nx: int = 12, ny: int = 9) -> np.ndarray:  # [N, 3] camera-frame rays (z = 1)
-    us = (np.arange(nx) + 0.5) * camera.width / nx - 0.5
-    vs = (np.arange(ny) + 0.5) * camera.height / ny - 0.5
-    u, v = np.meshgrid(us, vs)
-    return np.stack([(u.ravel() - camera.cx) / camera.fx, (v.ravel() - camera.cy) / camera.fy, np.ones(u.size)], -1)
-
-
-def _overlap(reference: Camera, candidate: Camera, depth: float) -> float:
-    """Share of the reference's image that the candidate sees, for a scene at ``depth``."""
-    T = reference.c2w64()
-    pts = (_grid_rays(reference) * depth) @ T[:3, :3].T + T[:3, 3]
-    w2c = np.linalg.inv(candidate.c2w64())
-    pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
-    z = pc[:, 2]
-    zs = np.where(z > 1e-9, z, 1.0)
-    u = pc[:, 0] / zs * candidate.fx + candidate.cx
-    v = pc[:, 1] / zs * candidate.fy + candidate.cy
-    inside = (z > 1e-9) & (u >= -0.5) & (u <= candidate.width - 0.5) & (v >= -0.5) & (v <= candidate.height - 0.5)
-    return float(inside.mean())
+def _overlap(reference: Camera, candidate: Camera, depth: float, nx: int = 12, ny: int = 9) -> float:
+    """Share of the reference's image that the candidate sees, for a scene at ``depth``: an
+    ``nx`` x ``ny`` grid of pixel centres lifted to ``depth``, projected into the candidate."""
+    us = (torch.arange(nx) + 0.5) * reference.width / nx - 0.5
+    vs = (torch.arange(ny) + 0.5) * reference.height / ny - 0.5
+    v, u = torch.meshgrid(vs, us, indexing="ij")
+    grid = reference.lift(torch.stack([u.ravel(), v.ravel()], -1), torch.full((nx * ny,), float(depth)))
+    return float(_on_image(candidate, *candidate.project(grid)).float().mean())
 
 
 def _pair_geometry(reference: Camera, candidate: Camera, depth: float) -> tuple[float, float, float]:
@@ -687,7 +685,8 @@ def select_sources(
 
     ``depth`` is the typical depth of the scene in front of the reference (metres): it converts
     baselines to ratios and places the grid whose overlap is measured. Cameras may have any
-    resolution (only their field of view matters).
+    resolution (only their field of view matters). A candidate without baseline (e.g. the
+    reference's own view in a window) is never picked.
     """
     rule = rule or SelectionRule()
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
@@ -768,8 +767,8 @@ class SourceWindow:
 
     def typical_depth(self) -> float:
         """Median of the views' known typical depths, else ``default_depth`` (metres)."""
-        known = [v.median_depth for v in self.views if math.isfinite(v.median_depth)]
-        return float(np.median(known)) if known else self.default_depth
+        z = _typical_depth(self.views)
+        return self.default_depth if z is None else z
 
     def view_of(self, frame: Frame, depth=None) -> SourceView:
         """The `SourceView` of ``frame`` at this window's scale (not added)."""

@@ -40,26 +40,6 @@ def without_depth(frame: Frame) -> Frame:
     return dataclasses.replace(frame, depth=None, depth_std=None)
 
 
-def downscale_frame(frame: Frame, factor: int) -> Frame:
-    """The frame at 1/factor resolution: colour averaged over factor x factor blocks, depth (if any)
-    sampled (never interpolated), camera `Camera.scaled`. Crops to a multiple of ``factor`` first."""
-    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
-        raise ValueError(f"factor: expected a positive integer, got {factor!r}")
-    if factor == 1:
-        return frame
-    H, W = (frame.height // factor) * factor, (frame.width // factor) * factor
-    rgb = frame.rgb.numpy()[:H, :W].astype(np.float32).reshape(H // factor, factor, W // factor, factor, 3).mean((1, 3))
-    depth = None if frame.depth is None else frame.depth.numpy()[factor // 2: H: factor, factor // 2: W: factor].copy()
-    K = frame.camera.K64()
-    K[0, 0] /= factor
-    K[1, 1] /= factor
-    K[0, 2] = (K[0, 2] + 0.5) / factor - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) / factor - 0.5
-    cam = type(frame.camera)(K, frame.camera.c2w64(), W // factor, H // factor)
-    rgb = np.ascontiguousarray(np.rint(rgb).astype(np.uint8))
-    return Frame(rgb=rgb, camera=cam, depth=depth, frame_id=frame.frame_id)
-
-
 @dataclass
 class FrameDepthResult:
     """One estimated frame against its sensor depth.
@@ -159,7 +139,7 @@ def stream_depth(
     results: list[FrameDepthResult] = []
     pending: list[tuple[int, Frame, SourceView]] = []
 
-    def run(index: int, frame: Frame, view: SourceView, sources: list[SourceView]) -> SourceView:
+    def run(index: int, frame: Frame, view: SourceView, sources: list[SourceView]) -> np.ndarray:  # the estimated depth
         est = estimate_depth_detailed(without_depth(frame), sources, near, far, num_hypotheses, scale, reference=view)
         if frame.depth is not None:
             abs_rel, unc, cov = compare_to_sensor(est.depth, est.uncertainty, frame.depth.numpy())
@@ -167,8 +147,7 @@ def stream_depth(
             abs_rel, unc, cov = np.zeros(0), np.zeros(0), math.nan
         results.append(FrameDepthResult(index, frame.frame_id, [s.frame_id for s in sources], abs_rel, unc, cov,
                                         est if keep_estimates else None))
-        return dataclasses.replace(view, median_depth=float(np.median(est.depth[est.depth > 0]))
-                                   if (est.depth > 0).any() else math.nan)
+        return est.depth
 
     for index, frame in enumerate(frames):
         view = SourceView.from_frame(without_depth(frame), scale)
@@ -177,10 +156,10 @@ def stream_depth(
             pending.append((index, frame, view))
             window.add(view)
             continue
-        window.add(run(index, frame, view, sources))
+        window.add(view, depth=run(index, frame, view, sources))
         still = []
         for p_index, p_frame, p_view in pending:  # the first frame(s): folded once a partner exists
-            p_sources = [s for s in window.select(p_view, k=num_sources) if s is not p_view]
+            p_sources = window.select(p_view, k=num_sources)  # never p_view itself (zero baseline)
             if p_sources:
                 run(p_index, p_frame, p_view, p_sources)
             else:

@@ -87,8 +87,7 @@ def aggregate_batch(
     uniq, inv = torch.unique(keys, return_inverse=True)
     V, M = uniq.numel(), keys.numel()
 
-    uses_rel = config.weighting in ("full", "no_similarity")
-    uses_sim = config.weighting in ("full", "no_reliability")
+    uses_rel, uses_sim = config.uses_reliability, config.uses_similarity
     r_sel = rel if uses_rel else torch.ones_like(rel)
     best = torch.full((V,), -1.0).scatter_reduce(0, inv, r_sel, "amax")
     order = torch.arange(M)

@@ -26,7 +26,8 @@ class SceneConfig:
             resized to the image and projected to ``feature_dim`` channels).
         weighting: ablation mode of the aggregation rule (``full`` is the paper's rule).
             ``no_reliability`` and ``average`` treat every reliability as 1, in the free-space
-            evidence too (see `uses_reliability`).
+            evidence too; ``no_similarity`` and ``average`` drop the cosine factor (see
+            `uses_reliability`, `uses_similarity`).
         depth_sigma0, depth_sigma2, depth_sigma_ref: sensor noise model for supplied depth without a
             std: sigma(z) = sigma0 + sigma2 * (z - ref)^2 metres (structured-light/ToF sensors).
         depth_edge_weight: adds weight * (largest depth jump to a 4-neighbour) to sigma, so
@@ -78,8 +79,13 @@ class SceneConfig:
 
     @property
     def uses_reliability(self) -> bool:
-        """Whether the weighting uses R_view (the fold kernels read the same from the mode code)."""
+        """Whether the weighting uses R_view (else every reliability counts as 1)."""
         return self.weighting in ("full", "no_similarity")
+
+    @property
+    def uses_similarity(self) -> bool:
+        """Whether W carries the factor max(0, cos(F, F_rep))."""
+        return self.weighting in ("full", "no_reliability")
 
     def __post_init__(self):
         def positive(name, value):

@@ -6,8 +6,9 @@ Layout: voxel keys pack (i, j, k) + KEY_OFFSET into 21 bits each; ``table`` hold
 Positions are accumulated in *local voxel units* (offset from the voxel centre, in [-0.5, 0.5]),
 which keeps second moments well conditioned in float32 wherever the voxel sits in the world.
 
-Weighting modes (the ablations): 0 full, 1 no_reliability, 2 no_similarity, 3 average. Modes 1 and 3
-treat every reliability as 1, so the representative is the voxel's first observation.
+The weighting (the ablations) reaches the kernels as two flags, `SceneConfig.uses_reliability` and
+`SceneConfig.uses_similarity`; without reliability every R is 1, so the representative is the
+voxel's first observation.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import numpy as np
 
 from .config import KEY_BITS, KEY_OFFSET
 
-MODE_CODES = {"full": 0, "no_reliability": 1, "no_similarity": 2, "average": 3}
 _KEY_LIMIT = 1 << KEY_BITS
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
 
@@ -107,47 +107,37 @@ class VoxelRows:
         return tuple(self.columns[n][0] if n in self.columns else -1 for n in names)
 
 
-@numba.njit(inline="always")
-def _uses_reliability(mode):
-    return mode == 0 or mode == 2
-
-
-@numba.njit(inline="always")
-def _uses_similarity(mode):
-    return mode == 0 or mode == 1
-
-
 @numba.njit(cache=True, parallel=True)
-def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
-                   frame_keys, touched, new_keys, obs_slot, best, head, tail, next_obs):
+def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
+                   frame_keys, touched, new_keys, best, head, tail, next_obs):
     """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
 
-    Each distinct key of the frame gets a slot t (first-occurrence order): obs_slot[i] = t (-1
-    outside the lattice), touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
+    Each distinct key of the frame gets a slot t (first-occurrence order; keys < 0, outside the
+    lattice, get none): touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
     scene (new_keys[j]); best[t] = the slot's most reliable observation (first maximum wins, as in
     the batch rule). The slot's observations form a chain in frame order: head[t], next_obs[i]
     (-1 ends it; tail is scratch). Dedupe happens in a frame-local table first, so the scene's
-    (large, cache-cold) table is probed once per voxel, not per pixel. Returns (slots, new keys).
+    (large, cache-cold) table is probed once per voxel, not per pixel.
+    Returns (slots, new keys, observations inside the lattice).
     """
-    uses_rel = _uses_reliability(mode)
     mask = table.shape[0] - 1
     local_mask = local_table.shape[0] - 1
     local_table[:] = -1
     n_touched = 0
     n_new = 0
+    n_obs = 0
     last_key, last_t = np.int64(-1), -1
     for i in range(obs_keys.shape[0]):
         key = obs_keys[i]
         if key < 0:
-            obs_slot[i] = -1
             continue
+        n_obs += 1
         next_obs[i] = -1
         # neighbouring pixels of a row mostly fall in one voxel: skip the probe for a repeat
         t = last_t if key == last_key else _find(local_table, frame_keys, key, local_mask)
         last_key = key
         if t >= 0:
             last_t = t
-            obs_slot[i] = t
             next_obs[tail[t]] = i
             tail[t] = i
             if uses_rel and rel[i] > rel[best[t]]:
@@ -158,7 +148,6 @@ def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
         n_touched += 1
         local_table[-1 - _find(local_table, frame_keys, key, local_mask)] = t
         frame_keys[t] = key
-        obs_slot[i] = t
         head[t] = tail[t] = best[t] = i
     # the scene's table is probed once per distinct key, in parallel (the probes are cache misses)
     for t in numba.prange(n_touched):
@@ -168,7 +157,7 @@ def resolve_kernel(obs_keys, rel, mode, table, keys, local_table,
             new_keys[n_new] = frame_keys[t]
             touched[t] = -2 - n_new
             n_new += 1
-    return n_touched, n_new
+    return n_touched, n_new, n_obs
 
 
 @numba.njit(inline="always")
@@ -190,7 +179,7 @@ def _dot(a, b):
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
     # scene state (rows >= n_voxels are zero)
-    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, mode, inv_voxel,
+    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, uses_rel, uses_sim, inv_voxel,
     # phase A's result
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
@@ -220,8 +209,6 @@ def fold_kernel(
         keys[vi] = new_keys[j]
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
         rows[vi, 0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
-    uses_rel = _uses_reliability(mode)
-    uses_sim = _uses_similarity(mode)
     K = sh_basis.shape[1]
     M = feat.shape[0]
     for t in range(n_touched):

@@ -23,13 +23,12 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 import torch
 
 from ..camera import Camera
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
-from ..evidence.mvs import SourceWindow, depth_range_from_points, estimate_depth
+from ..evidence.mvs import SourceView, SourceWindow, depth_range_from_points, estimate_depth
 from ..decode import GaussianDecoder, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
@@ -37,7 +36,7 @@ from .config import SceneConfig
 from .fields import fields_from_sums, sh_sum_widths
 from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map,
                          update_chunk_boxes_kernel)
-from .kernels import MODE_CODES, VoxelRows, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
+from .kernels import VoxelRows, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
 
 FORMAT_NAME = "canonicalgs-scene"
 FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
@@ -114,7 +113,9 @@ class Scene:
         self._chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self._history = SeeThroughHistory(config.free_space_history)
         self._window = SourceWindow(config.source_window)
-        self._pending: list[Frame] = []
+        # frames without depth that wait for a partner, with their window view (None after loading
+        # a snapshot: recomputed when the frame is folded)
+        self._pending: list[tuple[Frame, SourceView | None]] = []
 
     # -- state management ---------------------------------------------------------------------
     @property
@@ -163,7 +164,6 @@ class Scene:
             self._best = np.empty(self._scratch_m, np.int32)
             self._feat_inv_norm = np.empty(self._scratch_m, np.float32)
             self._rep_inv_norm = np.empty(self._scratch_m, np.float32)
-            self._obs_slot = np.empty(self._scratch_m, np.int32)
             self._head = np.empty(self._scratch_m, np.int32)
             self._tail = np.empty(self._scratch_m, np.int32)
             self._next_obs = np.empty(self._scratch_m, np.int32)
@@ -192,13 +192,13 @@ class Scene:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
         m = len(ev)
         self._scratch(m)
-        obs_keys, obs_slot, new_keys = self._obs_keys[:m], self._obs_slot[:m], self._new_keys[:m]
+        obs_keys, new_keys = self._obs_keys[:m], self._new_keys[:m]
         inv_voxel = np.float32(1.0 / self.config.voxel_size)
         voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
-        mode = MODE_CODES[self.config.weighting]
-        n_touched, n_new = resolve_kernel(
-            obs_keys, ev.reliability, mode, self._table, self._state["keys"],
-            self._local_table[: _next_pow2(2 * m)], self._frame_keys, self._touched, new_keys, obs_slot, self._best, self._head, self._tail, self._next_obs)
+        n_touched, n_new, n_obs = resolve_kernel(
+            obs_keys, ev.reliability, self.config.uses_reliability, self._table, self._state["keys"],
+            self._local_table[: _next_pow2(2 * m)], self._frame_keys, self._touched, new_keys, self._best, self._head,
+            self._tail, self._next_obs)
         cap = self.config.max_voxels
         if cap is not None and self._n + n_new > cap:
             raise CapacityError(
@@ -212,7 +212,8 @@ class Scene:
         labels = ev.labels if ev.labels is not None else np.zeros((m, self.label_dim), np.float32)
         basis = observation_sh_basis(ev, frame.camera, self.config.sh_degree)
         switches = fold_kernel(
-            self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(), mode, inv_voxel,
+            self._table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], self._n, self._layout.offsets(),
+            self.config.uses_reliability, self.config.uses_similarity, inv_voxel,
             n_touched, self._touched, new_keys, n_new, self._best, self._head, self._next_obs,
             ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
             self._feat_inv_norm[:m], self._rep_inv_norm[:m],
@@ -221,11 +222,10 @@ class Scene:
         if self.config.free_space:
             self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
-        n_obs = int((obs_slot >= 0).sum())
         if n_touched:
             self._density_sum += n_obs / n_touched
             self._density_frames += 1
-        return n_obs, int(n_new), int(n_touched - n_new), int(switches)
+        return int(n_obs), int(n_new), int(n_touched - n_new), int(switches)
 
     def _check_foldable(self, frame: Frame) -> None:
         """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
@@ -235,9 +235,8 @@ class Scene:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
 
     def _sources_for(self, camera: Camera):
-        """Source views for a sweep at ``camera``, never the camera's own view."""
-        same = lambda v: np.array_equal(v.camera.c2w64(), camera.c2w64())  # noqa: E731
-        return [v for v in self._window.select(camera, k=self.config.depth_sources + 1) if not same(v)][: self.config.depth_sources]
+        """Source views for a sweep at ``camera`` (never its own view: selection needs a baseline)."""
+        return self._window.select(camera, k=self.config.depth_sources)
 
     def _with_estimated_depth(self, frame: Frame, sources, view=None) -> Frame:
         near_far = None
@@ -253,28 +252,28 @@ class Scene:
         self._check_foldable(frame)
         index = self.frames
         sources = self._sources_for(frame.camera)
+        if not sources and len(self._pending) >= self.config.source_window:
+            raise ValueError(f"depth: the frame has no depth and no earlier view overlaps it, and "
+                             f"{len(self._pending)} frames already wait for a partner")
+        view = self._window.view_of(frame)  # matching features once: the sweep's reference and the window's view
         if not sources:
-            if len(self._pending) >= self.config.source_window:
-                raise ValueError(f"depth: the frame has no depth and no earlier view overlaps it, and "
-                                 f"{len(self._pending)} frames already wait for a partner")
-            self._window.add(frame)
-            self._pending.append(frame)
+            self._window.add(view)
+            self._pending.append((frame, view))
             self.frames += 1
             return FoldReport(index, 0, 0, 0, 0, ms=(time.perf_counter() - t0) * 1000.0, pending=True)
-        view = self._window.view_of(frame)  # matching features once: the sweep's reference and the window's view
         estimated = self._with_estimated_depth(frame, sources, view)
         counts = self._fold_with_depth(estimated)
         self._window.add(view, depth=estimated.depth)
         self.frames += 1
         also = 0
-        for waiting in list(self._pending):  # frames that waited for a partner: fold them now, in order
+        for entry in list(self._pending):  # frames that waited for a partner: fold them now, in order
+            waiting, waiting_view = entry
             waiting_sources = self._sources_for(waiting.camera)
             if waiting_sources:
-                self._fold_with_depth(self._with_estimated_depth(waiting, waiting_sources))
-                self._pending.remove(waiting)
+                self._fold_with_depth(self._with_estimated_depth(waiting, waiting_sources, waiting_view))
+                self._pending.remove(entry)
                 also += 1
         return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, also_folded=also)
-
 
     def _fold_free_space(self, frame: Frame, first_new: int, n_voxels: int) -> None:
         """The frame's see-through evidence for every voxel in its frustum (the new ones included),
@@ -347,7 +346,7 @@ class Scene:
         arrays = {f"state.{k}": v for k, v in self.sums().items()}
         arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
         arrays |= {f"window.{k}": v for k, v in self._window.to_arrays().items()}
-        for i, f in enumerate(self._pending):
+        for i, (f, _) in enumerate(self._pending):
             arrays |= {f"pending.{i}.rgb": f.rgb.numpy(), f"pending.{i}.K": f.camera.K64(), f"pending.{i}.c2w": f.camera.c2w64(),
                        f"pending.{i}.id": np.frombuffer((f.frame_id or "").encode(), np.uint8)}
             arrays |= {f"pending.{i}.{name}": getattr(f, name).numpy() for name in ("features", "labels") if getattr(f, name) is not None}
@@ -430,11 +429,11 @@ class Scene:
         scene._window = SourceWindow.from_arrays({k[len("window."):]: npz[k] for k in npz.files if k.startswith("window.")})
         for i in range(int(header.get("pending", 0))):
             rgb, K, c2w = npz[f"pending.{i}.rgb"], npz[f"pending.{i}.K"], npz[f"pending.{i}.c2w"]
-            scene._pending.append(Frame(
+            scene._pending.append((Frame(
                 rgb=rgb.copy(), camera=Camera(K, c2w, rgb.shape[1], rgb.shape[0]),
                 features=npz[f"pending.{i}.features"].copy() if f"pending.{i}.features" in npz.files else None,
                 labels=npz[f"pending.{i}.labels"].copy() if f"pending.{i}.labels" in npz.files else None,
-                frame_id=npz[f"pending.{i}.id"].tobytes().decode() or None))
+                frame_id=npz[f"pending.{i}.id"].tobytes().decode() or None), None))
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

@@ -23,12 +23,12 @@ from canonical_core.evidence.mvs import (
 )
 from canonical_core.evidence.mvs_eval import (
     certain_half_ratio,
-    downscale_frame,
     offline_depth,
     sparsification,
     summarize,
     without_depth,
 )
+from canonical_core.frame import resize_frame
 
 REFERENCES = [6, 18, 30, 42]
 NEAR, FAR = 0.2, 2.0
@@ -43,7 +43,7 @@ class Downscaled(Sequence):
 
     def __getitem__(self, i):
         if i not in self.cache:
-            self.cache[i] = downscale_frame(self.frames[i], self.factor)
+            self.cache[i] = resize_frame(self.frames[i], 1.0 / self.factor)
         return self.cache[i]
 
 
