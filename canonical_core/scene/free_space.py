@@ -30,6 +30,7 @@ import numpy as np
 from .config import KEY_BITS, KEY_OFFSET, SceneConfig
 
 CHUNK = 1024  # voxels per chunk of the insertion-ordered state; each chunk keeps its voxel AABB
+_BLOCK = 256  # voxels a history-kernel task tests against every kept map
 _MASK = (1 << KEY_BITS) - 1
 
 
@@ -48,25 +49,38 @@ class SeeThroughMap:
 def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_ref, voxel, margin, sigmas, weighted, thr, wcell):
     H, W = depth.shape
     h, w = thr.shape
+    inf = np.float32(np.inf)
     for cy in numba.prange(h):
+        v0, v1 = cy * cell, min((cy + 1) * cell, H)
+        # per pixel column of this cell row: nearest valid depth and valid count (elementwise, vectorised)
+        col_min = np.full(W, inf, np.float32)
+        col_n = np.zeros(W, np.int32)
+        for v in range(v0, v1):
+            for u in range(W):
+                z = depth[v, u]
+                valid = (z > near) & (z < far)
+                col_min[u] = min(col_min[u], z) if valid else col_min[u]
+                col_n[u] += np.int32(1) if valid else np.int32(0)
         for cx in range(w):
-            dmin = np.float32(np.inf)
-            smin = np.float32(0.0)
-            n = 0
-            for v in range(cy * cell, min((cy + 1) * cell, H)):
-                for u in range(cx * cell, min((cx + 1) * cell, W)):
-                    z = depth[v, u]
-                    if z > near and z < far:
-                        n += 1
-                        if z < dmin:
-                            dmin = z
-                            smin = std[v, u] if has_std else sigma0 + sigma2 * (z - z_ref) * (z - z_ref)
+            u0, u1 = cx * cell, min((cx + 1) * cell, W)
+            dmin, n = inf, 0
+            for u in range(u0, u1):
+                dmin = min(dmin, col_min[u])
+                n += col_n[u]
             if n == 0:
                 thr[cy, cx] = 0.0
                 wcell[cy, cx] = 0.0
+                continue
+            if has_std:  # the std of the first nearest pixel in row-major order
+                smin = np.float32(0.0)
+                for v in range(v1 - 1, v0 - 1, -1):
+                    for u in range(u1 - 1, u0 - 1, -1):
+                        if depth[v, u] == dmin:
+                            smin = std[v, u]
             else:
-                thr[cy, cx] = dmin - (margin * voxel + sigmas * smin)
-                wcell[cy, cx] = (np.exp(-smin / voxel) if weighted else np.float32(1.0)) * n / (cell * cell)
+                smin = sigma0 + sigma2 * (dmin - z_ref) * (dmin - z_ref)
+            thr[cy, cx] = dmin - (margin * voxel + sigmas * smin)
+            wcell[cy, cx] = (np.exp(-smin / voxel) if weighted else np.float32(1.0)) * n / (cell * cell)
 
 
 def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
@@ -89,30 +103,39 @@ def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
 
 
 @numba.njit(inline="always")
-def _voxel_centre(key, voxel):
-    i = ((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET
-    j = ((key >> KEY_BITS) & _MASK) - KEY_OFFSET
-    k = (key & _MASK) - KEY_OFFSET
-    return (np.float32(i) + np.float32(0.5)) * voxel, (np.float32(j) + np.float32(0.5)) * voxel, (np.float32(k) + np.float32(0.5)) * voxel
+def _project_block(keys, start, n, voxel, P, intr, e, h, w, near, iu, iv, zc):
+    """Cell (iu, iv) of map ``e`` (camera P[e], intr[e], [h, w] cells) under each voxel centre of
+    keys[start:start + n], iv = -1 where the centre is behind the near plane or outside the map, and
+    the centre's camera depth zc. Branch-free, so the compiler vectorises it."""
+    p00, p01, p02, p03 = P[e, 0, 0], P[e, 0, 1], P[e, 0, 2], P[e, 0, 3]
+    p10, p11, p12, p13 = P[e, 1, 0], P[e, 1, 1], P[e, 1, 2], P[e, 1, 3]
+    p20, p21, p22, p23 = P[e, 2, 0], P[e, 2, 1], P[e, 2, 2], P[e, 2, 3]
+    fx, fy, cx, cy = intr[e, 0], intr[e, 1], intr[e, 2], intr[e, 3]
+    half, fw, fh = np.float32(0.5), np.float32(w), np.float32(h)
+    for t in range(n):
+        key = keys[start + t]
+        # voxel centre; the index fits in int32, whose conversion to float vectorises
+        x = (np.float32(np.int32(((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET)) + half) * voxel
+        y = (np.float32(np.int32(((key >> KEY_BITS) & _MASK) - KEY_OFFSET)) + half) * voxel
+        z = (np.float32(np.int32((key & _MASK) - KEY_OFFSET)) + half) * voxel
+        xc = p00 * x + p01 * y + p02 * z + p03
+        yc = p10 * x + p11 * y + p12 * z + p13
+        zt = p20 * x + p21 * y + p22 * z + p23
+        u = fx * xc / zt + cx + half
+        v = fy * yc / zt + cy + half
+        inside = (zt > near) & (u >= 0) & (v >= 0) & (u < fw) & (v < fh)  # floor(u) in [0, w) iff u in [0, w)
+        iu[t] = np.int32(np.floor(u)) if inside else np.int32(0)
+        iv[t] = np.int32(np.floor(v)) if inside else np.int32(-1)
+        zc[t] = zt
 
 
 @numba.njit(inline="always")
-def _see_through(x, y, z, P, intr, thr, wcell, e, h, w, area_scale, near):
-    """Evidence of map ``e`` (camera P[e], intr[e]; the first [h, w] cells of thr[e], wcell[e])
-    that the point is seen through."""
-    zc = P[e, 2, 0] * x + P[e, 2, 1] * y + P[e, 2, 2] * z + P[e, 2, 3]
-    if zc <= near:
-        return np.float32(0.0)
-    xc = P[e, 0, 0] * x + P[e, 0, 1] * y + P[e, 0, 2] * z + P[e, 0, 3]
-    yc = P[e, 1, 0] * x + P[e, 1, 1] * y + P[e, 1, 2] * z + P[e, 1, 3]
-    iu = int(np.floor(intr[e, 0] * xc / zc + intr[e, 2] + np.float32(0.5)))
-    iv = int(np.floor(intr[e, 1] * yc / zc + intr[e, 3] + np.float32(0.5)))
-    if iu < 0 or iv < 0 or iv >= h or iu >= w:
-        return np.float32(0.0)
-    t = thr[e, iv, iu]
-    if t <= np.float32(0.0) or zc >= t:
-        return np.float32(0.0)
-    return wcell[e, iv, iu] * area_scale / (zc * zc)
+def _see_through(thr, wcell, e, iu, iv, zc, area_scale):
+    """Evidence of map ``e`` that a centre at depth zc in its cell (iu, iv) is seen through."""
+    r = max(iv, 0)
+    t = thr[e, r, iu]
+    seen = (iv >= 0) & (t > np.float32(0.0)) & (zc < t)
+    return wcell[e, r, iu] * area_scale / (zc * zc) if seen else np.float32(0.0)
 
 
 @numba.njit(inline="always")
@@ -147,20 +170,27 @@ def frame_free_space_kernel(keys, free, chunk_lo, chunk_hi, n_voxels, voxel, P, 
     for ch in numba.prange(n_chunks):
         if _box_outside_frustum(chunk_lo[ch], chunk_hi[ch], voxel, P, intr, h, w, near):
             continue
-        for vi in range(ch * CHUNK, min((ch + 1) * CHUNK, n_voxels)):
-            x, y, z = _voxel_centre(keys[vi], voxel)
-            free[vi] += _see_through(x, y, z, P1, intr1, thr1, wcell1, 0, h, w, area_scale, near)
+        start = ch * CHUNK
+        n = min(CHUNK, n_voxels - start)
+        iu, iv, zc = np.empty(CHUNK, np.int32), np.empty(CHUNK, np.int32), np.empty(CHUNK, np.float32)
+        _project_block(keys, start, n, voxel, P1, intr1, 0, h, w, near, iu, iv, zc)
+        for t in range(n):
+            free[start + t] += _see_through(thr1, wcell1, 0, iu[t], iv[t], zc[t], area_scale)
 
 
 @numba.njit(parallel=True, cache=True)
 def history_free_space_kernel(keys, free, first, last, voxel, order, P, intr, thr, wcell, dims, area, near):
     """Add the evidence of earlier frames (history entries ``order``, oldest first) to voxels [first, last)."""
-    for vi in numba.prange(first, last):
-        x, y, z = _voxel_centre(keys[vi], voxel)
-        acc = free[vi]
-        for e in order:
-            acc += _see_through(x, y, z, P, intr, thr, wcell, e, dims[e, 0], dims[e, 1], area[e], near)
-        free[vi] = acc
+    for blk in numba.prange((last - first + _BLOCK - 1) // _BLOCK):
+        start = first + blk * _BLOCK
+        n = min(_BLOCK, last - start)
+        iu, iv, zc = np.empty(_BLOCK, np.int32), np.empty(_BLOCK, np.int32), np.empty(_BLOCK, np.float32)
+        acc = free[start:start + n].copy()
+        for e in order:  # oldest first, so each voxel sums in the same order as a per-voxel loop
+            _project_block(keys, start, n, voxel, P, intr, e, dims[e, 0], dims[e, 1], near, iu, iv, zc)
+            for t in range(n):
+                acc[t] += _see_through(thr, wcell, e, iu[t], iv[t], zc[t], area[e])
+        free[start:start + n] = acc
 
 
 @numba.njit(cache=True)

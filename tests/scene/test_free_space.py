@@ -7,6 +7,9 @@ import torch
 from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.decode import GaussianDecoder
 from canonical_core.scene import Scene, aggregate_batch
+from canonical_core.scene.free_space import see_through_map
+
+from ..conftest import make_frame
 
 W, H, F = 64, 48, 100.0
 VOXEL = 0.05
@@ -80,6 +83,35 @@ def test_ablations_without_reliability_count_see_through_rays_unweighted(weighti
     assert seen_through.sum() >= 4
     ratio = full["free_space"][seen_through] / ablated["free_space"][seen_through]
     assert torch.allclose(ratio, torch.full_like(ratio, float(np.exp(-sigma / VOXEL))), rtol=1e-5)
+
+
+@pytest.mark.parametrize("with_std", [False, True])
+def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
+    # 21 x 27 pixels in 4-pixel cells: partial cells at the right and bottom, holes, NaN, depth past
+    # far, ties for the nearest depth (the std is the first nearest pixel's, in row-major order)
+    rng = np.random.default_rng(3)
+    depth = rng.choice([0.6, 0.8, 1.0, 1.3], size=(21, 27)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    depth[0, 0], depth[5, 9], depth[20, 26] = np.nan, 1e6, 0.7
+    depth[8:12, 12:16] = 0.0  # an empty cell
+    std = rng.uniform(0.001, 0.01, depth.shape).astype(np.float32)
+    config = SceneConfig(voxel_size=0.01, free_space_cell=4)
+    m = see_through_map(make_frame(depth, depth_std=std if with_std else None, fx=20.0), config)
+    assert m.threshold.shape == m.weight.shape == (6, 7)
+    for cy in range(6):
+        for cx in range(7):
+            d = depth[cy * 4:cy * 4 + 4, cx * 4:cx * 4 + 4].ravel()
+            s = std[cy * 4:cy * 4 + 4, cx * 4:cx * 4 + 4].ravel()
+            valid = (d > config.near) & (d < config.far)
+            if not valid.any():
+                assert m.threshold[cy, cx] == 0 and m.weight[cy, cx] == 0
+                continue
+            dmin = d[valid].min()
+            sigma = s[np.flatnonzero(valid & (d == dmin))[0]] if with_std else (
+                config.depth_sigma0 + config.depth_sigma2 * (dmin - config.depth_sigma_ref) ** 2)
+            expect = dmin - (config.free_space_margin * config.voxel_size + config.free_space_sigmas * sigma)
+            assert m.threshold[cy, cx] == pytest.approx(expect, rel=1e-6)
+            assert m.weight[cy, cx] == pytest.approx(np.exp(-sigma / config.voxel_size) * valid.sum() / 16, rel=1e-5)
 
 
 def test_history_bounds_the_retroactive_evidence():
