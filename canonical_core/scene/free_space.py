@@ -121,8 +121,9 @@ def _project_block(keys, start, n, voxel, P, intr, e, h, w, near, iu, iv, zc):
         xc = p00 * x + p01 * y + p02 * z + p03
         yc = p10 * x + p11 * y + p12 * z + p13
         zt = p20 * x + p21 * y + p22 * z + p23
-        u = fx * xc / zt + cx + half
-        v = fy * yc / zt + cy + half
+        zs = zt if zt > near else np.float32(1.0)  # no division by ~0 behind the camera (masked anyway)
+        u = fx * xc / zs + cx + half
+        v = fy * yc / zs + cy + half
         inside = (zt > near) & (u >= 0) & (v >= 0) & (u < fw) & (v < fh)  # floor(u) in [0, w) iff u in [0, w)
         iu[t] = np.int32(np.floor(u)) if inside else np.int32(0)
         iv[t] = np.int32(np.floor(v)) if inside else np.int32(-1)
@@ -134,8 +135,9 @@ def _see_through(thr, wcell, e, iu, iv, zc, area_scale):
     """Evidence of map ``e`` that a centre at depth zc in its cell (iu, iv) is seen through."""
     r = max(iv, 0)
     t = thr[e, r, iu]
-    seen = (iv >= 0) & (t > np.float32(0.0)) & (zc < t)
-    return wcell[e, r, iu] * area_scale / (zc * zc) if seen else np.float32(0.0)
+    seen = (iv >= 0) & (t > np.float32(0.0)) & (zc < t)  # iv >= 0 implies zc > near > 0
+    z2 = zc * zc if seen else np.float32(1.0)
+    return wcell[e, r, iu] * area_scale / z2 if seen else np.float32(0.0)
 
 
 @numba.njit(inline="always")

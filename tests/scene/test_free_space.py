@@ -7,7 +7,8 @@ import torch
 from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.decode import GaussianDecoder
 from canonical_core.scene import Scene, aggregate_batch
-from canonical_core.scene.free_space import see_through_map
+from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
+from canonical_core.scene.free_space import history_free_space_kernel, see_through_map
 
 from ..conftest import make_frame
 
@@ -155,3 +156,14 @@ def test_snapshot_keeps_free_space_and_history(tmp_path):
     a, b = scene.sums(), resumed.sums()
     assert all(np.array_equal(a[k], b[k]) for k in a)
     assert (a["free"] > 0).any()
+
+
+def test_voxel_centres_on_the_camera_plane_get_no_evidence_and_no_error():
+    # a map whose camera puts every centre at depth 0: nothing is in front of it, nothing divides by 0
+    keys = np.full(300, (KEY_OFFSET << (2 * KEY_BITS)) | (KEY_OFFSET << KEY_BITS) | KEY_OFFSET, np.int64)
+    free = np.zeros(300, np.float32)
+    P = np.zeros((1, 3, 4), np.float32)
+    history_free_space_kernel(keys, free, 0, 300, np.float32(VOXEL), np.array([0]), P,
+                              np.array([[10, 10, 2, 2]], np.float32), np.ones((1, 4, 4), np.float32),
+                              np.ones((1, 4, 4), np.float32), np.array([[4, 4]]), np.ones(1, np.float32), np.float32(0.1))
+    assert not free.any()
