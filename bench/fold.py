@@ -25,7 +25,7 @@ from canonical_core.camera import quaternion_to_matrix  # noqa: E402
 from canonical_core.datasets import load_dataset, synthetic_rgbd  # noqa: E402
 from canonical_core.evidence import extract_evidence  # noqa: E402
 from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available  # noqa: E402
-from canonical_core.eval.run import resize_frame  # noqa: E402
+from canonical_core.frame import resize_frame  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"

@@ -22,7 +22,8 @@ import canonical_core as cc  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import SplatModel  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
-from canonical_core.eval.run import resize_frame, score  # noqa: E402
+from canonical_core.eval.run import score  # noqa: E402
+from canonical_core.frame import resize_frame  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 

@@ -3,6 +3,8 @@ import pytest
 import torch
 
 from canonical_core import Camera, Frame
+from canonical_core.datasets import synthetic_rgbd
+from canonical_core.frame import resize_frame
 
 CAM = Camera([[50.0, 0, 8], [0, 50.0, 6], [0, 0, 1]], np.eye(4), 16, 12)
 RGB = np.zeros((12, 16, 3), np.uint8)
@@ -47,3 +49,15 @@ def test_image_too_large_is_rejected():
     big = Camera([[50.0, 0, 8], [0, 50.0, 6], [0, 0, 1]], np.eye(4), 5000, 4000)
     with pytest.raises(ValueError, match="rgb: image of 5000x4000"):
         Frame(rgb=torch.zeros(4000, 5000, 3, dtype=torch.uint8), camera=big)
+
+
+def test_resize_keeps_the_camera_consistent():
+    frame = synthetic_rgbd(num_frames=1, width=64, height=48)[0]
+    small = resize_frame(frame, 0.5)
+    assert small.rgb.shape == (24, 32, 3) and small.depth.shape == (24, 32)
+    assert small.camera.fx == pytest.approx(frame.camera.fx / 2)
+    # nearest depth: every value of the small map is a value of the original
+    assert np.isin(small.depth.numpy(), frame.depth.numpy()).all()
+    assert resize_frame(frame, 1.0) is frame
+    with pytest.raises(ValueError, match="scale"):
+        resize_frame(frame, 1.5)

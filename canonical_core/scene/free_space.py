@@ -45,6 +45,16 @@ class SeeThroughMap:
     area_scale: float  # full-resolution fx * fy * voxel^2
 
 
+@numba.njit(inline="always")
+def _std_of_first(depth, std, v0, v1, u0, u1, d):
+    """std of the first pixel of the cell [v0, v1) x [u0, u1), in row-major order, whose depth is d."""
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            if depth[v, u] == d:
+                return std[v, u]
+    return np.float32(0.0)
+
+
 @numba.njit(parallel=True, cache=True)
 def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_ref, voxel, margin, sigmas, weighted, thr, wcell):
     H, W = depth.shape
@@ -71,12 +81,8 @@ def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_r
                 thr[cy, cx] = 0.0
                 wcell[cy, cx] = 0.0
                 continue
-            if has_std:  # the std of the first nearest pixel in row-major order
-                smin = np.float32(0.0)
-                for v in range(v1 - 1, v0 - 1, -1):
-                    for u in range(u1 - 1, u0 - 1, -1):
-                        if depth[v, u] == dmin:
-                            smin = std[v, u]
+            if has_std:
+                smin = _std_of_first(depth, std, v0, v1, u0, u1, dmin)
             else:
                 smin = sigma0 + sigma2 * (dmin - z_ref) * (dmin - z_ref)
             thr[cy, cx] = dmin - (margin * voxel + sigmas * smin)
