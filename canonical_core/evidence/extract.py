@@ -137,42 +137,15 @@ def extract_evidence(
     )
 
 
-@numba.njit(parallel=True, cache=True)
-def _sh_basis_kernel(points, centre, degree, c0, c1, c2, c3, out):
-    # The fast path of rendering.sh.sh_basis (same constants, same order), fused with the view
-    # direction so no [M, 3] temporary is made; tests hold it to the PyTorch definition.
-    for i in numba.prange(points.shape[0]):
-        x = points[i, 0] - centre[0]
-        y = points[i, 1] - centre[1]
-        z = points[i, 2] - centre[2]
-        n = np.sqrt(x * x + y * y + z * z)
-        if n > 0:
-            x, y, z = x / n, y / n, z / n
-        b = out[i]
-        b[0] = c0
-        b[1], b[2], b[3] = -c1 * y, c1 * z, -c1 * x
-        if degree >= 2:
-            xx, yy, zz = x * x, y * y, z * z
-            b[4], b[5], b[6] = c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * zz - xx - yy)
-            b[7], b[8] = c2[3] * x * z, c2[4] * (xx - yy)
-            if degree >= 3:
-                b[9], b[10] = c3[0] * y * (3 * xx - yy), c3[1] * x * y * z
-                b[11], b[12] = c3[2] * y * (4 * zz - xx - yy), c3[3] * z * (2 * zz - 3 * xx - 3 * yy)
-                b[13], b[14], b[15] = c3[4] * x * (4 * zz - xx - yy), c3[5] * z * (xx - yy), c3[6] * x * (xx - 3 * yy)
-
-
 def observation_sh_basis(evidence: FrameEvidence, camera, degree: int) -> np.ndarray:  # [M, (degree + 1)^2]
     """SH basis of each observation's view direction (camera centre -> lifted point), 3DGS convention.
 
     Degree 0 needs no basis (no view dependence): it returns an all-zero [M, 1] placeholder."""
-    from ..rendering.sh import SH_C0, SH_C1, SH_C2, SH_C3  # the renderer's constants: fit and render agree
+    from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
 
     if degree == 0:
         return np.zeros((len(evidence), 1), np.float32)
-    out = np.empty((len(evidence), (degree + 1) ** 2), np.float32)
-    _sh_basis_kernel(evidence.points, camera.center.numpy().astype(np.float32), degree, np.float32(SH_C0),
-                     np.float32(SH_C1), np.array(SH_C2, np.float32), np.array(SH_C3, np.float32), out)
-    return out
+    return sh_basis_at_points(evidence.points, camera.center.numpy(), degree)
 
 
 __all__ = ["FrameEvidence", "extract_evidence", "lift_pixels", "frame_features", "observation_sh_basis", "DEFAULT_FEATURE_DIM"]

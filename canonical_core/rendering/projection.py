@@ -8,7 +8,7 @@ every backend composites.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, Sequence
+from typing import Callable, Literal, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -57,14 +57,16 @@ def channel_values(
     gaussians: Gaussians,
     camera: Camera,
     channels: Sequence[Channel],
+    colour: Callable[[Tensor, Tensor], Tensor] = sh_to_rgb,  # (sh [N, K, 3], dirs [N, 3]) -> rgb [N, 3]
 ) -> Tensor:  # [N, D]
-    """The per-Gaussian values to composite, concatenated in the order of ``channels``."""
+    """The per-Gaussian values to composite, concatenated in the order of ``channels``; ``colour``
+    evaluates the SH (`sh_to_rgb`, or its fast path for the numba backend)."""
     dtype = gaussians.means.dtype
     parts = []
     for channel in channels:
         if channel == "rgb":
             center = torch.from_numpy(camera.c2w64()[:3, 3]).to(dtype=dtype, device=gaussians.means.device)
-            parts.append(sh_to_rgb(gaussians.sh.to(dtype), gaussians.means - center))
+            parts.append(colour(gaussians.sh.to(dtype), gaussians.means - center).to(gaussians.means))
         else:
             parts.append(getattr(gaussians, channel).to(dtype))
     if not parts:

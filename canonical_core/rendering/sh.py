@@ -3,12 +3,17 @@
 Colour of a Gaussian seen along unit direction d (from the camera centre to the Gaussian's mean):
 ``rgb = max(0, sum_k Y_k(d) * sh_k + 0.5)``, which is what 3DGS training code and viewers assume
 for the coefficients stored in PLY files.
+
+`sh_basis` and `sh_to_rgb` are the PyTorch definitions (differentiable); `sh_basis_at_points` and
+`sh_to_rgb_fast` are their numba fast paths (float32, no autograd), held to them by tests.
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -71,3 +76,65 @@ def sh_to_rgb(
     # A zero direction (mean at the camera centre) has no view dependence: its basis is DC only.
     unit = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(math.ulp(1.0))
     return (torch.einsum("nk,nkc->nc", sh_basis(unit, degree), sh) + 0.5).clamp_min(0.0)
+
+
+@numba.njit(parallel=True, cache=True)
+def _sh_basis_kernel(points, centre, degree, c0, c1, c2, c3, out):
+    # sh_basis with the view direction (centre -> point) fused in, so no [N, 3] temporary is made.
+    for i in numba.prange(points.shape[0]):
+        x = points[i, 0] - centre[0]
+        y = points[i, 1] - centre[1]
+        z = points[i, 2] - centre[2]
+        n = np.sqrt(x * x + y * y + z * z)
+        if n > 0:
+            x, y, z = x / n, y / n, z / n
+        b = out[i]
+        b[0] = c0
+        if degree >= 1:
+            b[1], b[2], b[3] = -c1 * y, c1 * z, -c1 * x
+        if degree >= 2:
+            xx, yy, zz = x * x, y * y, z * z
+            b[4], b[5], b[6] = c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * zz - xx - yy)
+            b[7], b[8] = c2[3] * x * z, c2[4] * (xx - yy)
+            if degree >= 3:
+                b[9], b[10] = c3[0] * y * (3 * xx - yy), c3[1] * x * y * z
+                b[11], b[12] = c3[2] * y * (4 * zz - xx - yy), c3[3] * z * (2 * zz - 3 * xx - 3 * yy)
+                b[13], b[14], b[15] = c3[4] * x * (4 * zz - xx - yy), c3[5] * z * (xx - yy), c3[6] * x * (xx - 3 * yy)
+
+
+def sh_basis_at_points(
+    points: np.ndarray,  # [N, 3] float32
+    centre: np.ndarray,  # [3] float32 viewpoint
+    degree: int,
+) -> np.ndarray:  # [N, (degree + 1)^2] float32
+    """Fast path of ``sh_basis`` for the directions from ``centre`` to ``points`` (zero direction: DC only)."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"degree: expected 0..3, got {degree}")
+    out = np.empty((points.shape[0], (degree + 1) ** 2), np.float32)
+    _sh_basis_kernel(np.ascontiguousarray(points, np.float32), np.ascontiguousarray(centre, np.float32), degree,
+                     np.float32(SH_C0), np.float32(SH_C1), np.array(SH_C2, np.float32), np.array(SH_C3, np.float32), out)  # fmt: skip
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _sh_contract_kernel(basis, sh, out):
+    for i in numba.prange(sh.shape[0]):
+        for c in range(3):
+            total = np.float32(0.0)
+            for k in range(sh.shape[1]):
+                total += basis[i, k] * sh[i, k, c]
+            out[i, c] = max(np.float32(0.0), total + np.float32(0.5))
+
+
+def sh_to_rgb_fast(
+    sh: Tensor,  # [N, K, 3] coefficients, K = (degree + 1)^2, DC first
+    dirs: Tensor,  # [N, 3] view directions (need not be unit length)
+) -> Tensor:  # [N, 3] float32 on the CPU
+    """Fast path of ``sh_to_rgb`` (numba, float32, no autograd): one pass instead of ~20 tensor ops,
+    which took 6 ms of a 170k-Gaussian render on 2 threads."""
+    degree = sh_degree_from_bases(sh.shape[1])
+    sh = np.ascontiguousarray(sh.detach().cpu().numpy(), np.float32)
+    basis = sh_basis_at_points(dirs.detach().cpu().numpy(), np.zeros(3, np.float32), degree)
+    out = np.empty((sh.shape[0], 3), np.float32)
+    _sh_contract_kernel(basis, sh, out)
+    return torch.from_numpy(out)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import pytest
 import torch
 
 from canonical_core.gaussians import SH_C0
-from canonical_core.rendering.sh import sh_basis, sh_to_rgb
+from canonical_core.rendering.sh import sh_basis, sh_basis_at_points, sh_to_rgb, sh_to_rgb_fast
 
 
 def fibonacci_sphere(n: int) -> torch.Tensor:  # [n, 3] near-uniform unit vectors
@@ -42,3 +44,24 @@ def test_colour_is_clamped_below_at_zero_only():
     sh[1, 0] = 5.0
     rgb = sh_to_rgb(sh, torch.zeros(2, 3))
     assert (rgb[0] == 0).all() and torch.allclose(rgb[1], torch.full((3,), 0.5 + 5 * SH_C0))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_fast_path_equals_the_pytorch_definition(degree):
+    rng = np.random.default_rng(degree)
+    sh = torch.from_numpy(rng.normal(0, 0.8, (500, (degree + 1) ** 2, 3)).astype(np.float32))  # some clamp at 0
+    dirs = torch.from_numpy(rng.normal(0, 3, (500, 3)).astype(np.float32))
+    dirs[0] = 0.0  # a mean at the camera centre: DC only
+    expected = sh_to_rgb(sh, dirs)
+    assert (expected == 0).any()
+    assert torch.allclose(sh_to_rgb_fast(sh, dirs), expected, rtol=0, atol=2e-6)
+    centre = np.array([0.5, -1.0, 2.0], np.float32)
+    unit = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    basis = sh_basis_at_points(dirs.numpy() + centre, centre, degree)
+    assert np.allclose(basis[1:], sh_basis(unit, degree)[1:].numpy(), atol=2e-6)
+    assert np.allclose(basis[0, 1:], 0) and basis[0, 0] == np.float32(SH_C0)
+
+
+def test_fast_path_rejects_an_unknown_degree():
+    with pytest.raises(ValueError, match="degree"):
+        sh_basis_at_points(np.zeros((1, 3), np.float32), np.zeros(3, np.float32), 4)
