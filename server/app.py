@@ -14,6 +14,8 @@ import torch
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 
+from canonical_core.warmup import warm_up
+
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .metrics import Metrics
@@ -97,6 +99,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         if settings.threads:
             torch.set_num_threads(settings.threads)
+        if settings.warm_up:
+            seconds = await run_in_threadpool(warm_up, settings.threads)
+            log.info("kernels loaded in %.2f s", seconds)
         await run_in_threadpool(store.open)
         log.info("serving %d sessions from %s", len(store), settings.data_dir)
         snapshotter = asyncio.create_task(_snapshot_loop(store, settings.snapshot_every_seconds))

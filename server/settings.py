@@ -27,5 +27,6 @@ class Settings(BaseSettings):
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")
     threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
+    warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)

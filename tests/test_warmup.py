@@ -1,0 +1,38 @@
+"""Start-up warm-up: after it, a fresh process has the fold, free-space, decode and render kernels loaded."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Kernels of each stage (fold, free space, SH fit, render), and whether numba has loaded them.
+PROBE = """
+import canonical_core.scene.kernels as fold
+import canonical_core.scene.free_space as free_space
+import canonical_core.rendering.numba_tiles as tiles
+import canonical_core.rendering.splat_geometry as geometry
+import canonical_core.rendering.sh as sh
+kernels = [fold.fold_kernel, fold.resolve_kernel, tiles.composite_tiles, tiles.bin_splats_by_tile,
+           geometry.project_numba, sh._sh_basis_kernel, sh._sh_contract_kernel]
+kernels += [free_space._coarse_map_kernel, free_space.frame_free_space_kernel, free_space.history_free_space_kernel,
+            free_space.update_chunk_boxes_kernel]
+def loaded():
+    return sum(bool(k.signatures) for k in kernels), len(kernels)
+print(*loaded())
+from canonical_core.warmup import warm_up
+assert warm_up(num_threads=1) > 0
+print(*loaded())
+print([k.__name__ for k in kernels if not k.signatures])
+"""
+
+
+def test_warm_up_loads_the_kernels_of_every_stage_in_a_fresh_process():
+    env = dict(os.environ, NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR", str(REPO / ".numba_cache")))
+    out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, check=True)
+    (before, total), (after, total_after) = (map(int, line.split()) for line in out.stdout.split("\n")[:2])
+    assert before == 0 and total == total_after and total == 11
+    assert after == total, out.stdout
