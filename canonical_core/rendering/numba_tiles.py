@@ -185,21 +185,20 @@ def render_numba(
     def array(t: Tensor) -> np.ndarray:
         return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
 
-    with torch.no_grad():
-        gaussians = gaussians.detach().to("cpu", torch.float32)
-        values = array(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
+    gaussians = gaussians.detach().to("cpu", torch.float32)
     n = len(gaussians)
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
     f32 = np.float32
     view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
     splats, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
-    out_values = np.zeros((height, width, values.shape[1]), f32)
     out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
     out_transmittance = np.ones((height, width), f32)
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(min(num_threads, numba.config.NUMBA_NUM_THREADS))
     try:
+        values = array(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
+        out_values = np.zeros((height, width, values.shape[1]), f32)
         project_numba(
             array(gaussians.means), array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities), view,
             (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
