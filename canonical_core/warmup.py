@@ -30,13 +30,11 @@ def warm_up(num_threads: int | None = None) -> float:
     start = time.perf_counter()
     height, width = 24, 32
     K = [[30.0, 0.0, (width - 1) / 2], [0.0, 30.0, (height - 1) / 2], [0.0, 0.0, 1.0]]
+    cameras = [Camera(K=K, c2w=np.array([[1, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], float),
+                      width=width, height=height) for x in (0.0, 0.05)]
     scene = Scene(SceneConfig(voxel_size=0.05))
-    camera = None
-    for shift in (0.0, 0.05):
-        c2w = np.eye(4)
-        c2w[0, 3] = shift
-        camera = Camera(K=K, c2w=c2w, width=width, height=height)
+    for camera in cameras:
         rgb = torch.full((height, width, 3), 128, dtype=torch.uint8)
         scene.fold(Frame(rgb=rgb, camera=camera, depth=torch.full((height, width), 1.0)))
-    render(scene.decode(), camera, outputs=("rgb", "depth", "alpha", "features"), num_threads=num_threads)
+    render(scene.decode(), cameras[-1], outputs=("rgb", "depth", "alpha", "features"), num_threads=num_threads)
     return time.perf_counter() - start
