@@ -46,7 +46,8 @@ def fields_of_planar_voxel(voxel=0.1, thickness=0.0):
     return {
         "reliability": torch.tensor([3.0]),
         "features": torch.randn(1, 4),
-        "representative_position": torch.tensor([[0.05, 0.05, 0.05]]),
+        "representative_position": torch.tensor([[0.02, 0.03, 0.05]]),  # one of the points
+        "position_mean": torch.from_numpy(pts.mean(0)[None]).float(),
         "position_cov": torch.from_numpy(cov[None]).float(),
         "color": torch.tensor([[0.2, 0.4, 0.6]]),
     }, cov
@@ -56,7 +57,8 @@ def test_analytic_initialisation():
     dec = GaussianDecoder(feature_dim=4)
     fields, cov = fields_of_planar_voxel()
     g = dec(fields, voxel_size=0.1)
-    assert torch.equal(g.means, fields["representative_position"])  # offset head starts at zero
+    # the offset head starts at zero: the mean is the points' centroid, not the representative point
+    assert torch.equal(g.means, fields["position_mean"]) and not torch.equal(g.means, fields["representative_position"])
     assert torch.allclose(g.colors, fields["color"], atol=1e-6)
     assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(10 * (1 - math.exp(-3)) - 3))), rel=1e-5)
     # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never
@@ -67,6 +69,30 @@ def test_analytic_initialisation():
     assert g.scales[0].min().item() == pytest.approx(0.05 * 0.1, rel=1e-5)
     assert math.sqrt(cov[0, 0]) * FOOTPRINT_GAIN < FULL_VOXEL_EXTENT
     assert sorted(g.scales[0].tolist())[1:] == pytest.approx([0.1 * FULL_VOXEL_EXTENT] * 2, rel=1e-4)
+
+
+def test_decoded_means_average_the_depth_noise_of_every_fold():
+    # a wall through the voxel centres (z = 2.025) seen by 6 frames with independent depth noise (sigma
+    # 1/5 voxel): each voxel's Gaussian sits at its points' centroid, closer to the wall than the single
+    # representative sample
+    from canonical_core import Camera, Frame
+
+    voxel, w, h, f = 0.05, 64, 48, 100.0
+    rng = np.random.default_rng(0)
+    scene = Scene(SceneConfig(voxel_size=voxel, free_space=False))
+    for k in range(6):
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.02 * k
+        cam = Camera([[f, 0, w / 2 - 0.5], [0, f, h / 2 - 0.5], [0, 0, 1]], c2w, w, h)
+        depth = (2.025 + 0.01 * rng.standard_normal((h, w))).astype(np.float32)
+        scene.fold(Frame(rgb=np.full((h, w, 3), 120, np.uint8), camera=cam, depth=depth))
+    fields = scene.fields(sort=False)
+    many = fields["observations"] >= 20
+    means = scene.decode().means
+    assert len(means) == len(many) and many.sum() > 100
+    err_mean = (means[many, 2] - 2.025).abs().mean().item()
+    err_rep = (fields["representative_position"][many, 2] - 2.025).abs().mean().item()
+    assert err_mean < 0.5 * err_rep, (err_mean, err_rep)
 
 
 def test_thickness_is_the_moment_std_times_the_footprint_gain():

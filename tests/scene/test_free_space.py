@@ -137,7 +137,7 @@ def test_opacity_is_non_increasing_in_free_space_for_any_weights():
         "reliability": torch.full((n,), 2.0),
         "free_space": torch.linspace(0, 10, n),
         "features": torch.zeros(n, 2),
-        "representative_position": torch.zeros(n, 3),
+        "position_mean": torch.zeros(n, 3),
         "position_cov": torch.eye(3).repeat(n, 1, 1) * 1e-4,
         "color": torch.full((n, 3), 0.5),
     }
