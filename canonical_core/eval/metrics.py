@@ -1,4 +1,5 @@
-"""Image metrics of the evaluation: PSNR (all pixels or a mask), SSIM, coverage, feature cosine.
+"""Image metrics of the evaluation: PSNR (all pixels or a mask), SSIM, coverage and the all-pixel
+PSNR it allows, depth agreement, feature cosine.
 
 Images are float tensors [H, W, C] with values in [0, 1] (peak signal 1). A pixel is *covered*
 when the method drew something there: accumulated opacity >= ``COVERAGE_THRESHOLD``.
@@ -100,6 +101,24 @@ def covered(alpha: Tensor) -> Tensor:  # [H, W] -> [H, W] bool
 
 def coverage(alpha: Tensor) -> float:  # [H, W] -> fraction of covered pixels in [0, 1]
     return float(covered(alpha).double().mean())
+
+
+def coverage_ceiling(
+    alpha: Tensor,  # [H, W] accumulated opacity
+    target: Tensor,  # [H, W, C] in [0, 1]
+) -> float:
+    """All-pixel PSNR of an image that is exact on the covered pixels and black elsewhere: the best
+    all-pixel PSNR (black background) a method with this coverage can reach, whatever its colours.
+
+    Example:
+        >>> import torch
+        >>> alpha = torch.tensor([[1.0, 0.0]])  # one pixel covered, one not
+        >>> round(coverage_ceiling(alpha, torch.full((1, 2, 3), 0.1)), 2)  # MSE (0 + 0.01) / 2
+        23.01
+    """
+    if alpha.shape != target.shape[:2]:
+        raise ValueError(f"alpha: expected shape {list(target.shape[:2])} (the target's image), got {list(alpha.shape)}")
+    return psnr(torch.where(covered(alpha)[..., None], target, torch.zeros_like(target)), target)
 
 
 def depth_agreement(

@@ -2,7 +2,8 @@
 
 Per method and number of input views N (inputs and held-out frames from `protocol`), every
 held-out frame is rendered from the method's model and compared with its image (black background):
-PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, SSIM, depth agreement
+PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, the all-pixel PSNR that
+coverage allows (`coverage_ceiling`: covered pixels exact, the rest black), SSIM, depth agreement
 (share of covered pixels whose rendered depth is within 2 voxels of the held-out frame's sensor
 depth, where it has one: a floater measure), each the mean over the held-out frames; the number of
 Gaussians; the build time (fold + decode for the scene methods) and the mean render time. Then the
@@ -31,7 +32,7 @@ from tqdm import tqdm
 from ..datasets import FrameSequence, load_dataset
 from ..frame import Frame, resize_frame
 from .methods import METHODS, Model, build, check_methods
-from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, covered, coverage, depth_agreement, psnr, ssim
+from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
 
@@ -82,10 +83,11 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> tuple[di
         agree = math.nan if frame.depth is None else depth_agreement(
             view.depth, view.alpha, frame.depth, DEPTH_TOLERANCE_VOXELS * voxel_size)
         rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, covered(view.alpha)), coverage(view.alpha),
-                     ssim(view.rgb, gt), agree, ms))
+                     coverage_ceiling(view.alpha, gt), ssim(view.rgb, gt), agree, ms))
         images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
-    p, pc, cov, s, agree, ms = zip(*rows)
+    p, pc, cov, ceiling, s, agree, ms = zip(*rows)
     metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),
+               "psnr_ceiling": _nanmean([c if math.isfinite(c) else math.nan for c in ceiling]),
                "ssim": float(np.mean(s)), "depth_agreement": _nanmean(agree), "gaussians": model.gaussians,
                "render_ms": float(np.mean(ms))}
     return metrics, images

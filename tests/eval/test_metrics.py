@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.eval.metrics import SSIM_C1, SSIM_C2, cosine_map, coverage, covered, depth_agreement, psnr, ssim
+from canonical_core.eval.metrics import (SSIM_C1, SSIM_C2, cosine_map, coverage, coverage_ceiling, covered, depth_agreement, psnr,
+                                        ssim)
 
 
 def test_identical_images_give_infinite_psnr_and_unit_ssim():
@@ -81,6 +82,21 @@ def test_coverage_and_cosine():
     a = torch.tensor([[[1.0, 0.0], [1.0, 1.0]]])
     b = torch.tensor([[[2.0, 0.0], [-1.0, -1.0]]])
     assert cosine_map(a, b)[0].tolist() == pytest.approx([1.0, -1.0])
+
+
+def test_coverage_ceiling_is_the_psnr_of_exact_covered_pixels_on_black():
+    target = torch.rand(8, 10, 3, generator=torch.Generator().manual_seed(0))
+    alpha = torch.zeros(8, 10)
+    alpha[:, :6] = 0.7  # left 6 columns covered
+    uncovered = target[:, 6:]
+    expected = -10 * math.log10(float((uncovered.double() ** 2).sum()) / target.numel())
+    assert coverage_ceiling(alpha, target) == pytest.approx(expected, rel=1e-9)
+    # any colours on the covered pixels with black elsewhere score at most the ceiling
+    guess = torch.where(covered(alpha)[..., None], torch.rand(8, 10, 3), torch.zeros(8, 10, 3))
+    assert psnr(guess, target) < coverage_ceiling(alpha, target)
+    assert coverage_ceiling(torch.ones(8, 10), target) == math.inf  # everything covered: no bound
+    with pytest.raises(ValueError, match=r"alpha: expected shape \[8, 10\]"):
+        coverage_ceiling(torch.ones(4, 10), target)
 
 
 def test_depth_agreement_counts_covered_pixels_with_sensor_depth():

@@ -14,7 +14,7 @@ from canonical_core.eval import evaluate
 from canonical_core.eval.open3d_tsdf import open3d_available
 from canonical_core.eval.run import add_depth_noise, default_voxel_size
 
-RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "ssim", "gaussians", "fold_ms", "render_ms",
+RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "psnr_ceiling", "ssim", "gaussians", "fold_ms", "render_ms",
             "depth_agreement"}
 
 
@@ -37,6 +37,7 @@ def _check_results(results: dict, out_dir, methods, views, noise) -> None:
     for r in runs:
         assert set(r) == RUN_KEYS
         assert math.isfinite(r["psnr"]) and 0 <= r["coverage"] <= 1 and -1 <= r["ssim"] <= 1
+        assert r["psnr_ceiling"] is None or r["psnr_ceiling"] > 0
         assert r["depth_agreement"] is None or 0 <= r["depth_agreement"] <= 1
         assert r["fold_ms"] > 0 and r["render_ms"] > 0
         assert r["gaussians"] is None if r["method"] == "open3d_tsdf" else r["gaussians"] > 0
