@@ -16,7 +16,8 @@ sum W x / R_scene of the voxel's lifted points: the covariance is the second mom
 centroid, so a Gaussian at the representative would be shifted off its own point cloud by up to a
 voxel, and the centroid averages the depth noise of every folded observation instead of keeping
 one sample's. Measured on the shelf capture (evaluation protocol, held-out views, N = 2..16):
-covered PSNR +0.24..0.37 dB, SSIM +0.03, depth agreement +0.005 against the representative anchor.
+covered PSNR +0.24..0.37 dB, SSIM +0.03..0.04, depth agreement +0.002..0.006 against the
+representative anchor.
 
 R_unit is the scene's typical weight of one observation (`support_unit`): support is counted in
 "typical observations", so a capture whose every reliability is low (a noisy depth sensor, a far
