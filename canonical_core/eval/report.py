@@ -151,7 +151,8 @@ def _series(runs: Sequence[dict], method: str, key: str, x: str = "views") -> tu
 
 
 def plot_views(results: Mapping, path: Path) -> None:
-    """PSNR vs input views per method: all pixels, covered pixels, extrapolation (if run)."""
+    """PSNR vs input views per method: all pixels, covered pixels, extrapolation (if run); the
+    all-pixel panels also show the first method's coverage ceiling (dashed)."""
     plt = _pyplot()
     clean = [r for r in results["runs"] if r["noise"] == 0]
     panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered")]
@@ -160,7 +161,10 @@ def plot_views(results: Mapping, path: Path) -> None:
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
     for ax, (title, runs, key) in zip(axes[0], panels):
         for m in results["methods"]:
-            ax.plot(*_series(runs, m, key), marker="o", label=m)
+            (line,) = ax.plot(*_series(runs, m, key), marker="o", label=m)
+            if key == "psnr" and m == results["methods"][0]:  # the bound the first method's coverage sets
+                ax.plot(*_series(runs, m, "psnr_ceiling"), linestyle="--", color=line.get_color(),
+                        label=f"{m}: coverage ceiling")
         ax.set_xscale("log", base=2)
         ax.set_xticks(sorted(int(k) for k in results["inputs"]), [str(k) for k in sorted(int(k) for k in results["inputs"])])
         ax.set(title=title, xlabel="input views N", ylabel="dB")
