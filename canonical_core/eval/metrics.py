@@ -108,7 +108,8 @@ def coverage_ceiling(
     target: Tensor,  # [H, W, C] in [0, 1]
 ) -> float:
     """All-pixel PSNR of an image that is exact on the covered pixels and black elsewhere: the best
-    all-pixel PSNR (black background) a method with this coverage can reach, whatever its colours.
+    all-pixel PSNR (black background) better colours on the covered pixels can give at this
+    coverage (faint drawing on pixels below the coverage threshold can add a little).
 
     Example:
         >>> import torch
