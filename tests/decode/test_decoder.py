@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core import SceneConfig
+from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.camera import quaternion_to_matrix
 from canonical_core.decode import (FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion,
                                    support_unit)
@@ -75,8 +75,6 @@ def test_decoded_means_average_the_depth_noise_of_every_fold():
     # a wall through the voxel centres (z = 2.025) seen by 6 frames with independent depth noise (sigma
     # 1/5 voxel): each voxel's Gaussian sits at its points' centroid, closer to the wall than the single
     # representative sample
-    from canonical_core import Camera, Frame
-
     voxel, w, h, f = 0.05, 64, 48, 100.0
     rng = np.random.default_rng(0)
     scene = Scene(SceneConfig(voxel_size=voxel, free_space=False))
