@@ -55,10 +55,12 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default: the shelf capture)")
     p.add_argument("--voxel", type=float, default=0.004)
-    p.add_argument("--long", type=int, default=510, help="frames in the long-stream test")
+    p.add_argument("--long", type=int, default=510, help="frames in the long-stream test (0: skip it; else >= 31)")
     p.add_argument("--repeats", type=int, default=3, help="passes over the frames per measurement")
     p.add_argument("--long-repeats", type=int, default=3, help="runs of the long stream")
     args = p.parse_args(argv)
+    if args.long != 0 and args.long < 31:  # its windows, frames 5-15 and (long - 15)-(long - 5), must not overlap
+        p.error(f"--long: expected 0 (skip the long-stream test) or at least 31 frames, got {args.long}")
 
     frames = list(load_dataset(args.data)) if args.data.is_dir() else list(synthetic_rgbd(num_frames=50, width=640, height=480))
     name = args.data.name if args.data.is_dir() else "synthetic (../shared/data not found)"
@@ -97,6 +99,8 @@ def main(argv=None) -> None:
     if not have_o3d:
         print("Open3D not installed: install the `bench` extra for the peer column.\n")
 
+    if args.long == 0:
+        return
     # The late/early ratio compares two windows of one stream, so a burst of load on a shared
     # machine moves it a lot: the stream is repeated and each window's median pools all runs.
     # Free space is measured apart: its cost grows with the voxels in the frustum by design.
