@@ -39,6 +39,11 @@ class SceneConfig:
         sh_degree: degree of the per-voxel spherical-harmonics colour fit (0 = view-independent).
         sh_regularization: ridge weight, relative to R_scene, pulling the SH fit's higher
             coefficients toward zero (i.e. toward the DC colour) where few view directions were seen.
+            A degree-1 term keeps about var / (var + ridge) of its least-squares value, var being
+            the weighted variance of its basis over the observations (C1^2 theta^2 / 4 for two
+            views theta radians apart): 0.003 trusts views ~20 degrees apart (~70 % kept) and
+            ignores the spread of rays within one view. Measured on the shelf evaluation: covered
+            PSNR +0.06 / +0.14 / +0.27 dB at N = 2 / 4 / 16 over 0.05, in extrapolation too.
         free_space: fold free-space ("seen-through") evidence and use it in decoding.
         free_space_margin, free_space_sigmas: a voxel is seen through by a ray whose surface lies
             beyond margin * voxel_size + sigmas * sigma(depth) behind the voxel's centre.
@@ -66,7 +71,7 @@ class SceneConfig:
     eps: float = 1e-8
     max_voxels: int | None = None
     sh_degree: int = 1
-    sh_regularization: float = 0.05
+    sh_regularization: float = 0.003
     free_space: bool = True
     free_space_margin: float = 2.0
     free_space_sigmas: float = 3.0
