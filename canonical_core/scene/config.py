@@ -41,9 +41,10 @@ class SceneConfig:
             coefficients toward zero (i.e. toward the DC colour) where few view directions were seen.
             A degree-1 term keeps about var / (var + ridge) of its least-squares value, var being
             the weighted variance of its basis over the observations (C1^2 theta^2 / 4 for two
-            views theta radians apart): 0.003 trusts views ~20 degrees apart (70 % kept, 0.05: 12 %) and
-            ignores the spread of rays within one view. Measured on the shelf evaluation: covered
-            PSNR +0.06 / +0.14 / +0.20 / +0.27 dB at N = 2 / 4 / 8 / 16 over 0.05, in extrapolation too.
+            views theta radians apart): 0.003 trusts views ~20 degrees apart (70 % kept; 0.05
+            kept 12 %) and ignores the spread of rays within one view. Measured on the shelf
+            evaluation: covered PSNR +0.06 / +0.14 / +0.20 / +0.27 dB at N = 2 / 4 / 8 / 16 over
+            0.05, in extrapolation too.
         free_space: fold free-space ("seen-through") evidence and use it in decoding.
         free_space_margin, free_space_sigmas: a voxel is seen through by a ray whose surface lies
             beyond margin * voxel_size + sigmas * sigma(depth) behind the voxel's centre.

@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from canonical_core import Camera, Frame, SceneConfig
-from canonical_core.rendering.sh import sh_basis
+from canonical_core.rendering.sh import sh_basis, sh_to_rgb
 from canonical_core.scene import Scene
 
 SH_TRUE = np.array([[0.1, -0.2, 0.05], [0.25, 0.0, -0.1], [-0.15, 0.2, 0.0], [0.1, 0.1, 0.3]], np.float32)  # [4, 3]
@@ -70,14 +70,10 @@ def test_default_regularisation_keeps_view_dependence_seen_from_views_20_degrees
     f = scene.fields()
     well_seen = f["observations"] > 50  # seen by both views (one view gives each voxel 11-31 pixels)
     assert well_seen.sum() > 3
-    points = f["position_mean"][well_seen].double()
-
-    def colours(sh: torch.Tensor, centre: np.ndarray) -> torch.Tensor:  # [V, 3] seen from centre
-        d = points - torch.from_numpy(centre)
-        return (sh_basis((d / d.norm(dim=1, keepdim=True)).float(), 1)[:, :, None] * sh).sum(1)
-
-    truth = torch.from_numpy(SH_TRUE).expand(int(well_seen.sum()), 4, 3)
-    true_change = colours(truth, centres[1]) - colours(truth, centres[0])
-    fitted_change = colours(f["sh"][well_seen], centres[1]) - colours(f["sh"][well_seen], centres[0])
+    points = f["position_mean"][well_seen]
+    dirs = [points - torch.from_numpy(c).float() for c in centres]
+    truth = torch.from_numpy(SH_TRUE).expand(len(points), 4, 3)
+    true_change = sh_to_rgb(truth, dirs[1]) - sh_to_rgb(truth, dirs[0])
+    fitted_change = sh_to_rgb(f["sh"][well_seen], dirs[1]) - sh_to_rgb(f["sh"][well_seen], dirs[0])
     kept = (fitted_change * true_change).sum() / (true_change * true_change).sum()
     assert 0.5 < kept < 1.1
