@@ -128,8 +128,10 @@ def composite_tiles(
         transmittance = np.ones(_TILE_PIXELS)  # float64, as torch.cumprod accumulates
         done = np.zeros(_TILE_PIXELS, np.bool_)
         active = (u1 - u0) * (v1 - v0)
-        # float64 sums: the reference's float32 matmul is then the only rounding left in the test
-        accum = np.zeros((_TILE_PIXELS, num_channels))
+        # float32 channel sums: with 32 feature channels, float64 ones made the render 7-12 % slower
+        # (4 lanes a vector op instead of 8, plus a conversion each); their rounding, ~1e-6 over
+        # the ~30 layers a pixel blends, is far inside the tests' 1e-4. Depth and weight stay float64.
+        accum = np.zeros((_TILE_PIXELS, num_channels), np.float32)
         depth_sum = np.zeros(_TILE_PIXELS)
         weight_sum = np.zeros(_TILE_PIXELS)  # not 1 - T: 1 - alpha is rounded to float32 in T
         for k in range(ids.shape[0]):
