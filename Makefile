@@ -6,7 +6,8 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
 .PHONY: setup demo test bench clean
 
-$(VENV)/.installed: pyproject.toml
+# setup.py and the C sources: `pip install -e .` (re)builds the compositor's library in place.
+$(VENV)/.installed: pyproject.toml setup.py $(wildcard canonical_core/rendering/*.c)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# torch first, pinned: the local CPU wheel (an unpinned torch downloads CUDA builds)

@@ -1,4 +1,4 @@
-"""Rasterizer benchmark: ms per frame of render() for the numba and reference backends.
+"""Rasterizer benchmark: ms per frame of render() for the cpu and reference backends.
 
 Usage: NUMBA_CACHE_DIR=.numba_cache python bench/render.py [--quick]
 
@@ -30,6 +30,7 @@ from common import machine_summary, time_each  # noqa: E402
 from canonical_core.camera import Camera  # noqa: E402
 from canonical_core.gaussians import Gaussians, rgb_to_sh_dc  # noqa: E402
 from canonical_core.rendering import render  # noqa: E402
+from canonical_core.rendering.cpu_tiles import compositor_build  # noqa: E402
 
 FOCAL_AT_640 = 525.0
 
@@ -94,7 +95,7 @@ OUTPUTS = {"rgb": ("rgb", "depth", "alpha"), "rgb+32f": ("rgb", "depth", "alpha"
 
 
 def machine() -> str:
-    return machine_summary() + f"numba threading layer: {numba.threading_layer()}"
+    return machine_summary() + f"numba threading layer: {numba.threading_layer()}, compositor build: {compositor_build}"
 
 
 def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> list[float]:
@@ -150,17 +151,17 @@ def main() -> None:
         for width, height in RESOLUTIONS:
             camera = make_camera(width, height)
             for channels, outputs in OUTPUTS.items():
-                runs = [("numba", t) for t in threads]
+                runs = [("cpu", t) for t in threads]
                 if n == SIZES[0] and width == 256:  # the reference is O(splats x pixels): small cases only
                     runs.append(("reference", threads[-1]))
                 for backend, t in runs:
                     torch.set_num_threads(t)
-                    times = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "numba" else 3)
-                    target = TARGETS_MS.get((n, (width, height), channels)) if backend == "numba" and t == 2 else None
+                    times = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "cpu" else 3)
+                    target = TARGETS_MS.get((n, (width, height), channels)) if backend == "cpu" and t == 2 else None
                     print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}{statistics.median(times):>9.1f}"
                           f"{min(times):>8.1f}{max(times):>8.1f}  {f'<= {target} ms' if target else ''}")  # fmt: skip
 
-    print(f"\nfresh process, numba {threads[-1]} threads: seconds to import and to render once (numba cache warm),")
+    print(f"\nfresh process, cpu backend, {threads[-1]} threads: seconds to import and to render once (numba cache warm),")
     print("and the peak resident memory one more render adds (glibc told to unmap freed blocks, so it shows).")
     print("The target is on the first render() call; import is mostly `import torch`, and the call includes")
     print("numba's one-time start-up in a process (~0.5 s, paid by the first call of any numba function)\n")

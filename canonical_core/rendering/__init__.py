@@ -1,4 +1,4 @@
-"""Rendering: ``render(gaussians, camera, ...)`` with a PyTorch reference, a numba CPU path and gsplat on CUDA."""
+"""Rendering: ``render(gaussians, camera, ...)`` with a PyTorch reference, a fast CPU path (numba + C) and gsplat on CUDA."""
 
 from .renderer import Backend, Output, RenderResult, render
 

@@ -60,7 +60,7 @@ def channel_values(
     colour: Callable[[Tensor, Tensor], Tensor] = sh_to_rgb,  # (sh [N, K, 3], dirs [N, 3]) -> rgb [N, 3]
 ) -> Tensor:  # [N, D]
     """The per-Gaussian values to composite, concatenated in the order of ``channels``; ``colour``
-    evaluates the SH (`sh_to_rgb`, or its fast path for the numba backend)."""
+    evaluates the SH (`sh_to_rgb`, or its fast path for the cpu backend)."""
     dtype = gaussians.means.dtype
     parts = []
     for channel in channels:

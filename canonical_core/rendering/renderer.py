@@ -11,12 +11,12 @@ from torch import Tensor
 from ..camera import Camera
 from ..gaussians import Gaussians
 from .gsplat_backend import composite_gsplat, gsplat_available
-from .numba_tiles import render_numba
+from .cpu_tiles import render_cpu
 from .projection import Blend, Channel, project_splats
 from .reference import composite_reference
 
 Output = Literal["rgb", "depth", "alpha", "features", "labels"]
-Backend = Literal["auto", "reference", "numba", "gsplat"]
+Backend = Literal["auto", "reference", "cpu", "gsplat"]
 
 
 @dataclass
@@ -67,7 +67,7 @@ def _resolve_backend(backend: str, device: torch.device) -> str:
     if backend not in get_args(Backend):
         raise ValueError(f"backend: expected one of {list(get_args(Backend))}, got {backend!r}")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "numba"
+        return "gsplat" if device.type == "cuda" and gsplat_available() else "cpu"
     if backend == "gsplat" and not (device.type == "cuda" and gsplat_available()):
         raise ValueError(f"backend: 'gsplat' needs the gsplat package and CUDA tensors (Gaussians are on {device})")
     return backend
@@ -93,11 +93,11 @@ def render(
         outputs: which maps to compute, any of "rgb", "depth", "alpha", "features", "labels".
             RGB, features and labels are composited in the same pass.
         background: rgb colour behind the Gaussians, composited as rgb + T_final * background.
-        backend: "reference" (PyTorch, differentiable, O(splats x pixels) per tile), "numba"
-            (fast CPU, float32, no autograd), "gsplat" (CUDA) or "auto" (gsplat for CUDA tensors
-            when it is installed, else numba).
+        backend: "reference" (PyTorch, differentiable, O(splats x pixels) per tile), "cpu"
+            (fast: numba projection and a vectorised C compositor, float32, no autograd), "gsplat"
+            (CUDA) or "auto" (gsplat for CUDA tensors when it is installed, else cpu).
         near_plane: Gaussians whose mean is closer than this view-space depth are culled.
-        num_threads: CPU threads for the numba backend (default ``torch.get_num_threads()``).
+        num_threads: CPU threads for the cpu backend (default ``torch.get_num_threads()``).
 
     Returns:
         RenderResult with the requested maps on the Gaussians' device, each [H, W] or [H, W, C].
@@ -127,7 +127,7 @@ def render(
         splats = project_splats(gaussians, camera, channels, near_plane)
         blend = composite_reference(splats, camera.width, camera.height)
     else:
-        blend = Blend(*(t.to(device) for t in render_numba(gaussians, camera, channels, near_plane, num_threads)))
+        blend = Blend(*(t.to(device) for t in render_cpu(gaussians, camera, channels, near_plane, num_threads)))
 
     alpha = 1 - blend.transmittance
     covered = blend.weight_sums > 0

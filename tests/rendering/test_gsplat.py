@@ -20,14 +20,14 @@ def test_gsplat_agrees_with_the_cpu_fast_path():
     pytest.importorskip("gsplat")
     gaussians = random_scene(2000, 21, sh_degree=3, scale_range=(0.01, 0.08), opacity_range=(0.3, 1.0))
     camera = look_at_camera(96, 72, 80.0, [0.4, -0.3, -3.0], [0.0, 0.0, 0.0], roll=0.2)
-    cpu = render(gaussians, camera, ALL_OUTPUTS, background=(0.1, 0.2, 0.3), backend="numba")
+    cpu = render(gaussians, camera, ALL_OUTPUTS, background=(0.1, 0.2, 0.3), backend="cpu")
     gpu = render(gaussians.to("cuda"), camera, ALL_OUTPUTS, background=(0.1, 0.2, 0.3), backend="auto")
     assert gpu.rgb.is_cuda and gpu.labels.dtype == torch.int64
     # gsplat truncates splats by its own screen radius, not the 3-sigma ellipse: the images agree
     # closely on average, not to the last bit at splat edges.
     for name in ("rgb", "alpha", "features"):
         difference = (getattr(gpu, name).cpu() - getattr(cpu, name)).abs().mean().item()
-        assert difference < 5e-3, f"{name}: mean |gsplat - numba| = {difference:.3g}"
+        assert difference < 5e-3, f"{name}: mean |gsplat - cpu| = {difference:.3g}"
     both = (gpu.alpha.cpu() > 0.5) & (cpu.alpha > 0.5)
     assert (gpu.depth.cpu() - cpu.depth)[both].abs().median() < 1e-3
 

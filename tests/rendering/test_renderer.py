@@ -32,18 +32,18 @@ SCENES = [
 
 
 @pytest.mark.parametrize("seed,n,sh_degree,scales,opacities,distance", SCENES)
-def test_numba_matches_reference(seed, n, sh_degree, scales, opacities, distance):
+def test_cpu_matches_reference(seed, n, sh_degree, scales, opacities, distance):
     gaussians = random_scene(n, seed, sh_degree=sh_degree, scale_range=scales, opacity_range=opacities)
     angle = seed * 1.3
     eye = [distance * math.sin(angle), 0.4 * distance * math.cos(seed), -distance * math.cos(angle)]
     # 45 x 37 is not a multiple of the 16 px tile: the last tiles overhang the image.
     camera = look_at_camera(45, 37, 40.0, eye, [0.1, -0.1, 0.0], roll=0.4 * seed)
     reference = render(gaussians, camera, ALL_OUTPUTS, background=(0.2, 0.4, 0.6), backend="reference")
-    fast = render(gaussians, camera, ALL_OUTPUTS, background=(0.2, 0.4, 0.6), backend="numba")
+    fast = render(gaussians, camera, ALL_OUTPUTS, background=(0.2, 0.4, 0.6), backend="cpu")
     assert (reference.alpha > 0).float().mean() > 0.3, "the scene should cover much of the image"
     for name in ("rgb", "depth", "alpha", "features"):
         difference = (getattr(reference, name) - getattr(fast, name)).abs().max().item()
-        assert difference <= 1e-4, f"{name}: max |reference - numba| = {difference:.3g}"
+        assert difference <= 1e-4, f"{name}: max |reference - cpu| = {difference:.3g}"
     # Labels are an argmax: compare where the top two composited label scores are clearly apart.
     scores = render(replace(gaussians, features=gaussians.labels), camera, ("features",), backend="reference").features
     top2 = scores.topk(2, dim=-1).values
@@ -55,13 +55,13 @@ def test_numba_matches_reference(seed, n, sh_degree, scales, opacities, distance
 def test_dense_scene_terminates_early_in_both_backends():
     gaussians = random_scene(800, 4, scale_range=(0.05, 0.25), opacity_range=(0.8, 1.0))
     camera = look_at_camera(32, 32, 30.0, [0.0, 0.0, -2.0], [0.0, 0.0, 0.0])
-    for backend in ("reference", "numba"):
+    for backend in ("reference", "cpu"):
         alpha = render(gaussians, camera, ("alpha",), backend=backend).alpha
         # Early termination leaves T in [1e-4, 1e-2]: alpha stops short of 1 - 1e-4.
         assert alpha.max() > 0.999 and alpha.max() <= 1 - 1e-4 + 1e-6
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_isotropic_gaussian_head_on_has_closed_form_alpha(backend):
     z, scale, opacity, focal = 2.0, 0.01, 0.8, 100.0
     camera = pinhole(32, 24, focal, cx=15.3, cy=11.6)  # the mean projects between pixel centres
@@ -78,7 +78,7 @@ def test_isotropic_gaussian_head_on_has_closed_form_alpha(backend):
     assert result.features is None and result.labels is None
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_pixel_centres_are_integer_coordinates(backend):
     camera = pinhole(20, 16, 50.0, cx=9.5, cy=7.5)
     # A small Gaussian whose mean projects exactly onto pixel (u, v) = (12, 5).
@@ -89,7 +89,7 @@ def test_pixel_centres_are_integer_coordinates(backend):
     assert abs(alpha[5, 11] - alpha[5, 13]) < 1e-5 and abs(alpha[4, 12] - alpha[6, 12]) < 1e-5
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_opaque_gaussians_composite_in_depth_order_regardless_of_input_order(backend):
     camera = pinhole(16, 16, 40.0, cx=7.0, cy=7.0)  # both means project onto pixel (7, 7)
     means, scales = [[0, 0, 2.0], [0, 0, 3.0]], [[0.2] * 3, [0.3] * 3]
@@ -103,7 +103,7 @@ def test_opaque_gaussians_composite_in_depth_order_regardless_of_input_order(bac
     assert front_first.depth[7, 7] == pytest.approx((0.99 * 2 + 0.0095 * 3) / (0.99 + 0.0095), abs=1e-5)
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_stops_before_the_splat_that_would_drop_transmittance_below_1e_4(backend):
     # Six stacked layers of alpha 0.8 at the centre: T = 0.2^k. The sixth would leave
     # T = 6.4e-5 < 1e-4, so 3DGS stops before it: five layers count, T_final = 0.2^5.
@@ -117,7 +117,7 @@ def test_stops_before_the_splat_that_would_drop_transmittance_below_1e_4(backend
     assert torch.allclose(result.rgb[3, 3], expected_rgb, atol=1e-5)
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_background_fills_what_the_gaussians_leave(backend):
     camera = pinhole(12, 12, 30.0, cx=5.5, cy=5.5)
     result = render(gaussians_at([0, 0, 2.0], [0.05] * 3, [0.5], [RED]), camera, background=(0.0, 1.0, 0.0), backend=backend)
@@ -127,7 +127,7 @@ def test_background_fills_what_the_gaussians_leave(backend):
     assert result.rgb[0, 0].tolist() == [0.0, 1.0, 0.0]
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_empty_scene_returns_the_background(backend):
     camera = pinhole(10, 7, 20.0, cx=5.0, cy=3.0)
     empty = Gaussians.empty(sh_degree=2, feature_dim=3, label_dim=2)
@@ -137,7 +137,7 @@ def test_empty_scene_returns_the_background(backend):
     assert result.features.shape == (7, 10, 3) and (result.labels == -1).all()
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_gaussians_behind_or_on_the_camera_plane_contribute_nothing(backend):
     camera = pinhole(16, 16, 20.0, cx=7.5, cy=7.5)
     behind = gaussians_at([[0, 0, -1.0], [0.1, 0, -0.2], [0, 0, 0.0], [0, 0, 0.005]], [[0.5] * 3] * 4, [1.0] * 4, [RED] * 4)
@@ -145,7 +145,7 @@ def test_gaussians_behind_or_on_the_camera_plane_contribute_nothing(backend):
     assert (result.alpha == 0).all() and (result.rgb == 0).all()
 
 
-@pytest.mark.parametrize("backend", ["reference", "numba"])
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_degenerate_and_huge_gaussians_render_finite_images_quickly(backend):
     camera = look_at_camera(40, 30, 35.0, [0.0, 0.0, -2.0], [0.0, 0.0, 0.0])
     means = [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.2, 0.2, 0], [0, 0, -1.9], [0, 0, -2.0 + 1e-9], [0.3, 0, 0], [0, 0, 0]]
@@ -175,7 +175,7 @@ def test_many_screen_filling_gaussians_are_bounded_by_the_image():
     means = torch.rand(n, 3) + torch.tensor([0, 0, 0.5])
     gaussians = gaussians_at(means, torch.full((n, 3), 50.0), torch.full((n,), 0.5), torch.rand(n, 3))
     start = time.perf_counter()
-    result = render(gaussians, camera, backend="numba")
+    result = render(gaussians, camera, backend="cpu")
     assert time.perf_counter() - start < 5.0 and torch.isfinite(result.rgb).all()
 
 
@@ -183,8 +183,8 @@ def test_thread_count_does_not_change_the_image_and_is_restored():
     gaussians = random_scene(300, 7)
     camera = look_at_camera(40, 40, 35.0, [0.0, 0.5, -3.0], [0.0, 0.0, 0.0])
     before = numba.get_num_threads()
-    one = render(gaussians, camera, ALL_OUTPUTS, backend="numba", num_threads=1)
-    many = render(gaussians, camera, ALL_OUTPUTS, backend="numba", num_threads=64)  # clamped to the cores
+    one = render(gaussians, camera, ALL_OUTPUTS, backend="cpu", num_threads=1)
+    many = render(gaussians, camera, ALL_OUTPUTS, backend="cpu", num_threads=64)  # clamped to the cores
     assert numba.get_num_threads() == before
     for name in ALL_OUTPUTS:
         assert torch.equal(getattr(one, name), getattr(many, name)), name
@@ -194,7 +194,7 @@ def test_auto_backend_on_cpu_is_the_fast_path():
     gaussians = random_scene(100, 8)
     camera = look_at_camera(24, 24, 25.0, [0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
     auto = render(gaussians, camera, ALL_OUTPUTS)
-    fast = render(gaussians, camera, ALL_OUTPUTS, backend="numba")
+    fast = render(gaussians, camera, ALL_OUTPUTS, backend="cpu")
     assert all(torch.equal(getattr(auto, name), getattr(fast, name)) for name in ALL_OUTPUTS)
 
 

@@ -1,0 +1,203 @@
+"""Fast CPU backend: numba projection and tile binning, then per-tile compositing in C (float32,
+no autograd).
+
+Same image model and arithmetic as the reference: the splat geometry comes from the same source
+(`splat_geometry`), the per-pixel expressions are written alike, and the transmittance is
+accumulated in float64 and rounded as torch.cumprod does, so the two agree to float rounding.
+The compositor (`_composite.c`) is vectorised across pixels, which numba did not manage; the numba
+kernels are compiled with ``cache=True``: set NUMBA_CACHE_DIR (the Makefile does) to keep their
+machine code across processes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+from typing import Sequence
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from ..gaussians import Gaussians
+from .projection import Blend, Channel, channel_values, world_to_camera
+from .sh import sh_to_rgb_fast
+from .splat_geometry import SPLAT_RECORD, TILE_SIZE, project_numba, slope_bounds
+
+# The compositor's builds (setup.py), baseline first.
+_BUILDS = ("_composite", "_composite_x86_64_v3")
+
+
+@numba.njit(parallel=True, cache=True)
+def bin_splats_by_tile(
+    boxes: np.ndarray,  # [N, 4] int32 pixel boxes (u_lo, u_hi, v_lo, v_hi); empty where lo > hi
+    tiles_x: int,
+    num_tiles: int,
+    num_chunks: int,
+) -> tuple[np.ndarray, np.ndarray]:  # tile_starts [T + 1] int64, splat_ids [K] int32
+    """Counting sort of (tile, splat) pairs by tile; each tile lists its splats in input order.
+
+    Each of ``num_chunks`` parallel tasks counts and fills one contiguous run of splats; runs are
+    laid out in order within every tile, which keeps the input order.
+    """
+    n = boxes.shape[0]
+    chunk = -(-n // num_chunks)
+    cursors = np.zeros((num_chunks, num_tiles), np.int64)
+    for k in numba.prange(num_chunks):
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            if boxes[i, 0] <= boxes[i, 1]:
+                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
+                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
+                        cursors[k, ty * tiles_x + tx] += 1
+    tile_starts = np.empty(num_tiles + 1, np.int64)
+    total = 0
+    for tile in range(num_tiles):
+        tile_starts[tile] = total
+        for k in range(num_chunks):
+            count = cursors[k, tile]
+            cursors[k, tile] = total
+            total += count
+    tile_starts[num_tiles] = total
+    splat_ids = np.empty(total, np.int32)
+    for k in numba.prange(num_chunks):
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            if boxes[i, 0] <= boxes[i, 1]:
+                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
+                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
+                        splat_ids[cursors[k, ty * tiles_x + tx]] = i
+                        cursors[k, ty * tiles_x + tx] += 1
+    return tile_starts, splat_ids
+
+
+def compositor_builds() -> dict[str, str]:
+    """The compositor's builds present in this installation: {build name: path of its library}."""
+    builds = {}
+    for name in _BUILDS:
+        spec = importlib.util.find_spec(f"{__package__}.{name}")
+        if spec is not None and spec.origin is not None:
+            builds[name] = spec.origin
+    return builds
+
+
+def load_compositor(name: str) -> ctypes.CDLL:
+    """Load one build of the compositor (a name from ``compositor_builds()``), its functions typed."""
+    library = ctypes.CDLL(compositor_builds()[name])
+    pointer, size = ctypes.c_void_p, ctypes.c_int64
+    library.canonical_composite_tiles.argtypes = [pointer, size, pointer, pointer, pointer, pointer, size] + [
+        size, size, size, pointer, pointer, pointer, pointer, size
+    ]
+    library.canonical_composite_tiles.restype = ctypes.c_int
+    library.canonical_stable_depth_order.argtypes = [pointer, size, pointer]
+    library.canonical_stable_depth_order.restype = ctypes.c_int
+    return library
+
+
+def _default_build() -> str:
+    """The x86-64-v3 build where it is built and the CPU runs it, else the baseline one."""
+    builds = compositor_builds()
+    if _BUILDS[0] not in builds:
+        raise ImportError(
+            f"{__package__}: the compositor library {_BUILDS[0]} is not built; "
+            "reinstall the package (pip install -e .) with a C compiler (gcc) present"
+        )
+    faster = _BUILDS[1] in builds and load_compositor(_BUILDS[0]).canonical_cpu_has_x86_64_v3()
+    return _BUILDS[1] if faster else _BUILDS[0]
+
+
+compositor_build = _default_build()
+_compositor = load_compositor(compositor_build)
+
+
+def _address(array: np.ndarray, dtype: type, name: str) -> int:
+    if array.dtype != dtype or not array.flags.c_contiguous:
+        raise ValueError(f"{name}: expected a C-contiguous {np.dtype(dtype)} array, got {array.dtype}")
+    return array.ctypes.data
+
+
+def stable_depth_order(depths: np.ndarray) -> np.ndarray:  # [n] float32 > 0 -> [n] int32 permutation
+    """Stable ascending order of positive depths, as the compositor sorts each tile's splats:
+    equal depths keep input order."""
+    order = np.empty(depths.shape[0], np.int32)
+    if _compositor.canonical_stable_depth_order(_address(depths, np.float32, "depths"), depths.shape[0],
+                                                _address(order, np.int32, "order")):  # fmt: skip
+        raise MemoryError("stable_depth_order: out of memory")
+    return order
+
+
+def composite_tiles(
+    tile_starts: np.ndarray,  # [T + 1] int64
+    splat_ids: np.ndarray,  # [K] int32, per tile in input order
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba
+    boxes: np.ndarray,  # [N, 4] int32
+    values: np.ndarray,  # [N, D] float32
+    tiles_x: int,
+    out_values: np.ndarray,  # [H, W, D] float32
+    out_depth_sums: np.ndarray,  # [H, W] float32
+    out_weight_sums: np.ndarray,  # [H, W] float32
+    out_transmittance: np.ndarray,  # [H, W] float32
+    num_threads: int,
+    compositor: ctypes.CDLL | None = None,  # a build from load_compositor; default: compositor_build
+) -> None:
+    """Blend each tile's splats front to back (the C library, on ``num_threads`` threads that take
+    tiles one at a time: tiles differ a lot in work). Splat-outer within the tile: each splat visits
+    the 8-pixel blocks of its box's rows; every pixel still sees the splats in depth order."""
+    height, width, num_channels = out_values.shape
+    if splats.shape[1] != SPLAT_RECORD:
+        raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
+    status = (compositor or _compositor).canonical_composite_tiles(
+        _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
+        _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
+        _address(boxes, np.int32, "boxes"), _address(values, np.float32, "values"), num_channels,
+        tiles_x, width, height, _address(out_values, np.float32, "out_values"),
+        _address(out_depth_sums, np.float32, "out_depth_sums"),
+        _address(out_weight_sums, np.float32, "out_weight_sums"),
+        _address(out_transmittance, np.float32, "out_transmittance"), num_threads,
+    )  # fmt: skip
+    if status:
+        raise MemoryError("composite_tiles: out of memory for the per-thread tile buffers")
+
+
+def render_cpu(
+    gaussians: Gaussians,
+    camera: Camera,
+    channels: Sequence[Channel],
+    near_plane: float,
+    num_threads: int,
+    compositor: ctypes.CDLL | None = None,  # a build from load_compositor; default: compositor_build
+) -> Blend:
+    """Project and composite on ``num_threads`` threads; returns CPU float32 tensors."""
+
+    def array(t: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
+
+    gaussians = gaussians.detach().to("cpu", torch.float32)
+    n = len(gaussians)
+    width, height = camera.width, camera.height
+    tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
+    f32 = np.float32
+    view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
+    splats, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
+    out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
+    out_transmittance = np.ones((height, width), f32)
+    num_threads = min(num_threads, numba.config.NUMBA_NUM_THREADS)  # at most one thread a core
+    previous_threads = numba.get_num_threads()
+    numba.set_num_threads(num_threads)
+    try:
+        values = array(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
+        out_values = np.zeros((height, width, values.shape[1]), f32)
+        project_numba(
+            array(gaussians.means), array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities), view,
+            (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
+            tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
+            f32(near_plane), width, height, splats, boxes,
+        )  # fmt: skip
+        tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
+        composite_tiles(
+            tile_starts, splat_ids, splats, boxes, values, tiles_x,
+            out_values, out_depth_sums, out_weight_sums, out_transmittance, num_threads, compositor,
+        )  # fmt: skip
+    finally:
+        numba.set_num_threads(previous_threads)
+    return Blend(*(torch.from_numpy(a) for a in (out_values, out_depth_sums, out_weight_sums, out_transmittance)))
