@@ -5,7 +5,8 @@ Usage: NUMBA_CACHE_DIR=.numba_cache python bench/render.py [--quick]
 Prints a table; asserts nothing. The scene is synthetic but shaped like a decoded capture:
 Gaussians on a back wall, a floor and two boxes 2-4 m in front of the camera, flattened along
 the surface normal, standard deviation 0.7-3 px at 640x480 (boxes of 5-19 px across their 3 sigma),
-opacity 0.3-1, degree-1 SH colour, in random order. Timings are
+opacity 0.3-1, degree-1 SH colour, in random order. Rows "shelf" render the real scene decoded from
+all of ../shared/data/realsense_shelf (when it is there). Timings are
 wall-clock medians after warm-up on a machine that may be shared: read them with the load
 average printed at the top.
 """
@@ -28,11 +29,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine_summary, time_each  # noqa: E402
 
 from canonical_core.camera import Camera  # noqa: E402
+from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
 from canonical_core.gaussians import Gaussians, rgb_to_sh_dc  # noqa: E402
 from canonical_core.rendering import render  # noqa: E402
 from canonical_core.rendering.cpu_tiles import compositor_build  # noqa: E402
+from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 
 FOCAL_AT_640 = 525.0
+SHELF = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
 
 def make_camera(width: int, height: int) -> Camera:
@@ -94,6 +98,23 @@ TARGETS_MS = {(170_000, (256, 256), "rgb"): 50, (170_000, (640, 480), "rgb"): 12
 OUTPUTS = {"rgb": ("rgb", "depth", "alpha"), "rgb+32f": ("rgb", "depth", "alpha", "features")}
 
 
+def shelf_cases() -> list[tuple[str, Gaussians, Camera]]:
+    """The decoded shelf scene (all frames folded at 4 mm) at an input frame's pose, 640x480 and a
+    256x256 centre crop at the same focal length scaled to 256 rows; [] without ../shared/data."""
+    if not SHELF.is_dir():
+        return []
+    frames = load_tsdf_fusion(SHELF)
+    scene = Scene(SceneConfig(voxel_size=0.004))
+    for frame in frames:
+        scene.fold(frame)
+    gaussians, camera = scene.decode(), frames[len(frames) // 2].camera
+    print(f"shelf: {len(frames)} frames folded at 4 mm, {len(gaussians)} Gaussians, rendered at frame {len(frames) // 2}")
+    scale = 256 / camera.height
+    K = [[camera.fx * scale, 0, 127.5], [0, camera.fy * scale, 127.5], [0, 0, 1]]
+    small = Camera(K=K, c2w=camera.c2w64(), width=256, height=256)
+    return [("shelf", gaussians, small), ("shelf", gaussians, camera)]
+
+
 def machine() -> str:
     return machine_summary() + f"numba threading layer: {numba.threading_layer()}, compositor build: {compositor_build}"
 
@@ -143,23 +164,26 @@ def main() -> None:
     threads = sorted({1, min(2, os.cpu_count() or 1)})
     render(Gaussians.empty(), make_camera(16, 16))  # starts numba's thread pool, which machine() names
     print(machine())
+    scenes = {n: make_scene(n, FEATURE_DIM) for n in sizes}
+    cases = [(n, scenes[n], make_camera(width, height)) for n in sizes for width, height in RESOLUTIONS]
+    cases += shelf_cases()
     print(f"\nms per frame: median / min / max of {repeats} after a warm-up render (targets apply to 2 threads)\n")
     header = f"{'backend':<10}{'gaussians':>10}{'image':>10}{'channels':>10}{'threads':>8}{'median':>9}{'min':>8}{'max':>8}"
     print(header + "  target")
-    scenes = {n: make_scene(n, FEATURE_DIM) for n in sizes}
-    for n in sizes:
-        for width, height in RESOLUTIONS:
-            camera = make_camera(width, height)
-            for channels, outputs in OUTPUTS.items():
-                runs = [("cpu", t) for t in threads]
-                if n == SIZES[0] and width == 256:  # the reference is O(splats x pixels): small cases only
-                    runs.append(("reference", threads[-1]))
-                for backend, t in runs:
-                    torch.set_num_threads(t)
-                    times = time_render(scenes[n], camera, outputs, backend, t, repeats if backend == "cpu" else 3)
-                    target = TARGETS_MS.get((n, (width, height), channels)) if backend == "cpu" and t == 2 else None
-                    print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}{statistics.median(times):>9.1f}"
-                          f"{min(times):>8.1f}{max(times):>8.1f}  {f'<= {target} ms' if target else ''}")  # fmt: skip
+    for n, gaussians, camera in cases:
+        width, height = camera.width, camera.height
+        for channels, outputs in OUTPUTS.items():
+            if "features" in outputs and gaussians.features.shape[1] != FEATURE_DIM:
+                channels = f"rgb+{gaussians.features.shape[1]}f"
+            runs = [("cpu", t) for t in threads]
+            if n == SIZES[0] and width == 256:  # the reference is O(splats x pixels): small cases only
+                runs.append(("reference", threads[-1]))
+            for backend, t in runs:
+                torch.set_num_threads(t)
+                times = time_render(gaussians, camera, outputs, backend, t, repeats if backend == "cpu" else 3)
+                target = TARGETS_MS.get((n, (width, height), channels)) if backend == "cpu" and t == 2 else None
+                print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}{statistics.median(times):>9.1f}"
+                      f"{min(times):>8.1f}{max(times):>8.1f}  {f'<= {target} ms' if target else ''}")  # fmt: skip
 
     print(f"\nfresh process, cpu backend, {threads[-1]} threads: seconds to import and to render once (numba cache warm),")
     print("and the peak resident memory one more render adds (glibc told to unmap freed blocks, so it shows).")

@@ -12,8 +12,11 @@
  * where the CPU has it. (target_clones in one build measured 10-15 % slower than -march.) No
  * Python.h: the library is loaded with ctypes, so it is tied to no CPython ABI.
  *
- * Layout: a tile is 16 x 16 pixels, p = row * 16 + column, in two 8-pixel blocks a row. Per-tile
- * accumulators are planar (channel-major) so that a block of one channel is one vector.
+ * Layout: a tile is 16 x 16 pixels, p = row * 16 + column, in two 8-pixel blocks a row. The
+ * per-tile channel sums are planar (channel-major) for up to PLANAR_MAX channels, so that a block
+ * of one channel is one vector; wider sets (features, labels) are pixel-major and each blended
+ * pixel adds its channels as one vectorised row, which skips the masked-off pixels of a block
+ * (with 35 channels 6-17 % faster than planar).
  */
 #include <math.h>
 #include <pthread.h>
@@ -24,6 +27,7 @@
 #define TILE 16
 #define TILE_PIXELS (TILE * TILE)
 #define LANES 8
+#define PLANAR_MAX 4
 /* Columns of a splat record: the same order as splat_geometry.U ... SUPPORT. */
 enum { U, V, CONIC_A, CONIC_B, CONIC_C, DEPTH, OPACITY, SUPPORT, RECORD };
 
@@ -214,12 +218,21 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 t_hi = select4(__builtin_convertvector(mask_hi, v4l), next_hi, t_hi);
                 memcpy(transmittance + p, &t_lo, sizeof t_lo);
                 memcpy(transmittance + p + 4, &t_hi, sizeof t_hi);
-                for (int64_t ch = 0; ch < channels; ch++) {
-                    float *sum = accum + ch * TILE_PIXELS + p;
-                    v8f acc;
-                    memcpy(&acc, sum, sizeof acc);
-                    acc += weight * splat8(value[ch]);
-                    memcpy(sum, &acc, sizeof acc);
+                if (channels <= PLANAR_MAX) {
+                    for (int64_t ch = 0; ch < channels; ch++) {
+                        float *sum = accum + ch * TILE_PIXELS + p;
+                        v8f acc;
+                        memcpy(&acc, sum, sizeof acc);
+                        acc += weight * splat8(value[ch]);
+                        memcpy(sum, &acc, sizeof acc);
+                    }
+                } else {
+                    for (int bits = lanes8(mask); bits; bits &= bits - 1) {
+                        const int l = __builtin_ctz(bits);
+                        const float w1 = weight[l];
+                        float *sum = accum + (p + l) * channels;
+                        for (int64_t ch = 0; ch < channels; ch++) sum[ch] += w1 * value[ch];
+                    }
                 }
                 v8f d, w;
                 memcpy(&d, depth_sum + p, sizeof d);
@@ -234,7 +247,11 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     for (int64_t v = v0; v < v1; v++) {
         for (int64_t u = u0; u < u1; u++) {
             const int64_t p = (v - v0) * TILE + (u - u0), pixel = v * job->width + u;
-            for (int64_t ch = 0; ch < channels; ch++) job->out_values[pixel * channels + ch] = accum[ch * TILE_PIXELS + p];
+            if (channels <= PLANAR_MAX) {
+                for (int64_t ch = 0; ch < channels; ch++) job->out_values[pixel * channels + ch] = accum[ch * TILE_PIXELS + p];
+            } else {
+                memcpy(job->out_values + pixel * channels, accum + p * channels, channels * sizeof(float));
+            }
             job->out_depth_sums[pixel] = depth_sum[p];
             job->out_weight_sums[pixel] = weight_sum[p];
             job->out_transmittance[pixel] = (float)transmittance[p];
