@@ -6,6 +6,12 @@ The evaluation's protocol and scoring (`canonical_core.eval`): inputs and held-o
 `interpolation_split` for N = ``views``, frames resized by `resize_frame` (colour area-averaged,
 depth nearest), all-pixel and covered PSNR from `score`. RGB-only inputs are the same frames with
 their depth removed; held-out frames keep theirs (the score's depth agreement uses it).
+
+A second table asks whether reliability does its job, telling surface from floaters, on the RGB-only
+scenes: the AUC with which a voxel-level quantity (the method's R_scene, which sets its opacity, or
+the observation count) separates voxels on the sensor's surface from the rest. A voxel is on the
+surface when it is within one voxel (26-neighbourhood) of a voxel that a sensor depth point of any
+frame of the capture falls in.
 """
 
 from __future__ import annotations
@@ -18,14 +24,43 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine_summary, print_table  # noqa: E402
 
+import torch  # noqa: E402
+
 import canonical_core as cc  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import SplatModel  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.run import score  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
+from canonical_core.scene.batch import voxel_keys  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def surface_keys(frames, voxel: float) -> torch.Tensor:  # -> [K] int64, sorted
+    """Keys of the voxels within one voxel of a sensor depth point of ``frames``."""
+    offsets = torch.stack(torch.meshgrid(*[torch.tensor([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keys = []
+    for f in frames:
+        v, u = torch.nonzero(f.depth > 0, as_tuple=True)
+        points = f.camera.lift(torch.stack([u, v], -1).float(), f.depth[v, u])
+        centres = (torch.floor(points / voxel) + 0.5) * voxel
+        keys += [torch.unique(voxel_keys(centres + o * voxel, voxel)) for o in offsets]
+    return torch.unique(torch.cat(keys))
+
+
+def auc(score: torch.Tensor, positive: torch.Tensor) -> float:
+    """Area under the ROC curve of ``score`` for ``positive`` (ties count one half).
+
+    Example:
+        >>> auc(torch.tensor([0.1, 0.4, 0.4, 0.9]), torch.tensor([False, False, True, True]))
+        0.875
+    """
+    values, inverse, counts = torch.unique(score.double(), return_inverse=True, return_counts=True)
+    ranks = (torch.cumsum(counts, 0) - (counts - 1) / 2.0)[inverse]  # average rank of tied values
+    n_pos = int(positive.sum())
+    n_neg = positive.numel() - n_pos
+    return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
 def main(argv=None) -> None:
@@ -41,7 +76,7 @@ def main(argv=None) -> None:
     rgb_only = [dataclasses.replace(f, depth=None, depth_std=None) for f in rgbd]
     targets = [resize_frame(frames[i], args.scale) for i in split.heldout]
     print(machine_summary())
-    rows = []
+    rows, rgb_only_scenes = [], {}
     for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
                                      ("RGB-D, no_reliability", rgbd, "no_reliability"),
                                      ("RGB only, no_reliability", rgb_only, "no_reliability")):
@@ -49,11 +84,24 @@ def main(argv=None) -> None:
         for frame in inputs:
             scene.fold(frame)
         metrics, _ = score(SplatModel(scene.decode()), targets, args.voxel)
+        if inputs is rgb_only:
+            rgb_only_scenes[weighting] = scene
         rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",
-                     "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "Gaussians": f"{metrics['gaussians']:,}"})
+                     "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "SSIM": f"{metrics['ssim']:.3f}",
+                     "depth agreement": f"{metrics['depth_agreement']:.3f}", "Gaussians": f"{metrics['gaussians']:,}"})
     size = f"{targets[0].width}x{targets[0].height}"
     print_table(f"{args.views} input views, {len(targets)} held-out frames {list(split.heldout)}, {size}, "
                 f"{args.voxel * 1000:g} mm voxels", rows)
+    surface = surface_keys([resize_frame(f, args.scale) for f in frames], args.voxel)
+    rows = []
+    for weighting, scene in rgb_only_scenes.items():
+        f = scene.fields()
+        on_surface = torch.isin(f["keys"], surface)
+        rows.append({"RGB-only scene": weighting, "voxels": f"{on_surface.numel():,}",
+                     "on surface": f"{float(on_surface.double().mean()):.3f}",
+                     "AUC of R_scene": f"{auc(f['reliability'], on_surface):.3f}",
+                     "AUC of observation count": f"{auc(f['observations'], on_surface):.3f}"})
+    print_table("does R_scene tell surface voxels from floaters? (sensor depth of all frames as truth)", rows)
 
 
 if __name__ == "__main__":
