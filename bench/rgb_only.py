@@ -56,7 +56,7 @@ def auc(score: torch.Tensor, positive: torch.Tensor) -> float:
         >>> auc(torch.tensor([0.1, 0.4, 0.4, 0.9]), torch.tensor([False, False, True, True]))
         0.875
     """
-    values, inverse, counts = torch.unique(score.double(), return_inverse=True, return_counts=True)
+    _, inverse, counts = torch.unique(score.double(), return_inverse=True, return_counts=True)
     ranks = (torch.cumsum(counts, 0) - (counts - 1) / 2.0)[inverse]  # average rank of tied values
     n_pos = int(positive.sum())
     n_neg = positive.numel() - n_pos
