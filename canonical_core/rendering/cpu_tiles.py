@@ -91,6 +91,8 @@ def load_compositor(name: str) -> ctypes.CDLL:
     library.canonical_composite_tiles.restype = ctypes.c_int
     library.canonical_stable_depth_order.argtypes = [pointer, size, pointer]
     library.canonical_stable_depth_order.restype = ctypes.c_int
+    library.canonical_cpu_has_x86_64_v3.argtypes = []
+    library.canonical_cpu_has_x86_64_v3.restype = ctypes.c_int
     return library
 
 
