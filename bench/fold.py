@@ -71,22 +71,25 @@ def main(argv=None) -> None:
     # Open3D's integrate has no counterpart of our free-space (see-through) evidence: the column
     # without it compares evidence + aggregation alone, as the target is worded
     no_free_space = dataclasses.replace(config, free_space=False)
-    time_folds(frames[:2], config)  # compile / load the numba cache outside the measurement
+    # opt-in: frames with depth are also swept against earlier views to fill their depth's large holes
+    completion = dataclasses.replace(config, depth_completion=True)
+    time_folds(frames[:2], completion)  # compile / load the numba cache outside the measurement
 
     rows = []
     have_o3d = open3d_available()
     for label, factor in (("640x480", 1), ("320x240", 2)):
         fs = [resize_frame(f, 1.0 / factor) for f in frames]
-        fold_ms, ev_ms, o3d_ms, agg_ms, scene = [], [], [], [], None
+        fold_ms, ev_ms, o3d_ms, agg_ms, completion_ms, scene = [], [], [], [], [], None
         for _ in range(args.repeats):
             ms, scene = time_folds(fs, config)
             fold_ms += ms
             agg_ms += time_folds(fs, no_free_space)[0]
+            completion_ms += time_folds(fs, completion)[0]
             ev_ms += time_each(lambda f: extract_evidence(f, config), fs)
             if have_o3d:
                 o3d_ms += time_open3d(fs, args.voxel)
         row = {"size": label, "fold ms (med/min/max)": stats_ms(fold_ms), "of which evidence ms": stats_ms(ev_ms),
-               "fold without free space ms": stats_ms(agg_ms)}
+               "fold without free space ms": stats_ms(agg_ms), "fold with depth_completion ms": stats_ms(completion_ms)}
         if have_o3d:
             row["Open3D integrate ms"] = stats_ms(o3d_ms)
             row["ratio ours/Open3D (median)"] = f"{np.median(fold_ms) / np.median(o3d_ms):.2f}"

@@ -76,6 +76,7 @@ class FoldReportOut(BaseModel):
     ms: float
     pending: bool = Field(False, description="a frame without depth waiting for a partner view (folded later)")
     also_folded: int = Field(0, description="earlier waiting frames this call folded")
+    completed_pixels: int = Field(0, description="pixels whose missing depth the plane sweep filled (depth_completion)")
 
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]

@@ -5,6 +5,9 @@
 - ``no_reliability``, ``no_similarity``, ``average``: the aggregation ablations (SceneConfig.weighting);
 - ``plain_decoding``: the same fused voxels as ``canonical``, but every Gaussian gets one opacity,
   the analytic head's value at full support (no reliability-conditioned opacity);
+- ``no_free_space``, ``no_view_dependence``: without free-space evidence / with SH degree 0;
+- ``depth_completion``: ``canonical`` with `SceneConfig.depth_completion` (large sensor-depth holes
+  filled by the plane sweep against the session's earlier views);
 - ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
 - ``open3d_tsdf``: Open3D TSDF fusion + ray-cast colour (needs the ``bench`` extra).
 
@@ -137,6 +140,7 @@ METHODS: dict[str, Method] = {
     "plain_decoding": Method(_scene("full", uniform_opacity=True), features=True),
     "no_free_space": Method(_scene("full", free_space=False), features=True),
     "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
+    "depth_completion": Method(_scene("full", depth_completion=True), features=True),
     "pixel_aligned": Method(_splats(pixel_aligned), features=True),
     "gaussian_merge": Method(_splats(gaussian_merge), features=True),
     "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),

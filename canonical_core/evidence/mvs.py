@@ -606,6 +606,44 @@ def estimate_depth(
     return est.depth, est.uncertainty
 
 
+def complete_depth(
+    depth: np.ndarray,  # [H, W] float32 sensor depth, metres, 0 = missing
+    depth_std: np.ndarray,  # [H, W] float32 the sensor depth's std, metres
+    estimate: np.ndarray,  # [H, W] float32 swept depth (`estimate_depth`), 0 = none
+    uncertainty: np.ndarray,  # [H, W] float32 its U_pos, metres
+    radius: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # depth [H, W], std [H, W] float32, filled [H, W] bool
+    """Sensor depth with its large holes filled from the plane sweep.
+
+    A pixel is filled when the sweep gives it a depth and no sensor depth lies within ``radius``
+    pixels (a square window): the regions a depth sensor does not reach (beyond its range, outside
+    its field of view, dark or specular surfaces), not the small regular holes of its pattern,
+    which voxels bridge anyway. Filled pixels carry the sweep's U_pos as their std, so their
+    reliability is as low as the sweep is unsure; sensor pixels are never changed. Sweep depth is
+    a few voxels off where sensor depth is within one, so where earlier frames measured the same
+    surface the fill adds a less exact copy of it (depth agreement falls a little).
+
+    Example:
+        >>> d = np.zeros((5, 9), np.float32); d[:, :3] = 1.0
+        >>> est = np.full((5, 9), 2.0, np.float32)
+        >>> out, std, filled = complete_depth(d, np.full_like(d, 0.01), est, np.full_like(d, 0.1), radius=2)
+        >>> filled[0].astype(int).tolist(), out[0].tolist()
+        ([0, 0, 0, 0, 0, 1, 1, 1, 1], [1.0, 1.0, 1.0, 0.0, 0.0, 2.0, 2.0, 2.0, 2.0])
+    """
+    shape = depth.shape
+    for name, value in (("depth_std", depth_std), ("estimate", estimate), ("uncertainty", uncertainty)):
+        if value.shape != shape:
+            raise ValueError(f"{name}: expected shape {list(shape)} (as depth), got {list(value.shape)}")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 1:
+        raise ValueError(f"radius: expected a positive integer, got {radius!r}")
+    measured = torch.from_numpy(np.ascontiguousarray(depth > 0)).float()[None, None]
+    near_sensor = torch.nn.functional.max_pool2d(measured, 2 * radius + 1, stride=1, padding=radius)[0, 0].numpy() > 0
+    filled = ~near_sensor & (estimate > 0)
+    out = np.where(filled, estimate, depth).astype(np.float32)
+    std = np.where(filled, uncertainty, depth_std).astype(np.float32)
+    return out, std, filled
+
+
 # ---------------------------------------------------------------------------------------------
 # Choosing and keeping source views
 # ---------------------------------------------------------------------------------------------

@@ -15,6 +15,22 @@ import torch
 from torch import Tensor, nn
 
 
+def sensor_depth_std(
+    depth: np.ndarray | Tensor,  # [H, W] metres (any shape)
+    sigma0: float = 0.0012,
+    sigma2: float = 0.0019,
+    z_ref: float = 0.4,
+) -> np.ndarray | Tensor:  # same shape and kind, metres
+    """The sensor noise model sigma(z) = sigma0 + sigma2 * (z - z_ref)^2 (used where a frame's depth
+    comes without a per-pixel std).
+
+    Example:
+        >>> round(float(sensor_depth_std(np.float32(1.4))), 4)
+        0.0031
+    """
+    return sigma0 + sigma2 * (depth - z_ref) ** 2
+
+
 @numba.njit(inline="always")
 def _edge_jump(depth, v, u):
     H, W = depth.shape
@@ -72,7 +88,7 @@ def positional_uncertainty_reference(
 ) -> Tensor:  # [H, W] in voxel units (meaningful where depth > 0)
     """Whole-image PyTorch definition of U_pos."""
     H, W = depth.shape
-    sigma = depth_std if depth_std is not None else sigma0 + sigma2 * (depth - z_ref) ** 2
+    sigma = depth_std if depth_std is not None else sensor_depth_std(depth, sigma0, sigma2, z_ref)
     padded = torch.nn.functional.pad(depth[None, None], (1, 1, 1, 1))[0, 0]
     jump = torch.zeros_like(depth)
     for dv in range(3):

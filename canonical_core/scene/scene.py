@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
-from ..evidence.mvs import SourceView, SourceWindow, depth_range_from_points, estimate_depth
+from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis, sensor_depth_std
+from ..evidence.mvs import SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth
 from ..decode import GaussianDecoder, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
@@ -63,6 +63,7 @@ class FoldReport:
     ms: float
     pending: bool = False
     also_folded: int = 0
+    completed_pixels: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -181,9 +182,18 @@ class Scene:
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         if frame.depth is None:
             return self._fold_without_depth(frame, t0)
+        view, completed = None, 0
+        if self.config.depth_completion:
+            self._check_foldable(frame)  # before the sweep's cost
+            view = self._window.view_of(frame)
+            sources = self._sources_for(frame.camera)
+            if sources:
+                frame, completed = self._completed(frame, sources, view)
         counts = self._fold_with_depth(frame)
+        if view is not None:
+            self._window.add(view)  # after the fold: a frame that fails to fold leaves the window as it was
         self.frames += 1
-        return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0)
+        return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0, completed_pixels=completed)
 
     def _fold_with_depth(self, frame: Frame) -> tuple[int, int, int, int]:
         """(observations, new voxels, updated voxels, representative switches) of folding ``frame``."""
@@ -247,6 +257,19 @@ class Scene:
         depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses,
                                     reference=view)
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std))
+
+    def _completed(self, frame: Frame, sources, view: SourceView) -> tuple[Frame, int]:
+        """``frame`` with the large holes of its depth filled by the sweep (`complete_depth`), and
+        the number of pixels filled."""
+        swept = self._with_estimated_depth(frame, sources, view)
+        c = self.config
+        std = frame.depth_std if frame.depth_std is not None else sensor_depth_std(
+            frame.depth, c.depth_sigma0, c.depth_sigma2, c.depth_sigma_ref)
+        depth, std, filled = complete_depth(frame.depth.numpy(), std.numpy(), swept.depth.numpy(),
+                                            swept.depth_std.numpy(), c.depth_completion_radius)
+        if not filled.any():  # the frame as it came: its evidence is then bit-identical to a plain fold
+            return frame, 0
+        return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std)), int(filled.sum())
 
     def _fold_without_depth(self, frame: Frame, t0: float) -> FoldReport:
         self._check_foldable(frame)

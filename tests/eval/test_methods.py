@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -24,7 +26,8 @@ def frames() -> list[Frame]:
 
 def test_registry_names_the_issue_methods():
     assert list(METHODS) == ["canonical", "no_reliability", "no_similarity", "average", "plain_decoding",
-                             "no_free_space", "no_view_dependence", "pixel_aligned", "gaussian_merge", "open3d_tsdf"]
+                             "no_free_space", "no_view_dependence", "depth_completion", "pixel_aligned", "gaussian_merge",
+                             "open3d_tsdf"]
     assert check_methods(["average", "canonical", "average"]) == ["average", "canonical"]
     with pytest.raises(ValueError, match="methods"):
         check_methods(["canonical", "nerf"])
@@ -39,6 +42,18 @@ def test_plain_decoding_is_canonical_with_one_opacity(frames):
     assert torch.equal(canonical.splats.means, plain.splats.means)
     assert not torch.allclose(canonical.splats.opacities, plain.splats.opacities)
     assert torch.allclose(plain.splats.opacities, torch.tensor(full_support_opacity(GaussianDecoder(16))))
+
+
+def test_depth_completion_fills_what_the_sensor_missed(frames):
+    # the synthetic depth is complete, so withhold a band of the later frames' depth (as a sensor's
+    # field of view or range would): completion fills it from the earlier views, canonical cannot
+    near = list(synthetic_rgbd(num_frames=48, width=160, height=120)[8:11])  # neighbours ~5 cm apart at ~1 m
+    holed = [near[0]] + [dataclasses.replace(f, depth=torch.where(torch.arange(160) < 60, 0.0, f.depth)) for f in near[1:]]
+    canonical, _ = build("canonical", holed, 0.02)
+    completed, _ = build("depth_completion", holed, 0.02)
+    assert completed.gaussians > canonical.gaussians
+    band = lambda model: model.render(near[2].camera).alpha[:, :60].mean()  # noqa: E731
+    assert band(completed) > band(canonical) + 0.05
 
 
 def test_scene_methods_render_rgb_and_features(frames):

@@ -28,6 +28,7 @@ from canonical_core.evidence.mvs import (
     SelectionRule,
     SourceView,
     SourceWindow,
+    complete_depth,
     depth_distribution,
     depth_distribution_reference,
     depth_hypotheses,
@@ -371,3 +372,35 @@ def test_source_view_validation(synth):
     assert v.features.shape == (30, 40, MATCHING_FEATURE_DIM) and v.camera.width == 40
     assert math.isfinite(v.median_depth)  # from the frame's depth
     assert math.isnan(SourceView.from_frame(without_depth(synth[0])).median_depth)
+
+
+def test_complete_depth_fills_only_holes_beyond_the_radius():
+    rng = np.random.default_rng(3)
+    depth = np.zeros((30, 40), np.float32)
+    depth[5:20, 5:25] = rng.uniform(0.3, 0.6, (15, 20))
+    depth[10, 10] = 0.0  # a small hole inside the measured region
+    estimate = rng.uniform(0.5, 1.0, depth.shape).astype(np.float32)
+    estimate[25:, :] = 0.0  # the sweep has no depth here
+    std, unc = np.full_like(depth, 0.002), np.full_like(depth, 0.05)
+    out, out_std, filled = complete_depth(depth, std, estimate, unc, radius=3)
+    v, u = np.mgrid[:30, :40]
+    measured_v, measured_u = np.nonzero(depth > 0)
+    # Chebyshev distance to the nearest measured pixel, by brute force
+    dist = np.min(np.maximum(np.abs(v[..., None] - measured_v), np.abs(u[..., None] - measured_u)), axis=-1)
+    assert np.array_equal(filled, (dist > 3) & (estimate > 0))
+    assert not filled[10, 10] and out[10, 10] == 0.0  # small holes stay holes
+    assert np.array_equal(out[depth > 0], depth[depth > 0]) and np.array_equal(out_std[depth > 0], std[depth > 0])
+    assert np.array_equal(out[filled], estimate[filled]) and np.all(out_std[filled] == 0.05)
+    assert np.all(out[~filled & (depth == 0)] == 0.0)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"estimate": np.zeros((4, 5), np.float32)}, r"estimate: expected shape \[4, 6\]"),
+    ({"depth_std": np.zeros((6, 4), np.float32)}, r"depth_std: expected shape \[4, 6\]"),
+    ({"radius": 0}, "radius: expected a positive integer"),
+    ({"radius": True}, "radius: expected a positive integer"),
+])
+def test_complete_depth_rejects_bad_input(change, message):
+    args = {name: np.zeros((4, 6), np.float32) for name in ("depth", "depth_std", "estimate", "uncertainty")} | {"radius": 2}
+    with pytest.raises(ValueError, match=message):
+        complete_depth(**(args | change))

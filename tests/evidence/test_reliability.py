@@ -2,7 +2,8 @@ import numpy as np
 import torch
 
 from canonical_core import SceneConfig
-from canonical_core.evidence import AppearanceUncertainty, extract_evidence, positional_uncertainty, positional_uncertainty_reference
+from canonical_core.evidence import (AppearanceUncertainty, extract_evidence, positional_uncertainty,
+                                     positional_uncertainty_reference, sensor_depth_std)
 
 from ..conftest import make_frame
 
@@ -18,6 +19,16 @@ def test_fast_u_pos_equals_reference_with_holes_and_edges():
         fast = positional_uncertainty(depth, rows, cols, 0.004, depth_std=s)
         ref = positional_uncertainty_reference(torch.from_numpy(depth), 0.004, None if s is None else torch.from_numpy(s))
         assert np.allclose(fast, ref.numpy()[rows, cols], rtol=1e-5, atol=1e-5)
+
+
+def test_a_std_map_from_the_sensor_model_equals_no_std_map():
+    # depth completion hands the fold an explicit std map; on measured pixels it must be the model
+    depth = np.linspace(0.2, 1.6, 60, dtype=np.float32).reshape(6, 10)
+    rows, cols = np.nonzero(depth > 0)
+    model = positional_uncertainty(depth, rows, cols, 0.004, sigma0=0.002, sigma2=0.003, z_ref=0.5)
+    explicit = positional_uncertainty(depth, rows, cols, 0.004, depth_std=sensor_depth_std(depth, 0.002, 0.003, 0.5))
+    assert np.allclose(model, explicit, rtol=1e-6)
+    assert sensor_depth_std(np.float32(0.5), 0.002, 0.003, 0.5) == np.float32(0.002)
 
 
 def test_u_pos_is_in_voxel_units_so_reliability_ignores_the_unit():

@@ -167,6 +167,21 @@ def test_health_and_metrics(client, server):
         assert name in text
 
 
+def test_depth_completion_session_reports_filled_pixels(client, frames):
+    """A session with depth_completion sweeps frames with depth against the earlier ones and fills
+    the large holes of their depth (the shelf's depth misses its image's left band and dark surfaces)."""
+    session = client.create_session(voxel_size=VOXEL, depth_completion=True)
+    plain = client.create_session(voxel_size=VOXEL)
+    reports = [session.add_frame(**f) for f in frames[:3]]
+    for f in frames[:3]:
+        plain.add_frame(**f)
+    assert reports[0]["completed_pixels"] == 0  # no earlier view to sweep against
+    assert all(r["completed_pixels"] > 500 for r in reports[1:])
+    assert session.stats()["voxels"] > plain.stats()["voxels"]
+    session.delete()
+    plain.delete()
+
+
 def test_rgb_only_session_end_to_end(client, frames):
     """A session fed only RGB frames (depth withheld) folds every frame through the service."""
     session = client.create_session(voxel_size=VOXEL)
