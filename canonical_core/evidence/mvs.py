@@ -215,8 +215,9 @@ def _tap_dot(ref, src, v, u, yy, xx, cache_y, cache_x, cache_d, slot):
 
 
 @numba.njit(parallel=True, cache=True)
-def _sweep_source_kernel(ref, src, A, b, hyps, min_z, dots, count):
-    # dots[v, u, k] += <q_ref(v, u), bilinear q_src at the projection of hypothesis k> (raw int8 units)
+def _sweep_source_kernel(ref, src, A, b, hyps, min_z, mask, dots, count):
+    # dots[v, u, k] += <q_ref(v, u), bilinear q_src at the projection of hypothesis k> (raw int8 units),
+    # at the pixels where mask[v, u]
     h, w, L = ref.shape
     hs, ws = src.shape[0], src.shape[1]
     K = hyps.shape[0]
@@ -225,6 +226,8 @@ def _sweep_source_kernel(ref, src, A, b, hyps, min_z, dots, count):
         cache_x = np.empty(8, np.int64)
         cache_d = np.empty(8, np.int64)
         for u in range(w):
+            if not mask[v, u]:
+                continue
             cache_y[:] = -1
             slot = 0
             a0 = A[0, 0] * u + A[0, 1] * v + A[0, 2]
@@ -266,21 +269,24 @@ def plane_sweep(
     reference: SourceView,
     sources: Sequence[SourceView],
     hypotheses: np.ndarray,  # [K] depths (metres)
+    mask: np.ndarray | None = None,  # [h, w] bool: the pixels to sweep (None = all)
 ) -> tuple[np.ndarray, np.ndarray]:  # logits [h, w, K] float32, seen-count [h, w, K] uint8
     """The cost volume S_k(m) (fast path): mean over seeing sources of <F_i, F_j> / sqrt(L); 0 where
-    no source sees a hypothesis. Also returns how many sources see each (pixel, hypothesis)."""
+    no source sees a hypothesis. Also returns how many sources see each (pixel, hypothesis).
+    Pixels outside ``mask`` are not swept: no source sees them (count 0, logits 0)."""
     ref = reference.features
     h, w, L = ref.shape
     hyps = np.ascontiguousarray(hypotheses, dtype=np.float64)
     if len(sources) > 255:
         raise ValueError(f"sources: at most 255 views, got {len(sources)}")
+    mask = _sweep_mask_or_all(mask, (h, w))
     dots = np.zeros((h, w, hyps.shape[0]), np.float64)
     count = np.zeros((h, w, hyps.shape[0]), np.uint8)
     for j, src in enumerate(sources):
         if src.features.shape[2] != L:
             raise ValueError(f"sources[{j}]: {src.features.shape[2]} feature channels, the reference has {L}")
         A, b = _source_transform(reference.camera, src.camera)
-        _sweep_source_kernel(ref, src.features, A, b, hyps, MIN_SOURCE_Z, dots, count)
+        _sweep_source_kernel(ref, src.features, A, b, hyps, MIN_SOURCE_Z, mask, dots, count)
     logits = np.empty((h, w, hyps.shape[0]), np.float32)
     _logits_kernel(dots, count, MATCHING_SCALE**2 / math.sqrt(L), logits)
     return logits, count
@@ -367,11 +373,17 @@ class LogitScale(nn.Module):
 # Cost volume -> depth distribution
 # ---------------------------------------------------------------------------------------------
 @numba.njit(parallel=True, cache=True)
-def _distribution_kernel(logits, count, hyps, depth, unc, seen_mass, valid):
+def _distribution_kernel(logits, count, hyps, mask, depth, unc, seen_mass, valid):
     h, w, K = logits.shape
     for v in numba.prange(h):
         p = np.empty(K)  # the pixel's unnormalised probabilities, reused by the second pass
         for u in range(w):
+            if not mask[v, u]:  # not swept: no source saw it
+                depth[v, u] = 0.0
+                unc[v, u] = 0.0
+                seen_mass[v, u] = 0.0
+                valid[v, u] = False
+                continue
             m = logits[v, u, 0]
             for k in range(1, K):
                 m = max(m, logits[v, u, k])
@@ -404,13 +416,15 @@ def depth_distribution(
     logits: np.ndarray,  # [h, w, K] float32
     count: np.ndarray,  # [h, w, K] sources seeing each hypothesis
     hypotheses: np.ndarray,  # [K]
+    mask: np.ndarray | None = None,  # [h, w] bool: the swept pixels (None = all); elsewhere 0 and invalid
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # D, U_pos [h, w] float64, seen mass, valid
     """P = softmax over hypotheses; D = sum P d; U_pos = sqrt(sum P (d - D)^2) (numba fast path)."""
     h, w, K = logits.shape
     depth, unc, mass = (np.empty((h, w), np.float64) for _ in range(3))
     valid = np.empty((h, w), np.bool_)
     _distribution_kernel(np.ascontiguousarray(logits, dtype=np.float32), np.ascontiguousarray(count),
-                         np.ascontiguousarray(hypotheses, dtype=np.float64), depth, unc, mass, valid)
+                         np.ascontiguousarray(hypotheses, dtype=np.float64), _sweep_mask_or_all(mask, (h, w)),
+                         depth, unc, mass, valid)
     return depth, unc, mass, valid
 
 
@@ -437,6 +451,48 @@ def _is_identity(refine) -> bool:
 # ---------------------------------------------------------------------------------------------
 # Upsampling to the image
 # ---------------------------------------------------------------------------------------------
+def _upsample_taps(n: int, N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along one axis, for each of N image pixels: its position in a grid of n sweep pixels
+    (pixel-centre convention) and its two bilinear taps [N] each."""
+    pos = np.clip((np.arange(N) + 0.5) * (n / N) - 0.5, 0, n - 1)
+    lo = np.minimum(np.floor(pos).astype(np.int64), max(n - 2, 0))
+    return pos, lo, np.minimum(lo + 1, n - 1)
+
+
+def sweep_pixels_for(
+    where: np.ndarray,  # [H, W] bool: the image pixels whose depth is wanted
+    size: tuple[int, int],  # (h, w) sweep resolution
+) -> np.ndarray:  # [h, w] bool
+    """The sweep pixels that `upsample_depth` reads for the image pixels ``where``: sweeping only
+    these gives those pixels the same depth as a full sweep.
+
+    Example:
+        >>> where = np.zeros((4, 8), bool); where[:, :2] = True
+        >>> sweep_pixels_for(where, (2, 4)).astype(int).tolist()
+        [[1, 1, 0, 0], [1, 1, 0, 0]]
+    """
+    where = np.asarray(where, dtype=bool)
+    (h, w), (H, W) = size, where.shape
+    _, y0, y1 = _upsample_taps(h, H)
+    _, x0, x1 = _upsample_taps(w, W)
+    rows = np.zeros((h, W), bool)  # sweep row r is read by some wanted pixel of image column c
+    for taps in (y0, y1):
+        np.logical_or.at(rows, taps, where)
+    out = np.zeros((h, w), bool)
+    for taps in (x0, x1):
+        np.logical_or.at(out.T, taps, rows.T)
+    return out
+
+
+def _sweep_mask_or_all(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    if mask is None:
+        return np.ones(shape, np.bool_)
+    if not isinstance(mask, np.ndarray) or mask.shape != shape:
+        raise ValueError(f"mask: expected a bool array of shape {list(shape)} (the sweep resolution), got "
+                         f"{list(getattr(mask, 'shape', []))}")
+    return np.ascontiguousarray(mask, dtype=np.bool_)
+
+
 def upsample_depth(
     depth: np.ndarray,  # [h, w] sweep-resolution depth, 0 = missing
     uncertainty: np.ndarray,  # [h, w] U_pos at sweep resolution
@@ -454,12 +510,8 @@ def upsample_depth(
     because that is how unsure the upsampled depth is there.
     """
     h, w = depth.shape
-    H, W = size
-    ys = np.clip((np.arange(H) + 0.5) * (h / H) - 0.5, 0, h - 1)
-    xs = np.clip((np.arange(W) + 0.5) * (w / W) - 0.5, 0, w - 1)
-    y0 = np.minimum(np.floor(ys).astype(np.int64), max(h - 2, 0))
-    x0 = np.minimum(np.floor(xs).astype(np.int64), max(w - 2, 0))
-    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    ys, y0, y1 = _upsample_taps(h, size[0])
+    xs, x0, x1 = _upsample_taps(w, size[1])
     fy, fx = (ys - y0)[:, None], (xs - x0)[None, :]
     r0, r1, c0, c1 = y0[:, None], y1[:, None], x0[None, :], x1[None, :]
     taps = [(r0, c0), (r0, c1), (r1, c0), (r1, c1)]
@@ -533,6 +585,7 @@ def estimate_depth_detailed(
     scale: float = DEFAULT_SCALE,
     refine: DepthRefinement | None = None,
     reference: SourceView | None = None,
+    where: np.ndarray | None = None,
 ) -> DepthEstimate:
     """`estimate_depth` with its intermediate results (see `DepthEstimate`)."""
     if not isinstance(frame, Frame):
@@ -547,9 +600,15 @@ def estimate_depth_detailed(
     views = [_as_view(s, ref.scale, f"sources[{i}]") for i, s in enumerate(sources)]
     near, far = _resolve_range(near, far, views)
     hyps = depth_hypotheses(near, far, num_hypotheses)
-    logits, count = plane_sweep(ref, views, hyps)
+    mask = None
+    if where is not None:
+        if not isinstance(where, np.ndarray) or where.dtype != np.bool_ or where.shape != (frame.height, frame.width):
+            raise ValueError(f"where: expected a bool array of shape {[frame.height, frame.width]} (the image), got "
+                             f"{getattr(where, 'dtype', type(where).__name__)} {list(getattr(where, 'shape', []))}")
+        mask = sweep_pixels_for(where, ref.features.shape[:2])
+    logits, count = plane_sweep(ref, views, hyps, mask)
     if _is_identity(refine):
-        D, U, mass, valid = depth_distribution(logits, count, hyps)
+        D, U, mass, valid = depth_distribution(logits, count, hyps, mask)
     else:
         lt = torch.from_numpy(logits).permute(2, 0, 1)[None]
         feats = dequantize(ref.features).permute(2, 0, 1)[None]
@@ -577,6 +636,7 @@ def estimate_depth(
     scale: float = DEFAULT_SCALE,
     refine: DepthRefinement | None = None,
     reference: SourceView | None = None,
+    where: np.ndarray | None = None,  # [H, W] bool: the pixels whose depth is wanted (None = all)
 ) -> tuple[np.ndarray, np.ndarray]:  # depth [H, W] float32 metres (0 = missing), U_pos [H, W] float32 metres
     """Depth of ``frame`` from its ``sources`` by plane sweep, and its positional uncertainty.
 
@@ -591,6 +651,10 @@ def estimate_depth(
         scale: sweep resolution relative to the image (the result is upsampled to the image).
         refine: a `DepthRefinement` applied to the logits before the softmax (None = identity).
         reference: the frame's precomputed `SourceView` (same ``scale``), to avoid recomputing it.
+        where: the image pixels whose depth is wanted. Only the sweep pixels their upsampling reads
+            are swept (`sweep_pixels_for`), so these pixels get the depth of a full sweep at a
+            fraction of its cost; other pixels may get none. A refinement that looks at
+            neighbouring pixels sees unswept ones as flat (all logits 0).
 
     Returns (depth, uncertainty), both [H, W] float32 in metres; 0 (and 0) where no source sees the
     pixel. ``uncertainty`` is U_pos = sqrt(sum_k P_k (d_k - D)^2).
@@ -602,8 +666,39 @@ def estimate_depth(
         >>> depth.shape, unc.dtype.name
         ((48, 64), 'float32')
     """
-    est = estimate_depth_detailed(frame, sources, near, far, num_hypotheses, scale, refine, reference)
+    est = estimate_depth_detailed(frame, sources, near, far, num_hypotheses, scale, refine, reference, where)
     return est.depth, est.uncertainty
+
+
+def sensor_holes(
+    depth: np.ndarray,  # [H, W] float32 sensor depth, 0 = missing
+    radius: int,
+) -> np.ndarray:  # [H, W] bool
+    """The pixels with no measured depth within ``radius`` pixels (a square window): the regions a
+    depth sensor does not reach (beyond its range, outside its field of view, dark or specular
+    surfaces), not the small regular holes of its pattern, which voxels bridge anyway.
+
+    Example:
+        >>> d = np.zeros((3, 8), np.float32); d[:, :2] = 1.0
+        >>> sensor_holes(d, radius=2)[0].astype(int).tolist()
+        [0, 0, 0, 0, 1, 1, 1, 1]
+    """
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 1:
+        raise ValueError(f"radius: expected a positive integer, got {radius!r}")
+    if not isinstance(depth, np.ndarray) or depth.ndim != 2:
+        raise ValueError(f"depth: expected an [H, W] array, got {list(getattr(depth, 'shape', []))}")
+    measured = (depth > 0).astype(np.int32)
+    return _window_sum(_window_sum(measured, radius, 0), radius, 1) == 0
+
+
+def _window_sum(a: np.ndarray, radius: int, axis: int) -> np.ndarray:
+    """Sums of ``a`` over windows [i - radius, i + radius] along ``axis`` (clipped at the borders),
+    from one cumulative sum: the cost does not grow with the radius."""
+    n = a.shape[axis]
+    c = np.cumsum(a, axis=axis, dtype=np.int32)  # counts of at most H * W pixels
+    c = np.concatenate([np.zeros_like(np.take(c, [0], axis=axis)), c], axis=axis)
+    i = np.arange(n)
+    return np.take(c, np.minimum(i + radius + 1, n), axis=axis) - np.take(c, np.maximum(i - radius, 0), axis=axis)
 
 
 def complete_depth(
@@ -611,34 +706,30 @@ def complete_depth(
     depth_std: np.ndarray,  # [H, W] float32 the sensor depth's std, metres
     estimate: np.ndarray,  # [H, W] float32 swept depth (`estimate_depth`), 0 = none
     uncertainty: np.ndarray,  # [H, W] float32 its U_pos, metres
-    radius: int,
+    holes: np.ndarray,  # [H, W] bool: the pixels to fill (`sensor_holes`)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # depth [H, W], std [H, W] float32, filled [H, W] bool
     """Sensor depth with its large holes filled from the plane sweep.
 
-    A pixel is filled when the sweep gives it a depth and no sensor depth lies within ``radius``
-    pixels (a square window): the regions a depth sensor does not reach (beyond its range, outside
-    its field of view, dark or specular surfaces), not the small regular holes of its pattern,
-    which voxels bridge anyway. Filled pixels carry the sweep's U_pos as their std, so their
-    reliability is as low as the sweep is unsure; sensor pixels are never changed. Sweep depth is
-    a few voxels off where sensor depth is within one, so where earlier frames measured the same
-    surface the fill adds a less exact copy of it (depth agreement falls a little).
+    A pixel is filled when it is one of ``holes`` and the sweep gives it a depth. Filled pixels carry
+    the sweep's U_pos as their std, so their reliability is as low as the sweep is unsure; sensor
+    pixels are never changed. Sweep depth is a few voxels off where sensor depth is within one, so
+    where earlier frames measured the same surface the fill adds a less exact copy of it (depth
+    agreement falls a little). Only the holes need a sweep: ``estimate_depth(..., where=holes)``.
 
     Example:
         >>> d = np.zeros((5, 9), np.float32); d[:, :3] = 1.0
         >>> est = np.full((5, 9), 2.0, np.float32)
-        >>> out, std, filled = complete_depth(d, np.full_like(d, 0.01), est, np.full_like(d, 0.1), radius=2)
+        >>> out, std, filled = complete_depth(d, np.full_like(d, 0.01), est, np.full_like(d, 0.1), sensor_holes(d, 2))
         >>> filled[0].astype(int).tolist(), out[0].tolist()
         ([0, 0, 0, 0, 0, 1, 1, 1, 1], [1.0, 1.0, 1.0, 0.0, 0.0, 2.0, 2.0, 2.0, 2.0])
     """
     shape = depth.shape
-    for name, value in (("depth_std", depth_std), ("estimate", estimate), ("uncertainty", uncertainty)):
+    for name, value in (("depth_std", depth_std), ("estimate", estimate), ("uncertainty", uncertainty), ("holes", holes)):
         if value.shape != shape:
             raise ValueError(f"{name}: expected shape {list(shape)} (as depth), got {list(value.shape)}")
-    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or radius < 1:
-        raise ValueError(f"radius: expected a positive integer, got {radius!r}")
-    measured = torch.from_numpy(np.ascontiguousarray(depth > 0)).float()[None, None]
-    near_sensor = torch.nn.functional.max_pool2d(measured, 2 * radius + 1, stride=1, padding=radius)[0, 0].numpy() > 0
-    filled = ~near_sensor & (estimate > 0)
+    if holes.dtype != np.bool_:
+        raise ValueError(f"holes: expected a bool array, got {holes.dtype}")
+    filled = holes & (depth <= 0) & (estimate > 0)
     out = np.where(filled, estimate, depth).astype(np.float32)
     std = np.where(filled, uncertainty, depth_std).astype(np.float32)
     return out, std, filled

@@ -28,7 +28,8 @@ import torch
 
 from ..camera import Camera
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis, sensor_depth_std
-from ..evidence.mvs import SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth
+from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
+                            sensor_holes)
 from ..decode import GaussianDecoder, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
@@ -248,25 +249,28 @@ class Scene:
         """Source views for a sweep at ``camera`` (never its own view: selection needs a baseline)."""
         return self._window.select(camera, k=self.config.depth_sources)
 
-    def _with_estimated_depth(self, frame: Frame, sources, view=None) -> Frame:
+    def _with_estimated_depth(self, frame: Frame, sources, view=None, where=None) -> Frame:
         near_far = None
         if self._n:  # the swept range from what the scene already holds (a subsample is enough)
             step = max(1, self._n // 20_000)
             near_far = depth_range_from_points(frame.camera, self._layout.field(self._state["rows"][: self._n: step], "rep_pos"))
         near, far = near_far if near_far is not None else (None, None)
         depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses,
-                                    reference=view)
+                                    reference=view, where=where)
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std))
 
     def _completed(self, frame: Frame, sources, view: SourceView) -> tuple[Frame, int]:
         """``frame`` with the large holes of its depth filled by the sweep (`complete_depth`), and
         the number of pixels filled."""
-        swept = self._with_estimated_depth(frame, sources, view)
         c = self.config
+        holes = sensor_holes(frame.depth.numpy(), c.depth_completion_radius)
+        if not holes.any():
+            return frame, 0
+        swept = self._with_estimated_depth(frame, sources, view, where=holes)  # only the holes are swept
         std = frame.depth_std if frame.depth_std is not None else sensor_depth_std(
             frame.depth, c.depth_sigma0, c.depth_sigma2, c.depth_sigma_ref)
         depth, std, filled = complete_depth(frame.depth.numpy(), std.numpy(), swept.depth.numpy(),
-                                            swept.depth_std.numpy(), c.depth_completion_radius)
+                                            swept.depth_std.numpy(), holes)
         if not filled.any():  # the frame as it came: its evidence is then bit-identical to a plain fold
             return frame, 0
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std)), int(filled.sum())

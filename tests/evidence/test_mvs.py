@@ -39,6 +39,8 @@ from canonical_core.evidence.mvs import (
     plane_sweep,
     plane_sweep_reference,
     select_sources,
+    sensor_holes,
+    sweep_pixels_for,
     upsample_depth,
 )
 from canonical_core.evidence.mvs_eval import (
@@ -374,7 +376,26 @@ def test_source_view_validation(synth):
     assert math.isnan(SourceView.from_frame(without_depth(synth[0])).median_depth)
 
 
-def test_complete_depth_fills_only_holes_beyond_the_radius():
+def test_sensor_holes_are_pixels_beyond_the_radius_of_any_measured_pixel():
+    rng = np.random.default_rng(3)
+    depth = np.where(rng.random((30, 40)) < 0.02, 0.5, 0.0).astype(np.float32)  # sparse measured pixels
+    depth[5:20, 5:25] = rng.uniform(0.3, 0.6, (15, 20))
+    v, u = np.mgrid[:30, :40]
+    measured_v, measured_u = np.nonzero(depth > 0)
+    # Chebyshev distance to the nearest measured pixel, by brute force
+    dist = np.min(np.maximum(np.abs(v[..., None] - measured_v), np.abs(u[..., None] - measured_u)), axis=-1)
+    for radius in (1, 3, 7):
+        assert np.array_equal(sensor_holes(depth, radius), dist > radius)
+    assert sensor_holes(np.zeros((4, 6), np.float32), 2).all()
+
+
+@pytest.mark.parametrize("radius", [0, True, 1.5])
+def test_sensor_holes_rejects_bad_radius(radius):
+    with pytest.raises(ValueError, match="radius: expected a positive integer"):
+        sensor_holes(np.zeros((4, 6), np.float32), radius)
+
+
+def test_complete_depth_fills_only_holes_the_sweep_has_depth_for():
     rng = np.random.default_rng(3)
     depth = np.zeros((30, 40), np.float32)
     depth[5:20, 5:25] = rng.uniform(0.3, 0.6, (15, 20))
@@ -382,25 +403,55 @@ def test_complete_depth_fills_only_holes_beyond_the_radius():
     estimate = rng.uniform(0.5, 1.0, depth.shape).astype(np.float32)
     estimate[25:, :] = 0.0  # the sweep has no depth here
     std, unc = np.full_like(depth, 0.002), np.full_like(depth, 0.05)
-    out, out_std, filled = complete_depth(depth, std, estimate, unc, radius=3)
-    v, u = np.mgrid[:30, :40]
-    measured_v, measured_u = np.nonzero(depth > 0)
-    # Chebyshev distance to the nearest measured pixel, by brute force
-    dist = np.min(np.maximum(np.abs(v[..., None] - measured_v), np.abs(u[..., None] - measured_u)), axis=-1)
-    assert np.array_equal(filled, (dist > 3) & (estimate > 0))
+    holes = sensor_holes(depth, 3)
+    out, out_std, filled = complete_depth(depth, std, estimate, unc, holes)
+    assert np.array_equal(filled, holes & (estimate > 0))
     assert not filled[10, 10] and out[10, 10] == 0.0  # small holes stay holes
     assert np.array_equal(out[depth > 0], depth[depth > 0]) and np.array_equal(out_std[depth > 0], std[depth > 0])
     assert np.array_equal(out[filled], estimate[filled]) and np.all(out_std[filled] == 0.05)
     assert np.all(out[~filled & (depth == 0)] == 0.0)
+    # a hole mask that covers measured pixels never changes them
+    out, out_std, filled = complete_depth(depth, std, estimate, unc, np.ones_like(holes))
+    assert np.array_equal(out[depth > 0], depth[depth > 0]) and not filled[depth > 0].any()
 
 
 @pytest.mark.parametrize("change, message", [
     ({"estimate": np.zeros((4, 5), np.float32)}, r"estimate: expected shape \[4, 6\]"),
     ({"depth_std": np.zeros((6, 4), np.float32)}, r"depth_std: expected shape \[4, 6\]"),
-    ({"radius": 0}, "radius: expected a positive integer"),
-    ({"radius": True}, "radius: expected a positive integer"),
+    ({"holes": np.zeros((4, 5), bool)}, r"holes: expected shape \[4, 6\]"),
+    ({"holes": np.zeros((4, 6), np.float32)}, "holes: expected a bool array, got float32"),
 ])
 def test_complete_depth_rejects_bad_input(change, message):
-    args = {name: np.zeros((4, 6), np.float32) for name in ("depth", "depth_std", "estimate", "uncertainty")} | {"radius": 2}
+    args = {name: np.zeros((4, 6), np.float32) for name in ("depth", "depth_std", "estimate", "uncertainty")}
     with pytest.raises(ValueError, match=message):
-        complete_depth(**(args | change))
+        complete_depth(**(args | {"holes": np.ones((4, 6), bool)} | change))
+
+
+@pytest.mark.parametrize("image, sweep", [((48, 64), (24, 32)), ((30, 40), (11, 17)), ((8, 8), (8, 8))])
+def test_sweep_pixels_for_are_all_that_upsampling_reads_at_the_wanted_pixels(image, sweep):
+    rng = np.random.default_rng(4)
+    where = rng.random(image) < 0.05
+    needed = sweep_pixels_for(where, sweep)
+    assert needed.sum() <= 4 * where.sum() and needed.mean() < 0.9  # at most the 4 taps of each pixel
+    for trial in range(5):  # any sweep map, with holes and depth edges: blanking the rest changes nothing there
+        depth = rng.uniform(0.5, 3.0, sweep).astype(np.float32) * (rng.random(sweep) < 0.8)
+        unc = rng.uniform(0.0, 0.1, sweep).astype(np.float32)
+        full_d, full_u = upsample_depth(depth, unc, image)
+        part_d, part_u = upsample_depth(np.where(needed, depth, 0), np.where(needed, unc, 0), image)
+        assert np.array_equal(part_d[where], full_d[where]) and np.array_equal(part_u[where], full_u[where])
+
+
+def test_estimate_depth_where_matches_the_full_sweep_there(synth):
+    ref, srcs = without_depth(synth[2]), [synth[0], synth[4]]
+    kw = dict(near=0.4, far=4.0, num_hypotheses=24)
+    full_d, full_u = estimate_depth(ref, srcs, **kw)
+    where = np.zeros((ref.height, ref.width), bool)
+    where[:, :30] = True  # a band, and scattered pixels
+    where[np.random.default_rng(5).random(where.shape) < 0.02] = True
+    d, u = estimate_depth(ref, srcs, where=where, **kw)
+    assert np.array_equal(d[where], full_d[where]) and np.array_equal(u[where], full_u[where])
+    assert (d[~where] == 0).mean() > 0.5  # most of the rest was never swept
+    with pytest.raises(ValueError, match=r"where: expected a bool array of shape \[120, 160\]"):
+        estimate_depth(ref, srcs, where=where[:, :10], **kw)
+    with pytest.raises(ValueError, match="where: expected a bool array"):
+        estimate_depth(ref, srcs, where=where.astype(np.float32), **kw)
