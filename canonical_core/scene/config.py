@@ -30,7 +30,7 @@ class SceneConfig:
             `uses_reliability`, `uses_similarity`).
         depth_sigma0, depth_sigma2, depth_sigma_ref: sensor noise model for supplied depth without a
             std: sigma(z) = sigma0 + sigma2 * (z - ref)^2 metres (structured-light/ToF sensors).
-        depth_edge_weight: adds weight * (largest depth jump to a 4-neighbour) to sigma, so
+        depth_edge_weight: adds weight * (largest depth jump to a valid 8-neighbour) to sigma, so
             "flying pixels" on depth discontinuities get low reliability.
         near, far: depth range accepted from frames, metres; outside it a pixel is ignored.
         eps: the epsilon of F_scene = sum W F / (R_scene + eps).
