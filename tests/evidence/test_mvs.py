@@ -137,6 +137,16 @@ def test_plane_sweep_fast_path_equals_reference(synth, yaw):
     Dr, Ur, mr, vr = depth_distribution_reference(lt, ct, torch.from_numpy(hyps))
     assert np.abs(D - Dr[0].numpy()).max() < 1e-9 and np.abs(U - Ur[0].numpy()).max() < 1e-9
     assert np.abs(mass - mr[0].numpy()).max() < 1e-9 and np.array_equal(valid, vr[0].numpy())
+    # a mask sweeps only its pixels, exactly as the full sweep there; the rest is unseen and invalid
+    mask = np.random.default_rng(6).random((60, 80)) < 0.3
+    m_logits, m_count = plane_sweep(ref, sources, hyps, mask)
+    assert np.array_equal(m_logits[mask], logits[mask]) and np.array_equal(m_count[mask], count[mask])
+    assert not m_count[~mask].any() and not m_logits[~mask].any()
+    mD, mU, m_mass, m_valid = depth_distribution(m_logits, m_count, hyps, mask)
+    assert np.array_equal(mD[mask], D[mask]) and np.array_equal(m_valid[mask], valid[mask])
+    assert not m_valid[~mask].any() and not mD[~mask].any() and not m_mass[~mask].any()
+    with pytest.raises(ValueError, match=r"mask: expected a bool array of shape \[60, 80\]"):
+        plane_sweep(ref, sources, hyps, mask[:, :10])
 
 
 def test_moments_follow_the_paper():
