@@ -41,9 +41,9 @@ def _uint8(rgb: torch.Tensor) -> np.ndarray:  # [H, W, 3] in [0, 1] -> uint8
     return (rgb.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
 
 
-def _db(se_before: float, se_after: float) -> float:
-    """The PSNR change (dB) when the total squared error goes from ``se_before`` to ``se_after``."""
-    return 10.0 * math.log10(se_before / se_after)
+def _db(se_a: float, se_b: float) -> float:
+    """PSNR of a minus PSNR of b (dB), from their total squared errors over the same pixels."""
+    return 10.0 * math.log10(se_b / se_a)
 
 
 def main(argv=None) -> None:
@@ -89,16 +89,15 @@ def main(argv=None) -> None:
                 for name, img in zip(columns, (_uint8(gt), _uint8(a.rgb), _uint8(b.rgb), overlay)):
                     columns[name].append(img)
         extra_total = sum(counts.values())
-        # all-pixel squared error = both-cover part + the rest; split the difference between the two parts
-        both = se["canonical, both cover"] - se["no_free_space, both cover"]
-        rest = (se["canonical"] - se["no_free_space"]) - both
+        # between the two: canonical with no_free_space's errors on the pixels both cover
+        between = se["canonical"] - se["canonical, both cover"] + se["no_free_space, both cover"]
         rows.append({
             "N": n,
             "extra pixels (share of all)": f"{extra_total / (len(targets) * targets[0].height * targets[0].width):.4f}",
             **{f"of which {name}": f"{c / max(extra_total, 1):.3f}" for name, c in counts.items()},
-            "all-pixel dB canonical - no_free_space": f"{_db(se['canonical'], se['no_free_space']) * -1:+.2f}",
-            "of it, on pixels both cover": f"{_db(se['canonical'], se['canonical'] - both) * -1:+.2f}",
-            "of it, elsewhere": f"{_db(se['canonical'] - both, se['canonical'] - both - rest) * -1:+.2f}",
+            "all-pixel dB canonical - no_free_space": f"{_db(se['canonical'], se['no_free_space']):+.2f}",
+            "of it, on pixels both cover": f"{_db(se['canonical'], between):+.2f}",
+            "of it, elsewhere": f"{_db(between, se['no_free_space']):+.2f}",
         })
         if args.out is not None:
             args.out.mkdir(parents=True, exist_ok=True)
