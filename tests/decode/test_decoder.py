@@ -142,3 +142,28 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
     assert top.opacities.min() >= full.opacities.min()
     with pytest.raises(ValueError, match="max_gaussians"):
         scene.decode(max_gaussians=-1)
+
+
+def test_opacity_bias_setting_moves_only_opacity_and_keeps_its_order(shelf_frames):
+    # the SceneConfig knob reaches the decoder: every opacity rises, in the same order of support,
+    # and nothing else of the decode changes
+    scenes = [Scene(SceneConfig(voxel_size=0.004, opacity_bias=b)) for b in (-3.0, 0.0)]
+    for scene in scenes:
+        for f in shelf_frames[:2]:
+            scene.fold(f)
+    low, high = (s.decode() for s in scenes)
+    for name in ("means", "scales", "quats", "sh", "features"):
+        assert torch.equal(getattr(low, name), getattr(high, name)), name
+    assert (high.opacities >= low.opacities).all() and (high.opacities > low.opacities).float().mean() > 0.9
+    # the analytic logit is a r + b - penalty(q): every logit moves by exactly the change of b
+    unsaturated = high.opacities < 0.999
+    shift = torch.logit(high.opacities[unsaturated].double()) - torch.logit(low.opacities[unsaturated].double())
+    assert unsaturated.float().mean() > 0.1 and torch.allclose(shift, torch.full_like(shift, 3.0), atol=1e-3)
+    order = torch.argsort(low.opacities, stable=True)
+    assert (high.opacities[order][1:] >= high.opacities[order][:-1] - 1e-6).all()
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), True, "high"])
+def test_opacity_bias_setting_rejects_non_numbers(bad):
+    with pytest.raises(ValueError, match="opacity_bias: expected a finite number"):
+        SceneConfig(voxel_size=0.01, opacity_bias=bad)

@@ -29,6 +29,15 @@ def test_save_load_is_bit_identical_and_decodes_identically(folded, tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+def test_save_load_keeps_the_opacity_bias_setting(shelf_frames, tmp_path):
+    scene = Scene(SceneConfig(voxel_size=0.004, opacity_bias=0.5))
+    scene.fold(shelf_frames[0])
+    scene.save(tmp_path / "scene.cgs")
+    loaded = Scene.load(tmp_path / "scene.cgs")
+    assert loaded.config.opacity_bias == 0.5
+    assert torch.equal(loaded.decode().opacities, scene.decode().opacities)
+
+
 def test_folding_after_load_equals_uninterrupted(shelf_frames, folded, tmp_path):
     folded.save(tmp_path / "s.cgs")
     resumed = Scene.load(tmp_path / "s.cgs")

@@ -163,6 +163,8 @@ CASES = [
     ("create near above far", lambda c: c.create({"voxel_size": 0.01, "near": 5, "far": 1}), 422, "near"),
     ("create completion radius zero", lambda c: c.create({"voxel_size": 0.01, "depth_completion_radius": 0}), 422,
      "depth_completion_radius"),
+    ("create opacity_bias not a number", lambda c: c.create({"voxel_size": 0.01, "opacity_bias": "high"}), 422,
+     "opacity_bias"),
     ("create malformed JSON", lambda c: c.create(content=b"{voxel_size: 1"), 400, "body"),
 ]
 
