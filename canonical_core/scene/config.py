@@ -65,8 +65,8 @@ class SceneConfig:
         free_space_dominance: decoding drops voxels whose free-space evidence exceeds this
             multiple of their support R_scene. 2, not 1: the see-through weight counts rays as if
             the voxel faced the camera, which overstates it up to 2x for surfaces seen at 60 deg.
-        opacity_bias: b of the decoder's analytic opacity logit a r + b (r = support in typical views,
-            see `decode.decoder`): at -3 a voxel with almost no support is 5 % opaque and one
+        opacity_bias: b of the decoder's analytic (untrained) opacity logit a r + b, r being support
+            in typical views (see `decode.decoder`). At -3 a voxel with almost no support is 5 % opaque and one
             typical view's support 97 %. It sets how far opacity trusts weak support, a trade between
             clean and noisy depth. Measured on the shelf evaluation, 0 instead of -3: all-pixel PSNR
             +0.6 / +0.5 / +0.4 / +0.3 dB at N = 2 / 4 / 8 / 16 (covered within 0.06 dB), but under
