@@ -9,7 +9,9 @@ For each voxel with support:
     Sigma    = weighted second moments of the lifted points, per-axis std scaled by the footprint
                gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
     colour   = streamed SH fit (DC = fused colour at degree 0) + delta(F_scene) on the DC term
-The heads on F_scene start at zero, so an untrained decoder is the analytic solution.
+The heads on F_scene start at zero, so an untrained decoder is the analytic solution; support(r)
+starts as the line 30 r - 3 and penalty(q) as 4 q (the line's reading and its measurement:
+`SceneConfig.opacity_slope`).
 
 Mean. The analytic offset is the one that moves the representative's lifted point to the centroid
 sum W x / R_scene of the voxel's lifted points: the covariance is the second moment about that
@@ -54,7 +56,7 @@ class MonotoneOpacity(nn.Module):
     line a r + b; training can bend it.
     """
 
-    def __init__(self, slope: float = 10.0, bias: float = -3.0, hidden: int = 8):
+    def __init__(self, slope: float = 30.0, bias: float = -3.0, hidden: int = 8):
         super().__init__()
         self.a = nn.Parameter(torch.tensor(float(slope)))
         self.b = nn.Parameter(torch.tensor(float(bias)))
@@ -115,7 +117,7 @@ class GaussianDecoder(nn.Module):
     """
 
     def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = FULL_VOXEL_EXTENT,
-                 max_extent: float = 1.0, opacity_slope: float = 10.0, opacity_bias: float = -3.0,
+                 max_extent: float = 1.0, opacity_slope: float = 30.0, opacity_bias: float = -3.0,
                  free_space_slope: float = 4.0):
         super().__init__()
         self.feature_dim = feature_dim

@@ -103,7 +103,7 @@ class Scene:
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
         self.config = config
         self.appearance = AppearanceUncertainty(config.feature_dim)
-        self.decoder = GaussianDecoder(config.feature_dim, opacity_bias=config.opacity_bias)
+        self.decoder = GaussianDecoder(config.feature_dim, opacity_slope=config.opacity_slope, opacity_bias=config.opacity_bias)
         self.frames = 0
         self._layout = VoxelRows(config.feature_dim, sh_sum_widths(config.sh_degree))
         self._n = 0

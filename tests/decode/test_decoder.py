@@ -60,7 +60,7 @@ def test_analytic_initialisation():
     # the offset head starts at zero: the mean is the points' centroid, not the representative point
     assert torch.equal(g.means, fields["position_mean"]) and not torch.equal(g.means, fields["representative_position"])
     assert torch.allclose(g.colors, fields["color"], atol=1e-6)
-    assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(10 * (1 - math.exp(-3)) - 3))), rel=1e-5)
+    assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(30 * (1 - math.exp(-3)) - 3))), rel=1e-5)
     # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never
     # spread past the seam-closing clamp, so both in-plane stds are the clamp
     R = torch.from_numpy(quaternion_to_matrix(g.quats.numpy()))[0]
@@ -108,7 +108,7 @@ def test_opacity_is_invariant_to_a_global_reliability_scale():
     # a capture whose every reliability is 10x lower (a noisier sensor) decodes to the same opacities
     dec = GaussianDecoder(feature_dim=4)
     fields, _ = fields_of_planar_voxel()
-    fields["reliability"] = torch.tensor([0.2, 1.0, 3.0, 9.0])
+    fields["reliability"] = torch.tensor([0.02, 0.05, 0.1, 0.2])  # below saturation of the steep default line
     fields = {k: v.expand(4, *v.shape[1:]) if k != "reliability" else v for k, v in fields.items()}
     bright = dec(fields, voxel_size=0.1, support_unit=0.5).opacities
     dim = dec({**fields, "reliability": fields["reliability"] / 10}, voxel_size=0.1, support_unit=0.05).opacities
@@ -144,23 +144,47 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
         scene.decode(max_gaussians=-1)
 
 
-def test_opacity_bias_setting_moves_only_opacity_and_keeps_its_order(shelf_frames):
-    # the SceneConfig knob reaches the decoder: every opacity rises, in the same order of support,
-    # and nothing else of the decode changes
-    scenes = [Scene(SceneConfig(voxel_size=0.004, opacity_bias=b)) for b in (-3.0, 0.0)]
-    for scene in scenes:
+def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
+    # the SceneConfig knobs reach the decoder's analytic logit a r + b - penalty(q): a change of b
+    # moves every logit by that change, a change of a by that change times r; nothing else moves
+    settings = {"default": {}, "bias 0": {"opacity_bias": 0.0}, "slope 10": {"opacity_slope": 10.0}}
+    scenes = {k: Scene(SceneConfig(voxel_size=0.004, **v)) for k, v in settings.items()}
+    for scene in scenes.values():
         for f in shelf_frames[:2]:
             scene.fold(f)
-    low, high = (s.decode() for s in scenes)
+    g = {k: s.decode() for k, s in scenes.items()}
     for name in ("means", "scales", "quats", "sh", "features"):
-        assert torch.equal(getattr(low, name), getattr(high, name)), name
-    assert (high.opacities >= low.opacities).all() and (high.opacities > low.opacities).float().mean() > 0.9
-    # the analytic logit is a r + b - penalty(q): every logit moves by exactly the change of b
-    unsaturated = high.opacities < 0.999
-    shift = torch.logit(high.opacities[unsaturated].double()) - torch.logit(low.opacities[unsaturated].double())
-    assert unsaturated.float().mean() > 0.1 and torch.allclose(shift, torch.full_like(shift, 3.0), atol=1e-3)
-    order = torch.argsort(low.opacities, stable=True)
-    assert (high.opacities[order][1:] >= high.opacities[order][:-1] - 1e-6).all()
+        assert torch.equal(getattr(g["default"], name), getattr(g["bias 0"], name)), name
+        assert torch.equal(getattr(g["default"], name), getattr(g["slope 10"], name)), name
+    # reference r of every decoded voxel (the decode's keep rule and support unit, module docstring)
+    f = scenes["default"].fields(sort=False)
+    unit = support_unit(f["reliability"], f["observations"]) * scenes["default"].observations_per_view()
+    keep = (f["reliability"] > 0) & (f["free_space"] <= 2.0 * f["reliability"])
+    r = (1.0 - torch.exp(-f["reliability"][keep].double() / unit))
+    ops = torch.stack([g[k].opacities.double() for k in settings])
+    unsaturated = ((ops > 1e-3) & (ops < 0.999)).all(0)
+    assert unsaturated.float().mean() > 0.1
+    logit = torch.logit(ops[:, unsaturated])
+    assert torch.allclose(logit[1] - logit[0], torch.full_like(logit[0], 3.0), atol=1e-3)
+    assert torch.allclose(logit[0] - logit[2], 20.0 * r[unsaturated], atol=1e-3)
+    assert (g["bias 0"].opacities >= g["default"].opacities).all()
+    assert (g["default"].opacities >= g["slope 10"].opacities).all()
+
+
+def test_default_opacity_line_reads_in_typical_views():
+    # the documented reading of the default line (SceneConfig.opacity_slope): no support 5 % opaque,
+    # a tenth of one typical view's support about half, a fifth 92 %
+    head = MonotoneOpacity()
+    r = 1.0 - torch.exp(-torch.tensor([0.0, 0.1, 0.2]))  # support in typical views -> r
+    with torch.no_grad():
+        alpha = torch.sigmoid(head(r))
+    assert torch.allclose(alpha, torch.tensor([0.047, 0.46, 0.92]), atol=0.01)
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), True, "steep"])
+def test_opacity_slope_setting_rejects_non_positive_numbers(bad):
+    with pytest.raises(ValueError, match="opacity_slope: expected a positive finite number"):
+        SceneConfig(voxel_size=0.01, opacity_slope=bad)
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), True, "high"])

@@ -165,6 +165,7 @@ CASES = [
      "depth_completion_radius"),
     ("create opacity_bias not a number", lambda c: c.create({"voxel_size": 0.01, "opacity_bias": "high"}), 422,
      "opacity_bias"),
+    ("create opacity_slope zero", lambda c: c.create({"voxel_size": 0.01, "opacity_slope": 0}), 422, "opacity_slope"),
     ("create malformed JSON", lambda c: c.create(content=b"{voxel_size: 1"), 400, "body"),
 ]
 
