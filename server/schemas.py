@@ -77,6 +77,7 @@ class FoldReportOut(BaseModel):
     pending: bool = Field(False, description="a frame without depth waiting for a partner view (folded later)")
     also_folded: int = Field(0, description="earlier waiting frames this call folded")
     completed_pixels: int = Field(0, description="pixels whose missing depth the plane sweep filled (depth_completion)")
+    denoised: bool = Field(False, description="the frame's depth was far rougher than its noise model and was replaced by a local median (depth_denoise_radius)")
 
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]

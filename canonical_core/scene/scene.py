@@ -28,6 +28,7 @@ import torch
 
 from ..camera import Camera
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis, sensor_depth_std
+from ..evidence.denoise import denoise_rough_depth
 from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
                             sensor_holes)
 from ..decode import GaussianDecoder, support_unit
@@ -53,7 +54,8 @@ class FoldReport:
 
     ``frame_index`` is the frame's arrival index. A frame without depth and without a usable source
     view yet is ``pending``: accepted and kept, and folded (its depth estimated) by the call whose
-    frame gives it a partner; that call counts it in ``also_folded``.
+    frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
+    was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
     """
 
     frame_index: int
@@ -65,6 +67,7 @@ class FoldReport:
     pending: bool = False
     also_folded: int = 0
     completed_pixels: int = 0
+    denoised: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -183,6 +186,7 @@ class Scene:
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         if frame.depth is None:
             return self._fold_without_depth(frame, t0)
+        frame, denoised = self._denoised(frame)
         view, completed = None, 0
         if self.config.depth_completion:
             self._check_foldable(frame)  # before the sweep's cost
@@ -194,7 +198,20 @@ class Scene:
         if view is not None:
             self._window.add(view)  # after the fold: a frame that fails to fold leaves the window as it was
         self.frames += 1
-        return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0, completed_pixels=completed)
+        return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0, completed_pixels=completed,
+                          denoised=denoised)
+
+    def _denoised(self, frame: Frame) -> tuple[Frame, bool]:
+        """``frame`` with its depth replaced by the local median where it is far rougher than its
+        noise model (`evidence.denoise`), and whether it was."""
+        c = self.config
+        depth = frame.depth.numpy()
+        std = None if frame.depth_std is None else frame.depth_std.numpy()
+        smooth, smooth_std = denoise_rough_depth(depth, std, c.depth_denoise_radius, c.depth_sigma0, c.depth_sigma2,
+                                                 c.depth_sigma_ref)
+        if smooth is depth:
+            return frame, False
+        return dataclasses.replace(frame, depth=torch.from_numpy(smooth), depth_std=torch.from_numpy(smooth_std)), True
 
     def _fold_with_depth(self, frame: Frame) -> tuple[int, int, int, int]:
         """(observations, new voxels, updated voxels, representative switches) of folding ``frame``."""

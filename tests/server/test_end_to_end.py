@@ -182,6 +182,18 @@ def test_depth_completion_session_reports_filled_pixels(client, frames):
     plain.delete()
 
 
+def test_rough_depth_is_reported_denoised(client, frames):
+    """A frame whose depth is far rougher than the sensor model is folded as its local median, and
+    the fold report says so; clean sensor depth is not."""
+    session = client.create_session(voxel_size=VOXEL)
+    assert session.add_frame(**frames[0])["denoised"] is False
+    depth = frames[1]["depth"]
+    noisy = depth + 0.05 * np.random.default_rng(0).standard_normal(depth.shape).astype(np.float32)
+    report = session.add_frame(**{**frames[1], "depth": np.where((depth > 0) & (noisy > 0), noisy, 0).astype(np.float32)})
+    assert report["denoised"] is True and report["frame_index"] == 1
+    session.delete()
+
+
 def test_rgb_only_session_end_to_end(client, frames):
     """A session fed only RGB frames (depth withheld) folds every frame through the service."""
     session = client.create_session(voxel_size=VOXEL)
