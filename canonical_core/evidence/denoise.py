@@ -52,7 +52,14 @@ def _roughness_kernel(depth, sigma, stride, out):  # out [H // stride, W // stri
             out[i, j] = np.nan
             if depth[v, u] > 0:
                 n = _window(depth, v, u, 1, buf)
-                out[i, j] = abs(depth[v, u] - np.median(buf[:n])) / sigma[v, u]
+                for a in range(1, n):  # insertion sort of <= 9 values: no allocation per pixel
+                    x, b = buf[a], a - 1
+                    while b >= 0 and buf[b] > x:
+                        buf[b + 1] = buf[b]
+                        b -= 1
+                    buf[b + 1] = x
+                med = buf[n // 2] if n % 2 else np.float32(0.5) * (buf[n // 2 - 1] + buf[n // 2])
+                out[i, j] = abs(depth[v, u] - med) / max(sigma[v, u], np.float32(1e-9))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -128,7 +135,7 @@ def denoise_rough_depth(
     if radius == 0:
         return depth, depth_std
     sigma = sensor_depth_std(depth, sigma0, sigma2, z_ref) if depth_std is None else depth_std
-    if depth_roughness(depth, np.maximum(sigma, 1e-9).astype(np.float32)) <= ROUGHNESS_LIMIT:
+    if depth_roughness(depth, sigma) <= ROUGHNESS_LIMIT:
         return depth, depth_std
     return median_depth(depth, radius)
 
