@@ -46,6 +46,9 @@ FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
 # seen as speckle on real captures). Points inside a voxel never spread wider than this, so in-plane
 # extents are this clamp and the moments set the orientation and the thickness.
 FULL_VOXEL_EXTENT = 0.5
+# The analytic opacity line a r + b (its reading and measurement: `SceneConfig.opacity_slope`, whose
+# defaults are these).
+OPACITY_SLOPE, OPACITY_BIAS = 30.0, -3.0
 
 
 class MonotoneOpacity(nn.Module):
@@ -56,7 +59,7 @@ class MonotoneOpacity(nn.Module):
     line a r + b; training can bend it.
     """
 
-    def __init__(self, slope: float = 30.0, bias: float = -3.0, hidden: int = 8):
+    def __init__(self, slope: float = OPACITY_SLOPE, bias: float = OPACITY_BIAS, hidden: int = 8):
         super().__init__()
         self.a = nn.Parameter(torch.tensor(float(slope)))
         self.b = nn.Parameter(torch.tensor(float(bias)))
@@ -117,7 +120,7 @@ class GaussianDecoder(nn.Module):
     """
 
     def __init__(self, feature_dim: int, min_thickness: float = 0.05, min_extent: float = FULL_VOXEL_EXTENT,
-                 max_extent: float = 1.0, opacity_slope: float = 30.0, opacity_bias: float = -3.0,
+                 max_extent: float = 1.0, opacity_slope: float = OPACITY_SLOPE, opacity_bias: float = OPACITY_BIAS,
                  free_space_slope: float = 4.0):
         super().__init__()
         self.feature_dim = feature_dim

@@ -77,7 +77,9 @@ class SceneConfig:
             voxels (depth edges, thin or sparse geometry) are mostly real surface. Measured on the
             shelf evaluation against 10: all-pixel PSNR +0.3-0.5 dB at every N, covered within
             0.05 dB, depth agreement -0.02 to -0.03, PSNR under depth noise 0.25 unchanged (within
-            0.03 dB); see README.
+            0.03 dB); see README. Both line settings shape a new session's untrained decoder
+            (`decode.decoder.OPACITY_SLOPE`, `OPACITY_BIAS` are their defaults); a loaded snapshot
+            keeps its decoder's own parameters.
         opacity_bias: b of the same line: the opacity of a voxel without reliable support. Raising
             it makes unsupported voxels opaque, which on noisy depth is fog: measured at 0 instead of
             -3 (slope 10), PSNR under depth noise 0.25 at N = 4 falls from 11.59 to 11.43 dB.

@@ -181,6 +181,13 @@ def test_default_opacity_line_reads_in_typical_views():
     assert torch.allclose(alpha, torch.tensor([0.047, 0.46, 0.92]), atol=0.01)
 
 
+def test_session_defaults_are_the_decoders_line():
+    # SceneConfig stays free of torch, so it repeats the decoder's defaults: they must not drift apart
+    from canonical_core.decode.decoder import OPACITY_BIAS, OPACITY_SLOPE
+    config = SceneConfig(voxel_size=0.01)
+    assert (config.opacity_slope, config.opacity_bias) == (OPACITY_SLOPE, OPACITY_BIAS)
+
+
 @pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), True, "steep"])
 def test_opacity_slope_setting_rejects_non_positive_numbers(bad):
     with pytest.raises(ValueError, match="opacity_slope: expected a positive finite number"):
