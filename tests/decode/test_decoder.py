@@ -8,6 +8,7 @@ from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.camera import quaternion_to_matrix
 from canonical_core.decode import (FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion,
                                    support_unit)
+from canonical_core.decode.decoder import OPACITY_BIAS, OPACITY_SLOPE
 from canonical_core.scene import Scene
 
 
@@ -60,7 +61,8 @@ def test_analytic_initialisation():
     # the offset head starts at zero: the mean is the points' centroid, not the representative point
     assert torch.equal(g.means, fields["position_mean"]) and not torch.equal(g.means, fields["representative_position"])
     assert torch.allclose(g.colors, fields["color"], atol=1e-6)
-    assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-(30 * (1 - math.exp(-3)) - 3))), rel=1e-5)
+    logit = OPACITY_SLOPE * (1 - math.exp(-3)) + OPACITY_BIAS  # support 3 typical views, the untrained line
+    assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-logit)), rel=1e-5)
     # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never
     # spread past the seam-closing clamp, so both in-plane stds are the clamp
     R = torch.from_numpy(quaternion_to_matrix(g.quats.numpy()))[0]
@@ -147,14 +149,14 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
 def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
     # the SceneConfig knobs reach the decoder's analytic logit a r + b - penalty(q): a change of b
     # moves every logit by that change, a change of a by that change times r; nothing else moves
-    settings = {"default": {}, "bias 0": {"opacity_bias": 0.0}, "slope 10": {"opacity_slope": 10.0}}
+    settings = {"default": {}, "bias -3": {"opacity_bias": -3.0}, "slope 10": {"opacity_slope": 10.0}}
     scenes = {k: Scene(SceneConfig(voxel_size=0.004, **v)) for k, v in settings.items()}
     for scene in scenes.values():
         for f in shelf_frames[:2]:
             scene.fold(f)
     g = {k: s.decode() for k, s in scenes.items()}
     for name in ("means", "scales", "quats", "sh", "features"):
-        assert torch.equal(getattr(g["default"], name), getattr(g["bias 0"], name)), name
+        assert torch.equal(getattr(g["default"], name), getattr(g["bias -3"], name)), name
         assert torch.equal(getattr(g["default"], name), getattr(g["slope 10"], name)), name
     # reference r of every decoded voxel (the decode's keep rule and support unit, module docstring)
     f = scenes["default"].fields(sort=False)
@@ -165,25 +167,24 @@ def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
     unsaturated = ((ops > 1e-3) & (ops < 0.999)).all(0)
     assert unsaturated.float().mean() > 0.1
     logit = torch.logit(ops[:, unsaturated])
-    assert torch.allclose(logit[1] - logit[0], torch.full_like(logit[0], 3.0), atol=1e-3)
+    assert torch.allclose(logit[0] - logit[1], torch.full_like(logit[0], 3.0), atol=1e-3)
     assert torch.allclose(logit[0] - logit[2], 20.0 * r[unsaturated], atol=1e-3)
-    assert (g["bias 0"].opacities >= g["default"].opacities).all()
+    assert (g["default"].opacities >= g["bias -3"].opacities).all()
     assert (g["default"].opacities >= g["slope 10"].opacities).all()
 
 
 def test_default_opacity_line_reads_in_typical_views():
-    # the documented reading of the default line (SceneConfig.opacity_slope): no support 5 % opaque,
-    # a tenth of one typical view's support about half, a fifth 92 %
+    # the documented reading of the default line (SceneConfig.opacity_slope): a voxel with next to
+    # no support half opaque, a fiftieth of one typical view's support 64 %, a tenth 95 %
     head = MonotoneOpacity()
-    r = 1.0 - torch.exp(-torch.tensor([0.0, 0.1, 0.2]))  # support in typical views -> r
+    r = 1.0 - torch.exp(-torch.tensor([0.0, 0.02, 0.1]))  # support in typical views -> r
     with torch.no_grad():
         alpha = torch.sigmoid(head(r))
-    assert torch.allclose(alpha, torch.tensor([0.047, 0.46, 0.92]), atol=0.01)
+    assert torch.allclose(alpha, torch.tensor([0.5, 0.64, 0.95]), atol=0.01)
 
 
 def test_session_defaults_are_the_decoders_line():
     # SceneConfig stays free of torch, so it repeats the decoder's defaults: they must not drift apart
-    from canonical_core.decode.decoder import OPACITY_BIAS, OPACITY_SLOPE
     config = SceneConfig(voxel_size=0.01)
     assert (config.opacity_slope, config.opacity_bias) == (OPACITY_SLOPE, OPACITY_BIAS)
 
