@@ -150,6 +150,20 @@ def _series(runs: Sequence[dict], method: str, key: str, x: str = "views") -> tu
     return [p[0] for p in pts], [p[1] for p in pts]
 
 
+def _method_colours(plt, methods: Sequence[str]) -> dict[str, tuple]:
+    """One colour per method, the same in every plot (tab20: eleven methods would wrap tab10's
+    cycle and draw the first and the eleventh alike)."""
+    cmap = plt.get_cmap("tab20")
+    return {m: cmap(i % cmap.N) for i, m in enumerate(methods)}
+
+
+def _save(fig, ax, path: Path) -> None:
+    """Legend beside the last panel, not over its lines."""
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+
+
 def plot_views(results: Mapping, path: Path) -> None:
     """PSNR vs input views per method: all pixels, covered pixels, extrapolation (if run); the
     all-pixel panels also show the first method's coverage ceiling (dashed)."""
@@ -158,21 +172,20 @@ def plot_views(results: Mapping, path: Path) -> None:
     panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered")]
     if results["extrapolation"] is not None:
         panels.append(("PSNR, extrapolation", results["extrapolation"]["runs"], "psnr"))
+    colours = _method_colours(plt, results["methods"])
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
     for ax, (title, runs, key) in zip(axes[0], panels):
         for m in results["methods"]:
-            (line,) = ax.plot(*_series(runs, m, key), marker="o", label=m)
+            ax.plot(*_series(runs, m, key), marker="o", label=m, color=colours[m])
             if key == "psnr" and m == results["methods"][0]:  # the bound the first method's coverage sets
-                ax.plot(*_series(runs, m, "psnr_ceiling"), linestyle="--", color=line.get_color(),
+                ax.plot(*_series(runs, m, "psnr_ceiling"), linestyle="--", color=colours[m],
                         label=f"{m}: coverage ceiling")
         ax.set_xscale("log", base=2)
         ax.set_xticks(sorted(int(k) for k in results["inputs"]), [str(k) for k in sorted(int(k) for k in results["inputs"])])
         ax.set(title=title, xlabel="input views N", ylabel="dB")
         ax.grid(alpha=0.3)
-    axes[0][-1].legend(fontsize=8)
     fig.suptitle(results["dataset"])
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    _save(fig, axes[0][-1], path)
     plt.close(fig)
 
 
@@ -180,30 +193,28 @@ def plot_noise(results: Mapping, path: Path) -> None:
     """PSNR vs depth-noise level per method (0 = clean), one panel per N."""
     plt = _pyplot()
     views = sorted(int(k) for k in results["inputs"])
+    colours = _method_colours(plt, results["methods"])
     fig, axes = plt.subplots(1, len(views), figsize=(4.5 * len(views), 4), squeeze=False)
     for ax, n in zip(axes[0], views):
         runs = [r for r in results["runs"] if r["views"] == n]
         for m in results["methods"]:
-            ax.plot(*_series(runs, m, "psnr", x="noise"), marker="o", label=m)
+            ax.plot(*_series(runs, m, "psnr", x="noise"), marker="o", label=m, color=colours[m])
         ax.set(title=f"N={n}", xlabel="depth noise sigma / median depth", ylabel="PSNR dB")
         ax.grid(alpha=0.3)
-    axes[0][-1].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    _save(fig, axes[0][-1], path)
     plt.close(fig)
 
 
 def plot_stability(results: Mapping, path: Path) -> None:
     """Feature-splat cosine to the reference vs input views per method."""
     plt = _pyplot()
+    colours = _method_colours(plt, results["methods"])
     fig, ax = plt.subplots(figsize=(6, 4))
     for m in dict.fromkeys(r["method"] for r in results["stability"]):
-        ax.plot(*_series(results["stability"], m, "cosine"), marker="o", label=m)
+        ax.plot(*_series(results["stability"], m, "cosine"), marker="o", label=m, color=colours[m])
     ax.set(title="feature stability", xlabel="input views N", ylabel="mean cosine to the reference splat")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    _save(fig, ax, path)
     plt.close(fig)
 
 
