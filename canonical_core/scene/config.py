@@ -83,9 +83,9 @@ class SceneConfig:
             voxels of noisy depth see-through, and with denoising it only dimmed real surface.
             Measured against -3 (shelf evaluation, N = 2 / 4 / 8 / 16): all-pixel PSNR +0.19 /
             +0.10 / +0.07 / +0.05 dB clean and +0.40 / +0.25 / +0.20 / +0.19 dB under depth noise
-            0.25, covered within 0.02 dB clean (0.1 dB noisy), depth agreement 0.003-0.013 lower. With denoising off,
-            noisy depth wants -3 (at 0 and slope 10, noise 0.25 at N = 4 fell from 11.59 to
-            11.43 dB).
+            0.25, covered within 0.02 dB clean (0.1 dB noisy), depth agreement 0.003-0.013 lower.
+            With denoising off, noisy depth wants -3 (at 0 and slope 10, noise 0.25 at N = 4 fell
+            from 11.59 to 11.43 dB).
     """
 
     voxel_size: float
