@@ -23,7 +23,8 @@ from .reliability import sensor_depth_std
 
 # Clean captures score below 1, noise that reliability already handles (a few sensor sigmas) stays
 # below; the evaluation's depth noise 0.05 (2 cm at 0.4 m) scores 8, noise 0.25 scores 40. Cost: about
-# 1 s per denoised 640x480 frame at radius 7 on 2 cores; a clean frame pays only the check (5-8 ms measured).
+# 0.3 s per denoised 640x480 frame at radius 7 on 2 cores; a clean frame pays only the check (about 1 ms;
+# both measured by bench/fold.py).
 ROUGHNESS_LIMIT = 4.0
 MIN_SAMPLES = 5
 _MEDIAN_STD = 1.2533  # std of the median of n Gaussian samples / (std / sqrt(n)), large n
