@@ -60,7 +60,7 @@ def main(argv=None) -> None:
     rows = []
     for voxel in (float(v) for v in args.voxels.split(",")):
         alone = [(build("canonical", [t], voxel)[0], t) for t in targets]
-        metrics = [score(model, [t], voxel)[0] for model, t in alone]
+        metrics = [score(model, [t], voxel).metrics for model, t in alone]
         rows.append({"voxel mm": f"{voxel * 1000:g}", "scene": "self (each held-out frame alone)",
                      "PSNR dB": f"{np.mean([m['psnr'] for m in metrics]):.2f}",
                      "covered PSNR dB": f"{np.mean([m['psnr_covered'] for m in metrics]):.2f}",
@@ -69,7 +69,7 @@ def main(argv=None) -> None:
                      "covered PSNR dB": f"{np.mean([alpha_normalised_covered_psnr(m, [t]) for m, t in alone]):.2f}",
                      "coverage": "-", "Gaussians": "-"})
         model, _ = build("canonical", [frames[i] for i in split.inputs[args.views]], voxel)
-        metrics, _ = score(model, targets, voxel)
+        metrics = score(model, targets, voxel).metrics
         rows.append({"voxel mm": f"{voxel * 1000:g}", "scene": f"{args.views} views",
                      "PSNR dB": f"{metrics['psnr']:.2f}", "covered PSNR dB": f"{metrics['psnr_covered']:.2f}",
                      "coverage": f"{metrics['coverage']:.3f}", "Gaussians": f"{metrics['gaussians']:,}"})

@@ -83,7 +83,7 @@ def main(argv=None) -> None:
         scene = cc.Scene(cc.SceneConfig(voxel_size=args.voxel, weighting=weighting))
         for frame in inputs:
             scene.fold(frame)
-        metrics, _ = score(SplatModel(scene.decode()), targets, args.voxel)
+        metrics = score(SplatModel(scene.decode()), targets, args.voxel).metrics
         if inputs is rgb_only:
             rgb_only_scenes[weighting] = scene
         rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",

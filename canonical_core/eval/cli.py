@@ -1,6 +1,7 @@
 """``canonical eval``: the evaluation protocol from the command line (argparse).
 
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise 0.05,0.1,0.25,0.5]
+                   [--mixed-noise 0.25]
 
 `configure_parser` adds its arguments to a parser (the ``canonical`` console script's ``eval``),
 `add_eval_parser` registers the subcommand on any subparsers object, and
@@ -38,6 +39,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help=f"comma-separated subset of {','.join(METHODS)} (default: all)")
     parser.add_argument("--noise", type=_list(float, "noise"), default=[],
                         help="depth-noise levels, sigma / median depth (e.g. 0.05,0.1,0.25,0.5; default none)")
+    parser.add_argument("--mixed-noise", type=float, default=None, metavar="LEVEL",
+                        help="also run with depth noise at LEVEL on every other input view only (uneven evidence; default off)")
     parser.add_argument("--scale", type=float, default=1.0, help="image downscale factor in (0, 1] (default 1)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel edge in metres (default: 6 pixel footprints at the median depth)")
     parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=list(STABILITY_VIEWS),
@@ -63,7 +66,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from .run import evaluate
 
     try:
-        evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, out_dir=args.out,
+        evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise, out_dir=args.out,
                  progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
                  stability_views=args.stability_views, extrapolation=not args.no_extrapolation)
     except (ValueError, ImportError) as exc:

@@ -3,8 +3,10 @@ grids (Pillow).
 
 Files in the output folder:
 - ``results.json``: the results dict (non-finite numbers written as null);
-- ``results.md``: protocol, main table, PSNR pivot, noise tables, extrapolation, stability;
-- ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, extrapolation) vs input views per method;
+- ``results.md``: protocol, main table, PSNR pivots (all / covered, common pixels), noise tables,
+  mixed-quality inputs, extrapolation, stability;
+- ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, common pixels, extrapolation) vs input
+  views per method;
 - ``noise_psnr.png``: PSNR vs depth-noise level per method, one panel per N (with --noise);
 - ``stability.png``: feature-splat cosine to the reference vs input views (when computed);
 - ``grid_N{N}.png``: ground truth and every method at a few held-out frames, clean depth.
@@ -63,12 +65,12 @@ def _relative(value, clean) -> str:
 
 
 def _metric_rows(runs: Sequence[dict]) -> list[list[str]]:
-    return [[r["method"], str(r["views"]), _num(r["psnr"]), _num(r["psnr_covered"]), _num(r["coverage"], 3),
+    return [[r["method"], str(r["views"]), _num(r["psnr"]), _num(r["psnr_covered"]), _num(r["psnr_common"]), _num(r["coverage"], 3),
              _num(r["psnr_ceiling"]), _num(r["ssim"], 3), _num(r["depth_agreement"], 3), "-" if r["gaussians"] is None else str(r["gaussians"]), _num(r["fold_ms"], 0),
              _num(r["render_ms"], 0)] for r in runs]
 
 
-_METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "coverage", "ceiling dB", "SSIM", "depth agree", "Gaussians", "fold+decode ms", "render ms"]
+_METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "PSNR common dB", "coverage", "ceiling dB", "SSIM", "depth agree", "Gaussians", "fold+decode ms", "render ms"]
 
 
 def markdown(results: Mapping) -> str:
@@ -87,6 +89,8 @@ def markdown(results: Mapping) -> str:
         "voxels of it.",
         "ceiling = the all-pixel PSNR the method's coverage allows (covered pixels exact, the rest black): "
         "all-pixel PSNR above it needs more coverage, not better colours.",
+        "common = PSNR over the pixels that every method of the table covers (share of the image in the pivot below): "
+        "methods of unequal coverage judged on the same pixels.",
         f"Inputs for N views: round(linspace(0, n - 1, N)). Held-out: for each target in linspace(2, n - 3, {HELDOUT_COUNT}) "
         "the nearest position that is not an input for any N here and not already held out (ties to the lower one).",
         "",
@@ -103,6 +107,10 @@ def markdown(results: Mapping) -> str:
         ["method", *(f"N={n}" for n in views)],
         [[m, *(f"{_num(by_key[m, n, 0.0]['psnr'])} / {_num(by_key[m, n, 0.0]['psnr_covered'])}" for n in views)]
          for m in methods])]
+    share = {n: by_key[methods[0], n, 0.0]["common_coverage"] for n in views}
+    lines += ["", "## PSNR on the pixels every method covers (dB) vs input views", "", *_table(
+        ["method", *(f"N={n} ({_num(share[n], 3)} of the image)" for n in views)],
+        [[m, *(_num(by_key[m, n, 0.0]["psnr_common"]) for n in views)] for m in methods])]
 
     levels = results["noise_levels"]
     if levels:
@@ -117,6 +125,13 @@ def markdown(results: Mapping) -> str:
             lines += ["", f"## Depth noise: {label} (relative change from clean)", "",
                       "sigma = level x the frame's median depth, zero-mean Gaussian, fixed seeds.", "", *_table(
                           ["method", "N", "clean", *(f"{lv:g}" for lv in levels)], rows)]
+
+    mixed = results["mixed_noise"]
+    if mixed is not None:
+        lines += ["", f"## Mixed-quality inputs: depth noise {mixed['level']:g} on every other input view", "",
+                  "The 2nd, 4th, ... input views noisy, the others clean: evidence of uneven quality, which "
+                  "reliability weighting is for.", "", *_table(_METRIC_HEADER, _metric_rows(
+                      sorted(mixed["runs"], key=lambda r: (r["views"], methods.index(r["method"])))))]
 
     extra = results["extrapolation"]
     if extra is not None:
@@ -165,11 +180,13 @@ def _save(fig, ax, path: Path) -> None:
 
 
 def plot_views(results: Mapping, path: Path) -> None:
-    """PSNR vs input views per method: all pixels, covered pixels, extrapolation (if run); the
+    """PSNR vs input views per method: all pixels, covered pixels, the pixels every method covers,
+    extrapolation (if run); the
     all-pixel panels also show the first method's coverage ceiling (dashed)."""
     plt = _pyplot()
     clean = [r for r in results["runs"] if r["noise"] == 0]
-    panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered")]
+    panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered"),
+              ("PSNR, pixels every method covers", clean, "psnr_common")]
     if results["extrapolation"] is not None:
         panels.append(("PSNR, extrapolation", results["extrapolation"]["runs"], "psnr"))
     colours = _method_colours(plt, results["methods"])

@@ -14,6 +14,11 @@ over pixels covered in both).
 Depth noise: sigma = level x the frame's median valid depth, zero-mean Gaussian, added to valid
 pixels; values that drop to <= 0 become missing. The generator of the frame at position p and
 level l is seeded with (round(l * 1e6), p), so every method and every N sees the same noisy frame.
+The mixed-quality run (``mixed_noise``) adds that noise to every other input view only.
+
+Every group of runs on the same inputs also gets ``psnr_common``: PSNR over the pixels that every
+method of the run covers (`add_common_psnr`), so that methods of unequal coverage are compared on
+the same pixels.
 """
 
 from __future__ import annotations
@@ -24,9 +29,11 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
 from ..datasets import FrameSequence, load_dataset
@@ -57,6 +64,20 @@ def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:
     return replace(frame, depth=np.where(noisy > 0, noisy, 0.0).astype(np.float32), depth_std=None)
 
 
+def add_mixed_depth_noise(frames: Sequence[Frame], positions: Sequence[int], level: float) -> list[Frame]:
+    """``frames`` (at sequence ``positions``) with `add_depth_noise` on every other one (the 2nd,
+    4th, ...) and the rest as they are: inputs of uneven quality, the case reliability is for."""
+    if len(frames) != len(positions):
+        raise ValueError(f"positions: expected one per frame ({len(frames)}), got {len(positions)}")
+    return [add_depth_noise(f, level, p) if k % 2 else f for k, (f, p) in enumerate(zip(frames, positions))]
+
+
+def _positive_level(name: str, level) -> float:
+    if isinstance(level, bool) or not isinstance(level, (int, float)) or not (math.isfinite(level) and level > 0):
+        raise ValueError(f"{name}: expected positive levels, got {level!r}")
+    return float(level)
+
+
 def default_voxel_size(frames: Sequence[Frame]) -> float:
     """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth, 2 significant digits."""
     depths = torch.cat([f.depth[f.depth > 0] for f in frames if f.depth is not None])
@@ -72,9 +93,17 @@ def _nanmean(values: Sequence[float]) -> float | None:
     return float(np.mean(finite)) if finite else None
 
 
-def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> tuple[dict, list[np.ndarray]]:
-    """Metrics of ``model`` at the ``targets`` (means over targets) and its uint8 renders."""
-    rows, images = [], []
+class Scored(NamedTuple):
+    """What `score` returns: the metrics, and per target the uint8 render and its covered pixels."""
+
+    metrics: dict
+    images: list[np.ndarray]  # [H, W, 3] uint8 per target
+    covered: list[Tensor]  # [H, W] bool per target
+
+
+def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> Scored:
+    """Metrics of ``model`` at the ``targets`` (means over targets), its renders and covered masks."""
+    rows, images, masks = [], [], []
     for frame in targets:
         t0 = time.perf_counter()
         view = model.render(frame.camera)
@@ -85,12 +114,32 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> tuple[di
         rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, covered(view.alpha)), coverage(view.alpha),
                      coverage_ceiling(view.alpha, gt), ssim(view.rgb, gt), agree, ms))
         images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
+        masks.append(covered(view.alpha))
     p, pc, cov, ceiling, s, agree, ms = zip(*rows)
     metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),
                "psnr_ceiling": _nanmean([c if math.isfinite(c) else math.nan for c in ceiling]),
                "ssim": float(np.mean(s)), "depth_agreement": _nanmean(agree), "gaussians": model.gaussians,
                "render_ms": float(np.mean(ms))}
-    return metrics, images
+    return Scored(metrics, images, masks)
+
+
+def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Sequence[Frame]) -> None:
+    """Give each of ``runs`` (one group: same inputs, every method) ``psnr_common``, its mean PSNR
+    over the pixels that every run of the group covers, and ``common_coverage``, the share of
+    pixels that is.
+
+    Covered PSNR compares each method on its own pixels, and a method that draws only where it is
+    sure (Open3D's TSDF covers a third of the image at N = 2) is scored on easier pixels; on the
+    common pixels every method is judged on the same ones. Computed from the 8-bit renders (their
+    rounding moves PSNR by well under 0.01 dB at these error levels).
+    """
+    masks = [torch.stack([s.covered[k] for s in scored]).all(0) for k in range(len(targets))]
+    share = float(np.mean([float(m.double().mean()) for m in masks]))
+    for run, s in zip(runs, scored):
+        values = [psnr(torch.from_numpy(image).float() / 255.0, t.rgb.float() / 255.0, mask)
+                  for image, t, mask in zip(s.images, targets, masks)]
+        run["psnr_common"] = _nanmean(values)
+        run["common_coverage"] = share
 
 
 def stability(name: str, inputs: Mapping[int, Sequence[int]], frames: Mapping[int, Frame], targets: Sequence[Frame],
@@ -122,6 +171,7 @@ def evaluate(
     views: Sequence[int] = (2, 4, 8, 16),
     methods: Sequence[str] | None = None,
     noise: Sequence[float] = (),
+    mixed_noise: float | None = None,
     out_dir: str | Path = "eval_out",
     progress: bool = True,
     scale: float = 1.0,
@@ -137,6 +187,8 @@ def evaluate(
         views: input counts N.
         methods: names from `METHODS` (default: all); ones that cannot run here are skipped with a note.
         noise: depth-noise levels (fractions of the median depth) besides the clean run.
+        mixed_noise: a level for the mixed-quality run: noise on every other input view, the rest
+            clean (evidence of uneven quality, which reliability weighting is for); None skips it.
         scale: image downscale factor in (0, 1] (for quick runs).
         voxel_size: voxel edge in the scene's unit; default `default_voxel_size` of the inputs.
         stability_views: input counts of the feature-stability curve (empty: skip it).
@@ -145,10 +197,9 @@ def evaluate(
     require_matplotlib()
     sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
     methods = check_methods(list(METHODS) if methods is None else methods)
-    for level in noise:
-        if isinstance(level, bool) or not isinstance(level, (int, float)) or not (math.isfinite(level) and level > 0):
-            raise ValueError(f"noise: expected positive levels, got {level!r}")
-    noise = sorted(set(float(level) for level in noise))
+    noise = sorted(set(_positive_level("noise", level) for level in noise))
+    if mixed_noise is not None:
+        mixed_noise = _positive_level("mixed_noise", mixed_noise)
     if voxel_size is not None and not voxel_size > 0:
         raise ValueError(f"voxel_size: expected a positive number, got {voxel_size!r}")
     n = len(sequence)
@@ -172,30 +223,41 @@ def evaluate(
     grids: dict[int, dict[str, list[np.ndarray]]] = {
         n_views: {"ground truth": [targets[i].rgb.numpy() for i in grid_at]} for n_views in split.inputs}
 
-    steps = len(runnable) * len(split.inputs) * (1 + len(noise) + (extra is not None)) + len(stab_methods) * len(stab)
+    groups = 1 + len(noise) + (mixed_noise is not None) + (extra is not None)
+    steps = len(runnable) * len(split.inputs) * groups + len(stab_methods) * len(stab)
     bar = tqdm(total=steps, disable=not progress, file=sys.stderr, desc="eval", unit="run", dynamic_ncols=True)
     if progress:
         bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
     for name in runnable:  # warm-up: JIT compilation and caches stay out of the timings
         build(name, [frames[split.inputs[min(split.inputs)][0]]], voxel_size)[0].render(targets[0].camera)
 
-    def run(name: str, inputs: Sequence[Frame], n_views: int, level: float = 0.0, keep_grid: bool = False) -> dict:
-        model, build_ms = build(name, inputs, voxel_size)
-        metrics, images = score(model, targets, voxel_size)
-        bar.set_postfix_str(f"{name} N={n_views} noise={level:g}: {metrics['psnr']:.2f} dB")
-        bar.update()
-        if keep_grid:
-            grids[n_views][name] = [images[i] for i in grid_at]
-        return {"method": name, "views": n_views, "noise": level, **metrics, "fold_ms": build_ms}
+    def run_group(inputs: Sequence[Frame], n_views: int, level: float = 0.0, keep_grid: bool = False) -> list[dict]:
+        """Every method on the same inputs, then the PSNR on the pixels all of them cover."""
+        runs, scored = [], []
+        for name in runnable:
+            model, build_ms = build(name, inputs, voxel_size)
+            scored.append(score(model, targets, voxel_size))
+            metrics = scored[-1].metrics
+            bar.set_postfix_str(f"{name} N={n_views} noise={level:g}: {metrics['psnr']:.2f} dB")
+            bar.update()
+            if keep_grid:
+                grids[n_views][name] = [scored[-1].images[i] for i in grid_at]
+            runs.append({"method": name, "views": n_views, "noise": level, **metrics, "fold_ms": build_ms})
+        add_common_psnr(runs, scored, targets)
+        return runs
 
     runs = []
     for level in [0.0, *noise]:
         noisy = {p: add_depth_noise(frames[p], level, p) for p in set().union(*split.inputs.values())}
         for n_views, inputs in split.inputs.items():
-            for name in runnable:
-                runs.append(run(name, [noisy[p] for p in inputs], n_views, level, keep_grid=level == 0))
-    extrapolation_runs = [run(name, [frames[p] for p in inputs], n_views)
-                          for n_views, inputs in (extra.inputs.items() if extra else ()) for name in runnable]
+            runs += run_group([noisy[p] for p in inputs], n_views, level, keep_grid=level == 0)
+    mixed_runs = []
+    if mixed_noise is not None:
+        for n_views, inputs in split.inputs.items():
+            mixed_runs += run_group(add_mixed_depth_noise([frames[p] for p in inputs], inputs, mixed_noise), n_views,
+                                    mixed_noise)
+    extrapolation_runs = [run for n_views, inputs in (extra.inputs.items() if extra else ())
+                          for run in run_group([frames[p] for p in inputs], n_views)]
     stability_rows = [row for name in stab_methods for row in stability(name, stab, frames, targets, voxel_size, bar)]
     bar.close()
 
@@ -213,6 +275,7 @@ def evaluate(
         "skipped": skipped,
         "noise_levels": noise,
         "runs": runs,
+        "mixed_noise": None if mixed_noise is None else {"level": mixed_noise, "runs": mixed_runs},
         "extrapolation": None if extra is None else {
             "inputs": {str(k): list(v) for k, v in extra.inputs.items()},
             "span_ratio": {str(k): extra.span_ratio(k) for k in extra.inputs},

@@ -17,7 +17,9 @@ def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
     assert args.func is run_eval
     assert args.views == [2, 4, 8, 16] and args.methods == ["canonical", "open3d_tsdf"]
     assert args.noise == [0.05, 0.1, 0.25, 0.5] and args.scale == 1.0 and args.stability_views == list(range(2, 13))
+    assert args.mixed_noise is None
     assert parser.parse_args(["eval", "x", "--out", "o", "--stability-views", "none"]).stability_views == []
+    assert parser.parse_args(["eval", "x", "--out", "o", "--mixed-noise", "0.25"]).mixed_noise == 0.25
 
 
 def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
@@ -29,3 +31,5 @@ def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
     assert json.loads((out / "results.json").read_text())["runs"][0]["method"] == "canonical"
     assert main([str(data), "--views", "2", "--out", str(out), "--methods", "nerf", "--quiet"]) == 2
     assert "methods" in capsys.readouterr().err
+    assert main([str(data), "--views", "2", "--out", str(out), "--mixed-noise", "-1", "--quiet"]) == 2
+    assert "mixed_noise" in capsys.readouterr().err

@@ -12,13 +12,22 @@ from PIL import Image
 from canonical_core.datasets import load_dataset, synthetic_rgbd
 from canonical_core.eval import evaluate
 from canonical_core.eval.open3d_tsdf import open3d_available
-from canonical_core.eval.run import add_depth_noise, default_voxel_size
+from canonical_core.eval.run import Scored, add_common_psnr, add_depth_noise, add_mixed_depth_noise, default_voxel_size
 
 RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "psnr_ceiling", "ssim", "gaussians", "fold_ms", "render_ms",
-            "depth_agreement"}
+            "depth_agreement", "psnr_common", "common_coverage"}
 
 
-def _check_results(results: dict, out_dir, methods, views, noise) -> None:
+def _check_group_common(runs: list[dict]) -> None:
+    """Runs on the same inputs share one common-pixel share, no larger than any method's coverage."""
+    share = runs[0]["common_coverage"]
+    assert all(r["common_coverage"] == share for r in runs)
+    assert 0 <= share <= min(r["coverage"] for r in runs) + 1e-12
+    for r in runs:
+        assert (r["psnr_common"] is None) == (share == 0)
+
+
+def _check_results(results: dict, out_dir, methods, views, noise, mixed=None) -> None:
     on_disk = json.loads((out_dir / "results.json").read_text())
     assert on_disk["dataset"] == results["dataset"]
     assert {"dataset", "heldout", "runs", "stability"} <= set(on_disk)
@@ -34,7 +43,15 @@ def _check_results(results: dict, out_dir, methods, views, noise) -> None:
     runs = on_disk["runs"]
     assert {(r["method"], r["views"], r["noise"]) for r in runs} == {
         (m, n, lv) for m in methods for n in views for lv in [0.0, *noise]}
-    for r in runs:
+    mixed_runs = [] if mixed is None else on_disk["mixed_noise"]["runs"]
+    assert (on_disk["mixed_noise"] is None) == (mixed is None)
+    assert {(r["method"], r["views"], r["noise"]) for r in mixed_runs} == (
+        set() if mixed is None else {(m, n, mixed) for m in methods for n in views})
+    extra_runs = [] if on_disk["extrapolation"] is None else on_disk["extrapolation"]["runs"]
+    for group_runs in (runs, mixed_runs, extra_runs):
+        for key in {(r["views"], r["noise"]) for r in group_runs}:
+            _check_group_common([r for r in group_runs if (r["views"], r["noise"]) == key])
+    for r in runs + mixed_runs + extra_runs:
         assert set(r) == RUN_KEYS
         assert math.isfinite(r["psnr"]) and 0 <= r["coverage"] <= 1 and -1 <= r["ssim"] <= 1
         assert r["psnr_ceiling"] is None or r["psnr_ceiling"] > 0
@@ -45,6 +62,7 @@ def _check_results(results: dict, out_dir, methods, views, noise) -> None:
         assert set(s) == {"method", "views", "cosine"} and -1 <= s["cosine"] <= 1 + 1e-9
     md = (out_dir / "results.md").read_text()
     assert "Held-out positions" in md and all(f"| {m} |" in md for m in methods)
+    assert "pixels every method covers" in md and ("Mixed-quality inputs" in md) == (mixed is not None)
     pngs = sorted(p.name for p in out_dir.glob("*.png"))
     expected = {"psnr_vs_views.png", *(f"grid_N{n}.png" for n in views)}
     expected |= {"noise_psnr.png"} if noise else set()
@@ -59,9 +77,9 @@ def _check_results(results: dict, out_dir, methods, views, noise) -> None:
 def test_synthetic_sample_end_to_end(tmp_path):
     methods = ["canonical", "pixel_aligned"] + (["open3d_tsdf"] if open3d_available() else [])
     seq = synthetic_rgbd(num_frames=22, width=48, height=36)
-    results = evaluate(seq, views=[2, 4], methods=methods, noise=[0.1], out_dir=tmp_path, progress=False,
-                       voxel_size=0.04, stability_views=[2, 3])
-    _check_results(results, tmp_path, methods, [2, 4], [0.1])
+    results = evaluate(seq, views=[2, 4], methods=methods, noise=[0.1], mixed_noise=0.2, out_dir=tmp_path,
+                       progress=False, voxel_size=0.04, stability_views=[2, 3])
+    _check_results(results, tmp_path, methods, [2, 4], [0.1], mixed=0.2)
     assert results["extrapolation"] is not None
     assert {r["method"] for r in results["stability"]} == {"canonical", "pixel_aligned"}
     assert [r["cosine"] for r in results["stability"] if r["views"] == 3] == pytest.approx([1.0, 1.0])
@@ -95,6 +113,41 @@ def test_noise_is_seeded_and_scaled_by_the_median_depth():
         add_depth_noise(frame, -0.1, 0)
 
 
+def test_mixed_noise_reaches_every_other_input_only():
+    seq = synthetic_rgbd(num_frames=5, width=32, height=24)
+    frames = [seq[k] for k in range(5)]
+    positions = [0, 3, 5, 8, 9]
+    mixed = add_mixed_depth_noise(frames, positions, 0.2)
+    for k, (before, after, p) in enumerate(zip(frames, mixed, positions)):
+        if k % 2:
+            assert torch.equal(after.depth, add_depth_noise(before, 0.2, p).depth)
+        else:
+            assert after is before
+    with pytest.raises(ValueError, match="positions"):
+        add_mixed_depth_noise([frames[0]], [0, 1], 0.2)
+
+
+def test_common_psnr_is_the_psnr_on_the_pixels_every_run_covers():
+    torch.manual_seed(0)
+    target = synthetic_rgbd(num_frames=1, width=8, height=8)[0]
+    gt = target.rgb.float() / 255.0
+    images = [torch.randint(0, 256, (8, 8, 3), dtype=torch.uint8) for _ in range(2)]
+    masks = [torch.zeros(8, 8, dtype=torch.bool) for _ in range(2)]
+    masks[0][:4] = True  # rows 0-3
+    masks[1][2:] = True  # rows 2-7: both cover rows 2-3
+    scored = [Scored({}, [img.numpy()], [m]) for img, m in zip(images, masks)]
+    runs = [{}, {}]
+    add_common_psnr(runs, scored, [target])
+    for run, img in zip(runs, images):
+        err = (img[2:4].double() / 255.0 - gt[2:4].double()) ** 2
+        assert run["psnr_common"] == pytest.approx(-10 * math.log10(float(err.mean())), abs=1e-5)  # float32 / 255
+        assert run["common_coverage"] == pytest.approx(16 / 64)
+    masks[1][:] = False  # no pixel in common: no number, not a zero
+    runs = [{}, {}]
+    add_common_psnr(runs, [Scored({}, [img.numpy()], [m]) for img, m in zip(images, masks)], [target])
+    assert runs[0]["psnr_common"] is None and runs[0]["common_coverage"] == 0
+
+
 def test_default_voxel_size_is_positive():
     assert default_voxel_size(synthetic_rgbd(num_frames=1, width=64, height=48)) > 0
 
@@ -105,6 +158,8 @@ def test_evaluate_refuses_bad_arguments(tmp_path):
         evaluate(seq, views=[2], methods=["bogus"], out_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="noise"):
         evaluate(seq, views=[2], methods=["canonical"], noise=[-1.0], out_dir=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="mixed_noise"):
+        evaluate(seq, views=[2], methods=["canonical"], mixed_noise=0.0, out_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="views"):
         evaluate(seq, views=[16], methods=["canonical"], out_dir=tmp_path, progress=False)
     assert not (tmp_path / "results.json").exists()
