@@ -74,7 +74,7 @@ def add_mixed_depth_noise(frames: Sequence[Frame], positions: Sequence[int], lev
 
 def _positive_level(name: str, level) -> float:
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not (math.isfinite(level) and level > 0):
-        raise ValueError(f"{name}: expected positive levels, got {level!r}")
+        raise ValueError(f"{name}: expected a positive level, got {level!r}")
     return float(level)
 
 
