@@ -181,8 +181,8 @@ def _save(fig, ax, path: Path) -> None:
 
 def plot_views(results: Mapping, path: Path) -> None:
     """PSNR vs input views per method: all pixels, covered pixels, the pixels every method covers,
-    extrapolation (if run); the
-    all-pixel panels also show the first method's coverage ceiling (dashed)."""
+    extrapolation (if run); the all-pixel panels also show the first method's coverage ceiling
+    (dashed)."""
     plt = _pyplot()
     clean = [r for r in results["runs"] if r["noise"] == 0]
     panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered"),
