@@ -135,9 +135,10 @@ def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Seq
     """
     masks = [torch.stack([s.covered[k] for s in scored]).all(0) for k in range(len(targets))]
     share = float(np.mean([float(m.double().mean()) for m in masks]))
+    truths = [t.rgb.float() / 255.0 for t in targets]  # once per group, not once per method
     for run, s in zip(runs, scored):
-        values = [psnr(torch.from_numpy(image).float() / 255.0, t.rgb.float() / 255.0, mask)
-                  for image, t, mask in zip(s.images, targets, masks)]
+        values = [psnr(torch.from_numpy(image).float() / 255.0, gt, mask)
+                  for image, gt, mask in zip(s.images, truths, masks)]
         run["psnr_common"] = _nanmean(values)
         run["common_coverage"] = share
 

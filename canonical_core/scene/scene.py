@@ -27,8 +27,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis, sensor_depth_std
-from ..evidence.denoise import denoise_rough_depth
+from ..evidence import AppearanceUncertainty, denoise_rough_depth, extract_evidence, observation_sh_basis, sensor_depth_std
 from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
                             sensor_holes)
 from ..decode import GaussianDecoder, support_unit
