@@ -111,10 +111,10 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> Scored:
         gt = frame.rgb.float() / 255.0
         agree = math.nan if frame.depth is None else depth_agreement(
             view.depth, view.alpha, frame.depth, DEPTH_TOLERANCE_VOXELS * voxel_size)
-        rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, covered(view.alpha)), coverage(view.alpha),
+        masks.append(covered(view.alpha))
+        rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, masks[-1]), coverage(view.alpha),
                      coverage_ceiling(view.alpha, gt), ssim(view.rgb, gt), agree, ms))
         images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
-        masks.append(covered(view.alpha))
     p, pc, cov, ceiling, s, agree, ms = zip(*rows)
     metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),
                "psnr_ceiling": _nanmean([c if math.isfinite(c) else math.nan for c in ceiling]),
