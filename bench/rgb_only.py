@@ -1,9 +1,9 @@
 """Fusion from RGB only (plane-sweep depth) vs RGB-D on the same frames, and reliability vs uniform.
 
-    python bench/rgb_only.py [--data ../shared/data/realsense_shelf] [--views 8] [--scale 0.5] [--voxel 0.008]
+    python bench/rgb_only.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scale 0.5] [--voxel 0.008]
 
 The evaluation's protocol and scoring (`canonical_core.eval`): inputs and held-out frames from
-`interpolation_split` for N = ``views``, frames resized by `resize_frame` (colour area-averaged,
+`interpolation_split` for each N in ``views`` (one table per N), frames resized by `resize_frame` (colour area-averaged,
 depth nearest), all-pixel and covered PSNR from `score`. RGB-only inputs are the same frames with
 their depth removed; held-out frames keep theirs (the score's depth agreement uses it).
 
@@ -63,45 +63,56 @@ def auc(score: torch.Tensor, positive: torch.Tensor) -> float:
     return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
+def views_list(text: str) -> list[int]:
+    """``"4,8,16"`` -> [4, 8, 16] (argparse type)."""
+    try:
+        views = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated view counts, got {text!r}") from None
+    if not views or min(views) < 2:
+        raise argparse.ArgumentTypeError(f"expected view counts >= 2, got {text!r}")
+    return views
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    p.add_argument("--views", type=int, default=8)
+    p.add_argument("--views", type=views_list, default=[4, 8, 16], help="input view counts, e.g. 4,8,16")
     p.add_argument("--scale", type=float, default=0.5, help="image scale (0.5: 640x480 -> 320x240)")
     p.add_argument("--voxel", type=float, default=0.008)
     args = p.parse_args(argv)
     frames = load_dataset(args.data)
-    split = interpolation_split(len(frames), [args.views])
-    rgbd = [resize_frame(frames[i], args.scale) for i in split.inputs[args.views]]
-    rgb_only = [dataclasses.replace(f, depth=None, depth_std=None) for f in rgbd]
+    split = interpolation_split(len(frames), args.views)
     targets = [resize_frame(frames[i], args.scale) for i in split.heldout]
-    print(machine_summary())
-    rows, rgb_only_scenes = [], {}
-    for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
-                                     ("RGB-D, no_reliability", rgbd, "no_reliability"),
-                                     ("RGB only, no_reliability", rgb_only, "no_reliability")):
-        scene = cc.Scene(cc.SceneConfig(voxel_size=args.voxel, weighting=weighting))
-        for frame in inputs:
-            scene.fold(frame)
-        metrics = score(SplatModel(scene.decode()), targets, args.voxel).metrics
-        if inputs is rgb_only:
-            rgb_only_scenes[weighting] = scene
-        rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",
-                     "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "SSIM": f"{metrics['ssim']:.3f}",
-                     "depth agreement": f"{metrics['depth_agreement']:.3f}", "Gaussians": f"{metrics['gaussians']:,}"})
-    size = f"{targets[0].width}x{targets[0].height}"
-    print_table(f"{args.views} input views, {len(targets)} held-out frames {list(split.heldout)}, {size}, "
-                f"{args.voxel * 1000:g} mm voxels", rows)
     surface = surface_keys([resize_frame(f, args.scale) for f in frames], args.voxel)
-    rows = []
-    for weighting, scene in rgb_only_scenes.items():
-        f = scene.fields()
-        on_surface = torch.isin(f["keys"], surface)
-        rows.append({"RGB-only scene": weighting, "voxels": f"{on_surface.numel():,}",
-                     "on surface": f"{float(on_surface.double().mean()):.3f}",
-                     "AUC of R_scene": f"{auc(f['reliability'], on_surface):.3f}",
-                     "AUC of observation count": f"{auc(f['observations'], on_surface):.3f}"})
-    print_table("does R_scene tell surface voxels from floaters? (sensor depth of all frames as truth)", rows)
+    print(machine_summary())
+    for views in args.views:
+        rgbd = [resize_frame(frames[i], args.scale) for i in split.inputs[views]]
+        rgb_only = [dataclasses.replace(f, depth=None, depth_std=None) for f in rgbd]
+        rows, auc_rows = [], []
+        for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
+                                         ("RGB-D, no_reliability", rgbd, "no_reliability"),
+                                         ("RGB only, no_reliability", rgb_only, "no_reliability")):
+            scene = cc.Scene(cc.SceneConfig(voxel_size=args.voxel, weighting=weighting))
+            for frame in inputs:
+                scene.fold(frame)
+            metrics = score(SplatModel(scene.decode()), targets, args.voxel).metrics
+            rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",
+                         "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "SSIM": f"{metrics['ssim']:.3f}",
+                         "depth agreement": f"{metrics['depth_agreement']:.3f}",
+                         "Gaussians": f"{metrics['gaussians']:,}"})
+            if inputs is rgb_only:
+                f = scene.fields()
+                on_surface = torch.isin(f["keys"], surface)
+                auc_rows.append({"RGB-only scene": weighting, "voxels": f"{on_surface.numel():,}",
+                                 "on surface": f"{float(on_surface.double().mean()):.3f}",
+                                 "AUC of R_scene": f"{auc(f['reliability'], on_surface):.3f}",
+                                 "AUC of observation count": f"{auc(f['observations'], on_surface):.3f}"})
+        size = f"{targets[0].width}x{targets[0].height}"
+        print_table(f"{views} input views {list(split.inputs[views])}, {len(targets)} held-out frames "
+                    f"{list(split.heldout)}, {size}, {args.voxel * 1000:g} mm voxels", rows)
+        print_table(f"{views} input views: does R_scene tell surface voxels from floaters? "
+                    "(sensor depth of all frames as truth)", auc_rows)
 
 
 if __name__ == "__main__":

@@ -273,11 +273,23 @@ def test_select_sources_prefers_the_target_baseline_and_spreads_picks():
     picks = select_sources(ref, cams, k=2, depth=1.0)
     assert picks[0] == 3  # ratio 0.16 = target
     assert picks[1] == 6  # the other side (0.15) beats 0.17, which is next to the first pick
-    assert 0 not in select_sources(ref, cams, k=6, depth=1.0)  # no baseline
-    assert 5 not in select_sources(ref, cams, k=6, depth=1.0)  # beyond max_ratio
+    eligible = select_sources(ref, cams, k=4, depth=1.0)
+    assert sorted(eligible) == [2, 3, 4, 6]  # not 1 (ratio below min_ratio) nor 5 (beyond max_ratio)...
+    everything = select_sources(ref, cams, k=7, depth=1.0)
+    assert everything[:4] == eligible and sorted(everything[4:]) == [1, 5]  # ...which only fill what is left
+    assert 0 not in everything  # no baseline: never
     assert select_sources(ref, line_cameras([0.0, 0.01]), k=2, depth=1.0) == [1]  # fallback: best there is
     turned = [rotated(c, 60.0) for c in cams]
     assert select_sources(ref, turned, k=2, depth=1.0) == []  # too oblique / no overlap
+
+
+def test_select_sources_fills_a_sparse_stream_with_a_wider_baseline():
+    # A stream whose views are 0.17 apart at 1 m: the view two back (0.34) is beyond max_ratio (0.3),
+    # yet as a second source it beats none; it never displaces an eligible one.
+    ref = line_cameras([0.0])[0]
+    assert select_sources(ref, line_cameras([-0.34, -0.17]), k=2, depth=1.0) == [1, 0]
+    assert select_sources(ref, line_cameras([-0.34, -0.17]), k=1, depth=1.0) == [1]
+    assert sorted(select_sources(ref, line_cameras([-0.34, -0.17, 0.15]), k=2, depth=1.0)) == [1, 2]
 
 
 def tiny_view(cam: Camera, fid: str, depth=1.0, fill=0) -> SourceView:
