@@ -3,11 +3,12 @@
     python bench/rgb_only.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scale 0.5] [--voxel 0.008]
 
 The evaluation's protocol and scoring (`canonical_core.eval`): inputs and held-out frames from
-`interpolation_split` for each N in ``views`` (one table per N), frames resized by `resize_frame` (colour area-averaged,
-depth nearest), all-pixel and covered PSNR from `score`. RGB-only inputs are the same frames with
-their depth removed; held-out frames keep theirs (the score's depth agreement uses it).
+`interpolation_split` for each N in ``views`` (one table per N), frames resized by `resize_frame`
+(colour area-averaged, depth nearest), all-pixel and covered PSNR from `score`. RGB-only inputs are
+the same frames with their depth removed; held-out frames keep theirs (the score's depth agreement
+uses it).
 
-A second table asks whether reliability does its job, telling surface from floaters, on the RGB-only
+A second table per N asks whether reliability does its job, telling surface from floaters, on the RGB-only
 scenes: the AUC with which a voxel-level quantity (the method's R_scene, which sets its opacity, or
 the observation count) separates voxels on the sensor's surface from the rest. A voxel is on the
 surface when it is within one voxel (26-neighbourhood) of a voxel that a sensor depth point of any
