@@ -835,15 +835,17 @@ def select_sources(
         score = overlap * math.exp(-0.5 * (math.log(ratio / rule.target_ratio) / 0.5) ** 2)
         (eligible if rule.min_ratio <= ratio <= rule.max_ratio else fallback).append((score, i))
     picked: list[int] = []
+
+    def adjusted(i: int, pool: dict[int, float]) -> float:  # lowered next to an earlier pick
+        if not picked:
+            return pool[i]
+        gap = min(float(np.linalg.norm(centres[i] - centres[p])) for p in picked)
+        return pool[i] * min(1.0, gap / (rule.target_ratio * depth))
+
     for group in (eligible, fallback):  # the eligible first; the fallback only fills what they leave
-        pool = dict((i, s) for s, i in group)
+        pool = {i: s for s, i in group}
         while pool and len(picked) < k:
-            def adjusted(i):
-                if not picked:
-                    return pool[i]
-                gap = min(float(np.linalg.norm(centres[i] - centres[p])) for p in picked)
-                return pool[i] * min(1.0, gap / (rule.target_ratio * depth))
-            best = max(pool, key=lambda i: (adjusted(i), -i))
+            best = max(pool, key=lambda i: (adjusted(i, pool), -i))
             picked.append(best)
             del pool[best]
     return picked
