@@ -1,6 +1,7 @@
 """Fusion from RGB only (plane-sweep depth) vs RGB-D on the same frames, and reliability vs uniform.
 
     python bench/rgb_only.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scale 0.5] [--voxel 0.008]
+                             [--window-views 8] [--window-step 6]
 
 The evaluation's protocol and scoring (`canonical_core.eval`): inputs and held-out frames from
 `interpolation_split` for each N in ``views`` (one table per N), frames resized by `resize_frame`
@@ -13,6 +14,12 @@ scenes: the AUC with which a voxel-level quantity (the method's R_scene, which s
 the observation count) separates voxels on the sensor's surface from the rest. A voxel is on the
 surface when it is within one voxel (26-neighbourhood) of a voxel that a sensor depth point of any
 frame of the capture falls in.
+
+A last table asks whether the reliability-vs-uniform figure is a property of the method or of one
+split: RGB-only fusion, full against no_reliability, over every window of ``window_views`` inputs
+``window_step`` frames apart (offsets 0, 1, ...), each scored on the frames midway between its
+consecutive inputs (never inputs). It reports each window, the mean and median differences and
+how many windows reliability wins (``--window-views 0`` skips it).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine_summary, print_table  # noqa: E402
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import canonical_core as cc  # noqa: E402
@@ -64,30 +72,70 @@ def auc(score: torch.Tensor, positive: torch.Tensor) -> float:
     return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
+def fused_metrics(inputs, weighting: str, voxel: float, targets) -> tuple[dict, cc.Scene]:
+    """The evaluation's metrics of ``targets`` rendered from a scene folded from ``inputs``, and the scene."""
+    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, weighting=weighting))
+    for frame in inputs:
+        scene.fold(frame)
+    return score(SplatModel(scene.decode()), targets, voxel).metrics, scene
+
+
+def without_depth(frames) -> list:
+    """The same frames with their depth removed (the RGB-only inputs)."""
+    return [dataclasses.replace(f, depth=None, depth_std=None) for f in frames]
+
+
+def shifted_windows(small, views: int, step: int, voxel: float) -> None:
+    """RGB-only full against no_reliability over every window of ``views`` inputs ``step`` apart."""
+    rows, diffs = [], []
+    for offset in range(len(small) - step * (views - 1)):
+        inputs = [offset + step * k for k in range(views)]
+        targets = [small[i + step // 2] for i in inputs[:-1]]
+        pair = [fused_metrics(without_depth([small[i] for i in inputs]), w, voxel, targets)[0]
+                for w in ("full", "no_reliability")]
+        psnr = np.array([[m["psnr"], m["psnr_covered"]] for m in pair])
+        diffs.append(psnr[0] - psnr[1])
+        rows.append({"inputs": f"{inputs[0]}..{inputs[-1]}", "full PSNR / covered dB": f"{psnr[0, 0]:.2f} / {psnr[0, 1]:.2f}",
+                     "no_reliability": f"{psnr[1, 0]:.2f} / {psnr[1, 1]:.2f}",
+                     "full - no_reliability": f"{diffs[-1][0]:+.2f} / {diffs[-1][1]:+.2f}"})
+    if not rows:
+        print(f"(no window of {views} inputs {step} frames apart fits in {len(small)} frames)\n")
+        return
+    d = np.array(diffs)
+    for label, v in (("mean", d.mean(0)), ("median", np.median(d, 0))):
+        rows.append({"inputs": label, "full - no_reliability": f"{v[0]:+.2f} / {v[1]:+.2f}"})
+    wins = (d > 0).sum(0)
+    rows.append({"inputs": "windows full wins", "full - no_reliability": f"{wins[0]} / {wins[1]} of {len(d)}"})
+    print_table(f"RGB only, {views} inputs {step} frames apart, every offset: reliability against uniform "
+                "(held out: the frames midway between inputs)", rows)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
     p.add_argument("--views", default="4,8,16", help="comma-separated input view counts N")
     p.add_argument("--scale", type=float, default=0.5, help="image scale (0.5: 640x480 -> 320x240)")
     p.add_argument("--voxel", type=float, default=0.008)
+    p.add_argument("--window-views", type=int, default=8, help="inputs per shifted window (0: skip that table)")
+    p.add_argument("--window-step", type=int, default=6, help="frames between a shifted window's inputs")
     args = p.parse_args(argv)
     view_counts = [int(v) for v in args.views.split(",")]
+    if args.window_views and (args.window_views < 2 or args.window_step < 2):
+        p.error("--window-views needs at least 2 inputs and --window-step at least 2 frames (a held-out frame between inputs)")
     frames = load_dataset(args.data)
     split = interpolation_split(len(frames), view_counts)
-    targets = [resize_frame(frames[i], args.scale) for i in split.heldout]
-    surface = surface_keys([resize_frame(f, args.scale) for f in frames], args.voxel)
+    small = [resize_frame(f, args.scale) for f in frames]
+    surface = surface_keys(small, args.voxel)
     print(machine_summary())
+    targets = [small[i] for i in split.heldout]
     for views in view_counts:
-        rgbd = [resize_frame(frames[i], args.scale) for i in split.inputs[views]]
-        rgb_only = [dataclasses.replace(f, depth=None, depth_std=None) for f in rgbd]
+        rgbd = [small[i] for i in split.inputs[views]]
+        rgb_only = without_depth(rgbd)
         rows, auc_rows = [], []
         for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
                                          ("RGB-D, no_reliability", rgbd, "no_reliability"),
                                          ("RGB only, no_reliability", rgb_only, "no_reliability")):
-            scene = cc.Scene(cc.SceneConfig(voxel_size=args.voxel, weighting=weighting))
-            for frame in inputs:
-                scene.fold(frame)
-            metrics = score(SplatModel(scene.decode()), targets, args.voxel).metrics
+            metrics, scene = fused_metrics(inputs, weighting, args.voxel, targets)
             rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",
                          "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "SSIM": f"{metrics['ssim']:.3f}",
                          "depth agreement": f"{metrics['depth_agreement']:.3f}",
@@ -104,6 +152,8 @@ def main(argv=None) -> None:
                     f"{list(split.heldout)}, {size}, {args.voxel * 1000:g} mm voxels", rows)
         print_table(f"{views} input views: does R_scene tell surface voxels from floaters? "
                     "(sensor depth of all frames as truth)", auc_rows)
+    if args.window_views:
+        shifted_windows(small, args.window_views, args.window_step, args.voxel)
 
 
 if __name__ == "__main__":
