@@ -25,7 +25,6 @@ how many windows reliability wins (``--window-views 0`` skips it).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import SplatModel  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.run import score  # noqa: E402
+from canonical_core.evidence.mvs_eval import without_depth  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
 from canonical_core.scene.batch import voxel_keys  # noqa: E402
 
@@ -80,19 +80,14 @@ def fused_metrics(inputs, weighting: str, voxel: float, targets) -> tuple[dict, 
     return score(SplatModel(scene.decode()), targets, voxel).metrics, scene
 
 
-def without_depth(frames) -> list:
-    """The same frames with their depth removed (the RGB-only inputs)."""
-    return [dataclasses.replace(f, depth=None, depth_std=None) for f in frames]
-
-
 def shifted_windows(small, views: int, step: int, voxel: float) -> None:
     """RGB-only full against no_reliability over every window of ``views`` inputs ``step`` apart."""
     rows, diffs = [], []
     for offset in range(len(small) - step * (views - 1)):
         inputs = [offset + step * k for k in range(views)]
         targets = [small[i + step // 2] for i in inputs[:-1]]
-        pair = [fused_metrics(without_depth([small[i] for i in inputs]), w, voxel, targets)[0]
-                for w in ("full", "no_reliability")]
+        rgb_only = [without_depth(small[i]) for i in inputs]
+        pair = [fused_metrics(rgb_only, w, voxel, targets)[0] for w in ("full", "no_reliability")]
         psnr = np.array([[m["psnr"], m["psnr_covered"]] for m in pair])
         diffs.append(psnr[0] - psnr[1])
         rows.append({"inputs": f"{inputs[0]}..{inputs[-1]}", "full PSNR / covered dB": f"{psnr[0, 0]:.2f} / {psnr[0, 1]:.2f}",
@@ -130,7 +125,7 @@ def main(argv=None) -> None:
     targets = [small[i] for i in split.heldout]
     for views in view_counts:
         rgbd = [small[i] for i in split.inputs[views]]
-        rgb_only = without_depth(rgbd)
+        rgb_only = [without_depth(f) for f in rgbd]
         rows, auc_rows = [], []
         for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
                                          ("RGB-D, no_reliability", rgbd, "no_reliability"),
