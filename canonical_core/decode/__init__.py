@@ -1,5 +1,10 @@
-"""Dec: scene fields -> Gaussians (monotone opacity head, analytic initialisation)."""
+"""Dec: scene fields -> Gaussians (monotone opacity head, analytic initialisation), and the
+render-consistent colour solve against the input views."""
 
+from .colour_solve import colour_system, solve_colours
 from .decoder import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion, support_unit
 
-__all__ = ["FOOTPRINT_GAIN", "FULL_VOXEL_EXTENT", "GaussianDecoder", "MonotoneOpacity", "matrix_to_quaternion", "support_unit"]
+__all__ = [
+    "FOOTPRINT_GAIN", "FULL_VOXEL_EXTENT", "GaussianDecoder", "MonotoneOpacity", "colour_system", "matrix_to_quaternion",
+    "solve_colours", "support_unit",
+]

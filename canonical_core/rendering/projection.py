@@ -37,6 +37,7 @@ class Splats:
     opacities: Tensor  # [M]
     values: Tensor  # [M, D] channels to composite: rgb, features, label scores as requested
     tile_ranges: Tensor  # [M, 4] int32 (x0, x1, y0, y1): half-open range of tiles the support touches
+    ids: Tensor  # [M] int64 index of each splat's Gaussian
 
 
 class Blend(NamedTuple):
@@ -132,4 +133,5 @@ def project_splats(
         opacities=opacities[order],
         values=channel_values(gaussians.index(order), camera, channels),
         tile_ranges=tile_ranges,
+        ids=order,
     )

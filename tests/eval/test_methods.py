@@ -26,8 +26,8 @@ def frames() -> list[Frame]:
 
 def test_registry_names_the_issue_methods():
     assert list(METHODS) == ["canonical", "no_reliability", "no_similarity", "average", "plain_decoding",
-                             "no_free_space", "no_view_dependence", "depth_completion", "pixel_aligned", "gaussian_merge",
-                             "open3d_tsdf"]
+                             "no_free_space", "no_view_dependence", "depth_completion", "colour_solve", "pixel_aligned",
+                             "gaussian_merge", "open3d_tsdf"]
     assert check_methods(["average", "canonical", "average"]) == ["average", "canonical"]
     with pytest.raises(ValueError, match="methods"):
         check_methods(["canonical", "nerf"])
@@ -54,6 +54,19 @@ def test_depth_completion_fills_what_the_sensor_missed(frames):
     assert completed.gaussians > canonical.gaussians
     band = lambda model: model.render(near[2].camera).alpha[:, :60].mean()  # noqa: E731
     assert band(completed) > band(canonical) + 0.05
+
+
+def test_colour_solve_is_canonical_with_colours_that_reproduce_the_inputs(frames):
+    canonical, _ = build("canonical", frames[:2], 0.02)
+    solved, _ = build("colour_solve", frames[:2], 0.02)
+    for name in ("means", "scales", "quats", "opacities"):
+        assert torch.equal(getattr(canonical.splats, name), getattr(solved.splats, name))
+
+    def input_error(model) -> float:  # on the pixels the scene covers: the fit cannot colour the rest
+        views = [(model.render(f.camera), f.rgb.float() / 255) for f in frames[:2]]
+        return sum(float(((v.rgb - gt)[v.alpha > 0.5] ** 2).mean()) for v, gt in views)
+
+    assert input_error(solved) < 0.8 * input_error(canonical)
 
 
 def test_scene_methods_render_rgb_and_features(frames):

@@ -1,0 +1,72 @@
+"""blend_weights: the fast path against the reference, and the weights against the render."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from canonical_core.rendering import render
+from canonical_core.rendering.projection import channel_values
+from canonical_core.rendering.weights import blend_weights
+
+from .scenes import gaussians_at, look_at_camera, pinhole, random_scene
+
+
+def dense(w, camera, n: int) -> torch.Tensor:  # [H * W, N]
+    return torch.zeros(camera.height * camera.width, n, dtype=torch.float64).index_put_(
+        (w.pixels, w.ids), w.weights.double(), accumulate=True)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    g = random_scene(300, seed=3, feature_dim=None, label_dim=None, opacity_range=(0.1, 0.95))
+    camera = look_at_camera(45, 37, 40.0, eye=[0.3, -0.2, -3.0], target=[0, 0, 0])
+    return g, camera
+
+
+def test_fast_path_equals_the_reference(scene):
+    g, camera = scene
+    fast, reference = blend_weights(g, camera, backend="cpu"), blend_weights(g, camera, backend="reference")
+    assert len(fast.weights) > 1000
+    difference = (dense(fast, camera, len(g)) - dense(reference, camera, len(g))).abs().max()
+    assert difference < 1e-6
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_weights_reproduce_the_render(scene, backend):
+    g, camera = scene
+    w = blend_weights(g, camera, backend=backend, min_weight=0.0)
+    colours = channel_values(g, camera, ("rgb",))
+    image = torch.zeros(camera.height * camera.width, 3).index_add_(0, w.pixels, w.weights[:, None] * colours[w.ids])
+    rgb = render(g, camera, outputs=("rgb",)).rgb.reshape(-1, 3)
+    assert (image.clamp(0, 1) - rgb).abs().max() < 1e-5
+
+
+def test_min_weight_drops_only_the_small_weights(scene):
+    g, camera = scene
+    every, some = blend_weights(g, camera, min_weight=0.0), blend_weights(g, camera, min_weight=0.05)
+    assert bool((some.weights >= 0.05).all())
+    assert len(some.weights) == int((every.weights >= 0.05).sum()) < len(every.weights)
+
+
+def test_the_front_gaussian_takes_its_opacity_and_the_one_behind_the_rest():
+    g = gaussians_at([[0, 0, 2], [0, 0, 3]], [[1.0, 1.0, 0.01]] * 2, [0.6, 0.5], [[1, 0, 0], [0, 1, 0]])
+    camera = pinhole(8, 8, 10.0, 3.0, 3.0)  # both centres fall on pixel (3, 3): q = 0 there
+    w = blend_weights(g, camera)
+    at_centre = {int(i): float(v) for p, i, v in zip(w.pixels, w.ids, w.weights) if p == 3 * 8 + 3}
+    assert at_centre == pytest.approx({0: 0.6, 1: 0.5 * (1 - 0.6)}, rel=1e-6)
+
+
+def test_a_scene_behind_the_camera_has_no_weights():
+    g = gaussians_at([[0, 0, -2]], [[0.1] * 3], [0.9], [[1, 1, 1]])
+    for backend in ("cpu", "reference"):
+        w = blend_weights(g, pinhole(16, 16, 10.0, 7.5, 7.5), backend=backend)
+        assert len(w.pixels) == len(w.ids) == len(w.weights) == 0
+
+
+def test_bad_arguments_name_the_field(scene):
+    g, camera = scene
+    with pytest.raises(ValueError, match="backend"):
+        blend_weights(g, camera, backend="gpu")
+    with pytest.raises(ValueError, match="min_weight"):
+        blend_weights(g, camera, min_weight=-1.0)
