@@ -8,8 +8,8 @@
 - ``no_free_space``, ``no_view_dependence``: without free-space evidence / with SH degree 0;
 - ``depth_completion``: ``canonical`` with `SceneConfig.depth_completion` (large sensor-depth holes
   filled by the plane sweep against the session's earlier views);
-- ``colour_solve``: ``canonical`` whose decoded colours are then solved against its input views
-  (`canonical_core.decode.solve_colours`: renders made to reproduce the inputs, least squares);
+- ``colour_solve``: ``canonical`` with `SceneConfig.colour_solve_views` 16 (every input of the
+  protocol kept): decoded colours solved so that renders reproduce the input views (least squares);
 - ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
 - ``open3d_tsdf``: Open3D TSDF fusion + ray-cast colour (needs the ``bench`` extra).
 
@@ -33,7 +33,6 @@ import torch
 from torch import Tensor
 
 from ..camera import Camera
-from ..decode import solve_colours
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..rendering import render
@@ -105,14 +104,12 @@ class Method:
     unavailable: Callable[[], str | None] = lambda: None
 
 
-def _scene(weighting: Weighting, uniform_opacity: bool = False, colour_solve: bool = False, **settings) -> Builder:
+def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
     def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
         scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting, **settings))
         for frame in frames:
             scene.fold(frame)
         splats = scene.decode()
-        if colour_solve:
-            splats = solve_colours(splats, frames)
         if uniform_opacity:
             splats = replace(splats, opacities=torch.full_like(splats.opacities, full_support_opacity(scene.decoder)))
         return SplatModel(splats)
@@ -146,7 +143,7 @@ METHODS: dict[str, Method] = {
     "no_free_space": Method(_scene("full", free_space=False), features=True),
     "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
     "depth_completion": Method(_scene("full", depth_completion=True), features=True),
-    "colour_solve": Method(_scene("full", colour_solve=True), features=True),
+    "colour_solve": Method(_scene("full", colour_solve_views=16), features=True),
     "pixel_aligned": Method(_splats(pixel_aligned), features=True),
     "gaussian_merge": Method(_splats(gaussian_merge), features=True),
     "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),

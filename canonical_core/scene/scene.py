@@ -30,11 +30,12 @@ from ..camera import Camera
 from ..evidence import AppearanceUncertainty, denoise_rough_depth, extract_evidence, observation_sh_basis, sensor_depth_std
 from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
                             sensor_holes)
-from ..decode import GaussianDecoder, support_unit
+from ..decode import GaussianDecoder, solve_colours, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
 from .fields import fields_from_sums, sh_sum_widths
+from .keyframes import Keyframes, view_from_arrays, view_to_arrays
 from .free_space import (CHUNK, SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map,
                          update_chunk_boxes_kernel)
 from .kernels import VoxelRows, fold_kernel, rebuild_table_kernel, resolve_kernel, voxel_keys_kernel
@@ -120,6 +121,7 @@ class Scene:
         # frames without depth that wait for a partner, with their window view (None after loading
         # a snapshot: recomputed when the frame is folded)
         self._pending: list[tuple[Frame, SourceView | None]] = []
+        self._keyframes = Keyframes(config.colour_solve_views)  # the colour solve's views
 
     # -- state management ---------------------------------------------------------------------
     @property
@@ -196,6 +198,7 @@ class Scene:
         counts = self._fold_with_depth(frame)
         if view is not None:
             self._window.add(view)  # after the fold: a frame that fails to fold leaves the window as it was
+        self._keyframes.add(self.frames, frame)
         self.frames += 1
         return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0, completed_pixels=completed,
                           denoised=denoised)
@@ -302,11 +305,13 @@ class Scene:
         if not sources:
             self._window.add(view)
             self._pending.append((frame, view))
+            self._keyframes.add(index, frame)  # its colours join the scene once a partner arrives
             self.frames += 1
             return FoldReport(index, 0, 0, 0, 0, ms=(time.perf_counter() - t0) * 1000.0, pending=True)
         estimated = self._with_estimated_depth(frame, sources, view)
         counts = self._fold_with_depth(estimated)
         self._window.add(view, depth=estimated.depth)
+        self._keyframes.add(index, frame)
         self.frames += 1
         also = 0
         for entry in list(self._pending):  # frames that waited for a partner: fold them now, in order
@@ -366,7 +371,8 @@ class Scene:
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
-        best-supported ones (level of detail)."""
+        best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
+        solved against the kept input views (`decode.solve_colours`)."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
@@ -382,7 +388,8 @@ class Scene:
             keep = keep[torch.sort(top).values]
         f = {k: v[keep] for k, v in f.items()}
         with torch.no_grad():
-            return self.decoder(f, self.config.voxel_size, unit)
+            gaussians = self.decoder(f, self.config.voxel_size, unit)
+        return solve_colours(gaussians, self._keyframes.frames()) if len(self._keyframes) else gaussians
 
     def _snapshot_arrays(self) -> dict[str, np.ndarray]:
         """Every array of the fused state: sums, free-space history, source window, waiting frames."""
@@ -390,9 +397,9 @@ class Scene:
         arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
         arrays |= {f"window.{k}": v for k, v in self._window.to_arrays().items()}
         for i, (f, _) in enumerate(self._pending):
-            arrays |= {f"pending.{i}.rgb": f.rgb.numpy(), f"pending.{i}.K": f.camera.K64(), f"pending.{i}.c2w": f.camera.c2w64(),
-                       f"pending.{i}.id": np.frombuffer((f.frame_id or "").encode(), np.uint8)}
+            arrays |= view_to_arrays(f"pending.{i}", f)
             arrays |= {f"pending.{i}.{name}": getattr(f, name).numpy() for name in ("features", "labels") if getattr(f, name) is not None}
+        arrays |= {f"keyframes.{k}": v for k, v in self._keyframes.to_arrays().items() if self._keyframes.capacity}
         return arrays
 
     def digest(self) -> str:
@@ -405,7 +412,7 @@ class Scene:
         return h.hexdigest()
 
     def memory_bytes(self) -> int:
-        return int(sum(a.nbytes for a in self._state.values()) + self._table.nbytes)
+        return int(sum(a.nbytes for a in self._state.values()) + self._table.nbytes + self._keyframes.nbytes())
 
     def bytes_per_voxel(self) -> float:
         """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes
@@ -471,12 +478,11 @@ class Scene:
             scene.config.free_space_history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
         scene._window = SourceWindow.from_arrays({k[len("window."):]: npz[k] for k in npz.files if k.startswith("window.")})
         for i in range(int(header.get("pending", 0))):
-            rgb, K, c2w = npz[f"pending.{i}.rgb"], npz[f"pending.{i}.K"], npz[f"pending.{i}.c2w"]
-            scene._pending.append((Frame(
-                rgb=rgb.copy(), camera=Camera(K, c2w, rgb.shape[1], rgb.shape[0]),
-                features=npz[f"pending.{i}.features"].copy() if f"pending.{i}.features" in npz.files else None,
-                labels=npz[f"pending.{i}.labels"].copy() if f"pending.{i}.labels" in npz.files else None,
-                frame_id=npz[f"pending.{i}.id"].tobytes().decode() or None), None))
+            scene._pending.append((view_from_arrays(f"pending.{i}", npz, **{
+                name: npz[f"pending.{i}.{name}"].copy() if f"pending.{i}.{name}" in npz.files else None
+                for name in ("features", "labels")}), None))
+        scene._keyframes = Keyframes.from_arrays(
+            scene.config.colour_solve_views, {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

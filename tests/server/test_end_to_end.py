@@ -205,3 +205,21 @@ def test_rgb_only_session_end_to_end(client, frames):
     out = session.render(*view_of(frames[1]))
     assert out["alpha"].mean() > 0.3
     session.delete()
+
+
+def test_colour_solve_session_renders_its_inputs_closer(client, frames):
+    """A session with colour_solve_views keeps input views and solves the Gaussians' colours against
+    them: its renders at an input pose are closer to that frame than a plain session's."""
+    solving = client.create_session(voxel_size=VOXEL, colour_solve_views=4)
+    plain = client.create_session(voxel_size=VOXEL)
+    for f in frames[:4]:
+        solving.add_frame(**f)
+        plain.add_frame(**f)
+    assert solving.stats()["memory_bytes"] >= plain.stats()["memory_bytes"] + 4 * frames[0]["rgb"].nbytes
+    view = view_of(frames[2])
+    solved, fused = solving.render(*view), plain.render(*view)
+    covered = fused["alpha"] > 0.5
+    assert np.array_equal(solved["alpha"] > 0.5, covered)  # same geometry and opacity
+    assert psnr(solved["rgb"][covered], frames[2]["rgb"][covered]) > psnr(fused["rgb"][covered], frames[2]["rgb"][covered]) + 1.0
+    solving.delete()
+    plain.delete()

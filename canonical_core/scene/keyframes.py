@@ -1,0 +1,85 @@
+"""The views a scene keeps for the colour solve (`SceneConfig.colour_solve_views`).
+
+`decode.solve_colours` fits the decoded colours to input views, so a streaming scene keeps some:
+colour and camera only, at most ``capacity``, spread evenly over the stream. When one too many
+arrive, the interior keyframe whose neighbours are closest in stream order goes (the first and
+the newest always stay), so the kept frames approach an even spacing as the stream grows, as
+the evaluation's inputs are (`linspace` over frame positions).
+
+Example:
+    >>> import numpy as np
+    >>> from canonical_core.camera import Camera
+    >>> camera = Camera(K=[[20, 0, 8], [0, 20, 6], [0, 0, 1]], c2w=np.eye(4), width=16, height=12)
+    >>> keyframes = Keyframes(capacity=3)
+    >>> for index in range(6):
+    ...     keyframes.add(index, Frame(rgb=np.zeros((12, 16, 3), np.uint8), camera=camera))
+    >>> keyframes.indices
+    [0, 2, 5]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+from ..frame import Frame
+
+
+def view_to_arrays(prefix: str, frame: Frame) -> dict[str, np.ndarray]:
+    """A frame's colour, camera and id as snapshot arrays named ``prefix.rgb``, ``.K``, ``.c2w``, ``.id``."""
+    return {f"{prefix}.rgb": frame.rgb.numpy(), f"{prefix}.K": frame.camera.K64(), f"{prefix}.c2w": frame.camera.c2w64(),
+            f"{prefix}.id": np.frombuffer((frame.frame_id or "").encode(), np.uint8)}
+
+
+def view_from_arrays(prefix: str, arrays, **extra) -> Frame:
+    """The inverse of `view_to_arrays`; ``extra`` fields (features, labels) go to the Frame."""
+    rgb = arrays[f"{prefix}.rgb"]
+    camera = Camera(arrays[f"{prefix}.K"], arrays[f"{prefix}.c2w"], rgb.shape[1], rgb.shape[0])
+    return Frame(rgb=rgb.copy(), camera=camera, frame_id=arrays[f"{prefix}.id"].tobytes().decode() or None, **extra)
+
+
+class Keyframes:
+    def __init__(self, capacity: int):
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 0:
+            raise ValueError(f"capacity: expected a non-negative integer, got {capacity!r}")
+        self.capacity = capacity
+        self.indices: list[int] = []  # stream positions of the kept frames, ascending
+        self._frames: list[Frame] = []
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def frames(self) -> list[Frame]:
+        return list(self._frames)
+
+    def add(self, index: int, frame: Frame) -> None:
+        """Keep ``frame``'s colour and camera (stream position ``index``), evicting one if full."""
+        if self.capacity == 0:
+            return
+        self.indices.append(index)
+        self._frames.append(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id))
+        if len(self._frames) > self.capacity:
+            if len(self._frames) <= 2:  # capacity 1: the newest view
+                drop = 0
+            else:  # the interior frame whose neighbours are closest: the densest part of the stream
+                gaps = [self.indices[i + 1] - self.indices[i - 1] for i in range(1, len(self.indices) - 1)]
+                drop = 1 + int(np.argmin(gaps))
+            del self.indices[drop], self._frames[drop]
+
+    def nbytes(self) -> int:
+        return sum(f.rgb.numel() for f in self._frames)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        arrays = {"indices": np.asarray(self.indices, np.int64)}
+        for i, f in enumerate(self._frames):
+            arrays |= view_to_arrays(str(i), f)
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, capacity: int, arrays: dict[str, np.ndarray]) -> "Keyframes":
+        """The inverse of `to_arrays` (no arrays: none kept, as in snapshots from before keyframes)."""
+        keyframes = cls(capacity)
+        for i, index in enumerate(arrays.get("indices", np.zeros(0, np.int64)).tolist()):
+            keyframes.indices.append(int(index))
+            keyframes._frames.append(view_from_arrays(str(i), arrays))
+        return keyframes

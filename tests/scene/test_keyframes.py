@@ -1,0 +1,98 @@
+"""Keyframes for the colour solve: eviction keeps the stream spread; the scene decodes with them
+as `solve_colours` does, and they travel with the snapshot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import SceneConfig
+from canonical_core.decode import solve_colours
+from canonical_core.frame import resize_frame
+from canonical_core.scene import Scene
+from canonical_core.scene.keyframes import Keyframes
+
+from ..conftest import make_frame
+
+
+def test_eviction_keeps_the_ends_and_an_even_spread():
+    keyframes = Keyframes(capacity=5)
+    frame = make_frame(np.ones((4, 4), np.float32))
+    for index in range(41):
+        keyframes.add(index, frame)
+    assert keyframes.indices[0] == 0 and keyframes.indices[-1] == 40 and len(keyframes) == 5
+    gaps = np.diff(keyframes.indices)
+    assert gaps.max() <= 2 * gaps.min()  # 41 frames into 5: gaps near 10 each
+
+
+def test_capacity_one_keeps_the_newest_and_zero_keeps_nothing():
+    frame = make_frame(np.ones((4, 4), np.float32))
+    one, none = Keyframes(1), Keyframes(0)
+    for index in range(3):
+        one.add(index, frame)
+        none.add(index, frame)
+    assert one.indices == [2] and len(none) == 0 and none.nbytes() == 0
+
+
+def test_keyframes_hold_colour_and_camera_only():
+    keyframes = Keyframes(2)
+    keyframes.add(0, make_frame(np.ones((4, 4), np.float32), features=np.ones((4, 4, 3), np.float32)))
+    (kept,) = keyframes.frames()
+    assert kept.depth is None and kept.features is None and kept.rgb.shape == (4, 4, 3)
+
+
+@pytest.mark.parametrize("capacity", [-1, 2.0, True])
+def test_bad_capacity_names_the_field(capacity):
+    with pytest.raises(ValueError, match="capacity"):
+        Keyframes(capacity)
+
+
+@pytest.mark.parametrize("views", [-1, 65, 1.5])
+def test_scene_config_checks_colour_solve_views(views):
+    with pytest.raises(ValueError, match="colour_solve_views"):
+        SceneConfig(voxel_size=0.01, colour_solve_views=views)
+
+
+@pytest.fixture(scope="module")
+def small(shelf_frames):
+    return [resize_frame(f, 0.25) for f in shelf_frames[0:20:5]]  # 4 frames, 160x120
+
+
+def test_decode_solves_colours_against_the_kept_views(small):
+    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3))
+    plain = Scene(SceneConfig(voxel_size=0.008))
+    for f in small:
+        solving.fold(f)
+        plain.fold(f)
+    kept = solving._keyframes.frames()
+    assert [k.frame_id for k in kept] == [small[i].frame_id for i in (0, 2, 3)]
+    expected, got = solve_colours(plain.decode(), kept), solving.decode()
+    for name in ("means", "opacities", "sh"):
+        assert torch.equal(getattr(expected, name), getattr(got, name)), name
+    assert not torch.equal(plain.decode().sh, got.sh)
+    assert solving.memory_bytes() == plain.memory_bytes() + sum(k.rgb.numel() for k in kept)
+
+
+def test_keyframes_travel_with_the_snapshot(small, tmp_path):
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8))
+    for f in small[:2]:
+        scene.fold(f)
+    scene.save(tmp_path / "scene.cgs")
+    loaded = Scene.load(tmp_path / "scene.cgs")
+    assert loaded.digest() == scene.digest() and loaded._keyframes.indices == [0, 1]
+    assert torch.equal(loaded.decode().sh, scene.decode().sh)
+    for f in small[2:]:  # resumed folding keeps views as the uninterrupted scene does
+        scene.fold(f)
+        loaded.fold(f)
+    assert loaded.digest() == scene.digest()
+
+
+def test_a_frame_that_fails_to_fold_is_not_kept(small):
+    probe = Scene(SceneConfig(voxel_size=0.008))
+    probe.fold(small[0])
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8, max_voxels=len(probe) + 10))
+    scene.fold(small[0])
+    with pytest.raises(ValueError, match="max_voxels"):  # the second frame would need more voxels
+        scene.fold(small[3])
+    assert scene._keyframes.indices == [0]
