@@ -4,7 +4,7 @@
 
 For N input views of the evaluation protocol (640x480, its voxel size): ms for the compositing
 weights of one view (numba fast path; the PyTorch reference on the first view once, for the
-ratio), ms for the whole solve (weights of every view, the sparse system, 20 CG iterations),
+ratio), ms for the whole solve (weights of every view, the sparse system, 10 CG iterations),
 its nonzeros, and held-out all-pixel / covered PSNR before and after. Prints medians / min / max
 and the machine. Never asserts timings.
 """

@@ -23,6 +23,8 @@ import warnings
 from dataclasses import replace
 from typing import Sequence
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -45,6 +47,22 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int) 
         raise ValueError(f"prior: expected a positive weight, got {prior!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+
+
+@numba.njit(cache=True)
+def _counting_sort(rows: np.ndarray, num_rows: int) -> tuple[np.ndarray, np.ndarray]:  # row starts [R + 1], order [K]
+    """Stable order of entries by row in O(K + R), and where each row starts (CSR's crow)."""
+    starts = np.zeros(num_rows + 1, np.int64)
+    for r in rows:
+        starts[r + 1] += 1
+    for r in range(num_rows):
+        starts[r + 1] += starts[r]
+    cursor = starts[:-1].copy()
+    order = np.empty(rows.shape[0], np.int64)
+    for k in range(rows.shape[0]):
+        order[cursor[rows[k]]] = k
+        cursor[rows[k]] += 1
+    return starts, order
 
 
 def colour_system(
@@ -70,9 +88,8 @@ def colour_system(
     size = (offset, len(gaussians))
 
     def csr(row: Tensor, column: Tensor, shape: tuple[int, int]) -> Tensor:  # each (row, column) occurs once
-        order = torch.argsort(row)
-        row_starts = torch.zeros(shape[0] + 1, dtype=torch.int64)
-        row_starts[1:] = torch.cumsum(torch.bincount(row, minlength=shape[0]), 0)
+        row_starts, order = _counting_sort(row.numpy(), shape[0])
+        row_starts, order = torch.from_numpy(row_starts), torch.from_numpy(order)
         with warnings.catch_warnings():  # torch flags sparse CSR as beta; its CPU matmul is what we need
             warnings.simplefilter("ignore", UserWarning)
             return torch.sparse_csr_tensor(row_starts, column[order], weights[order], shape)
@@ -85,7 +102,7 @@ def solve_colours(
     views: Sequence[Frame],  # the frames the scene was fused from: rgb and camera are used
     ridge: float = 0.3,
     prior: float = 1.0,
-    iterations: int = 20,
+    iterations: int = 10,
     backend: WeightsBackend = "cpu",
 ) -> Gaussians:
     """``gaussians`` with DC colours offset so that their renders at ``views`` match the views'

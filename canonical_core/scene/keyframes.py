@@ -1,20 +1,22 @@
 """The views a scene keeps for the colour solve (`SceneConfig.colour_solve_views`).
 
 `decode.solve_colours` fits the decoded colours to input views, so a streaming scene keeps some:
-colour and camera only, at most ``capacity``, spread evenly over the stream. When one too many
+colour and camera only, resized by ``scale`` (half size fits nearly as well as full size at a
+quarter of the solve's time and memory: `SceneConfig.colour_solve_scale`), at most ``capacity``,
+spread evenly over the stream. When one too many
 arrive, the interior keyframe whose neighbours are closest in stream order goes (the first and
 the newest always stay), so the kept frames approach an even spacing as the stream grows, as
 the evaluation's inputs are (`linspace` over frame positions).
 
 Example:
-    >>> import numpy as np
+    >>> import numpy as np, torch
     >>> from canonical_core.camera import Camera
     >>> camera = Camera(K=[[20, 0, 8], [0, 20, 6], [0, 0, 1]], c2w=np.eye(4), width=16, height=12)
-    >>> keyframes = Keyframes(capacity=3)
+    >>> keyframes = Keyframes(capacity=3, scale=0.5)
     >>> for index in range(6):
     ...     keyframes.add(index, Frame(rgb=np.zeros((12, 16, 3), np.uint8), camera=camera))
-    >>> keyframes.indices
-    [0, 2, 5]
+    >>> keyframes.indices, keyframes.frames()[0].rgb.shape
+    ([0, 2, 5], torch.Size([6, 8, 3]))
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera
-from ..frame import Frame
+from ..frame import Frame, resize_frame
 
 
 def view_to_arrays(prefix: str, frame: Frame) -> dict[str, np.ndarray]:
@@ -39,10 +41,12 @@ def view_from_arrays(prefix: str, arrays, **extra) -> Frame:
 
 
 class Keyframes:
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, scale: float = 1.0):
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 0:
             raise ValueError(f"capacity: expected a non-negative integer, got {capacity!r}")
-        self.capacity = capacity
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1:
+            raise ValueError(f"scale: expected a number in (0, 1], got {scale!r}")
+        self.capacity, self.scale = capacity, scale
         self.indices: list[int] = []  # stream positions of the kept frames, ascending
         self._frames: list[Frame] = []
 
@@ -57,7 +61,7 @@ class Keyframes:
         if self.capacity == 0:
             return
         self.indices.append(index)
-        self._frames.append(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id))
+        self._frames.append(resize_frame(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id), self.scale))
         if len(self._frames) > self.capacity:
             if len(self._frames) <= 2:  # capacity 1: the newest view
                 drop = 0
@@ -76,9 +80,9 @@ class Keyframes:
         return arrays
 
     @classmethod
-    def from_arrays(cls, capacity: int, arrays: dict[str, np.ndarray]) -> "Keyframes":
+    def from_arrays(cls, capacity: int, scale: float, arrays: dict[str, np.ndarray]) -> "Keyframes":
         """The inverse of `to_arrays` (no arrays: none kept, as in snapshots from before keyframes)."""
-        keyframes = cls(capacity)
+        keyframes = cls(capacity, scale)
         for i, index in enumerate(arrays.get("indices", np.zeros(0, np.int64)).tolist()):
             keyframes.indices.append(int(index))
             keyframes._frames.append(view_from_arrays(str(i), arrays))

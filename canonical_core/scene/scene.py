@@ -121,7 +121,7 @@ class Scene:
         # frames without depth that wait for a partner, with their window view (None after loading
         # a snapshot: recomputed when the frame is folded)
         self._pending: list[tuple[Frame, SourceView | None]] = []
-        self._keyframes = Keyframes(config.colour_solve_views)  # the colour solve's views
+        self._keyframes = Keyframes(config.colour_solve_views, config.colour_solve_scale)  # the colour solve's views
 
     # -- state management ---------------------------------------------------------------------
     @property
@@ -482,7 +482,7 @@ class Scene:
                 name: npz[f"pending.{i}.{name}"].copy() if f"pending.{i}.{name}" in npz.files else None
                 for name in ("features", "labels")}), None))
         scene._keyframes = Keyframes.from_arrays(
-            scene.config.colour_solve_views, {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
+            scene.config.colour_solve_views, scene.config.colour_solve_scale, {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

@@ -48,10 +48,22 @@ def test_bad_capacity_names_the_field(capacity):
         Keyframes(capacity)
 
 
-@pytest.mark.parametrize("views", [-1, 65, 1.5])
-def test_scene_config_checks_colour_solve_views(views):
-    with pytest.raises(ValueError, match="colour_solve_views"):
-        SceneConfig(voxel_size=0.01, colour_solve_views=views)
+@pytest.mark.parametrize("setting, value", [("colour_solve_views", -1), ("colour_solve_views", 65),
+                                            ("colour_solve_views", 1.5), ("colour_solve_scale", 0.0),
+                                            ("colour_solve_scale", 1.5), ("colour_solve_scale", True)])
+def test_scene_config_checks_the_colour_solve_settings(setting, value):
+    with pytest.raises(ValueError, match=setting):
+        SceneConfig(voxel_size=0.01, **{setting: value})
+
+
+def test_keyframes_are_kept_at_their_scale(shelf_frames):
+    keyframes = Keyframes(2, scale=0.5)
+    keyframes.add(0, shelf_frames[0])
+    (kept,) = keyframes.frames()
+    assert kept.rgb.shape == (240, 320, 3) and kept.camera.width == 320
+    assert kept.camera.fx == pytest.approx(shelf_frames[0].camera.fx / 2)
+    with pytest.raises(ValueError, match="scale"):
+        Keyframes(2, scale=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +72,7 @@ def small(shelf_frames):
 
 
 def test_decode_solves_colours_against_the_kept_views(small):
-    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3))
+    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0))
     plain = Scene(SceneConfig(voxel_size=0.008))
     for f in small:
         solving.fold(f)
@@ -81,6 +93,7 @@ def test_keyframes_travel_with_the_snapshot(small, tmp_path):
     scene.save(tmp_path / "scene.cgs")
     loaded = Scene.load(tmp_path / "scene.cgs")
     assert loaded.digest() == scene.digest() and loaded._keyframes.indices == [0, 1]
+    assert loaded._keyframes.frames()[0].rgb.shape == (60, 80, 3)  # kept at half size
     assert torch.equal(loaded.decode().sh, scene.decode().sh)
     for f in small[2:]:  # resumed folding keeps views as the uninterrupted scene does
         scene.fold(f)
