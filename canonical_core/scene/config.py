@@ -95,8 +95,8 @@ class SceneConfig:
             evaluation's ``colour_solve``.
         colour_solve_scale: the kept views' size relative to the input (0.5: a quarter of the
             pixels, 0.23 MB per 640x480 view). Measured on the shelf at N = 16 against full size:
-            held-out 14.58 / 20.09 dB (all-pixel / covered) against 14.62 / 20.20, solve 7 s
-            against 32 s on 2 cores; at 0.25, 14.42 / 19.60 in 3 s.
+            held-out 14.58 / 20.09 dB (all-pixel / covered) against 14.62 / 20.20, solve 9.3 s
+            against 36.6 s on 2 cores (`bench/colour_solve.py`); at 0.25, 14.42 / 19.60.
     """
 
     voxel_size: float
