@@ -19,6 +19,7 @@ weights, the same answer for the same scene and views.
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import replace
 from typing import Sequence
@@ -41,9 +42,12 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int) 
     for i, view in enumerate(views):
         if not isinstance(view, Frame):
             raise ValueError(f"views[{i}]: expected a Frame, got {type(view).__name__}")
-    if not ridge >= 0:
+    def number(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+    if not (number(ridge) and ridge >= 0):
         raise ValueError(f"ridge: expected a non-negative weight, got {ridge!r}")
-    if not prior > 0:
+    if not (number(prior) and prior > 0):
         raise ValueError(f"prior: expected a positive weight, got {prior!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")

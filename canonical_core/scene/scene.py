@@ -392,7 +392,8 @@ class Scene:
         return solve_colours(gaussians, self._keyframes.frames()) if len(self._keyframes) else gaussians
 
     def _snapshot_arrays(self) -> dict[str, np.ndarray]:
-        """Every array of the fused state: sums, free-space history, source window, waiting frames."""
+        """Every array of the fused state: sums, free-space history, source window, waiting frames,
+        the colour solve's kept views."""
         arrays = {f"state.{k}": v for k, v in self.sums().items()}
         arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
         arrays |= {f"window.{k}": v for k, v in self._window.to_arrays().items()}
@@ -481,8 +482,8 @@ class Scene:
             scene._pending.append((view_from_arrays(f"pending.{i}", npz, **{
                 name: npz[f"pending.{i}.{name}"].copy() if f"pending.{i}.{name}" in npz.files else None
                 for name in ("features", "labels")}), None))
-        scene._keyframes = Keyframes.from_arrays(
-            scene.config.colour_solve_views, scene.config.colour_solve_scale, {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
+        scene._keyframes = Keyframes.from_arrays(scene.config.colour_solve_views, scene.config.colour_solve_scale,
+                                                 {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
         return scene

@@ -103,7 +103,7 @@ def test_no_gaussians_is_no_op(scene):
 
 @pytest.mark.parametrize("kwargs, field", [
     ({"views": []}, "views"), ({"views": "frame"}, "views"), ({"views": [None]}, r"views\[0\]"),
-    ({"ridge": -1.0}, "ridge"), ({"prior": 0.0}, "prior"), ({"iterations": 0}, "iterations"),
+    ({"ridge": -1.0}, "ridge"), ({"ridge": "0.3"}, "ridge"), ({"prior": 0.0}, "prior"), ({"prior": float("inf")}, "prior"), ({"iterations": 0}, "iterations"),
     ({"iterations": 2.5}, "iterations"), ({"backend": "gpu"}, "backend"),
 ])  # fmt: skip
 def test_bad_arguments_name_the_field(scene, kwargs, field):
