@@ -72,6 +72,17 @@ def auc(score: torch.Tensor, positive: torch.Tensor) -> float:
     return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
 
 
+def views_list(text: str) -> list[int]:
+    """``"4,8,16"`` -> [4, 8, 16] (argparse type)."""
+    try:
+        views = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated view counts, got {text!r}") from None
+    if not views or min(views) < 2:
+        raise argparse.ArgumentTypeError(f"expected view counts >= 2, got {text!r}")
+    return views
+
+
 def fused_metrics(inputs, weighting: str, voxel: float, targets) -> tuple[dict, cc.Scene]:
     """The evaluation's metrics of ``targets`` rendered from a scene folded from ``inputs``, and the scene."""
     scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, weighting=weighting))
@@ -108,13 +119,13 @@ def shifted_windows(small, views: int, step: int, voxel: float) -> None:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    p.add_argument("--views", default="4,8,16", help="comma-separated input view counts N")
+    p.add_argument("--views", type=views_list, default=[4, 8, 16], help="input view counts, e.g. 4,8,16")
     p.add_argument("--scale", type=float, default=0.5, help="image scale (0.5: 640x480 -> 320x240)")
     p.add_argument("--voxel", type=float, default=0.008)
     p.add_argument("--window-views", type=int, default=8, help="inputs per shifted window (0: skip that table)")
     p.add_argument("--window-step", type=int, default=6, help="frames between a shifted window's inputs")
     args = p.parse_args(argv)
-    view_counts = [int(v) for v in args.views.split(",")]
+    view_counts = args.views
     if args.window_views and (args.window_views < 2 or args.window_step < 2):
         p.error("--window-views needs at least 2 inputs and --window-step at least 2 frames (a held-out frame between inputs)")
     frames = load_dataset(args.data)

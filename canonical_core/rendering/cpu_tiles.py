@@ -161,6 +161,30 @@ def composite_tiles(
         raise MemoryError("composite_tiles: out of memory for the per-thread tile buffers")
 
 
+def _float32(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
+
+
+def project_records(
+    gaussians: Gaussians,
+    camera: Camera,
+    near_plane: float,
+) -> tuple[np.ndarray, np.ndarray]:  # records [N, SPLAT_RECORD] float32, pixel boxes [N, 4] int32
+    """`project_numba` on float32 CPU copies of ``gaussians``: every Gaussian's splat record and
+    pixel box (empty, lo > hi, where it is culled), in input order."""
+    f32, n = np.float32, len(gaussians)
+    width, height = camera.width, camera.height
+    view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
+    records, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
+    project_numba(
+        _float32(gaussians.means), _float32(gaussians.quats), _float32(gaussians.scales), _float32(gaussians.opacities),
+        view, (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
+        tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
+        f32(near_plane), width, height, records, boxes,
+    )  # fmt: skip
+    return records, boxes
+
+
 def render_cpu(
     gaussians: Gaussians,
     camera: Camera,
@@ -171,30 +195,19 @@ def render_cpu(
 ) -> Blend:
     """Project and composite on ``num_threads`` threads; returns CPU float32 tensors."""
 
-    def array(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
-
     gaussians = gaussians.detach().to("cpu", torch.float32)
-    n = len(gaussians)
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
     f32 = np.float32
-    view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
-    splats, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
     out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
     out_transmittance = np.ones((height, width), f32)
     num_threads = min(num_threads, numba.config.NUMBA_NUM_THREADS)  # at most one thread a core
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(num_threads)
     try:
-        values = array(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
+        values = _float32(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
         out_values = np.zeros((height, width, values.shape[1]), f32)
-        project_numba(
-            array(gaussians.means), array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities), view,
-            (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
-            tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
-            f32(near_plane), width, height, splats, boxes,
-        )  # fmt: skip
+        splats, boxes = project_records(gaussians, camera, near_plane)
         tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
         composite_tiles(
             tile_starts, splat_ids, splats, boxes, values, tiles_x,

@@ -18,12 +18,11 @@ from torch import Tensor
 
 from ..camera import Camera
 from ..gaussians import Gaussians
-from .cpu_tiles import bin_splats_by_tile, stable_depth_order
-from .projection import project_splats, world_to_camera
+from .cpu_tiles import bin_splats_by_tile, project_records, stable_depth_order
+from .projection import project_splats
 from .reference import tiles, tile_weights
 from .splat_geometry import (
-    CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, OPACITY, SPLAT_RECORD, SUPPORT,
-    TILE_SIZE, U, V, project_numba, slope_bounds,
+    CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, OPACITY, SUPPORT, TILE_SIZE, U, V,
 )  # fmt: skip
 
 WeightsBackend = Literal["reference", "cpu"]
@@ -105,30 +104,21 @@ def _tile_weights_numba(
 
 
 def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_weight: float) -> BlendWeights:
-    g = gaussians.detach().to("cpu", torch.float32)
-    f32, n = np.float32, len(g)
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
-    view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
-    records, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
-    project_numba(
-        g.means.numpy(), g.quats.numpy(), g.scales.numpy(), g.opacities.numpy(), view,
-        (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
-        tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
-        f32(near_plane), width, height, records, boxes,
-    )  # fmt: skip
+    records, boxes = project_records(gaussians, camera, near_plane)
     # Binning in global stable depth order leaves every tile's list front to back, the order the
     # compositor sorts each tile into; culled splats (empty boxes) are never binned.
-    order = stable_depth_order(np.ascontiguousarray(np.where(boxes[:, 0] <= boxes[:, 1], records[:, DEPTH], f32(np.inf))))
+    order = stable_depth_order(np.ascontiguousarray(np.where(boxes[:, 0] <= boxes[:, 1], records[:, DEPTH], np.float32(np.inf))))
     records, boxes = np.ascontiguousarray(records[order]), np.ascontiguousarray(boxes[order])
     tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
     num_tiles = tiles_x * tiles_y
     counts = np.zeros(num_tiles, np.int64)
-    no_pixels, no_splats, no_weights = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, f32)
+    no_pixels, no_splats, no_weights = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32)
     args = (tile_starts, splat_ids, records, boxes, tiles_x, width, height, min_weight)
     _tile_weights_numba(*args, np.zeros(num_tiles, np.int64), no_pixels, no_splats, no_weights, counts, False)
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    pixels, splats, weights = np.empty(starts[-1], np.int64), np.empty(starts[-1], np.int32), np.empty(starts[-1], f32)
+    pixels, splats, weights = np.empty(starts[-1], np.int64), np.empty(starts[-1], np.int32), np.empty(starts[-1], np.float32)
     _tile_weights_numba(*args, starts[:-1], pixels, splats, weights, counts, True)
     ids = torch.from_numpy(order.astype(np.int64))[torch.from_numpy(splats).long()]
     return BlendWeights(torch.from_numpy(pixels), ids, torch.from_numpy(weights))

@@ -90,7 +90,7 @@ class SceneConfig:
             stream: `scene.keyframes`) and solve the decoded Gaussians' colours against them
             (`decode.solve_colours`: renders made to reproduce the inputs; geometry and opacity
             unchanged). 0 (default) turns it off. Measured on the shelf evaluation (every input
-            kept): held-out covered PSNR +1.2 to +2.0 dB, all-pixel +0.3 to +0.7 dB at N = 2-16;
+            kept): held-out covered PSNR +1.2 to +1.9 dB, all-pixel +0.3 to +0.7 dB at N = 2-16;
             it costs a decode seconds instead of milliseconds (`bench/colour_solve.py`). See the
             evaluation's ``colour_solve``.
         colour_solve_scale: the kept views' size relative to the input (0.5: a quarter of the

@@ -400,7 +400,8 @@ class Scene:
         for i, (f, _) in enumerate(self._pending):
             arrays |= view_to_arrays(f"pending.{i}", f)
             arrays |= {f"pending.{i}.{name}": getattr(f, name).numpy() for name in ("features", "labels") if getattr(f, name) is not None}
-        arrays |= {f"keyframes.{k}": v for k, v in self._keyframes.to_arrays().items() if self._keyframes.capacity}
+        if self._keyframes.capacity:  # scenes without the colour solve keep their earlier digests
+            arrays |= {f"keyframes.{k}": v for k, v in self._keyframes.to_arrays().items()}
         return arrays
 
     def digest(self) -> str:
