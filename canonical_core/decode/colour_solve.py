@@ -3,18 +3,23 @@
 The analytic decoder gives each Gaussian its voxel's fused colour, a weighted mean of the pixels
 that landed in the voxel. But a rendered pixel blends several overlapping Gaussians, so even a
 view the scene was fused from does not get its own colours back (session 21 of
-`docs/experiments.md`). With geometry and opacity fixed a render is linear in the colours,
-colour(p) = sum_i w_i(p) c_i (`canonical_core.rendering.blend_weights`), so the colours that make
-the renders reproduce the input views are a linear least-squares problem. This solves it for one
-offset per Gaussian added to its DC colour (view dependence kept):
+`docs/experiments.md`). With geometry and opacity fixed a render is linear in the SH coefficients,
+colour_v(p) = sum_i w_i(p) sum_k Y_k(d_vi) sh_ik + 0.5 (`canonical_core.rendering.blend_weights`,
+d_vi the direction from view v's centre to Gaussian i), so the coefficients that make the renders
+reproduce the input views are a linear least-squares problem. This solves it for offsets x_ik to
+the coefficients up to ``degree`` (1: DC and the three linear terms, so the fit can tell a colour
+that changes across the views from one that does not):
 
-    min_delta  sum_views sum_p |sum_i w_i(p) delta_i - (I(p) - render(p))|^2
-               + sum_i (ridge * d_i + prior) |delta_i|^2,      d_i = sum_views sum_p w_i(p)^2
+    min_x  sum_v sum_p |sum_i w_i(p) sum_k Y_k(d_vi) x_ik - (I_v(p) - render_v(p))|^2
+           + sum_ik (ridge * e_ik + prior * peak_k^2) |x_ik|^2,   e_ik = sum_v Y_k(d_vi)^2 sum_p w_i(p)^2
 
-by Jacobi-preconditioned conjugate gradients. ``ridge`` shrinks every offset relative to the
-Gaussian's own evidence d_i; ``prior`` keeps the fused colour of Gaussians the views barely see
-(hidden, or at the edge of the images), which the fit cannot determine. Training-free: no learned
-weights, the same answer for the same scene and views.
+by Jacobi-preconditioned conjugate gradients (the clamp max(0, .) of the SH colour is left out).
+``ridge`` shrinks every offset relative to its own evidence e_ik; ``prior`` keeps the fused colour
+of Gaussians the views barely see (hidden, or at the edge of the images), which the fit cannot
+determine; peak_k, the largest |Y_k| (SH_C0, SH_C1), counts it in colour units. A Gaussian seen
+from one direction only cannot tell DC from linear terms: the prior splits its offset between them
+in proportion, which agrees with that one view and changes little elsewhere. Training-free: no
+learned weights, the same answer for the same scene and views on any number of threads.
 """
 
 from __future__ import annotations
@@ -33,10 +38,11 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
 from ..rendering.projection import channel_values
+from ..rendering.sh import SH_C1
 from ..rendering.weights import WeightsBackend, blend_weights
 
 
-def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int) -> None:
+def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int) -> None:
     if isinstance(views, Frame) or not isinstance(views, Sequence) or not views:
         raise ValueError("views: expected a non-empty sequence of Frames")
     for i, view in enumerate(views):
@@ -51,54 +57,172 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int) 
         raise ValueError(f"prior: expected a positive weight, got {prior!r}")
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree not in (0, 1):
+        raise ValueError(f"degree: expected 0 (DC only) or 1, got {degree!r}")
 
 
 @numba.njit(cache=True)
-def _counting_sort(rows: np.ndarray, num_rows: int) -> tuple[np.ndarray, np.ndarray]:  # row starts [R + 1], order [K]
-    """Stable order of entries by row in O(K + R), and where each row starts (CSR's crow)."""
-    starts = np.zeros(num_rows + 1, np.int64)
+def _csr(
+    rows: np.ndarray,  # [K] int64 each entry's row
+    columns: np.ndarray,  # [K] int64 each entry's column
+    values: np.ndarray,  # [K] float32
+    num_rows: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # row starts [R + 1], columns [K], values [K] (int32, int32, float32)
+    """Entries to CSR by a counting sort in O(K + R): within a row, entries keep their order."""
+    starts = np.zeros(num_rows + 1, np.int32)
     for r in rows:
         starts[r + 1] += 1
     for r in range(num_rows):
         starts[r + 1] += starts[r]
     cursor = starts[:-1].copy()
-    order = np.empty(rows.shape[0], np.int64)
+    out_columns, out_values = np.empty(rows.shape[0], np.int32), np.empty(rows.shape[0], np.float32)
     for k in range(rows.shape[0]):
-        order[cursor[rows[k]]] = k
-        cursor[rows[k]] += 1
-    return starts, order
+        at = cursor[rows[k]]
+        out_columns[at], out_values[at] = columns[k], values[k]
+        cursor[rows[k]] = at + 1
+    return starts, out_columns, out_values
+
+
+@numba.njit(parallel=True, cache=True)
+def _csr_matmul(
+    starts: np.ndarray,  # [R + 1] int32
+    columns: np.ndarray,  # [E] int32
+    values: np.ndarray,  # [E] float32
+    x: np.ndarray,  # [C, 3] float32
+) -> np.ndarray:  # [R, 3] float32
+    """A x for a CSR matrix A and three right-hand columns (a view's render from its weights), rows
+    in parallel, a sum in float64 per row."""
+    out = np.empty((starts.shape[0] - 1, 3), np.float32)
+    for r in numba.prange(starts.shape[0] - 1):
+        s0 = s1 = s2 = 0.0
+        for k in range(starts[r], starts[r + 1]):
+            c, w = columns[k], np.float64(values[k])
+            s0 += w * x[c, 0]
+            s1 += w * x[c, 1]
+            s2 += w * x[c, 2]
+        out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2
+    return out
+
+
+@numba.njit(cache=True)
+def _basis(
+    means: np.ndarray,  # [N, 3] float32
+    centre: np.ndarray,  # [3] float64 a view's camera centre
+    i: int,
+) -> tuple[float, float, float, float]:  # Y_0..Y_3 of Gaussian i seen from centre
+    """The degree-1 SH basis along centre -> mean (`rendering.sh.sh_basis`; a zero direction: DC only)."""
+    x, y, z = means[i, 0] - centre[0], means[i, 1] - centre[1], means[i, 2] - centre[2]
+    norm = math.sqrt(x * x + y * y + z * z)
+    scale = SH_C1 / norm if norm > 0.0 else 0.0
+    return SH_C0, -scale * y, scale * z, -scale * x
+
+
+@numba.njit(parallel=True, cache=True)
+def _seen_from(
+    means: np.ndarray,  # [N, 3] float32
+    centre: np.ndarray,  # [3] float64 a view's camera centre
+    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, K = 1 or 4
+) -> np.ndarray:  # [N, 3] float32: sum_k Y_k(d_i) x_ik, the colour offsets as the view sees them
+    out = np.empty((means.shape[0], 3), np.float32)
+    for i in numba.prange(means.shape[0]):
+        b = _basis(means, centre, i)
+        for c in range(3):
+            total = 0.0
+            for k in range(x.shape[1]):
+                total += b[k] * x[i, k, c]
+            out[i, c] = total
+    return out
+
+
+def _sh_matmul(
+    starts: np.ndarray,  # [R + 1] int32 CSR row starts (rows view-major)
+    columns: np.ndarray,  # [E] int32
+    values: np.ndarray,  # [E] float32
+    view_rows: np.ndarray,  # [V + 1] int64 where each view's rows start
+    centres: np.ndarray,  # [V, 3] float64
+    means: np.ndarray,  # [N, 3] float32
+    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, K = 1 or 4
+) -> np.ndarray:  # [R, 3] float32: each pixel's change of colour
+    out = np.empty((starts.shape[0] - 1, 3), np.float32)
+    for v in range(len(view_rows) - 1):
+        first, last = view_rows[v], view_rows[v + 1]
+        out[first:last] = _csr_matmul(starts[first:last + 1], columns, values, _seen_from(means, centres[v], x))
+    return out
+
+
+# The transposed product scatters into Gaussians that many rows share: each view of a group sums
+# into its own buffer, then the group is contracted with the basis. A fixed group size bounds the
+# buffers (GROUP x N x 3) and keeps the result independent of the machine's thread count.
+VIEW_GROUP = 8
+
+
+@numba.njit(parallel=True, cache=True)
+def _sh_rmatmul(
+    starts: np.ndarray,  # [R + 1] int32
+    columns: np.ndarray,  # [E] int32
+    values: np.ndarray,  # [E] float32
+    view_rows: np.ndarray,  # [V + 1] int64
+    centres: np.ndarray,  # [V, 3] float64
+    means: np.ndarray,  # [N, 3] float32
+    y: np.ndarray,  # [R, 3] float32
+    num_bases: int,  # K = 1 or 4
+    squared: bool,  # values and basis squared (the evidence e_ik, with y = 1)
+) -> np.ndarray:  # [N, K, 3] float32: A^T y in coefficient space
+    n = means.shape[0]
+    out = np.zeros((n, num_bases, 3), np.float32)
+    partial = np.empty((VIEW_GROUP, n, 3), np.float32)
+    for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
+        group = min(VIEW_GROUP, view_rows.shape[0] - 1 - first)
+        for g in numba.prange(group):
+            partial[g] = 0.0
+            for r in range(view_rows[first + g], view_rows[first + g + 1]):
+                y0, y1, y2 = y[r, 0], y[r, 1], y[r, 2]
+                for e in range(starts[r], starts[r + 1]):
+                    i, w = columns[e], values[e]
+                    w = w * w if squared else w
+                    partial[g, i, 0] += w * y0
+                    partial[g, i, 1] += w * y1
+                    partial[g, i, 2] += w * y2
+        for i in numba.prange(n):
+            for g in range(group):
+                b = _basis(means, centres[first + g], i)
+                for k in range(num_bases):
+                    bk = b[k] * b[k] if squared else b[k]
+                    out[i, k, 0] += bk * partial[g, i, 0]
+                    out[i, k, 1] += bk * partial[g, i, 1]
+                    out[i, k, 2] += bk * partial[g, i, 2]
+    return out
+
+
+def _arrays(A: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # CSR row starts, columns, values
+    return A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy()
 
 
 def colour_system(
     gaussians: Gaussians,
     views: Sequence[Frame],
     backend: WeightsBackend = "cpu",
-) -> tuple[Tensor, Tensor, Tensor]:  # A: sparse CSR [P, N], its transpose [N, P], residual b [P, 3]
+) -> tuple[Tensor, Tensor]:  # A: sparse CSR [P, N] (int32 indices), residual b [P, 3]
     """The linear system of the fit: A's rows are the views' pixels (view-major), its columns the
     Gaussians, its entries the compositing weights; b is each pixel's colour minus its render."""
-    rows, columns, weights, residuals = [], [], [], []
-    offset = 0
+    starts, columns, weights, residuals = [np.zeros(1, np.int64)], [], [], []
     for view in views:
         camera = view.camera
         w = blend_weights(gaussians, camera, backend=backend)
-        colours = channel_values(gaussians, camera, ("rgb",)).float()
-        render = torch.zeros(camera.height * camera.width, 3).index_add_(0, w.pixels, w.weights[:, None] * colours[w.ids])
-        residuals.append(view.rgb.reshape(-1, 3).float() / 255.0 - render)
-        rows.append(w.pixels + offset)
-        columns.append(w.ids)
-        weights.append(w.weights)
-        offset += camera.height * camera.width
-    rows, columns, weights = torch.cat(rows), torch.cat(columns), torch.cat(weights)
-    size = (offset, len(gaussians))
-
-    def csr(row: Tensor, column: Tensor, shape: tuple[int, int]) -> Tensor:  # each (row, column) occurs once
-        row_starts, order = _counting_sort(row.numpy(), shape[0])
-        row_starts, order = torch.from_numpy(row_starts), torch.from_numpy(order)
-        with warnings.catch_warnings():  # torch flags sparse CSR as beta; its CPU matmul is what we need
-            warnings.simplefilter("ignore", UserWarning)
-            return torch.sparse_csr_tensor(row_starts, column[order], weights[order], shape)
-
-    return csr(rows, columns, size), csr(columns, rows, size[::-1]), torch.cat(residuals)
+        s, c, v = _csr(w.pixels.numpy(), w.ids.numpy(), w.weights.numpy(), camera.height * camera.width)
+        render = _csr_matmul(s, c, v, channel_values(gaussians, camera, ("rgb",)).float().numpy())
+        residuals.append(view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render))
+        starts.append(s[1:] + starts[-1][-1])
+        columns.append(c)
+        weights.append(v)
+    starts = np.concatenate(starts)
+    if starts[-1] >= 2**31:
+        raise ValueError(f"views: {starts[-1]} compositing weights in all, more than int32 indices hold; keep fewer or smaller views")
+    with warnings.catch_warnings():  # torch flags sparse CSR as beta; it is only the container here
+        warnings.simplefilter("ignore", UserWarning)
+        A = torch.sparse_csr_tensor(torch.from_numpy(starts.astype(np.int32)), torch.from_numpy(np.concatenate(columns)),
+                                    torch.from_numpy(np.concatenate(weights)), (len(starts) - 1, len(gaussians)))
+    return A, torch.cat(residuals)
 
 
 def solve_colours(
@@ -107,10 +231,12 @@ def solve_colours(
     ridge: float = 0.3,
     prior: float = 1.0,
     iterations: int = 10,
+    degree: int = 1,
     backend: WeightsBackend = "cpu",
 ) -> Gaussians:
-    """``gaussians`` with DC colours offset so that their renders at ``views`` match the views'
-    colours in the least-squares sense (module docstring). Geometry and opacity are unchanged.
+    """``gaussians`` with SH coefficients up to ``degree`` (0: DC only; at most the Gaussians' own
+    degree) offset so that their renders at ``views`` match the views' colours in the
+    least-squares sense (module docstring). Geometry, opacity and higher coefficients are unchanged.
 
     Example (a scene fused from two synthetic views, colours solved against the same views):
         >>> from canonical_core.datasets import synthetic_rgbd
@@ -125,33 +251,43 @@ def solve_colours(
 
     Raises:
         ValueError: no views, a view that is not a Frame, a negative ridge, a prior that is not
-            positive, a non-positive iteration count, or an unknown weights backend.
+            positive, a non-positive iteration count, a degree other than 0 or 1, or an unknown
+            weights backend.
     """
-    _check(views, ridge, prior, iterations)
+    _check(views, ridge, prior, iterations, degree)
     if len(gaussians) == 0:
         return gaussians
-    A, At, b = colour_system(gaussians, views, backend)
-    evidence = torch.zeros(len(gaussians)).index_add_(0, A.col_indices(), A.values() ** 2)  # d_i
-    damping = (ridge * evidence + prior)[:, None]
-    diagonal = evidence[:, None] + damping
+    num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
+    A, b = colour_system(gaussians, views, backend)
+    view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
+    centres = np.stack([view.camera.c2w64()[:3, 3] for view in views])
+    system = (*_arrays(A), view_rows, centres, np.ascontiguousarray(gaussians.means.detach().numpy(), np.float32))
 
-    def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge d + prior)) x
-        return At @ (A @ x) + damping * x
+    def transposed(y: np.ndarray, squared: bool = False) -> Tensor:  # [R, 3] -> [N, K, 3]
+        return torch.from_numpy(_sh_rmatmul(*system, y, num_bases, squared))
+
+    evidence = transposed(np.ones((A.shape[0], 3), np.float32), squared=True)  # e_ik
+    peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
+    damping = ridge * evidence + prior * peak**2
+    diagonal = evidence + damping
+
+    def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
+        return transposed(_sh_matmul(*system, x.numpy())) + damping * x
 
     # conjugate gradients, one step length per colour channel
-    delta = torch.zeros(len(gaussians), 3)
-    residual = At @ b
+    offsets = torch.zeros(len(gaussians), num_bases, 3)
+    residual = transposed(b.numpy())
     z = residual / diagonal
-    direction, rz = z.clone(), (residual * z).sum(0)
+    direction, rz = z.clone(), (residual * z).sum((0, 1))
     for _ in range(iterations):
         product = normal(direction)
-        step = rz / (direction * product).sum(0).clamp_min(1e-30)
-        delta += step * direction
+        step = rz / (direction * product).sum((0, 1)).clamp_min(1e-30)
+        offsets += step * direction
         residual -= step * product
         z = residual / diagonal
-        rz_next = (residual * z).sum(0)
+        rz_next = (residual * z).sum((0, 1))
         direction = z + (rz_next / rz.clamp_min(1e-30)) * direction
         rz = rz_next
     sh = gaussians.sh.clone()
-    sh[:, 0, :] += (delta / SH_C0).to(sh)
+    sh[:, :num_bases, :] += offsets.to(sh)
     return replace(gaussians, sh=sh)

@@ -54,35 +54,64 @@ def _weights_reference(gaussians: Gaussians, camera: Camera, near_plane: float, 
 
 
 @numba.njit(parallel=True, cache=True)
+def _tile_bounds(
+    tile_starts: np.ndarray,  # [T + 1] int64
+    splat_ids: np.ndarray,  # [K] int32 per tile
+    boxes: np.ndarray,  # [N, 4] int32 inclusive pixel boxes u0, u1, v0, v1
+    tiles_x: int,
+) -> np.ndarray:  # [T] int64 pixels of the tile inside each of its splats' boxes, summed
+    """An upper bound on each tile's entries: one per (splat, box pixel in the tile)."""
+    bounds = np.zeros(tile_starts.shape[0] - 1, np.int64)
+    for tile in numba.prange(tile_starts.shape[0] - 1):
+        u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
+        total = 0
+        for j in range(tile_starts[tile], tile_starts[tile + 1]):
+            s = splat_ids[j]
+            du = min(u0 + TILE_SIZE - 1, boxes[s, 1]) - max(u0, boxes[s, 0]) + 1
+            dv = min(v0 + TILE_SIZE - 1, boxes[s, 3]) - max(v0, boxes[s, 2]) + 1
+            total += max(du, 0) * max(dv, 0)
+        bounds[tile] = total
+    return bounds
+
+
+@numba.njit(parallel=True, cache=True)
 def _tile_weights_numba(
     tile_starts: np.ndarray,  # [T + 1] int64
     splat_ids: np.ndarray,  # [K] int32 per tile, front to back
-    splats: np.ndarray,  # [N, SPLAT_RECORD] float32
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32, in depth order
     boxes: np.ndarray,  # [N, 4] int32
+    gaussian_ids: np.ndarray,  # [N] int64 the Gaussian of each splat record
     tiles_x: int,
     width: int,
     height: int,
     min_weight: float,
-    starts: np.ndarray,  # [T] int64 where each tile's entries go
-    out_pixels: np.ndarray,  # [E] int64 (written when fill)
-    out_splats: np.ndarray,  # [E] int32
+    starts: np.ndarray,  # [T] int64 where each tile's entries may start (`_tile_bounds` apart)
+    out_pixels: np.ndarray,  # [E] int64
+    out_ids: np.ndarray,  # [E] int64
     out_weights: np.ndarray,  # [E] float32
-    counts: np.ndarray,  # [T] int64 entries per tile (written when not fill)
-    fill: bool,
+    counts: np.ndarray,  # [T] int64 entries written per tile
 ) -> None:
-    """Per tile, per pixel, the splats front to back as the C compositor blends them (float32
-    alpha, float64 transmittance, stop before T < 1e-4); counts or writes the weights >= min_weight."""
+    """Per tile, the splats front to back as the C compositor blends them (float32 alpha, float64
+    transmittance, a pixel stops before T < 1e-4); writes the weights >= min_weight. Splat-outer,
+    as the compositor: each splat visits only its box's pixels in the tile (a pixel-outer loop
+    tests every splat of the tile at every pixel, 2-3x the time)."""
     for tile in numba.prange(tile_starts.shape[0] - 1):
         u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
-        k = starts[tile] if fill else 0
-        for v in range(v0, min(v0 + TILE_SIZE, height)):
-            for u in range(u0, min(u0 + TILE_SIZE, width)):
-                transmittance = 1.0
-                for j in range(tile_starts[tile], tile_starts[tile + 1]):
-                    s = splat_ids[j]
-                    if u < boxes[s, 0] or u > boxes[s, 1] or v < boxes[s, 2] or v > boxes[s, 3]:
+        u1, v1 = min(u0 + TILE_SIZE, width) - 1, min(v0 + TILE_SIZE, height) - 1
+        transmittance = np.ones(TILE_SIZE * TILE_SIZE)  # -1 once a pixel has stopped
+        running = (u1 - u0 + 1) * (v1 - v0 + 1)
+        k = starts[tile]
+        for j in range(tile_starts[tile], tile_starts[tile + 1]):
+            if running == 0:
+                break
+            s = splat_ids[j]
+            r = splats[s]
+            for v in range(max(v0, boxes[s, 2]), min(v1, boxes[s, 3]) + 1):
+                for u in range(max(u0, boxes[s, 0]), min(u1, boxes[s, 1]) + 1):
+                    p = (v - v0) * TILE_SIZE + (u - u0)
+                    t = transmittance[p]
+                    if t < 0.0:
                         continue
-                    r = splats[s]
                     dx, dy = r[U] - np.float32(u), r[V] - np.float32(v)
                     q = r[CONIC_A] * dx * dx + (r[CONIC_B] + r[CONIC_B]) * dx * dy + r[CONIC_C] * dy * dy
                     if q > r[SUPPORT]:
@@ -90,17 +119,35 @@ def _tile_weights_numba(
                     alpha = min(r[OPACITY] * np.float32(np.exp(np.float32(-0.5) * q)), np.float32(MAX_ALPHA))
                     if alpha < np.float32(MIN_ALPHA):
                         continue
-                    after = transmittance * (1.0 - alpha)
+                    after = t * (1.0 - alpha)
                     if after < MIN_TRANSMITTANCE:
-                        break
-                    weight = alpha * np.float32(transmittance)
-                    transmittance = after
+                        transmittance[p] = -1.0
+                        running -= 1
+                        continue
+                    weight = alpha * np.float32(t)
+                    transmittance[p] = after
                     if weight >= min_weight:
-                        if fill:
-                            out_pixels[k], out_splats[k], out_weights[k] = v * width + u, s, weight
+                        out_pixels[k], out_ids[k], out_weights[k] = v * width + u, gaussian_ids[s], weight
                         k += 1
-        if not fill:
-            counts[tile] = k
+        counts[tile] = k - starts[tile]
+
+
+@numba.njit(parallel=True, cache=True)
+def _compact(
+    starts: np.ndarray,  # [T] int64 where each tile's entries start in the bounded arrays
+    counts: np.ndarray,  # [T] int64 entries per tile
+    pixels: np.ndarray,  # [B] int64
+    ids: np.ndarray,  # [B] int64
+    weights: np.ndarray,  # [B] float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # the written entries, tile after tile: [E] each
+    ends = np.cumsum(counts)
+    out_pixels, out_ids, out_weights = np.empty(ends[-1], np.int64), np.empty(ends[-1], np.int64), np.empty(ends[-1], np.float32)
+    for tile in numba.prange(starts.shape[0]):
+        first = ends[tile] - counts[tile]
+        for k in range(counts[tile]):
+            out_pixels[first + k], out_ids[first + k] = pixels[starts[tile] + k], ids[starts[tile] + k]
+            out_weights[first + k] = weights[starts[tile] + k]
+    return out_pixels, out_ids, out_weights
 
 
 def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_weight: float) -> BlendWeights:
@@ -112,16 +159,18 @@ def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_we
     order = stable_depth_order(np.ascontiguousarray(np.where(boxes[:, 0] <= boxes[:, 1], records[:, DEPTH], np.float32(np.inf))))
     records, boxes = np.ascontiguousarray(records[order]), np.ascontiguousarray(boxes[order])
     tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
-    num_tiles = tiles_x * tiles_y
-    counts = np.zeros(num_tiles, np.int64)
-    no_pixels, no_splats, no_weights = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32)
-    args = (tile_starts, splat_ids, records, boxes, tiles_x, width, height, min_weight)
-    _tile_weights_numba(*args, np.zeros(num_tiles, np.int64), no_pixels, no_splats, no_weights, counts, False)
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    pixels, splats, weights = np.empty(starts[-1], np.int64), np.empty(starts[-1], np.int32), np.empty(starts[-1], np.float32)
-    _tile_weights_numba(*args, starts[:-1], pixels, splats, weights, counts, True)
-    ids = torch.from_numpy(order.astype(np.int64))[torch.from_numpy(splats).long()]
-    return BlendWeights(torch.from_numpy(pixels), ids, torch.from_numpy(weights))
+    if len(splat_ids) == 0:
+        empty = torch.zeros(0, dtype=torch.int64)
+        return BlendWeights(empty, empty, torch.zeros(0))
+    # One pass into per-tile slots as large as the tile's box pixels, then the written part packed.
+    bounds = _tile_bounds(tile_starts, splat_ids, boxes, tiles_x)
+    starts = np.concatenate([[0], np.cumsum(bounds)[:-1]]).astype(np.int64)
+    size = int(bounds.sum())
+    pixels, ids, weights = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.float32)
+    counts = np.zeros(len(bounds), np.int64)
+    _tile_weights_numba(tile_starts, splat_ids, records, boxes, order.astype(np.int64), tiles_x, width, height,
+                        min_weight, starts, pixels, ids, weights, counts)
+    return BlendWeights(*(torch.from_numpy(a) for a in _compact(starts, counts, pixels, ids, weights)))
 
 
 def blend_weights(

@@ -4,14 +4,19 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numba
 import numpy as np
 import pytest
 import torch
 
 from canonical_core.decode import colour_system, solve_colours
+from canonical_core.decode.colour_solve import _sh_matmul, _sh_rmatmul
+from canonical_core.gaussians.container import SH_C0
+from canonical_core.rendering.sh import SH_C1, sh_basis
 from canonical_core.frame import Frame
 from canonical_core.gaussians import sh_dc_to_rgb
 from canonical_core.rendering import render
+from canonical_core.rendering.weights import blend_weights
 
 from ..rendering.scenes import gaussians_at, look_at_camera, random_scene
 
@@ -39,8 +44,8 @@ def test_the_solution_is_the_dense_regularised_least_squares(scene):
     rng = np.random.default_rng(0)
     views = [Frame(rgb=rng.integers(0, 256, (c.height, c.width, 3), dtype=np.uint8), camera=c) for c in cameras]
     ridge, prior = 0.3, 0.5
-    solved = solve_colours(g, views, ridge=ridge, prior=prior, iterations=400)
-    A, _, b = colour_system(g, views)
+    solved = solve_colours(g, views, ridge=ridge, prior=prior, iterations=400, degree=0)
+    A, b = colour_system(g, views)
     A, b = A.to_dense().double(), b.double()
     evidence = (A**2).sum(0)
     expected = torch.linalg.solve(A.T @ A + torch.diag(ridge * evidence + prior), A.T @ b)
@@ -49,13 +54,86 @@ def test_the_solution_is_the_dense_regularised_least_squares(scene):
     assert torch.allclose(offsets.double(), expected, atol=2e-4)
 
 
-def test_geometry_opacity_and_view_dependence_are_kept(scene):
+def test_the_system_stacks_each_views_weights_and_residual(scene):
     g, cameras = scene
-    solved = solve_colours(g, views_of(g, cameras, shift=0.2))
+    views = views_of(g, cameras, shift=0.1)
+    A, b = colour_system(g, views)
+    pixels = cameras[0].height * cameras[0].width
+    for i, (view, camera) in enumerate(zip(views, cameras)):
+        w = blend_weights(g, camera)
+        rows = slice(i * pixels, (i + 1) * pixels)
+        expected = torch.zeros(pixels, len(g)).index_put_((w.pixels, w.ids), w.weights)
+        assert torch.equal(A.to_dense()[rows], expected)
+        render_rgb = render(g, camera, outputs=("rgb",)).rgb.reshape(-1, 3)
+        unclamped = (render_rgb > 0) & (render_rgb < 1)  # render clamps to [0, 1]; the system does not
+        assert int(unclamped.sum()) > 100
+        residual = view.rgb.reshape(-1, 3).float() / 255 - render_rgb
+        assert torch.allclose(b[rows][unclamped], residual[unclamped], atol=1e-3)  # weights < 1e-4 are dropped
+
+
+def sh_system(g, views) -> tuple[torch.Tensor, torch.Tensor]:  # dense [R, N * 4] over (Gaussian, basis), b [R, 3]
+    """The degree-1 system written out: column (i, k) is view v's weights of Gaussian i times Y_k(d_vi)."""
+    A, b = colour_system(g, views)
+    dense, rows = A.to_dense().double(), 0
+    blocks = []
+    for view in views:
+        pixels = view.camera.height * view.camera.width
+        d = g.means.double() - torch.from_numpy(view.camera.c2w64()[:3, 3])
+        basis = sh_basis(d / d.norm(dim=-1, keepdim=True), 1)  # [N, 4]
+        blocks.append((dense[rows:rows + pixels, :, None] * basis[None]).reshape(pixels, -1))
+        rows += pixels
+    return torch.cat(blocks), b.double()
+
+
+def test_degree_1_is_the_dense_regularised_least_squares_over_sh_offsets(scene):
+    g, cameras = scene
+    views = views_of(g, cameras, shift=0.1)
+    ridge, prior = 0.3, 0.5
+    solved = solve_colours(g, views, ridge=ridge, prior=prior, iterations=400, degree=1)
+    M, b = sh_system(g, views)
+    peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1], dtype=torch.float64).repeat(len(g))
+    evidence = (M**2).sum(0)
+    expected = torch.linalg.solve(M.T @ M + torch.diag(ridge * evidence + prior * peak**2), M.T @ b)
+    offsets = (solved.sh[:, :4] - g.sh[:, :4]).double().reshape(-1, 3)
+    assert expected[len(g):].abs().max() > 0.01  # linear terms take part
+    assert torch.allclose(offsets, expected, atol=5e-4)
+
+
+def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
+    g, cameras = scene
+    views = views_of(g, cameras)
+    A, _ = colour_system(g, views)
+    view_rows = np.cumsum([0] + [c.height * c.width for c in cameras]).astype(np.int64)
+    centres = np.stack([c.c2w64()[:3, 3] for c in cameras])
+    system = (A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy(), view_rows, centres, g.means.numpy())
+    M, _ = sh_system(g, views)
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((len(g), 4, 3)).astype(np.float32)
+    y = rng.standard_normal((A.shape[0], 3)).astype(np.float32)
+    assert np.allclose(_sh_matmul(*system, x), (M @ torch.from_numpy(x).double().reshape(-1, 3)).numpy(), atol=1e-4)
+    transposed = _sh_rmatmul(*system, y, 4, False)
+    assert np.allclose(transposed.reshape(-1, 3), (M.T @ torch.from_numpy(y).double()).numpy(), atol=1e-4)
+    squared = _sh_rmatmul(*system, np.ones_like(y), 4, True)
+    assert np.allclose(squared[..., 0].reshape(-1), (M**2).sum(0).numpy(), atol=1e-4)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        assert np.array_equal(_sh_rmatmul(*system, y, 4, False), transposed)  # fixed view groups: bit-identical
+    finally:
+        numba.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("degree", [0, 1])
+def test_geometry_opacity_and_higher_coefficients_are_kept(degree):
+    g = random_scene(60, seed=5, sh_degree=2, feature_dim=None, label_dim=None, opacity_range=(0.3, 0.9), spread=0.6)
+    cameras = [look_at_camera(28, 22, 25.0, eye=[x, -0.3, -2.5], target=[0, 0, 0]) for x in (-0.8, 0.7)]
+    solved = solve_colours(g, views_of(g, cameras, shift=0.2), degree=degree)
     for name in ("means", "scales", "quats", "opacities"):
         assert torch.equal(getattr(solved, name), getattr(g, name))
-    assert torch.equal(solved.sh[:, 1:], g.sh[:, 1:])
-    assert not torch.equal(solved.sh[:, 0], g.sh[:, 0])
+    solved_bases = (degree + 1) ** 2
+    assert torch.equal(solved.sh[:, solved_bases:], g.sh[:, solved_bases:])
+    for k in range(solved_bases):
+        assert not torch.equal(solved.sh[:, k], g.sh[:, k])
 
 
 def test_renders_move_toward_the_views(scene):
@@ -69,20 +147,31 @@ def test_renders_move_toward_the_views(scene):
     assert error(solve_colours(g, views)) < 0.2 * error(g)
 
 
-def test_an_offset_the_views_show_is_recovered(scene):
+def colour_changes(solved, g, cameras) -> list[torch.Tensor]:  # per camera [N, 3]: colour seen, after - before
+    """Before the clamp max(0, .) of the SH colour, which the fit leaves out."""
+    changes = []
+    for camera in cameras:
+        d = g.means - torch.from_numpy(camera.c2w64()[:3, 3]).float()
+        basis = sh_basis(d / d.norm(dim=-1, keepdim=True), g.sh_degree)
+        changes.append(torch.einsum("nk,nkc->nc", basis, solved.sh - g.sh))
+    return changes
+
+
+@pytest.mark.parametrize("degree", [0, 1])
+def test_an_offset_the_views_show_is_recovered(scene, degree):
     g, cameras = scene
-    solved = solve_colours(g, views_of(g, cameras, shift=0.15), ridge=0.0, prior=1e-3, iterations=200)
-    offsets = sh_dc_to_rgb(solved.sh[:, 0]) - sh_dc_to_rgb(g.sh[:, 0])
-    seen = colour_system(g, views_of(g, cameras))[0].to_dense().pow(2).sum(0) > 0.5  # well-seen Gaussians
-    assert int(seen.sum()) > 20
-    assert torch.allclose(offsets[seen], torch.full_like(offsets[seen], 0.15), atol=0.01)
+    solved = solve_colours(g, views_of(g, cameras, shift=0.15), ridge=0.0, prior=1e-3, iterations=200, degree=degree)
+    for camera, change in zip(cameras, colour_changes(solved, g, cameras)):
+        seen = colour_system(g, views_of(g, [camera]))[0].to_dense().pow(2).sum(0) > 0.5  # well seen from it
+        assert int(seen.sum()) > 15
+        assert torch.allclose(change[seen], torch.full_like(change[seen], 0.15), atol=0.01)
 
 
 def test_views_that_the_scene_already_renders_change_almost_nothing(scene):
     g, cameras = scene
     solved = solve_colours(g, views_of(g, cameras))
     # 8-bit rounding of the views is the only disagreement
-    assert (sh_dc_to_rgb(solved.sh[:, 0]) - sh_dc_to_rgb(g.sh[:, 0])).abs().max() < 0.02
+    assert max(float(change.abs().max()) for change in colour_changes(solved, g, cameras)) < 0.02
 
 
 def test_a_gaussian_no_view_sees_keeps_its_colour(scene):
@@ -104,7 +193,7 @@ def test_no_gaussians_is_no_op(scene):
 @pytest.mark.parametrize("kwargs, field", [
     ({"views": []}, "views"), ({"views": "frame"}, "views"), ({"views": [None]}, r"views\[0\]"),
     ({"ridge": -1.0}, "ridge"), ({"ridge": "0.3"}, "ridge"), ({"prior": 0.0}, "prior"), ({"prior": float("inf")}, "prior"), ({"iterations": 0}, "iterations"),
-    ({"iterations": 2.5}, "iterations"), ({"backend": "gpu"}, "backend"),
+    ({"iterations": 2.5}, "iterations"), ({"degree": 2}, "degree"), ({"degree": 1.0}, "degree"), ({"backend": "gpu"}, "backend"),
 ])  # fmt: skip
 def test_bad_arguments_name_the_field(scene, kwargs, field):
     g, cameras = scene
