@@ -1,7 +1,7 @@
 """The ``canonical`` command line.
 
     canonical serve [--host H] [--port P] [--data-dir D] [--threads N]
-    canonical stream DATASET --url URL (--session ID | --voxel-size S) [--stride K] [--max-frames N] [--scale F]
+    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set NAME=VALUE ...]) [--stride K] [--max-frames N] [--scale F]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical sessions --url URL
@@ -82,6 +82,27 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5)")
+    p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="NAME=VALUE",
+                   help="a setting of the new session (a SceneConfig field; VALUE read as JSON, else as text), "
+                        "e.g. --set colour_solve_views=16 --set depth_completion=true; repeatable")
+
+
+def session_setting(text: str) -> tuple[str, object]:
+    """``NAME=VALUE`` -> (NAME, VALUE), VALUE parsed as JSON (numbers, true/false, null) or kept as text.
+
+    Example:
+        >>> session_setting("colour_solve_views=16"), session_setting("weighting=average")
+        (('colour_solve_views', 16), ('weighting', 'average'))
+    """
+    import json
+
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    try:
+        return name.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return name.strip(), value
 
 
 def frame_arrays(frame, scale: float = 1.0) -> dict:
@@ -128,9 +149,15 @@ def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
 def run_stream(args) -> int:
     from canonical_core.datasets import load_dataset
 
+    if args.session and args.settings:
+        print("--set: settings belong to a new session (--voxel-size), not to an existing one", file=sys.stderr)
+        return 2
     frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     with _client(args) as client:
-        session = client.session(args.session) if args.session else client.create_session(voxel_size=args.voxel_size)
+        if args.session:
+            session = client.session(args.session)
+        else:
+            session = client.create_session(voxel_size=args.voxel_size, **dict(args.settings))
         print(f"session {session.id}", file=sys.stderr)
         elapsed = stream_frames(session, frames, args.scale)
         print(_stream_summary(len(frames), elapsed, session, session.stats()))

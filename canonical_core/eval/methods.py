@@ -10,6 +10,7 @@
   filled by the plane sweep against the session's earlier views);
 - ``colour_solve``: ``canonical`` with `SceneConfig.colour_solve_views` 16 (every input of the
   protocol kept): decoded colours solved so that renders reproduce the input views (least squares);
+- ``completion_solve``: both of the above, the setting for sessions captured first and viewed after;
 - ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
 - ``open3d_tsdf``: Open3D TSDF fusion + ray-cast colour (needs the ``bench`` extra).
 
@@ -144,6 +145,7 @@ METHODS: dict[str, Method] = {
     "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
     "depth_completion": Method(_scene("full", depth_completion=True), features=True),
     "colour_solve": Method(_scene("full", colour_solve_views=16), features=True),
+    "completion_solve": Method(_scene("full", depth_completion=True, colour_solve_views=16), features=True),
     "pixel_aligned": Method(_splats(pixel_aligned), features=True),
     "gaussian_merge": Method(_splats(gaussian_merge), features=True),
     "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),

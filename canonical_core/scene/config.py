@@ -89,14 +89,15 @@ class SceneConfig:
         colour_solve_views: keep this many input views (colour and camera, spread over the
             stream: `scene.keyframes`) and solve the decoded Gaussians' colours against them
             (`decode.solve_colours`: renders made to reproduce the inputs; geometry and opacity
-            unchanged). 0 (default) turns it off. Measured on the shelf evaluation (every input
-            kept): held-out covered PSNR +1.2 to +1.9 dB, all-pixel +0.3 to +0.7 dB at N = 2-16;
+            unchanged; the SH coefficients up to degree 1 are solved, so colour may change with
+            the view). 0 (default) turns it off. Measured on the shelf evaluation (every input
+            kept): held-out covered PSNR +1.6 to +2.6 dB, all-pixel +0.4 to +0.9 dB at N = 2-16;
             it costs a decode seconds instead of milliseconds (`bench/colour_solve.py`). See the
             evaluation's ``colour_solve``.
         colour_solve_scale: the kept views' size relative to the input (0.5: a quarter of the
             pixels, 0.23 MB per 640x480 view). Measured on the shelf at N = 16 against full size:
-            held-out 14.58 / 20.09 dB (all-pixel / covered) against 14.62 / 20.20, solve 9.3 s
-            against 36.6 s on 2 cores (`bench/colour_solve.py`); at 0.25, 14.42 / 19.60.
+            held-out 14.78 / 20.82 dB (all-pixel / covered) against 14.84 / 21.04, solve 3.1 s
+            against 10.2 s on 2 cores (`bench/colour_solve.py`).
     """
 
     voxel_size: float

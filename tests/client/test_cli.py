@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from canonical_core import load_ply
 from client import cli
+from client.sdk import Client
 
 
 def test_commands_are_a_registry():
@@ -50,6 +52,27 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
 
     assert cli.main(["export", *url, "--session", "no-such-session", "-o", str(ply)]) == 1
     assert "404" in capsys.readouterr().err
+
+
+def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
+    url = ["--url", server.url]
+    assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "20", "--max-frames", "2",
+                     "--scale", "0.25", "--set", "colour_solve_views=2", "--set", "weighting=average",
+                     "--set", "depth_completion=true"]) == 0
+    session_id = next(line.split()[1] for line in capsys.readouterr().err.splitlines() if line.startswith("session "))
+    config = Client(server.url).session(session_id).stats()["config"]
+    assert (config["colour_solve_views"], config["weighting"], config["depth_completion"]) == (2, "average", True)
+
+    # a setting the service does not know: its 422 names the field, and no session is made
+    before = len(Client(server.url).sessions())
+    assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--max-frames", "1", "--set", "colour_views=2"]) == 1
+    assert "colour_views" in capsys.readouterr().err
+    assert len(Client(server.url).sessions()) == before
+    assert cli.main(["stream", str(shelf_dir), *url, "--session", session_id, "--set", "weighting=full"]) == 2
+    assert "--set" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["stream", "x", "--voxel-size", "0.01", "--set", "weighting"])
+    assert "NAME=VALUE" in capsys.readouterr().err
 
 
 def test_demo_without_shared_data_fuses_a_generated_sample(tmp_path, monkeypatch, capsys):

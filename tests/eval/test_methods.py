@@ -28,8 +28,8 @@ def frames() -> list[Frame]:
 
 def test_registry_names_the_issue_methods():
     assert list(METHODS) == ["canonical", "no_reliability", "no_similarity", "average", "plain_decoding",
-                             "no_free_space", "no_view_dependence", "depth_completion", "colour_solve", "pixel_aligned",
-                             "gaussian_merge", "open3d_tsdf"]
+                             "no_free_space", "no_view_dependence", "depth_completion", "colour_solve", "completion_solve",
+                             "pixel_aligned", "gaussian_merge", "open3d_tsdf"]
     assert check_methods(["average", "canonical", "average"]) == ["average", "canonical"]
     with pytest.raises(ValueError, match="methods"):
         check_methods(["canonical", "nerf"])
@@ -46,15 +46,20 @@ def test_plain_decoding_is_canonical_with_one_opacity(frames):
     assert torch.allclose(plain.splats.opacities, torch.tensor(full_support_opacity(GaussianDecoder(16))))
 
 
-def test_depth_completion_fills_what_the_sensor_missed(frames):
-    # the synthetic depth is complete, so withhold a band of the later frames' depth (as a sensor's
-    # field of view or range would): completion fills it from the earlier views, canonical cannot
-    near = list(synthetic_rgbd(num_frames=48, width=160, height=120)[8:11])  # neighbours ~5 cm apart at ~1 m
-    holed = [near[0]] + [dataclasses.replace(f, depth=torch.where(torch.arange(160) < 60, 0.0, f.depth)) for f in near[1:]]
+def holed_frames() -> list[Frame]:
+    """Three neighbouring synthetic views (~5 cm apart at ~1 m), the later two without depth in
+    their left 60 columns (as a sensor's field of view or range would leave them)."""
+    near = list(synthetic_rgbd(num_frames=48, width=160, height=120)[8:11])
+    return [near[0]] + [dataclasses.replace(f, depth=torch.where(torch.arange(160) < 60, 0.0, f.depth)) for f in near[1:]]
+
+
+def test_depth_completion_fills_what_the_sensor_missed():
+    # completion fills the withheld band from the earlier views, canonical cannot
+    holed = holed_frames()
     canonical, _ = build("canonical", holed, 0.02)
     completed, _ = build("depth_completion", holed, 0.02)
     assert completed.gaussians > canonical.gaussians
-    band = lambda model: model.render(near[2].camera).alpha[:, :60].mean()  # noqa: E731
+    band = lambda model: model.render(holed[2].camera).alpha[:, :60].mean()  # noqa: E731
     assert band(completed) > band(canonical) + 0.05
 
 
@@ -65,6 +70,16 @@ def test_colour_solve_is_canonical_with_colours_solved_against_its_inputs(frames
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(solved.splats, name)), name
     assert not torch.equal(canonical.splats.sh, solved.splats.sh)
+
+
+def test_completion_solve_is_depth_completion_with_colours_solved():
+    holed = holed_frames()
+    completed, _ = build("depth_completion", holed, 0.02)
+    both, _ = build("completion_solve", holed, 0.02)
+    assert both.gaussians == completed.gaussians > build("canonical", holed, 0.02)[0].gaussians
+    expected = solve_colours(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve_scale) for f in holed])
+    for name in ("means", "scales", "quats", "opacities", "sh"):
+        assert torch.equal(getattr(expected, name), getattr(both.splats, name)), name
 
 
 def test_scene_methods_render_rgb_and_features(frames):
