@@ -1,6 +1,7 @@
-"""Service benchmark: frames/s over HTTP vs in-process fold, and render latency under 4 clients.
+"""Service benchmark: frames/s over HTTP vs in-process fold, render latency under 4 clients, and
+fold latency while a viewer renders (a plain session and one with the colour solve).
 
-    python bench/service.py [--data ../shared/data/realsense_shelf] [--frames 30] [--renders 40]
+    python bench/service.py [--data ../shared/data/realsense_shelf] [--frames 30] [--renders 40] [--solve-views 16]
 
 Starts the real service (`canonical serve`, uvicorn) on a free loopback port with a temporary data
 directory, streams the same frames through the Python client that it folds in-process, and prints
@@ -71,6 +72,37 @@ def render_latency(url: str, session_id: str, cameras, clients: int, per_client:
     return lat
 
 
+def fold_while_viewing(url: str, payloads: list[dict], voxel: float, settings: dict) -> tuple[list[float], list[float]]:
+    """A new session; one client folds ``payloads`` while another renders the first frame's view in a
+    loop, as a live viewer would. Returns the fold round trips and the render round trips (ms)."""
+    folds, renders, stop = [], [], threading.Event()
+    K, c2w, rgb = payloads[0]["K"], payloads[0]["c2w"], payloads[0]["rgb"]
+    with Client(url) as client:
+        session = client.create_session(voxel_size=voxel, **settings)
+        session.add_frame(**payloads[0])
+
+        def viewer() -> None:
+            with Client(url) as own:
+                mine = own.session(session.id)
+                while not stop.is_set():
+                    t0 = time.perf_counter()
+                    mine.render(K, c2w, rgb.shape[1], rgb.shape[0])
+                    renders.append((time.perf_counter() - t0) * 1000)
+
+        thread = threading.Thread(target=viewer)
+        thread.start()
+        try:
+            for p in payloads[1:]:
+                t0 = time.perf_counter()
+                session.add_frame(**p)
+                folds.append((time.perf_counter() - t0) * 1000)
+        finally:
+            stop.set()
+            thread.join()
+        session.delete()
+    return folds, renders
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -78,7 +110,10 @@ def main(argv=None) -> None:
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--renders", type=int, default=40, help="renders in total across the 4 clients")
     p.add_argument("--scale", type=float, default=1.0, help="also resize frames (e.g. 0.5 for 320x240)")
+    p.add_argument("--solve-views", type=int, default=16, help="colour_solve_views of the viewed session (0: skip that table)")
     args = p.parse_args(argv)
+    if args.solve_views < 0:
+        p.error("--solve-views: expected a non-negative number of kept views")
 
     frames = list(load_dataset(args.data, max_frames=args.frames))
     payloads = [frame_arrays(f, args.scale) for f in frames]
@@ -102,6 +137,10 @@ def main(argv=None) -> None:
             cams = [f.camera for f in frames]
             render_latency(url, sid, cams[:2], clients=1, per_client=2)  # warm decode cache and renderer
             lat = render_latency(url, sid, cams, clients=4, per_client=max(1, args.renders // 4))
+            viewed = {"plain session": {}}
+            if args.solve_views:
+                viewed[f"colour_solve_views {args.solve_views}"] = {"colour_solve_views": args.solve_views}
+            viewed = {name: fold_while_viewing(url, payloads, args.voxel, settings) for name, settings in viewed.items()}
         finally:
             service.terminate()
             service.wait(timeout=60)
@@ -118,6 +157,10 @@ def main(argv=None) -> None:
     lat = np.asarray(lat)
     print_table(f"Render latency, 4 concurrent clients, {frames[0].width}x{frames[0].height}, {len(lat)} renders", [
         {"p50 ms": f"{np.percentile(lat, 50):.0f}", "p99 ms": f"{np.percentile(lat, 99):.0f}", "max ms": f"{lat.max():.0f}"}])
+    print_table(f"Folds while a viewer renders in a loop ({len(payloads) - 1} folds, one client each)", [
+        {"session": name, "fold ms (med/min/max)": stats_ms(folds), "fold p95 ms": f"{np.percentile(folds, 95):.0f}",
+         "renders": len(renders), "render ms (med/min/max)": stats_ms(renders) if renders else "-"}
+        for name, (folds, renders) in viewed.items()])
 
 
 if __name__ == "__main__":

@@ -16,7 +16,11 @@ Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
 
 Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
 snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
-sees a half-folded scene and never blocks another session.
+sees a half-folded scene and never blocks another session. The colour solve of a session with
+``colour_solve_views`` (seconds) runs outside ``lock`` too, on Gaussians and views taken under it:
+folds go on meanwhile, and a solve that a fold overtook answers its own request but is not cached.
+``Session.decode_lock`` lets one decode of a session run at a time (concurrent renders wait for it
+and then find it cached); folds never take it.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from pathlib import Path
 import numba
 
 from canonical_core import Frame, Gaussians, SceneConfig
+from canonical_core.decode import solve_colours
 from canonical_core.scene import FoldReport, Scene
 
 from . import wire
@@ -150,9 +155,11 @@ class Session:
     log: FrameLog
     snapshot_frames: int
     lock: threading.Lock = field(default_factory=threading.Lock)
+    decode_lock: threading.Lock = field(default_factory=threading.Lock)  # taken before ``lock``, never after
     deleted: bool = False
     dirty_since: float | None = None  # when the oldest frame not in the snapshot was folded
     _decoded: dict = field(default_factory=dict)
+    _generation: int = 0  # bumped whenever the scene changes, so a decode knows whether it is still current
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float) -> FoldReport:
@@ -175,7 +182,7 @@ class Session:
                     log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
                     self.deleted = True
                 raise
-            self._decoded.clear()
+            self._invalidate()
             now = time.monotonic()
             self.dirty_since = self.dirty_since or now
             if (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
@@ -198,7 +205,11 @@ class Session:
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames = restore_scene(self.path, self.config)
+        self._invalidate()
+
+    def _invalidate(self) -> None:
         self._decoded.clear()
+        self._generation += 1
 
     def _check_alive(self) -> None:
         if self.deleted:
@@ -209,17 +220,34 @@ class Session:
         """Decoded Gaussians (cached until the next fold) and the label_dim, consistent with each other."""
         with self.lock:
             self._check_alive()
-            return self._gaussians_locked(max_gaussians), self.scene.label_dim
+            key = self._cache_key(max_gaussians)
+            if key in self._decoded:
+                return self._decoded[key], self.scene.label_dim
+        with self.decode_lock:
+            with self.lock:
+                self._check_alive()
+                key = self._cache_key(max_gaussians)  # the scene may have grown while we waited
+                label_dim, generation, views = self.scene.label_dim, self._generation, self.scene.colour_views()
+                g = self._decoded.get(key)
+                if g is not None:
+                    return g, label_dim
+                g = self.scene.decode(key, solve=False)
+                if not views:
+                    self._cache(key, g)
+                    return g, label_dim
+            g = solve_colours(g, views)
+            with self.lock:
+                if self._generation == generation and not self.deleted:
+                    self._cache(key, g)
+            return g, label_dim
 
-    def _gaussians_locked(self, max_gaussians: int | None) -> Gaussians:
-        if max_gaussians is not None and max_gaussians >= len(self.scene):
-            max_gaussians = None
-        g = self._decoded.get(max_gaussians)
-        if g is None:
-            if len(self._decoded) >= DECODE_CACHE_ENTRIES:
-                self._decoded.pop(next(k for k in self._decoded if k is not None))
-            g = self._decoded[max_gaussians] = self.scene.decode(max_gaussians)
-        return g
+    def _cache_key(self, max_gaussians: int | None) -> int | None:
+        return None if max_gaussians is not None and max_gaussians >= len(self.scene) else max_gaussians
+
+    def _cache(self, key: int | None, g: Gaussians) -> None:
+        if key not in self._decoded and len(self._decoded) >= DECODE_CACHE_ENTRIES:
+            self._decoded.pop(next(k for k in self._decoded if k is not None))
+        self._decoded[key] = g
 
     def summary(self) -> dict:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created}
@@ -230,13 +258,22 @@ class Session:
             stats = self.scene.stats()
             return {
                 **self.summary(),
-                "gaussians": len(self._gaussians_locked(None)),
+                "gaussians": self._count_locked(),
                 "memory_bytes": stats["memory_bytes"],
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "snapshot_frames": self.snapshot_frames,
                 "config": self.config.to_dict(),
             }
+
+    def _count_locked(self) -> int:
+        """Gaussians of the full decode; the colour solve changes no count, so it is not waited for."""
+        if None in self._decoded:
+            return len(self._decoded[None])
+        g = self.scene.decode(None, solve=False)
+        if not self.scene.colour_views():
+            self._cache(None, g)
+        return len(g)
 
     def digest(self) -> dict:
         """The library's digest of the fused state: equal iff the sessions fused the same frames."""
@@ -348,7 +385,7 @@ class SessionStore:
         with session.lock:
             session._check_alive()
             session.deleted = True
-            session._decoded.clear()
+            session._invalidate()
             session.log.close()
             with self._lock:
                 self._sessions.pop(session_id, None)

@@ -369,10 +369,17 @@ class Scene:
         does not depend on image resolution or voxel size, only on how many views support a voxel."""
         return self._density_sum / self._density_frames if self._density_frames else 1.0
 
-    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+    def colour_views(self) -> list[Frame]:
+        """The input views kept for the colour solve (``colour_solve_views``; empty when off), resized
+        copies that later folds do not change."""
+        return self._keyframes.frames()
+
+    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0, solve: bool = True) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
-        best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
-        solved against the kept input views (`decode.solve_colours`)."""
+        best-supported ones (level of detail). With ``colour_solve_views`` and ``solve``, their colours
+        are then solved against the kept input views (`decode.solve_colours`); ``solve=False`` leaves
+        that to the caller (``solve_colours(scene.decode(solve=False), scene.colour_views())`` is the
+        same), e.g. to run it without holding a lock on the scene."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
@@ -389,7 +396,7 @@ class Scene:
         f = {k: v[keep] for k, v in f.items()}
         with torch.no_grad():
             gaussians = self.decoder(f, self.config.voxel_size, unit)
-        return solve_colours(gaussians, self._keyframes.frames()) if len(self._keyframes) else gaussians
+        return solve_colours(gaussians, self._keyframes.frames()) if solve and len(self._keyframes) else gaussians
 
     def _snapshot_arrays(self) -> dict[str, np.ndarray]:
         """Every array of the fused state: sums, free-space history, source window, waiting frames,

@@ -1,0 +1,88 @@
+"""The session store in process (the HTTP tests drive it through a real service): the decode cache and
+the colour solve, which runs outside the session's lock so that folds go on while it does."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import torch
+
+from canonical_core import SceneConfig
+from canonical_core.datasets import load_tsdf_fusion
+from canonical_core.decode import solve_colours
+from client.cli import frame_arrays
+from server import wire
+from server.store import SessionStore
+
+from .harness import msgpack_frame
+
+
+def fold(session, frame) -> None:
+    """What POST /frames does with a frame: its wire record logged, then folded."""
+    payload = wire.pack(msgpack_frame(frame_arrays(frame)))
+    session.add_frame(payload, wire.frame_from_message(wire.unpack(payload)), 10**6, 1e9)
+
+
+@pytest.fixture()
+def store(tmp_path):
+    store = SessionStore(tmp_path, max_sessions=4)
+    store.open()
+    yield store
+    store.close()
+
+
+@pytest.fixture(scope="module")
+def shelf_frames(shelf_dir):
+    return list(load_tsdf_fusion(shelf_dir, stride=8, max_frames=5))  # 640x480, about 10 degrees apart
+
+
+def same(a, b) -> bool:
+    return all(torch.equal(getattr(a, name), getattr(b, name)) for name in ("means", "scales", "quats", "opacities", "sh"))
+
+
+def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
+    session = store.create(SceneConfig(voxel_size=0.008, colour_solve_views=2))
+    for frame in shelf_frames[:3]:
+        fold(session, frame)
+    g, label_dim = session.gaussians()
+    assert label_dim == 0 and len(session.scene.colour_views()) == 2
+    assert same(g, session.scene.decode())
+    assert same(g, solve_colours(session.scene.decode(solve=False), session.scene.colour_views()))
+    assert not same(g, session.scene.decode(solve=False))
+    assert session.gaussians()[0] is g  # cached until the next fold
+    assert session.stats()["gaussians"] == len(g)
+    fewer, _ = session.gaussians(max_gaussians=len(g) // 2)
+    assert len(fewer) == len(g) // 2 and same(fewer, session.scene.decode(len(g) // 2))
+
+
+def test_a_fold_goes_on_while_a_solve_runs_and_the_overtaken_solve_is_not_served(store, shelf_frames):
+    session = store.create(SceneConfig(voxel_size=0.004, colour_solve_views=4, colour_solve_scale=1.0))
+    for frame in shelf_frames[:4]:
+        fold(session, frame)
+    before = len(session.scene.decode(solve=False))
+    answer = {}
+    render = threading.Thread(target=lambda: answer.update(g=session.gaussians()[0]))
+    render.start()
+
+    def solving() -> bool:
+        """The decode lock held and the scene's lock free, seen twice 20 ms apart (so not the instant
+        between taking the one and the other, before the decode): the render is in its solve."""
+        if not (session.decode_lock.locked() and not session.lock.locked()):
+            return False
+        time.sleep(0.02)
+        return session.decode_lock.locked() and not session.lock.locked()
+
+    deadline = time.monotonic() + 120
+    while not solving():
+        assert time.monotonic() < deadline, "the render never reached its colour solve"
+        time.sleep(0.005)
+    fold(session, shelf_frames[4])  # takes the scene's lock: it would wait out the solve if the solve held it
+    assert render.is_alive(), "the fold waited for the colour solve"
+    render.join()
+
+    assert len(answer["g"]) == before  # the render answered with the scene as it was asked
+    current = session.gaussians()[0]  # after the fold: the overtaken solve was not cached
+    assert len(current) != before
+    assert same(current, solve_colours(session.scene.decode(solve=False), session.scene.colour_views()))
