@@ -16,9 +16,10 @@ Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
 
 Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
 snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
-sees a half-folded scene and never blocks another session. The colour solve of a session with
-``colour_solve_views`` (seconds) runs outside ``lock`` too, on Gaussians and views taken under it:
-folds go on meanwhile, and a solve that a fold overtook answers its own request but is not cached.
+sees a half-folded scene and never blocks another session. Decoding runs outside ``lock`` too: it
+holds the lock only to copy the scene's sums (`Scene.decode_inputs`, tens of ms), then decodes and,
+with ``colour_solve_views``, solves colours (hundreds of ms to seconds) without it, so folds go on
+meanwhile; a decode that a fold overtook answers its own request but is not cached.
 ``Session.decode_lock`` lets one decode of a session run at a time (concurrent renders wait for it
 and then find it cached); folds never take it.
 """
@@ -40,7 +41,6 @@ from pathlib import Path
 import numba
 
 from canonical_core import Frame, Gaussians, SceneConfig
-from canonical_core.decode import solve_colours
 from canonical_core.scene import FoldReport, Scene
 
 from . import wire
@@ -227,15 +227,10 @@ class Session:
             with self.lock:
                 self._check_alive()
                 key = self._cache_key(max_gaussians)  # the scene may have grown while we waited
-                label_dim, generation, views = self.scene.label_dim, self._generation, self.scene.colour_views()
-                g = self._decoded.get(key)
-                if g is not None:
-                    return g, label_dim
-                g = self.scene.decode(key, solve=False)
-                if not views:
-                    self._cache(key, g)
-                    return g, label_dim
-            g = solve_colours(g, views)
+                if key in self._decoded:
+                    return self._decoded[key], self.scene.label_dim
+                scene, inputs, label_dim, generation = self.scene, self.scene.decode_inputs(), self.scene.label_dim, self._generation
+            g = scene.decode_from(inputs, key)
             with self.lock:
                 if self._generation == generation and not self.deleted:
                     self._cache(key, g)
@@ -253,27 +248,19 @@ class Session:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created}
 
     def stats(self) -> dict:
+        gaussians = len(self.gaussians()[0])  # a decode if none is cached, outside the scene's lock
         with self.lock:
             self._check_alive()
             stats = self.scene.stats()
             return {
                 **self.summary(),
-                "gaussians": self._count_locked(),
+                "gaussians": gaussians,
                 "memory_bytes": stats["memory_bytes"],
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "snapshot_frames": self.snapshot_frames,
                 "config": self.config.to_dict(),
             }
-
-    def _count_locked(self) -> int:
-        """Gaussians of the full decode; the colour solve changes no count, so it is not waited for."""
-        if None in self._decoded:
-            return len(self._decoded[None])
-        g = self.scene.decode(None, solve=False)
-        if not self.scene.colour_views():
-            self._cache(None, g)
-        return len(g)
 
     def digest(self) -> dict:
         """The library's digest of the fused state: equal iff the sessions fused the same frames."""

@@ -2,6 +2,6 @@
 
 from .batch import aggregate_batch
 from .config import SceneConfig
-from .scene import CapacityError, FoldReport, Scene
+from .scene import CapacityError, DecodeInputs, FoldReport, Scene
 
-__all__ = ["CapacityError", "FoldReport", "Scene", "SceneConfig", "aggregate_batch"]
+__all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene", "SceneConfig", "aggregate_batch"]

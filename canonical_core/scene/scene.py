@@ -22,6 +22,7 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -46,6 +47,14 @@ FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load wit
 
 class CapacityError(ValueError):
     """A fold would take the scene past ``SceneConfig.max_voxels``; the scene is unchanged."""
+
+
+class DecodeInputs(NamedTuple):
+    """A scene's state as `Scene.decode_from` reads it (`Scene.decode_inputs`: copies)."""
+
+    sums: dict[str, np.ndarray]  # `Scene.sums`: the raw per-voxel sums
+    observations_per_view: float  # `Scene.observations_per_view`
+    views: list[Frame]  # the colour solve's kept input views (empty when it is off)
 
 
 @dataclass(frozen=True)
@@ -369,23 +378,27 @@ class Scene:
         does not depend on image resolution or voxel size, only on how many views support a voxel."""
         return self._density_sum / self._density_frames if self._density_frames else 1.0
 
-    def colour_views(self) -> list[Frame]:
-        """The input views kept for the colour solve (``colour_solve_views``; empty when off), resized
-        copies that later folds do not change."""
-        return self._keyframes.frames()
+    def decode_inputs(self) -> DecodeInputs:
+        """What `decode_from` needs of the scene, copied: later folds do not change it. Cheap next to
+        the decode itself (a copy of the sums), so a caller that guards the scene with a lock can
+        hold it for this alone and decode outside it."""
+        return DecodeInputs(self.sums(), self.observations_per_view(), self._keyframes.frames())
 
-    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0, solve: bool = True) -> Gaussians:
+    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
-        best-supported ones (level of detail). With ``colour_solve_views`` and ``solve``, their colours
-        are then solved against the kept input views (`decode.solve_colours`); ``solve=False`` leaves
-        that to the caller (``solve_colours(scene.decode(solve=False), scene.colour_views())`` is the
-        same), e.g. to run it without holding a lock on the scene."""
+        best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
+        solved against the kept input views (`decode.solve_colours`).
+        ``decode_from(decode_inputs(), ...)``."""
+        return self.decode_from(self.decode_inputs(), max_gaussians, min_support)
+
+    def decode_from(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+        """`decode` of the scene as it was when ``inputs`` were taken (`decode_inputs`)."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
-        f = self.fields(sort=False)
-        unit = support_unit(f["reliability"], f["observations"]) * self.observations_per_view()
+        f = fields_from_sums(inputs.sums, self.config, sort=False)
+        unit = support_unit(f["reliability"], f["observations"]) * inputs.observations_per_view
         supported = f["reliability"] > min_support
         if self.config.free_space:  # voxels that more rays saw through than saw at are not surface
             supported &= f["free_space"] <= self.config.free_space_dominance * f["reliability"]
@@ -396,7 +409,7 @@ class Scene:
         f = {k: v[keep] for k, v in f.items()}
         with torch.no_grad():
             gaussians = self.decoder(f, self.config.voxel_size, unit)
-        return solve_colours(gaussians, self._keyframes.frames()) if solve and len(self._keyframes) else gaussians
+        return solve_colours(gaussians, inputs.views) if inputs.views else gaussians
 
     def _snapshot_arrays(self) -> dict[str, np.ndarray]:
         """Every array of the fused state: sums, free-space history, source window, waiting frames,

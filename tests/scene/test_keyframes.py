@@ -86,6 +86,21 @@ def test_decode_solves_colours_against_the_kept_views(small):
     assert solving.memory_bytes() == plain.memory_bytes() + sum(k.rgb.numel() for k in kept)
 
 
+def test_decode_inputs_are_a_copy_that_later_folds_leave_alone(small):
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=2, colour_solve_scale=1.0))
+    for f in small[:3]:
+        scene.fold(f)
+    inputs, before = scene.decode_inputs(), scene.decode()
+    assert [v.frame_id for v in inputs.views] == [small[0].frame_id, small[2].frame_id]
+    scene.fold(small[3])  # adds voxels, changes sums and evicts a kept view
+    later = scene.decode_from(inputs)
+    for name in ("means", "scales", "opacities", "sh"):
+        assert torch.equal(getattr(later, name), getattr(before, name)), name
+    assert len(scene.decode()) != len(later)
+    with pytest.raises(ValueError, match="max_gaussians"):
+        scene.decode_from(inputs, max_gaussians=-1)
+
+
 def test_keyframes_travel_with_the_snapshot(small, tmp_path):
     scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8))
     for f in small[:2]:

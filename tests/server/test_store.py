@@ -1,5 +1,5 @@
-"""The session store in process (the HTTP tests drive it through a real service): the decode cache and
-the colour solve, which runs outside the session's lock so that folds go on while it does."""
+"""The session store in process (the HTTP tests drive it through a real service): the decode cache, and
+decoding (with the colour solve) outside the session's lock, so that folds go on while it runs."""
 
 from __future__ import annotations
 
@@ -47,28 +47,29 @@ def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
     for frame in shelf_frames[:3]:
         fold(session, frame)
     g, label_dim = session.gaussians()
-    assert label_dim == 0 and len(session.scene.colour_views()) == 2
+    inputs = session.scene.decode_inputs()
+    assert label_dim == 0 and len(inputs.views) == 2
     assert same(g, session.scene.decode())
-    assert same(g, solve_colours(session.scene.decode(solve=False), session.scene.colour_views()))
-    assert not same(g, session.scene.decode(solve=False))
+    fused = session.scene.decode_from(inputs._replace(views=[]))  # the analytic decode
+    assert same(g, solve_colours(fused, inputs.views)) and not same(g, fused)
     assert session.gaussians()[0] is g  # cached until the next fold
     assert session.stats()["gaussians"] == len(g)
     fewer, _ = session.gaussians(max_gaussians=len(g) // 2)
     assert len(fewer) == len(g) // 2 and same(fewer, session.scene.decode(len(g) // 2))
 
 
-def test_a_fold_goes_on_while_a_solve_runs_and_the_overtaken_solve_is_not_served(store, shelf_frames):
+def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_served(store, shelf_frames):
     session = store.create(SceneConfig(voxel_size=0.004, colour_solve_views=4, colour_solve_scale=1.0))
     for frame in shelf_frames[:4]:
         fold(session, frame)
-    before = len(session.scene.decode(solve=False))
+    before = len(session.scene.decode_from(session.scene.decode_inputs()._replace(views=[])))
     answer = {}
     render = threading.Thread(target=lambda: answer.update(g=session.gaussians()[0]))
     render.start()
 
     def solving() -> bool:
         """The decode lock held and the scene's lock free, seen twice 20 ms apart (so not the instant
-        between taking the one and the other, before the decode): the render is in its solve."""
+        between taking the one and the other): the render is decoding and solving."""
         if not (session.decode_lock.locked() and not session.lock.locked()):
             return False
         time.sleep(0.02)
@@ -76,13 +77,13 @@ def test_a_fold_goes_on_while_a_solve_runs_and_the_overtaken_solve_is_not_served
 
     deadline = time.monotonic() + 120
     while not solving():
-        assert time.monotonic() < deadline, "the render never reached its colour solve"
+        assert time.monotonic() < deadline, "the render never decoded outside the scene's lock"
         time.sleep(0.005)
-    fold(session, shelf_frames[4])  # takes the scene's lock: it would wait out the solve if the solve held it
-    assert render.is_alive(), "the fold waited for the colour solve"
+    fold(session, shelf_frames[4])  # takes the scene's lock: it would wait out the decode if the decode held it
+    assert render.is_alive(), "the fold waited for the decode"
     render.join()
 
     assert len(answer["g"]) == before  # the render answered with the scene as it was asked
     current = session.gaussians()[0]  # after the fold: the overtaken solve was not cached
     assert len(current) != before
-    assert same(current, solve_colours(session.scene.decode(solve=False), session.scene.colour_views()))
+    assert same(current, session.scene.decode())
