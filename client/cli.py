@@ -18,6 +18,7 @@ string, so nothing here imports ``server``. Datasets are read client-side with c
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -94,8 +95,6 @@ def session_setting(text: str) -> tuple[str, object]:
         >>> session_setting("colour_solve_views=16"), session_setting("weighting=average")
         (('colour_solve_views', 16), ('weighting', 'average'))
     """
-    import json
-
     name, sep, value = text.partition("=")
     if not sep or not name.strip():
         raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
@@ -151,6 +150,9 @@ def run_stream(args) -> int:
 
     if args.session and args.settings:
         print("--set: settings belong to a new session (--voxel-size), not to an existing one", file=sys.stderr)
+        return 2
+    if any(name == "voxel_size" for name, _ in args.settings):
+        print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
         return 2
     frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     with _client(args) as client:

@@ -387,7 +387,7 @@ class Scene:
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
         best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
-        solved against the kept input views (`decode.solve_colours`).
+        solved against the kept input views (`decode.solve_colours`). The same as
         ``decode_from(decode_inputs(), ...)``."""
         return self.decode_from(self.decode_inputs(), max_gaussians, min_support)
 

@@ -70,6 +70,9 @@ def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     assert len(Client(server.url).sessions()) == before
     assert cli.main(["stream", str(shelf_dir), *url, "--session", session_id, "--set", "weighting=full"]) == 2
     assert "--set" in capsys.readouterr().err
+    assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--set", "voxel_size=0.02"]) == 2
+    assert "--voxel-size" in capsys.readouterr().err
+    assert len(Client(server.url).sessions()) == before
     with pytest.raises(SystemExit):
         cli.build_parser().parse_args(["stream", "x", "--voxel-size", "0.01", "--set", "weighting"])
     assert "NAME=VALUE" in capsys.readouterr().err
