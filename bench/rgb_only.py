@@ -1,7 +1,7 @@
 """Fusion from RGB only (plane-sweep depth) vs RGB-D on the same frames, and reliability vs uniform.
 
     python bench/rgb_only.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scale 0.5] [--voxel 0.008]
-                             [--window-views 8] [--window-step 6]
+                             [--window-views 8] [--window-step 6] [--solve-views K]
 
 The evaluation's protocol and scoring (`canonical_core.eval`): inputs and held-out frames from
 `interpolation_split` for each N in ``views`` (one table per N), frames resized by `resize_frame`
@@ -20,6 +20,9 @@ split: RGB-only fusion, full against no_reliability, over every window of ``wind
 ``window_step`` frames apart (offsets 0, 1, ...), each scored on the frames midway between its
 consecutive inputs (never inputs). It reports each window, the mean and median differences and
 how many windows reliability wins (``--window-views 0`` skips it).
+
+``--solve-views K`` runs every scene with `SceneConfig.colour_solve_views` K (colours solved against
+up to K kept inputs), so the comparisons can be made with the colour solve too.
 """
 
 from __future__ import annotations
@@ -83,22 +86,22 @@ def views_list(text: str) -> list[int]:
     return views
 
 
-def fused_metrics(inputs, weighting: str, voxel: float, targets) -> tuple[dict, cc.Scene]:
+def fused_metrics(inputs, weighting: str, voxel: float, targets, solve_views: int = 0) -> tuple[dict, cc.Scene]:
     """The evaluation's metrics of ``targets`` rendered from a scene folded from ``inputs``, and the scene."""
-    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, weighting=weighting))
+    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, weighting=weighting, colour_solve_views=solve_views))
     for frame in inputs:
         scene.fold(frame)
     return score(SplatModel(scene.decode()), targets, voxel).metrics, scene
 
 
-def shifted_windows(small, views: int, step: int, voxel: float) -> None:
+def shifted_windows(small, views: int, step: int, voxel: float, solve_views: int = 0) -> None:
     """RGB-only full against no_reliability over every window of ``views`` inputs ``step`` apart."""
     rows, diffs = [], []
     for offset in range(len(small) - step * (views - 1)):
         inputs = [offset + step * k for k in range(views)]
         targets = [small[i + step // 2] for i in inputs[:-1]]
         rgb_only = [without_depth(small[i]) for i in inputs]
-        pair = [fused_metrics(rgb_only, w, voxel, targets)[0] for w in ("full", "no_reliability")]
+        pair = [fused_metrics(rgb_only, w, voxel, targets, solve_views)[0] for w in ("full", "no_reliability")]
         psnr = np.array([[m["psnr"], m["psnr_covered"]] for m in pair])
         diffs.append(psnr[0] - psnr[1])
         rows.append({"inputs": f"{inputs[0]}..{inputs[-1]}", "full PSNR / covered dB": f"{psnr[0, 0]:.2f} / {psnr[0, 1]:.2f}",
@@ -112,8 +115,9 @@ def shifted_windows(small, views: int, step: int, voxel: float) -> None:
         rows.append({"inputs": label, "full - no_reliability": f"{v[0]:+.2f} / {v[1]:+.2f}"})
     wins = (d > 0).sum(0)
     rows.append({"inputs": "windows full wins", "full - no_reliability": f"{wins[0]} / {wins[1]} of {len(d)}"})
+    solved = f", colours solved against {solve_views} kept inputs" if solve_views else ""
     print_table(f"RGB only, {views} inputs {step} frames apart, every offset: reliability against uniform "
-                "(held out: the frames midway between inputs)", rows)
+                f"(held out: the frames midway between inputs){solved}", rows)
 
 
 def main(argv=None) -> None:
@@ -124,8 +128,11 @@ def main(argv=None) -> None:
     p.add_argument("--voxel", type=float, default=0.008)
     p.add_argument("--window-views", type=int, default=8, help="inputs per shifted window (0: skip that table)")
     p.add_argument("--window-step", type=int, default=6, help="frames between a shifted window's inputs")
+    p.add_argument("--solve-views", type=int, default=0, help="colour_solve_views of every scene (0: no colour solve)")
     args = p.parse_args(argv)
     view_counts = args.views
+    if not 0 <= args.solve_views <= 64:
+        p.error(f"--solve-views: expected 0 to 64 kept views, got {args.solve_views}")
     if args.window_views and (args.window_views < 2 or args.window_step < 2):
         p.error("--window-views needs at least 2 inputs and --window-step at least 2 frames (a held-out frame between inputs)")
     frames = load_dataset(args.data)
@@ -141,7 +148,7 @@ def main(argv=None) -> None:
         for label, inputs, weighting in (("RGB-D", rgbd, "full"), ("RGB only", rgb_only, "full"),
                                          ("RGB-D, no_reliability", rgbd, "no_reliability"),
                                          ("RGB only, no_reliability", rgb_only, "no_reliability")):
-            metrics, scene = fused_metrics(inputs, weighting, args.voxel, targets)
+            metrics, scene = fused_metrics(inputs, weighting, args.voxel, targets, args.solve_views)
             rows.append({"input": label, "PSNR dB": f"{metrics['psnr']:.2f}",
                          "covered PSNR dB": f"{metrics['psnr_covered']:.2f}", "SSIM": f"{metrics['ssim']:.3f}",
                          "depth agreement": f"{metrics['depth_agreement']:.3f}",
@@ -159,7 +166,7 @@ def main(argv=None) -> None:
         print_table(f"{views} input views: does R_scene tell surface voxels from floaters? "
                     "(sensor depth of all frames as truth)", auc_rows)
     if args.window_views:
-        shifted_windows(small, args.window_views, args.window_step, args.voxel)
+        shifted_windows(small, args.window_views, args.window_step, args.voxel, args.solve_views)
 
 
 if __name__ == "__main__":
