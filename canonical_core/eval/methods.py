@@ -40,7 +40,7 @@ from ..rendering import render
 from ..scene import Scene, SceneConfig
 from ..scene.config import Weighting
 from .baselines import full_support_opacity, gaussian_merge, pixel_aligned
-from .open3d_tsdf import Open3DTSDF, open3d_available
+from .open3d_tsdf import Open3DTSDF, open3d_import_error
 
 
 @dataclass
@@ -132,7 +132,9 @@ def _tsdf(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
 
 
 def _open3d_missing() -> str | None:
-    return None if open3d_available() else "needs Open3D (pip install 'canonicalgs-fusion[bench]')"
+    error = open3d_import_error()
+    return None if error is None else (f"needs Open3D (pip install 'canonicalgs-fusion[bench]'; on Debian also "
+                                       f"apt-get install libusb-1.0-0): {error}")
 
 
 METHODS: dict[str, Method] = {

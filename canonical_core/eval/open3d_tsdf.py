@@ -37,12 +37,18 @@ _KEY_BITS = 21  # block coordinates packed into one int64 key, 21 bits per axis
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
-def open3d_available() -> bool:
+def open3d_import_error() -> str | None:
+    """Why ``import open3d`` fails here (not installed, or the wheel's shared libraries such as
+    libusb missing), or None when it works."""
     try:
         import open3d  # noqa: F401
-    except (ImportError, OSError):  # OSError: the wheel's shared libraries (libusb) are missing
-        return False
-    return True
+    except (ImportError, OSError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def open3d_available() -> bool:
+    return open3d_import_error() is None
 
 
 class Open3DTSDF:

@@ -37,6 +37,14 @@ def test_registry_names_the_issue_methods():
         check_methods("canonical")
 
 
+@pytest.mark.skipif(open3d_available(), reason="checks the message of a machine where Open3D cannot be imported")
+def test_a_missing_open3d_is_reported_with_its_import_error():
+    reason = METHODS["open3d_tsdf"].unavailable()
+    assert "pip install" in reason and "libusb" in reason
+    error = reason.split("): ", 1)[1]  # the import's own error, e.g. "ModuleNotFoundError: No module named 'open3d'"
+    assert error.split(": ", 1)[0].endswith("Error") and len(error.split(": ", 1)[1]) > 0
+
+
 def test_plain_decoding_is_canonical_with_one_opacity(frames):
     canonical, _ = build("canonical", frames[:2], 0.02)
     plain, ms = build("plain_decoding", frames[:2], 0.02)
