@@ -38,7 +38,7 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
 from ..rendering.projection import channel_values
-from ..rendering.sh import SH_C1
+from ..rendering.sh import SH_C1, sh_basis_at_points
 from ..rendering.weights import WeightsBackend, blend_weights
 
 
@@ -104,49 +104,20 @@ def _csr_matmul(
     return out
 
 
-@numba.njit(cache=True)
-def _basis(
-    means: np.ndarray,  # [N, 3] float32
-    centre: np.ndarray,  # [3] float64 a view's camera centre
-    i: int,
-) -> tuple[float, float, float, float]:  # Y_0..Y_3 of Gaussian i seen from centre
-    """The degree-1 SH basis along centre -> mean (`rendering.sh.sh_basis`; a zero direction: DC only)."""
-    x, y, z = means[i, 0] - centre[0], means[i, 1] - centre[1], means[i, 2] - centre[2]
-    norm = math.sqrt(x * x + y * y + z * z)
-    scale = SH_C1 / norm if norm > 0.0 else 0.0
-    return SH_C0, -scale * y, scale * z, -scale * x
-
-
-@numba.njit(parallel=True, cache=True)
-def _seen_from(
-    means: np.ndarray,  # [N, 3] float32
-    centre: np.ndarray,  # [3] float64 a view's camera centre
-    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, K = 1 or 4
-) -> np.ndarray:  # [N, 3] float32: sum_k Y_k(d_i) x_ik, the colour offsets as the view sees them
-    out = np.empty((means.shape[0], 3), np.float32)
-    for i in numba.prange(means.shape[0]):
-        b = _basis(means, centre, i)
-        for c in range(3):
-            total = 0.0
-            for k in range(x.shape[1]):
-                total += b[k] * x[i, k, c]
-            out[i, c] = total
-    return out
-
-
 def _sh_matmul(
     starts: np.ndarray,  # [R + 1] int32 CSR row starts (rows view-major)
     columns: np.ndarray,  # [E] int32
     values: np.ndarray,  # [E] float32
     view_rows: np.ndarray,  # [V + 1] int64 where each view's rows start
-    centres: np.ndarray,  # [V, 3] float64
-    means: np.ndarray,  # [N, 3] float32
-    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, K = 1 or 4
+    bases: np.ndarray,  # [V, N, K] float32 Y_k of each Gaussian seen from each view, K = 1 or 4
+    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets
 ) -> np.ndarray:  # [R, 3] float32: each pixel's change of colour
     out = np.empty((starts.shape[0] - 1, 3), np.float32)
     for v in range(len(view_rows) - 1):
         first, last = view_rows[v], view_rows[v + 1]
-        out[first:last] = _csr_matmul(starts[first:last + 1], columns, values, _seen_from(means, centres[v], x))
+        # the colour offsets as view v sees them, sum_k Y_k x_k (a batched product: threaded, unlike einsum)
+        seen = torch.bmm(torch.from_numpy(bases[v])[:, None, :], torch.from_numpy(x))[:, 0].numpy()
+        out[first:last] = _csr_matmul(starts[first:last + 1], columns, values, seen)
     return out
 
 
@@ -162,13 +133,11 @@ def _sh_rmatmul(
     columns: np.ndarray,  # [E] int32
     values: np.ndarray,  # [E] float32
     view_rows: np.ndarray,  # [V + 1] int64
-    centres: np.ndarray,  # [V, 3] float64
-    means: np.ndarray,  # [N, 3] float32
+    bases: np.ndarray,  # [V, N, K] float32
     y: np.ndarray,  # [R, 3] float32
-    num_bases: int,  # K = 1 or 4
     squared: bool,  # values and basis squared (the evidence e_ik, with y = 1)
 ) -> np.ndarray:  # [N, K, 3] float32: A^T y in coefficient space
-    n = means.shape[0]
+    n, num_bases = bases.shape[1], bases.shape[2]
     out = np.zeros((n, num_bases, 3), np.float32)
     partial = np.empty((VIEW_GROUP, n, 3), np.float32)
     for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
@@ -185,9 +154,9 @@ def _sh_rmatmul(
                     partial[g, i, 2] += w * y2
         for i in numba.prange(n):
             for g in range(group):
-                b = _basis(means, centres[first + g], i)
                 for k in range(num_bases):
-                    bk = b[k] * b[k] if squared else b[k]
+                    bk = bases[first + g, i, k]
+                    bk = bk * bk if squared else bk
                     out[i, k, 0] += bk * partial[g, i, 0]
                     out[i, k, 1] += bk * partial[g, i, 1]
                     out[i, k, 2] += bk * partial[g, i, 2]
@@ -260,11 +229,12 @@ def solve_colours(
     num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
     A, b = colour_system(gaussians, views, backend)
     view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
-    centres = np.stack([view.camera.c2w64()[:3, 3] for view in views])
-    system = (*_arrays(A), view_rows, centres, np.ascontiguousarray(gaussians.means.detach().numpy(), np.float32))
+    means = gaussians.means.detach().numpy()
+    bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])
+    system = (*_arrays(A), view_rows, bases)  # the basis once per view, not once per product
 
     def transposed(y: np.ndarray, squared: bool = False) -> Tensor:  # [R, 3] -> [N, K, 3]
-        return torch.from_numpy(_sh_rmatmul(*system, y, num_bases, squared))
+        return torch.from_numpy(_sh_rmatmul(*system, y, squared))
 
     evidence = transposed(np.ones((A.shape[0], 3), np.float32), squared=True)  # e_ik
     peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
