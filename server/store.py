@@ -343,7 +343,7 @@ class SessionStore:
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
-            session_id = secrets.token_urlsafe(16)
+            session_id = secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
             path = self.root / session_id
             path.mkdir()
             created = time.time()

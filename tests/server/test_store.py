@@ -3,6 +3,7 @@ decoding (with the colour solve) outside the session's lock, so that folds go on
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -40,6 +41,11 @@ def shelf_frames(shelf_dir):
 
 def same(a, b) -> bool:
     return all(torch.equal(getattr(a, name), getattr(b, name)) for name in ("means", "scales", "quats", "opacities", "sh"))
+
+
+def test_session_ids_are_hex_so_a_command_line_never_reads_one_as_a_flag(store):
+    ids = [store.create(SceneConfig(voxel_size=0.01)).id for _ in range(4)]
+    assert all(re.fullmatch(r"[0-9a-f]{32}", i) for i in ids) and len(set(ids)) == 4
 
 
 def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
