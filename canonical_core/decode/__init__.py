@@ -2,9 +2,10 @@
 render-consistent colour solve against the input views."""
 
 from .colour_solve import colour_system, solve_colours
+from .eigen import symmetric_eigh3, symmetric_eigh3_reference
 from .decoder import FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion, support_unit
 
 __all__ = [
     "FOOTPRINT_GAIN", "FULL_VOXEL_EXTENT", "GaussianDecoder", "MonotoneOpacity", "colour_system", "matrix_to_quaternion",
-    "solve_colours", "support_unit",
+    "solve_colours", "support_unit", "symmetric_eigh3", "symmetric_eigh3_reference",
 ]

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
+from .eigen import symmetric_eigh3, symmetric_eigh3_reference
 
 # A Gaussian whose integral footprint 2*pi*sigma^2 equals the area a^2 of the patch it stands for has
 # sigma = a / sqrt(2 pi); the patch's own std is a / sqrt(12). Scaling moment-stds by the ratio turns
@@ -150,7 +151,9 @@ class GaussianDecoder(nn.Module):
         means = fields["position_mean"] + voxel_size * self.offset(feats)
         cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units
         cov = 0.5 * (cov + cov.transpose(1, 2))
-        eigval, eigvec = torch.linalg.eigh(cov.double())  # ascending: axis 0 is the surface normal
+        # ascending: axis 0 is the surface normal (the numba path unless a gradient must reach the fields)
+        eigh = symmetric_eigh3_reference if torch.is_grad_enabled() and cov.requires_grad else symmetric_eigh3
+        eigval, eigvec = eigh(cov)
         std = eigval.clamp_min(0.0).sqrt().float() * FOOTPRINT_GAIN
         lo = torch.tensor([self.min_thickness, self.min_extent, self.min_extent])
         std = torch.minimum(torch.maximum(std, lo), torch.tensor(self.max_extent))

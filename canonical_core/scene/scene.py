@@ -397,16 +397,19 @@ class Scene:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
-        f = fields_from_sums(inputs.sums, self.config, sort=False)
-        unit = support_unit(f["reliability"], f["observations"]) * inputs.observations_per_view
-        supported = f["reliability"] > min_support
+        # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
+        # per-voxel SH solve among them, are then computed for those rows alone
+        reliability = torch.as_tensor(inputs.sums["r_sum"])
+        unit = support_unit(reliability, torch.as_tensor(inputs.sums["n_obs"])) * inputs.observations_per_view
+        supported = reliability > min_support
         if self.config.free_space:  # voxels that more rays saw through than saw at are not surface
-            supported &= f["free_space"] <= self.config.free_space_dominance * f["reliability"]
+            supported &= torch.as_tensor(inputs.sums["free"]) <= self.config.free_space_dominance * reliability
         keep = torch.nonzero(supported).squeeze(1)
         if max_gaussians is not None and keep.numel() > max_gaussians:
-            top = torch.argsort(f["reliability"][keep], descending=True, stable=True)[:max_gaussians]
+            top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
             keep = keep[torch.sort(top).values]
-        f = {k: v[keep] for k, v in f.items()}
+        rows = keep.numpy()
+        f = fields_from_sums({k: v[rows] for k, v in inputs.sums.items()}, self.config, sort=False)
         with torch.no_grad():
             gaussians = self.decoder(f, self.config.voxel_size, unit)
         return solve_colours(gaussians, inputs.views) if inputs.views else gaussians

@@ -1,0 +1,77 @@
+"""Decode benchmark: ms to turn a fused scene into Gaussians, as a render after a fold pays it.
+
+    python bench/decode.py [--data ../shared/data/realsense_shelf] [--voxel 0.004] [--frames 10,25,50]
+
+For the first F frames of the capture folded at the voxel size, medians of --repeats runs of:
+`Scene.decode_inputs` (the copy a service takes under the session lock), `Scene.decode_from`
+(fields of the decoded voxels, the per-voxel SH solve, the decoder), and, on the decoded
+covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
+(`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
+ratio. Prints tables and the machine; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine_summary, print_table, time_each  # noqa: E402
+
+from canonical_core.datasets import load_dataset  # noqa: E402
+from canonical_core.decode import symmetric_eigh3, symmetric_eigh3_reference  # noqa: E402
+from canonical_core.scene import Scene, SceneConfig  # noqa: E402
+from canonical_core.scene.fields import fields_from_sums  # noqa: E402
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()  # warm-up: numba cache, allocator
+    return statistics.median(time_each(lambda _: fn(), range(repeats)))
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default: the shelf capture)")
+    p.add_argument("--voxel", type=float, default=0.004)
+    p.add_argument("--frames", default="10,25,50", help="comma-separated frame counts to fold (from the start)")
+    p.add_argument("--repeats", type=int, default=5)
+    args = p.parse_args(argv)
+    try:
+        counts = sorted({int(x) for x in args.frames.split(",") if x.strip()})
+    except ValueError:
+        p.error(f"--frames: expected comma-separated integers, got {args.frames!r}")
+    if not counts or counts[0] < 1:
+        p.error(f"--frames: expected positive counts, got {args.frames!r}")
+    sequence = load_dataset(args.data)
+    counts = [n for n in counts if n <= len(sequence)] or [len(sequence)]
+    print(machine_summary())
+    print(f"data: {args.data.name}, {len(sequence)} frames; voxel {args.voxel * 1000:g} mm; medians of {args.repeats}\n")
+
+    decode_rows, eigen_rows = [], []
+    scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
+    for n in counts:
+        for position in range(folded, n):
+            scene.fold(sequence[position])
+        folded = n
+        inputs = scene.decode_inputs()
+        gaussians = scene.decode_from(inputs)
+        decode_rows.append({
+            "frames": n, "voxels": len(scene), "Gaussians": len(gaussians),
+            "decode_inputs ms": f"{median_ms(scene.decode_inputs, args.repeats):.1f}",
+            "decode_from ms": f"{median_ms(lambda: scene.decode_from(inputs), args.repeats):.1f}",
+        })
+        cov = fields_from_sums(inputs.sums, scene.config, sort=False)["position_cov"] / args.voxel**2
+        fast = median_ms(lambda: symmetric_eigh3(cov), args.repeats)
+        lapack = median_ms(lambda: symmetric_eigh3_reference(cov), args.repeats)
+        eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
+                           "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
+    print_table("Decode of the fused scene (a render after a fold pays decode_from)", decode_rows)
+    print_table("Eigen-decomposition of the voxels' covariances, both paths (every voxel)", eigen_rows)
+
+
+if __name__ == "__main__":
+    main()
