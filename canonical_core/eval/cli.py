@@ -46,6 +46,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=list(STABILITY_VIEWS),
                         help="input counts of the feature-stability curve, the largest is the reference (default 2..12; 'none' skips)")
     parser.add_argument("--no-extrapolation", action="store_true", help="skip the extrapolation split")
+    parser.add_argument("--colour", choices=["normalised", "composited"], default="normalised",
+                        help="how Gaussians are rendered for scoring (rendering.render's colour modes; default normalised)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no tables on stdout")
     return parser
 
@@ -68,7 +70,8 @@ def run_eval(args: argparse.Namespace) -> int:
     try:
         evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise, out_dir=args.out,
                  progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
-                 stability_views=args.stability_views, extrapolation=not args.no_extrapolation)
+                 stability_views=args.stability_views, extrapolation=not args.no_extrapolation,
+                 colour=args.colour)
     except (ValueError, ImportError) as exc:
         print(f"canonical eval: error: {exc}", file=sys.stderr)
         return 2

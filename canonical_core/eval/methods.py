@@ -36,7 +36,7 @@ from torch import Tensor
 from ..camera import Camera
 from ..frame import Frame
 from ..gaussians import Gaussians
-from ..rendering import render
+from ..rendering import Colour, render
 from ..scene import Scene, SceneConfig
 from ..scene.config import Weighting
 from .baselines import full_support_opacity, gaussian_merge, pixel_aligned
@@ -47,7 +47,7 @@ from .open3d_tsdf import Open3DTSDF, open3d_import_error
 class View:
     """What a method shows at a camera."""
 
-    rgb: Tensor  # [H, W, 3] in [0, 1], black where nothing is drawn
+    rgb: Tensor  # [H, W, 3] in [0, 1], black where nothing is drawn (`rendering.render`'s colour modes)
     alpha: Tensor  # [H, W] in [0, 1], accumulated opacity (1 / 0 for a ray cast hit / miss)
     depth: Tensor | None = None  # [H, W] z-depth, 0 where nothing is drawn (with rgb)
     features: Tensor | None = None  # [H, W, C] feature splat, when requested (instead of rgb and depth)
@@ -57,7 +57,7 @@ class Model(Protocol):
     @property
     def gaussians(self) -> int | None: ...  # None for models that are not Gaussians
 
-    def render(self, camera: Camera, features: bool = False) -> View: ...
+    def render(self, camera: Camera, features: bool = False, colour: Colour = "normalised") -> View: ...
 
 
 @dataclass
@@ -70,14 +70,16 @@ class SplatModel:
     def gaussians(self) -> int:
         return len(self.splats)
 
-    def render(self, camera: Camera, features: bool = False) -> View:
-        out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "depth", "alpha"))
+    def render(self, camera: Camera, features: bool = False, colour: Colour = "normalised") -> View:
+        out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "depth", "alpha"),
+                     colour=colour)
         return View(rgb=out.rgb, alpha=out.alpha, depth=out.depth, features=out.features)
 
 
 @dataclass
 class TSDFModel:
-    """The Open3D peer, rendered by ray casting."""
+    """The Open3D peer, rendered by ray casting: a hit pixel shows its surface's colour in full, so
+    both colour modes give the same image."""
 
     tsdf: Open3DTSDF
 
@@ -85,7 +87,7 @@ class TSDFModel:
     def gaussians(self) -> None:
         return None
 
-    def render(self, camera: Camera, features: bool = False) -> View:
+    def render(self, camera: Camera, features: bool = False, colour: Colour = "normalised") -> View:
         if features:
             raise ValueError("features: the open3d_tsdf peer carries no features")
         rgb, depth = self.tsdf.ray_cast(camera)

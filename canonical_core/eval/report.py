@@ -29,6 +29,14 @@ GRID_TILE_WIDTH = 320  # pixels: tiles of the image grids are downscaled to at m
 _HEADER = 18  # pixels: label band above each grid column
 
 
+# how Gaussians' renders were scored (`rendering.render`'s colour modes); results without the key predate the choice
+COLOUR_MODES = {
+    "normalised": "Gaussians rendered in normalised colour: each drawn pixel shows sum(w c) / sum(w), the expected colour "
+                  "of the surface its ray hits (as Open3D's ray cast shows its hits), black where nothing is drawn.",
+    "composited": "Gaussians rendered in composited colour: the 3DGS blend over black, so partly covered pixels darken.",
+}
+
+
 def require_matplotlib() -> None:
     """Raise early (before a long run) when the plotting dependency is missing."""
     try:
@@ -85,6 +93,7 @@ def markdown(results: Mapping) -> str:
         "",
         f"{results['frames']} frames, images {width}x{height} (scale {results['scale']:g}), voxel size {results['voxel_size']:g}.",
         f"Metrics are means over the held-out frames; background black; covered = accumulated alpha >= {COVERAGE_THRESHOLD:g};",
+        COLOUR_MODES[results.get("colour", "composited")],
         f"depth agree = share of covered pixels with sensor depth whose rendered depth is within {DEPTH_TOLERANCE_VOXELS:g} "
         "voxels of it.",
         "ceiling = the all-pixel PSNR the method's coverage allows (covered pixels exact, the rest black): "

@@ -1,7 +1,10 @@
 """`evaluate`: the whole protocol on one dataset -> results.json, results.md, plots and image grids.
 
 Per method and number of input views N (inputs and held-out frames from `protocol`), every
-held-out frame is rendered from the method's model and compared with its image (black background):
+held-out frame is rendered from the method's model and compared with its image (black background;
+Gaussians in `render`'s "normalised" colour by default, each drawn pixel the expected colour of the
+surface its ray hits, as a ray cast shows it; "composited", the 3DGS blend over black, was the
+protocol before session 24):
 PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, the all-pixel PSNR that
 coverage allows (`coverage_ceiling`: covered pixels exact, the rest black), SSIM, depth agreement
 (share of covered pixels whose rendered depth is within 2 voxels of the held-out frame's sensor
@@ -29,7 +32,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, get_args
 
 import numpy as np
 import torch
@@ -38,6 +41,7 @@ from tqdm import tqdm
 
 from ..datasets import FrameSequence, load_dataset
 from ..frame import Frame, resize_frame
+from ..rendering import Colour
 from .methods import METHODS, Model, build, check_methods
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
@@ -101,12 +105,13 @@ class Scored(NamedTuple):
     covered: list[Tensor]  # [H, W] bool per target
 
 
-def score(model: Model, targets: Sequence[Frame], voxel_size: float) -> Scored:
-    """Metrics of ``model`` at the ``targets`` (means over targets), its renders and covered masks."""
+def score(model: Model, targets: Sequence[Frame], voxel_size: float, colour: Colour = "normalised") -> Scored:
+    """Metrics of ``model`` at the ``targets`` (means over targets), its renders and covered masks;
+    Gaussians are rendered in ``colour`` mode (`rendering.render`)."""
     rows, images, masks = [], [], []
     for frame in targets:
         t0 = time.perf_counter()
-        view = model.render(frame.camera)
+        view = model.render(frame.camera, colour=colour)
         ms = (time.perf_counter() - t0) * 1000.0
         gt = frame.rgb.float() / 255.0
         agree = math.nan if frame.depth is None else depth_agreement(
@@ -179,6 +184,7 @@ def evaluate(
     voxel_size: float | None = None,
     stability_views: Sequence[int] = STABILITY_VIEWS,
     extrapolation: bool = True,
+    colour: Colour = "normalised",
 ) -> dict:
     """Run the protocol (module docstring) and write results.json, results.md, PNG plots and image
     grids into ``out_dir``; returns the results dict (the JSON content).
@@ -194,6 +200,7 @@ def evaluate(
         voxel_size: voxel edge in the scene's unit; default `default_voxel_size` of the inputs.
         stability_views: input counts of the feature-stability curve (empty: skip it).
         extrapolation: also run the extrapolation split (when the sequence allows it).
+        colour: how Gaussians' renders are scored, "normalised" or "composited" (`rendering.render`).
     """
     require_matplotlib()
     sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
@@ -203,6 +210,8 @@ def evaluate(
         mixed_noise = _positive_level("mixed_noise", mixed_noise)
     if voxel_size is not None and not voxel_size > 0:
         raise ValueError(f"voxel_size: expected a positive number, got {voxel_size!r}")
+    if colour not in get_args(Colour):
+        raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
     n = len(sequence)
     split = interpolation_split(n, views)
     extra: Split | None = extrapolation_split(n, views, split.heldout) if extrapolation else None
@@ -237,7 +246,7 @@ def evaluate(
         runs, scored = [], []
         for name in runnable:
             model, build_ms = build(name, inputs, voxel_size)
-            scored.append(score(model, targets, voxel_size))
+            scored.append(score(model, targets, voxel_size, colour))
             metrics = scored[-1].metrics
             bar.set_postfix_str(f"{name} N={n_views} noise={level:g}: {metrics['psnr']:.2f} dB")
             bar.update()
@@ -269,6 +278,7 @@ def evaluate(
         "image_size": [targets[0].width, targets[0].height],
         "scale": scale,
         "voxel_size": voxel_size,
+        "colour": colour,
         "heldout": list(split.heldout),
         "heldout_ids": [sequence.frame_ids[p] for p in split.heldout],
         "inputs": {str(k): list(v) for k, v in split.inputs.items()},

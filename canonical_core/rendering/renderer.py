@@ -17,6 +17,7 @@ from .reference import composite_reference
 
 Output = Literal["rgb", "depth", "alpha", "features", "labels"]
 Backend = Literal["auto", "reference", "cpu", "gsplat"]
+Colour = Literal["composited", "normalised"]
 
 
 @dataclass
@@ -24,7 +25,9 @@ class RenderResult:
     """Rendered maps; a field is None unless it was requested in ``outputs``.
 
     Attributes:
-        rgb: [H, W, 3] colour in [0, 1], background composited behind.
+        rgb: [H, W, 3] colour in [0, 1]: with ``colour="composited"`` sum(w_i c_i) + T_final *
+            background (3DGS); with ``"normalised"`` sum(w_i c_i) / sum(w_i), the background only
+            where nothing is drawn.
         depth: [H, W] expected view-space depth sum(w_i z_i) / sum(w_i); 0 where alpha is 0.
         alpha: [H, W] accumulated opacity, 1 - final transmittance.
         features: [H, W, C] composited features sum(w_i f_i) (no background, not normalised).
@@ -78,6 +81,7 @@ def render(
     camera: Camera,
     outputs: Sequence[Output] = ("rgb", "depth", "alpha"),
     background: Tensor | Sequence[float] | None = None,  # [3] rgb, default black
+    colour: Colour = "composited",
     backend: Backend = "auto",
     near_plane: float = 0.01,
     num_threads: int | None = None,
@@ -93,6 +97,13 @@ def render(
         outputs: which maps to compute, any of "rgb", "depth", "alpha", "features", "labels".
             RGB, features and labels are composited in the same pass.
         background: rgb colour behind the Gaussians, composited as rgb + T_final * background.
+        colour: "composited" (3DGS: each pixel's colour is the blend of its splats over the
+            background) or "normalised": the blend divided by its accumulated weight, the expected
+            colour of the surface the ray hits, as ``depth`` is its expected depth. Where splats do
+            not tile a surface edge to edge (gaps between sparse splats, a surface seen from a new
+            angle) the composited blend darkens toward the background; the normalised one keeps the
+            surface's colour, as surface splatting normalises by the sum of its kernels. ``alpha``
+            still says how much of the pixel is covered.
         backend: "reference" (PyTorch, differentiable, O(splats x pixels) per tile), "cpu"
             (fast: numba projection and a vectorised C compositor, float32, no autograd), "gsplat"
             (CUDA) or "auto" (gsplat for CUDA tensors when it is installed, else cpu).
@@ -103,8 +114,8 @@ def render(
         RenderResult with the requested maps on the Gaussians' device, each [H, W] or [H, W, C].
 
     Raises:
-        ValueError: unknown output or backend, features/labels requested but absent, a background
-            that is not [3], a non-positive near plane or thread count.
+        ValueError: unknown output, colour mode or backend, features/labels requested but absent, a
+            background that is not [3], a non-positive near plane or thread count.
     """
     if not isinstance(gaussians, Gaussians):
         raise ValueError(f"gaussians: expected Gaussians, got {type(gaussians).__name__}")
@@ -112,6 +123,8 @@ def render(
         raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
     outputs = _check_outputs(outputs, gaussians)
     background = _background(background)
+    if colour not in get_args(Colour):
+        raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
     if not near_plane > 0:
         raise ValueError(f"near_plane: expected a positive distance, got {near_plane!r}")
     num_threads = torch.get_num_threads() if num_threads is None else num_threads
@@ -131,14 +144,18 @@ def render(
 
     alpha = 1 - blend.transmittance
     covered = blend.weight_sums > 0
+    safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
     result = RenderResult()
     widths = [_channel_width(gaussians, c) for c in channels]
     split = dict(zip(channels, blend.values.split(widths, -1))) if channels else {}
     if "rgb" in outputs:
-        behind = blend.transmittance[..., None] * background.to(blend.values)
-        result.rgb = (split["rgb"] + behind).clamp(0.0, 1.0)
+        background = background.to(blend.values)
+        if colour == "normalised":
+            rgb = torch.where(covered[..., None], split["rgb"] / safe_weights[..., None], background)
+        else:
+            rgb = split["rgb"] + blend.transmittance[..., None] * background
+        result.rgb = rgb.clamp(0.0, 1.0)
     if "depth" in outputs:
-        safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
         result.depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
     if "alpha" in outputs:
         result.alpha = alpha

@@ -20,6 +20,8 @@ def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
     assert args.mixed_noise is None
     assert parser.parse_args(["eval", "x", "--out", "o", "--stability-views", "none"]).stability_views == []
     assert parser.parse_args(["eval", "x", "--out", "o", "--mixed-noise", "0.25"]).mixed_noise == 0.25
+    assert args.colour == "normalised"
+    assert parser.parse_args(["eval", "x", "--out", "o", "--colour", "composited"]).colour == "composited"
 
 
 def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):

@@ -12,7 +12,9 @@ from PIL import Image
 from canonical_core.datasets import load_dataset, synthetic_rgbd
 from canonical_core.eval import evaluate
 from canonical_core.eval.open3d_tsdf import open3d_available
-from canonical_core.eval.run import Scored, add_common_psnr, add_depth_noise, add_mixed_depth_noise, default_voxel_size
+from canonical_core.eval.methods import build
+from canonical_core.eval.run import Scored, add_common_psnr, add_depth_noise, add_mixed_depth_noise, default_voxel_size, score
+from canonical_core.frame import resize_frame
 
 RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "psnr_ceiling", "ssim", "gaussians", "fold_ms", "render_ms",
             "depth_agreement", "psnr_common", "common_coverage"}
@@ -96,6 +98,27 @@ def test_downscaled_shelf_slice_end_to_end(tmp_path, shelf_dir):
     assert results["image_size"] == [80, 60]
     assert results["voxel_size"] == pytest.approx(6 * 0.41 / (615.195 / 8), rel=0.15)  # 6 footprints at ~0.41 m
     assert results["heldout"] == [2, 3, 4, 6, 7, 8, 9, 11, 12, 13] and results["stability"] == []
+    assert results["colour"] == "normalised" and "normalised colour" in (tmp_path / "results.md").read_text()
+
+
+def test_scores_in_either_colour_mode_differ_only_where_pixels_are_partly_covered(shelf_frames):
+    # normalised colour is the composited image over black divided by alpha: the two agree where a
+    # pixel is fully covered or empty, and the normalised one is brighter where it is partly covered
+    inputs, target = [shelf_frames[0], shelf_frames[6]], shelf_frames[3]
+    model = build("canonical", [resize_frame(f, 0.25) for f in inputs], 0.008)[0]
+    small = resize_frame(target, 0.25)
+    composited = model.render(small.camera, colour="composited")
+    normalised = model.render(small.camera)  # the protocol's default
+    assert torch.equal(composited.alpha, normalised.alpha) and torch.equal(composited.depth, normalised.depth)
+    partly = (composited.alpha > 0.05) & (composited.alpha < 0.95)
+    assert 0.01 < partly.float().mean() < 0.9
+    expected = (composited.rgb / composited.alpha.clamp_min(1e-12)[..., None]).clamp(0, 1)
+    assert torch.allclose(normalised.rgb[partly], expected[partly], atol=2e-3)
+    full_or_empty = (composited.alpha > 0.9999) | (composited.alpha == 0)
+    assert torch.allclose(normalised.rgb[full_or_empty], composited.rgb[full_or_empty], atol=2e-3)
+    scores = {mode: score(model, [small], 0.008, mode).metrics for mode in ("composited", "normalised")}
+    assert scores["normalised"]["coverage"] == scores["composited"]["coverage"]
+    assert scores["normalised"]["psnr"] != scores["composited"]["psnr"]
 
 
 def test_noise_is_seeded_and_scaled_by_the_median_depth():
@@ -162,4 +185,6 @@ def test_evaluate_refuses_bad_arguments(tmp_path):
         evaluate(seq, views=[2], methods=["canonical"], mixed_noise=0.0, out_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="views"):
         evaluate(seq, views=[16], methods=["canonical"], out_dir=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="colour"):
+        evaluate(seq, views=[2], methods=["canonical"], colour="premultiplied", out_dir=tmp_path, progress=False)
     assert not (tmp_path / "results.json").exists()

@@ -132,6 +132,41 @@ def test_background_fills_what_the_gaussians_leave(backend):
 
 
 @pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_normalised_colour_is_the_blend_over_its_weight(backend):
+    # a half-transparent red splat in front of the green background: composited, its pixels darken
+    # toward the background with their alpha; normalised, every pixel it touches is red, and the
+    # background shows only where nothing is drawn
+    camera = pinhole(12, 12, 30.0, cx=5.5, cy=5.5)
+    splat = gaussians_at([0, 0, 2.0], [0.05] * 3, [0.5], [RED])
+    composited = render(splat, camera, background=(0.0, 1.0, 0.0), backend=backend)
+    normalised = render(splat, camera, background=(0.0, 1.0, 0.0), colour="normalised", backend=backend)
+    drawn = composited.alpha > 0
+    assert 0 < drawn.float().mean() < 1 and composited.alpha.max() < 0.6
+    assert torch.allclose(normalised.rgb[drawn], torch.tensor(RED).expand(int(drawn.sum()), 3), atol=1e-5)
+    assert (normalised.rgb[~drawn] == torch.tensor([0.0, 1.0, 0.0])).all()
+    for name in ("alpha", "depth"):  # only the colour changes
+        assert torch.equal(getattr(normalised, name), getattr(composited, name))
+    # two overlapping splats: the normalised colour is their weighted mean, whatever their opacity
+    pair = gaussians_at([[0, 0, 2.0], [0.02, 0, 2.5]], [[0.05] * 3] * 2, [0.3, 0.6], [RED, BLUE])
+    out = render(pair, camera, ("rgb", "alpha"), colour="normalised", backend=backend)
+    black = render(pair, camera, ("rgb", "alpha"), backend=backend)  # over black: the bare blend sum(w c)
+    seen = out.alpha > 1e-3
+    assert torch.allclose(out.rgb[seen], (black.rgb / black.alpha[..., None])[seen], atol=1e-4)
+
+
+@pytest.mark.parametrize("seed,n,sh_degree,scales,opacities,distance", SCENES[:3])
+def test_normalised_colour_cpu_matches_reference(seed, n, sh_degree, scales, opacities, distance):
+    gaussians = random_scene(n, seed, sh_degree=sh_degree, scale_range=scales, opacity_range=opacities)
+    camera = look_at_camera(45, 37, 40.0, [0.0, 0.4 * distance, -distance], [0.1, -0.1, 0.0], roll=0.4 * seed)
+    reference = render(gaussians, camera, ("rgb", "alpha"), colour="normalised", backend="reference")
+    fast = render(gaussians, camera, ("rgb", "alpha"), colour="normalised", backend="cpu")
+    # where a pixel is barely touched the division magnifies float32 round-off: compare where drawn
+    drawn = reference.alpha > 1e-2
+    assert drawn.float().mean() > 0.3
+    assert (reference.rgb[drawn] - fast.rgb[drawn]).abs().max() <= 1e-3
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_empty_scene_returns_the_background(backend):
     camera = pinhole(10, 7, 20.0, cx=5.0, cy=3.0)
     empty = Gaussians.empty(sh_degree=2, feature_dim=3, label_dim=2)
@@ -212,6 +247,7 @@ def test_auto_backend_on_cpu_is_the_fast_path():
         (dict(outputs=()), "outputs"),
         (dict(background=[0.0, 1.0]), r"background.*\[2\]"),
         (dict(backend="opengl"), "backend"),
+        (dict(colour="premultiplied"), "colour"),
         (dict(backend="gsplat"), "backend"),
         (dict(near_plane=0.0), "near_plane"),
         (dict(num_threads=0), "num_threads"),
