@@ -178,6 +178,9 @@ def add_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int)
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
+    p.add_argument("--colour", choices=["composited", "normalised"], default=None,
+                   help="composited (the service's default: the blend over the background) or normalised (each drawn "
+                        "pixel the surface's expected colour, not darkened where splats cover it only in part)")
     p.add_argument("-o", "--output", required=True, help="PNG file to write")
 
 
@@ -202,7 +205,7 @@ def run_render(args) -> int:
     K, c2w, width, height = view_camera(args)
     background = None if args.background is None else [float(x) for x in args.background.split(",")]
     with _client(args) as client:
-        png = client.session(args.session).render_png(K, c2w, width, height, args.max_gaussians, background)
+        png = client.session(args.session).render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
     Path(args.output).write_bytes(png)
     print(f"wrote {args.output} ({width}x{height})")
     return 0

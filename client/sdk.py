@@ -55,8 +55,10 @@ def _matrix(m, shape: tuple[int, int]) -> list:
     return a.tolist()
 
 
-def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background) -> dict:
+def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None) -> dict:
     body = {"K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4)), "width": int(width), "height": int(height)}
+    if colour is not None:
+        body["colour"] = colour
     if max_gaussians is not None:
         body["max_gaussians"] = int(max_gaussians)
     if background is not None:
@@ -89,13 +91,16 @@ class Session:
         body = msgpack.packb(msg, use_bin_type=True)
         return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
 
-    def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None) -> dict:
-        """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}."""
-        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background))
+    def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
+               colour: str | None = None) -> dict:
+        """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}; ``colour``
+        "composited" (the service's default) or "normalised" (see `canonical_core.rendering.render`)."""
+        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background, colour))
 
-    def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None) -> bytes:
-        return self.client._request("POST", f"{self._path}/render", json=_view(K, c2w, width, height, max_gaussians, background),
-                                    headers={"Accept": "image/png"}).content
+    def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
+                   colour: str | None = None) -> bytes:
+        body = _view(K, c2w, width, height, max_gaussians, background, colour)
+        return self.client._request("POST", f"{self._path}/render", json=body, headers={"Accept": "image/png"}).content
 
     def features(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
         """{"features": float16 [H,W,C], "alpha": float32 [H,W]}."""

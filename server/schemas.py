@@ -9,6 +9,7 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from canonical_core import SceneConfig
+from canonical_core.rendering import Colour
 
 
 def _session_create_model() -> type[BaseModel]:
@@ -96,6 +97,10 @@ class ViewRequest(BaseModel):
     max_gaussians: int | None = Field(None, ge=0, description="level of detail: the best-supported N Gaussians")
     background: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
         None, description="rgb in [0, 1] behind the Gaussians (default black)")
+    colour: Colour = Field("composited", description=(
+        "render only: 'composited' (the 3DGS blend over the background) or 'normalised' (each drawn "
+        "pixel the blend over its accumulated weight, the expected colour of the surface the ray hits; "
+        "the background only where nothing is drawn)"))
 
 
 class ErrorDetail(BaseModel):

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from canonical_core import Camera
-from canonical_core.rendering import render
+from canonical_core.rendering import Colour, render
 from canonical_core.rendering.preview import feature_preview
 
 from .. import wire
@@ -57,12 +57,13 @@ def view_from_query(
     height: Annotated[int, Query(gt=0)],
     max_gaussians: Annotated[int | None, Query(ge=0)] = None,
     background: Annotated[str | None, Query(description="r,g,b in [0, 1]")] = None,
+    colour: Annotated[Colour, Query(description="render only: composited (default) or normalised")] = "composited",
 ) -> ViewRequest:
     p = _numbers(pose, "pose", 16)
     fx, fy, cx, cy = _numbers(K, "K", 4)
     return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=[p[0:4], p[4:8], p[8:12], p[12:16]],
                        width=width, height=height, max_gaussians=max_gaussians,
-                       background=None if background is None else _numbers(background, "background", 3))
+                       background=None if background is None else _numbers(background, "background", 3), colour=colour)
 
 
 QueryView = Annotated[ViewRequest, Depends(view_from_query)]
@@ -83,7 +84,7 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
         gaussians, label_dim = session.gaussians(view.max_gaussians)
         if kind == "segmentation" and label_dim == 0:
             raise _no_labels()
-        result = render(gaussians, camera, outputs, background=view.background, num_threads=settings.threads)
+        result = render(gaussians, camera, outputs, background=view.background, colour=view.colour, num_threads=settings.threads)
         maps = {name: getattr(result, name).numpy() for name in outputs}
         return encode(maps), len(gaussians)
 

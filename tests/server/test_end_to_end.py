@@ -62,6 +62,16 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
     assert lod["alpha"].mean() < view["alpha"].mean()
     assert (lod["rgb"][lod["alpha"] < 1e-3] == 255).all()  # white where nothing is drawn
 
+    # normalised colour: the blend over its weight where anything is drawn, the same alpha and depth
+    normalised = session.render(K, c2w, w, h, colour="normalised")
+    assert np.array_equal(normalised["alpha"], view["alpha"]) and np.array_equal(normalised["depth"], view["depth"])
+    partly = (view["alpha"] > 0.05) & (view["alpha"] < 0.95)
+    assert partly.any()
+    expected = np.clip(view["rgb"][partly] / view["alpha"][partly][:, None], 0, 255)
+    rounding = 0.5 / view["alpha"][partly][:, None] + 1  # the uint8 blend's rounding, magnified by 1 / alpha
+    assert (np.abs(normalised["rgb"][partly].astype(np.float32) - expected) <= rounding).all()
+    assert (normalised["rgb"][partly].astype(int) >= view["rgb"][partly]).all()  # never darker than the blend
+
     feats = session.features(K, c2w, w, h)
     stats = session.stats()
     assert feats["features"].dtype == np.float16
@@ -104,6 +114,8 @@ def test_get_render_matches_post(client, server, frames):
     r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params=params, headers=headers)
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     assert r.content == session.render_png(K, c2w, w, h)
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params={**params, "colour": "normalised"}, headers=headers)
+    assert r.status_code == 200 and r.content == session.render_png(K, c2w, w, h, colour="normalised") != session.render_png(K, c2w, w, h)
     r = httpx.get(f"{server.url}/v1/sessions/{session.id}/features", params={**params, "preview": "png"}, headers=headers)
     assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).size == (w, h)
     session.delete()
