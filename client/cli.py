@@ -178,9 +178,9 @@ def add_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int)
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
-    p.add_argument("--colour", choices=["composited", "normalised"], default=None,
-                   help="composited (the service's default: the blend over the background) or normalised (each drawn "
-                        "pixel the surface's expected colour, not darkened where splats cover it only in part)")
+    p.add_argument("--colour", choices=["normalised", "composited"], default=None,
+                   help="normalised (the service's default: each drawn pixel the surface's expected colour, not darkened "
+                        "where splats cover it only in part) or composited (the blend over the background)")
     p.add_argument("-o", "--output", required=True, help="PNG file to write")
 
 

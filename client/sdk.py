@@ -94,7 +94,7 @@ class Session:
     def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
                colour: str | None = None) -> dict:
         """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}; ``colour``
-        "composited" (the service's default) or "normalised" (see `canonical_core.rendering.render`)."""
+        "normalised" (the service's default) or "composited" (see `canonical_core.rendering.render`)."""
         return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background, colour))
 
     def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,

@@ -97,10 +97,11 @@ class ViewRequest(BaseModel):
     max_gaussians: int | None = Field(None, ge=0, description="level of detail: the best-supported N Gaussians")
     background: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
         None, description="rgb in [0, 1] behind the Gaussians (default black)")
-    colour: Colour = Field("composited", description=(
-        "render only: 'composited' (the 3DGS blend over the background) or 'normalised' (each drawn "
-        "pixel the blend over its accumulated weight, the expected colour of the surface the ray hits; "
-        "the background only where nothing is drawn)"))
+    colour: Colour = Field("normalised", description=(
+        "render only: 'normalised' (default: each drawn pixel the blend over its accumulated weight, the "
+        "expected colour of the surface the ray hits, i.e. straight, not premultiplied, colour next to "
+        "alpha; the background only where nothing is drawn) or 'composited' (the 3DGS blend over the "
+        "background)"))
 
 
 class ErrorDetail(BaseModel):

@@ -14,6 +14,12 @@ that changes across the views from one that does not):
            + sum_ik (ridge * e_ik + prior * peak_k^2) |x_ik|^2,   e_ik = sum_v Y_k(d_vi)^2 sum_p w_i(p)^2
 
 by Jacobi-preconditioned conjugate gradients (the clamp max(0, .) of the SH colour is left out).
+That is the fit for ``colour="composited"`` renders. Views are shown in ``"normalised"`` colour by
+default (`rendering.render`: the blend over its weight alpha(p) = sum_i w_i(p)), which is as linear
+in the coefficients, so the default fit divides each pixel's weights by its alpha and fits only
+the pixels the scene covers (alpha >= 1/2, the evaluation's covered): with composited rows a partly
+covered pixel asks for brighter colours to make up for the black behind it, which a normalised
+render then shows too bright.
 ``ridge`` shrinks every offset relative to its own evidence e_ik; ``prior`` keeps the fused colour
 of Gaussians the views barely see (hidden, or at the edge of the images), which the fit cannot
 determine; peak_k, the largest |Y_k| (SH_C0, SH_C1), counts it in colour units. A Gaussian seen
@@ -37,12 +43,17 @@ from torch import Tensor
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
+from ..rendering import Colour
 from ..rendering.projection import channel_values
 from ..rendering.sh import SH_C1, sh_basis_at_points
 from ..rendering.weights import WeightsBackend, blend_weights
 
 
-def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int) -> None:
+# a normalised fit uses the pixels a render covers at least this much (the evaluation's "covered")
+COVERED_ALPHA = 0.5
+
+
+def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int, colour: str) -> None:
     if isinstance(views, Frame) or not isinstance(views, Sequence) or not views:
         raise ValueError("views: expected a non-empty sequence of Frames")
     for i, view in enumerate(views):
@@ -59,6 +70,8 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, 
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
     if isinstance(degree, bool) or not isinstance(degree, int) or degree not in (0, 1):
         raise ValueError(f"degree: expected 0 (DC only) or 1, got {degree!r}")
+    if colour not in ("composited", "normalised"):
+        raise ValueError(f"colour: expected 'composited' or 'normalised', got {colour!r}")
 
 
 @numba.njit(cache=True)
@@ -171,16 +184,28 @@ def colour_system(
     gaussians: Gaussians,
     views: Sequence[Frame],
     backend: WeightsBackend = "cpu",
+    colour: Colour = "normalised",
 ) -> tuple[Tensor, Tensor]:  # A: sparse CSR [P, N] (int32 indices), residual b [P, 3]
     """The linear system of the fit: A's rows are the views' pixels (view-major), its columns the
-    Gaussians, its entries the compositing weights; b is each pixel's colour minus its render."""
+    Gaussians, its entries the compositing weights (``"normalised"``: divided by the pixel's alpha,
+    and none for a pixel covered less than `COVERED_ALPHA`); b is each pixel's colour minus its
+    render in that mode (0 for a pixel without weights)."""
     starts, columns, weights, residuals = [np.zeros(1, np.int64)], [], [], []
     for view in views:
         camera = view.camera
         w = blend_weights(gaussians, camera, backend=backend)
-        s, c, v = _csr(w.pixels.numpy(), w.ids.numpy(), w.weights.numpy(), camera.height * camera.width)
+        pixels, ids, values = w.pixels.numpy(), w.ids.numpy(), w.weights.numpy()
+        if colour == "normalised":
+            alpha = np.bincount(pixels, weights=values, minlength=camera.height * camera.width)
+            scale = np.where(alpha >= COVERED_ALPHA, 1.0 / np.maximum(alpha, COVERED_ALPHA), 0.0)
+            kept = scale[pixels] > 0
+            pixels, ids, values = pixels[kept], ids[kept], (values[kept] * scale[pixels[kept]]).astype(np.float32)
+        s, c, v = _csr(pixels, ids, values, camera.height * camera.width)
         render = _csr_matmul(s, c, v, channel_values(gaussians, camera, ("rgb",)).float().numpy())
-        residuals.append(view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render))
+        residual = view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render)
+        if colour == "normalised":
+            residual[torch.from_numpy(scale == 0)] = 0.0
+        residuals.append(residual)
         starts.append(s[1:] + starts[-1][-1])
         columns.append(c)
         weights.append(v)
@@ -202,10 +227,12 @@ def solve_colours(
     iterations: int = 10,
     degree: int = 1,
     backend: WeightsBackend = "cpu",
+    colour: Colour = "normalised",
 ) -> Gaussians:
     """``gaussians`` with SH coefficients up to ``degree`` (0: DC only; at most the Gaussians' own
     degree) offset so that their renders at ``views`` match the views' colours in the
-    least-squares sense (module docstring). Geometry, opacity and higher coefficients are unchanged.
+    least-squares sense (module docstring), as rendered in ``colour`` mode (`rendering.render`).
+    Geometry, opacity and higher coefficients are unchanged.
 
     Example (a scene fused from two synthetic views, colours solved against the same views):
         >>> from canonical_core.datasets import synthetic_rgbd
@@ -220,14 +247,14 @@ def solve_colours(
 
     Raises:
         ValueError: no views, a view that is not a Frame, a negative ridge, a prior that is not
-            positive, a non-positive iteration count, a degree other than 0 or 1, or an unknown
-            weights backend.
+            positive, a non-positive iteration count, a degree other than 0 or 1, an unknown colour
+            mode or weights backend.
     """
-    _check(views, ridge, prior, iterations, degree)
+    _check(views, ridge, prior, iterations, degree, colour)
     if len(gaussians) == 0:
         return gaussians
     num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
-    A, b = colour_system(gaussians, views, backend)
+    A, b = colour_system(gaussians, views, backend, colour)
     view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
     means = gaussians.means.detach().numpy()
     bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])

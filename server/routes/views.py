@@ -57,7 +57,7 @@ def view_from_query(
     height: Annotated[int, Query(gt=0)],
     max_gaussians: Annotated[int | None, Query(ge=0)] = None,
     background: Annotated[str | None, Query(description="r,g,b in [0, 1]")] = None,
-    colour: Annotated[Colour, Query(description="render only: composited (default) or normalised")] = "composited",
+    colour: Annotated[Colour, Query(description="render only: normalised (default) or composited")] = "normalised",
 ) -> ViewRequest:
     p = _numbers(pose, "pose", 16)
     fx, fy, cx, cy = _numbers(K, "K", 4)

@@ -43,10 +43,10 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
     assert cli.main(["render", *url, "--session", session_id, "--pose", str(pose), "--K", "150,150,79.5,59.5",
                      "--width", "160", "--height", "120", "--background", "1,1,1", "-o", str(small)]) == 0
     assert Image.open(small).size == (160, 120)
-    normalised = tmp_path / "normalised.png"
-    assert cli.main(["render", *url, "--session", session_id, "--frame-like", f"{shelf_dir}:0", "--colour", "normalised",
-                     "-o", str(normalised)]) == 0
-    plain, bright = (np.asarray(Image.open(p), dtype=np.int16) for p in (png, normalised))
+    composited = tmp_path / "composited.png"
+    assert cli.main(["render", *url, "--session", session_id, "--frame-like", f"{shelf_dir}:0", "--colour", "composited",
+                     "-o", str(composited)]) == 0
+    plain, bright = (np.asarray(Image.open(p), dtype=np.int16) for p in (composited, png))
     assert (bright >= plain - 1).all() and (bright > plain + 8).any()  # partly covered pixels are no longer darkened
 
     ply, splat = tmp_path / "scene.ply", tmp_path / "scene.splat"

@@ -60,17 +60,18 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
 
     lod = session.render(K, c2w, w, h, max_gaussians=500, background=[1, 1, 1])
     assert lod["alpha"].mean() < view["alpha"].mean()
-    assert (lod["rgb"][lod["alpha"] < 1e-3] == 255).all()  # white where nothing is drawn
+    assert (lod["rgb"][lod["alpha"] == 0] == 255).all()  # white where nothing is drawn
 
-    # normalised colour: the blend over its weight where anything is drawn, the same alpha and depth
-    normalised = session.render(K, c2w, w, h, colour="normalised")
-    assert np.array_equal(normalised["alpha"], view["alpha"]) and np.array_equal(normalised["depth"], view["depth"])
-    partly = (view["alpha"] > 0.05) & (view["alpha"] < 0.95)
+    # the default, normalised colour, is the composited blend over its weight where anything is drawn
+    blend = session.render(K, c2w, w, h, colour="composited")
+    normalised = view
+    assert np.array_equal(normalised["alpha"], blend["alpha"]) and np.array_equal(normalised["depth"], blend["depth"])
+    partly = (blend["alpha"] > 0.05) & (blend["alpha"] < 0.95)
     assert partly.any()
-    expected = np.clip(view["rgb"][partly] / view["alpha"][partly][:, None], 0, 255)
-    rounding = 0.5 / view["alpha"][partly][:, None] + 1  # the uint8 blend's rounding, magnified by 1 / alpha
+    expected = np.clip(blend["rgb"][partly] / blend["alpha"][partly][:, None], 0, 255)
+    rounding = 0.5 / blend["alpha"][partly][:, None] + 1  # the uint8 blend's rounding, magnified by 1 / alpha
     assert (np.abs(normalised["rgb"][partly].astype(np.float32) - expected) <= rounding).all()
-    assert (normalised["rgb"][partly].astype(int) >= view["rgb"][partly]).all()  # never darker than the blend
+    assert (normalised["rgb"][partly].astype(int) >= blend["rgb"][partly]).all()  # never darker than the blend
 
     feats = session.features(K, c2w, w, h)
     stats = session.stats()
@@ -114,8 +115,8 @@ def test_get_render_matches_post(client, server, frames):
     r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params=params, headers=headers)
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     assert r.content == session.render_png(K, c2w, w, h)
-    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params={**params, "colour": "normalised"}, headers=headers)
-    assert r.status_code == 200 and r.content == session.render_png(K, c2w, w, h, colour="normalised") != session.render_png(K, c2w, w, h)
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/render", params={**params, "colour": "composited"}, headers=headers)
+    assert r.status_code == 200 and r.content == session.render_png(K, c2w, w, h, colour="composited") != session.render_png(K, c2w, w, h)
     r = httpx.get(f"{server.url}/v1/sessions/{session.id}/features", params={**params, "preview": "png"}, headers=headers)
     assert r.status_code == 200 and Image.open(io.BytesIO(r.content)).size == (w, h)
     session.delete()
