@@ -106,10 +106,12 @@ def coverage(alpha: Tensor) -> float:  # [H, W] -> fraction of covered pixels in
 def coverage_ceiling(
     alpha: Tensor,  # [H, W] accumulated opacity
     target: Tensor,  # [H, W, C] in [0, 1]
+    shown: Tensor | None = None,  # [H, W] bool: pixels the render shows in full colour (default: the covered ones)
 ) -> float:
-    """All-pixel PSNR of an image that is exact on the covered pixels and black elsewhere: the best
-    all-pixel PSNR (black background) better colours on the covered pixels can give at this
-    coverage (faint drawing on pixels below the coverage threshold can add a little).
+    """All-pixel PSNR of an image that is exact on the ``shown`` pixels and black elsewhere: the
+    best all-pixel PSNR (black background) better colours can give with this drawing. A composited
+    render shows the covered pixels (faint drawing below the coverage threshold can add a little);
+    a normalised one (`rendering.render`) shows every drawn pixel, alpha > 0, in full colour.
 
     Example:
         >>> import torch
@@ -119,7 +121,11 @@ def coverage_ceiling(
     """
     if alpha.shape != target.shape[:2]:
         raise ValueError(f"alpha: expected shape {list(target.shape[:2])} (the target's image), got {list(alpha.shape)}")
-    return psnr(torch.where(covered(alpha)[..., None], target, torch.zeros_like(target)), target)
+    if shown is None:
+        shown = covered(alpha)
+    elif shown.shape != alpha.shape or shown.dtype != torch.bool:
+        raise ValueError(f"shown: expected a bool mask of shape {list(alpha.shape)}, got {shown.dtype} {list(shown.shape)}")
+    return psnr(torch.where(shown[..., None], target, torch.zeros_like(target)), target)
 
 
 def depth_agreement(

@@ -96,8 +96,8 @@ def markdown(results: Mapping) -> str:
         COLOUR_MODES[results.get("colour", "composited")],
         f"depth agree = share of covered pixels with sensor depth whose rendered depth is within {DEPTH_TOLERANCE_VOXELS:g} "
         "voxels of it.",
-        "ceiling = the all-pixel PSNR the method's coverage allows (covered pixels exact, the rest black): "
-        "all-pixel PSNR above it needs more coverage, not better colours.",
+        "ceiling = the all-pixel PSNR the method's drawing allows (the pixels it shows in full colour exact, the rest black: "
+        "every drawn pixel in normalised colour, the covered ones in composited): above it needs more coverage, not better colours.",
         "common = PSNR over the pixels that every method of the table covers (share of the image in the pivot below): "
         "methods of unequal coverage judged on the same pixels.",
         f"Inputs for N views: round(linspace(0, n - 1, N)). Held-out: for each target in linspace(2, n - 3, {HELDOUT_COUNT}) "

@@ -118,7 +118,8 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float, colour: Col
             view.depth, view.alpha, frame.depth, DEPTH_TOLERANCE_VOXELS * voxel_size)
         masks.append(covered(view.alpha))
         rows.append((psnr(view.rgb, gt), psnr(view.rgb, gt, masks[-1]), coverage(view.alpha),
-                     coverage_ceiling(view.alpha, gt), ssim(view.rgb, gt), agree, ms))
+                     coverage_ceiling(view.alpha, gt, (view.alpha > 0) if colour == "normalised" else None),
+                     ssim(view.rgb, gt), agree, ms))
         images.append((view.rgb.numpy() * 255.0 + 0.5).astype(np.uint8))
     p, pc, cov, ceiling, s, agree, ms = zip(*rows)
     metrics = {"psnr": float(np.mean(p)), "psnr_covered": _nanmean(pc), "coverage": float(np.mean(cov)),

@@ -97,6 +97,14 @@ def test_coverage_ceiling_is_the_psnr_of_exact_covered_pixels_on_black():
     assert coverage_ceiling(torch.ones(8, 10), target) == math.inf  # everything covered: no bound
     with pytest.raises(ValueError, match=r"alpha: expected shape \[8, 10\]"):
         coverage_ceiling(torch.ones(4, 10), target)
+    # a normalised render shows every drawn pixel in full colour: its ceiling counts them all
+    alpha[:, 6:8] = 0.2  # drawn, not covered
+    drawn = alpha > 0
+    shown_expected = -10 * math.log10(float((target[:, 8:].double() ** 2).sum()) / target.numel())
+    assert coverage_ceiling(alpha, target, drawn) == pytest.approx(shown_expected, rel=1e-9)
+    assert coverage_ceiling(alpha, target, drawn) > coverage_ceiling(alpha, target)
+    with pytest.raises(ValueError, match=r"shown: expected a bool mask of shape \[8, 10\]"):
+        coverage_ceiling(alpha, target, alpha)
 
 
 def test_depth_agreement_counts_covered_pixels_with_sensor_depth():
