@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import replace
-from typing import Sequence
+from typing import Sequence, get_args
 
 import numba
 import numpy as np
@@ -70,8 +70,8 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, 
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
     if isinstance(degree, bool) or not isinstance(degree, int) or degree not in (0, 1):
         raise ValueError(f"degree: expected 0 (DC only) or 1, got {degree!r}")
-    if colour not in ("composited", "normalised"):
-        raise ValueError(f"colour: expected 'composited' or 'normalised', got {colour!r}")
+    if colour not in get_args(Colour):
+        raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
 
 
 @numba.njit(cache=True)

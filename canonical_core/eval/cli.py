@@ -14,7 +14,9 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import get_args
 
+from ..rendering import Colour
 from .methods import METHODS
 from .protocol import STABILITY_VIEWS
 
@@ -46,7 +48,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=list(STABILITY_VIEWS),
                         help="input counts of the feature-stability curve, the largest is the reference (default 2..12; 'none' skips)")
     parser.add_argument("--no-extrapolation", action="store_true", help="skip the extrapolation split")
-    parser.add_argument("--colour", choices=["normalised", "composited"], default="normalised",
+    parser.add_argument("--colour", choices=list(get_args(Colour)), default="normalised",
                         help="how Gaussians are rendered for scoring (rendering.render's colour modes; default normalised)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no tables on stdout")
     return parser
