@@ -7,7 +7,9 @@ For the first F frames of the capture folded at the voxel size, medians of --rep
 (fields of the decoded voxels, the per-voxel SH solve, the decoder), and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
-ratio. Prints tables and the machine; asserts nothing.
+ratio, and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
+kernel, against `solve_sh_reference`, assembled [V, K, K] systems and `torch.linalg.solve`).
+Prints tables and the machine; asserts nothing.
 """
 
 from __future__ import annotations
@@ -17,13 +19,15 @@ import statistics
 import sys
 from pathlib import Path
 
+import torch
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine_summary, print_table, time_each  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.decode import symmetric_eigh3, symmetric_eigh3_reference  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
-from canonical_core.scene.fields import fields_from_sums  # noqa: E402
+from canonical_core.scene.fields import fields_from_sums, solve_sh, solve_sh_reference  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -51,7 +55,7 @@ def main(argv=None) -> None:
     print(machine_summary())
     print(f"data: {args.data.name}, {len(sequence)} frames; voxel {args.voxel * 1000:g} mm; medians of {args.repeats}\n")
 
-    decode_rows, eigen_rows = [], []
+    decode_rows, eigen_rows, sh_rows = [], [], []
     scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
     for n in counts:
         for position in range(folded, n):
@@ -69,8 +73,17 @@ def main(argv=None) -> None:
         lapack = median_ms(lambda: symmetric_eigh3_reference(cov), args.repeats)
         eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
                            "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
+        sums = {k: torch.as_tensor(v) for k, v in inputs.sums.items()}
+        system = (sums["r_sum"] + scene.config.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
+                  scene.config.sh_regularization)
+        fast = median_ms(lambda: solve_sh(*system), args.repeats)
+        batched = median_ms(lambda: solve_sh_reference(*system), args.repeats)
+        sh_rows.append({"frames": n, "systems": len(sums["r_sum"]), "K": sums["sh_b"].shape[1] // 3 + 1,
+                        "numba Cholesky ms": f"{fast:.1f}", "torch.linalg.solve ms": f"{batched:.1f}",
+                        "ratio": f"{batched / fast:.1f}x"})
     print_table("Decode of the fused scene (a render after a fold pays decode_from)", decode_rows)
     print_table("Eigen-decomposition of the voxels' covariances, both paths (every voxel)", eigen_rows)
+    print_table("SH colour fit, both paths (every voxel's K x K normal equations)", sh_rows)
 
 
 if __name__ == "__main__":

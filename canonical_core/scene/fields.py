@@ -6,6 +6,7 @@ call `fields_from_sums`, so they can only differ in the sums themselves.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -27,19 +28,32 @@ def sh_sum_widths(degree: int) -> tuple[int, int]:
     return k * (k + 1) // 2 - 1, 3 * (k - 1)
 
 
-def solve_sh(
+def _check_sh_sums(r: Tensor, color_sum: Tensor, sh_a: Tensor, sh_b: Tensor) -> int:
+    """K of the fit, after checking the sums' shapes against each other."""
+    V = r.shape[0] if r.ndim == 1 else -1
+    if V < 0 or tuple(color_sum.shape) != (V, 3) or sh_b.ndim != 2 or sh_b.shape[0] != V or sh_b.shape[1] % 3:
+        raise ValueError(f"sh sums: expected r [V], color_sum [V, 3], sh_b [V, 3 (K - 1)], got r {list(r.shape)}, "
+                         f"color_sum {list(color_sum.shape)}, sh_b {list(sh_b.shape)}")
+    k = sh_b.shape[1] // 3 + 1
+    if tuple(sh_a.shape) != (V, k * (k + 1) // 2 - 1):
+        raise ValueError(f"sh_a: expected [{V}, {k * (k + 1) // 2 - 1}] for K = {k}, got {list(sh_a.shape)}")
+    return k
+
+
+def solve_sh_reference(
     r: Tensor,  # [V] R_scene (+ eps)
     color_sum: Tensor,  # [V, 3] sum W c (+ eps * representative colour)
     sh_a: Tensor,  # [V, K(K+1)/2 - 1]
     sh_b: Tensor,  # [V, 3 (K - 1)]
     regularization: float,
 ) -> Tensor:  # [V, K, 3]
-    """Per-voxel least-squares SH colour fit from the streamed normal equations.
+    """Per-voxel least-squares SH colour fit from the streamed normal equations (pure PyTorch,
+    differentiable; `solve_sh` is the fast path).
 
     Minimises sum W |c - 1/2 - sh^T b(d)|^2 + regularization * R_scene * |sh_{k>=1}|^2: a ridge that
     pulls the view-dependent terms toward zero (the DC colour) where few directions were seen.
     """
-    k = sh_b.shape[1] // 3 + 1
+    k = _check_sh_sums(r, color_sum, sh_a, sh_b)
     V = r.shape[0]
     A = torch.zeros((V, k, k), dtype=torch.float64)
     A[:, 0, 0] = SH_C0 * SH_C0 * r.double()
@@ -50,6 +64,107 @@ def solve_sh(
     A[:, diag, diag] += regularization * r.double()[:, None]
     B = torch.cat([(SH_C0 * (color_sum.double() - 0.5 * r.double()[:, None]))[:, None], sh_b.double().reshape(V, k - 1, 3)], 1)
     return torch.linalg.solve(A, B).float()
+
+
+# A Cholesky pivot below this share of the matrix's largest diagonal entry is a direction the
+# observations (and the ridge) leave undetermined: its coefficient is set to zero instead of
+# amplifying round-off (only reachable with sh_regularization = 0).
+_PIVOT_FLOOR = 1e-12
+
+
+@numba.njit(cache=True, parallel=True)
+def _solve_sh_kernel(
+    r: np.ndarray,  # [V] float32 or float64
+    color_sum: np.ndarray,  # [V, 3]
+    sh_a: np.ndarray,  # [V, K(K+1)/2 - 1]
+    sh_b: np.ndarray,  # [V, 3 (K - 1)]
+    regularization: float,
+    out: np.ndarray,  # [V, K, 3] float32, the solution
+) -> None:
+    k, V = out.shape[1], r.shape[0]
+    chunk = 4096  # scratch matrices are allocated once per chunk of voxels, not per voxel
+    for first in numba.prange((V + chunk - 1) // chunk):
+        a = np.empty((k, k))
+        b = np.empty((k, 3))
+        for n in range(first * chunk, min(V, (first + 1) * chunk)):
+            rn = np.float64(r[n])
+            column = 0
+            for i in range(k):  # the upper triangle, row by row, as `sh_sum_widths` lays it out
+                for j in range(i, k):
+                    if i == 0 and j == 0:
+                        a[0, 0] = SH_C0 * SH_C0 * rn
+                    else:
+                        a[i, j] = sh_a[n, column]
+                        column += 1
+                    a[j, i] = a[i, j]
+                if i > 0:
+                    a[i, i] += regularization * rn
+            for c in range(3):
+                b[0, c] = SH_C0 * (color_sum[n, c] - 0.5 * rn)
+            for i in range(1, k):
+                for c in range(3):
+                    b[i, c] = sh_b[n, 3 * (i - 1) + c]
+            scale = 0.0
+            for i in range(k):
+                scale = max(scale, abs(a[i, i]))
+            floor = _PIVOT_FLOOR * scale
+            # Cholesky A = L L^T in the lower triangle; an undetermined direction gets a zero column
+            for j in range(k):
+                d = a[j, j]
+                for p in range(j):
+                    d -= a[j, p] * a[j, p]
+                if d <= floor:
+                    for i in range(j, k):
+                        a[i, j] = 0.0
+                    continue
+                d = np.sqrt(d)
+                a[j, j] = d
+                for i in range(j + 1, k):
+                    s = a[i, j]
+                    for p in range(j):
+                        s -= a[i, p] * a[j, p]
+                    a[i, j] = s / d
+            for c in range(3):  # L y = b, then L^T x = y (zero pivots give zero components)
+                for i in range(k):
+                    s = b[i, c]
+                    for p in range(i):
+                        s -= a[i, p] * b[p, c]
+                    b[i, c] = s / a[i, i] if a[i, i] != 0.0 else 0.0
+                for i in range(k - 1, -1, -1):
+                    s = b[i, c]
+                    for p in range(i + 1, k):
+                        s -= a[p, i] * b[p, c]
+                    b[i, c] = s / a[i, i] if a[i, i] != 0.0 else 0.0
+                for i in range(k):
+                    out[n, i, c] = b[i, c]
+
+
+def solve_sh(
+    r: Tensor,  # [V] R_scene (+ eps)
+    color_sum: Tensor,  # [V, 3] sum W c (+ eps * representative colour)
+    sh_a: Tensor,  # [V, K(K+1)/2 - 1]
+    sh_b: Tensor,  # [V, 3 (K - 1)]
+    regularization: float,
+) -> Tensor:  # [V, K, 3]
+    """`solve_sh_reference`'s fit, solved per voxel by a Cholesky factorisation in a numba kernel
+    (the batched LAPACK solve and the assembly of [V, K, K] matrices were a third of a decode).
+    Falls back to the reference where a gradient must reach the sums.
+
+    Example:
+        >>> r = torch.tensor([2.0]); c = torch.tensor([[1.5, 1.0, 0.5]])   # two observations
+        >>> sh = solve_sh(r, c, torch.zeros(1, 9), torch.zeros(1, 9), 0.003)
+        >>> bool(torch.allclose(sh, solve_sh_reference(r, c, torch.zeros(1, 9), torch.zeros(1, 9), 0.003)))
+        True
+    """
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (r, color_sum, sh_a, sh_b)):
+        return solve_sh_reference(r, color_sum, sh_a, sh_b, regularization)
+    k = _check_sh_sums(r, color_sum, sh_a, sh_b)
+    out = np.empty((r.shape[0], k, 3), np.float32)
+    if r.shape[0]:
+        # float32 or float64 sums as they come (the kernel accumulates in float64)
+        sums = [np.ascontiguousarray(t.detach().cpu().numpy()) for t in (r, color_sum, sh_a, sh_b)]
+        _solve_sh_kernel(*sums, float(regularization), out)
+    return torch.from_numpy(out)
 
 
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True) -> dict[str, Tensor]:
