@@ -4,7 +4,9 @@
 
 For the first F frames of the capture folded at the voxel size, medians of --repeats runs of:
 `Scene.decode_inputs` (the copy a service takes under the session lock), `Scene.decode_from`
-(fields of the decoded voxels, the per-voxel SH solve, the decoder), and, on the decoded
+from scratch (fields of the decoded voxels, the per-voxel SH solve, the decoder), and
+`decode_from` right after each of the last --repeats folds, as a viewer rendering while a stream
+folds pays it (only the voxels the fold touched are decoded again; `scene.decoded`); and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
 ratio, and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
@@ -19,6 +21,7 @@ import statistics
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -58,22 +61,37 @@ def main(argv=None) -> None:
     decode_rows, eigen_rows, sh_rows = [], [], []
     scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
     for n in counts:
-        for position in range(folded, n):
+        # the last `repeats` frames before n are folded one at a time, each followed by a decode as a
+        # viewer's render would ask for it (reusing the voxels the fold left alone)
+        last = max(folded, n - args.repeats)
+        for position in range(folded, last):
             scene.fold(sequence[position])
+        scene.decode()
+        after_fold, touched = [], []
+        for position in range(last, n):
+            report = scene.fold(sequence[position])
+            touched.append(report.new_voxels + report.updated_voxels)
+            inputs = scene.decode_inputs()
+            after_fold += time_each(scene.decode_from, [inputs])
         folded = n
         inputs = scene.decode_inputs()
         gaussians = scene.decode_from(inputs)
+        from_scratch = median_ms(lambda: scene.decode_from(inputs._replace(changed_at=None)), args.repeats)
+        after = statistics.median(after_fold) if after_fold else float("nan")
         decode_rows.append({
             "frames": n, "voxels": len(scene), "Gaussians": len(gaussians),
+            "voxels a fold touches": f"{statistics.median(touched):.0f}" if touched else "-",
             "decode_inputs ms": f"{median_ms(scene.decode_inputs, args.repeats):.1f}",
-            "decode_from ms": f"{median_ms(lambda: scene.decode_from(inputs), args.repeats):.1f}",
+            "decode_from, from scratch ms": f"{from_scratch:.1f}",
+            "decode_from after a fold ms": f"{after:.1f}",
+            "ratio": f"{from_scratch / after:.1f}x",
         })
         cov = fields_from_sums(inputs.sums, scene.config, sort=False)["position_cov"] / args.voxel**2
         fast = median_ms(lambda: symmetric_eigh3(cov), args.repeats)
         lapack = median_ms(lambda: symmetric_eigh3_reference(cov), args.repeats)
         eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
                            "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
-        sums = {k: torch.as_tensor(v) for k, v in inputs.sums.items()}
+        sums = {k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in inputs.sums.items()}
         system = (sums["r_sum"] + scene.config.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
                   scene.config.sh_regularization)
         fast = median_ms(lambda: solve_sh(*system), args.repeats)
@@ -81,7 +99,7 @@ def main(argv=None) -> None:
         sh_rows.append({"frames": n, "systems": len(sums["r_sum"]), "K": sums["sh_b"].shape[1] // 3 + 1,
                         "numba Cholesky ms": f"{fast:.1f}", "torch.linalg.solve ms": f"{batched:.1f}",
                         "ratio": f"{batched / fast:.1f}x"})
-    print_table("Decode of the fused scene (a render after a fold pays decode_from)", decode_rows)
+    print_table("Decode of the fused scene (a render after a fold pays decode_inputs + decode_from)", decode_rows)
     print_table("Eigen-decomposition of the voxels' covariances, both paths (every voxel)", eigen_rows)
     print_table("SH colour fit, both paths (every voxel's K x K normal equations)", sh_rows)
 

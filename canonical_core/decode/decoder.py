@@ -69,9 +69,11 @@ class MonotoneOpacity(nn.Module):
         self.w = nn.Parameter(torch.zeros(hidden))
 
     def forward(self, r: Tensor) -> Tensor:  # [N] -> [N] logits
-        r = r[:, None]
-        bent = torch.tanh(self.u.clamp_min(0.0) * r + self.c) @ self.w.clamp_min(0.0)
-        return self.a.clamp_min(0.0) * r[:, 0] + self.b + bent
+        line = self.a.clamp_min(0.0) * r + self.b
+        w = self.w.clamp_min(0.0)
+        if not torch.is_grad_enabled() and not bool(w.any()):  # untrained: the bend is exactly zero
+            return line
+        return line + torch.tanh(self.u.clamp_min(0.0) * r[:, None] + self.c) @ w
 
 
 def matrix_to_quaternion(R: Tensor) -> Tensor:  # [N, 3, 3] -> [N, 4] (w, x, y, z), w >= 0
@@ -138,16 +140,29 @@ class GaussianDecoder(nn.Module):
     def forward(self, fields: dict[str, Tensor], voxel_size: float, support_unit: float = 1.0) -> Gaussians:
         """Decode every voxel of ``fields`` (the dict returned by ``Scene.fields``); R_scene is
         counted in units of ``support_unit`` (see `support_unit`)."""
+        opacities = self.opacities(fields["reliability"], fields.get("free_space"), support_unit)
+        return Gaussians(opacities=opacities, **self.shapes_and_colours(fields, voxel_size))
+
+    def opacities(
+        self,
+        support: Tensor,  # [N] R_scene
+        free: Tensor | None,  # [N] free-space evidence, or None without it
+        support_unit: float = 1.0,
+    ) -> Tensor:  # [N] in (0, 1)
+        """The opacity half of the decode: the only part that depends on the scene as a whole (its
+        support unit), so `Scene.decode_from` recomputes it for every voxel and reuses the rest."""
         if not support_unit > 0:
             raise ValueError(f"support_unit: expected > 0, got {support_unit}")
-        support = fields["reliability"]
-        feats = fields["features"]
         r = 1.0 - torch.exp(-support / support_unit)
         logit = self.opacity(r)
-        if "free_space" in fields:
-            free = fields["free_space"]
+        if free is not None:
             logit = logit - self.free_space_penalty(free / (free + support).clamp_min(1e-12))
-        opacities = torch.sigmoid(logit)
+        return torch.sigmoid(logit)
+
+    def shapes_and_colours(self, fields: dict[str, Tensor], voxel_size: float) -> dict[str, Tensor]:
+        """Every Gaussian field but opacity (means, scales, quats, sh, features, labels), each a
+        function of its own voxel's fields alone."""
+        feats = fields["features"]
         means = fields["position_mean"] + voxel_size * self.offset(feats)
         cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units
         cov = 0.5 * (cov + cov.transpose(1, 2))
@@ -162,12 +177,5 @@ class GaussianDecoder(nn.Module):
         rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0]), rot)
         sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["color"])[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
-        return Gaussians(
-            means=means,
-            scales=scales,
-            quats=matrix_to_quaternion(rot),
-            opacities=opacities,
-            sh=sh,
-            features=feats,
-            labels=fields.get("labels"),
-        )
+        return {"means": means, "scales": scales, "quats": matrix_to_quaternion(rot), "sh": sh, "features": feats,
+                "labels": fields.get("labels")}

@@ -1,0 +1,86 @@
+"""Per-voxel decode results kept between decodes, so that a decode after a fold redoes only the voxels
+the fold touched.
+
+A Gaussian's shape and colour (`GaussianDecoder.shapes_and_colours`) are functions of its own
+voxel's sums; only its opacity depends on the scene as a whole (the support unit), and that is
+cheap to recompute for every voxel. A fold changes the sums of the voxels its observations land in
+(tens of thousands) while the scene holds hundreds of thousands, so `Scene.decode_from` keeps each
+decoded row here with the fold stamp of the sums it came from, and reuses it while the row's sums
+still carry that stamp. Stamps are unique per fold, so equal stamps mean equal sums.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# the parts of a decoded row, in `GaussianDecoder.shapes_and_colours`' names
+PARTS = ("means", "scales", "quats", "sh", "features", "labels")
+
+
+class DecodedRows:
+    """Decoded shapes and colours by scene row, each with its sums' fold stamp (-1: none yet).
+
+    ``key`` names what else the results depend on (the decoder's parameters, the label channels):
+    a scene starts a new `DecodedRows` when it changes. Not locked: its scene holds a lock around
+    each use (`Scene.decode_from`).
+
+    Example:
+        >>> rows = DecodedRows(key=0)
+        >>> rows.store(np.array([0, 2]), np.array([5, 5]), {"means": torch.ones(2, 3), "labels": None})
+        >>> rows.current(np.array([2, 0, 1]), np.array([5, 6, 5])).tolist()
+        [True, False, False]
+        >>> rows.gather(np.array([2, 0]))["means"].shape
+        torch.Size([2, 3])
+    """
+
+    def __init__(self, key):
+        self.key = key
+        self.stamps = np.full(0, -1, np.int64)
+        self._parts: dict[str, Tensor | None] = {}
+
+    def current(
+        self,
+        rows: np.ndarray,  # [M] scene rows
+        stamps: np.ndarray,  # [M] the fold stamps of their current sums
+    ) -> np.ndarray:  # [M] bool: decoded from these very sums
+        hit = rows < len(self.stamps)
+        hit[hit] = self.stamps[rows[hit]] == stamps[hit]
+        return hit
+
+    def store(
+        self,
+        rows: np.ndarray,  # [M] scene rows
+        stamps: np.ndarray,  # [M] the fold stamps of the sums they were decoded from
+        parts: dict[str, Tensor | None],  # name -> [M, ...] (or None for an absent part)
+    ) -> None:
+        if not len(rows):
+            return
+        size = int(rows.max()) + 1
+        if size > len(self.stamps):  # grow by half at least: a scene grows every fold
+            capacity = max(size, len(self.stamps) * 3 // 2)
+            stamps_grown = np.full(capacity, -1, np.int64)
+            stamps_grown[: len(self.stamps)] = self.stamps
+            self.stamps = stamps_grown
+            for name, part in parts.items():
+                old = self._parts.get(name)
+                if part is None:
+                    self._parts[name] = None
+                    continue
+                grown = torch.zeros((capacity, *part.shape[1:]), dtype=part.dtype)
+                if old is not None:
+                    grown[: len(old)] = old
+                self._parts[name] = grown
+        index = torch.from_numpy(rows)
+        for name, part in parts.items():
+            if part is not None:
+                self._parts[name].index_copy_(0, index, part.detach())
+        self.stamps[rows] = stamps
+
+    def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...]
+        index = torch.from_numpy(rows)
+        return {name: None if part is None else part.index_select(0, index) for name, part in self._parts.items()}
+
+    def nbytes(self) -> int:
+        return int(self.stamps.nbytes + sum(p.numel() * p.element_size() for p in self._parts.values() if p is not None))

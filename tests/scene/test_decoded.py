@@ -1,0 +1,133 @@
+"""Decodes after a fold reuse what earlier decodes made of the voxels the fold left alone, and are the
+same as a decode from scratch (`Scene.decode_from`, `scene.decoded.DecodedRows`)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import SceneConfig
+from canonical_core.scene import Scene
+from canonical_core.scene.decoded import PARTS
+from ..conftest import make_frame
+
+
+def assert_same_gaussians(a, b):
+    for name in ("opacities", *PARTS):
+        x, y = getattr(a, name), getattr(b, name)
+        if x is None or y is None:
+            assert x is None and y is None, name
+            continue
+        assert x.shape == y.shape, name
+        assert torch.allclose(x, y, rtol=1e-5, atol=1e-6), (name, (x - y).abs().max())
+
+
+def from_scratch(scene: Scene, inputs=None, **kwargs):
+    """The decode without reuse: the same inputs without their fold stamps."""
+    inputs = scene.decode_inputs() if inputs is None else inputs
+    return scene.decode_from(inputs._replace(changed_at=None), **kwargs)
+
+
+def decoded_row_counts(scene: Scene) -> list[int]:
+    """Record how many voxels each decode of ``scene`` runs through the decoder (the real one)."""
+    counts, decode = [], scene.decoder.shapes_and_colours
+
+    def recording(fields, voxel_size):
+        counts.append(len(fields["features"]))
+        return decode(fields, voxel_size)
+
+    scene.decoder.shapes_and_colours = recording
+    return counts
+
+
+@pytest.fixture(scope="module")
+def shelf(shelf_frames):
+    return [dataclasses.replace(f) for f in shelf_frames[:6]]
+
+
+def test_a_decode_after_a_fold_decodes_only_what_the_fold_touched_and_equals_a_fresh_decode(shelf):
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for frame in shelf[:4]:
+        scene.fold(frame)
+    counts = decoded_row_counts(scene)
+    first = scene.decode()
+    assert counts == [len(first)]  # nothing to reuse yet
+    assert_same_gaussians(scene.decode(), first)  # unchanged scene: every voxel reused
+    assert counts[-1] == 0
+    report = scene.fold(shelf[4])
+    touched = report.new_voxels + report.updated_voxels
+    after = scene.decode()
+    assert 0 < counts[-1] <= touched < len(after)
+    assert_same_gaussians(after, from_scratch(scene))
+    # a subset (level of detail, a support floor) reuses the same rows
+    for kwargs in ({"max_gaussians": 5000}, {"min_support": 0.5}):
+        subset = scene.decode(**kwargs)
+        assert counts[-1] == 0
+        assert_same_gaussians(subset, from_scratch(scene, **kwargs))
+
+
+def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(shelf):
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for frame in shelf[:3]:
+        scene.fold(frame)
+    early = scene.decode_inputs()
+    scene.fold(shelf[3])
+    scene.decode()  # the cache now holds rows of the later state
+    assert_same_gaussians(scene.decode_from(early), from_scratch(scene, early))
+
+
+def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    scene.fold(shelf[0])
+    before = scene.decode()
+    with torch.no_grad():
+        scene.decoder.offset.bias += torch.tensor([0.25, 0.0, 0.0])  # a quarter voxel along x
+    after = scene.decode()
+    assert torch.allclose(after.means - before.means, torch.tensor([0.25 * 0.008, 0.0, 0.0]), atol=1e-6)
+    assert_same_gaussians(after, from_scratch(scene))
+
+
+def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
+    a, b = Scene(SceneConfig(voxel_size=0.008)), Scene(SceneConfig(voxel_size=0.008))
+    a.fold(shelf[0])
+    b.fold(shelf[5])  # the same number of folds: equal per-scene fold counts would collide
+    b.decode()
+    inputs = a.decode_inputs()
+    assert_same_gaussians(b.decode_from(inputs), from_scratch(a, inputs))
+
+
+def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for frame in shelf[:2]:
+        scene.fold(frame)
+    scene.decode()
+    loaded = Scene.from_bytes(scene.to_bytes())
+    assert_same_gaussians(loaded.decode(), scene.decode())
+    for s in (scene, loaded):
+        s.fold(shelf[2])
+    assert_same_gaussians(loaded.decode(), scene.decode())
+    assert_same_gaussians(loaded.decode(), from_scratch(loaded))
+
+
+def test_labels_arriving_after_a_decode_reach_every_voxel():
+    scene = Scene(SceneConfig(voxel_size=0.1, free_space=False))
+    depth = np.full((4, 4), 1.0)
+    scene.fold(make_frame(depth, fx=4.0))
+    assert scene.decode().labels is None
+    labels = np.zeros((4, 4, 3), np.float32)
+    labels[..., 1] = 1.0
+    scene.fold(make_frame(depth * 1.5, fx=4.0, labels=labels))  # new voxels with labels, old ones without
+    decoded = scene.decode()
+    assert decoded.labels is not None and decoded.labels.shape == (len(decoded), 3)
+    assert_same_gaussians(decoded, from_scratch(scene))
+    assert (decoded.labels[:, 1] > 0.99).sum() > 0 and (decoded.labels.sum(1) == 0).sum() > 0
+
+
+def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    scene.fold(shelf[0])
+    before = scene.memory_bytes()
+    g = scene.decode()
+    per_gaussian = (3 + 3 + 4 + g.sh[0].numel() + g.features.shape[1]) * 4
+    assert scene.memory_bytes() - before >= len(g) * per_gaussian
