@@ -30,6 +30,19 @@ def test_opacity_initialisation_is_the_analytic_line():
     assert torch.allclose(head(r), 10 * r - 3)
 
 
+def test_opacity_head_gives_the_same_logits_with_and_without_a_gradient():
+    # without a gradient an untrained head skips its (zero) bend; a trained one must not
+    head = MonotoneOpacity()
+    r = torch.linspace(0, 1, 101)
+    for w in (0.0, 0.7):
+        with torch.no_grad():
+            head.w.fill_(w)
+            fast = head(r)
+        traced = head(r)
+        assert traced.requires_grad and torch.allclose(fast, traced, atol=1e-6)
+    assert not torch.allclose(fast, 30.0 * r, atol=1e-3)  # the bend of w = 0.7 is there
+
+
 def test_quaternion_round_trip():
     q = torch.randn(200, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     q = q / q.norm(dim=1, keepdim=True)
