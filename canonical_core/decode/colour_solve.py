@@ -80,20 +80,33 @@ def _csr(
     columns: np.ndarray,  # [K] int64 each entry's column
     values: np.ndarray,  # [K] float32
     num_rows: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # row starts [R + 1], columns [K], values [K] (int32, int32, float32)
-    """Entries to CSR by a counting sort in O(K + R): within a row, entries keep their order."""
+    normalised: bool,  # rows over their sum (alpha), rows summing below `COVERED_ALPHA` dropped
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Entries to CSR by a counting sort in O(K + R): within a row, entries keep their order.
+    Returns row starts [R + 1] int32, columns [E] int32, values [E] float32 and each row's scale
+    [R] float64 (1 / alpha, 0 for a dropped row; all 1 unless ``normalised``)."""
+    scale = np.ones(num_rows)
+    if normalised:
+        alpha = np.zeros(num_rows)
+        for k in range(rows.shape[0]):
+            alpha[rows[k]] += values[k]
+        for r in range(num_rows):
+            scale[r] = 1.0 / alpha[r] if alpha[r] >= COVERED_ALPHA else 0.0
     starts = np.zeros(num_rows + 1, np.int32)
     for r in rows:
-        starts[r + 1] += 1
+        if scale[r] > 0.0:
+            starts[r + 1] += 1
     for r in range(num_rows):
         starts[r + 1] += starts[r]
     cursor = starts[:-1].copy()
-    out_columns, out_values = np.empty(rows.shape[0], np.int32), np.empty(rows.shape[0], np.float32)
+    out_columns, out_values = np.empty(starts[num_rows], np.int32), np.empty(starts[num_rows], np.float32)
     for k in range(rows.shape[0]):
-        at = cursor[rows[k]]
-        out_columns[at], out_values[at] = columns[k], values[k]
-        cursor[rows[k]] = at + 1
-    return starts, out_columns, out_values
+        r = rows[k]
+        if scale[r] > 0.0:
+            at = cursor[r]
+            out_columns[at], out_values[at] = columns[k], values[k] * scale[r]
+            cursor[r] = at + 1
+    return starts, out_columns, out_values, scale
 
 
 @numba.njit(parallel=True, cache=True)
@@ -114,23 +127,6 @@ def _csr_matmul(
             s1 += w * x[c, 1]
             s2 += w * x[c, 2]
         out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2
-    return out
-
-
-def _sh_matmul(
-    starts: np.ndarray,  # [R + 1] int32 CSR row starts (rows view-major)
-    columns: np.ndarray,  # [E] int32
-    values: np.ndarray,  # [E] float32
-    view_rows: np.ndarray,  # [V + 1] int64 where each view's rows start
-    bases: np.ndarray,  # [V, N, K] float32 Y_k of each Gaussian seen from each view, K = 1 or 4
-    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets
-) -> np.ndarray:  # [R, 3] float32: each pixel's change of colour
-    out = np.empty((starts.shape[0] - 1, 3), np.float32)
-    for v in range(len(view_rows) - 1):
-        first, last = view_rows[v], view_rows[v + 1]
-        # the colour offsets as view v sees them, sum_k Y_k x_k (a batched product: threaded, unlike einsum)
-        seen = torch.bmm(torch.from_numpy(bases[v])[:, None, :], torch.from_numpy(x))[:, 0].numpy()
-        out[first:last] = _csr_matmul(starts[first:last + 1], columns, values, seen)
     return out
 
 
@@ -176,6 +172,57 @@ def _sh_rmatmul(
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _sh_normal(
+    starts: np.ndarray,  # [R + 1] int32 CSR row starts (rows view-major)
+    columns: np.ndarray,  # [E] int32
+    values: np.ndarray,  # [E] float32
+    view_rows: np.ndarray,  # [V + 1] int64 where each view's rows start
+    bases: np.ndarray,  # [V, N, K] float32 Y_k of each Gaussian seen from each view, K = 1 or 4
+    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets
+) -> np.ndarray:  # [N, K, 3] float32: A^T A x
+    """A^T (A x) in one pass over the weights: each pixel's colour change (a float64 sum, as a render)
+    is scattered back through the same row while it is in cache, instead of streaming the 10-20 M
+    weights once for A x and again for A^T y (a conjugate-gradient step is one such product).
+    Grouped by views as `_sh_rmatmul`, so the result does not depend on the thread count."""
+    n, num_bases = bases.shape[1], bases.shape[2]
+    out = np.zeros((n, num_bases, 3), np.float32)
+    partial = np.empty((VIEW_GROUP, n, 3), np.float32)
+    seen = np.empty((VIEW_GROUP, n, 3), np.float32)
+    for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
+        group = min(VIEW_GROUP, view_rows.shape[0] - 1 - first)
+        for g in numba.prange(group):
+            v = first + g
+            for i in range(n):  # the colour offsets as view v sees them, sum_k Y_k x_k
+                for c in range(3):
+                    s = np.float32(0.0)
+                    for k in range(num_bases):
+                        s += bases[v, i, k] * x[i, k, c]
+                    seen[g, i, c] = s
+                    partial[g, i, c] = 0.0
+            for r in range(view_rows[v], view_rows[v + 1]):
+                s0 = s1 = s2 = 0.0
+                for e in range(starts[r], starts[r + 1]):
+                    i, w = columns[e], np.float64(values[e])
+                    s0 += w * seen[g, i, 0]
+                    s1 += w * seen[g, i, 1]
+                    s2 += w * seen[g, i, 2]
+                y0, y1, y2 = np.float32(s0), np.float32(s1), np.float32(s2)
+                for e in range(starts[r], starts[r + 1]):
+                    i, w = columns[e], values[e]
+                    partial[g, i, 0] += w * y0
+                    partial[g, i, 1] += w * y1
+                    partial[g, i, 2] += w * y2
+        for i in numba.prange(n):
+            for g in range(group):
+                for k in range(num_bases):
+                    bk = bases[first + g, i, k]
+                    out[i, k, 0] += bk * partial[g, i, 0]
+                    out[i, k, 1] += bk * partial[g, i, 1]
+                    out[i, k, 2] += bk * partial[g, i, 2]
+    return out
+
+
 def _arrays(A: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # CSR row starts, columns, values
     return A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy()
 
@@ -194,13 +241,8 @@ def colour_system(
     for view in views:
         camera = view.camera
         w = blend_weights(gaussians, camera, backend=backend)
-        pixels, ids, values = w.pixels.numpy(), w.ids.numpy(), w.weights.numpy()
-        if colour == "normalised":
-            alpha = np.bincount(pixels, weights=values, minlength=camera.height * camera.width)
-            scale = np.where(alpha >= COVERED_ALPHA, 1.0 / np.maximum(alpha, COVERED_ALPHA), 0.0)
-            kept = scale[pixels] > 0
-            pixels, ids, values = pixels[kept], ids[kept], (values[kept] * scale[pixels[kept]]).astype(np.float32)
-        s, c, v = _csr(pixels, ids, values, camera.height * camera.width)
+        s, c, v, scale = _csr(w.pixels.numpy(), w.ids.numpy(), w.weights.numpy(), camera.height * camera.width,
+                              colour == "normalised")
         render = _csr_matmul(s, c, v, channel_values(gaussians, camera, ("rgb",)).float().numpy())
         residual = view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render)
         if colour == "normalised":
@@ -269,7 +311,7 @@ def solve_colours(
     diagonal = evidence + damping
 
     def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
-        return transposed(_sh_matmul(*system, x.numpy())) + damping * x
+        return torch.from_numpy(_sh_normal(*system, x.numpy())) + damping * x
 
     # conjugate gradients, one step length per colour channel
     offsets = torch.zeros(len(gaussians), num_bases, 3)

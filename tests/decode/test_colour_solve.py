@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from canonical_core.decode import colour_system, solve_colours
-from canonical_core.decode.colour_solve import _sh_matmul, _sh_rmatmul
+from canonical_core.decode.colour_solve import _sh_normal, _sh_rmatmul
 from canonical_core.gaussians.container import SH_C0
 from canonical_core.rendering.sh import SH_C1, sh_basis, sh_basis_at_points
 from canonical_core.frame import Frame
@@ -121,7 +121,10 @@ def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
     rng = np.random.default_rng(1)
     x = rng.standard_normal((len(g), 4, 3)).astype(np.float32)
     y = rng.standard_normal((A.shape[0], 3)).astype(np.float32)
-    assert np.allclose(_sh_matmul(*system, x), (M @ torch.from_numpy(x).double().reshape(-1, 3)).numpy(), atol=1e-4)
+    normal = _sh_normal(*system, x)  # A^T A x in one pass
+    dense = M.T @ (M @ torch.from_numpy(x).double().reshape(-1, 3))
+    assert np.allclose(normal.reshape(-1, 3), dense.numpy(), rtol=1e-4, atol=1e-4)
+    assert dense.abs().max() > 1.0  # not a comparison of zeros
     transposed = _sh_rmatmul(*system, y, False)
     assert np.allclose(transposed.reshape(-1, 3), (M.T @ torch.from_numpy(y).double()).numpy(), atol=1e-4)
     squared = _sh_rmatmul(*system, np.ones_like(y), True)
@@ -130,6 +133,7 @@ def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
     try:
         numba.set_num_threads(1)
         assert np.array_equal(_sh_rmatmul(*system, y, False), transposed)  # fixed view groups: bit-identical
+        assert np.array_equal(_sh_normal(*system, x), normal)
     finally:
         numba.set_num_threads(threads)
 
