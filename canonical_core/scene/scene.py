@@ -452,7 +452,9 @@ class Scene:
         """`GaussianDecoder.shapes_and_colours` of ``rows``: reused from an earlier decode for the rows
         whose sums are unchanged since (`DecodedRows`), decoded from ``inputs`` for the rest. The
         fields (and the per-voxel SH solve among them) are computed for those rows alone."""
-        key = (inputs.sums["label_sum"].shape[1], tuple((id(p), p._version) for p in self.decoder.parameters()))
+        d = self.decoder  # what else a row's decode depends on: label channels, the decoder's parameters and clamps
+        key = (inputs.sums["label_sum"].shape[1], tuple((id(p), p._version) for p in d.parameters()),
+               (d.min_thickness, d.min_extent, d.max_extent))
         with self._decoded_lock:  # decodes of one scene take turns: they share the decoded rows
             cache = self._decoded
             if cache is None or cache.key != key:

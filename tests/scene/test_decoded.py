@@ -86,6 +86,10 @@ def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
     after = scene.decode()
     assert torch.allclose(after.means - before.means, torch.tensor([0.25 * 0.008, 0.0, 0.0]), atol=1e-6)
     assert_same_gaussians(after, from_scratch(scene))
+    scene.decoder.min_extent = 0.8  # a clamp, not a parameter
+    wider = scene.decode()
+    assert wider.scales.max(1).values.min() >= 0.8 * 0.008 * 0.999
+    assert_same_gaussians(wider, from_scratch(scene))
 
 
 def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
