@@ -2,6 +2,7 @@
 same as a decode from scratch (`Scene.decode_from`, `scene.decoded.DecodedRows`)."""
 
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
@@ -135,3 +136,44 @@ def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
     g = scene.decode()
     per_gaussian = (3 + 3 + 4 + g.sh[0].numel() + g.features.shape[1]) * 4
     assert scene.memory_bytes() - before >= len(g) * per_gaussian
+
+
+def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf):
+    # as the service runs them: folds and the copy of the inputs under one lock, decodes outside it
+    scene, lock = Scene(SceneConfig(voxel_size=0.008)), threading.Lock()
+    scene.fold(shelf[0])
+    decoded, errors, started, folded = [], [], threading.Barrier(3, timeout=120), threading.Event()
+
+    def view() -> None:
+        with lock:
+            inputs = scene.decode_inputs()
+        decoded.append((inputs, scene.decode_from(inputs)))
+
+    def viewer() -> None:
+        try:
+            view()  # one decode before any fold, then decodes until the folds are done, then one more
+            started.wait()
+            while not folded.is_set():
+                view()
+            view()
+        except Exception as error:  # noqa: BLE001 -- reported by the main thread
+            errors.append(error)
+            started.abort()  # the main thread must not wait for a viewer that is gone
+
+    viewers = [threading.Thread(target=viewer) for _ in range(2)]
+    for t in viewers:
+        t.start()
+    try:
+        started.wait()
+    except threading.BrokenBarrierError:
+        pytest.fail(f"a viewer failed before the folds: {errors}")
+    for frame in shelf[1:5]:
+        with lock:
+            scene.fold(frame)
+    folded.set()
+    for t in viewers:
+        t.join()
+    assert not errors and len(decoded) >= 4
+    assert len({len(g) for _, g in decoded}) > 1  # the viewers saw the scene grow
+    for inputs, g in decoded:
+        assert_same_gaussians(g, from_scratch(scene, inputs))
