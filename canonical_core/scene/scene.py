@@ -424,7 +424,7 @@ class Scene:
         Each decode keeps what it made of every voxel (`scene.decoded.DecodedRows`, about 160 bytes
         a voxel), and the next one decodes again only the voxels whose sums a fold has changed since;
         opacities, which depend on the scene-wide support unit and on free space, are recomputed for
-        all. So a decode after a fold costs what the fold touched, not the scene (4.7x less at 204k
+        all. So a decode after a fold costs what the fold touched, not the scene (about 4x less at 204k
         voxels, `bench/decode.py`), and equals a decode from scratch (``inputs._replace(changed_at=None)``).
         Decodes of one scene take turns (they share those rows); folds do not wait for them.
         """
