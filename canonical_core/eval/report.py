@@ -81,6 +81,29 @@ def _metric_rows(runs: Sequence[dict]) -> list[list[str]]:
 _METRIC_HEADER = ["method", "N", "PSNR dB", "PSNR covered dB", "PSNR common dB", "coverage", "ceiling dB", "SSIM", "depth agree", "Gaussians", "fold+decode ms", "render ms"]
 
 
+# The paper's aggregation ablations, the full rule first, and the metrics their order is read on
+ABLATIONS = ("canonical", "no_reliability", "no_similarity", "average")
+ORDER_METRICS = (("psnr", "PSNR"), ("psnr_covered", "covered PSNR"), ("ssim", "SSIM"), ("depth_agreement", "depth agree"))
+
+
+def ablation_order(runs: Sequence[dict]) -> list[list[str]]:
+    """Rows (metric, N, the ablations best first, the full rule's rank, `average`'s rank) over the
+    clean ``runs``, for every N where all of `ABLATIONS` ran; ties keep `ABLATIONS`' order. The
+    paper's order is the full rule first and `average` last or near it."""
+    value = {(r["method"], r["views"]): r for r in runs if r["noise"] == 0}
+    views = sorted({n for (m, n) in value if all((a, n) in value for a in ABLATIONS)})
+    rows = []
+    for key, label in ORDER_METRICS:
+        for n in views:
+            scores = {a: _finite(value[a, n].get(key)) for a in ABLATIONS}
+            if any(v is None for v in scores.values()):
+                continue
+            order = sorted(ABLATIONS, key=lambda a: -scores[a])  # stable: ties in ABLATIONS' order
+            rank = {a: f"{order.index(a) + 1} of {len(order)}" for a in ("canonical", "average")}
+            rows.append([label, str(n), " > ".join(order), rank["canonical"], rank["average"]])
+    return rows
+
+
 def markdown(results: Mapping) -> str:
     """results.md: the protocol and every table."""
     views = sorted(int(k) for k in results["inputs"])
@@ -120,6 +143,11 @@ def markdown(results: Mapping) -> str:
     lines += ["", "## PSNR on the pixels every method covers (dB) vs input views", "", *_table(
         ["method", *(f"N={n} ({_num(share[n], 3)} of the image)" for n in views)],
         [[m, *(_num(by_key[m, n, 0.0]["psnr_common"]) for n in views)] for m in methods])]
+
+    order = ablation_order(results["runs"])
+    if order:
+        lines += ["", "## Ablation order, clean depth (the paper's: the full rule first, `average` last or near it)", "",
+                  *_table(["metric", "N", "best first", "canonical's rank", "average's rank"], order)]
 
     levels = results["noise_levels"]
     if levels:
