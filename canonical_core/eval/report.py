@@ -87,10 +87,11 @@ ORDER_METRICS = (("psnr", "PSNR"), ("psnr_covered", "covered PSNR"), ("ssim", "S
 
 
 def ablation_order(runs: Sequence[dict]) -> list[list[str]]:
-    """Rows (metric, N, the ablations best first, the full rule's rank, `average`'s rank) over the
-    clean ``runs``, for every N where all of `ABLATIONS` ran; ties keep `ABLATIONS`' order. The
-    paper's order is the full rule first and `average` last or near it."""
-    value = {(r["method"], r["views"]): r for r in runs if r["noise"] == 0}
+    """Rows (metric, N, the ablations best first, the full rule's rank, `average`'s rank) over
+    ``runs`` of one condition (clean, or the mixed-quality run), for every N where all of
+    `ABLATIONS` ran; ties keep `ABLATIONS`' order. The paper's order is the full rule first and
+    `average` last or near it."""
+    value = {(r["method"], r["views"]): r for r in runs}
     views = sorted({n for (m, n) in value if all((a, n) in value for a in ABLATIONS)})
     rows = []
     for key, label in ORDER_METRICS:
@@ -144,10 +145,11 @@ def markdown(results: Mapping) -> str:
         ["method", *(f"N={n} ({_num(share[n], 3)} of the image)" for n in views)],
         [[m, *(_num(by_key[m, n, 0.0]["psnr_common"]) for n in views)] for m in methods])]
 
-    order = ablation_order(results["runs"])
+    order_header = ["metric", "N", "best first", "canonical's rank", "average's rank"]
+    order = ablation_order(clean)
     if order:
         lines += ["", "## Ablation order, clean depth (the paper's: the full rule first, `average` last or near it)", "",
-                  *_table(["metric", "N", "best first", "canonical's rank", "average's rank"], order)]
+                  *_table(order_header, order)]
 
     levels = results["noise_levels"]
     if levels:
@@ -169,6 +171,9 @@ def markdown(results: Mapping) -> str:
                   "The 2nd, 4th, ... input views noisy, the others clean: evidence of uneven quality, which "
                   "reliability weighting is for.", "", *_table(_METRIC_HEADER, _metric_rows(
                       sorted(mixed["runs"], key=lambda r: (r["views"], methods.index(r["method"])))))]
+        mixed_order = ablation_order(mixed["runs"])
+        if mixed_order:
+            lines += ["", "Ablation order on the mixed-quality inputs:", "", *_table(order_header, mixed_order)]
 
     extra = results["extrapolation"]
     if extra is not None:
