@@ -137,6 +137,27 @@ VIEW_GROUP = 8
 
 
 @numba.njit(parallel=True, cache=True)
+def _contract_group(
+    out: np.ndarray,  # [N, K, 3] float32, added to
+    partial: np.ndarray,  # [GROUP, N, 3] float32: each view's colour-space sums
+    bases: np.ndarray,  # [V, N, K] float32
+    first: int,  # the group's first view
+    group: int,  # views in the group
+    squared: bool,  # the basis squared
+) -> None:
+    """out_ik += sum over the group's views g of Y_k(d_gi) partial_gi (colour space to coefficients),
+    in a fixed view order, so the sum does not depend on the thread count."""
+    for i in numba.prange(out.shape[0]):
+        for g in range(group):
+            for k in range(out.shape[1]):
+                bk = bases[first + g, i, k]
+                bk = bk * bk if squared else bk
+                out[i, k, 0] += bk * partial[g, i, 0]
+                out[i, k, 1] += bk * partial[g, i, 1]
+                out[i, k, 2] += bk * partial[g, i, 2]
+
+
+@numba.njit(parallel=True, cache=True)
 def _sh_rmatmul(
     starts: np.ndarray,  # [R + 1] int32
     columns: np.ndarray,  # [E] int32
@@ -161,14 +182,7 @@ def _sh_rmatmul(
                     partial[g, i, 0] += w * y0
                     partial[g, i, 1] += w * y1
                     partial[g, i, 2] += w * y2
-        for i in numba.prange(n):
-            for g in range(group):
-                for k in range(num_bases):
-                    bk = bases[first + g, i, k]
-                    bk = bk * bk if squared else bk
-                    out[i, k, 0] += bk * partial[g, i, 0]
-                    out[i, k, 1] += bk * partial[g, i, 1]
-                    out[i, k, 2] += bk * partial[g, i, 2]
+        _contract_group(out, partial, bases, first, group, squared)
     return out
 
 
@@ -213,13 +227,7 @@ def _sh_normal(
                     partial[g, i, 0] += w * y0
                     partial[g, i, 1] += w * y1
                     partial[g, i, 2] += w * y2
-        for i in numba.prange(n):
-            for g in range(group):
-                for k in range(num_bases):
-                    bk = bases[first + g, i, k]
-                    out[i, k, 0] += bk * partial[g, i, 0]
-                    out[i, k, 1] += bk * partial[g, i, 1]
-                    out[i, k, 2] += bk * partial[g, i, 2]
+        _contract_group(out, partial, bases, first, group, False)
     return out
 
 
