@@ -43,14 +43,11 @@ from torch import Tensor
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
-from ..rendering import Colour
+from ..rendering import COVERED_ALPHA, Colour
 from ..rendering.projection import channel_values
 from ..rendering.sh import SH_C1, sh_basis_at_points
 from ..rendering.weights import WeightsBackend, blend_weights
 
-
-# a normalised fit uses the pixels a render covers at least this much (the evaluation's "covered")
-COVERED_ALPHA = 0.5
 
 
 def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int, colour: str) -> None:

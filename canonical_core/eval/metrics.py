@@ -19,7 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-COVERAGE_THRESHOLD = 0.5  # alpha at or above which a pixel counts as covered
+from ..rendering import COVERED_ALPHA as COVERAGE_THRESHOLD  # alpha at or above which a pixel counts as covered
+
 DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
 
 # SSIM as defined by Wang, Bovik, Sheikh and Simoncelli (2004): an 11x11 Gaussian window with

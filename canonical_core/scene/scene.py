@@ -371,18 +371,22 @@ class Scene:
 
     def sums(self) -> dict[str, np.ndarray]:
         """The raw per-voxel sums (contiguous copies, insertion order, scratch excluded)."""
-        return {name: np.ascontiguousarray(array) for name, array in self._copied_sums().items()}
+        return {name: array.copy() for name, array in self._sums_of(self._state).items()}
 
     def _copied_sums(self) -> dict[str, np.ndarray]:
         """`sums`, as views into one copy of the state: one block copy of the rows instead of a
         strided copy per column (5x faster, and it is what a service does under the session lock)."""
+        return self._sums_of({k: v[: self._n].copy() for k, v in self._state.items()})
+
+    def _sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The sums as views into ``state`` (the scene's arrays or a copy of them), its first `len(self)` rows."""
         n = self._n
-        state = {k: v[:n].copy() for k, v in self._state.items()}
-        rows = state.pop("rows")
-        state |= {name: self._layout.field(rows, name) for name in self._layout.columns}
+        rows = state["rows"][:n]
+        out = {k: v[:n] for k, v in state.items() if k != "rows"}
+        out |= {name: self._layout.field(rows, name) for name in self._layout.columns}
         if not self.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
-            state["label_sum"] = np.zeros((n, 0), np.float32)
-        return state
+            out["label_sum"] = np.zeros((n, 0), np.float32)
+        return out
 
     def _set_sums(self, sums: dict[str, np.ndarray]) -> None:
         """Inverse of `sums` on a fresh scene with enough capacity (snapshot loading)."""
