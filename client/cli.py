@@ -12,7 +12,8 @@
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
 The CLI talks to the service over HTTP (`client.sdk`); ``serve`` starts it through uvicorn by import
-string, so nothing here imports ``server``. Datasets are read client-side with canonical_core.datasets.
+string, and ``repair`` (which works on a stopped service's data directory) imports it where it runs, so
+the module itself imports nothing from ``server``. Datasets are read client-side with canonical_core.datasets.
 """
 
 from __future__ import annotations
@@ -70,6 +71,38 @@ def run_serve(args) -> int:
     host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
     port = int(os.environ.get("CANONICAL_PORT", "8000"))
     uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level)
+    return 0
+
+
+# -- repair -------------------------------------------------------------------------------------
+def add_repair(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", default=None, help="the service's data directory (default: $CANONICAL_DATA_DIR or "
+                                                    "./data); the service must be stopped")
+    p.add_argument("--session", default=None, help="the session to repair (default: list the sessions that need it)")
+    p.add_argument("--action", choices=["truncate", "skip"], default=None,
+                   help="truncate: keep the frames logged before the damage; skip: keep every intact frame "
+                        "(the log as it was stays in the session's quarantine/ folder)")
+
+
+def run_repair(args) -> int:
+    # Works on the data directory itself, not over HTTP: the one place the CLI imports the service's code.
+    from server.store import DataDirLocked, SessionStore, Unrestorable
+
+    data_dir = args.data_dir or os.environ.get("CANONICAL_DATA_DIR", "./data")
+    store = SessionStore(data_dir, max_sessions=1 << 30)
+    try:
+        if args.session is None:
+            store.open()
+            for session_id, problem in sorted(store.unavailable.items()):
+                print(f"{session_id}: {problem}")
+            print(f"{len(store.unavailable)} of {len(store) + len(store.unavailable)} sessions need repair")
+        else:
+            print(store.repair(args.session, args.action))
+    except (DataDirLocked, Unrestorable, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        store.close()
     return 0
 
 
@@ -377,6 +410,7 @@ def run_eval(args) -> int:
 COMMANDS: dict[str, Command] = {
     "serve": Command(add_serve, run_serve, "run the service (uvicorn)"),
     "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
+    "repair": Command(add_repair, run_repair, "list or repair sessions whose files are damaged (service stopped)"),
     "render": Command(add_render, run_render, "render a session at a camera to a PNG"),
     "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),

@@ -21,7 +21,7 @@ from .errors import error_response, install_error_handlers
 from .metrics import Metrics
 from .routes import exports, frames, health, sessions, views
 from .settings import Settings
-from .store import SessionStore
+from .store import DataDirLocked, SessionStore
 
 log = logging.getLogger("canonical.server")
 
@@ -97,6 +97,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
+        try:
+            store.lock_dir()  # first: a second server on the directory stops here, before any work
+        except DataDirLocked as exc:
+            log.error("%s", exc)
+            raise SystemExit(3) from None
         if settings.threads:
             torch.set_num_threads(settings.threads)
         if settings.warm_up:

@@ -16,7 +16,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from canonical_core.scene import CapacityError
 
-from .store import SessionNotFound, TooManySessions
+from .store import FrameIdConflict, SessionNotFound, SessionUnavailable, StorageError, TooManySessions
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")
@@ -24,7 +24,7 @@ log = logging.getLogger("canonical.server")
 _FIELD = re.compile(r"^([A-Za-z_][\w.\[\]-]*): ")
 _HTTP_CODES = {400: "bad_request", 401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
                406: "not_acceptable", 409: "conflict", 413: "too_large", 415: "unsupported_media_type",
-               422: "invalid_value", 429: "busy"}
+               422: "invalid_value", 429: "busy", 503: "unavailable", 507: "insufficient_storage"}
 
 
 class ApiError(Exception):
@@ -49,6 +49,8 @@ def from_value_error(exc: ValueError) -> ApiError:
         return ApiError(exc.status, exc.code, message, exc.field)
     if isinstance(exc, CapacityError):
         return ApiError(409, "capacity", message, field_of(message) or "max_voxels")
+    if isinstance(exc, FrameIdConflict):
+        return ApiError(409, "frame_id_conflict", message, "frame_id")
     return ApiError(422, "invalid_value", message, field_of(message))
 
 
@@ -70,6 +72,19 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(SessionNotFound)
     async def _not_found(request: Request, exc: SessionNotFound):
         return error_response(404, "not_found", "session_id: no such session", "session_id")
+
+    @app.exception_handler(SessionUnavailable)
+    async def _unavailable(request: Request, exc: SessionUnavailable):
+        status = 503 if exc.retry_later else 409
+        return error_response(status, "session_unavailable", f"session_id: {exc.reason}", "session_id")
+
+    @app.exception_handler(StorageError)
+    async def _storage(request: Request, exc: StorageError):
+        # nothing of the request was applied: the frame was not logged, so it was not folded either
+        request.app.state.metrics.storage_errors += 1
+        status, code = (507, "insufficient_storage") if exc.full else (503, "storage_unavailable")
+        return error_response(status, code, f"data_dir: {exc.strerror}; the request was not applied", "data_dir",
+                              {"Retry-After": "30"})
 
     @app.exception_handler(TooManySessions)
     async def _too_many(request: Request, exc: TooManySessions):

@@ -51,6 +51,7 @@ class Metrics:
         self.view_seconds: dict[str, Histogram] = defaultdict(Histogram)  # by kind: render, features, ...
         self.frames_total = 0
         self.responses: dict[int, int] = defaultdict(int)
+        self.storage_errors = 0  # requests refused because their data could not be made durable
 
     def exposition(self, gauges: dict[str, tuple[str, float]]) -> str:
         """The text format; ``gauges`` maps name -> (help, value) for values read at scrape time."""

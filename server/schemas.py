@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
@@ -38,9 +38,13 @@ class SessionCreated(BaseModel):
 
 class SessionSummary(BaseModel):
     id: str
-    frames: int
-    voxels: int
+    frames: int | None = Field(description="None while the session is unavailable")
+    voxels: int | None
     created: float
+    state: Literal["ok", "read_only", "unavailable"] = Field(
+        "ok", description="read_only: its log cannot take frames until a restart; unavailable: its files need "
+                          "`canonical repair` (or a backup), it is not served")
+    problem: str | None = Field(None, description="what is wrong, when state is not ok")
 
 
 class SessionList(BaseModel):
@@ -53,6 +57,7 @@ class SessionStats(SessionSummary):
     disk_bytes: int
     label_dim: int
     snapshot_frames: int
+    snapshot_error: str | None = Field(None, description="why the last snapshot failed (its frames stay durable in the log)")
     config: dict[str, Any]
 
 

@@ -1,56 +1,67 @@
 """The session store: sessions on disk, their locks, and their decoded-Gaussians cache. No HTTP here.
 
-Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
+Layout: ``<data_dir>/.lock`` (held by the one server that uses the directory), and one folder per
+session under ``<data_dir>/sessions/<id>/``:
 
 - ``meta.json``: id, creation time and the SceneConfig, written once, atomically.
-- ``frames.log``: append-only frame log. A record is ``magic "CGF1" | u32 payload length | u64 frame
-  index | u32 CRC-32 of (length, index, payload) | payload`` (little-endian); the payload is the frame's
-  msgpack message as `server.wire.frame_from_message` reads it. A frame is appended and fsynced
-  before it is folded and acknowledged; a record whose fold fails is truncated away again. On start a
-  torn or corrupt tail (a crash mid-append: never acknowledged) is detected by length/CRC and cut off.
-- ``scene.snap``: `Scene.save` snapshot (atomic), holding ``scene.frames`` frames. Written every
+- ``frames.log``: the append-only frame log (`server.framelog`). A frame is appended and fsynced
+  before it is folded and acknowledged; an append that fails (a full disk) is cut off at once and
+  nothing is folded; a record whose fold fails is cut off again. On start a torn tail (a crash
+  mid-append: never acknowledged) is cut off; damage anywhere else is never cut: the log is copied to
+  ``quarantine/`` and the session is not served until ``canonical repair`` decides.
+- ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Written every
   ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and on shutdown; after it the log
-  is emptied (its records are all in the snapshot). Restart = load snapshot, replay records whose
-  index >= the snapshot's frame count. Folding is deterministic, so the replayed scene equals the
-  uninterrupted one bit for bit.
+  is replaced by one checkpoint record (the frames the snapshot holds and the frame-id table).
+  Restart = load snapshot, replay records whose index >= the snapshot's frame count. Folding is
+  deterministic, so the replayed scene equals the uninterrupted one bit for bit. A snapshot that
+  cannot be written is not an error of the request that triggered it: that frame is already durable
+  in the log; the failure shows in the session's stats and in /metrics.
+
+A session whose files do not add up on start (damaged log, a log or snapshot removed by hand, an
+unreadable snapshot, a missing meta.json) is listed as unavailable with the reason, and its requests
+get that reason; its files are left as they are.
 
 Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
 snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
 sees a half-folded scene and never blocks another session. Decoding runs outside ``lock`` too: it
-holds the lock only to copy the scene's sums (`Scene.decode_inputs`, about 10 ms at 200k voxels),
-then decodes (again only the voxels the folds since the last decode touched: `Scene.decode_from`)
-and, with ``colour_solve_views``, solves colours (hundreds of ms to seconds) without it, so folds go
-on meanwhile; a decode that a fold overtook answers its own request but is not cached.
-``Session.decode_lock`` lets one decode of a session run at a time (concurrent renders wait for it
-and then find it cached); folds never take it.
+holds the lock only to copy the scene's sums (`Scene.decode_inputs`), then decodes (again only the
+voxels the folds since the last decode touched: `Scene.decode_from`) and, with
+``colour_solve_views``, solves colours without it, so folds go on meanwhile; a decode that a fold
+overtook answers its own request but is not cached. ``Session.decode_lock`` lets one decode of a
+session run at a time (concurrent renders wait for it and then find it cached); folds never take it.
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
 import logging
 import os
 import secrets
 import shutil
-import struct
 import threading
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
+import msgpack
 import numba
 
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.scene import FoldReport, Scene
 
 from . import wire
+from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
+                       write_atomic)
 
 log = logging.getLogger("canonical.store")
 
-META, LOG, SNAPSHOT = "meta.json", "frames.log", "scene.snap"
+META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 TOMBSTONE = ".deleted-"
 DECODE_CACHE_ENTRIES = 4
+SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
 
 class SessionNotFound(KeyError):
@@ -63,80 +74,28 @@ class TooManySessions(RuntimeError):
     pass
 
 
-# -- files ---------------------------------------------------------------------------------------
-def fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+class SessionUnavailable(RuntimeError):
+    """A session whose files do not add up (or whose log cannot be written): not served, with the reason."""
+
+    def __init__(self, session_id: str, reason: str, retry_later: bool = False):
+        super().__init__(f"session {session_id}: {reason}")
+        self.session_id, self.reason, self.retry_later = session_id, reason, retry_later
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
+class FrameIdConflict(ValueError):
+    """A frame_id that the session already folded, sent again with other content."""
 
 
-class FrameLog:
-    """The append-only, CRC-checked frame log of one session (see the module docstring)."""
+class DataDirLocked(RuntimeError):
+    """Another process serves the data directory."""
 
-    MAGIC = b"CGF1"
-    HEADER = struct.Struct("<4sIQI")
 
-    def __init__(self, path: Path):
-        self.path = path
-        self._file = open(path, "ab")
+class Unrestorable(RuntimeError):
+    """The files of a session do not add up; the message says how, and what ``canonical repair`` can do."""
 
-    @classmethod
-    def _crc(cls, length: int, index: int, payload: bytes) -> int:
-        return zlib.crc32(payload, zlib.crc32(struct.pack("<IQ", length, index)))
 
-    def records(self) -> list[tuple[int, int, bytes]]:
-        """(offset, frame index, payload) of every intact record; a torn or corrupt tail is cut off."""
-        data = self.path.read_bytes()
-        out, pos, size = [], 0, self.HEADER.size
-        while pos < len(data):
-            if len(data) - pos < size:
-                break
-            magic, length, index, crc = self.HEADER.unpack_from(data, pos)
-            end = pos + size + length
-            if magic != self.MAGIC or end > len(data):
-                break
-            payload = data[pos + size : end]
-            if self._crc(length, index, payload) != crc:
-                break
-            out.append((pos, index, payload))
-            pos = end
-        if pos < len(data):
-            log.warning("%s: dropping %d bytes of torn/corrupt log tail at offset %d", self.path, len(data) - pos, pos)
-            self.truncate(pos)
-        return out
-
-    def append(self, index: int, payload: bytes) -> int:
-        """Append one record and fsync; returns the offset it starts at (for `truncate`)."""
-        offset = self._file.tell()
-        self._file.write(self.HEADER.pack(self.MAGIC, len(payload), index, self._crc(len(payload), index, payload)))
-        self._file.write(payload)
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        return offset
-
-    def truncate(self, offset: int) -> None:
-        self._file.flush()
-        os.truncate(self.path, offset)
-        self._file.seek(0, os.SEEK_END)
-        os.fsync(self._file.fileno())
-
-    def size(self) -> int:
-        return self._file.tell()
-
-    def close(self) -> None:
-        self._file.close()
+def payload_digest(payload: bytes) -> str:
+    return hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
 def configure_thread(threads: int | None) -> None:
@@ -146,6 +105,22 @@ def configure_thread(threads: int | None) -> None:
 
 
 # -- sessions ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FoldedFrame:
+    """What the session remembers of a frame that carried a frame_id: enough to answer its retry."""
+
+    index: int
+    digest: str  # of its log record's payload
+    report: dict | None  # the fold report it got (None for frames folded before a repair)
+
+
+class Restored(NamedTuple):
+    scene: Scene
+    log: FrameLog
+    snapshot_frames: int
+    frame_ids: dict[str, FoldedFrame]
+
+
 @dataclass(eq=False)
 class Session:
     id: str
@@ -155,20 +130,47 @@ class Session:
     scene: Scene
     log: FrameLog
     snapshot_frames: int
+    frame_ids: dict[str, FoldedFrame] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
     decode_lock: threading.Lock = field(default_factory=threading.Lock)  # taken before ``lock``, never after
     deleted: bool = False
+    wedged: str | None = None  # why the log cannot take appends until a restart (its tail is unknown)
     dirty_since: float | None = None  # when the oldest frame not in the snapshot was folded
+    snapshot_error: str | None = None  # why the last snapshot failed (frames stay durable in the log)
+    snapshot_failures: int = 0
+    snapshot_retry_at: float = 0.0  # monotonic time before which a fold does not retry a failed snapshot
     _decoded: dict = field(default_factory=dict)
     _generation: int = 0  # bumped whenever the scene changes, so a decode knows whether it is still current
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
-    def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float) -> FoldReport:
-        """Log (fsynced), fold, maybe snapshot. On a ValueError the log record is cut off again and the
-        scene is unchanged (the library validates before it mutates)."""
+    def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
+                  snapshot_every_seconds: float) -> tuple[FoldReport, bool]:
+        """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
+
+        A frame whose ``frame_id`` the session already folded is not folded again: its first report
+        comes back (replay = True), or `FrameIdConflict` if its content differs. A frame that cannot be
+        made durable raises `StorageError` and is not folded. On a ValueError the log record is cut off
+        again and the scene is unchanged (the library validates before it mutates)."""
+        digest = payload_digest(payload)
         with self.lock:
             self._check_alive()
-            offset = self.log.append(self.scene.frames, payload)
+            known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
+            if known is not None:
+                if known.digest != digest:
+                    raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
+                report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
+                                          "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
+                return FoldReport(**report), True
+            if self.wedged:
+                raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+            try:
+                offset = self.log.append(self.scene.frames, payload)
+            except StorageError as exc:
+                if not isinstance(exc, LogWedged):
+                    raise
+                self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
+                log.error("session %s: %s", self.id, self.wedged)
+                raise
             try:
                 report = self.scene.fold(frame)
             except ValueError:
@@ -183,13 +185,15 @@ class Session:
                     log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
                     self.deleted = True
                 raise
+            if frame.frame_id is not None:
+                self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
             self._invalidate()
             now = time.monotonic()
             self.dirty_since = self.dirty_since or now
-            if (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
-                    or now - self.dirty_since >= snapshot_every_seconds):
+            if now >= self.snapshot_retry_at and (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
+                                                  or now - self.dirty_since >= snapshot_every_seconds):
                 self._snapshot()
-            return report
+            return report, False
 
     def snapshot(self) -> None:
         with self.lock:
@@ -197,15 +201,25 @@ class Session:
                 self._snapshot()
 
     def _snapshot(self) -> None:
-        self.scene.save(self.path / SNAPSHOT)
-        fsync_dir(self.path)
-        self.log.truncate(0)  # every record is in the snapshot now
-        self.snapshot_frames = self.scene.frames
-        self.dirty_since = None
+        """Snapshot, then start the log afresh with a checkpoint. A failure is recorded, not raised: every
+        frame is durable in the log already, and the next due snapshot tries again."""
+        try:
+            write_atomic(self.path / SNAPSHOT, self.scene.to_bytes())
+        except OSError as exc:
+            self.snapshot_error = f"{SNAPSHOT}: {exc.strerror or exc}"
+            self.snapshot_failures += 1
+            self.snapshot_retry_at = time.monotonic() + SNAPSHOT_RETRY_SECONDS
+            log.error("session %s: snapshot failed (%s); its frames stay in the log", self.id, self.snapshot_error)
+            return
+        self.snapshot_frames, self.dirty_since, self.snapshot_error = self.scene.frames, None, None
+        try:
+            self.log.reset([encode(self.snapshot_frames, checkpoint_payload(self.frame_ids), checkpoint=True)])
+        except OSError as exc:  # the old records stay; a restart skips those the snapshot holds
+            log.error("session %s: the log could not be restarted after a snapshot (%s)", self.id, exc.strerror or exc)
 
     def _reload(self) -> None:
         self.log.close()
-        self.scene, self.log, self.snapshot_frames = restore_scene(self.path, self.config)
+        self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
         self._invalidate()
 
     def _invalidate(self) -> None:
@@ -246,7 +260,8 @@ class Session:
         self._decoded[key] = g
 
     def summary(self) -> dict:
-        return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created}
+        return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
+                "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
 
     def stats(self) -> dict:
         gaussians = len(self.gaussians()[0])  # a decode if none is cached, outside the scene's lock
@@ -260,6 +275,7 @@ class Session:
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "snapshot_frames": self.snapshot_frames,
+                "snapshot_error": self.snapshot_error,
                 "config": self.config.to_dict(),
             }
 
@@ -270,46 +286,137 @@ class Session:
             return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "sha256": self.scene.digest()}
 
 
-def restore_scene(path: Path, config: SceneConfig) -> tuple[Scene, FrameLog, int]:
-    """Load the snapshot (if any) and replay the log tail. Returns (scene, open log, snapshot frames)."""
-    snap = path / SNAPSHOT
-    scene = Scene.load(snap) if snap.exists() else Scene(config)
-    snapshot_frames = scene.frames
-    frame_log = FrameLog(path / LOG)
-    records = frame_log.records()
-    for k, (offset, index, payload) in enumerate(records):
-        if index < scene.frames:
-            continue  # already in the snapshot (a crash between snapshot and log truncation)
+def checkpoint_payload(frame_ids: dict[str, FoldedFrame]) -> bytes:
+    return msgpack.packb({"frame_ids": {k: [v.index, v.digest, v.report] for k, v in frame_ids.items()}})
+
+
+def _frame_ids_of(checkpoint: bytes) -> dict[str, FoldedFrame]:
+    table = msgpack.unpackb(checkpoint)["frame_ids"]
+    return {k: FoldedFrame(index, digest, report) for k, (index, digest, report) in table.items()}
+
+
+def quarantine(path: Path, data: bytes) -> Path:
+    """A copy of a damaged log under ``quarantine/`` (one per distinct content), so nothing is lost."""
+    folder = path / QUARANTINE
+    folder.mkdir(exist_ok=True)
+    target = folder / f"{LOG}.{hashlib.blake2b(data, digest_size=8).hexdigest()}"
+    if not target.exists():
+        write_atomic(target, data)
+    return target
+
+
+def restore_scene(path: Path, config: SceneConfig) -> Restored:
+    """Load the snapshot (if any) and replay the log after it. Raises `Unrestorable` when the files do
+    not add up: a damaged log (quarantined first), a missing log, a snapshot missing or older than the
+    log says."""
+    if not (path / LOG).is_file():
+        raise Unrestorable(f"{LOG} is missing: frames after the last snapshot may be lost "
+                           "(`canonical repair` starts an empty log)")
+    data = (path / LOG).read_bytes()
+    found = scan(data)
+    if found.damaged:
         try:
-            if index != scene.frames:
-                raise ValueError(f"log: record for frame {index} follows frame {scene.frames - 1}")
-            scene.fold(wire.frame_from_message(wire.unpack(payload)))
+            where = f"copied to {quarantine(path, data)}"
+        except OSError as exc:
+            where = f"could not be copied aside ({exc.strerror or exc}); it is left as it is"
+        raise Unrestorable(f"{LOG}: {found.describe()}; the log {where}. `canonical repair --action truncate` "
+                           "keeps the frames before the damage, `--action skip` every intact frame")
+    snap = path / SNAPSHOT
+    try:
+        scene = Scene.load(snap) if snap.exists() else Scene(config)
+    except ValueError as exc:
+        raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup") from None
+    snapshot_frames = scene.frames
+    checkpoints = [r for r in found.records if r.checkpoint]
+    records = [r for r in found.records if not r.checkpoint]
+    first = checkpoints[-1].index if checkpoints else (records[0].index if records else 0)
+    if first > scene.frames:
+        what = "missing" if not snap.exists() else f"older than the log (it holds {scene.frames} frames)"
+        raise Unrestorable(f"{SNAPSHOT} is {what}: the log continues from frame {first}, so frames "
+                           f"{scene.frames}..{first - 1} are not on disk. Restore {SNAPSHOT} from a backup, or "
+                           "`canonical repair` keeps the log's frames without them")
+    frame_log = FrameLog(path / LOG)
+    if found.torn:
+        log.warning("%s: cutting off a torn log tail (%d bytes at offset %d, never acknowledged)", path,
+                    found.size - found.end, found.end)
+        frame_log.truncate(found.end)
+    frame_ids = _frame_ids_of(checkpoints[-1].payload) if checkpoints else {}
+    for k, record in enumerate(records):
+        try:
+            if record.index > scene.frames:
+                raise ValueError(f"log: record for frame {record.index} follows frame {scene.frames - 1}")
+            msg = wire.unpack(record.payload)
+            # a record the snapshot holds already (a crash between snapshot and log restart) only adds its id
+            report = scene.fold(wire.frame_from_message(msg)).to_dict() if record.index == scene.frames else None
         except ValueError as exc:
             if k != len(records) - 1:
                 # Records after it exist, so this one was folded and acknowledged once: never drop it
                 # (e.g. a library that validates more strictly now). The session is not served.
                 frame_log.close()
-                raise RuntimeError(f"{path / LOG}: acknowledged frame {index} no longer folds: {exc}") from exc
+                raise Unrestorable(f"{LOG}: acknowledged frame {record.index} no longer folds: {exc}") from exc
             # the last record's fold failed: it was never acknowledged (the crash came before its truncation)
-            log.warning("%s: dropping the unacknowledged last log record (frame %d): %s", path, index, exc)
-            frame_log.truncate(offset)
-    return scene, frame_log, snapshot_frames
+            log.warning("%s: dropping the unacknowledged last log record (frame %d): %s", path, record.index, exc)
+            frame_log.truncate(record.offset)
+            break
+        if msg.get("frame_id") is not None:
+            frame_ids[msg["frame_id"]] = FoldedFrame(record.index, payload_digest(record.payload), report)
+    return Restored(scene, frame_log, snapshot_frames, frame_ids)
+
+
+def repair(path: Path, action: RepairAction) -> str:
+    """Make an unrestorable session's files add up again, keeping every frame that can be kept (see
+    `server.framelog.repaired`); the log as it was stays under ``quarantine/``. Returns what it did."""
+    snap = path / SNAPSHOT
+    try:
+        snapshot_frames = Scene.load(snap).frames if snap.exists() else 0
+    except ValueError as exc:
+        raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup (repair cannot rebuild it)") from None
+    data = (path / LOG).read_bytes() if (path / LOG).is_file() else b""
+    if data:
+        quarantine(path, data)
+    found = scan(data)
+    checkpoints = [r for r in found.records + found.later if r.checkpoint]
+    records, kept, dropped = repaired(data, action, snapshot_frames, checkpoints[-1].payload if checkpoints else None)
+    write_atomic(path / LOG, b"".join(records))
+    return (f"the snapshot's {snapshot_frames} frames and {kept} logged frames after them kept; {dropped} intact "
+            f"frames after the damage dropped (the old log is under {QUARANTINE}/)")
 
 
 class SessionStore:
-    """All sessions of one data directory."""
+    """All sessions of one data directory, which it locks: one server per directory."""
 
     def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None):
-        self.root = Path(data_dir) / "sessions"
+        self.data_dir = Path(data_dir)
+        self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
         self._sessions: dict[str, Session] = {}
+        self.unavailable: dict[str, str] = {}  # session id -> why its files do not add up
         self._lock = threading.Lock()  # guards the dict and the session count
+        self._dir_lock: int | None = None
+
+    def lock_dir(self) -> None:
+        """Take the data directory's lock (released when the process ends, kill -9 included)."""
+        if self._dir_lock is not None:
+            return
+        self.root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.data_dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise DataDirLocked(f"data_dir: {self.data_dir} is in use by another server (pid {holder}); "
+                                "one server per data directory") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        self._dir_lock = fd
 
     def open(self) -> None:
-        """Load every session on disk (snapshot + log replay); clean up half-created or deleted ones."""
+        """Lock the directory and load every session on disk (snapshot + log replay); clean up
+        half-created or deleted ones; list the ones whose files do not add up as unavailable."""
         configure_thread(self.threads)
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.lock_dir()
         for path in sorted(self.root.iterdir()):
             if not path.is_dir():
                 continue
@@ -317,28 +424,75 @@ class SessionStore:
                 shutil.rmtree(path, ignore_errors=True)
                 continue
             if not (path / META).is_file():
-                log.warning("%s: no %s (creation never completed); removing it", path, META)
-                shutil.rmtree(path, ignore_errors=True)
+                if {p.name for p in path.iterdir()} <= {LOG} and not any(p.stat().st_size for p in path.iterdir()):
+                    log.warning("%s: no %s and nothing logged (creation never completed); removing it", path, META)
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    self._unavailable(path.name, f"{META} is missing; restore it from a backup (the other files are kept)")
                 continue
             t0 = time.perf_counter()
             try:
                 meta = json.loads((path / META).read_text())
                 config = SceneConfig.from_dict(meta["config"])
-                scene, frame_log, snapshot_frames = restore_scene(path, config)
-            except Exception:  # one unreadable session (e.g. a snapshot of a future version) must not stop the rest
-                log.exception("%s: cannot be restored; not serving it (its files are left as they are)", path)
+                restored = restore_scene(path, config)
+            except Unrestorable as exc:
+                self._unavailable(path.name, str(exc))
                 continue
-            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], scene, frame_log, snapshot_frames)
-            log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], scene.frames,
-                     scene.frames - snapshot_frames, time.perf_counter() - t0)
+            except Exception as exc:  # one unreadable session (e.g. a snapshot of a future version) must not stop the rest
+                log.exception("%s: cannot be restored", path)
+                self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
+                continue
+            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored)
+            log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
+                     restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
+
+    def repair(self, session_id: str, action: RepairAction | None) -> str:
+        """Repair one session's files offline (the directory's lock held: no server runs on it); with
+        ``action`` None only say what is wrong. Returns what it found or did."""
+        self.lock_dir()
+        path = self.root / session_id
+        if session_id.startswith(TOMBSTONE) or not path.is_dir():
+            raise ValueError(f"session: no session {session_id!r} in {self.root}")
+        if not (path / META).is_file():
+            raise ValueError(f"session: {META} is missing; restore it from a backup (repair needs its settings)")
+        config = SceneConfig.from_dict(json.loads((path / META).read_text())["config"])
+        try:
+            restore_scene(path, config).log.close()
+            return f"session {session_id}: nothing to repair"
+        except Unrestorable as exc:
+            if action is None:
+                raise ValueError(f"action: session {session_id} needs repair: {exc}") from None
+        done = repair(path, action)
+        restored = restore_scene(path, config)
+        restored.log.close()
+        return f"session {session_id}: {done}; it now holds {restored.scene.frames} frames"
+
+    def unavailable_summaries(self) -> list[dict]:
+        def created(session_id: str) -> float:
+            try:
+                return json.loads((self.root / session_id / META).read_text())["created"]
+            except (OSError, ValueError, KeyError):
+                return 0.0
+
+        return [{"id": i, "frames": None, "voxels": None, "created": created(i), "state": "unavailable", "problem": reason}
+                for i, reason in sorted(self.unavailable.items())]
+
+    def _unavailable(self, session_id: str, reason: str) -> None:
+        log.error("session %s is not served: %s", session_id, reason)
+        self.unavailable[session_id] = reason
 
     def close(self) -> None:
-        """Snapshot sessions with unsnapshotted frames (a faster next start) and close their logs."""
-        for session in self.list():
-            try:
-                session.snapshot()
-            finally:
-                session.log.close()
+        """Snapshot sessions with unsnapshotted frames (a faster next start), close their logs, unlock."""
+        try:
+            for session in self.list():
+                try:
+                    session.snapshot()
+                finally:
+                    session.log.close()
+        finally:
+            if self._dir_lock is not None:
+                os.close(self._dir_lock)
+                self._dir_lock = None
 
     def create(self, config: SceneConfig) -> Session:
         with self._lock:
@@ -346,11 +500,15 @@ class SessionStore:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
             session_id = secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
             path = self.root / session_id
-            path.mkdir()
             created = time.time()
-            frame_log = FrameLog(path / LOG)
             meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict()}
-            write_atomic(path / META, json.dumps(meta, indent=1).encode())
+            try:
+                path.mkdir()
+                frame_log = FrameLog(path / LOG)
+                write_atomic(path / META, json.dumps(meta, indent=1).encode())
+            except OSError as exc:
+                shutil.rmtree(path, ignore_errors=True)
+                raise StorageError(f"{META}: cannot create the session", exc) from exc
             session = Session(session_id, path, config, created, Scene(config), frame_log, 0)
             self._sessions[session_id] = session
             return session
@@ -358,6 +516,8 @@ class SessionStore:
     def get(self, session_id: str) -> Session:
         session = self._sessions.get(session_id)
         if session is None:
+            if session_id in self.unavailable:
+                raise SessionUnavailable(session_id, self.unavailable[session_id])
             raise SessionNotFound(session_id)
         return session
 
@@ -369,6 +529,12 @@ class SessionStore:
         return len(self._sessions)
 
     def delete(self, session_id: str) -> None:
+        """Delete a session and its files (an unavailable one too: deleting is one way to resolve it)."""
+        if session_id in self.unavailable:
+            with self._lock:
+                self._bury(self.root / session_id)
+                del self.unavailable[session_id]
+            return
         session = self.get(session_id)
         with session.lock:
             session._check_alive()
@@ -377,10 +543,13 @@ class SessionStore:
             session.log.close()
             with self._lock:
                 self._sessions.pop(session_id, None)
-            tomb = self.root / f"{TOMBSTONE}{session_id}"
-            os.replace(session.path, tomb)  # atomic: a crash from here on leaves only a tombstone
-            fsync_dir(self.root)
-            shutil.rmtree(tomb, ignore_errors=True)
+            self._bury(session.path)
+
+    def _bury(self, path: Path) -> None:
+        tomb = self.root / f"{TOMBSTONE}{path.name}"
+        os.replace(path, tomb)  # atomic: a crash from here on leaves only a tombstone
+        fsync_dir(self.root)
+        shutil.rmtree(tomb, ignore_errors=True)
 
     def snapshot_due(self, every_seconds: float) -> int:
         """Snapshot sessions whose oldest unsnapshotted frame is older than ``every_seconds``."""
@@ -395,7 +564,10 @@ class SessionStore:
     def totals(self) -> dict:
         sessions = self.list()
         return {"sessions": len(sessions), "voxels": sum(len(s.scene) for s in sessions),
-                "frames": sum(s.scene.frames for s in sessions)}
+                "frames": sum(s.scene.frames for s in sessions), "unavailable": len(self.unavailable),
+                "wedged": sum(s.wedged is not None for s in sessions),
+                "snapshot_failures": sum(s.snapshot_failures for s in sessions)}
 
 
-__all__ = ["FrameLog", "Session", "SessionNotFound", "SessionStore", "TooManySessions", "configure_thread"]
+__all__ = ["DataDirLocked", "FrameIdConflict", "FrameLog", "Session", "SessionNotFound", "SessionStore", "SessionUnavailable",
+           "StorageError", "TooManySessions", "Unrestorable", "configure_thread", "repair"]

@@ -7,7 +7,7 @@ import email.policy
 import json
 import time
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Request, Response
 
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
@@ -62,11 +62,15 @@ def parse_multipart(content_type: str, body: bytes) -> dict:
 
 
 @router.post("/{session_id}/frames", response_model=FoldReportOut,
-             responses={c: {"model": ErrorBody} for c in (400, 401, 404, 409, 413, 415, 422, 429)},
+             responses={c: {"model": ErrorBody} for c in (400, 401, 404, 409, 413, 415, 422, 429, 503, 507)},
              openapi_extra={"requestBody": {"content": {"application/msgpack": {}, "multipart/form-data": {}}}})
-async def add_frame(request: Request, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
+async def add_frame(request: Request, response: Response, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
                     metrics: MetricsDep) -> FoldReportOut:
-    """Validate, log (fsync) and fold one posed frame; the report says what changed."""
+    """Validate, log (fsync) and fold one posed frame; the report says what changed.
+
+    Idempotent on ``frame_id``: a frame the session already folded (a retry after a lost answer) is
+    not folded again; its first report comes back with ``Idempotent-Replay: true`` (409 if its
+    content differs). A frame that cannot be made durable is not folded: 507 (disk full) or 503."""
     kind = media_type(request)
     if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
         raise ApiError(415, "unsupported_media_type",
@@ -84,7 +88,10 @@ async def add_frame(request: Request, session: SessionDep, settings: SettingsDep
         return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds)
 
     t0 = time.perf_counter()
-    report = await jobs.run(fold)
-    metrics.fold_seconds.observe(time.perf_counter() - t0)
-    metrics.frames_total += 1
+    report, replay = await jobs.run(fold)
+    if replay:
+        response.headers["Idempotent-Replay"] = "true"
+    else:
+        metrics.fold_seconds.observe(time.perf_counter() - t0)
+        metrics.frames_total += 1
     return FoldReportOut(**report.to_dict())

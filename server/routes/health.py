@@ -28,5 +28,12 @@ async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainT
         "canonical_frames": ("Frames folded over all sessions (including before a restart).", totals["frames"]),
         "canonical_jobs_active": ("Compute jobs running or waiting.", jobs.active),
         "canonical_jobs_limit": ("The queue limit (more jobs get 429).", jobs.limit),
+        "canonical_sessions_unavailable": ("Sessions not served: their files need an operator (canonical repair).",
+                                           totals["unavailable"]),
+        "canonical_sessions_read_only": ("Sessions whose log cannot take frames until a restart.", totals["wedged"]),
+        "canonical_snapshot_failures": ("Snapshots that failed since start (frames stay in the log).",
+                                        totals["snapshot_failures"]),
+        "canonical_storage_errors": ("Requests refused since start because storage could not make them durable.",
+                                     metrics.storage_errors),
     }
     return PlainTextResponse(metrics.exposition(gauges), media_type=CONTENT_TYPE)

@@ -23,7 +23,9 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) ->
 
 @router.get("", response_model=SessionList)
 async def list_sessions(store: StoreDep) -> SessionList:
-    return SessionList(sessions=[SessionSummary(**s.summary()) for s in store.list()])
+    """Every session, those whose files need an operator (state ``unavailable``, with the problem) too."""
+    summaries = [s.summary() for s in store.list()] + store.unavailable_summaries()
+    return SessionList(sessions=[SessionSummary(**s) for s in summaries])
 
 
 @router.get("/{session_id}", response_model=SessionStats)
@@ -39,7 +41,7 @@ async def session_digest(session: SessionDep, jobs: JobsDep) -> Digest:
 
 
 @router.delete("/{session_id}", response_model=Deleted)
-async def delete_session(session: SessionDep, store: StoreDep, jobs: JobsDep) -> Deleted:
-    """Delete the session and its files."""
-    await jobs.run(store.delete, session.id)
-    return Deleted(id=session.id)
+async def delete_session(session_id: str, store: StoreDep, jobs: JobsDep) -> Deleted:
+    """Delete the session and its files (an unavailable session's too)."""
+    await jobs.run(store.delete, session_id)
+    return Deleted(id=session_id)

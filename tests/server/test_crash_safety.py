@@ -9,6 +9,7 @@ import time
 import pytest
 
 from client.sdk import Client
+from server import framelog
 
 from .harness import VOXEL, ServerProcess
 
@@ -84,9 +85,11 @@ def test_kill9_restart_keeps_every_acknowledged_frame(tmp_path, frames, referenc
             session.add_frame(**kwargs)
         check(client, sid, len(frames))
 
-        # a graceful stop snapshots everything and empties the log
+        # a graceful stop snapshots everything and restarts the log with a checkpoint of the snapshot's frames
         proc.stop()
-        assert log_path.stat().st_size == 0 and (data / "sessions" / sid / "scene.snap").exists()
+        records = framelog.scan(log_path.read_bytes()).records
+        assert [(r.checkpoint, r.index) for r in records] == [(True, len(frames))]
+        assert (data / "sessions" / sid / "scene.snap").exists()
     except BaseException:
         print(proc.log())
         raise

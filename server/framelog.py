@@ -1,0 +1,236 @@
+"""The frame log of one session: append-only, CRC-checked, fsynced before a frame is acknowledged.
+
+A record is ``magic | u32 payload length | u64 index | u32 CRC-32 of (length, index, payload) | payload``
+(little-endian). Two kinds:
+
+- a frame record (magic ``CGF1``): ``index`` is the frame's arrival index and the payload its msgpack
+  message, as `server.wire.frame_from_message` reads it;
+- a checkpoint (magic ``CGK1``): written as the first record of a fresh log right after a snapshot;
+  ``index`` is the number of frames the snapshot holds, and the payload (msgpack) the session's
+  frame-id table, so that a retried frame is recognised after a restart too. A log that starts with a
+  checkpoint for N > 0 frames and finds no snapshot holding them says loudly that frames are missing.
+
+Damage is told apart from a crash. A crash mid-append can only leave a *torn tail*: a prefix of one
+record after the last intact one (its header shorter than a header, or its length running past the
+end of the file). That record was never acknowledged (the acknowledgement follows the fsync), so it
+is cut off. Anything else (a record that fails its CRC while its bytes are all there, or intact records
+after a bad one) is *damage*: acknowledged frames may sit in it, so nothing is cut; the session is not
+served until an operator repairs it (`repair_log`).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+FRAME_MAGIC, CHECKPOINT_MAGIC = b"CGF1", b"CGK1"
+MAGICS = (FRAME_MAGIC, CHECKPOINT_MAGIC)
+HEADER = struct.Struct("<4sIQI")
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+class StorageError(OSError):
+    """A write that the service could not make durable; nothing of it was applied.
+
+    ``full`` is true when the cause is a full disk or quota (the client may retry later)."""
+
+    def __init__(self, what: str, exc: OSError):
+        super().__init__(exc.errno, f"{what}: {exc.strerror or exc}")
+        self.full = exc.errno in NO_SPACE
+
+
+class LogWedged(StorageError):
+    """A failed append whose partial record could not be cut off: the log's tail is unknown."""
+
+    def __init__(self, message: str):
+        OSError.__init__(self, errno.EIO, message)
+        self.full = False
+
+
+@dataclass(frozen=True)
+class Record:
+    offset: int
+    index: int  # frame index; for a checkpoint, the frames its snapshot holds
+    payload: bytes
+    checkpoint: bool
+
+    @property
+    def end(self) -> int:
+        return self.offset + HEADER.size + len(self.payload)
+
+
+@dataclass(frozen=True)
+class Scan:
+    """What a log holds: its intact records up to the first problem, and what that problem is."""
+
+    records: list[Record]  # the intact prefix
+    end: int  # offset just past the intact prefix
+    size: int  # file size
+    torn: bool  # bytes after ``end`` are a torn tail (never acknowledged)
+    later: list[Record]  # intact records found after damage (empty when torn or clean)
+
+    @property
+    def damaged(self) -> bool:
+        return self.end < self.size and not self.torn
+
+    def describe(self) -> str:
+        after = f"; {len(self.later)} intact records follow it" if self.later else ""
+        return f"damaged record at byte {self.end} of {self.size}{after}"
+
+
+def _crc(length: int, index: int, payload: bytes) -> int:
+    return zlib.crc32(payload, zlib.crc32(struct.pack("<IQ", length, index)))
+
+
+def encode(index: int, payload: bytes, checkpoint: bool = False) -> bytes:
+    magic = CHECKPOINT_MAGIC if checkpoint else FRAME_MAGIC
+    return HEADER.pack(magic, len(payload), index, _crc(len(payload), index, payload)) + payload
+
+
+def _record_at(data: bytes, pos: int) -> Record | None:
+    """The intact record starting at ``pos``, or None."""
+    if len(data) - pos < HEADER.size:
+        return None
+    magic, length, index, crc = HEADER.unpack_from(data, pos)
+    end = pos + HEADER.size + length
+    if magic not in MAGICS or end > len(data):
+        return None
+    payload = data[pos + HEADER.size : end]
+    if _crc(length, index, payload) != crc:
+        return None
+    return Record(pos, index, payload, magic == CHECKPOINT_MAGIC)
+
+
+def _next_record(data: bytes, start: int) -> Record | None:
+    """The first intact record starting at or after ``start``."""
+    while True:
+        hits = [p for p in (data.find(m, start) for m in MAGICS) if p >= 0]
+        if not hits:
+            return None
+        pos = min(hits)
+        record = _record_at(data, pos)
+        if record is not None:
+            return record
+        start = pos + 1
+
+
+def _is_torn(tail: bytes) -> bool:
+    """Whether ``tail`` (the bytes after the last intact record) is a prefix of one record."""
+    if len(tail) < HEADER.size:
+        return any(m.startswith(tail[:4]) for m in MAGICS)
+    magic, length, _, _ = HEADER.unpack_from(tail, 0)
+    return magic in MAGICS and HEADER.size + length > len(tail)
+
+
+def scan(data: bytes) -> Scan:
+    records, pos = [], 0
+    while (record := _record_at(data, pos)) is not None:
+        records.append(record)
+        pos = record.end
+    later: list[Record] = []
+    if pos < len(data):
+        record = _next_record(data, pos + 1)
+        while record is not None:
+            later.append(record)
+            record = _record_at(data, record.end) or _next_record(data, record.end + 1)
+    torn = pos < len(data) and not later and _is_torn(data[pos:])
+    return Scan(records, pos, len(data), torn, later)
+
+
+class FrameLog:
+    """An open log, written by one writer (the session's lock) through an unbuffered O_APPEND descriptor,
+    so that a failed write leaves no bytes behind in a buffer to be flushed later."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+    def append(self, index: int, payload: bytes) -> int:
+        """Append one frame record and fsync it; returns its offset. On failure the partial record is
+        cut off at once and `StorageError` raised; if even that fails, `LogWedged` (the file's tail is
+        unknown until a restart reads it again)."""
+        offset = os.fstat(self._fd).st_size
+        data = encode(index, payload)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            os.fsync(self._fd)
+        except OSError as exc:
+            try:
+                self.truncate(offset)
+            except OSError as again:
+                raise LogWedged(f"{self.path}: cannot cut a failed append back ({again.strerror or again})") from exc
+            raise StorageError(f"{self.path.name}: cannot append the frame", exc) from exc
+        return offset
+
+    def truncate(self, offset: int) -> None:
+        os.ftruncate(self._fd, offset)
+        os.fsync(self._fd)
+
+    def size(self) -> int:
+        return os.fstat(self._fd).st_size
+
+    def reset(self, records: list[bytes]) -> None:
+        """Replace the whole log by ``records`` (encoded), atomically: a crash leaves the old or the new."""
+        write_atomic(self.path, b"".join(records))
+        os.close(self._fd)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+def fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write temp, fsync, rename, fsync the folder; on failure the temp file is removed and the old
+    file is left as it was."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    fsync_dir(path.parent)
+
+
+RepairAction = Literal["truncate", "skip"]
+
+
+def repaired(data: bytes, action: RepairAction, snapshot_frames: int, checkpoint: bytes | None) -> tuple[list[bytes], int, int]:
+    """A damaged log's records after a repair: (encoded records, frames kept, intact frames dropped).
+
+    ``truncate`` keeps the intact frame records before the damage, ``skip`` every intact frame record.
+    Records the snapshot already holds (index below ``snapshot_frames``) go; the rest are numbered
+    again from ``snapshot_frames`` so that they replay in order, after a fresh checkpoint (payload
+    ``checkpoint``) when the snapshot holds frames."""
+    found = scan(data)
+    kept = [r for r in found.records if not r.checkpoint]
+    lost = [r for r in found.later if not r.checkpoint]
+    if action == "skip":
+        kept, lost = kept + lost, []
+    kept = [r for r in kept if r.index >= snapshot_frames]
+    out = [encode(snapshot_frames, checkpoint, checkpoint=True)] if snapshot_frames and checkpoint is not None else []
+    out += [encode(snapshot_frames + k, r.payload) for k, r in enumerate(kept)]
+    return out, len(kept), len(lost)

@@ -1,0 +1,254 @@
+"""Nothing acknowledged is lost, and an error tells the truth: a full disk, a damaged log, a snapshot
+that cannot be written, files removed by hand, two servers on one directory, and retried frames, each
+on a real service process and real files."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import httpx
+import msgpack
+import pytest
+
+from client.sdk import Client
+from server import framelog
+
+from .harness import REPO, VOXEL, ServerProcess, msgpack_frame
+
+pytestmark = pytest.mark.slow
+MSGPACK = {"content-type": "application/msgpack"}
+
+
+def server(tmp_path, data, **settings) -> ServerProcess:
+    settings = {"snapshot_every_seconds": 3600, "snapshot_every_frames": 1000, "warm_up": "false", **settings}
+    return ServerProcess(data, tmp_path / "server.log", **settings)
+
+
+def log_of(data, sid):
+    return data / "sessions" / sid / "frames.log"
+
+
+def post(proc: ServerProcess, sid: str, kwargs: dict) -> httpx.Response:
+    return httpx.post(f"{proc.url}/v1/sessions/{sid}/frames", content=msgpack.packb(msgpack_frame(kwargs)),
+                      headers=MSGPACK, timeout=120)
+
+
+@pytest.fixture()
+def tmpfs(tmp_path):
+    """A 6 MiB tmpfs: a disk that really fills up (needs root to mount)."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root; test_framelog covers the full disk at the write call")
+    mount = tmp_path / "small_disk"
+    mount.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mount)], check=True)
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_path, tmpfs, frames, reference):
+    data = tmpfs / "data"
+    proc = server(tmp_path, data).start()
+    try:
+        sid = Client(proc.url).create_session(voxel_size=VOXEL).id
+        for kwargs in frames[:2]:
+            assert post(proc, sid, kwargs).status_code == 200
+        # fill the disk, leaving less than one frame record
+        free = shutil.disk_usage(tmpfs).free
+        record = len(msgpack.packb(msgpack_frame(frames[2])))
+        with open(tmpfs / "filler", "wb") as f:
+            f.write(b"\0" * (free - record // 2))
+        size = log_of(data, sid).stat().st_size
+        for kwargs in frames[2:4]:
+            r = post(proc, sid, kwargs)
+            assert r.status_code == 507, r.text
+            assert r.json()["error"]["field"] == "data_dir" and "No space left" in r.json()["error"]["message"]
+        # the partial records were cut at once: the log holds exactly the two acknowledged frames
+        found = framelog.scan(log_of(data, sid).read_bytes())
+        assert log_of(data, sid).stat().st_size == size and found.end == found.size and len(found.records) == 2
+        assert Client(proc.url).session(sid).digest()["frames"] == 2
+        assert "canonical_storage_errors 2" in httpx.get(f"{proc.url}/metrics").text
+        # space again: the same frames are taken, then a crash
+        (tmpfs / "filler").unlink()
+        for kwargs in frames[2:4]:
+            assert post(proc, sid, kwargs).status_code == 200
+        proc.kill9()
+        proc.start()
+        digest = Client(proc.url).session(sid).digest()
+        assert digest["frames"] == 4 and digest["sha256"] == reference[4]["sha256"]
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()
+
+
+def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, frames, reference):
+    data = tmp_path / "data"
+    proc = server(tmp_path, data).start()
+    try:
+        client = Client(proc.url)
+        sid = client.create_session(voxel_size=VOXEL).id
+        for kwargs in frames[:6]:
+            client.session(sid).add_frame(**kwargs)
+        proc.kill9()
+        damaged = bytearray(log_of(data, sid).read_bytes())
+        third = framelog.scan(bytes(damaged)).records[2]
+        damaged[third.offset + framelog.HEADER.size + 100] ^= 0xFF
+        log_of(data, sid).write_bytes(bytes(damaged))
+
+        proc.start()
+        r = httpx.get(f"{proc.url}/v1/sessions/{sid}")
+        assert r.status_code == 409 and r.json()["error"]["code"] == "session_unavailable"
+        assert "damaged record" in r.json()["error"]["message"] and "canonical repair" in r.json()["error"]["message"]
+        assert httpx.post(f"{proc.url}/v1/sessions/{sid}/frames", content=b"x", headers=MSGPACK).status_code == 409
+        listed = {s["id"]: s for s in httpx.get(f"{proc.url}/v1/sessions").json()["sessions"]}
+        assert listed[sid]["state"] == "unavailable" and listed[sid]["frames"] is None
+        assert "canonical_sessions_unavailable 1" in httpx.get(f"{proc.url}/metrics").text
+        assert log_of(data, sid).read_bytes() == bytes(damaged)  # never cut
+        copies = list((data / "sessions" / sid / "quarantine").iterdir())
+        assert [c.read_bytes() for c in copies] == [bytes(damaged)]
+
+        # repair needs the service stopped: the directory is locked while it runs
+        cli = [sys.executable, "-m", "client.cli", "repair", "--data-dir", str(data)]
+        busy = subprocess.run(cli, cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert busy.returncode == 1 and "in use by another server" in busy.stderr
+        proc.kill9()
+        listing = subprocess.run(cli, cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert listing.returncode == 0 and sid in listing.stdout and "1 of 1 sessions need repair" in listing.stdout
+        asked = subprocess.run(cli + ["--session", sid], cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert asked.returncode == 1 and asked.stderr.startswith("error: action:") and "Traceback" not in asked.stderr
+        fixed = subprocess.run(cli + ["--session", sid, "--action", "skip"], cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert fixed.returncode == 0 and "now holds 5 frames" in fixed.stdout, fixed.stdout + fixed.stderr
+
+        proc.start()
+        assert Client(proc.url).session(sid).digest()["frames"] == 5
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()
+
+
+def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, reference):
+    from server.store import SessionStore
+
+    data = tmp_path / "data"
+    proc = server(tmp_path, data).start()
+    try:
+        client = Client(proc.url)
+        sid = client.create_session(voxel_size=VOXEL).id
+        for kwargs in frames[:4]:
+            client.session(sid).add_frame(**kwargs)
+    finally:
+        proc.kill9()
+    damaged = bytearray(log_of(data, sid).read_bytes())
+    damaged[framelog.scan(bytes(damaged)).records[2].offset + 5] ^= 0x01  # frame 2's length field
+    log_of(data, sid).write_bytes(bytes(damaged))
+    store = SessionStore(data, max_sessions=8)
+    try:
+        assert "now holds 2 frames" in store.repair(sid, "truncate")
+    finally:
+        store.close()
+    store = SessionStore(data, max_sessions=8)
+    store.open()
+    try:
+        assert store.get(sid).digest()["sha256"] == reference[2]["sha256"]
+    finally:
+        store.close()
+
+
+def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, frames, reference):
+    data = tmp_path / "data"
+    proc = server(tmp_path, data, snapshot_every_frames=1).start()
+    try:
+        client = Client(proc.url)
+        sid = client.create_session(voxel_size=VOXEL).id
+        client.session(sid).add_frame(**frames[0])
+        blocker = data / "sessions" / sid / "scene.snap.tmp"
+        blocker.mkdir()  # the snapshot's temp file cannot be created (as root too, unlike chmod)
+        for kwargs in frames[1:3]:
+            assert post(proc, sid, kwargs).status_code == 200  # the truth: folded and durable in the log
+        stats = client.session(sid).stats()
+        assert stats["frames"] == 3 and stats["snapshot_frames"] == 1 and "scene.snap" in stats["snapshot_error"]
+        assert "canonical_snapshot_failures 1" in httpx.get(f"{proc.url}/metrics").text
+        proc.kill9()
+        blocker.rmdir()
+        proc.start()
+        digest = Client(proc.url).session(sid).digest()
+        assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()
+
+
+def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_path, frames):
+    data = tmp_path / "data"
+    proc = server(tmp_path, data, snapshot_every_frames=2).start()
+    try:
+        client = Client(proc.url)
+        ids = [client.create_session(voxel_size=VOXEL).id for _ in range(3)]
+        for sid in ids:
+            for kwargs in frames[:3]:  # a snapshot at 2 frames, one frame in the log after it
+                client.session(sid).add_frame(**kwargs)
+
+        second = server(tmp_path / "second", data)
+        (tmp_path / "second").mkdir()
+        with pytest.raises(RuntimeError):
+            second.start(timeout=60)
+        assert "in use by another server" in second.log() and f"pid {proc.proc.pid}" in second.log()
+        assert second.proc.returncode != 0
+
+        proc.kill9()
+        (data / "sessions" / ids[0] / "scene.snap").unlink()
+        (data / "sessions" / ids[1] / "frames.log").unlink()
+        (data / "sessions" / ids[2] / "meta.json").unlink()
+        proc.start()
+        problems = {s["id"]: s["problem"] for s in httpx.get(f"{proc.url}/v1/sessions").json()["sessions"]}
+        assert "scene.snap is missing" in problems[ids[0]] and "frames 0..1 are not on disk" in problems[ids[0]]
+        assert "frames.log is missing" in problems[ids[1]]
+        assert "meta.json is missing" in problems[ids[2]]
+        assert all((data / "sessions" / sid).is_dir() for sid in ids)  # nothing removed
+        # an operator may delete an unavailable session
+        assert httpx.delete(f"{proc.url}/v1/sessions/{ids[2]}").status_code == 200
+        assert not (data / "sessions" / ids[2]).exists()
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()
+
+
+def test_a_retried_frame_is_folded_once_across_a_restart(tmp_path, frames, reference):
+    data = tmp_path / "data"
+    proc = server(tmp_path, data, snapshot_every_frames=2).start()
+    try:
+        sid = Client(proc.url).create_session(voxel_size=VOXEL).id
+        tagged = [{**kwargs, "frame_id": f"cam0/{k}"} for k, kwargs in enumerate(frames[:3])]
+        first = [post(proc, sid, kwargs) for kwargs in tagged]
+        assert [r.status_code for r in first] == [200] * 3
+        again = post(proc, sid, tagged[2])  # the answer was lost; the client sends it again
+        assert again.status_code == 200 and again.headers["idempotent-replay"] == "true"
+        assert again.json() == first[2].json()
+        assert Client(proc.url).session(sid).digest()["frames"] == 3
+        other = post(proc, sid, {**tagged[1], "frame_id": "cam0/0"})
+        assert other.status_code == 409 and other.json()["error"]["field"] == "frame_id"
+
+        proc.kill9()  # frames 0-1 in the snapshot (their ids in the log's checkpoint), frame 2 in the log
+        proc.start()
+        for k in (0, 2):  # frame 2's report comes from the replay of the log: the same fold, its own timing
+            r = post(proc, sid, tagged[k])
+            assert r.status_code == 200 and r.headers["idempotent-replay"] == "true"
+            assert {**r.json(), "ms": 0} == {**first[k].json(), "ms": 0}
+        digest = Client(proc.url).session(sid).digest()
+        assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]  # ids do not change the scene
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()

@@ -1,0 +1,120 @@
+"""The frame log on real files: torn tails told apart from damage, failed appends leave nothing behind,
+and the repairs keep what they say."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import pytest
+
+from server import framelog
+from server.framelog import FrameLog, StorageError, encode, repaired, scan
+
+
+def payloads(n: int) -> list[bytes]:
+    return [bytes([k]) * (100 + 37 * k) for k in range(n)]
+
+
+def written(path, n: int = 5, first: int = 0) -> bytes:
+    data = b"".join(encode(first + k, p) for k, p in enumerate(payloads(n)))
+    path.write_bytes(data)
+    return data
+
+
+def test_a_clean_log_scans_to_its_records(tmp_path):
+    data = written(tmp_path / "log")
+    found = scan(data)
+    assert [(r.index, r.payload) for r in found.records] == list(enumerate(payloads(5)))
+    assert found.end == found.size == len(data) and not found.torn and not found.damaged
+
+
+@pytest.mark.parametrize("cut", [1, 3, framelog.HEADER.size - 1, framelog.HEADER.size + 5, 200])
+def test_a_crash_mid_append_is_a_torn_tail(tmp_path, cut):
+    data = written(tmp_path / "log", 4) + encode(4, payloads(5)[4])[:cut]
+    found = scan(data)
+    assert len(found.records) == 4 and found.torn and not found.damaged and found.size - found.end == cut
+
+
+@pytest.mark.parametrize("where", ["payload", "length", "magic", "last record"])
+def test_a_flipped_byte_is_damage_never_a_torn_tail(tmp_path, where):
+    data = bytearray(written(tmp_path / "log", 6))
+    starts = [r.offset for r in scan(bytes(data)).records]
+    at = {"payload": starts[2] + framelog.HEADER.size + 10, "length": starts[2] + 5, "magic": starts[2],
+          "last record": starts[5] + framelog.HEADER.size + 3}[where]
+    data[at] ^= 0x40
+    found = scan(bytes(data))
+    assert found.damaged and not found.torn
+    expected_prefix = 5 if where == "last record" else 2
+    assert len(found.records) == expected_prefix
+    assert [r.index for r in found.later] == ([] if where == "last record" else [3, 4, 5])
+
+
+def test_repairs_keep_the_prefix_or_every_intact_frame_numbered_again(tmp_path):
+    data = bytearray(written(tmp_path / "log", 6, first=10))  # a snapshot holds frames 0..9
+    start = scan(bytes(data)).records[2].offset
+    data[start + framelog.HEADER.size] ^= 1  # frame 12 damaged
+    records, kept, dropped = repaired(bytes(data), "truncate", 10, b"ids")
+    after = scan(b"".join(records))
+    assert (kept, dropped) == (2, 3) and not after.damaged
+    assert [(r.checkpoint, r.index) for r in after.records] == [(True, 10), (False, 10), (False, 11)]
+    records, kept, dropped = repaired(bytes(data), "skip", 10, b"ids")
+    after = scan(b"".join(records))
+    assert (kept, dropped) == (5, 0)
+    assert [r.index for r in after.records if not r.checkpoint] == [10, 11, 12, 13, 14]
+    assert [r.payload for r in after.records if not r.checkpoint] == [p for k, p in enumerate(payloads(6)) if k != 2]
+
+
+def test_records_the_snapshot_holds_go_at_a_repair(tmp_path):
+    data = written(tmp_path / "log", 4)  # frames 0..3 logged, and a newer snapshot holds 0..1
+    records, kept, _ = repaired(data, "skip", 2, None)
+    assert kept == 2 and [(r.index, r.payload) for r in scan(b"".join(records)).records] == [(2, payloads(4)[2]), (3, payloads(4)[3])]
+
+
+def test_a_failed_append_is_cut_off_at_once_and_the_log_takes_the_next(tmp_path, monkeypatch):
+    path = tmp_path / "log"
+    written(path, 2)
+    log = FrameLog(path)
+    real_write = os.write
+
+    def disk_fills_after_100_bytes(fd, data):
+        if fd == log._fd:
+            real_write(fd, bytes(data[:100]))
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(framelog.os, "write", disk_fills_after_100_bytes)
+    with pytest.raises(StorageError) as caught:
+        log.append(2, payloads(3)[2])
+    assert caught.value.full and "No space left" in str(caught.value)
+    found = scan(path.read_bytes())
+    assert len(found.records) == 2 and found.end == found.size  # no partial record left behind
+    monkeypatch.undo()
+    log.append(2, payloads(3)[2])
+    log.close()
+    assert [r.payload for r in scan(path.read_bytes()).records] == payloads(3)
+
+
+def test_an_append_whose_cut_fails_too_is_wedged(tmp_path, monkeypatch):
+    path = tmp_path / "log"
+    log = FrameLog(path)
+
+    def failing(*args):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(framelog.os, "write", failing)
+    monkeypatch.setattr(framelog.os, "ftruncate", failing)
+    with pytest.raises(framelog.LogWedged):
+        log.append(0, b"x")
+    log.close()
+
+
+def test_reset_replaces_the_log_atomically(tmp_path):
+    path = tmp_path / "log"
+    written(path, 3)
+    log = FrameLog(path)
+    log.reset([encode(3, b"ids", checkpoint=True)])
+    log.append(3, b"next")
+    log.close()
+    assert [(r.checkpoint, r.index, r.payload) for r in scan(path.read_bytes()).records] == [(True, 3, b"ids"), (False, 3, b"next")]
+    assert not (tmp_path / "log.tmp").exists()
