@@ -17,9 +17,9 @@ Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
 Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
 snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
 sees a half-folded scene and never blocks another session. Decoding runs outside ``lock`` too: it
-holds the lock only to copy the scene's sums (`Scene.decode_inputs`, about 10 ms at 200k voxels),
+holds the lock only to copy the scene's sums (`Scene.decode_inputs`, a copy of its arrays),
 then decodes (again only the voxels the folds since the last decode touched: `Scene.decode_from`)
-and, with ``colour_solve_views``, solves colours (hundreds of ms to seconds) without it, so folds go
+and, with ``colour_solve_views``, solves colours (the slowest part) without it, so folds go
 on meanwhile; a decode that a fold overtook answers its own request but is not cached.
 ``Session.decode_lock`` lets one decode of a session run at a time (concurrent renders wait for it
 and then find it cached); folds never take it.
