@@ -2,7 +2,8 @@
 
 ``symmetric_eigh3_reference`` is ``torch.linalg.eigh`` in float64. ``symmetric_eigh3`` is the fast
 path: cyclic Jacobi rotations in a numba kernel, one matrix per thread step, since a batched
-LAPACK call over every decoded voxel would dominate a decode (`bench/decode.py` times both). Both return eigenvalues in ascending order with
+LAPACK call over every decoded voxel would dominate a decode (`bench/decode.py` times both).
+Both return eigenvalues in ascending order with
 orthonormal eigenvectors as columns; eigenvectors are defined up to sign (and, for repeated
 eigenvalues, up to a rotation within their eigenspace), so the two paths agree on eigenvalues and
 on V diag(w) V^T, which is all a Gaussian's covariance depends on (held together by the tests).
