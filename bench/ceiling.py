@@ -12,8 +12,8 @@ Per voxel size, with the evaluation's protocol and scoring (`canonical_core.eval
 - "N views": the held-out frames rendered from the scene of N input views (the evaluation's number).
 - "N views, alpha-normalised": the same renders divided by their alpha on covered pixels, i.e. the
   score if every covered surface were fully opaque (what opacity costs on covered pixels).
-The evaluation issue's "+2 dB covered PSNR over Open3D" asks for the N-view row to reach Open3D's
-figure + 2 dB; compare it with the alpha-normalised self row.
+A covered-PSNR target stated against a peer (such as Open3D's figure + 2 dB) is reachable only if
+it is below the alpha-normalised self row: compare the two.
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ def main(argv=None) -> None:
           f"feature dim 16; each row: {args.repeats} passes over all frames, fresh scene per pass\n")
     config = SceneConfig(voxel_size=args.voxel)
     # Open3D's integrate has no counterpart of our free-space (see-through) evidence: the column
-    # without it compares evidence + aggregation alone, as the target is worded
+    # without it compares evidence + aggregation alone, the work both do
     no_free_space = dataclasses.replace(config, free_space=False)
     # opt-in: frames with depth are also swept against earlier views to fill their depth's large holes
     completion = dataclasses.replace(config, depth_completion=True)
@@ -128,7 +128,7 @@ def main(argv=None) -> None:
     # Free space is measured apart: its cost grows with the voxels in the frustum by design.
     rng = np.random.default_rng(0)
     stream = [jittered(frames[k % len(frames)], rng, translation=0.002, angle=np.deg2rad(0.3)) for k in range(args.long)]
-    early_at, late_at, half = 10, args.long - 10, 5  # the frames 10 and 500, +-5 frames
+    early_at, late_at, half = 10, args.long - 10, 5  # frames 10 and 500 of the default stream, +-5 frames
     variants = {"fold": config, "fold without free space": no_free_space}
     windows = {name: ([], [], []) for name in variants}  # early ms, late ms, per-run ratios
     longest = 0.0

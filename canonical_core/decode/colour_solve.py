@@ -2,8 +2,8 @@
 
 The analytic decoder gives each Gaussian its voxel's fused colour, a weighted mean of the pixels
 that landed in the voxel. But a rendered pixel blends several overlapping Gaussians, so even a
-view the scene was fused from does not get its own colours back (session 21 of
-`docs/experiments.md`). With geometry and opacity fixed a render is linear in the SH coefficients,
+view the scene was fused from does not get its own colours back. With geometry and opacity fixed a
+render is linear in the SH coefficients,
 colour_v(p) = sum_i w_i(p) sum_k Y_k(d_vi) sh_ik + 0.5 (`canonical_core.rendering.blend_weights`,
 d_vi the direction from view v's centre to Gaussian i), so the coefficients that make the renders
 reproduce the input views are a linear least-squares problem. This solves it for offsets x_ik to

@@ -10,16 +10,13 @@ For each voxel with support:
                gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
     colour   = streamed SH fit (DC = fused colour at degree 0) + delta(F_scene) on the DC term
 The heads on F_scene start at zero, so an untrained decoder is the analytic solution; support(r)
-starts as the line 30 r and penalty(q) as 4 q (the line's reading and its measurement:
-`SceneConfig.opacity_slope`).
+starts as the line 30 r and penalty(q) as 4 q (how the line reads: `SceneConfig.opacity_slope`).
 
 Mean. The analytic offset is the one that moves the representative's lifted point to the centroid
 sum W x / R_scene of the voxel's lifted points: the covariance is the second moment about that
 centroid, so a Gaussian at the representative would be shifted off its own point cloud by up to a
 voxel, and the centroid averages the depth noise of every folded observation instead of keeping
-one sample's. Measured on the shelf capture (evaluation protocol, held-out views, N = 2..16):
-covered PSNR +0.24..0.37 dB, SSIM +0.03..0.04, depth agreement +0.002..0.006 against the
-representative anchor.
+one sample's.
 
 R_unit is the scene's typical weight of one observation (`support_unit`): support is counted in
 "typical observations", so a capture whose every reliability is low (a noisy depth sensor, a far
@@ -43,12 +40,12 @@ FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
 # The smallest in-plane std, in voxels. Two face-neighbours covering a surface must both still be
 # opaque at the face they share, or the surface shows see-through seams: at sigma = 1/2 voxel each
 # keeps exp(-1/2) = 61 % of its peak alpha there, so two fully supported neighbours let at most
-# (1 - 0.61)^2 = 15 % through (at the equal-area 1/sqrt(2 pi) it was 46 % each and 29 % through,
-# seen as speckle on real captures). Points inside a voxel never spread wider than this, so in-plane
+# (1 - 0.61)^2 = 15 % through (the equal-area 1/sqrt(2 pi) would keep 46 % each and let 29 % through,
+# which shows as speckle on real captures). Points inside a voxel never spread wider than this, so in-plane
 # extents are this clamp and the moments set the orientation and the thickness.
 FULL_VOXEL_EXTENT = 0.5
-# The analytic opacity line a r + b (its reading and measurement: `SceneConfig.opacity_slope`, whose
-# defaults are these).
+# The analytic opacity line a r + b (how it reads: `SceneConfig.opacity_slope`, whose defaults are
+# these).
 OPACITY_SLOPE, OPACITY_BIAS = 30.0, 0.0
 
 

@@ -1,9 +1,9 @@
 """Eigen-decomposition of many symmetric 3x3 matrices (the decoder's per-voxel covariances).
 
 ``symmetric_eigh3_reference`` is ``torch.linalg.eigh`` in float64. ``symmetric_eigh3`` is the fast
-path: cyclic Jacobi rotations in a numba kernel, one matrix per thread step. On the whole shelf
-capture (157k decoded voxels, 2 cores) the batched LAPACK call was more than half of a decode
-(385 of 707 ms); the kernel takes a few ms. Both return eigenvalues in ascending order with
+path: cyclic Jacobi rotations in a numba kernel, one matrix per thread step, since a batched
+LAPACK call over every decoded voxel would dominate a decode (`bench/decode.py` times both).
+Both return eigenvalues in ascending order with
 orthonormal eigenvectors as columns; eigenvectors are defined up to sign (and, for repeated
 eigenvalues, up to a rotation within their eigenspace), so the two paths agree on eigenvalues and
 on V diag(w) V^T, which is all a Gaussian's covariance depends on (held together by the tests).

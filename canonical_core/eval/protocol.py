@@ -1,6 +1,6 @@
 """Which frames are inputs and which are held out (positions 0..n-1 in the sequence).
 
-The rules (issue 6), for a sequence of n frames and a list of input counts ``views``:
+The rules, for a sequence of n frames and a list of input counts ``views``:
 
 - Inputs for N views: ``round(linspace(0, n - 1, N))``, evenly spread over the whole sequence.
 - Held-out frames: for each target in ``linspace(2, n - 3, 10)``, the nearest position that is

@@ -3,8 +3,8 @@
 Per method and number of input views N (inputs and held-out frames from `protocol`), every
 held-out frame is rendered from the method's model and compared with its image (black background;
 Gaussians in `render`'s "normalised" colour by default, each drawn pixel the expected colour of the
-surface its ray hits, as a ray cast shows it; "composited", the 3DGS blend over black, was the
-protocol before session 24):
+surface its ray hits, as a ray cast shows it; ``colour="composited"`` scores the 3DGS blend over
+black instead):
 PSNR over all pixels, PSNR over covered pixels (alpha >= 0.5), coverage, the all-pixel PSNR that
 coverage allows (`coverage_ceiling`: covered pixels exact, the rest black), SSIM, depth agreement
 (share of covered pixels whose rendered depth is within 2 voxels of the held-out frame's sensor
@@ -135,7 +135,7 @@ def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Seq
     pixels that is.
 
     Covered PSNR compares each method on its own pixels, and a method that draws only where it is
-    sure (Open3D's TSDF covers a third of the image at N = 2) is scored on easier pixels; on the
+    sure (Open3D's TSDF, where few views see a surface) is scored on easier pixels; on the
     common pixels every method is judged on the same ones. Computed from the 8-bit renders (their
     rounding moves PSNR by well under 0.01 dB at these error levels).
     """

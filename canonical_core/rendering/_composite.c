@@ -6,17 +6,17 @@
  * torch.cumprod accumulates it) and a stop before the splat that would take it below 1e-4.
  *
  * Why C: the blend is serial in splats but independent across the pixels of a row. numba/LLVM did
- * not vectorise that loop (sessions 3-9 measured every variant: docs/experiments.md); GCC's vector
+ * not vectorise that loop (the variants tried are in docs/experiments.md); GCC's vector
  * extensions do, 8 pixels a step. setup.py builds this file twice: a baseline build (SSE2 on
  * x86-64, NEON on arm64) and, on x86-64, an x86-64-v3 one (AVX2 + FMA), which cpu_tiles loads
- * where the CPU has it. (target_clones in one build measured 10-15 % slower than -march.) No
+ * where the CPU has it (one build with target_clones is slower than a -march build). No
  * Python.h: the library is loaded with ctypes, so it is tied to no CPython ABI.
  *
  * Layout: a tile is 16 x 16 pixels, p = row * 16 + column, in two 8-pixel blocks a row. The
  * per-tile channel sums are planar (channel-major) for up to PLANAR_MAX channels, so that a block
  * of one channel is one vector; wider sets (features, labels) are pixel-major and each blended
  * pixel adds its channels as one vectorised row, which skips the masked-off pixels of a block
- * (with 35 channels 6-17 % faster than planar).
+ * (faster than planar at that width).
  */
 #include <math.h>
 #include <pthread.h>
@@ -76,7 +76,7 @@ static inline __attribute__((always_inline)) v8f exp8(v8f x) {
 
 /* Stable ascending order of positive float depths, given as their bits in keys[0, n): LSD radix
  * sort (the bits of positive floats order as the floats do), 8 bits a pass, passes whose digit is
- * the same for all skipped: about 4x faster than a comparison sort on a tile's ~10^3 splats. Uses
+ * the same for all skipped: cheaper than a comparison sort on a tile's thousand or so splats. Uses
  * keys_out and both order buffers as scratch; returns whichever order buffer holds the result. */
 static const int32_t *depth_order(uint32_t *keys, uint32_t *keys_out, int32_t *order, int32_t *order_out, int64_t n) {
     for (int64_t i = 0; i < n; i++) order[i] = (int32_t)i;

@@ -130,8 +130,8 @@ def sh_to_rgb_fast(
     sh: Tensor,  # [N, K, 3] coefficients, K = (degree + 1)^2, DC first
     dirs: Tensor,  # [N, 3] view directions (need not be unit length)
 ) -> Tensor:  # [N, 3] float32 on the CPU
-    """Fast path of ``sh_to_rgb`` (numba, float32, no autograd): one pass instead of ~20 tensor ops,
-    which took 6 ms of a 170k-Gaussian render on 2 threads."""
+    """Fast path of ``sh_to_rgb`` (numba, float32, no autograd): one pass over the
+    Gaussians instead of about twenty tensor operations, each a pass of its own."""
     degree = sh_degree_from_bases(sh.shape[1])
     sh = np.ascontiguousarray(sh.detach().cpu().numpy(), np.float32)
     basis = sh_basis_at_points(dirs.detach().cpu().numpy(), np.zeros(3, np.float32), degree)

@@ -94,7 +94,7 @@ def _tile_weights_numba(
     """Per tile, the splats front to back as the C compositor blends them (float32 alpha, float64
     transmittance, a pixel stops before T < 1e-4); writes the weights >= min_weight. Splat-outer,
     as the compositor: each splat visits only its box's pixels in the tile (a pixel-outer loop
-    tests every splat of the tile at every pixel, 2-3x the time)."""
+    would test every splat of the tile at every pixel)."""
     for tile in numba.prange(tile_starts.shape[0] - 1):
         u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
         u1, v1 = min(u0 + TILE_SIZE, width) - 1, min(v0 + TILE_SIZE, height) - 1

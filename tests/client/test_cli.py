@@ -17,6 +17,7 @@ def test_commands_are_a_registry():
     assert args.command == "stream" and args.voxel_size == 0.01
 
 
+@pytest.mark.realdata
 def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
     url = ["--url", server.url]
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.008", "--stride", "10", "--max-frames", "3",
@@ -60,6 +61,7 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
     assert "404" in capsys.readouterr().err
 
 
+@pytest.mark.realdata
 def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     url = ["--url", server.url]
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "20", "--max-frames", "2",
@@ -102,6 +104,7 @@ def test_demo_without_shared_data_fuses_a_generated_sample(tmp_path, monkeypatch
     assert len(load_ply(out / "scene.ply")) > 1000
 
 
+@pytest.mark.realdata
 def test_depth_command_writes_pictures(shelf_dir, tmp_path, capsys):
     out = tmp_path / "depth"
     assert cli.main(["depth", str(shelf_dir), "--out", str(out), "--stride", "20", "--max-frames", "2"]) == 0

@@ -26,6 +26,7 @@ def test_array_codec_roundtrip():
         encode_array(np.ones(3, np.int64))
 
 
+@pytest.mark.realdata
 def test_session_roundtrip(server, frames, tmp_path):
     with Client(server.url) as client:
         session = client.create_session(voxel_size=VOXEL, feature_dim=8)
@@ -63,6 +64,7 @@ def test_session_roundtrip(server, frames, tmp_path):
         assert err.value.status == 404 and err.value.field == "session_id"
 
 
+@pytest.mark.realdata
 def test_burst_gets_429_and_the_sdk_retries_through(server, frames):
     with Client(server.url) as client:
         session = client.create_session(voxel_size=VOXEL)

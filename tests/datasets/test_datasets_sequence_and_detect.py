@@ -38,6 +38,7 @@ def test_sequence_is_lazy(tiny_tsdf, tmp_path):
         seq[1]
 
 
+@pytest.mark.realdata
 def test_detect_and_dispatch(shelf_path, slambook_path, slambook_K, tiny_tsdf):
     assert load_dataset(shelf_path, max_frames=2).frame_ids == ["frame-000015", "frame-000017"]
     assert load_dataset(slambook_path, K=slambook_K).frame_ids == ["1", "2", "3", "4", "5"]

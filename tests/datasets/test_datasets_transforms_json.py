@@ -44,6 +44,7 @@ def _write_capture(shelf, shelf_path, root, count=3, **top) -> list:
     return frames
 
 
+@pytest.mark.realdata
 def test_matches_tsdf_fusion_frames(shelf, shelf_path, tmp_path):
     expected = _write_capture(shelf, shelf_path, tmp_path / "ns")
     seq = load_transforms_json(tmp_path / "ns")
@@ -55,6 +56,7 @@ def test_matches_tsdf_fusion_frames(shelf, shelf_path, tmp_path):
     assert len(load_transforms_json(tmp_path / "ns" / "transforms.json", stride=2)) == 2
 
 
+@pytest.mark.realdata
 def test_depth_unit_scale_factor(shelf, shelf_path, tmp_path):
     _write_capture(shelf, shelf_path, tmp_path / "ns", count=1, depth_unit_scale_factor=0.002)
     reference = shelf[0].depth
@@ -62,6 +64,7 @@ def test_depth_unit_scale_factor(shelf, shelf_path, tmp_path):
     assert torch.allclose(load_transforms_json(tmp_path / "ns", depth_unit_scale_factor=1e-3)[0].depth, reference)
 
 
+@pytest.mark.realdata
 def test_per_frame_intrinsics_and_camera_angle(shelf, shelf_path, tmp_path):
     _write_capture(shelf, shelf_path, tmp_path / "ns", count=2)
     meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
@@ -77,6 +80,7 @@ def test_per_frame_intrinsics_and_camera_angle(shelf, shelf_path, tmp_path):
     assert b.camera.fx == 600.0 and b.camera.cx == 330.0
 
 
+@pytest.mark.realdata
 def test_undistortion_recovers_a_real_image(shelf_path):
     image = read_rgb(shelf_path / "frames" / "frame-000015.color.png")
     K = np.array([[615.195, 0, 298.443], [0, 615.195, 247.519], [0, 0, 1]])
@@ -92,6 +96,7 @@ def test_undistortion_recovers_a_real_image(shelf_path):
     assert error < 2.0 and error < 0.2 * untouched  # what is left is two bilinear resamplings
 
 
+@pytest.mark.realdata
 def test_depth_undistortion_invents_no_depth(shelf_path):
     depth = read_depth(shelf_path / "frames" / "frame-000015.depth.png", 1000.0)
     K = np.array([[615.195, 0, 298.443], [0, 615.195, 247.519], [0, 0, 1]])
@@ -111,6 +116,7 @@ def test_points_round_trip_and_identity():
         remap(np.zeros((4, 4)), np.zeros((2, 2)), np.zeros((2, 2)), "cubic")
 
 
+@pytest.mark.realdata
 def test_distorted_capture_is_undistorted_on_load(shelf, shelf_path, tmp_path):
     _write_capture(shelf, shelf_path, tmp_path / "ns", count=1, k1=DIST[0], k2=DIST[1], p1=DIST[2], p2=DIST[3])
     f = load_transforms_json(tmp_path / "ns")[0]
@@ -144,12 +150,14 @@ def _edit(capture, change):
         (lambda m: m["frames"][0].update(depth_file_path=7), r"frames\[0\]: depth_file_path must be a non-empty string"),
     ],
 )
+@pytest.mark.realdata
 def test_errors(capture, change, message):
     _edit(capture, change)
     with pytest.raises(ValueError, match=message):
         load_transforms_json(capture)
 
 
+@pytest.mark.realdata
 def test_file_errors(capture, tmp_path):
     with pytest.raises(ValueError, match=r"transforms\.json: file not found"):
         load_transforms_json(tmp_path)
@@ -158,6 +166,7 @@ def test_file_errors(capture, tmp_path):
         load_transforms_json(capture)
 
 
+@pytest.mark.realdata
 def test_size_mismatch_and_extensionless_paths(capture):
     _edit(capture, lambda m: (m.update(w=320), m["frames"][0].update(file_path=m["frames"][0]["file_path"][:-4])))
     seq = load_transforms_json(capture)  # "images/frame-000015" resolves to the .png, as instant-ngp allows

@@ -15,6 +15,7 @@ from canonical_core.datasets import FrameSequence, load_tsdf_fusion, synthetic_r
 SHELF_K = [[615.1951904296875, 0, 298.44268798828125], [0, 615.19525146484375, 247.51919555664062], [0, 0, 1]]
 
 
+@pytest.mark.realdata
 def test_shelf_listing(shelf):
     assert isinstance(shelf, FrameSequence)
     assert len(shelf) == 50 and shelf.name == "realsense_shelf"
@@ -22,6 +23,7 @@ def test_shelf_listing(shelf):
     assert shelf.frame_ids == [f"frame-{n:06d}" for n in range(15, 114, 2)]
 
 
+@pytest.mark.realdata
 def test_shelf_first_frame(shelf):
     f = shelf[0]
     assert f.frame_id == "frame-000015"
@@ -36,6 +38,7 @@ def test_shelf_first_frame(shelf):
     assert 0.05 < float(valid.min()) and float(valid.max()) < 1.5
 
 
+@pytest.mark.realdata
 def test_shelf_pose_convention_end_to_end(shelf, reprojection_error):
     # frame 15 lifted into frame 45: the README measures a 2.3 mm median depth error
     assert shelf.frame_ids[15] == "frame-000045"
@@ -44,12 +47,14 @@ def test_shelf_pose_convention_end_to_end(shelf, reprojection_error):
     assert error < 0.005
 
 
+@pytest.mark.realdata
 def test_shelf_stride_and_max_frames(shelf_path):
     seq = load_tsdf_fusion(shelf_path, stride=10, max_frames=3)
     assert seq.frame_ids == ["frame-000015", "frame-000035", "frame-000055"]
     assert len(load_tsdf_fusion(shelf_path, stride=7)) == 8
 
 
+@pytest.mark.realdata
 def test_explicit_intrinsics_override(shelf_path):
     seq = load_tsdf_fusion(shelf_path, intrinsics=(585, 585, 320, 240), max_frames=1)
     assert seq[0].camera.fx == 585 and seq[0].camera.cx == 320

@@ -13,6 +13,8 @@ from canonical_core import Camera
 from canonical_core.datasets import load_tum
 from canonical_core.datasets.files import read_pgm
 
+pytestmark = pytest.mark.realdata
+
 
 def test_slambook_listing_and_frames(slambook):
     assert len(slambook) == 5 and slambook.frame_ids == ["1", "2", "3", "4", "5"]

@@ -142,6 +142,7 @@ def test_scales_are_clamped_to_the_voxel_scale():
     assert sorted(s.tolist()) == pytest.approx([0.005, 0.1 * FULL_VOXEL_EXTENT, 0.1 * FULL_VOXEL_EXTENT])
 
 
+@pytest.mark.realdata
 def test_level_of_detail_keeps_best_supported(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=0.004))
     for f in shelf_frames[:3]:
@@ -159,6 +160,7 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
         scene.decode(max_gaussians=-1)
 
 
+@pytest.mark.realdata
 def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
     # the SceneConfig knobs reach the decoder's analytic logit a r + b - penalty(q): a change of b
     # moves every logit by that change, a change of a by that change times r; nothing else moves

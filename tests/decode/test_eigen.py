@@ -67,6 +67,7 @@ def covariances_of(g) -> np.ndarray:  # [N, 3, 3] R diag(s^2) R^T of decoded Gau
     return R @ (s[:, :, None] ** 2 * np.transpose(R, (0, 2, 1)))
 
 
+@pytest.mark.realdata
 def test_decoder_gives_the_same_gaussians_on_either_path(shelf_frames):
     # the service decodes with the numba path; a training step that needs gradients through the
     # fields takes the reference: the covariances they decode agree on the real capture

@@ -90,6 +90,7 @@ def test_synthetic_sample_end_to_end(tmp_path):
         assert grid.width == 48 * (1 + len(methods))
 
 
+@pytest.mark.realdata
 def test_downscaled_shelf_slice_end_to_end(tmp_path, shelf_dir):
     seq = load_dataset(shelf_dir, max_frames=16)
     results = evaluate(seq, views=[2, 4], methods=["canonical", "gaussian_merge"], out_dir=tmp_path, progress=False,
@@ -101,6 +102,7 @@ def test_downscaled_shelf_slice_end_to_end(tmp_path, shelf_dir):
     assert results["colour"] == "normalised" and "normalised colour" in (tmp_path / "results.md").read_text()
 
 
+@pytest.mark.realdata
 def test_scores_in_either_colour_mode_differ_only_where_pixels_are_partly_covered(shelf_frames):
     # normalised colour is the composited image over black divided by alpha: the two agree where a
     # pixel is fully covered or empty, and the normalised one is brighter where it is partly covered

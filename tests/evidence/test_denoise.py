@@ -50,6 +50,7 @@ def test_median_of_a_noisy_plane_is_close_to_it_and_its_std_is_honest():
     assert 1 / 1.5 < np.median(std[valid]) / error.std() < 1.5
 
 
+@pytest.mark.realdata
 def test_roughness_tells_noise_from_clean_sensor_depth(shelf_frames):
     clean = shelf_frames[0].depth.numpy()
     sigma = sensor_depth_std(clean)
@@ -65,6 +66,7 @@ def test_roughness_tells_noise_from_clean_sensor_depth(shelf_frames):
         depth_roughness(clean, sigma, 0)
 
 
+@pytest.mark.realdata
 def test_denoise_leaves_clean_depth_untouched_and_replaces_rough_depth(shelf_frames):
     clean = shelf_frames[0].depth.numpy()
     args = (7, 0.0012, 0.0019, 0.4)
@@ -78,6 +80,7 @@ def test_denoise_leaves_clean_depth_untouched_and_replaces_rough_depth(shelf_fra
         median_depth(rough, 0)
 
 
+@pytest.mark.realdata
 def test_fold_of_a_rough_frame_lifts_its_median_and_reports_it(shelf_frames):
     clean_frame = shelf_frames[0]
     rng = np.random.default_rng(2)
@@ -99,6 +102,7 @@ def test_fold_of_a_rough_frame_lifts_its_median_and_reports_it(shelf_frames):
     assert near_truth(on) > 3 * near_truth(off)
 
 
+@pytest.mark.realdata
 def test_clean_frames_fold_identically_with_denoising_on_or_off(shelf_frames):
     scenes = [Scene(SceneConfig(voxel_size=0.004, depth_denoise_radius=r)) for r in (7, 0)]
     for scene in scenes:

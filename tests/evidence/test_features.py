@@ -16,6 +16,7 @@ def test_fast_path_equals_reference_including_borders(seed):
     assert np.allclose(np.linalg.norm(fast, axis=1), 1.0, atol=1e-5)
 
 
+@pytest.mark.realdata
 def test_same_surface_point_is_more_similar_than_other_points(shelf_frames):
     """Discriminative on real images: a point seen in two views (frames 4 apart) is more similar
     to itself than to other points of the same view pair."""

@@ -30,6 +30,8 @@ from canonical_core.evidence.mvs_eval import (
 )
 from canonical_core.frame import resize_frame
 
+pytestmark = pytest.mark.realdata
+
 REFERENCES = [6, 18, 30, 42]
 NEAR, FAR = 0.2, 2.0
 

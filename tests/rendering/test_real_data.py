@@ -9,6 +9,8 @@ from canonical_core.datasets import load_tsdf_fusion
 from canonical_core.rendering import render
 from canonical_core.scene import Scene, SceneConfig
 
+pytestmark = pytest.mark.realdata
+
 VOXEL_SIZE = 0.004
 
 

@@ -47,6 +47,7 @@ def shelf(shelf_frames):
     return [dataclasses.replace(f) for f in shelf_frames[:6]]
 
 
+@pytest.mark.realdata
 def test_a_decode_after_a_fold_decodes_only_what_the_fold_touched_and_equals_a_fresh_decode(shelf):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf[:4]:
@@ -68,6 +69,7 @@ def test_a_decode_after_a_fold_decodes_only_what_the_fold_touched_and_equals_a_f
         assert_same_gaussians(subset, from_scratch(scene, **kwargs))
 
 
+@pytest.mark.realdata
 def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(shelf):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf[:3]:
@@ -78,6 +80,7 @@ def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(she
     assert_same_gaussians(scene.decode_from(early), from_scratch(scene, early))
 
 
+@pytest.mark.realdata
 def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
     scene = Scene(SceneConfig(voxel_size=0.008))
     scene.fold(shelf[0])
@@ -93,6 +96,7 @@ def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
     assert_same_gaussians(wider, from_scratch(scene))
 
 
+@pytest.mark.realdata
 def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
     a, b = Scene(SceneConfig(voxel_size=0.008)), Scene(SceneConfig(voxel_size=0.008))
     a.fold(shelf[0])
@@ -102,6 +106,7 @@ def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
     assert_same_gaussians(b.decode_from(inputs), from_scratch(a, inputs))
 
 
+@pytest.mark.realdata
 def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf[:2]:
@@ -129,6 +134,7 @@ def test_labels_arriving_after_a_decode_reach_every_voxel():
     assert (decoded.labels[:, 1] > 0.99).sum() > 0 and (decoded.labels.sum(1) == 0).sum() > 0
 
 
+@pytest.mark.realdata
 def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
     scene = Scene(SceneConfig(voxel_size=0.008))
     scene.fold(shelf[0])
@@ -138,6 +144,7 @@ def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
     assert scene.memory_bytes() - before >= len(g) * per_gaussian
 
 
+@pytest.mark.realdata
 def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf):
     # as the service runs them: folds and the copy of the inputs under one lock, decodes outside it
     scene, lock = Scene(SceneConfig(voxel_size=0.008)), threading.Lock()

@@ -29,6 +29,7 @@ def fold_all(config: SceneConfig, frames) -> tuple[Scene, list]:
     return scene, [scene.fold(f) for f in frames]
 
 
+@pytest.mark.realdata
 def test_completion_fills_a_withheld_band_from_earlier_views(shelf_small):
     truth = shelf_small[2]
     frames = shelf_small[:2] + [withheld_band(truth)]
@@ -54,6 +55,7 @@ def test_completion_fills_a_withheld_band_from_earlier_views(shelf_small):
     assert rel < 0.05
 
 
+@pytest.mark.realdata
 def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small):
     # a radius larger than any hole: nothing is filled, and the sensor's std map the completed frame
     # carries must equal the noise model the plain fold applies
@@ -64,6 +66,7 @@ def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small)
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.realdata
 def test_a_frame_that_fails_to_fold_changes_nothing(shelf_small):
     scene, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, max_voxels=11_000), shelf_small[:2])
     before = (scene.digest(), scene.frames, len(scene._window))
@@ -72,6 +75,7 @@ def test_a_frame_that_fails_to_fold_changes_nothing(shelf_small):
     assert (scene.digest(), scene.frames, len(scene._window)) == before
 
 
+@pytest.mark.realdata
 def test_snapshot_resumes_completion_identically(shelf_small, tmp_path):
     straight, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), shelf_small[:2])
     straight.save(tmp_path / "s.cgs")
@@ -93,6 +97,7 @@ def test_bad_completion_settings_name_the_field(settings, field):
         SceneConfig(voxel_size=VOXEL, **settings)
 
 
+@pytest.mark.realdata
 def test_frames_without_depth_are_unaffected_by_the_setting(shelf_small):
     rgb_only = [Frame(rgb=f.rgb, camera=f.camera) for f in shelf_small]
     on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), rgb_only)

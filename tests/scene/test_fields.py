@@ -68,6 +68,7 @@ def test_an_unobserved_direction_with_no_ridge_gives_a_finite_fit_that_reproduce
     assert torch.allclose(seen, mean, atol=1e-6)
 
 
+@pytest.mark.realdata
 def test_fast_solve_matches_the_reference_on_the_real_capture(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf_frames[:3]:

@@ -33,6 +33,7 @@ def deviation(stream, batch):
     return rel.median().item(), rel.quantile(0.9).item(), cos.median().item(), cos.quantile(0.1).item()
 
 
+@pytest.mark.realdata
 def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
     # reliability strictly falls frame after frame, so each voxel keeps its first frame's representative
     frames = [with_std(f, 0.001 * (1 + k)) for k, f in enumerate(shelf_frames[::5])]
@@ -49,6 +50,7 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
     assert (batch["free_space"] > 0).sum() > 100  # real captures do see through some voxels
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize("sh_degree", [0, 2])
 def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
     # degree 0 has zero-width SH sums: they must stay [V, 0] fields, not become scalar columns
@@ -63,6 +65,7 @@ def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
     assert len(scene.decode()) > 0
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize("mode", ["no_reliability", "no_similarity", "average"])
 def test_ablation_modes_stream_exactly(shelf_frames, mode):
     # these modes never rescale (first-observation or similarity-free representatives)
@@ -86,6 +89,7 @@ def shelf_batch(shelf_frames):
 BOUNDS = dict(rel_median=1e-3, rel_p90=0.25, cos_median=0.999, cos_p10=0.99)
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize("order", ["captured", "permuted"])
 def test_streaming_deviation_on_all_shelf_frames(shelf_frames, shelf_batch, order):
     frames = list(shelf_frames)
@@ -100,6 +104,7 @@ def test_streaming_deviation_on_all_shelf_frames(shelf_frames, shelf_batch, orde
     assert torch.equal(scene.fields()["representative_reliability"], shelf_batch["representative_reliability"])
 
 
+@pytest.mark.realdata
 def test_fold_is_deterministic_across_runs_and_thread_counts(shelf_frames):
     config = SceneConfig(voxel_size=VOXEL)
     threads = numba.get_num_threads()
@@ -113,6 +118,7 @@ def test_fold_is_deterministic_across_runs_and_thread_counts(shelf_frames):
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.realdata
 def test_fold_report_counts(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=VOXEL))
     first = scene.fold(shelf_frames[0])
@@ -123,6 +129,7 @@ def test_fold_report_counts(shelf_frames):
     assert second.updated_voxels > 0.5 * first.new_voxels  # neighbouring frames overlap
 
 
+@pytest.mark.realdata
 def test_capacity_error_leaves_scene_unchanged(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=VOXEL, max_voxels=25_000))
     scene.fold(shelf_frames[0])

@@ -56,6 +56,7 @@ def test_scene_config_checks_the_colour_solve_settings(setting, value):
         SceneConfig(voxel_size=0.01, **{setting: value})
 
 
+@pytest.mark.realdata
 def test_keyframes_are_kept_at_their_scale(shelf_frames):
     keyframes = Keyframes(2, scale=0.5)
     keyframes.add(0, shelf_frames[0])
@@ -71,6 +72,7 @@ def small(shelf_frames):
     return [resize_frame(f, 0.25) for f in shelf_frames[0:20:5]]  # 4 frames, 160x120
 
 
+@pytest.mark.realdata
 def test_decode_solves_colours_against_the_kept_views(small):
     solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0))
     plain = Scene(SceneConfig(voxel_size=0.008))
@@ -86,6 +88,7 @@ def test_decode_solves_colours_against_the_kept_views(small):
     assert solving.memory_bytes() == plain.memory_bytes() + sum(k.rgb.numel() for k in kept)
 
 
+@pytest.mark.realdata
 def test_decode_inputs_are_a_copy_that_later_folds_leave_alone(small):
     scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=2, colour_solve_scale=1.0))
     for f in small[:3]:
@@ -101,6 +104,7 @@ def test_decode_inputs_are_a_copy_that_later_folds_leave_alone(small):
         scene.decode_from(inputs, max_gaussians=-1)
 
 
+@pytest.mark.realdata
 def test_keyframes_travel_with_the_snapshot(small, tmp_path):
     scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8))
     for f in small[:2]:
@@ -116,6 +120,7 @@ def test_keyframes_travel_with_the_snapshot(small, tmp_path):
     assert loaded.digest() == scene.digest()
 
 
+@pytest.mark.realdata
 def test_a_frame_that_fails_to_fold_is_not_kept(small):
     probe = Scene(SceneConfig(voxel_size=0.008))
     probe.fold(small[0])

@@ -8,6 +8,8 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 
+pytestmark = pytest.mark.realdata
+
 
 @pytest.fixture(scope="module")
 def folded(shelf_frames):

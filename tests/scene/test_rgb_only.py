@@ -22,6 +22,7 @@ def rgb_scene(shelf_frames):
     return scene, reports
 
 
+@pytest.mark.realdata
 def test_first_frame_waits_for_a_partner_then_every_frame_is_folded(rgb_scene):
     scene, reports = rgb_scene
     assert reports[0].pending and reports[0].observations == 0
@@ -30,6 +31,7 @@ def test_first_frame_waits_for_a_partner_then_every_frame_is_folded(rgb_scene):
     assert scene.frames == len(reports) and not scene._pending
 
 
+@pytest.mark.realdata
 def test_estimated_geometry_agrees_with_the_sensor(rgb_scene, shelf_frames):
     scene, _ = rgb_scene
     truth = shelf_frames[8]  # an input view; its sensor depth was never given to the scene
@@ -45,6 +47,7 @@ def test_estimated_geometry_agrees_with_the_sensor(rgb_scene, shelf_frames):
     assert rel < 0.11
 
 
+@pytest.mark.realdata
 def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_path):
     a, b = rgb_only(shelf_frames[0]), rgb_only(shelf_frames[4])
     straight = Scene(SceneConfig(voxel_size=VOXEL))

@@ -180,10 +180,7 @@ def _state(session) -> tuple:
     return stats["frames"], stats["voxels"], stats["disk_bytes"], stats["gaussians"], digest["sha256"]
 
 
-def test_matrix_is_large_enough():
-    assert len(CASES) >= 20
-
-
+@pytest.mark.realdata
 @pytest.mark.parametrize("make, status, field", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
 def test_bad_input(server, client, target, frames, make, status, field):
     before = _state(target)
@@ -197,6 +194,7 @@ def test_bad_input(server, client, target, frames, make, status, field):
     assert len(client.sessions()) == sessions_before
 
 
+@pytest.mark.realdata
 def test_capacity_409_leaves_session_and_log_unchanged(client, frames):
     session = client.create_session(voxel_size=VOXEL, max_voxels=6000)
     session.add_frame(**frames[0])
@@ -230,6 +228,7 @@ def test_unknown_route_and_method(server):
     assert r.status_code == 405 and r.json()["error"]["field"] == "method"
 
 
+@pytest.mark.realdata
 def test_fold_time_error_leaves_log_unchanged(client, frames):
     """A frame that passes decoding but fails inside the fold (here: a client-features session sent a
     frame without features) is logged first, then cut off again: the session and its files are as before."""

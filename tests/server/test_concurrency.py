@@ -12,7 +12,7 @@ from client.sdk import Client
 
 from .harness import TOKEN, VOXEL
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
 
 def test_two_sessions_folding_while_rendering(server, client, frames, reference):

@@ -13,7 +13,7 @@ from server import framelog
 
 from .harness import VOXEL, ServerProcess
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
 
 def test_kill9_restart_keeps_every_acknowledged_frame(tmp_path, frames, reference):

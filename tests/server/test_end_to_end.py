@@ -32,6 +32,7 @@ def view_of(kwargs: dict) -> tuple:
     return kwargs["K"], kwargs["c2w"], w, h
 
 
+@pytest.mark.realdata
 def test_stream_render_export_delete(client, server, frames, reference, tmp_path):
     session = client.create_session(voxel_size=VOXEL)
     assert any(s["id"] == session.id for s in client.sessions())
@@ -105,6 +106,7 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
     assert err.value.status == 404
 
 
+@pytest.mark.realdata
 def test_get_render_matches_post(client, server, frames):
     session = client.create_session(voxel_size=VOXEL)
     session.add_frame(**frames[0])
@@ -122,6 +124,7 @@ def test_get_render_matches_post(client, server, frames):
     session.delete()
 
 
+@pytest.mark.realdata
 def test_multipart_frame_equals_msgpack_frame(client, server, frames, reference):
     """curl-style upload: PNG colour + 16-bit depth PNG (mm) + JSON camera; fuses to the same state."""
     kwargs = frames[0]
@@ -147,6 +150,7 @@ def test_multipart_frame_equals_msgpack_frame(client, server, frames, reference)
     session.delete()
 
 
+@pytest.mark.realdata
 def test_labels_segmentation(client, frames):
     """Frames carrying label scores (3 classes: image thirds) -> label maps as palette PNG and uint16."""
     session = client.create_session(voxel_size=VOXEL)
@@ -180,6 +184,7 @@ def test_health_and_metrics(client, server):
         assert name in text
 
 
+@pytest.mark.realdata
 def test_depth_completion_session_reports_filled_pixels(client, frames):
     """A session with depth_completion sweeps frames with depth against the earlier ones and fills
     the large holes of their depth (the shelf's depth misses its image's left band and dark surfaces)."""
@@ -195,6 +200,7 @@ def test_depth_completion_session_reports_filled_pixels(client, frames):
     plain.delete()
 
 
+@pytest.mark.realdata
 def test_rough_depth_is_reported_denoised(client, frames):
     """A frame whose depth is far rougher than the sensor model is folded as its local median, and
     the fold report says so; clean sensor depth is not."""
@@ -207,6 +213,7 @@ def test_rough_depth_is_reported_denoised(client, frames):
     session.delete()
 
 
+@pytest.mark.realdata
 def test_rgb_only_session_end_to_end(client, frames):
     """A session fed only RGB frames (depth withheld) folds every frame through the service."""
     session = client.create_session(voxel_size=VOXEL)
@@ -220,6 +227,7 @@ def test_rgb_only_session_end_to_end(client, frames):
     session.delete()
 
 
+@pytest.mark.realdata
 def test_colour_solve_session_renders_its_inputs_closer(client, frames):
     """A session with colour_solve_views keeps input views and solves the Gaussians' colours against
     them: its renders at an input pose are closer to that frame than a plain session's."""

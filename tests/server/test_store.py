@@ -48,6 +48,7 @@ def test_session_ids_are_hex_so_a_command_line_never_reads_one_as_a_flag(store):
     assert all(re.fullmatch(r"[0-9a-f]{32}", i) for i in ids) and len(set(ids)) == 4
 
 
+@pytest.mark.realdata
 def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
     session = store.create(SceneConfig(voxel_size=0.008, colour_solve_views=2))
     for frame in shelf_frames[:3]:
@@ -64,6 +65,7 @@ def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
     assert len(fewer) == len(g) // 2 and same(fewer, session.scene.decode(len(g) // 2))
 
 
+@pytest.mark.realdata
 def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_served(store, shelf_frames):
     session = store.create(SceneConfig(voxel_size=0.004, colour_solve_views=4, colour_solve_scale=1.0))
     for frame in shelf_frames[:4]:
