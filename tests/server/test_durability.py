@@ -19,7 +19,7 @@ from server import framelog
 
 from .harness import REPO, VOXEL, ServerProcess, msgpack_frame
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 MSGPACK = {"content-type": "application/msgpack"}
 
 

@@ -1,0 +1,44 @@
+"""The store's start-up on folders it finds (in process, real files): leftovers of an interrupted
+create or delete are cleaned up, anything that may hold frames is kept."""
+
+from __future__ import annotations
+
+import pytest
+
+from canonical_core import SceneConfig
+from server.store import DataDirLocked, SessionStore
+
+
+def opened(root) -> SessionStore:
+    store = SessionStore(root, max_sessions=8)
+    store.open()
+    return store
+
+
+def test_an_interrupted_delete_or_create_leaves_nothing_and_a_folder_with_data_is_kept(tmp_path):
+    store = opened(tmp_path)
+    kept = store.create(SceneConfig(voxel_size=0.01)).id
+    store.close()
+    sessions = tmp_path / "sessions"
+    (sessions / ".deleted-abc").mkdir()  # a crash after the tombstone rename
+    (sessions / ".deleted-abc" / "frames.log").write_bytes(b"x")
+    (sessions / "half").mkdir()  # a crash before meta.json was written: an empty log only
+    (sessions / "half" / "frames.log").write_bytes(b"")
+    (sessions / "orphan").mkdir()  # meta.json lost, but a log with bytes in it: may hold frames
+    (sessions / "orphan" / "frames.log").write_bytes(b"CGF1 something")
+    store = opened(tmp_path)
+    try:
+        assert sorted(p.name for p in sessions.iterdir()) == sorted([kept, "orphan"])
+        assert [s.id for s in store.list()] == [kept]
+        assert "meta.json is missing" in store.unavailable["orphan"]
+        assert (sessions / "orphan" / "frames.log").read_bytes() == b"CGF1 something"
+    finally:
+        store.close()
+
+
+def test_one_store_per_directory_until_it_closes(tmp_path):
+    first = opened(tmp_path)
+    with pytest.raises(DataDirLocked, match="data_dir: .* in use by another server"):
+        opened(tmp_path)
+    first.close()
+    opened(tmp_path).close()
