@@ -109,7 +109,7 @@ class Method:
 
 def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
     def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
-        scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting, **settings))
+        scene = Scene(SceneConfig(voxel_size=voxel_size, research={"weighting": weighting}, **settings))
         for frame in frames:
             scene.fold(frame)
         splats = scene.decode()

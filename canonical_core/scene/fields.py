@@ -180,7 +180,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     Colour and position fall back smoothly to the representative's where R_scene ~ 0
     (``(sum W x + eps x_rep) / (R_scene + eps)``), so no voxel decodes to black or to the origin.
     """
-    voxel_size, eps = config.voxel_size, config.eps
+    voxel_size, eps = config.voxel_size, config.research.eps
     t = {k: torch.as_tensor(v) for k, v in sums.items()}
     t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
@@ -209,7 +209,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "position_cov": (cov_local * voxel_size * voxel_size).float(),
         "observations": t["n_obs"].to(torch.int64),
         "free_space": t["free"],
-        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.sh_regularization),
+        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
     }
     if t["label_sum"].shape[1] > 0:
         out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]

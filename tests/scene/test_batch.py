@@ -21,7 +21,7 @@ def tiny_frame():
 
 
 def config(mode="full"):
-    return SceneConfig(voxel_size=1.0, feature_dim=2, feature_backend="client", weighting=mode, depth_edge_weight=0.0, near=0.01)
+    return SceneConfig(voxel_size=1.0, feature_dim=2, feature_backend="client", research={"weighting": mode}, sensor={"edge_weight": 0.0}, near=0.01)
 
 
 def cos(a, b):
