@@ -54,18 +54,24 @@ def _error_message(exc: ValidationError, prefix: str) -> str:
     return f"{path}: {msg[:1].lower()}{msg[1:]}, got {first['input']!r}"
 
 
-class _Settings(BaseModel):
+class _NamedErrors(type(BaseModel)):
+    """Construction raises a ValueError ``"path: problem"`` instead of pydantic's multi-line report.
+    On the metaclass, not in ``__init__``: a model with its own ``__init__`` is validated through it
+    when nested, which would fold a group's field errors into one error on the group."""
+
+    def __call__(cls, *args: Any, **kwargs: Any):
+        try:
+            return super().__call__(*args, **kwargs)
+        except ValidationError as exc:
+            raise ValueError(_error_message(exc, cls._path)) from None
+
+
+class _Settings(BaseModel, metaclass=_NamedErrors):
     """Frozen (hashable), strict, closed: an unknown name or a wrongly typed value is an error."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False,
                               validate_default=True, use_attribute_docstrings=True)
     _path: ClassVar[str] = ""  # where the group sits in SceneConfig, to name its fields in errors
-
-    def __init__(self, **data: Any):
-        try:
-            super().__init__(**data)
-        except ValidationError as exc:
-            raise ValueError(_error_message(exc, self._path)) from None
 
     def to_dict(self) -> dict:
         return self.model_dump()
