@@ -249,6 +249,15 @@ class SceneConfig(_Settings):
             return self.decoder.opacity_bias
         return BIAS_WITH_DENOISING if self.depth.denoise_radius > 0 else BIAS_WITHOUT_DENOISING
 
+    def replace(self, **changes: Any) -> "SceneConfig":
+        """A validated copy with ``changes``; a group given as a mapping changes only the fields it
+        names: ``config.replace(free_space={"enabled": False})``."""
+        merged = self.to_dict()
+        for name, value in changes.items():
+            merged[name] = {**merged[name], **value} if isinstance(value, dict) and isinstance(merged.get(name), dict) \
+                else value
+        return type(self)(**merged)
+
     @classmethod
     def from_dict(cls, d: dict) -> "SceneConfig":
         """The inverse of `to_dict`; also reads the flat layout of earlier snapshots and session
