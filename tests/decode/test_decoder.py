@@ -63,7 +63,7 @@ def fields_of_planar_voxel(voxel=0.1, thickness=0.0):
         "representative_position": torch.tensor([[0.02, 0.03, 0.05]]),  # one of the points
         "position_mean": torch.from_numpy(pts.mean(0)[None]).float(),
         "position_cov": torch.from_numpy(cov[None]).float(),
-        "color": torch.tensor([[0.2, 0.4, 0.6]]),
+        "colour": torch.tensor([[0.2, 0.4, 0.6]]),
     }, cov
 
 
@@ -73,7 +73,7 @@ def test_analytic_initialisation():
     g = dec(fields, voxel_size=0.1)
     # the offset head starts at zero: the mean is the points' centroid, not the representative point
     assert torch.equal(g.means, fields["position_mean"]) and not torch.equal(g.means, fields["representative_position"])
-    assert torch.allclose(g.colors, fields["color"], atol=1e-6)
+    assert torch.allclose(g.colours, fields["colour"], atol=1e-6)
     logit = OPACITY_SLOPE * (1 - math.exp(-3)) + OPACITY_BIAS  # support 3 typical views, the untrained line
     assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-logit)), rel=1e-5)
     # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never

@@ -40,7 +40,7 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
     scene, reports = fold_all(frames, config)
     assert sum(r.representative_switches for r in reports) == 0
     stream, batch = scene.fields(), aggregate_batch(frames, config)
-    for name in ("reliability", "features", "color", "representative_position", "position_mean"):
+    for name in ("reliability", "features", "colour", "representative_position", "position_mean"):
         assert torch.allclose(stream[name], batch[name], rtol=1e-4, atol=1e-6), name
     assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=1e-9)
     assert torch.equal(stream["observations"], batch["observations"])

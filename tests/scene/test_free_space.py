@@ -139,7 +139,7 @@ def test_opacity_is_non_increasing_in_free_space_for_any_weights():
         "features": torch.zeros(n, 2),
         "position_mean": torch.zeros(n, 3),
         "position_cov": torch.eye(3).repeat(n, 1, 1) * 1e-4,
-        "color": torch.full((n, 3), 0.5),
+        "colour": torch.full((n, 3), 0.5),
     }
     op = dec(fields, voxel_size=0.05).opacities
     assert (op[1:] - op[:-1] <= 1e-7).all() and op[0] > op[-1]

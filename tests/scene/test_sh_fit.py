@@ -56,7 +56,7 @@ def test_regularisation_pulls_toward_the_dc_colour():
     f = scene.fields()
     assert f["sh"][:, 1:].abs().max() < 0.1
     dc_colour = 0.5 + 0.28209479177387814 * f["sh"][:, 0]
-    assert torch.allclose(dc_colour, f["color"], atol=0.05)
+    assert torch.allclose(dc_colour, f["colour"], atol=0.05)
 
 
 def test_default_regularisation_keeps_view_dependence_seen_from_views_20_degrees_apart():
