@@ -363,7 +363,8 @@ def _parse_value(path: str, annotation: Any, metadata: list, text: str) -> Any:
         return None
     base = next(a for a in get_args(annotation) if a is not type(None)) if optional else annotation
     try:
-        return TypeAdapter(Annotated[(base, *metadata)] if metadata else base).validate_strings(text)
+        adapter = TypeAdapter(Annotated[(base, *metadata)] if metadata else base, config=ConfigDict(allow_inf_nan=False))
+        return adapter.validate_strings(text)
     except ValidationError as exc:
         raise ValueError(_error_message(exc, path)) from None
 

@@ -241,6 +241,8 @@ def test_parsed_settings_build_the_nested_config():
     ("voxel_size.x=1", r"^voxel_size\.x: unknown setting"),
     ("depth.hypotheses=1", r"^depth\.hypotheses: input should be greater than or equal to 2"),
     ("max_voxels=0", "^max_voxels: "),
+    ("voxel_size=inf", "^voxel_size: input should be a finite number"),
+    ("decoder.opacity_bias=nan", r"^decoder\.opacity_bias: input should be a finite number"),
     ("=3", "^setting: expected NAME=VALUE"),
 ])
 def test_parse_setting_refuses_naming_the_setting(text, message):

@@ -5,7 +5,6 @@ layout still open."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import httpx
@@ -70,15 +69,20 @@ def test_openapi_schemas_are_generated_from_the_library(server):
 
 
 def test_a_session_stored_with_flat_settings_opens(tmp_path):
-    meta = json.loads((FIXTURES / "session_meta_v1.json").read_text())
-    folder = tmp_path / "sessions" / meta["id"]
-    folder.mkdir(parents=True)
-    shutil.copy(FIXTURES / "session_meta_v1.json", folder / "meta.json")
+    # a session made by the store, whose meta.json then gets the flat-layout settings of the fixture
+    flat = json.loads((FIXTURES / "session_meta_v1.json").read_text())["config"]
+    store = SessionStore(tmp_path, max_sessions=2)
+    store.open()
+    session_id = store.create(SceneConfig(voxel_size=0.01)).id
+    store.close()
+    meta_path = next((tmp_path / "sessions").glob(f"{session_id}*/meta.json"))
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "config": flat}))
     store = SessionStore(tmp_path, max_sessions=2)
     store.open()
     try:
-        session = store.get(meta["id"])
-        assert session.config == SceneConfig.from_dict(meta["config"])
+        session = store.get(session_id)
+        assert session.config == SceneConfig.from_dict(flat)
         assert (session.config.free_space.enabled, session.config.colour_solve_views) == (False, 4)
         assert session.scene.config == session.config and session.scene.frames == 0
     finally:
