@@ -19,7 +19,6 @@ the module itself imports nothing from ``server``. Datasets are read client-side
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
