@@ -92,8 +92,8 @@ def main(argv=None) -> None:
         eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
                            "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
         sums = {k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in inputs.sums.items()}
-        system = (sums["r_sum"] + scene.config.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
-                  scene.config.sh_regularization)
+        system = (sums["r_sum"] + scene.config.research.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
+                  scene.config.decoder.sh_regularization)
         fast = median_ms(lambda: solve_sh(*system), args.repeats)
         batched = median_ms(lambda: solve_sh_reference(*system), args.repeats)
         sh_rows.append({"frames": n, "systems": len(sums["r_sum"]), "K": sums["sh_b"].shape[1] // 3 + 1,

@@ -56,8 +56,8 @@ def time_denoise(frames, config: SceneConfig, repeats: int) -> list[dict]:
     """ms per frame of the rough-depth check (every frame with depth pays it) and of the whole
     denoising step on the evaluation's depth noise 0.25 (where the check fires and the median runs)."""
     def step(f):
-        denoise_rough_depth(f.depth.numpy(), None, config.depth_denoise_radius, config.depth_sigma0,
-                            config.depth_sigma2, config.depth_sigma_ref)
+        denoise_rough_depth(f.depth.numpy(), None, config.depth.denoise_radius, config.sensor.sigma0,
+                            config.sensor.sigma2, config.sensor.sigma_ref)
 
     noisy = [add_depth_noise(f, 0.25, k) for k, f in enumerate(frames)]
     step(noisy[0])  # compile / load the numba cache outside the measurement
@@ -87,9 +87,9 @@ def main(argv=None) -> None:
     config = SceneConfig(voxel_size=args.voxel)
     # Open3D's integrate has no counterpart of our free-space (see-through) evidence: the column
     # without it compares evidence + aggregation alone, the work both do
-    no_free_space = dataclasses.replace(config, free_space=False)
+    no_free_space = config.replace(free_space={"enabled": False})
     # opt-in: frames with depth are also swept against earlier views to fill their depth's large holes
-    completion = dataclasses.replace(config, depth_completion=True)
+    completion = config.replace(depth_completion=True)
     time_folds(frames[:2], completion)  # compile / load the numba cache outside the measurement
 
     rows = []
@@ -118,7 +118,7 @@ def main(argv=None) -> None:
     print_table("Fold per frame (evidence + aggregation)", rows)
     if not have_o3d:
         print("Open3D not installed: install the `bench` extra for the peer column.\n")
-    print_table(f"Depth denoising, 640x480, radius {config.depth_denoise_radius} (part of the fold above)",
+    print_table(f"Depth denoising, 640x480, radius {config.depth.denoise_radius} (part of the fold above)",
                 time_denoise(frames, config, args.repeats))
 
     if args.long == 0:

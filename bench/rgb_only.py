@@ -88,7 +88,7 @@ def views_list(text: str) -> list[int]:
 
 def fused_metrics(inputs, weighting: str, voxel: float, targets, solve_views: int = 0) -> tuple[dict, cc.Scene]:
     """The evaluation's metrics of ``targets`` rendered from a scene folded from ``inputs``, and the scene."""
-    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, weighting=weighting, colour_solve_views=solve_views))
+    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, research={"weighting": weighting}, colour_solve_views=solve_views))
     for frame in inputs:
         scene.fold(frame)
     return score(SplatModel(scene.decode()), targets, voxel).metrics, scene

@@ -1,7 +1,7 @@
 """The ``canonical`` command line.
 
     canonical serve [--host H] [--port P] [--data-dir D] [--threads N]
-    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set NAME=VALUE ...]) [--stride K] [--max-frames N] [--scale F]
+    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical sessions --url URL
@@ -19,7 +19,6 @@ the module itself imports nothing from ``server``. Datasets are read client-side
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -116,25 +115,26 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5)")
-    p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="NAME=VALUE",
-                   help="a setting of the new session (a SceneConfig field; VALUE read as JSON, else as text), "
-                        "e.g. --set colour_solve_views=16 --set depth_completion=true; repeatable")
+    p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
+                   help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
+                        "the field's type), e.g. --set colour_solve_views=16 --set free_space.margin=3; repeatable")
 
 
 def session_setting(text: str) -> tuple[str, object]:
-    """``NAME=VALUE`` -> (NAME, VALUE), VALUE parsed as JSON (numbers, true/false, null) or kept as text.
+    """``PATH=VALUE`` -> (PATH, VALUE), checked and typed by the library's settings definition
+    (`canonical_core.scene.config.parse_setting`): an unknown or evaluation-only setting, or a value
+    of the wrong type or out of bounds, is a usage error naming the setting.
 
     Example:
-        >>> session_setting("colour_solve_views=16"), session_setting("weighting=average")
-        (('colour_solve_views', 16), ('weighting', 'average'))
+        >>> session_setting("colour_solve_views=16"), session_setting("depth.sources=3")
+        (('colour_solve_views', 16), ('depth.sources', 3))
     """
-    name, sep, value = text.partition("=")
-    if not sep or not name.strip():
-        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    from canonical_core.scene.config import parse_setting
+
     try:
-        return name.strip(), json.loads(value)
-    except json.JSONDecodeError:
-        return name.strip(), value
+        return parse_setting(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def frame_arrays(frame, scale: float = 1.0) -> dict:
@@ -180,6 +180,7 @@ def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
 
 def run_stream(args) -> int:
     from canonical_core.datasets import load_dataset
+    from canonical_core.scene.config import settings_from_pairs
 
     if args.session and args.settings:
         print("--set: settings belong to a new session (--voxel-size), not to an existing one", file=sys.stderr)
@@ -192,7 +193,7 @@ def run_stream(args) -> int:
         if args.session:
             session = client.session(args.session)
         else:
-            session = client.create_session(voxel_size=args.voxel_size, **dict(args.settings))
+            session = client.create_session(voxel_size=args.voxel_size, **settings_from_pairs(args.settings))
         print(f"session {session.id}", file=sys.stderr)
         elapsed = stream_frames(session, frames, args.scale)
         print(_stream_summary(len(frames), elapsed, session, session.stats()))

@@ -192,7 +192,8 @@ class Client:
             return CanonicalError(r.status_code, "error", r.text[:500])
 
     def create_session(self, voxel_size: float, **settings) -> Session:
-        """A new session; ``settings`` are SceneConfig fields (feature_dim, weighting, near, far, max_voxels, ...)."""
+        """A new session; ``settings`` are the service's session settings (SceneConfig's public fields:
+        feature_dim, near, far, max_voxels, ..., groups as dicts, e.g. ``free_space={"margin": 3.0}``)."""
         r = self._request("POST", "/v1/sessions", json={"voxel_size": voxel_size, **settings})
         return Session(self, r.json()["id"])
 

@@ -8,27 +8,27 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from canonical_core import SceneConfig
 from canonical_core.rendering import Colour
+from canonical_core.scene import FoldReport
+from canonical_core.scene.config import public_model
 
 
-def _session_create_model() -> type[BaseModel]:
-    # Mirrors SceneConfig's fields (names, types, defaults) so the API follows the library without a
-    # hand-kept copy; SceneConfig itself still does the value checks (e.g. voxel_size > 0).
-    hints = typing.get_type_hints(SceneConfig)
+def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:
+    """A response model with ``cls``'s fields (names, types, defaults; a field's
+    ``metadata["description"]`` as its description), so a new field of the library type reaches the
+    HTTP schema without a hand-kept copy."""
+    hints = typing.get_type_hints(cls)
     fields: dict[str, Any] = {}
-    for f in dataclasses.fields(SceneConfig):
+    for f in dataclasses.fields(cls):
         default = ... if f.default is dataclasses.MISSING else f.default
-        fields[f.name] = (hints[f.name], default)
-    return create_model(
-        "SessionCreate",
-        __config__=ConfigDict(extra="forbid"),
-        __doc__="Scene settings of a new session (canonical_core.SceneConfig); voxel_size is required.",
-        **fields,
-    )
+        fields[f.name] = (hints[f.name], Field(default, description=f.metadata.get("description")))
+    return create_model(name, __doc__=cls.__doc__, **fields)
 
 
-SessionCreate = _session_create_model()
+# The settings a client may choose, generated from SceneConfig (types, bounds, defaults, docs); the
+# evaluation-only groups are left out, so they are unknown fields here (422).
+SessionCreate = public_model("SessionCreate", doc="Scene settings of a new session (canonical_core.SceneConfig "
+                             "without its research group); voxel_size is required.")
 
 
 class SessionCreated(BaseModel):
@@ -73,17 +73,7 @@ class Deleted(BaseModel):
     deleted: bool = True
 
 
-class FoldReportOut(BaseModel):
-    frame_index: int
-    observations: int
-    new_voxels: int
-    updated_voxels: int
-    representative_switches: int
-    ms: float
-    pending: bool = Field(False, description="a frame without depth waiting for a partner view (folded later)")
-    also_folded: int = Field(0, description="earlier waiting frames this call folded")
-    completed_pixels: int = Field(0, description="pixels whose missing depth the plane sweep filled (depth_completion)")
-    denoised: bool = Field(False, description="the frame's depth was far rougher than its noise model and was replaced by a local median (depth_denoise_radius)")
+FoldReportOut = model_of_dataclass(FoldReport, "FoldReportOut")
 
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]

@@ -30,6 +30,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ..deprecation import get_renamed
 from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
 from .eigen import symmetric_eigh3, symmetric_eigh3_reference
 
@@ -172,7 +173,7 @@ class GaussianDecoder(nn.Module):
         scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
         rot = eigvec.float()
         rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0]), rot)
-        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["color"])[:, None, :]
+        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(get_renamed(fields, "colour", "color"))[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
         return {"means": means, "scales": scales, "quats": matrix_to_quaternion(rot), "sh": sh, "features": feats,
                 "labels": fields.get("labels")}

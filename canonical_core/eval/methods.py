@@ -2,7 +2,8 @@
 
 ``METHODS`` maps a name to a `Method`:
 - ``canonical``: the full method, `Scene` with the paper's weighting, decoded analytically;
-- ``no_reliability``, ``no_similarity``, ``average``: the aggregation ablations (SceneConfig.weighting);
+- ``no_reliability``, ``no_similarity``, ``average``: the aggregation ablations (``SceneConfig.research``,
+  which only the evaluation sets);
 - ``plain_decoding``: the same fused voxels as ``canonical``, but every Gaussian gets one opacity,
   the analytic head's value at full support (no reliability-conditioned opacity);
 - ``no_free_space``, ``no_view_dependence``: without free-space evidence / with SH degree 0;
@@ -108,8 +109,10 @@ class Method:
 
 
 def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
+    """A `Scene` method: aggregation rule ``weighting`` and other `SceneConfig` settings (groups as dicts)."""
+
     def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
-        scene = Scene(SceneConfig(voxel_size=voxel_size, weighting=weighting, **settings))
+        scene = Scene(SceneConfig(voxel_size=voxel_size, research={"weighting": weighting}, **settings))
         for frame in frames:
             scene.fold(frame)
         splats = scene.decode()
@@ -145,7 +148,7 @@ METHODS: dict[str, Method] = {
     "no_similarity": Method(_scene("no_similarity"), features=True),
     "average": Method(_scene("average"), features=True),
     "plain_decoding": Method(_scene("full", uniform_opacity=True), features=True),
-    "no_free_space": Method(_scene("full", free_space=False), features=True),
+    "no_free_space": Method(_scene("full", free_space={"enabled": False}), features=True),
     "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
     "depth_completion": Method(_scene("full", depth_completion=True), features=True),
     "colour_solve": Method(_scene("full", colour_solve_views=16), features=True),

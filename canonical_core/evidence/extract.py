@@ -121,8 +121,8 @@ def extract_evidence(
     u_pos = positional_uncertainty(
         depth, rows, cols, config.voxel_size,
         depth_std=None if frame.depth_std is None else frame.depth_std.numpy(),
-        sigma0=config.depth_sigma0, sigma2=config.depth_sigma2, z_ref=config.depth_sigma_ref,
-        edge_weight=config.depth_edge_weight,
+        sigma0=config.sensor.sigma0, sigma2=config.sensor.sigma2, z_ref=config.sensor.sigma_ref,
+        edge_weight=config.sensor.edge_weight,
     )
     log_r = -u_pos
     if appearance is not None and not appearance.is_zero:

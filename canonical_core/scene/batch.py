@@ -112,7 +112,7 @@ def aggregate_batch(
     k = basis.shape[1] if config.sh_degree > 0 else 1
     rows, cols = torch.triu_indices(k, k)
     free = torch.zeros(V)
-    if config.free_space:
+    if config.free_space.enabled:
         centres = (unpack_keys(uniq).float() + 0.5) * torch.tensor(config.voxel_size, dtype=torch.float32)
         for f in frames:
             free += see_through_reference(centres, see_through_map(f, config), config.near)

@@ -1,193 +1,381 @@
-"""Scene settings: one validated, serialisable record shared by the fold, the batch reference and decode."""
+"""Scene settings: one declarative, validated, serialisable record shared by the fold, the batch
+reference and decode.
+
+The pydantic models below are the single definition of every setting: their types and bounds give
+the library's validation (`SceneConfig(...)` raises a ValueError whose message starts with the
+setting's path, e.g. ``free_space.margin: ...``), the service's session-create schema
+(`public_model`) and the CLI's ``--set NAME=VALUE`` (`parse_setting`).
+
+Layout: the settings a user chooses sit at the top level (voxel size, capacity, SH degree, depth
+range, features, depth completion, the colour solve), with the sensor noise model in ``sensor``;
+expert tuning lives in groups with defaults (``free_space``, ``depth``, ``decoder``); the aggregation
+ablations live in ``research``, which the evaluation's method definitions set and the public schema
+leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
+
+Example:
+    >>> config = SceneConfig(voxel_size=0.01, free_space={"margin": 3.0})
+    >>> config.free_space.margin, config.depth.hypotheses
+    (3.0, 64)
+    >>> SceneConfig.from_dict(config.to_dict()) == config
+    True
+"""
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, fields
-from typing import Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, create_model, model_validator
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
 
 # Voxel indices are packed into one int64 key with 21 bits per axis: a lattice of +-2^20 voxels
-# per axis around the fixed origin (+-4 km at 4 mm), which is "unbounded" for any capture.
+# per axis around the fixed origin, which is "unbounded" for any capture.
 KEY_BITS = 21
 KEY_OFFSET = 1 << (KEY_BITS - 1)
 
+# The analytic opacity logit's intercept without an explicit `DecoderSettings.opacity_bias`: with
+# depth denoising on, weakly supported voxels are mostly real surface and the line starts at 0; with
+# it off, rough depth leaves scattered voxels that a negative intercept keeps see-through.
+BIAS_WITH_DENOISING = 0.0
+BIAS_WITHOUT_DENOISING = -3.0
 
-@dataclass(frozen=True)
-class SceneConfig:
-    """Settings of a scene.
 
-    Attributes:
-        voxel_size: edge length of the sparse lattice's voxels, in the scene's unit (metres).
-        feature_dim: L, channels of the fused features (the default extractor's output size).
-        feature_backend: ``default`` (training-free extractor) or ``client`` (use ``Frame.features``,
-            resized to the image and projected to ``feature_dim`` channels).
-        weighting: ablation mode of the aggregation rule (``full`` is the paper's rule).
-            ``no_reliability`` and ``average`` treat every reliability as 1, in the free-space
-            evidence too; ``no_similarity`` and ``average`` drop the cosine factor (see
-            `uses_reliability`, `uses_similarity`).
-        depth_sigma0, depth_sigma2, depth_sigma_ref: sensor noise model for supplied depth without a
-            std: sigma(z) = sigma0 + sigma2 * (z - ref)^2 metres (structured-light/ToF sensors).
-        depth_edge_weight: adds weight * (largest depth jump to a valid 8-neighbour) to sigma, so
-            "flying pixels" on depth discontinuities get low reliability.
-        near, far: depth range accepted from frames, metres; outside it a pixel is ignored.
-        eps: the epsilon of F_scene = sum W F / (R_scene + eps).
-        max_voxels: cap on the number of voxels (None = unbounded); a fold that would exceed it
-            raises instead of folding part of a frame.
-        sh_degree: degree of the per-voxel spherical-harmonics colour fit (0 = view-independent).
-        sh_regularization: ridge weight, relative to R_scene, pulling the SH fit's higher
-            coefficients toward zero (i.e. toward the DC colour) where few view directions were seen.
-            A degree-1 term keeps about var / (var + ridge) of its least-squares value, var being
-            the weighted variance of its basis over the observations (C1^2 theta^2 / 4 for two
-            views theta radians apart): 0.003 trusts views ~20 degrees apart (70 % kept; 0.05
-            kept 12 %) and ignores the spread of rays within one view. Measured on the shelf
-            evaluation: covered PSNR +0.06 / +0.14 / +0.20 / +0.27 dB at N = 2 / 4 / 8 / 16 over
-            0.05, in extrapolation too.
-        free_space: fold free-space ("seen-through") evidence and use it in decoding.
-        free_space_margin, free_space_sigmas: a voxel is seen through by a ray whose surface lies
-            beyond margin * voxel_size + sigmas * sigma(depth) behind the voxel's centre.
-        free_space_cell: pixels per side of the cells of a frame's coarse see-through map.
-        free_space_history: frames whose maps are kept so voxels created later get their evidence.
-        depth_sources: source views a frame without depth is swept against (plane sweep).
-        depth_hypotheses: K, depth hypotheses of the sweep (uniform in inverse depth).
-        source_window: recent views kept for the sweep (and frames without depth that may wait
-            for a partner at once).
-        depth_completion: also sweep frames that carry depth, and fill the large holes of their
-            depth (beyond ``depth_completion_radius`` pixels from any measured pixel: beyond the
-            sensor's range or field of view, dark or specular surfaces) with the swept depth, its
-            U_pos as std (`evidence.mvs.complete_depth`; only the holes are swept, and a frame
-            without holes is not swept at all). Measured pixels are never changed. Off by
-            default: frames with depth then skip the sweep (issue 5). On the shelf evaluation it buys
-            coverage (all-pixel PSNR) at some covered PSNR; see the evaluation's ``depth_completion``.
-        depth_completion_radius: pixels; holes closer than this to a measured pixel stay unfilled.
-        depth_denoise_radius: pixels; a frame whose depth is far rougher than its noise model (its
-            std, or the sensor model) gets the median of a (2 radius + 1)^2 window instead, with
-            that median's std (`evidence.denoise`; 0 turns it off). Clean sensor depth is never
-            touched. Measured on the shelf evaluation at depth noise 0.25: see README.
-        free_space_dominance: decoding drops voxels whose free-space evidence exceeds this
-            multiple of their support R_scene. 2, not 1: the see-through weight counts rays as if
-            the voxel faced the camera, which overstates it up to 2x for surfaces seen at 60 deg.
-        opacity_slope: a of the decoder's analytic (untrained) opacity logit a r + b, r being
-            support in typical views (see `decode.decoder`). At 30 (with b = 0), a voxel with next
-            to no support is half opaque, a fiftieth of one typical view's support 64 %, a tenth
-            95 %. Steep because the weakly supported voxels of clean depth (depth edges, thin or
-            sparse geometry) are mostly real surface. Measured on the shelf evaluation against 10
-            (b = -3): all-pixel PSNR +0.3-0.5 dB at every N, covered within 0.05 dB, depth
-            agreement -0.02 to -0.03; see README. Both line settings shape a new session's
-            untrained decoder (`decode.decoder.OPACITY_SLOPE`, `OPACITY_BIAS` are their defaults);
-            a loaded snapshot keeps its decoder's own parameters.
-        opacity_bias: b of the same line, the logit of a voxel without reliable support. 0 since
-            rough depth is denoised (`depth_denoise_radius`): -3 was there to keep the scattered
-            voxels of noisy depth see-through, and with denoising it only dimmed real surface.
-            Measured against -3 (shelf evaluation, N = 2 / 4 / 8 / 16): all-pixel PSNR +0.19 /
-            +0.10 / +0.07 / +0.05 dB clean and +0.40 / +0.25 / +0.20 / +0.19 dB under depth noise
-            0.25, covered within 0.02 dB clean (0.1 dB noisy), depth agreement 0.003-0.013 lower.
-            With denoising off, noisy depth wants -3 (at 0 and slope 10, noise 0.25 at N = 4 fell
-            from 11.59 to 11.43 dB).
-        colour_solve_views: keep this many input views (colour and camera, spread over the
-            stream: `scene.keyframes`) and solve the decoded Gaussians' colours against them
-            (`decode.solve_colours`: renders made to reproduce the inputs; geometry and opacity
-            unchanged; the SH coefficients up to degree 1 are solved, so colour may change with
-            the view). 0 (default) turns it off. Measured on the shelf evaluation (every input
-            kept): held-out covered PSNR +1.6 to +2.6 dB, all-pixel +0.4 to +0.9 dB at N = 2-16;
-            it costs a decode seconds instead of milliseconds (`bench/colour_solve.py`). See the
-            evaluation's ``colour_solve``.
-        colour_solve_scale: the kept views' size relative to the input (0.5: a quarter of the
-            pixels, 0.23 MB per 640x480 view). Measured on the shelf at N = 16 against full size:
-            held-out 14.78 / 20.82 dB (all-pixel / covered) against 14.84 / 21.04, solve 3.1 s
-            against 10.2 s on 2 cores (`bench/colour_solve.py`).
+def _error_message(exc: ValidationError, prefix: str) -> str:
+    """The first error of ``exc`` as ``"path: problem, got value"`` (path joined with dots)."""
+    first = exc.errors()[0]
+    path = ".".join([prefix, *map(str, first["loc"])] if prefix else map(str, first["loc"]))
+    msg = first["msg"]
+    if first["type"] == "value_error":  # a model validator's own "field: problem" message
+        return msg.removeprefix("Value error, ")
+    if first["type"] == "extra_forbidden":
+        moved = FLAT_NAMES.get(path)
+        return f"{path}: unknown setting" + (f" (it is {moved} now)" if moved else "")
+    return f"{path}: {msg[:1].lower()}{msg[1:]}, got {first['input']!r}"
+
+
+class _NamedErrors(type(BaseModel)):
+    """Construction raises a ValueError ``"path: problem"`` instead of pydantic's multi-line report.
+    On the metaclass, not in ``__init__``: a model with its own ``__init__`` is validated through it
+    when nested, which would fold a group's field errors into one error on the group."""
+
+    def __call__(cls, *args: Any, **kwargs: Any):
+        try:
+            return super().__call__(*args, **kwargs)
+        except ValidationError as exc:
+            raise ValueError(_error_message(exc, cls._path)) from None
+
+
+class _Settings(BaseModel, metaclass=_NamedErrors):
+    """Frozen (hashable), strict, closed: an unknown name or a wrongly typed value is an error."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False,
+                              validate_default=True, use_attribute_docstrings=True)
+    _path: ClassVar[str] = ""  # where the group sits in SceneConfig, to name its fields in errors
+
+    def to_dict(self) -> dict:
+        return self.model_dump()
+
+
+NonNegative = Annotated[float, Field(ge=0)]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class SensorNoise(_Settings):
+    """Noise model of supplied depth that carries no per-pixel std (structured-light and
+    time-of-flight sensors): sigma(z) = sigma0 + sigma2 (z - sigma_ref)^2 metres, plus
+    ``edge_weight`` times the pixel's largest depth jump to a valid 8-neighbour."""
+
+    _path: ClassVar[str] = "sensor"
+
+    sigma0: NonNegative = 0.0012
+    """Constant term of the depth std, metres."""
+    sigma2: NonNegative = 0.0019
+    """Quadratic term of the depth std, metres per square metre of distance from ``sigma_ref``."""
+    sigma_ref: NonNegative = 0.4
+    """Depth at which the std is smallest, metres."""
+    edge_weight: NonNegative = 0.5
+    """Weight of the largest neighbour depth jump added to the std, so "flying pixels" on depth
+    discontinuities get low reliability."""
+
+
+class FreeSpace(_Settings):
+    """Free-space ("seen-through") evidence: rays that pass a voxel and end on a surface behind it
+    count against the voxel when decoding."""
+
+    _path: ClassVar[str] = "free_space"
+
+    enabled: bool = True
+    """Fold free-space evidence and use it in decoding."""
+    margin: NonNegative = 2.0
+    """A voxel is seen through by a ray whose surface lies more than margin * voxel_size +
+    sigmas * sigma(depth) behind the voxel's centre (margin in voxels)."""
+    sigmas: NonNegative = 3.0
+    """The depth-std part of that distance, in standard deviations of the ray's depth."""
+    cell: Annotated[int, Field(ge=1, le=64)] = 8
+    """Pixels per side of the cells of a frame's coarse see-through map."""
+    history: Annotated[int, Field(ge=1, le=100_000)] = 64
+    """Frames whose see-through maps are kept, so voxels created later still get their evidence."""
+    dominance: NonNegative = 2.0
+    """Decoding drops voxels whose free-space evidence exceeds this multiple of their support
+    R_scene. Above 1 because the see-through weight counts rays as if the voxel faced the camera,
+    which overstates it up to twice for surfaces seen at 60 degrees."""
+
+
+class DepthEstimation(_Settings):
+    """The depth front end: plane sweep for frames without depth (and for depth completion), and
+    the median denoising of rough supplied depth."""
+
+    _path: ClassVar[str] = "depth"
+
+    sources: Annotated[int, Field(ge=1, le=8)] = 2
+    """Source views a frame without depth is swept against."""
+    hypotheses: Annotated[int, Field(ge=2, le=512)] = 64
+    """K, depth hypotheses of the sweep, uniform in inverse depth between near and far."""
+    source_window: Annotated[int, Field(ge=1, le=64)] = 4
+    """Recent views kept as sweep sources (and frames without depth that may wait for a partner at
+    once)."""
+    completion_radius: Annotated[int, Field(ge=1, le=256)] = 6
+    """Pixels; with ``depth_completion``, holes closer than this to a measured pixel stay unfilled."""
+    denoise_radius: Annotated[int, Field(ge=0, le=32)] = 7
+    """Pixels; a frame whose depth is far rougher than its noise model gets the median of a
+    (2 radius + 1)^2 window instead, with that median's std (`evidence.denoise`). Clean sensor depth
+    is never touched; 0 turns it off."""
+
+
+class DecoderSettings(_Settings):
+    """The analytic (untrained) decoder of a new scene. A loaded snapshot keeps its decoder's own
+    parameters."""
+
+    _path: ClassVar[str] = "decoder"
+
+    opacity_slope: Positive = 30.0
+    """a of the opacity logit a r + b, r being support in typical views (`decode.decoder`). Steep,
+    because the weakly supported voxels of clean depth (depth edges, thin or sparse geometry) are
+    mostly real surface."""
+    opacity_bias: Annotated[float, Field(allow_inf_nan=False)] | None = None
+    """b of the same line, the logit of a voxel without reliable support. None (default) follows the
+    depth denoising: 0 with it on, -3 with it off, where noisy depth leaves scattered voxels that
+    should stay see-through (`SceneConfig.opacity_bias`)."""
+    sh_regularization: NonNegative = 0.003
+    """Ridge weight, relative to R_scene, pulling the SH fit's higher coefficients toward zero (the DC
+    colour) where few view directions were seen. A degree-1 term keeps var / (var + ridge) of its
+    least-squares value, var being the weighted variance of its basis over the observations
+    (C1^2 theta^2 / 4 for two views theta radians apart): small enough to trust views some
+    20 degrees apart, large enough to ignore the spread of rays within one view."""
+
+
+class Research(_Settings):
+    """Ablation switches of the aggregation rule, for the evaluation's method definitions
+    (`eval.methods`); not part of the public (HTTP, CLI) settings."""
+
+    _path: ClassVar[str] = "research"
+
+    weighting: Weighting = "full"
+    """The aggregation rule: ``full`` is the method's rule; ``no_reliability`` and ``average`` treat
+    every reliability as 1 (in the free-space evidence too); ``no_similarity`` and ``average`` drop
+    the cosine factor."""
+    eps: Positive = 1e-8
+    """The epsilon of F_scene = sum W F / (R_scene + eps)."""
+
+
+class SceneConfig(_Settings):
+    """Settings of a scene: what a user chooses at the top level, expert tuning in groups.
+
+    Groups accept a mapping or an instance: ``SceneConfig(voxel_size=0.01, depth={"sources": 3})``.
     """
 
-    voxel_size: float
-    feature_dim: int = 16
+    voxel_size: Positive
+    """Edge length of the sparse lattice's voxels, in the scene's unit (metres)."""
+    max_voxels: Annotated[int, Field(gt=0)] | None = None
+    """Cap on the number of voxels (None = unbounded); a fold that would exceed it raises instead of
+    folding part of a frame."""
+    sh_degree: Annotated[int, Field(ge=0, le=3)] = 1
+    """Degree of the per-voxel spherical-harmonics colour fit (0 = view-independent colour)."""
+    near: NonNegative = 0.05
+    """Nearest depth accepted from frames, metres; nearer pixels are ignored."""
+    far: Positive = 20.0
+    """Farthest depth accepted from frames, metres; farther pixels are ignored."""
     feature_backend: FeatureBackend = "default"
-    weighting: Weighting = "full"
-    depth_sigma0: float = 0.0012
-    depth_sigma2: float = 0.0019
-    depth_sigma_ref: float = 0.4
-    depth_edge_weight: float = 0.5
-    near: float = 0.05
-    far: float = 20.0
-    eps: float = 1e-8
-    max_voxels: int | None = None
-    sh_degree: int = 1
-    sh_regularization: float = 0.003
-    free_space: bool = True
-    free_space_margin: float = 2.0
-    free_space_sigmas: float = 3.0
-    free_space_cell: int = 8
-    free_space_history: int = 64
-    free_space_dominance: float = 2.0
-    depth_sources: int = 2
-    depth_hypotheses: int = 64
-    source_window: int = 4
+    """``default`` (the training-free extractor) or ``client`` (``Frame.features``, resized to the
+    image and projected to ``feature_dim`` channels)."""
+    feature_dim: Annotated[int, Field(ge=1, le=512)] = 16
+    """L, channels of the fused features."""
     depth_completion: bool = False
-    depth_completion_radius: int = 6
-    depth_denoise_radius: int = 7
-    opacity_slope: float = 30.0
-    opacity_bias: float = 0.0
-    colour_solve_views: int = 0
-    colour_solve_scale: float = 0.5
+    """Also sweep frames that carry depth, and fill the large holes of their depth (beyond
+    ``depth.completion_radius`` pixels from any measured pixel: beyond the sensor's range or field of
+    view, dark or specular surfaces) with the swept depth. Measured pixels are never changed; a frame
+    without holes is not swept. Buys coverage at some cost in accuracy on the covered pixels."""
+    colour_solve_views: Annotated[int, Field(ge=0, le=64)] = 0
+    """Keep this many input views (colour and camera, spread over the stream: `scene.keyframes`) and
+    solve the decoded Gaussians' colours (SH up to degree 1) so that renders reproduce them
+    (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode then takes
+    seconds instead of milliseconds."""
+    colour_solve_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Size of the kept views relative to the input (0.5: a quarter of the pixels, of the solve's
+    time and of the views' memory)."""
+    sensor: SensorNoise = SensorNoise()
+    """The depth sensor's noise model."""
+    free_space: FreeSpace = FreeSpace()
+    """Free-space evidence."""
+    depth: DepthEstimation = DepthEstimation()
+    """The depth front end (plane sweep, completion, denoising)."""
+    decoder: DecoderSettings = DecoderSettings()
+    """The analytic decoder of a new scene."""
+    research: Research = Research()
+    """Ablations, for the evaluation only."""
+
+    @model_validator(mode="after")
+    def _depth_range(self) -> "SceneConfig":
+        if self.near >= self.far:
+            raise ValueError(f"near: must be below far ({self.near} >= {self.far})")
+        return self
 
     @property
     def uses_reliability(self) -> bool:
         """Whether the weighting uses R_view (else every reliability counts as 1)."""
-        return self.weighting in ("full", "no_similarity")
+        return self.research.weighting in ("full", "no_similarity")
 
     @property
     def uses_similarity(self) -> bool:
         """Whether W carries the factor max(0, cos(F, F_rep))."""
-        return self.weighting in ("full", "no_reliability")
+        return self.research.weighting in ("full", "no_reliability")
 
-    def __post_init__(self):
-        def positive(name, value):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
+    @property
+    def opacity_bias(self) -> float:
+        """The decoder's opacity intercept: ``decoder.opacity_bias``, or, when that is None, the one
+        that suits the depth denoising setting."""
+        if self.decoder.opacity_bias is not None:
+            return self.decoder.opacity_bias
+        return BIAS_WITH_DENOISING if self.depth.denoise_radius > 0 else BIAS_WITHOUT_DENOISING
 
-        positive("voxel_size", self.voxel_size)
-        positive("far", self.far)
-        positive("eps", self.eps)
-        for name in ("depth_sigma0", "depth_sigma2", "depth_edge_weight", "near", "depth_sigma_ref",
-                     "sh_regularization", "free_space_margin", "free_space_sigmas", "free_space_dominance"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name}: expected a non-negative finite number, got {v!r}")
-        positive("opacity_slope", self.opacity_slope)
-        if isinstance(self.opacity_bias, bool) or not isinstance(self.opacity_bias, (int, float)) or not math.isfinite(self.opacity_bias):
-            raise ValueError(f"opacity_bias: expected a finite number, got {self.opacity_bias!r}")
-        if self.near >= self.far:
-            raise ValueError(f"near: must be below far ({self.near} >= {self.far})")
-        if isinstance(self.feature_dim, bool) or not isinstance(self.feature_dim, int) or not 1 <= self.feature_dim <= 512:
-            raise ValueError(f"feature_dim: expected an integer in [1, 512], got {self.feature_dim!r}")
-        if self.weighting not in get_args(Weighting):
-            raise ValueError(f"weighting: expected one of {list(get_args(Weighting))}, got {self.weighting!r}")
-        if self.feature_backend not in get_args(FeatureBackend):
-            raise ValueError(f"feature_backend: expected one of {list(get_args(FeatureBackend))}, got {self.feature_backend!r}")
-        for name, lo, hi in (("sh_degree", 0, 3), ("free_space_cell", 1, 64), ("free_space_history", 1, 100_000),
-                             ("depth_sources", 1, 8), ("depth_hypotheses", 2, 512), ("source_window", 1, 64),
-                             ("depth_completion_radius", 1, 256), ("depth_denoise_radius", 0, 32),
-                             ("colour_solve_views", 0, 64)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ValueError(f"{name}: expected an integer in [{lo}, {hi}], got {v!r}")
-        for name in ("free_space", "depth_completion"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name}: expected true or false, got {getattr(self, name)!r}")
-        if isinstance(self.colour_solve_scale, bool) or not isinstance(self.colour_solve_scale, (int, float)) \
-                or not 0 < self.colour_solve_scale <= 1:
-            raise ValueError(f"colour_solve_scale: expected a number in (0, 1], got {self.colour_solve_scale!r}")
-        if self.max_voxels is not None and (isinstance(self.max_voxels, bool) or not isinstance(self.max_voxels, int) or self.max_voxels <= 0):
-            raise ValueError(f"max_voxels: expected a positive integer or None, got {self.max_voxels!r}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+    def replace(self, **changes: Any) -> "SceneConfig":
+        """A validated copy with ``changes``; a group given as a mapping changes only the fields it
+        names: ``config.replace(free_space={"enabled": False})``."""
+        merged = self.to_dict()
+        for name, value in changes.items():
+            merged[name] = {**merged[name], **value} if isinstance(value, dict) and isinstance(merged.get(name), dict) \
+                else value
+        return type(self)(**merged)
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{unknown[0]}: unknown scene setting (known: {sorted(known)})")
-        return cls(**d)
+        """The inverse of `to_dict`; also reads the flat layout of earlier snapshots and session
+        files (every setting at the top level, see `FLAT_NAMES`)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"config: expected a mapping of settings, got {type(d).__name__}")
+        return cls(**migrate_flat(d))
+
+
+# The flat layout's names -> their path now. Snapshots and session files written with it still load.
+FLAT_NAMES: dict[str, str] = {
+    "depth_sigma0": "sensor.sigma0",
+    "depth_sigma2": "sensor.sigma2",
+    "depth_sigma_ref": "sensor.sigma_ref",
+    "depth_edge_weight": "sensor.edge_weight",
+    "free_space_margin": "free_space.margin",
+    "free_space_sigmas": "free_space.sigmas",
+    "free_space_cell": "free_space.cell",
+    "free_space_history": "free_space.history",
+    "free_space_dominance": "free_space.dominance",
+    "depth_sources": "depth.sources",
+    "depth_hypotheses": "depth.hypotheses",
+    "source_window": "depth.source_window",
+    "depth_completion_radius": "depth.completion_radius",
+    "depth_denoise_radius": "depth.denoise_radius",
+    "opacity_slope": "decoder.opacity_slope",
+    "opacity_bias": "decoder.opacity_bias",
+    "sh_regularization": "decoder.sh_regularization",
+    "weighting": "research.weighting",
+    "eps": "research.eps",
+}
+
+
+def migrate_flat(d: dict) -> dict:
+    """A settings mapping in the current layout: the flat layout's names (`FLAT_NAMES`) move into
+    their groups, and its boolean ``free_space`` becomes ``free_space.enabled``. Current-layout input
+    is returned unchanged."""
+    out = {k: v for k, v in d.items() if k not in FLAT_NAMES}
+    groups: dict[str, dict] = {}
+    if isinstance(out.get("free_space"), bool):
+        groups["free_space"] = {"enabled": out.pop("free_space")}
+    for old, new in FLAT_NAMES.items():
+        if old in d:
+            group, name = new.split(".")
+            groups.setdefault(group, {})[name] = d[old]
+    for group, values in groups.items():
+        if isinstance(out.get(group), dict):
+            raise ValueError(f"{group}: given both as a group and as flat settings ({sorted(values)})")
+        out[group] = values
+    return out
+
+
+# -- the public settings: HTTP schema and CLI ------------------------------------------------------
+PRIVATE_GROUPS = ("research",)
+
+
+def public_model(name: str = "SessionCreate", doc: str | None = None) -> type[BaseModel]:
+    """A model of the settings a client may choose: every `SceneConfig` field (same types, bounds,
+    defaults and docs) but the `PRIVATE_GROUPS`, closed to unknown names. Its validated dump
+    (``exclude_unset=True``) is a valid `SceneConfig` keyword set."""
+    fields = {k: (f.annotation, f) for k, f in SceneConfig.model_fields.items() if k not in PRIVATE_GROUPS}
+    return create_model(name, __config__=ConfigDict(**{**SceneConfig.model_config, "frozen": False}),
+                        __doc__=doc or SceneConfig.__doc__, **fields)
+
+
+def _group_of(annotation: Any) -> type[_Settings] | None:
+    return annotation if isinstance(annotation, type) and issubclass(annotation, _Settings) else None
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """``PATH=VALUE`` of a public setting -> (PATH, VALUE), VALUE read as the setting's type (numbers,
+    ``true``/``false``, ``null`` for an optional setting, text for a choice) and checked against its
+    bounds. Raises ValueError naming PATH for an unknown, private or invalid setting.
+
+    Example:
+        >>> parse_setting("free_space.margin=3"), parse_setting("colour_solve_views=16")
+        (('free_space.margin', 3.0), ('colour_solve_views', 16))
+    """
+    path, sep, value = text.partition("=")
+    path = path.strip()
+    if not sep or not path:
+        raise ValueError(f"setting: expected NAME=VALUE, got {text!r}")
+    model: type[BaseModel] = SceneConfig
+    parts = path.split(".")
+    for depth, part in enumerate(parts):
+        field = model.model_fields.get(part)
+        if field is None or (depth == 0 and part in PRIVATE_GROUPS):
+            raise ValueError(f"{path}: unknown setting")
+        group = _group_of(field.annotation)
+        if group is None:
+            if depth != len(parts) - 1:
+                raise ValueError(f"{path}: unknown setting ({'.'.join(parts[:depth + 1])} has no fields)")
+            return path, _parse_value(path, field.annotation, field.metadata, value.strip())
+        if depth == len(parts) - 1:
+            raise ValueError(f"{path}: a group; set one of its fields, e.g. {path}.{next(iter(group.model_fields))}")
+        model = group
+    raise AssertionError("unreachable")
+
+
+def _parse_value(path: str, annotation: Any, metadata: list, text: str) -> Any:
+    optional = type(None) in get_args(annotation)
+    if optional and text.lower() in ("null", "none"):
+        return None
+    base = next(a for a in get_args(annotation) if a is not type(None)) if optional else annotation
+    try:
+        adapter = TypeAdapter(Annotated[(base, *metadata)] if metadata else base, config=ConfigDict(allow_inf_nan=False))
+        return adapter.validate_strings(text)
+    except ValidationError as exc:
+        raise ValueError(_error_message(exc, path)) from None
+
+
+def settings_from_pairs(pairs: list[tuple[str, Any]]) -> dict:
+    """(path, value) pairs (`parse_setting`) -> the nested mapping `SceneConfig` and the service take."""
+    out: dict[str, Any] = {}
+    for path, value in pairs:
+        *groups, name = path.split(".")
+        target = out
+        for g in groups:
+            target = target.setdefault(g, {})
+        target[name] = value
+    return out

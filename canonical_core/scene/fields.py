@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..deprecation import RenamedKeys
 from ..gaussians.container import SH_C0
 from .config import KEY_BITS, KEY_OFFSET, SceneConfig
 
@@ -167,20 +168,24 @@ def solve_sh(
     return torch.from_numpy(out)
 
 
+# field names spelt the old way -> their name now (still answered, with a DeprecationWarning)
+FIELD_RENAMES = {"color": "colour", "representative_color": "representative_colour"}
+
+
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True) -> dict[str, Tensor]:
     """Scene fields from raw sums (rows are voxels; local positions in voxel units).
 
     Returns a dict of tensors, one row per voxel (sorted by key when ``sort``):
         keys [V] int64, reliability [V] (R_scene = sum W), features [V, L] (F_scene =
         sum W F / (R_scene + eps)), representative_position [V, 3], representative_reliability [V],
-        representative_feature [V, L], representative_color [V, 3], color [V, 3] (fused),
+        representative_feature [V, L], representative_colour [V, 3], colour [V, 3] (fused),
         position_mean [V, 3], position_cov [V, 3, 3] (world units), observations [V] int64,
         free_space [V] (see-through evidence, in R_scene's unit), sh [V, K, 3] (the solved SH colour
         fit, K = (sh_degree + 1)^2), and labels [V, S] when label scores were fused.
     Colour and position fall back smoothly to the representative's where R_scene ~ 0
     (``(sum W x + eps x_rep) / (R_scene + eps)``), so no voxel decodes to black or to the origin.
     """
-    voxel_size, eps = config.voxel_size, config.eps
+    voxel_size, eps = config.voxel_size, config.research.eps
     t = {k: torch.as_tensor(v) for k, v in sums.items()}
     t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
@@ -203,14 +208,14 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "representative_position": t["rep_pos"],
         "representative_reliability": t["rep_r"],
         "representative_feature": t["rep_f"],
-        "representative_color": t["rep_rgb"],
-        "color": color_sum / den,
+        "representative_colour": t["rep_rgb"],
+        "colour": color_sum / den,
         "position_mean": ((centres + mean_local) * voxel_size).float(),
         "position_cov": (cov_local * voxel_size * voxel_size).float(),
         "observations": t["n_obs"].to(torch.int64),
         "free_space": t["free"],
-        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.sh_regularization),
+        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
     }
     if t["label_sum"].shape[1] > 0:
         out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]
-    return out
+    return RenamedKeys(out, FIELD_RENAMES)

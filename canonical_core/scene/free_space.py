@@ -91,16 +91,16 @@ def _coarse_map_kernel(depth, std, has_std, cell, near, far, sigma0, sigma2, z_r
 
 def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
     """The coarse see-through map of a frame with depth (see module docstring)."""
-    c = config.free_space_cell
+    c = config.free_space.cell
     H, W = frame.height, frame.width
     h, w = -(-H // c), -(-W // c)
     thr = np.empty((h, w), np.float32)
     wcell = np.empty((h, w), np.float32)
     std = frame.depth_std.numpy() if frame.depth_std is not None else np.zeros((1, 1), np.float32)
     _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.near),
-                       np.float32(config.far), np.float32(config.depth_sigma0), np.float32(config.depth_sigma2),
-                       np.float32(config.depth_sigma_ref), np.float32(config.voxel_size),
-                       np.float32(config.free_space_margin), np.float32(config.free_space_sigmas),
+                       np.float32(config.far), np.float32(config.sensor.sigma0), np.float32(config.sensor.sigma2),
+                       np.float32(config.sensor.sigma_ref), np.float32(config.voxel_size),
+                       np.float32(config.free_space.margin), np.float32(config.free_space.sigmas),
                        config.uses_reliability, thr, wcell)
     cam = frame.camera
     coarse = np.array([cam.fx / c, cam.fy / c, (cam.cx + 0.5) / c - 0.5, (cam.cy + 0.5) / c - 0.5], np.float32)

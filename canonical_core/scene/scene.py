@@ -123,7 +123,7 @@ class Scene:
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
         self.config = config
         self.appearance = AppearanceUncertainty(config.feature_dim)
-        self.decoder = GaussianDecoder(config.feature_dim, opacity_slope=config.opacity_slope, opacity_bias=config.opacity_bias)
+        self.decoder = GaussianDecoder(config.feature_dim, opacity_slope=config.decoder.opacity_slope, opacity_bias=config.opacity_bias)
         self.frames = 0
         self._layout = VoxelRows(config.feature_dim, sh_sum_widths(config.sh_degree))
         self._n = 0
@@ -133,8 +133,8 @@ class Scene:
         self._scratch_m = 0
         self._chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self._chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
-        self._history = SeeThroughHistory(config.free_space_history)
-        self._window = SourceWindow(config.source_window)
+        self._history = SeeThroughHistory(config.free_space.history)
+        self._window = SourceWindow(config.depth.source_window)
         # frames without depth that wait for a partner, with their window view (None after loading
         # a snapshot: recomputed when the frame is folded)
         self._pending: list[tuple[Frame, SourceView | None]] = []
@@ -234,8 +234,8 @@ class Scene:
         c = self.config
         depth = frame.depth.numpy()
         std = None if frame.depth_std is None else frame.depth_std.numpy()
-        smooth, smooth_std = denoise_rough_depth(depth, std, c.depth_denoise_radius, c.depth_sigma0, c.depth_sigma2,
-                                                 c.depth_sigma_ref)
+        smooth, smooth_std = denoise_rough_depth(depth, std, c.depth.denoise_radius, c.sensor.sigma0, c.sensor.sigma2,
+                                                 c.sensor.sigma_ref)
         if smooth is depth:
             return frame, False
         return dataclasses.replace(frame, depth=torch.from_numpy(smooth), depth_std=torch.from_numpy(smooth_std)), True
@@ -278,7 +278,7 @@ class Scene:
         touched = self._touched[:n_touched]
         self._changed_at[touched[touched >= 0]] = stamp
         self._changed_at[self._n: self._n + n_new] = stamp
-        if self.config.free_space:
+        if self.config.free_space.enabled:
             self._fold_free_space(frame, self._n, self._n + n_new)
         self._n += n_new
         if n_touched:
@@ -295,7 +295,7 @@ class Scene:
 
     def _sources_for(self, camera: Camera):
         """Source views for a sweep at ``camera`` (never its own view: selection needs a baseline)."""
-        return self._window.select(camera, k=self.config.depth_sources)
+        return self._window.select(camera, k=self.config.depth.sources)
 
     def _with_estimated_depth(self, frame: Frame, sources, view=None, where=None) -> Frame:
         near_far = None
@@ -303,7 +303,7 @@ class Scene:
             step = max(1, self._n // 20_000)
             near_far = depth_range_from_points(frame.camera, self._layout.field(self._state["rows"][: self._n: step], "rep_pos"))
         near, far = near_far if near_far is not None else (None, None)
-        depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth_hypotheses,
+        depth, std = estimate_depth(frame, sources, near=near, far=far, num_hypotheses=self.config.depth.hypotheses,
                                     reference=view, where=where)
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std))
 
@@ -311,12 +311,12 @@ class Scene:
         """``frame`` with the large holes of its depth filled by the sweep (`complete_depth`), and
         the number of pixels filled."""
         c = self.config
-        holes = sensor_holes(frame.depth.numpy(), c.depth_completion_radius)
+        holes = sensor_holes(frame.depth.numpy(), c.depth.completion_radius)
         if not holes.any():
             return frame, 0
         swept = self._with_estimated_depth(frame, sources, view, where=holes)  # only the holes are swept
         std = frame.depth_std if frame.depth_std is not None else sensor_depth_std(
-            frame.depth, c.depth_sigma0, c.depth_sigma2, c.depth_sigma_ref)
+            frame.depth, c.sensor.sigma0, c.sensor.sigma2, c.sensor.sigma_ref)
         depth, std, filled = complete_depth(frame.depth.numpy(), std.numpy(), swept.depth.numpy(),
                                             swept.depth_std.numpy(), holes)
         if not filled.any():  # the frame as it came: its evidence is then bit-identical to a plain fold
@@ -327,7 +327,7 @@ class Scene:
         self._check_foldable(frame)
         index = self.frames
         sources = self._sources_for(frame.camera)
-        if not sources and len(self._pending) >= self.config.source_window:
+        if not sources and len(self._pending) >= self.config.depth.source_window:
             raise ValueError(f"depth: the frame has no depth and no earlier view overlaps it, and "
                              f"{len(self._pending)} frames already wait for a partner")
         view = self._window.view_of(frame)  # matching features once: the sweep's reference and the window's view
@@ -441,8 +441,8 @@ class Scene:
         reliability = torch.as_tensor(inputs.sums["r_sum"])
         unit = support_unit(reliability, torch.as_tensor(inputs.sums["n_obs"])) * inputs.observations_per_view
         supported = reliability > min_support
-        if self.config.free_space:  # voxels that more rays saw through than saw at are not surface
-            supported &= torch.as_tensor(inputs.sums["free"]) <= self.config.free_space_dominance * reliability
+        if self.config.free_space.enabled:  # voxels that more rays saw through than saw at are not surface
+            supported &= torch.as_tensor(inputs.sums["free"]) <= self.config.free_space.dominance * reliability
         keep = torch.nonzero(supported).squeeze(1)
         if max_gaussians is not None and keep.numel() > max_gaussians:
             top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
@@ -563,7 +563,7 @@ class Scene:
         rebuild_table_kernel(scene._table, scene._state["keys"], n)
         update_chunk_boxes_kernel(scene._state["keys"], 0, n, scene._chunk_lo, scene._chunk_hi)
         scene._history = SeeThroughHistory.from_arrays(
-            scene.config.free_space_history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
+            scene.config.free_space.history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
         scene._window = SourceWindow.from_arrays({k[len("window."):]: npz[k] for k in npz.files if k.startswith("window.")})
         for i in range(int(header.get("pending", 0))):
             scene._pending.append((view_from_arrays(f"pending.{i}", npz, **{

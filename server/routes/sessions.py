@@ -15,7 +15,8 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"], dependencies=[Depen
 
 @router.post("", status_code=201, response_model=SessionCreated, responses={409: {"model": ErrorBody}})
 async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) -> SessionCreated:  # type: ignore[valid-type]
-    """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required)."""
+    """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required; nested
+    groups as objects, e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``)."""
     config = SceneConfig(**body.model_dump(exclude_unset=True))  # ValueError naming the field -> 422
     session = await jobs.run(store.create, config)
     return SessionCreated(id=session.id, config=config.to_dict())

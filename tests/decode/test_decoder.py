@@ -63,7 +63,7 @@ def fields_of_planar_voxel(voxel=0.1, thickness=0.0):
         "representative_position": torch.tensor([[0.02, 0.03, 0.05]]),  # one of the points
         "position_mean": torch.from_numpy(pts.mean(0)[None]).float(),
         "position_cov": torch.from_numpy(cov[None]).float(),
-        "color": torch.tensor([[0.2, 0.4, 0.6]]),
+        "colour": torch.tensor([[0.2, 0.4, 0.6]]),
     }, cov
 
 
@@ -73,7 +73,7 @@ def test_analytic_initialisation():
     g = dec(fields, voxel_size=0.1)
     # the offset head starts at zero: the mean is the points' centroid, not the representative point
     assert torch.equal(g.means, fields["position_mean"]) and not torch.equal(g.means, fields["representative_position"])
-    assert torch.allclose(g.colors, fields["color"], atol=1e-6)
+    assert torch.allclose(g.colours, fields["colour"], atol=1e-6)
     logit = OPACITY_SLOPE * (1 - math.exp(-3)) + OPACITY_BIAS  # support 3 typical views, the untrained line
     assert g.opacities.item() == pytest.approx(1 / (1 + math.exp(-logit)), rel=1e-5)
     # smallest axis along the plane normal (clamped thickness); in-plane, points within one voxel never
@@ -92,7 +92,7 @@ def test_decoded_means_average_the_depth_noise_of_every_fold():
     # representative sample
     voxel, w, h, f = 0.05, 64, 48, 100.0
     rng = np.random.default_rng(0)
-    scene = Scene(SceneConfig(voxel_size=voxel, free_space=False))
+    scene = Scene(SceneConfig(voxel_size=voxel, free_space={"enabled": False}))
     for k in range(6):
         c2w = np.eye(4)
         c2w[0, 3] = 0.02 * k
@@ -151,7 +151,7 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
     support = fields["reliability"]
     full = scene.decode()
     top = scene.decode(max_gaussians=1000)
-    surface = (support > 0) & (fields["free_space"] <= scene.config.free_space_dominance * support)
+    surface = (support > 0) & (fields["free_space"] <= scene.config.free_space.dominance * support)
     assert len(full) == int(surface.sum()) < len(support) and len(top) == 1000
     threshold = torch.sort(support, descending=True).values[999]
     assert (scene.decode(min_support=threshold.item()).opacities.numel()) <= 1000
@@ -164,7 +164,8 @@ def test_level_of_detail_keeps_best_supported(shelf_frames):
 def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
     # the SceneConfig knobs reach the decoder's analytic logit a r + b - penalty(q): a change of b
     # moves every logit by that change, a change of a by that change times r; nothing else moves
-    settings = {"default": {}, "bias -3": {"opacity_bias": -3.0}, "slope 10": {"opacity_slope": 10.0}}
+    settings = {"default": {}, "bias -3": {"decoder": {"opacity_bias": -3.0}},
+                "slope 10": {"decoder": {"opacity_slope": 10.0}}}
     scenes = {k: Scene(SceneConfig(voxel_size=0.004, **v)) for k, v in settings.items()}
     for scene in scenes.values():
         for f in shelf_frames[:2]:
@@ -201,16 +202,16 @@ def test_default_opacity_line_reads_in_typical_views():
 def test_session_defaults_are_the_decoders_line():
     # SceneConfig stays free of torch, so it repeats the decoder's defaults: they must not drift apart
     config = SceneConfig(voxel_size=0.01)
-    assert (config.opacity_slope, config.opacity_bias) == (OPACITY_SLOPE, OPACITY_BIAS)
+    assert (config.decoder.opacity_slope, config.opacity_bias) == (OPACITY_SLOPE, OPACITY_BIAS)
 
 
 @pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), True, "steep"])
 def test_opacity_slope_setting_rejects_non_positive_numbers(bad):
-    with pytest.raises(ValueError, match="opacity_slope: expected a positive finite number"):
-        SceneConfig(voxel_size=0.01, opacity_slope=bad)
+    with pytest.raises(ValueError, match=r"^decoder\.opacity_slope: "):
+        SceneConfig(voxel_size=0.01, decoder={"opacity_slope": bad})
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), True, "high"])
 def test_opacity_bias_setting_rejects_non_numbers(bad):
-    with pytest.raises(ValueError, match="opacity_bias: expected a finite number"):
-        SceneConfig(voxel_size=0.01, opacity_bias=bad)
+    with pytest.raises(ValueError, match=r"^decoder\.opacity_bias: "):
+        SceneConfig(voxel_size=0.01, decoder={"opacity_bias": bad})

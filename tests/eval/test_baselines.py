@@ -41,7 +41,7 @@ def test_pixel_aligned_discs_face_the_camera_with_the_pixel_footprint():
     assert torch.allclose(g.quats, torch.tensor([1.0, 0.0, 0.0, 0.0]).expand_as(g.quats))  # identity camera
     assert torch.allclose(g.opacities, torch.full_like(g.opacities, full_support_opacity(GaussianDecoder(16))))
     assert g.features is not None and g.features.shape == (len(g), 16)
-    assert torch.allclose(g.colors[:, 0], torch.cat([torch.arange(1, 16), *[torch.arange(16)] * 11]).float() * 10 / 255,
+    assert torch.allclose(g.colours[:, 0], torch.cat([torch.arange(1, 16), *[torch.arange(16)] * 11]).float() * 10 / 255,
                           atol=1e-6)
 
 
@@ -79,7 +79,7 @@ def test_merge_averages_members_and_matches_their_second_moments():
     assert len(m) == 2
     first = int(torch.argmin(m.means[:, 0]))
     assert m.means[first].tolist() == pytest.approx([0.02, 0.02, 0.02])
-    assert m.colors[first].tolist() == pytest.approx([0.5, 0.0, 0.5], abs=1e-6)
+    assert m.colours[first].tolist() == pytest.approx([0.5, 0.0, 0.5], abs=1e-6)
     assert float(m.opacities[first]) == pytest.approx(0.4)
     assert m.features[first].tolist() == pytest.approx([0.5, 0.5])
     R = torch.from_numpy(quaternion_to_matrix(m.quats[first].double().numpy()))

@@ -61,7 +61,7 @@ def test_splat_round_trip_is_quantised(tmp_path):
     # rows come back sorted by volume x opacity; match them by position
     order = torch.cdist(h.means, g.means).argmin(1)
     assert torch.equal(h.means, g.means[order]) and torch.equal(h.scales, g.scales[order])
-    assert (h.colors - g.colors[order]).abs().max() <= 0.5 / 255 + 1e-6
+    assert (h.colours - g.colours[order]).abs().max() <= 0.5 / 255 + 1e-6
     assert (h.opacities - g.opacities[order]).abs().max() <= 0.5 / 255 + 1e-6
     cos = (h.quats * g.quats[order]).sum(1).abs()
     assert cos.min() > 0.999

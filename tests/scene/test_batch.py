@@ -21,7 +21,7 @@ def tiny_frame():
 
 
 def config(mode="full"):
-    return SceneConfig(voxel_size=1.0, feature_dim=2, feature_backend="client", weighting=mode, depth_edge_weight=0.0, near=0.01)
+    return SceneConfig(voxel_size=1.0, feature_dim=2, feature_backend="client", research={"weighting": mode}, sensor={"edge_weight": 0.0}, near=0.01)
 
 
 def cos(a, b):
@@ -44,7 +44,7 @@ def test_batch_rule_matches_hand_computation(mode):
     assert f["keys"].numel() == 1
     assert f["reliability"].item() == pytest.approx(r_scene, rel=1e-6)
     assert np.allclose(f["features"][0].numpy(), f_scene, atol=1e-6)
-    assert np.allclose(f["color"][0].numpy(), colour, atol=1e-6)
+    assert np.allclose(f["colour"][0].numpy(), colour, atol=1e-6)
     assert np.allclose(f["representative_feature"][0].numpy(), FEATS[rep])
     assert f["observations"].item() == 3
 

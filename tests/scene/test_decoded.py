@@ -121,7 +121,7 @@ def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
 
 
 def test_labels_arriving_after_a_decode_reach_every_voxel():
-    scene = Scene(SceneConfig(voxel_size=0.1, free_space=False))
+    scene = Scene(SceneConfig(voxel_size=0.1, free_space={"enabled": False}))
     depth = np.full((4, 4), 1.0)
     scene.fold(make_frame(depth, fx=4.0))
     assert scene.decode().labels is None

@@ -59,7 +59,7 @@ def test_completion_fills_a_withheld_band_from_earlier_views(shelf_small):
 def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small):
     # a radius larger than any hole: nothing is filled, and the sensor's std map the completed frame
     # carries must equal the noise model the plain fold applies
-    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, depth_completion_radius=256), shelf_small)
+    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, depth={"completion_radius": 256}), shelf_small)
     off, _ = fold_all(SceneConfig(voxel_size=VOXEL), shelf_small)
     assert [r.completed_pixels for r in reports] == [0, 0, 0]
     a, b = on.sums(), off.sums()  # (the digests differ: only `on` keeps the frames' views for the sweep)
@@ -89,8 +89,8 @@ def test_snapshot_resumes_completion_identically(shelf_small, tmp_path):
 @pytest.mark.parametrize("settings, field", [
     ({"depth_completion": 1}, "depth_completion"),
     ({"depth_completion": "yes"}, "depth_completion"),
-    ({"depth_completion_radius": 0}, "depth_completion_radius"),
-    ({"depth_completion_radius": 2.5}, "depth_completion_radius"),
+    ({"depth": {"completion_radius": 0}}, r"depth\.completion_radius"),
+    ({"depth": {"completion_radius": 2.5}}, r"depth\.completion_radius"),
 ])
 def test_bad_completion_settings_name_the_field(settings, field):
     with pytest.raises(ValueError, match=f"^{field}: "):

@@ -74,7 +74,7 @@ def test_fast_solve_matches_the_reference_on_the_real_capture(shelf_frames):
     for frame in shelf_frames[:3]:
         scene.fold(frame)
     s = {k: torch.as_tensor(v) for k, v in scene.sums().items()}
-    args = (s["r_sum"] + 1e-8, s["rgb_sum"], s["sh_a"], s["sh_b"], scene.config.sh_regularization)
+    args = (s["r_sum"] + 1e-8, s["rgb_sum"], s["sh_a"], s["sh_b"], scene.config.decoder.sh_regularization)
     fast, ref = solve_sh(*args), solve_sh_reference(*args)
     assert len(fast) > 10_000
     assert torch.allclose(fast, ref, rtol=1e-4, atol=1e-5)

@@ -37,11 +37,11 @@ def deviation(stream, batch):
 def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
     # reliability strictly falls frame after frame, so each voxel keeps its first frame's representative
     frames = [with_std(f, 0.001 * (1 + k)) for k, f in enumerate(shelf_frames[::5])]
-    config = SceneConfig(voxel_size=VOXEL, depth_edge_weight=0.0)
+    config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0})
     scene, reports = fold_all(frames, config)
     assert sum(r.representative_switches for r in reports) == 0
     stream, batch = scene.fields(), aggregate_batch(frames, config)
-    for name in ("reliability", "features", "color", "representative_position", "position_mean"):
+    for name in ("reliability", "features", "colour", "representative_position", "position_mean"):
         assert torch.allclose(stream[name], batch[name], rtol=1e-4, atol=1e-6), name
     assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=1e-9)
     assert torch.equal(stream["observations"], batch["observations"])
@@ -55,7 +55,7 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
 def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
     # degree 0 has zero-width SH sums: they must stay [V, 0] fields, not become scalar columns
     frames = [with_std(f, 0.001 * (1 + k)) for k, f in enumerate(shelf_frames[:2])]
-    config = SceneConfig(voxel_size=VOXEL, depth_edge_weight=0.0, sh_degree=sh_degree)
+    config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0}, sh_degree=sh_degree)
     scene = fold_all(frames, config)[0]
     k = (sh_degree + 1) ** 2
     assert scene.sums()["sh_a"].shape == (len(scene), k * (k + 1) // 2 - 1)
@@ -70,7 +70,7 @@ def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
 def test_ablation_modes_stream_exactly(shelf_frames, mode):
     # these modes never rescale (first-observation or similarity-free representatives)
     frames = shelf_frames[:3]
-    config = SceneConfig(voxel_size=VOXEL, weighting=mode)
+    config = SceneConfig(voxel_size=VOXEL, research={"weighting": mode})
     stream, batch = fold_all(frames, config)[0].fields(), aggregate_batch(frames, config)
     assert torch.allclose(stream["reliability"], batch["reliability"], rtol=1e-4)
     assert torch.allclose(stream["features"], batch["features"], rtol=1e-4, atol=1e-6)
@@ -153,7 +153,7 @@ def test_bad_frame_leaves_scene_unchanged():
 
 
 def test_labels_fuse_with_the_same_weights():
-    config = SceneConfig(voxel_size=1.0, depth_edge_weight=0.0, weighting="no_similarity")
+    config = SceneConfig(voxel_size=1.0, sensor={"edge_weight": 0.0}, research={"weighting": "no_similarity"})
     scene = Scene(config)
     scores = np.zeros((1, 2, 3), np.float32)
     scores[0, 0] = [1, 0, 0]

@@ -37,7 +37,7 @@ def floater_gaussians(scene: Scene) -> int:
 def test_floater_seen_through_disappears(floater_at):
     offsets = [0.0, 0.08, -0.08, 0.15, -0.15]
     frames = [wall_frame(x, floater=(k == 0 if floater_at == "first" else k == len(offsets) - 1)) for k, x in enumerate(offsets)]
-    with_fs, without = Scene(SceneConfig(voxel_size=VOXEL)), Scene(SceneConfig(voxel_size=VOXEL, free_space=False))
+    with_fs, without = Scene(SceneConfig(voxel_size=VOXEL)), Scene(SceneConfig(voxel_size=VOXEL, free_space={"enabled": False}))
     for f in frames:
         with_fs.fold(f)
         without.fold(f)
@@ -74,7 +74,7 @@ def test_ablations_without_reliability_count_see_through_rays_unweighted(weighti
     sigma = 0.02
     frames = [wall_frame(x, floater=(k == 0)) for k, x in enumerate([0.0, 0.08, -0.08])]
     frames = [Frame(rgb=f.rgb, camera=f.camera, depth=f.depth, depth_std=torch.full_like(f.depth, sigma)) for f in frames]
-    scenes = {w: Scene(SceneConfig(voxel_size=VOXEL, weighting=w)) for w in ("full", weighting)}
+    scenes = {w: Scene(SceneConfig(voxel_size=VOXEL, research={"weighting": w})) for w in ("full", weighting)}
     for scene in scenes.values():
         for f in frames:
             scene.fold(f)
@@ -96,7 +96,7 @@ def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
     depth[0, 0], depth[5, 9], depth[20, 26] = np.nan, 1e6, 0.7
     depth[8:12, 12:16] = 0.0  # an empty cell
     std = rng.uniform(0.001, 0.01, depth.shape).astype(np.float32)
-    config = SceneConfig(voxel_size=0.01, free_space_cell=4)
+    config = SceneConfig(voxel_size=0.01, free_space={"cell": 4})
     m = see_through_map(make_frame(depth, depth_std=std if with_std else None, fx=20.0), config)
     assert m.threshold.shape == m.weight.shape == (6, 7)
     for cy in range(6):
@@ -109,8 +109,8 @@ def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
                 continue
             dmin = d[valid].min()
             sigma = s[np.flatnonzero(valid & (d == dmin))[0]] if with_std else (
-                config.depth_sigma0 + config.depth_sigma2 * (dmin - config.depth_sigma_ref) ** 2)
-            expect = dmin - (config.free_space_margin * config.voxel_size + config.free_space_sigmas * sigma)
+                config.sensor.sigma0 + config.sensor.sigma2 * (dmin - config.sensor.sigma_ref) ** 2)
+            expect = dmin - (config.free_space.margin * config.voxel_size + config.free_space.sigmas * sigma)
             assert m.threshold[cy, cx] == pytest.approx(expect, rel=1e-6)
             assert m.weight[cy, cx] == pytest.approx(np.exp(-sigma / config.voxel_size) * valid.sum() / 16, rel=1e-5)
 
@@ -118,7 +118,7 @@ def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
 def test_history_bounds_the_retroactive_evidence():
     offsets = [0.0, 0.08, -0.08, 0.15, -0.15]
     frames = [wall_frame(x, floater=(k == 4)) for k, x in enumerate(offsets)]
-    full, short = Scene(SceneConfig(voxel_size=VOXEL)), Scene(SceneConfig(voxel_size=VOXEL, free_space_history=2))
+    full, short = Scene(SceneConfig(voxel_size=VOXEL)), Scene(SceneConfig(voxel_size=VOXEL, free_space={"history": 2}))
     for f in frames:
         full.fold(f)
         short.fold(f)
@@ -139,7 +139,7 @@ def test_opacity_is_non_increasing_in_free_space_for_any_weights():
         "features": torch.zeros(n, 2),
         "position_mean": torch.zeros(n, 3),
         "position_cov": torch.eye(3).repeat(n, 1, 1) * 1e-4,
-        "color": torch.full((n, 3), 0.5),
+        "colour": torch.full((n, 3), 0.5),
     }
     op = dec(fields, voxel_size=0.05).opacities
     assert (op[1:] - op[:-1] <= 1e-7).all() and op[0] > op[-1]

@@ -32,11 +32,11 @@ def test_save_load_is_bit_identical_and_decodes_identically(folded, tmp_path):
 
 
 def test_save_load_keeps_the_opacity_line_settings(shelf_frames, tmp_path):
-    scene = Scene(SceneConfig(voxel_size=0.004, opacity_slope=12.0, opacity_bias=0.5))
+    scene = Scene(SceneConfig(voxel_size=0.004, decoder={"opacity_slope": 12.0, "opacity_bias": 0.5}))
     scene.fold(shelf_frames[0])
     scene.save(tmp_path / "scene.cgs")
     loaded = Scene.load(tmp_path / "scene.cgs")
-    assert loaded.config.opacity_slope == 12.0 and loaded.config.opacity_bias == 0.5
+    assert loaded.config.decoder.opacity_slope == 12.0 and loaded.config.opacity_bias == 0.5
     assert torch.equal(loaded.decode().opacities, scene.decode().opacities)
 
 

@@ -38,7 +38,7 @@ def view_dependent_frame(centre) -> Frame:
 def test_sh_fit_recovers_view_dependent_colour():
     rng = np.random.default_rng(0)
     centres = [np.r_[rng.uniform(-0.8, 0.8, 2), 1.0] for _ in range(12)]
-    config = SceneConfig(voxel_size=0.1, weighting="average", sh_regularization=1e-6, free_space=False)
+    config = SceneConfig(voxel_size=0.1, research={"weighting": "average"}, decoder={"sh_regularization": 1e-6}, free_space={"enabled": False})
     scene = Scene(config)
     for c in centres:
         scene.fold(view_dependent_frame(c))
@@ -51,12 +51,12 @@ def test_sh_fit_recovers_view_dependent_colour():
 
 def test_regularisation_pulls_toward_the_dc_colour():
     frames = [view_dependent_frame(np.array([0.3, 0.1, 1.0]))]  # one direction: degree-1 terms unobservable
-    scene = Scene(SceneConfig(voxel_size=0.1, weighting="average", free_space=False))
+    scene = Scene(SceneConfig(voxel_size=0.1, research={"weighting": "average"}, free_space={"enabled": False}))
     scene.fold(frames[0])
     f = scene.fields()
     assert f["sh"][:, 1:].abs().max() < 0.1
     dc_colour = 0.5 + 0.28209479177387814 * f["sh"][:, 0]
-    assert torch.allclose(dc_colour, f["color"], atol=0.05)
+    assert torch.allclose(dc_colour, f["colour"], atol=0.05)
 
 
 def test_default_regularisation_keeps_view_dependence_seen_from_views_20_degrees_apart():
@@ -64,7 +64,7 @@ def test_default_regularisation_keeps_view_dependence_seen_from_views_20_degrees
     # default ridge must let the fit follow most of the colour change between them (a ridge of
     # 0.05 keeps 12 %, the default 70 %), while one view alone leaves it at the DC colour (test above).
     centres = [np.array([-0.18, 0.0, 1.0]), np.array([0.18, 0.0, 1.0])]
-    scene = Scene(SceneConfig(voxel_size=0.1, weighting="average", free_space=False))
+    scene = Scene(SceneConfig(voxel_size=0.1, research={"weighting": "average"}, free_space={"enabled": False}))
     for c in centres:
         scene.fold(view_dependent_frame(c))
     f = scene.fields()

@@ -166,11 +166,12 @@ CASES = [
     ("create missing voxel_size", lambda c: c.create({"feature_dim": 8}), 422, "voxel_size"),
     ("create bad weighting", lambda c: c.create({"voxel_size": 0.01, "weighting": "median"}), 422, "weighting"),
     ("create near above far", lambda c: c.create({"voxel_size": 0.01, "near": 5, "far": 1}), 422, "near"),
-    ("create completion radius zero", lambda c: c.create({"voxel_size": 0.01, "depth_completion_radius": 0}), 422,
-     "depth_completion_radius"),
-    ("create opacity_bias not a number", lambda c: c.create({"voxel_size": 0.01, "opacity_bias": "high"}), 422,
-     "opacity_bias"),
-    ("create opacity_slope zero", lambda c: c.create({"voxel_size": 0.01, "opacity_slope": 0}), 422, "opacity_slope"),
+    ("create completion radius zero", lambda c: c.create({"voxel_size": 0.01, "depth": {"completion_radius": 0}}), 422,
+     "depth.completion_radius"),
+    ("create opacity_bias not a number", lambda c: c.create({"voxel_size": 0.01, "decoder": {"opacity_bias": "high"}}), 422,
+     "decoder.opacity_bias"),
+    ("create opacity_slope zero", lambda c: c.create({"voxel_size": 0.01, "decoder": {"opacity_slope": 0}}), 422,
+     "decoder.opacity_slope"),
     ("create malformed JSON", lambda c: c.create(content=b"{voxel_size: 1"), 400, "body"),
 ]
 

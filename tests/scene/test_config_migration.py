@@ -1,0 +1,83 @@
+"""Files written with the flat settings layout (every setting at the top level) still load: a snapshot
+(tests/fixtures/scene_v4.snap, see tests/fixtures/README.md) decodes to what it decoded to when it was
+written, and a session's meta.json gives the same settings in their groups."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_core import Scene, SceneConfig
+from canonical_core.datasets import synthetic_rgbd
+from canonical_core.scene.config import FLAT_NAMES, migrate_flat
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+
+
+@pytest.fixture(scope="module")
+def loaded() -> Scene:
+    return Scene.load(FIXTURES / "scene_v4.snap")
+
+
+def test_flat_snapshot_settings_land_in_their_groups(loaded):
+    c = loaded.config
+    assert (c.voxel_size, c.feature_dim) == (0.15, 4)
+    assert (c.free_space.enabled, c.free_space.margin, c.depth.hypotheses, c.sensor.edge_weight) == (True, 2.5, 32, 0.4)
+    assert (c.decoder.opacity_slope, c.decoder.opacity_bias, c.decoder.sh_regularization) == (25.0, -1.0, 0.004)
+    assert (c.research.weighting, c.research.eps) == ("full", 1e-8)
+    # and every other setting is its default
+    assert c == SceneConfig(voxel_size=0.15, feature_dim=4, free_space={"margin": 2.5}, depth={"hypotheses": 32},
+                            sensor={"edge_weight": 0.4},
+                            decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
+
+
+def test_flat_snapshot_keeps_its_state_and_decode(loaded):
+    expected = json.loads((FIXTURES / "scene_v4.expected.json").read_text())
+    assert (loaded.digest(), loaded.frames, len(loaded)) == (expected["digest"], expected["frames"], expected["voxels"])
+    decoded = loaded.decode()
+    stored = np.load(FIXTURES / "scene_v4.decoded.npz")
+    assert len(decoded) == expected["gaussians"]
+    for name in stored.files:
+        np.testing.assert_allclose(getattr(decoded, name).numpy(), stored[name], atol=1e-6, err_msg=name)
+
+
+def test_a_loaded_flat_snapshot_folds_on_and_saves_in_the_grouped_layout(loaded, tmp_path):
+    frame = list(synthetic_rgbd(num_frames=3, width=64, height=48, seed=3))[2]
+    scene = Scene.from_bytes(loaded.to_bytes())
+    scene.fold(frame)
+    scene.save(tmp_path / "s.snap")
+    again = Scene.load(tmp_path / "s.snap")
+    assert again.config == loaded.config and again.digest() == scene.digest()
+    header = json.loads(np.load(tmp_path / "s.snap")["header"].tobytes().decode())
+    assert header["config"]["free_space"]["margin"] == 2.5 and "free_space_margin" not in header["config"]
+    assert torch.equal(again.decode().opacities, scene.decode().opacities)
+
+
+def test_flat_session_meta_migrates():
+    meta = json.loads((FIXTURES / "session_meta_v1.json").read_text())
+    assert "free_space_margin" in meta["config"]  # the fixture is in the flat layout
+    config = SceneConfig.from_dict(meta["config"])
+    assert (config.voxel_size, config.colour_solve_views, config.depth_completion) == (0.004, 4, True)
+    assert (config.free_space.enabled, config.depth.denoise_radius) == (False, 0)
+    assert config.decoder.opacity_bias == config.opacity_bias == -3.0
+    assert SceneConfig.from_dict(config.to_dict()) == config
+
+
+def test_migration_moves_every_flat_name_and_only_those():
+    flat = {old: None for old in FLAT_NAMES} | {"voxel_size": 1.0, "free_space": True}
+    out = migrate_flat(flat)
+    assert set(out) == {"voxel_size", "sensor", "free_space", "depth", "decoder", "research"}
+    assert sum(len(group) for name, group in out.items() if name != "voxel_size") == len(FLAT_NAMES) + 1
+    grouped = SceneConfig(voxel_size=1.0).to_dict()
+    assert migrate_flat(grouped) == grouped
+
+
+def test_migration_refuses_a_group_given_twice():
+    with pytest.raises(ValueError, match="^free_space: given both"):
+        SceneConfig.from_dict({"voxel_size": 1.0, "free_space": {"margin": 1.0}, "free_space_cell": 4})
+    with pytest.raises(ValueError, match="^config: expected a mapping"):
+        SceneConfig.from_dict([("voxel_size", 1.0)])
