@@ -57,7 +57,7 @@ class SceneConfig:
         depth_completion: also sweep frames that carry depth, and fill the large holes of their
             depth (beyond ``depth_completion_radius`` pixels from any measured pixel: beyond the
             sensor's range or field of view, dark or specular surfaces) with the swept depth, its
-            U_pos as std (`evidence.mvs.complete_depth`; only the holes are swept, and a frame
+            U_pos as std (`evidence.complete_depth`; only the holes are swept, and a frame
             without holes is not swept at all). Measured pixels are never changed. Off by
             default: frames with depth then skip the sweep (issue 5). On the shelf evaluation it buys
             coverage (all-pixel PSNR) at some covered PSNR; see the evaluation's ``depth_completion``.

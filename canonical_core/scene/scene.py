@@ -31,8 +31,8 @@ import torch
 
 from ..camera import Camera
 from ..evidence import AppearanceUncertainty, denoise_rough_depth, extract_evidence, observation_sh_basis, sensor_depth_std
-from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
-                            sensor_holes)
+from ..evidence import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
+                        sensor_holes)
 from ..decode import GaussianDecoder, solve_colours, support_unit
 from ..frame import Frame
 from ..gaussians import Gaussians
