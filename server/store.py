@@ -1,4 +1,4 @@
-"""The session store: sessions on disk, their locks, and their decoded-Gaussians cache. No HTTP here.
+"""The session store: sessions on disk and their locks. No HTTP here.
 
 Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
 
@@ -14,15 +14,11 @@ Layout, one folder per session under ``<data_dir>/sessions/<id>/``:
   index >= the snapshot's frame count. Folding is deterministic, so the replayed scene equals the
   uninterrupted one bit for bit.
 
-Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
-snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
-sees a half-folded scene and never blocks another session. Decoding runs outside ``lock`` too: it
-holds the lock only to copy the scene's sums (`Scene.decode_inputs`, about 10 ms at 200k voxels),
-then decodes (again only the voxels the folds since the last decode touched: `Scene.decode_from`)
-and, with ``colour_solve_views``, solves colours (hundreds of ms to seconds) without it, so folds go
-on meanwhile; a decode that a fold overtook answers its own request but is not cached.
-``Session.decode_lock`` lets one decode of a session run at a time (concurrent renders wait for it
-and then find it cached); folds never take it.
+Locks: ``Session.lock`` serialises what reads or writes one session's scene and files (fold,
+snapshot, digest); rendering works on decoded Gaussians outside it, so a render never sees a
+half-folded scene and never blocks another session. Decoded Gaussians come from `Scene.gaussians`,
+which decodes once per change and holds the scene's own lock only to copy its sums, so folds go on
+while a decode (and its colour solve) runs.
 """
 
 from __future__ import annotations
@@ -50,7 +46,6 @@ log = logging.getLogger("canonical.store")
 
 META, LOG, SNAPSHOT = "meta.json", "frames.log", "scene.snap"
 TOMBSTONE = ".deleted-"
-DECODE_CACHE_ENTRIES = 4
 
 
 class SessionNotFound(KeyError):
@@ -156,11 +151,8 @@ class Session:
     log: FrameLog
     snapshot_frames: int
     lock: threading.Lock = field(default_factory=threading.Lock)
-    decode_lock: threading.Lock = field(default_factory=threading.Lock)  # taken before ``lock``, never after
     deleted: bool = False
     dirty_since: float | None = None  # when the oldest frame not in the snapshot was folded
-    _decoded: dict = field(default_factory=dict)
-    _generation: int = 0  # bumped whenever the scene changes, so a decode knows whether it is still current
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float) -> FoldReport:
@@ -183,7 +175,6 @@ class Session:
                     log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
                     self.deleted = True
                 raise
-            self._invalidate()
             now = time.monotonic()
             self.dirty_since = self.dirty_since or now
             if (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
@@ -206,11 +197,6 @@ class Session:
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames = restore_scene(self.path, self.config)
-        self._invalidate()
-
-    def _invalidate(self) -> None:
-        self._decoded.clear()
-        self._generation += 1
 
     def _check_alive(self) -> None:
         if self.deleted:
@@ -218,32 +204,12 @@ class Session:
 
     # -- reading --------------------------------------------------------------------------------
     def gaussians(self, max_gaussians: int | None = None) -> tuple[Gaussians, int]:
-        """Decoded Gaussians (cached until the next fold) and the label_dim, consistent with each other."""
+        """Decoded Gaussians (`Scene.gaussians`: decoded once per change) and their label_dim."""
         with self.lock:
             self._check_alive()
-            key = self._cache_key(max_gaussians)
-            if key in self._decoded:
-                return self._decoded[key], self.scene.label_dim
-        with self.decode_lock:
-            with self.lock:
-                self._check_alive()
-                key = self._cache_key(max_gaussians)  # the scene may have grown while we waited
-                if key in self._decoded:
-                    return self._decoded[key], self.scene.label_dim
-                scene, inputs, label_dim, generation = self.scene, self.scene.decode_inputs(), self.scene.label_dim, self._generation
-            g = scene.decode_from(inputs, key)
-            with self.lock:
-                if self._generation == generation and not self.deleted:
-                    self._cache(key, g)
-            return g, label_dim
-
-    def _cache_key(self, max_gaussians: int | None) -> int | None:
-        return None if max_gaussians is not None and max_gaussians >= len(self.scene) else max_gaussians
-
-    def _cache(self, key: int | None, g: Gaussians) -> None:
-        if key not in self._decoded and len(self._decoded) >= DECODE_CACHE_ENTRIES:
-            self._decoded.pop(next(k for k in self._decoded if k is not None))
-        self._decoded[key] = g
+            scene = self.scene
+        g = scene.gaussians(max_gaussians)
+        return g, 0 if g.labels is None else int(g.labels.shape[1])
 
     def summary(self) -> dict:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created}

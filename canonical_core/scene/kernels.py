@@ -70,6 +70,24 @@ def rebuild_table_kernel(table, keys, n_voxels):
         table[-1 - _find(table, keys, keys[idx], mask)] = idx
 
 
+@numba.njit(cache=True)
+def lookup_kernel(table, keys, query, out):
+    """out[i] = the voxel index of ``query[i]``, -1 where it is absent. Probes at most the whole
+    table, so a lookup in a full table (never made by the map, whose load stays below 1) ends too."""
+    mask = table.shape[0] - 1
+    for i in range(query.shape[0]):
+        s = _slot(query[i], mask)
+        out[i] = -1
+        for _ in range(table.shape[0]):
+            idx = table[s]
+            if idx < 0:
+                break
+            if keys[idx] == query[i]:
+                out[i] = idx
+                break
+            s = (s + 1) & mask
+
+
 class VoxelRows:
     """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
 
