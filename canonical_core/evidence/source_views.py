@@ -122,15 +122,11 @@ class SelectionRule:
     filled, the same way, from the candidates that overlap and have a non-zero baseline outside
     [min_ratio, max_ratio] (the first frames of a stream, a camera that barely moves, a sparse stream
     whose views two back are already beyond max_ratio): a second source at a wider baseline still
-    beats none, and where the depth stays uncertain U_pos says so. On the shelf streamed as its 8
-    evaluation inputs (8 degrees apart, 640x480), filling the second source lowered the median
-    AbsRel from 0.053 to 0.049 and raised RGB-only fusion by 0.33 dB (`bench/rgb_only.py`).
+    beats none, and where the depth stays uncertain U_pos says so.
 
-    The defaults come from the shelf capture (4 frames, one source on each side 6 / 8 / 10 frames
-    away, baseline ratio ~0.14 / 0.19 / 0.24: median AbsRel 0.058 / 0.052 / 0.076; 4 frames away,
-    ~0.1: 0.07). Wider baselines change the appearance too much, narrower ones do not separate
-    the hypotheses; in a stream, target ratios 0.12-0.2 and window capacities 4-6 gave the same
-    median AbsRel within 0.001.
+    The defaults were chosen on a real indoor capture (the evaluation's ledger has the figures):
+    wider baselines change the appearance too much between views, narrower ones do not separate
+    the hypotheses, and the result is flat over a range of target ratios and window capacities.
     """
 
     min_ratio: float = 0.04
@@ -236,7 +232,7 @@ class SourceWindow:
     another kept view; ties: the older). So a slowly moving camera keeps views spread over a useful
     range of baselines instead of its last few, nearly identical, frames.
 
-    Memory: h * w * L bytes per view (640x480 frames at scale 0.5: 7.7 MB); ``nbytes`` tells.
+    Memory: h * w * L bytes per view at sweep resolution; ``nbytes`` tells.
 
     A session uses it as: ``view = window.view_of(frame)``; ``sources = window.select(view, k)``;
     if ``sources`` is empty (the first frame), keep the frame pending and ``window.add(view)``; else
