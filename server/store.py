@@ -339,7 +339,6 @@ class SessionStore:
         with session.lock:
             session._check_alive()
             session.deleted = True
-            session._invalidate()
             session.log.close()
             with self._lock:
                 self._sessions.pop(session_id, None)
