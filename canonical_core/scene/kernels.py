@@ -92,8 +92,7 @@ class VoxelRows:
     """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
 
     One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
-    state in a few adjacent cache lines: the fold reads and writes ~270 bytes per voxel, and with
-    a dozen separate arrays each voxel cost a dozen cache misses.
+    state in a few adjacent cache lines, where one array per field costs a cache miss per field.
 
     Columns, in order: rep_r, rep_f [L], rep_pos [3] | r_sum, f_sum [L], rgb_sum [3], pos_sum [3],
     pos_sq [6], sh_a [Wa], sh_b [Wb], and with S label channels label_w, label_sum [S]. Everything
