@@ -21,11 +21,9 @@ is the spread of the upsampled (bilinearly mixed) distribution about that depth 
 Reliability follows exactly as with supplied depth: pass ``depth_std=uncertainty`` (metres) to
 `reliability.positional_uncertainty`, which converts it to voxel units and adds the depth-edge term.
 
-Two implementations of the sweep: `plane_sweep` (numba, parallel over rows; integer dot products
-of the int8 features, bilinear weights in float64) and `plane_sweep_reference` (pure PyTorch,
-float64, for small images), held to each other by the tests. Source frames are chosen and kept by
-`SourceWindow` (a bounded window of `SourceView`s: camera + matching features, no images), see
-`select_sources` for the rule.
+This module chooses the swept range and hypotheses, runs the sweep (`sweep`: the cost volume and
+its distribution, each with a PyTorch reference), applies a refinement if given and upsamples the
+result. Source views are chosen and kept by `source_views` (`select_sources`, `SourceWindow`).
 """
 
 from __future__ import annotations
@@ -43,7 +41,7 @@ from ..camera import Camera
 from ..frame import Frame
 from .matching import dequantize
 from .source_views import DEFAULT_SCALE, SourceView, _as_view, _on_image, _typical_depth
-from .sweep import _sweep_mask_or_all, depth_distribution, depth_distribution_reference, plane_sweep
+from .sweep import depth_distribution, depth_distribution_reference, plane_sweep
 
 DEFAULT_NUM_HYPOTHESES = 64
 EDGE_RELATIVE_JUMP = 0.05  # upsampling: sweep pixels whose depths differ more are not interpolated
