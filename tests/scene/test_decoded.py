@@ -179,10 +179,15 @@ def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf)
         assert_same_gaussians(g, from_scratch(scene, inputs))
 
 
-def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
+def folded(frames) -> Scene:
     scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in shelf[:3]:
+    for frame in frames:
         scene.fold(frame)
+    return scene
+
+
+def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
+    scene = folded(shelf[:3])
     counts = decoded_row_counts(scene)
     g = scene.gaussians()
     assert scene.gaussians() is g and scene.gaussians(len(scene)) is g  # a limit that leaves out nothing is the full decode
@@ -199,9 +204,7 @@ def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
 
 
 def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in shelf[:3]:
-        scene.fold(frame)
+    scene = folded(shelf[:3])
     decodes, decode = [], scene._decoding.decode_locked
 
     def counting(*args, **kwargs):
