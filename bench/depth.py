@@ -28,20 +28,16 @@ from common import machine_summary, print_table, stats_ms  # noqa: E402
 
 from canonical_core.datasets import load_dataset, synthetic_rgbd  # noqa: E402
 from canonical_core.evidence.matching import MATCH_SHARPNESS, MATCHING_FEATURE_DIM  # noqa: E402
-from canonical_core.evidence.mvs import (  # noqa: E402
+from canonical_core.eval.mvs_eval import (  # noqa: E402
     LogitScale,
-    SourceView,
-    depth_distribution,
-    depth_hypotheses,
-    plane_sweep,
-    upsample_depth,
-)
-from canonical_core.evidence.mvs_eval import (  # noqa: E402
     offline_depth,
     stream_depth,
     summarize,
     without_depth,
 )
+from canonical_core.evidence.mvs import depth_hypotheses, upsample_depth  # noqa: E402
+from canonical_core.evidence.source_views import SourceView  # noqa: E402
+from canonical_core.evidence.sweep import depth_distribution, plane_sweep  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"

@@ -42,7 +42,7 @@ from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import SplatModel  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.run import score  # noqa: E402
-from canonical_core.evidence.mvs_eval import without_depth  # noqa: E402
+from canonical_core.eval.mvs_eval import without_depth  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
 from canonical_core.scene.batch import voxel_keys  # noqa: E402
 

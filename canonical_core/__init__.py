@@ -10,11 +10,11 @@ Example:
 """
 
 from .camera import Camera
+from .evidence import estimate_depth
 from .frame import Frame
 from .gaussians import Gaussians, load_ply, load_splat, save_ply, save_splat
 from .rendering import RenderResult, render
 from .scene import CapacityError, FoldReport, Scene, SceneConfig, aggregate_batch
-from .evidence.mvs import estimate_depth  # noqa: E402  (after .scene: evidence and scene import each other's modules)
 
 __all__ = [
     "Camera", "CapacityError", "FoldReport", "Frame", "Gaussians", "RenderResult", "Scene", "SceneConfig",

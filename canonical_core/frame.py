@@ -26,7 +26,10 @@ def _tensor(value, field: str) -> Tensor:
     if isinstance(value, Tensor):
         return value.detach().cpu()
     if isinstance(value, np.ndarray):
-        return torch.from_numpy(np.ascontiguousarray(value))
+        # torch cannot wrap a read-only array (e.g. np.asarray of a PIL image) without warning that
+        # writes would be undefined: such arrays are copied; writable ones are shared as before
+        array = np.ascontiguousarray(value)
+        return torch.from_numpy(array if array.flags.writeable else array.copy())
     raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
 
 

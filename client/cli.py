@@ -384,7 +384,7 @@ def add_depth(p: argparse.ArgumentParser) -> None:
 
 def run_depth(args) -> int:
     from canonical_core.datasets import load_dataset
-    from canonical_core.evidence import write_depth_previews
+    from canonical_core.eval.mvs_preview import write_depth_previews
 
     frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     rows = write_depth_previews(frames, args.out, num_sources=args.sources)

@@ -14,7 +14,7 @@ import torch
 from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 
-from canonical_core.warmup import warm_up
+from .warmup import warm_up
 
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers

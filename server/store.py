@@ -1,4 +1,4 @@
-"""The session store: sessions on disk, their locks, and their decoded-Gaussians cache. No HTTP here.
+"""The session store: sessions on disk and their locks. No HTTP here.
 
 Layout: ``<data_dir>/.lock`` (held by the one server that uses the directory), and one folder per
 session under ``<data_dir>/sessions/<id>/``:
@@ -21,14 +21,11 @@ A session whose files do not add up on start (damaged log, a log or snapshot rem
 unreadable snapshot, a missing meta.json) is listed as unavailable with the reason, and its requests
 get that reason; its files are left as they are.
 
-Locks: ``Session.lock`` serialises everything that reads or writes one session's scene (fold,
-snapshot, decode, digest); rendering works on decoded Gaussians outside the lock, so a render never
-sees a half-folded scene and never blocks another session. Decoding runs outside ``lock`` too: it
-holds the lock only to copy the scene's sums (`Scene.decode_inputs`), then decodes (again only the
-voxels the folds since the last decode touched: `Scene.decode_from`) and, with
-``colour_solve_views``, solves colours without it, so folds go on meanwhile; a decode that a fold
-overtook answers its own request but is not cached. ``Session.decode_lock`` lets one decode of a
-session run at a time (concurrent renders wait for it and then find it cached); folds never take it.
+Locks: ``Session.lock`` serialises what reads or writes one session's scene and files (fold,
+snapshot, digest); rendering works on decoded Gaussians outside it, so a render never sees a
+half-folded scene and never blocks another session. Decoded Gaussians come from `Scene.gaussians`,
+which decodes once per change and holds the scene's own lock only to copy its sums, so folds go on
+while a decode (and its colour solve) runs.
 """
 
 from __future__ import annotations
@@ -60,7 +57,6 @@ log = logging.getLogger("canonical.store")
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 TOMBSTONE = ".deleted-"
-DECODE_CACHE_ENTRIES = 4
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
 
@@ -132,15 +128,12 @@ class Session:
     snapshot_frames: int
     frame_ids: dict[str, FoldedFrame] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
-    decode_lock: threading.Lock = field(default_factory=threading.Lock)  # taken before ``lock``, never after
     deleted: bool = False
     wedged: str | None = None  # why the log cannot take appends until a restart (its tail is unknown)
     dirty_since: float | None = None  # when the oldest frame not in the snapshot was folded
     snapshot_error: str | None = None  # why the last snapshot failed (frames stay durable in the log)
     snapshot_failures: int = 0
     snapshot_retry_at: float = 0.0  # monotonic time before which a fold does not retry a failed snapshot
-    _decoded: dict = field(default_factory=dict)
-    _generation: int = 0  # bumped whenever the scene changes, so a decode knows whether it is still current
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
@@ -187,7 +180,6 @@ class Session:
                 raise
             if frame.frame_id is not None:
                 self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
-            self._invalidate()
             now = time.monotonic()
             self.dirty_since = self.dirty_since or now
             if now >= self.snapshot_retry_at and (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
@@ -220,11 +212,6 @@ class Session:
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
-        self._invalidate()
-
-    def _invalidate(self) -> None:
-        self._decoded.clear()
-        self._generation += 1
 
     def _check_alive(self) -> None:
         if self.deleted:
@@ -232,32 +219,12 @@ class Session:
 
     # -- reading --------------------------------------------------------------------------------
     def gaussians(self, max_gaussians: int | None = None) -> tuple[Gaussians, int]:
-        """Decoded Gaussians (cached until the next fold) and the label_dim, consistent with each other."""
+        """Decoded Gaussians (`Scene.gaussians`: decoded once per change) and their label_dim."""
         with self.lock:
             self._check_alive()
-            key = self._cache_key(max_gaussians)
-            if key in self._decoded:
-                return self._decoded[key], self.scene.label_dim
-        with self.decode_lock:
-            with self.lock:
-                self._check_alive()
-                key = self._cache_key(max_gaussians)  # the scene may have grown while we waited
-                if key in self._decoded:
-                    return self._decoded[key], self.scene.label_dim
-                scene, inputs, label_dim, generation = self.scene, self.scene.decode_inputs(), self.scene.label_dim, self._generation
-            g = scene.decode_from(inputs, key)
-            with self.lock:
-                if self._generation == generation and not self.deleted:
-                    self._cache(key, g)
-            return g, label_dim
-
-    def _cache_key(self, max_gaussians: int | None) -> int | None:
-        return None if max_gaussians is not None and max_gaussians >= len(self.scene) else max_gaussians
-
-    def _cache(self, key: int | None, g: Gaussians) -> None:
-        if key not in self._decoded and len(self._decoded) >= DECODE_CACHE_ENTRIES:
-            self._decoded.pop(next(k for k in self._decoded if k is not None))
-        self._decoded[key] = g
+            scene = self.scene
+        g = scene.gaussians(max_gaussians)
+        return g, 0 if g.labels is None else int(g.labels.shape[1])
 
     def summary(self) -> dict:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
@@ -539,7 +506,6 @@ class SessionStore:
         with session.lock:
             session._check_alive()
             session.deleted = True
-            session._invalidate()
             session.log.close()
             with self._lock:
                 self._sessions.pop(session_id, None)

@@ -61,3 +61,22 @@ def test_resize_keeps_the_camera_consistent():
     assert resize_frame(frame, 1.0) is frame
     with pytest.raises(ValueError, match="scale"):
         resize_frame(frame, 1.5)
+
+
+def test_read_only_arrays_are_accepted_without_a_warning(tmp_path):
+    """An image read with PIL (np.asarray gives a read-only array) makes a Frame silently, and the
+    Frame holds the same values in memory of its own."""
+    from PIL import Image
+    import warnings
+
+    rgb = np.arange(12 * 16 * 3, dtype=np.uint8).reshape(12, 16, 3)
+    Image.fromarray(rgb).save(tmp_path / "rgb.png")
+    read = np.asarray(Image.open(tmp_path / "rgb.png"))
+    depth = np.ones((12, 16), np.float32)
+    depth.flags.writeable = False
+    assert not read.flags.writeable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = Frame(rgb=read, camera=CAM, depth=depth)
+    assert torch.equal(f.rgb, torch.from_numpy(rgb)) and torch.equal(f.depth, torch.ones(12, 16))
+    assert not np.shares_memory(f.rgb.numpy(), read)

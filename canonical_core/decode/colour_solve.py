@@ -43,10 +43,14 @@ from torch import Tensor
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
-from ..rendering import COVERED_ALPHA, Colour
+from ..rendering import Colour
 from ..rendering.projection import channel_values
 from ..rendering.sh import SH_C1, sh_basis_at_points
 from ..rendering.weights import WeightsBackend, blend_weights
+
+# accumulated alpha at or above which a pixel counts as covered: the pixels the solve fits in normalised
+# colour, and the evaluation's "covered" pixels (`eval.metrics`), so the two agree
+COVERED_ALPHA = 0.5
 
 
 

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..rendering import COVERED_ALPHA as COVERAGE_THRESHOLD  # alpha at or above which a pixel counts as covered
+from ..decode.colour_solve import COVERED_ALPHA as COVERAGE_THRESHOLD  # the colour solve's covered pixels
 
 DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
 

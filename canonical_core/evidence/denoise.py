@@ -2,12 +2,12 @@
 
 Reliability alone cannot rescue such a frame: every pixel's depth-edge term is huge, so every
 observation gets almost no reliability, and the frame's geometry is a fog of scattered voxels
-that fusion can only hide, not place (`SceneConfig.depth_denoise_radius`). Measured on the shelf
-evaluation at depth noise 0.25: see README.
+that fusion can only hide, not place (`SceneConfig.depth.denoise_radius`; its effect under depth
+noise is in docs/evaluation.md).
 
     roughness = median over valid pixels of |z - median of the valid 3x3 neighbourhood| / sigma
 with sigma the frame's per-pixel std where it has one, else the sensor model `sensor_depth_std`.
-Clean sensor depth scores below 1 (0.4 on the shelf capture: neighbours agree to the millimetre),
+Clean sensor depth scores below 1 (neighbours agree to the millimetre),
 i.i.d. noise of std s about 0.5 s / sigma. Above `ROUGHNESS_LIMIT` the frame's depth is replaced by the median of the
 valid depths in a (2 radius + 1)^2 window, and its std by the std of that median, 1.2533 x 1.4826
 x MAD / sqrt(n) (MAD over the window, n valid samples); pixels with fewer than `MIN_SAMPLES` valid

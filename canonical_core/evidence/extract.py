@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 import torch
 
 from ..frame import Frame
-from ..scene.config import SceneConfig
+from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
 from .features import DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features
 from .reliability import AppearanceUncertainty, positional_uncertainty
+
+if TYPE_CHECKING:  # the settings are read, never constructed, here; importing the scene package would run it
+    from ..scene.config import SceneConfig
 
 
 @dataclass
@@ -141,8 +145,6 @@ def observation_sh_basis(evidence: FrameEvidence, camera, degree: int) -> np.nda
     """SH basis of each observation's view direction (camera centre -> lifted point), 3DGS convention.
 
     Degree 0 needs no basis (no view dependence): it returns an all-zero [M, 1] placeholder."""
-    from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
-
     if degree == 0:
         return np.zeros((len(evidence), 1), np.float32)
     return sh_basis_at_points(evidence.points, camera.center.numpy(), degree)

@@ -18,9 +18,6 @@ from .reference import composite_reference
 Output = Literal["rgb", "depth", "alpha", "features", "labels"]
 Backend = Literal["auto", "reference", "cpu", "gsplat"]
 Colour = Literal["composited", "normalised"]
-# alpha at or above which a pixel counts as covered: the evaluation's "covered" and the pixels the colour
-# solve fits in normalised colour (one definition, here below both)
-COVERED_ALPHA = 0.5
 
 
 @dataclass

@@ -4,7 +4,7 @@ the fold touched.
 A Gaussian's shape and colour (`GaussianDecoder.shapes_and_colours`) are functions of its own
 voxel's sums; only its opacity depends on the scene as a whole (the support unit), and that is
 cheap to recompute for every voxel. A fold changes the sums of the voxels its observations land in
-(tens of thousands) while the scene holds hundreds of thousands, so `Scene.decode_from` keeps each
+(tens of thousands) while the scene holds hundreds of thousands, so the decoder side (`scene.decoding`) keeps each
 decoded row here with the fold stamp of the sums it came from, and reuses it while the row's sums
 still carry that stamp. Stamps are unique per fold, so equal stamps mean equal sums.
 """
@@ -23,8 +23,8 @@ class DecodedRows:
     """Decoded shapes and colours by scene row, each with its sums' fold stamp (-1: none yet).
 
     ``key`` names what else the results depend on (the decoder's parameters, the label channels):
-    a scene starts a new `DecodedRows` when it changes. Not locked: its scene holds a lock around
-    each use (`Scene.decode_from`).
+    a scene starts a new `DecodedRows` when it changes. Not locked itself: `scene.decoding.SceneDecoding`
+    holds its lock around each use.
 
     Example:
         >>> rows = DecodedRows(key=0)

@@ -70,12 +70,29 @@ def rebuild_table_kernel(table, keys, n_voxels):
         table[-1 - _find(table, keys, keys[idx], mask)] = idx
 
 
+@numba.njit(cache=True)
+def lookup_kernel(table, keys, query, out):
+    """out[i] = the voxel index of ``query[i]``, -1 where it is absent. Probes at most the whole
+    table, so a lookup in a full table (never made by the map, whose load stays below 1) ends too."""
+    mask = table.shape[0] - 1
+    for i in range(query.shape[0]):
+        s = _slot(query[i], mask)
+        out[i] = -1
+        for _ in range(table.shape[0]):
+            idx = table[s]
+            if idx < 0:
+                break
+            if keys[idx] == query[i]:
+                out[i] = idx
+                break
+            s = (s + 1) & mask
+
+
 class VoxelRows:
     """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
 
     One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
-    state in a few adjacent cache lines: the fold reads and writes ~270 bytes per voxel, and with
-    a dozen separate arrays each voxel cost a dozen cache misses.
+    state in a few adjacent cache lines, where one array per field costs a cache miss per field.
 
     Columns, in order: rep_r, rep_f [L], rep_pos [3] | r_sum, f_sum [L], rgb_sum [3], pos_sum [3],
     pos_sq [6], sh_a [Wa], sh_b [Wb], and with S label channels label_w, label_sum [S]. Everything

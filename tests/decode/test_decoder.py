@@ -190,7 +190,7 @@ def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
 
 
 def test_default_opacity_line_reads_in_typical_views():
-    # the documented reading of the default line (SceneConfig.opacity_slope): a voxel with next to
+    # the documented reading of the default line (SceneConfig.decoder.opacity_slope): a voxel with next to
     # no support half opaque, a fiftieth of one typical view's support 64 %, a tenth 95 %
     head = MonotoneOpacity()
     r = 1.0 - torch.exp(-torch.tensor([0.0, 0.02, 0.1]))  # support in typical views -> r

@@ -21,35 +21,33 @@ from canonical_core.evidence.matching import (
     matching_features,
     matching_features_reference,
 )
-from canonical_core.evidence.mvs import (
-    DepthRefinement,
-    IdentityRefinement,
+from canonical_core.eval.mvs_eval import (
     LogitScale,
-    SelectionRule,
-    SourceView,
-    SourceWindow,
-    complete_depth,
-    depth_distribution,
-    depth_distribution_reference,
-    depth_hypotheses,
-    depth_range_from_depth,
-    depth_range_from_points,
-    estimate_depth,
-    estimate_depth_detailed,
-    plane_sweep,
-    plane_sweep_reference,
-    select_sources,
-    sensor_holes,
-    sweep_pixels_for,
-    upsample_depth,
-)
-from canonical_core.evidence.mvs_eval import (
     compare_to_sensor,
     sparsification,
     stream_depth,
     without_depth,
 )
-from canonical_core.evidence.mvs_preview import write_depth_previews
+from canonical_core.eval.mvs_preview import write_depth_previews
+from canonical_core.evidence.completion import complete_depth, sensor_holes
+from canonical_core.evidence.mvs import (
+    DepthRefinement,
+    IdentityRefinement,
+    depth_hypotheses,
+    depth_range_from_depth,
+    depth_range_from_points,
+    estimate_depth,
+    estimate_depth_detailed,
+    sweep_pixels_for,
+    upsample_depth,
+)
+from canonical_core.evidence.source_views import SelectionRule, SourceView, SourceWindow, select_sources
+from canonical_core.evidence.sweep import (
+    depth_distribution,
+    depth_distribution_reference,
+    plane_sweep,
+    plane_sweep_reference,
+)
 
 
 @pytest.fixture(scope="module")

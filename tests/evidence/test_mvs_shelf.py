@@ -14,14 +14,11 @@ import torch
 
 from canonical_core.evidence.features import default_features_reference
 from canonical_core.evidence.matching import resize_image
-from canonical_core.evidence.mvs import (
+from canonical_core.evidence.mvs import depth_hypotheses, estimate_depth_detailed
+from canonical_core.evidence.source_views import SourceView
+from canonical_core.evidence.sweep import plane_sweep
+from canonical_core.eval.mvs_eval import (
     LogitScale,
-    SourceView,
-    depth_hypotheses,
-    estimate_depth_detailed,
-    plane_sweep,
-)
-from canonical_core.evidence.mvs_eval import (
     certain_half_ratio,
     offline_depth,
     sparsification,

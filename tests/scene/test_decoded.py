@@ -184,3 +184,50 @@ def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf)
     assert len({len(g) for _, g in decoded}) > 1  # the viewers saw the scene grow
     for inputs, g in decoded:
         assert_same_gaussians(g, from_scratch(scene, inputs))
+
+
+def folded(frames) -> Scene:
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for frame in frames:
+        scene.fold(frame)
+    return scene
+
+
+def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
+    scene = folded(shelf[:3])
+    counts = decoded_row_counts(scene)
+    g = scene.gaussians()
+    assert scene.gaussians() is g and scene.gaussians(len(scene)) is g  # a limit that leaves out nothing is the full decode
+    assert len(counts) == 1
+    fewer = scene.gaussians(len(g) // 2)
+    assert len(fewer) == len(g) // 2 and scene.gaussians(len(g) // 2) is fewer
+    assert_same_gaussians(fewer, scene.decode(len(g) // 2))
+    with pytest.raises(ValueError, match="max_gaussians"):
+        scene.gaussians(-1)
+    scene.fold(shelf[3])
+    after = scene.gaussians()
+    assert after is not g and len(after) != len(g)
+    assert_same_gaussians(after, from_scratch(scene))
+
+
+def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
+    scene = folded(shelf[:3])
+    decodes, decode = [], scene._decoding.decode_locked
+
+    def counting(*args, **kwargs):
+        decodes.append(1)
+        return decode(*args, **kwargs)
+
+    scene._decoding.decode_locked = counting
+    start, answers = threading.Barrier(4), []
+
+    def request():
+        start.wait()
+        answers.append(scene.gaussians())
+
+    threads = [threading.Thread(target=request) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(decodes) == 1 and len(answers) == 4 and all(a is answers[0] for a in answers)

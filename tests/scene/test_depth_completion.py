@@ -69,10 +69,10 @@ def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small)
 @pytest.mark.realdata
 def test_a_frame_that_fails_to_fold_changes_nothing(shelf_small):
     scene, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, max_voxels=11_000), shelf_small[:2])
-    before = (scene.digest(), scene.frames, len(scene._window))
+    before = (scene.digest(), scene.frames, len(scene._front.window))
     with pytest.raises(CapacityError, match="max_voxels"):
         scene.fold(shelf_small[2])
-    assert (scene.digest(), scene.frames, len(scene._window)) == before
+    assert (scene.digest(), scene.frames, len(scene._front.window)) == before
 
 
 @pytest.mark.realdata
@@ -80,7 +80,7 @@ def test_snapshot_resumes_completion_identically(shelf_small, tmp_path):
     straight, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), shelf_small[:2])
     straight.save(tmp_path / "s.cgs")
     resumed = Scene.load(tmp_path / "s.cgs")
-    assert resumed.config.depth_completion and len(resumed._window) == 2
+    assert resumed.config.depth_completion and len(resumed._front.window) == 2
     last = withheld_band(shelf_small[2])
     assert straight.fold(last).completed_pixels == resumed.fold(last).completed_pixels > 0
     assert straight.digest() == resumed.digest()

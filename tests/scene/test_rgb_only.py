@@ -28,7 +28,7 @@ def test_first_frame_waits_for_a_partner_then_every_frame_is_folded(rgb_scene):
     assert reports[0].pending and reports[0].observations == 0
     assert not reports[1].pending and reports[1].also_folded == 1
     assert all(not r.pending and r.observations > 10_000 for r in reports[1:])
-    assert scene.frames == len(reports) and not scene._pending
+    assert scene.frames == len(reports) and not scene._front.pending
 
 
 @pytest.mark.realdata
@@ -54,7 +54,7 @@ def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_pat
     straight.fold(a)
     straight.save(tmp_path / "s.cgs")
     resumed = Scene.load(tmp_path / "s.cgs")
-    assert len(resumed._pending) == 1 and resumed.frames == 1
+    assert len(resumed._front.pending) == 1 and resumed.frames == 1
     assert straight.fold(b).also_folded == resumed.fold(b).also_folded == 1
     assert straight.digest() == resumed.digest()
 
@@ -66,4 +66,4 @@ def test_a_waiting_frame_is_checked_on_arrival():
     cam = Camera([[100.0, 0, 16], [0, 100.0, 12], [0, 0, 1]], np.eye(4), 32, 24)
     with pytest.raises(ValueError, match="features: this session uses client-supplied features"):
         scene.fold(Frame(rgb=torch.zeros(24, 32, 3, dtype=torch.uint8), camera=cam))
-    assert scene.frames == 0 and not scene._pending
+    assert scene.frames == 0 and not scene._front.pending

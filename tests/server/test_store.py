@@ -78,10 +78,11 @@ def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_serv
     def solving() -> bool:
         """The decode lock held and the scene's lock free, seen twice 20 ms apart (so not the instant
         between taking the one and the other): the render is decoding and solving."""
-        if not (session.decode_lock.locked() and not session.lock.locked()):
+        scene = session.scene
+        if not (scene._decoding.lock.locked() and not scene._lock.locked() and not session.lock.locked()):
             return False
         time.sleep(0.02)
-        return session.decode_lock.locked() and not session.lock.locked()
+        return scene._decoding.lock.locked() and not scene._lock.locked() and not session.lock.locked()
 
     deadline = time.monotonic() + 120
     while not solving():

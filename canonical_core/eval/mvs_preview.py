@@ -22,16 +22,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from ..evidence.mvs import DEFAULT_NUM_HYPOTHESES, depth_range_from_depth, estimate_depth_detailed
+from ..evidence.source_views import DEFAULT_SCALE, SelectionRule, SourceView, select_sources
 from ..frame import Frame
-from .mvs import (
-    DEFAULT_NUM_HYPOTHESES,
-    DEFAULT_SCALE,
-    SelectionRule,
-    SourceView,
-    depth_range_from_depth,
-    estimate_depth_detailed,
-    select_sources,
-)
 from .mvs_eval import compare_to_sensor, without_depth
 
 # anchor colours (sRGB 0-255) of two perceptually ordered maps, interpolated linearly

@@ -21,18 +21,31 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import Tensor, nn
 
+from ..evidence.mvs import DEFAULT_NUM_HYPOTHESES, DepthEstimate, estimate_depth_detailed
+from ..evidence.source_views import DEFAULT_SCALE, SelectionRule, SourceView, SourceWindow, select_sources
 from ..frame import Frame
-from .mvs import (
-    DEFAULT_NUM_HYPOTHESES,
-    DEFAULT_SCALE,
-    DepthEstimate,
-    SelectionRule,
-    SourceView,
-    SourceWindow,
-    estimate_depth_detailed,
-    select_sources,
-)
+
+
+class LogitScale(nn.Module):
+    """The smallest learnable depth refinement (a `evidence.mvs.DepthRefinement`): one temperature,
+    logits * exp(log_scale).
+
+    Starts at ``scale`` (1 = identity). Scaling the logits by s is the same as multiplying
+    `matching.MATCH_SHARPNESS` by s, so this is also how to try another sharpness without
+    recomputing features.
+    """
+
+    def __init__(self, scale: float = 1.0):
+        super().__init__()
+        if not (isinstance(scale, (int, float)) and scale > 0):
+            raise ValueError(f"scale: expected a positive number, got {scale!r}")
+        self.log_scale = nn.Parameter(torch.tensor(math.log(scale), dtype=torch.float64))
+
+    def forward(self, logits: Tensor, hypotheses: Tensor, features: Tensor | None = None) -> Tensor:
+        return logits * self.log_scale.exp().to(logits.dtype)
 
 
 def without_depth(frame: Frame) -> Frame:

@@ -1,7 +1,7 @@
 """Start-up warm-up: load the compiled kernels before the first real request.
 
-A fresh process pays about a second on its first fold and first render even with numba's on-disk
-cache warm: numba starts its threading runtime and registers its array library on the first
+A fresh process pays extra on its first fold and first render even with numba's on-disk cache
+warm: numba starts its threading runtime and registers its array library on the first
 parallel call, and each kernel's machine code is loaded on its first call. A service pays that
 once at start-up instead of on a user's first request.
 """
@@ -13,10 +13,7 @@ import time
 import numpy as np
 import torch
 
-from .camera import Camera
-from .frame import Frame
-from .rendering import render
-from .scene import Scene, SceneConfig
+from canonical_core import Camera, Frame, Scene, SceneConfig, render
 
 
 def warm_up(num_threads: int | None = None) -> float:

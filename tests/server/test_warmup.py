@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # numba kernels of each stage (fold, free space, SH fit, render), and whether numba has loaded them.
 PROBE = """
@@ -23,7 +23,7 @@ kernels += [free_space._coarse_map_kernel, free_space.frame_free_space_kernel, f
 def loaded():
     return sum(bool(k.signatures) for k in kernels), len(kernels)
 print(*loaded())
-from canonical_core.warmup import warm_up
+from server.warmup import warm_up
 assert warm_up(num_threads=1) > 0
 print(*loaded())
 print([k.__name__ for k in kernels if not k.signatures])

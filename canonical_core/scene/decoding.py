@@ -1,0 +1,126 @@
+"""The decoder side of a scene: sums -> Gaussians, decoded once per change.
+
+Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one scene take turns):
+
+- the decoder (`decode.GaussianDecoder`) and the colour solve against the kept input views
+  (`decode.solve_colours`);
+- the decoded rows (`decoded.DecodedRows`): what the last decode made of each voxel, with the
+  change stamp of the sums it came from, so that a decode after a fold decodes again only the
+  voxels whose sums changed; opacities, which depend on the scene-wide support unit and on free
+  space, are recomputed for all;
+- the decoded Gaussians of the scene as it is now, per level of detail (`Scene.gaussians`): a
+  request for an unchanged scene is answered without decoding. These entries are read and written
+  under the *scene's* lock (a fold drops them), so the decode itself runs outside it and a fold
+  never waits for a decode.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from ..decode import GaussianDecoder, solve_colours, support_unit
+from ..frame import Frame
+from ..gaussians import Gaussians
+from .config import SceneConfig
+from .decoded import DecodedRows
+from .fields import fields_from_sums
+
+DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
+
+
+class DecodeInputs(NamedTuple):
+    """A scene's state as `Scene.decode_from` reads it (`Scene.decode_inputs`: copies)."""
+
+    sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state
+    observations_per_view: float  # `Scene.observations_per_view`
+    views: list[Frame]  # the colour solve's kept input views (empty when it is off)
+    # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
+    changed_at: np.ndarray | None = None
+
+
+class SceneDecoding:
+    """The decoder, its decoded rows and the decoded Gaussians of one scene (see the module)."""
+
+    def __init__(self, config: SceneConfig):
+        self.config = config
+        self.decoder = GaussianDecoder(config.feature_dim, opacity_slope=config.decoder.opacity_slope,
+                                       opacity_bias=config.opacity_bias)
+        self.lock = threading.Lock()  # taken before the scene's lock, never after
+        self._rows: DecodedRows | None = None
+        self._gaussians: dict = {}  # (level of detail, decoder key) -> Gaussians of the current state
+
+    def key(self) -> tuple:
+        """What a row's decode depends on besides its sums: the decoder's parameters and clamps."""
+        d = self.decoder
+        return tuple((id(p), p._version) for p in d.parameters()), (d.min_thickness, d.min_extent, d.max_extent)
+
+    # -- the decoded Gaussians of the current state (callers hold the scene's lock) ---------------
+    def cached(self, lod: int | None) -> Gaussians | None:
+        return self._gaussians.get((lod, self.key()))
+
+    def keep(self, lod: int | None, gaussians: Gaussians) -> None:
+        key = (lod, self.key())
+        if key not in self._gaussians and len(self._gaussians) >= DECODE_CACHE_ENTRIES:
+            self._gaussians.pop(next(k for k in self._gaussians if k[0] is not None))
+        self._gaussians[key] = gaussians
+
+    def forget(self) -> None:
+        """The scene changed: its decoded Gaussians are stale."""
+        self._gaussians.clear()
+
+    # -- decoding -----------------------------------------------------------------------------
+    def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+        """Gaussians of every voxel of ``inputs`` with R_scene > ``min_support``; with
+        ``max_gaussians``, the best-supported ones; with kept views, colours solved against them."""
+        with self.lock:  # decodes of one scene take turns: they share the decoded rows
+            return self.decode_locked(inputs, max_gaussians, min_support)
+
+    def decode_locked(self, inputs: DecodeInputs, max_gaussians: int | None = None,
+                      min_support: float = 0.0) -> Gaussians:
+        """`decode`, for a caller that holds `lock`."""
+        if max_gaussians is not None and max_gaussians < 0:
+            raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
+        if min_support < 0:
+            raise ValueError(f"min_support: expected >= 0, got {min_support}")
+        # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
+        # per-voxel SH solve among them, are then computed for those rows alone
+        reliability = torch.as_tensor(inputs.sums["r_sum"])
+        unit = support_unit(reliability, torch.as_tensor(inputs.sums["n_obs"])) * inputs.observations_per_view
+        supported = reliability > min_support
+        if self.config.free_space.enabled:  # voxels that more rays saw through than saw at are not surface
+            supported &= torch.as_tensor(inputs.sums["free"]) <= self.config.free_space.dominance * reliability
+        keep = torch.nonzero(supported).squeeze(1)
+        if max_gaussians is not None and keep.numel() > max_gaussians:
+            top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
+            keep = keep[torch.sort(top).values]
+        with torch.no_grad():
+            opacities = self.decoder.opacities(reliability[keep], torch.as_tensor(inputs.sums["free"])[keep], unit)
+        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep.numpy()))
+        return solve_colours(gaussians, inputs.views) if inputs.views else gaussians
+
+    def _shapes_and_colours(self, inputs: DecodeInputs, rows: np.ndarray) -> dict[str, torch.Tensor | None]:
+        """`GaussianDecoder.shapes_and_colours` of ``rows``: reused from an earlier decode for the rows
+        whose sums are unchanged since (`DecodedRows`), decoded from ``inputs`` for the rest."""
+        key = (inputs.sums["label_sum"].shape[1], *self.key())  # label channels change a row's decode too
+        cache = self._rows
+        if cache is None or cache.key != key:
+            cache = self._rows = DecodedRows(key)
+        stamps = inputs.changed_at[rows] if inputs.changed_at is not None else None
+        todo = rows if stamps is None else rows[~cache.current(rows, stamps)]
+        index = torch.from_numpy(todo)
+        f = fields_from_sums({k: torch.as_tensor(v).index_select(0, index) for k, v in inputs.sums.items()},
+                             self.config, sort=False)
+        with torch.no_grad():
+            fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size)
+        if stamps is None:
+            return fresh
+        cache.store(todo, inputs.changed_at[todo], fresh)
+        return fresh if len(todo) == len(rows) else cache.gather(rows)
+
+    def nbytes(self) -> int:
+        """Bytes of the decoded rows (the cached Gaussians are shared with callers and not counted)."""
+        return self._rows.nbytes() if self._rows is not None else 0

@@ -1,0 +1,108 @@
+"""Integration: one frame's evidence folded into a `VoxelMap`, then its free-space evidence.
+
+Per voxel the map keeps a running representative (its reliability, feature, lifted position and
+colour) and the weighted sums of every fused field. A frame is folded in one vectorised pass
+(`kernels.fold_kernel`); within the frame the paper's rule is exact.
+
+Re-weighting rule when a more reliable observation replaces a voxel's representative: the sums
+gathered so far were weighted by similarity to the *old* representative; they are scaled by
+s = max(0, cos(F_old_rep, F_new_rep)) -- evidence that agreed with a representative that itself
+disagrees with the new one is discounted as a whole, and evidence consistent with both is kept.
+Where a voxel's representative never changes after its first frame this equals `aggregate_batch`
+to float tolerance; elsewhere the tests bound the deviation.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ..evidence import FrameEvidence
+from ..frame import Frame
+from .config import SceneConfig
+from .free_space import SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map
+from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
+from .voxel_map import VoxelMap, next_pow2
+
+
+class Integrated(NamedTuple):
+    """What `integrate` did to the map."""
+
+    observations: int
+    new_voxels: int
+    touched_voxels: int  # new ones included
+    representative_switches: int
+
+
+class Scratch:
+    """Per-observation work arrays of `integrate`, grown to the largest frame seen and reused."""
+
+    def __init__(self):
+        self.size = 0
+
+    def reserve(self, m: int) -> None:
+        if m > self.size:
+            self.size = max(m, 1024)
+            for name in ("obs_keys", "frame_keys", "new_keys"):
+                setattr(self, name, np.empty(self.size, np.int64))
+            for name in ("touched", "best", "head", "tail", "next_obs"):
+                setattr(self, name, np.empty(self.size, np.int32))
+            self.feat_inv_norm = np.empty(self.size, np.float32)
+            self.rep_inv_norm = np.empty(self.size, np.float32)
+            self.local_table = np.empty(next_pow2(2 * self.size), np.int32)
+
+
+def integrate(
+    voxels: VoxelMap,
+    ev: FrameEvidence,
+    basis: np.ndarray,  # [M, (sh_degree + 1)^2] SH basis of each observation's view direction
+    config: SceneConfig,
+    scratch: Scratch,
+) -> Integrated:
+    """Fold ``ev`` into ``voxels`` (the aggregation rule). Raises ValueError (a `CapacityError` past
+    ``config.max_voxels``, or label channels unlike earlier frames') before changing anything."""
+    if ev.labels is not None and voxels.label_dim and ev.labels.shape[1] != voxels.label_dim:
+        raise ValueError(f"labels: expected {voxels.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
+    m = len(ev)
+    scratch.reserve(m)
+    t = scratch
+    obs_keys, new_keys = t.obs_keys[:m], t.new_keys[:m]
+    inv_voxel = np.float32(1.0 / config.voxel_size)
+    voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
+    n_touched, n_new, n_obs = resolve_kernel(
+        obs_keys, ev.reliability, config.uses_reliability, voxels.table, voxels.state["keys"],
+        t.local_table[: next_pow2(2 * m)], t.frame_keys, t.touched, new_keys, t.best, t.head, t.tail, t.next_obs)
+    voxels.check_room(n_new)
+    # nothing has changed up to here; from here on the fold cannot fail on input
+    if ev.labels is not None and not voxels.label_dim:
+        voxels.set_label_dim(ev.labels.shape[1])
+    voxels.reserve(len(voxels) + n_new)
+    s = voxels.state
+    labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
+    switches = fold_kernel(
+        voxels.table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(),
+        config.uses_reliability, config.uses_similarity, inv_voxel,
+        n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
+        ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
+        t.feat_inv_norm[:m], t.rep_inv_norm[:m],
+    )
+    voxels.commit(t.touched[:n_touched], n_new)
+    return Integrated(int(n_obs), int(n_new), int(n_touched), int(switches))
+
+
+def integrate_free_space(voxels: VoxelMap, frame: Frame, config: SceneConfig, history: SeeThroughHistory,
+                         first_new: int) -> None:
+    """The frame's see-through evidence for every voxel in its frustum (the new ones, from
+    ``first_new`` on, included), then the earlier frames' evidence (``history``) for the voxels this
+    frame created; the frame's map then joins the history (see `free_space`)."""
+    m = see_through_map(frame, config)
+    s, n = voxels.state, len(voxels)
+    voxel, near = np.float32(config.voxel_size), np.float32(config.near)
+    frame_free_space_kernel(s["keys"], s["free"], voxels.chunk_lo, voxels.chunk_hi, n, voxel, m.w2c,
+                            m.intrinsics, m.threshold, m.weight, np.float32(m.area_scale), near)
+    h = history
+    if h.count and n > first_new:
+        history_free_space_kernel(s["keys"], s["free"], first_new, n, voxel, h.order(), h.w2c, h.intrinsics,
+                                  h.threshold, h.weight, h.dims, h.area, near)
+    h.push(m)

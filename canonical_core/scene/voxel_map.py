@@ -1,0 +1,197 @@
+"""The voxel map: per-voxel records in insertion order behind an open-addressing hash of voxel keys.
+
+It knows nothing of frames. It holds, for ``len(map)`` voxels:
+
+- ``keys`` [V] int64, the packed lattice coordinates (`kernels` packs (i, j, k) into 21 bits each);
+- ``rows`` [V, width] float32, the representative and every weighted sum (`kernels.VoxelRows`);
+- ``rep_rgb`` [V, 3] uint8, ``free`` [V] float32 (see-through evidence), ``n_obs`` [V] int32;
+- ``table``, a power-of-two hash table of voxel indices (-1 empty, linear probing), kept at a load
+  of at most `MAX_TABLE_LOAD` so that a probe ends after a few slots;
+- per chunk of `free_space.CHUNK` voxels, their keys' bounding box (the free-space kernels skip
+  chunks outside a frustum);
+- per voxel, the stamp of the last change of its sums (`changed_at`), which the decoder side uses
+  to decode again only what changed. Stamps are unique in the process.
+
+Integration (`integrate`) writes the records; the snapshot reads and restores them as arrays
+(`sums`, `load_sums`).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from .fields import sh_sum_widths
+from .free_space import CHUNK, update_chunk_boxes_kernel
+from .kernels import VoxelRows, lookup_kernel, rebuild_table_kernel
+
+MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
+
+# per-voxel arrays beside the float32 record (`VoxelRows`): name -> (dtype, trailing shape)
+ARRAYS = {
+    "keys": (np.int64, ()),
+    "rep_rgb": (np.uint8, (3,)),  # input colours are 8-bit: lossless
+    "free": (np.float32, ()),  # written by the free-space kernels, which scan it with the keys
+    "n_obs": (np.int32, ()),
+}
+
+# change stamps, unique in the process: inputs of one map can never match another map's decoded rows
+_STAMPS = itertools.count(1)
+
+
+class CapacityError(ValueError):
+    """A fold would take the scene past ``SceneConfig.max_voxels``; the scene is unchanged."""
+
+
+def next_pow2(n: int) -> int:
+    """The smallest power of two >= ``n`` (and >= 16)."""
+    return 1 << max(4, int(n - 1).bit_length())
+
+
+def table_size(n_voxels: int) -> int:
+    """Hash-table slots for ``n_voxels`` at a load of at most `MAX_TABLE_LOAD`."""
+    return next_pow2(int(n_voxels / MAX_TABLE_LOAD) + 1)
+
+
+class VoxelMap:
+    """Sparse voxel records with hash lookup, grown on demand up to an optional cap.
+
+    Args:
+        feature_dim: L, the feature channels of each record.
+        sh_degree: the SH degree whose fit sums each record keeps.
+        initial_capacity: rows allocated up front (growth is x1.5, amortised).
+        max_voxels: the cap `check_room` enforces (None: no cap).
+
+    Example:
+        >>> voxels = VoxelMap(feature_dim=4, sh_degree=0, initial_capacity=16)
+        >>> len(voxels), voxels.capacity, voxels.table.shape[0]
+        (0, 16, 32)
+    """
+
+    def __init__(self, feature_dim: int, sh_degree: int, initial_capacity: int = 1 << 15,
+                 max_voxels: int | None = None):
+        self.feature_dim, self.sh_degree, self.max_voxels = feature_dim, sh_degree, max_voxels
+        self.layout = VoxelRows(feature_dim, sh_sum_widths(sh_degree))
+        self.n = 0
+        self.state = self._allocate(initial_capacity)
+        self.table = np.full(table_size(initial_capacity), -1, np.int32)
+        self.chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+        self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+        self.changed_at = np.zeros(self.capacity, np.int64)
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def capacity(self) -> int:
+        return int(self.state["keys"].shape[0])
+
+    @property
+    def label_dim(self) -> int:
+        return self.layout.label_dim
+
+    def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
+        state = {name: np.zeros((capacity, *shape), dtype) for name, (dtype, shape) in ARRAYS.items()}
+        state["rows"] = np.zeros((capacity, self.layout.width), np.float32)
+        return state
+
+    # -- growth -------------------------------------------------------------------------------
+    def check_room(self, n_new: int) -> None:
+        """Raise `CapacityError` if ``n_new`` more voxels would exceed ``max_voxels``."""
+        cap = self.max_voxels
+        if cap is not None and self.n + n_new > cap:
+            raise CapacityError(
+                f"max_voxels: folding this frame would grow the scene to {self.n + n_new} voxels, above the cap of {cap}"
+            )
+
+    def reserve(self, n_voxels: int) -> None:
+        """Grow the rows (x1.5, amortised) and the hash table (load <= MAX_TABLE_LOAD) to hold ``n_voxels``."""
+        if n_voxels > self.capacity:
+            new = self._allocate(max(n_voxels, int(self.capacity * 1.5)))
+            for name, arr in self.state.items():
+                new[name][: self.n] = arr[: self.n]
+            self.state = new
+            changed_at = np.zeros(self.capacity, np.int64)
+            changed_at[: self.n] = self.changed_at[: self.n]
+            self.changed_at = changed_at
+            for name in ("chunk_lo", "chunk_hi"):
+                grown = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
+                grown[: getattr(self, name).shape[0]] = getattr(self, name)
+                setattr(self, name, grown)
+        if n_voxels > MAX_TABLE_LOAD * self.table.shape[0]:
+            self.table = np.empty(table_size(n_voxels), np.int32)
+            rebuild_table_kernel(self.table, self.state["keys"], self.n)
+
+    def set_label_dim(self, label_dim: int) -> None:
+        """Widen every row by the label columns (zero so far) once the first frame with labels arrives."""
+        old = self.layout
+        self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
+        rows = np.zeros((self.capacity, self.layout.width), np.float32)
+        rows[:, : old.width] = self.state["rows"]  # the label columns come last
+        self.state["rows"] = rows
+
+    def commit(self, touched: np.ndarray, n_new: int) -> None:
+        """After integration wrote rows ``touched`` (existing voxels, -1 entries ignored) and ``n_new``
+        new voxels after the first `len(self)`: stamp them, extend the chunk boxes, count them in."""
+        stamp = next(_STAMPS)
+        self.changed_at[touched[touched >= 0]] = stamp
+        self.changed_at[self.n: self.n + n_new] = stamp
+        update_chunk_boxes_kernel(self.state["keys"], self.n, self.n + n_new, self.chunk_lo, self.chunk_hi)
+        self.n += n_new
+
+    # -- reading ------------------------------------------------------------------------------
+    def find(self, keys: np.ndarray) -> np.ndarray:  # [M] int64 keys -> [M] int32 voxel indices, -1 absent
+        """The voxel indices of ``keys``."""
+        keys = np.ascontiguousarray(keys, np.int64)
+        out = np.empty(keys.shape[0], np.int32)
+        lookup_kernel(self.table, self.state["keys"], keys, out)
+        return out
+
+    def representative_points(self, max_points: int = 20_000) -> np.ndarray | None:  # [<= ~max_points, 3] float32
+        """Representative positions of an evenly strided subset of the voxels (None when empty)."""
+        if not self.n:
+            return None
+        step = max(1, self.n // max_points)
+        return self.layout.field(self.state["rows"][: self.n: step], "rep_pos")
+
+    def sums(self) -> dict[str, np.ndarray]:
+        """The raw per-voxel sums (contiguous copies, insertion order, spare rows excluded)."""
+        return {name: array.copy() for name, array in self.sums_of(self.state).items()}
+
+    def copied_sums(self) -> dict[str, np.ndarray]:
+        """`sums`, as views into one copy of the state: one block copy of the rows instead of a
+        strided copy per column (cheaper, and it is what a reader does under the scene's lock)."""
+        return self.sums_of({k: v[: self.n].copy() for k, v in self.state.items()})
+
+    def sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The sums as views into ``state`` (the map's arrays or a copy of them), its first `len(self)` rows."""
+        n = self.n
+        rows = state["rows"][:n]
+        out = {k: v[:n] for k, v in state.items() if k != "rows"}
+        out |= {name: self.layout.field(rows, name) for name in self.layout.columns}
+        if not self.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
+            out["label_sum"] = np.zeros((n, 0), np.float32)
+        return out
+
+    def load_sums(self, sums: dict[str, np.ndarray]) -> None:
+        """Inverse of `sums` on an empty map (snapshot loading): rows, hash table and chunk boxes."""
+        n = len(sums["keys"])
+        self.reserve(n)
+        for name in ARRAYS:
+            self.state[name][:n] = sums[name]
+        for name in self.layout.columns:
+            self.layout.field(self.state["rows"][:n], name)[...] = sums[name]
+        self.n = n
+        self.changed_at[:n] = next(_STAMPS)
+        rebuild_table_kernel(self.table, self.state["keys"], n)
+        update_chunk_boxes_kernel(self.state["keys"], 0, n, self.chunk_lo, self.chunk_hi)
+
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in self.state.values()) + self.table.nbytes + self.changed_at.nbytes)
+
+    def bytes_per_voxel(self) -> float:
+        """Bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes per
+        stored voxel (row slack reserved for growth is excluded; `nbytes` includes it)."""
+        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values() if a.shape[0] == self.capacity)
+        return row + self.table.nbytes / max(self.n, 1)

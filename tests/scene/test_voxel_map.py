@@ -1,0 +1,134 @@
+"""The voxel map's hash table and growth: every key finds its own row through any growth, lookups
+end even in a full table, the cap is enforced before anything changes, and the lattice's extreme
+keys are stored and found like any other."""
+
+import numpy as np
+import pytest
+
+from canonical_core import Scene, SceneConfig
+from canonical_core.datasets import synthetic_rgbd
+from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
+from canonical_core.scene.kernels import rebuild_table_kernel, voxel_keys_kernel
+from canonical_core.scene.voxel_map import ARRAYS, MAX_TABLE_LOAD, CapacityError, VoxelMap, table_size
+
+FEATURE_DIM = 4
+
+
+def random_sums(voxels: VoxelMap, keys: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
+    """Sums as `VoxelMap.sums` returns them, for ``keys``, with random values in every field."""
+    rng = np.random.default_rng(seed)
+    n = len(keys)
+    sums = {name: rng.integers(0, 100, (n, *shape)).astype(dtype) for name, (dtype, shape) in ARRAYS.items()}
+    sums["keys"] = np.asarray(keys, np.int64)
+    sums |= {name: rng.standard_normal((n, *shape)).astype(np.float32) for name, (_, shape) in voxels.layout.columns.items()}
+    return sums
+
+
+def distinct_keys(n: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.choice(np.int64(1) << np.int64(3 * KEY_BITS - 2), size=n, replace=False).astype(np.int64)
+
+
+def load(keys: np.ndarray, initial_capacity: int = 16) -> tuple[VoxelMap, dict[str, np.ndarray]]:
+    voxels = VoxelMap(FEATURE_DIM, sh_degree=1, initial_capacity=initial_capacity)
+    sums = random_sums(voxels, keys)
+    voxels.load_sums(sums)
+    return voxels, sums
+
+
+def assert_sums_equal(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
+    assert a.keys() == b.keys()
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_growth_keeps_every_key_and_row():
+    voxels, sums = load(distinct_keys(12))
+    table_before = voxels.table.shape[0]
+    voxels.reserve(5000)  # rows x1.5 or more, and a table rebuilt at a new size
+    assert voxels.capacity >= 5000 and voxels.table.shape[0] > table_before
+    assert len(voxels) == 12
+    np.testing.assert_array_equal(voxels.find(sums["keys"]), np.arange(12))
+    assert_sums_equal(voxels.sums(), {k: v for k, v in sums.items()} | {"label_sum": np.zeros((12, 0), np.float32)})
+
+
+def test_the_table_load_stays_below_the_limit_at_every_size():
+    voxels = VoxelMap(FEATURE_DIM, sh_degree=0, initial_capacity=16)
+    for n in (1, 11, 12, 100, 1000, 12345):
+        voxels.reserve(n)
+        assert n <= MAX_TABLE_LOAD * voxels.table.shape[0] and voxels.capacity >= n
+        assert table_size(n) & (table_size(n) - 1) == 0  # a power of two: slots are masked, not divided
+
+
+def test_folding_into_a_tiny_map_equals_folding_into_a_large_one():
+    """The real fold through many growths of rows and table: same state, and every stored key finds its row."""
+    frames = synthetic_rgbd(num_frames=3, width=64, height=48)
+    grown, roomy = Scene(SceneConfig(voxel_size=0.02), initial_capacity=16), Scene(SceneConfig(voxel_size=0.02))
+    for frame in frames:
+        grown.fold(frame)
+        roomy.fold(frame)
+    assert grown.capacity < roomy.capacity and grown.digest() == roomy.digest()
+    keys = grown.sums()["keys"]
+    np.testing.assert_array_equal(grown._voxels.find(keys), np.arange(len(keys)))
+
+
+def test_lookups_of_absent_keys_end_in_a_full_table():
+    voxels, sums = load(distinct_keys(16), initial_capacity=16)
+    voxels.table = np.empty(16, np.int32)  # a table with no empty slot left (the map never makes one)
+    rebuild_table_kernel(voxels.table, voxels.state["keys"], 16)
+    assert (voxels.table >= 0).all()
+    absent = np.setdiff1d(distinct_keys(40, seed=7), sums["keys"])[:8]
+    np.testing.assert_array_equal(voxels.find(absent), -1)
+    np.testing.assert_array_equal(np.sort(voxels.find(sums["keys"])), np.arange(16))
+
+
+def home_slot(keys: np.ndarray, table_slots: int) -> np.ndarray:
+    """The slot a key's probe starts at: the multiplicative hash `kernels._slot` computes."""
+    h = keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    return ((h >> np.uint64(29)) & np.uint64(table_slots - 1)).astype(np.int64)
+
+
+def test_keys_that_share_a_home_slot_probe_to_the_next_free_ones():
+    candidates = distinct_keys(2000)
+    slots = table_size(16)
+    home = home_slot(candidates, slots)
+    target = np.bincount(home).argmax()
+    keys = candidates[home == target][:3]  # three keys whose probes all start at one slot
+    assert len(keys) == 3
+    voxels, _ = load(keys)
+    assert voxels.table.shape[0] == slots
+    np.testing.assert_array_equal(voxels.find(keys), [0, 1, 2])
+    np.testing.assert_array_equal(voxels.table[(target + np.arange(3)) % slots], [0, 1, 2])  # linear probing, in order
+
+
+def test_the_cap_is_checked_before_anything_changes():
+    voxels = VoxelMap(FEATURE_DIM, sh_degree=0, initial_capacity=16, max_voxels=5)
+    voxels.check_room(5)
+    with pytest.raises(CapacityError, match="max_voxels: .* 6 voxels, above the cap of 5"):
+        voxels.check_room(6)
+    assert issubclass(CapacityError, ValueError) and len(voxels) == 0
+
+
+def test_a_scene_at_its_cap_refuses_the_frame_unchanged():
+    frames = synthetic_rgbd(num_frames=2, width=64, height=48)
+    scene = Scene(SceneConfig(voxel_size=0.02, max_voxels=2500))
+    scene.fold(frames[0])
+    before = scene.digest()
+    with pytest.raises(CapacityError, match="max_voxels"):
+        scene.fold(frames[1])
+    assert scene.digest() == before
+
+
+def test_keys_at_the_lattice_extremes_are_stored_and_found():
+    low, high = -KEY_OFFSET, KEY_OFFSET - 1  # the first and last voxel index on each axis
+    points = np.array([[low, low, low], [high + 0.5, high + 0.5, high + 0.5], [low, high + 0.5, 0.5],
+                       [high + 1.0, 0, 0], [low - 1.0, 0, 0]], np.float32)
+    keys = np.empty(len(points), np.int64)
+    voxel_keys_kernel(points, np.float32(1.0), keys)
+    top = (1 << KEY_BITS) - 1
+    assert keys[0] == 0 and keys[1] == (top << 2 * KEY_BITS) | (top << KEY_BITS) | top == np.iinfo(np.int64).max
+    assert keys[2] == (top << KEY_BITS) | KEY_OFFSET
+    assert keys[3] == -1 and keys[4] == -1  # one past either end: outside the lattice
+    voxels, _ = load(keys[:3])
+    np.testing.assert_array_equal(voxels.find(keys[:3]), [0, 1, 2])
+    np.testing.assert_array_equal(voxels.find(np.array([1, top], np.int64)), [-1, -1])
