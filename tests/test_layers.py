@@ -19,8 +19,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 ROOT = REPO / "canonical_core"
 
-# the layer order, lowest first: each layer may import the ones before it
-LAYERS = ["settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval"]
+# the layer order, lowest first: each layer may import the ones before it (deprecation: the shims that
+# keep renamed public names working for a release, a leaf every layer may use)
+LAYERS = ["deprecation", "settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
 ALLOWED["datasets"] = {"camera", "frame"}  # loaders need cameras and frames, nothing of the method
 ALLOWED["eval"] |= {"datasets"}
