@@ -69,7 +69,9 @@ def run_serve(args) -> int:
     # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
     host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
     port = int(os.environ.get("CANONICAL_PORT", "8000"))
-    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level)
+    # The protocol closes connections whose request head is late (slowloris); bodies get 408 in the app.
+    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level,
+                http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
 
 

@@ -79,6 +79,7 @@ class FoldReportOut(BaseModel):
     also_folded: int = Field(0, description="earlier waiting frames this call folded")
     completed_pixels: int = Field(0, description="pixels whose missing depth the plane sweep filled (depth_completion)")
     denoised: bool = Field(False, description="the frame's depth was far rougher than its noise model and was replaced by a local median (depth_denoise_radius)")
+    warnings: list[str] = Field(default_factory=list, description="problems with the input that did not stop the fold, each 'field: problem' (e.g. depth that gave no observation)")
 
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
@@ -88,7 +89,7 @@ Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4
 class ViewRequest(BaseModel):
     """A camera to render at: K (pixels), c2w (OpenCV camera-to-world), image size."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # strict: no strings or booleans taken as numbers
 
     K: Matrix3
     c2w: Matrix4

@@ -34,7 +34,7 @@ from ..evidence import AppearanceUncertainty, denoise_rough_depth, extract_evide
 from ..evidence.mvs import (SourceView, SourceWindow, complete_depth, depth_range_from_points, estimate_depth,
                             sensor_holes)
 from ..decode import GaussianDecoder, solve_colours, support_unit
-from ..frame import Frame
+from ..frame import Frame, check_rgb_only, depth_warnings
 from ..gaussians import Gaussians
 from .config import SceneConfig
 from .decoded import DecodedRows
@@ -70,6 +70,8 @@ class FoldReport:
     view yet is ``pending``: accepted and kept, and folded (its depth estimated) by the call whose
     frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
     was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
+    ``warnings``: problems with the input that did not stop the fold, each ``"field: problem"``
+    (e.g. depth that gave no observation).
     """
 
     frame_index: int
@@ -82,6 +84,7 @@ class FoldReport:
     also_folded: int = 0
     completed_pixels: int = 0
     denoised: bool = False
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -225,8 +228,9 @@ class Scene:
             self._window.add(view)  # after the fold: a frame that fails to fold leaves the window as it was
         self._keyframes.add(self.frames, frame)
         self.frames += 1
+        warnings = depth_warnings(frame.depth, self.config.near, self.config.far) if counts[0] == 0 else []
         return FoldReport(self.frames - 1, *counts, ms=(time.perf_counter() - t0) * 1000.0, completed_pixels=completed,
-                          denoised=denoised)
+                          denoised=denoised, warnings=warnings)
 
     def _denoised(self, frame: Frame) -> tuple[Frame, bool]:
         """``frame`` with its depth replaced by the local median where it is far rougher than its
@@ -324,6 +328,7 @@ class Scene:
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std)), int(filled.sum())
 
     def _fold_without_depth(self, frame: Frame, t0: float) -> FoldReport:
+        check_rgb_only(frame)
         self._check_foldable(frame)
         index = self.frames
         sources = self._sources_for(frame.camera)
