@@ -189,7 +189,7 @@ class Scene:
         self._state["rows"] = rows
 
     def _scratch(self, m: int) -> None:
-        if m > self._scratch_m:
+        if m > self._scratch_m or not self._scratch_m:  # allocated on first use, even for a frame with no evidence
             self._scratch_m = max(m, 1024)
             self._obs_keys = np.empty(self._scratch_m, np.int64)
             self._frame_keys = np.empty(self._scratch_m, np.int64)
