@@ -27,6 +27,9 @@ ROTATION_TOLERANCE = 1e-3
 MIN_FOCAL_PER_SIDE = 1e-3
 MAX_FOCAL_PER_SIDE = 1e3
 MAX_TRANSLATION = 1e5
+# A view's principal point may lie outside its image (a crop or a tile of a larger view), but not
+# more than this many image sides away from it.
+MAX_PRINCIPAL_OFFSET = 4.0
 
 # OpenGL/NeRF camera axes (x right, y up, z backward) -> OpenCV axes (x right, y down, z forward).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -88,19 +91,20 @@ def validate_pose(c2w, field: str = "c2w") -> np.ndarray:
     return T
 
 
-def validate_image_intrinsics(K: np.ndarray, width: int, height: int, field: str = "K") -> None:
+def validate_image_intrinsics(K: np.ndarray, width: int, height: int, field: str = "K", margin: float = MAX_PRINCIPAL_OFFSET) -> None:
     """Check a validated ``K`` against its image size: the focal lengths within
-    [MIN_FOCAL_PER_SIDE, MAX_FOCAL_PER_SIDE] x the larger side, and the principal point inside the
-    image (outside it, K usually belongs to another image size, e.g. full-resolution K with a
-    downscaled image). Raises ValueError naming ``field``."""
+    [MIN_FOCAL_PER_SIDE, MAX_FOCAL_PER_SIDE] x the larger side, and the principal point at most
+    ``margin`` image sides outside the image (0: inside it). Raises ValueError naming ``field``."""
     side = max(width, height)
     for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
         if not MIN_FOCAL_PER_SIDE * side <= f <= MAX_FOCAL_PER_SIDE * side:
             raise ValueError(f"{field}: {name}={f:g} pixels is not within [{MIN_FOCAL_PER_SIDE:g}, {MAX_FOCAL_PER_SIDE:g}] "
                              f"x the image side {side}")
     cx, cy = K[0, 2], K[1, 2]
-    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
-        raise ValueError(f"{field}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
+    pad_x, pad_y = margin * width, margin * height
+    if not (-0.5 - pad_x <= cx <= width - 0.5 + pad_x and -0.5 - pad_y <= cy <= height - 0.5 + pad_y):
+        where = "outside the image" if margin == 0 else f"more than {margin:g} image sides outside the image"
+        raise ValueError(f"{field}: principal point ({cx:g}, {cy:g}) lies {where} ({width}x{height}); "
                          f"is K for another image size?")
 
 

@@ -17,7 +17,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from .camera import Camera
+from .camera import Camera, validate_image_intrinsics
 
 MAX_IMAGE_PIXELS = 4096 * 4096
 # Frames without depth get it from a plane sweep and wait, whole, in the source window and the
@@ -104,6 +104,9 @@ class Frame:
             raise ValueError(
                 f"camera: size {self.camera.width}x{self.camera.height} does not match the rgb image {W}x{H}"
             )
+        # a frame's own principal point lies in its image; outside it, K usually belongs to another
+        # image size (e.g. full-resolution K with a downscaled image) and would fuse into the wrong place
+        validate_image_intrinsics(self.camera.K64(), W, H, "K", margin=0.0)
         object.__setattr__(self, "rgb", rgb.contiguous())
         if self.depth is not None:
             depth = _float_map(self.depth, "depth", (H, W), allow_nonfinite=True)

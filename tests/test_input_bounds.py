@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from canonical_core import Camera, Frame, Scene, SceneConfig
-from canonical_core.camera import MAX_FOCAL_PER_SIDE, MAX_TRANSLATION, MIN_FOCAL_PER_SIDE
+from canonical_core.camera import MAX_FOCAL_PER_SIDE, MAX_PRINCIPAL_OFFSET, MAX_TRANSLATION, MIN_FOCAL_PER_SIDE
 from canonical_core.frame import (MAX_FEATURE_CHANNELS, MAX_LABEL_CHANNELS, MAX_RGB_ONLY_PIXELS, check_rgb_only,
                                   depth_warnings)
 
@@ -29,7 +29,7 @@ CAMERA_CASES = [
     ("fy tiny", dict(K=K(fy=1e-9)), "K", "fy=1e-09"),
     ("fx above the bound", dict(K=K(fx=MAX_FOCAL_PER_SIDE * W * 1.01)), "K", "fx="),
     ("cx far outside", dict(K=K(cx=1e6)), "K", "principal point"),
-    ("cy below the image", dict(K=K(cy=-0.6)), "K", "principal point"),
+    ("cy far below the image", dict(K=K(cy=-0.6 - MAX_PRINCIPAL_OFFSET * H)), "K", "principal point"),
     ("translation 1e12", dict(c2w=pose((0, 1e12, 0))), "c2w", "translation"),
     ("translation past the bound", dict(c2w=pose((MAX_TRANSLATION * 1.01, 0, 0))), "c2w", "translation"),
 ]
@@ -45,7 +45,14 @@ def test_absurd_cameras_are_refused(change, field, message):
 
 def test_camera_bounds_are_inclusive_edges():
     Camera(K(fx=MIN_FOCAL_PER_SIDE * W, fy=MAX_FOCAL_PER_SIDE * W, cx=-0.5, cy=H - 0.5), pose((MAX_TRANSLATION, 0, 0)), W, H)
-    Camera(K(cx=W - 0.5, cy=-0.5), pose((-MAX_TRANSLATION, 0, 0)), W, H)
+    Camera(K(cx=W - 0.5 + MAX_PRINCIPAL_OFFSET * W, cy=-0.5 - MAX_PRINCIPAL_OFFSET * H), pose((-MAX_TRANSLATION, 0, 0)), W, H)
+
+
+def test_a_frames_principal_point_lies_in_its_image():
+    camera = Camera(K(cx=2 * W), pose(), W, H)  # a view may be a crop of a larger one
+    with pytest.raises(ValueError, match=r"^K: principal point \(128, 23.5\) lies outside the image"):
+        Frame(rgb=np.zeros((H, W, 3), np.uint8), camera=camera)
+    Frame(rgb=np.zeros((H, W, 3), np.uint8), camera=Camera(K(cx=W - 0.5, cy=-0.5), pose(), W, H))
 
 
 def _frame(w=W, h=H, **kwargs):
