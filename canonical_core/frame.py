@@ -28,7 +28,7 @@ MAX_RGB_ONLY_PIXELS = 2048 * 2048
 # values per frame), and label scores add one float per channel to every voxel of the scene.
 MAX_FEATURE_CHANNELS = 512
 MAX_LABEL_CHANNELS = 256
-MIN_IMAGE_SIDE = 2  # a sweep, a denoise window or a gradient needs a neighbour pixel
+MIN_RGB_ONLY_SIDE = 8  # the plane sweep matches at half resolution and needs a few pixels a side
 
 
 def _tensor(value, field: str) -> Tensor:
@@ -98,8 +98,6 @@ class Frame:
         H, W = int(rgb.shape[0]), int(rgb.shape[1])
         if H * W > MAX_IMAGE_PIXELS:
             raise ValueError(f"rgb: image of {W}x{H} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
-        if min(H, W) < MIN_IMAGE_SIDE:
-            raise ValueError(f"rgb: image of {W}x{H} pixels; each side needs at least {MIN_IMAGE_SIDE} pixels")
         if (self.camera.width, self.camera.height) != (W, H):
             raise ValueError(
                 f"camera: size {self.camera.width}x{self.camera.height} does not match the rgb image {W}x{H}"
@@ -147,10 +145,16 @@ class Frame:
 
 
 def check_rgb_only(frame: Frame, max_pixels: int = MAX_RGB_ONLY_PIXELS) -> None:
-    """Raise ValueError naming ``rgb`` when a frame without depth is larger than ``max_pixels``."""
-    if frame.depth is None and frame.width * frame.height > max_pixels:
+    """Raise ValueError naming ``rgb`` when a frame without depth is larger than ``max_pixels``, or
+    smaller than `MIN_RGB_ONLY_SIDE` pixels a side (too small to sweep)."""
+    if frame.depth is not None:
+        return
+    if frame.width * frame.height > max_pixels:
         raise ValueError(f"rgb: a frame without depth of {frame.width}x{frame.height} pixels exceeds the limit of "
                          f"{max_pixels} pixels for frames without depth; send depth or a smaller image")
+    if min(frame.width, frame.height) < MIN_RGB_ONLY_SIDE:
+        raise ValueError(f"rgb: a frame without depth of {frame.width}x{frame.height} pixels is too small to estimate "
+                         f"depth from; it needs at least {MIN_RGB_ONLY_SIDE} pixels a side (or send depth)")
 
 
 def depth_warnings(

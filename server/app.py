@@ -140,7 +140,8 @@ class GuardMiddleware:
         # whole body before reading gets our answer instead of a reset connection; a client that
         # sends nothing more (or too slowly) is answered at once, and the connection is closed.
         loop = asyncio.get_running_loop()
-        deadline, budget, more = loop.time() + self.DRAIN_TOTAL_S, 4 * self.max_bytes, True
+        deadline, budget = loop.time() + self.DRAIN_TOTAL_S, 4 * self.max_bytes
+        more = dict(scope["headers"]).get(b"expect", b"").lower() != b"100-continue"  # such a client waits for us
         while more and budget > 0 and loop.time() < deadline:
             try:
                 event = await asyncio.wait_for(receive(), self.DRAIN_IDLE_S)

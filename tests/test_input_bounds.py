@@ -59,10 +59,13 @@ def _frame(w=W, h=H, **kwargs):
     return Frame(rgb=np.zeros((h, w, 3), np.uint8), camera=Camera(K(cx=(w - 1) / 2, cy=(h - 1) / 2), pose(), w, h), **kwargs)
 
 
-@pytest.mark.parametrize("w, h", [(1, 1), (1, 48), (64, 1)])
-def test_degenerate_images_are_refused(w, h):
-    with pytest.raises(ValueError, match=r"^rgb: image of .* at least 2 pixels"):
-        _frame(w, h)
+@pytest.mark.parametrize("w, h", [(1, 1), (1, 48), (64, 7)])
+def test_rgb_only_frames_too_small_to_sweep_are_refused(w, h):
+    scene = Scene(SceneConfig(voxel_size=0.05))
+    with pytest.raises(ValueError, match=rf"^rgb: a frame without depth of {w}x{h} pixels is too small"):
+        scene.fold(_frame(w, h))
+    assert scene.frames == 0
+    assert scene.fold(_frame(w, h, depth=np.ones((h, w), np.float32))).observations == w * h  # with depth it folds
 
 
 @pytest.mark.parametrize("name, limit", [("features", MAX_FEATURE_CHANNELS), ("labels", MAX_LABEL_CHANNELS)])
