@@ -23,10 +23,11 @@ from torch import Tensor
 ROTATION_TOLERANCE = 1e-3
 # Bounds that separate a real camera from numbers that are finite but absurd: the focal length in
 # units of the image's larger side (a field of view between about 0.06 and 179.9 degrees), and the
-# largest coordinate a pose may reach in metres (float32 keeps millimetres up to about 1e4 m).
+# largest coordinate a pose may reach in scene units (beyond it float32 positions, as the fold and
+# the renderer keep them, are coarser than one unit).
 MIN_FOCAL_PER_SIDE = 1e-3
 MAX_FOCAL_PER_SIDE = 1e3
-MAX_TRANSLATION = 1e5
+MAX_TRANSLATION = 1e7
 # A view's principal point may lie outside its image (a crop or a tile of a larger view), but not
 # more than this many image sides away from it.
 MAX_PRINCIPAL_OFFSET = 4.0
@@ -87,7 +88,7 @@ def validate_pose(c2w, field: str = "c2w") -> np.ndarray:
         raise ValueError(f"{field}: rotation has determinant {det:.3f}; expected +1 (a reflection, not a rotation)")
     reach = np.abs(T[:3, 3]).max()
     if reach > MAX_TRANSLATION:
-        raise ValueError(f"{field}: translation {T[:3, 3].tolist()} exceeds {MAX_TRANSLATION:g} m in a coordinate")
+        raise ValueError(f"{field}: translation {T[:3, 3].tolist()} exceeds {MAX_TRANSLATION:g} in a coordinate")
     return T
 
 

@@ -328,8 +328,8 @@ class Scene:
         return dataclasses.replace(frame, depth=torch.from_numpy(depth), depth_std=torch.from_numpy(std)), int(filled.sum())
 
     def _fold_without_depth(self, frame: Frame, t0: float) -> FoldReport:
-        check_rgb_only(frame)
         self._check_foldable(frame)
+        check_rgb_only(frame)
         index = self.frames
         sources = self._sources_for(frame.camera)
         if not sources and len(self._pending) >= self.config.source_window:
