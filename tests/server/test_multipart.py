@@ -58,3 +58,12 @@ def test_malformed_or_oversized_is_400_naming_the_field(content_type, data, fiel
     with pytest.raises(WireError) as info:
         parse_form_data(content_type, data)
     assert info.value.status == 400 and info.value.field == field and str(info.value).startswith(f"{field}: ")
+
+
+def test_docstring_example_runs():
+    import doctest
+
+    import server.multipart
+
+    result = doctest.testmod(server.multipart, verbose=False)
+    assert result.attempted > 0 and result.failed == 0

@@ -114,3 +114,12 @@ def test_sdk_and_server_share_the_codec_and_the_sdk_imports_no_torch():
             "bad = [m for m in ('torch', 'canonical_core', 'server') if m in sys.modules]; "
             "sys.exit(f'imported {bad}' if bad else 0)")
     subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True, timeout=60)
+
+
+def test_docstring_example_runs():
+    import doctest
+
+    import canonical_wire
+
+    result = doctest.testmod(canonical_wire, verbose=False)
+    assert result.attempted > 0 and result.failed == 0
