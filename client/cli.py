@@ -81,7 +81,8 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json)")
     _add_connection(p)
     target = p.add_mutually_exclusive_group(required=True)
-    target.add_argument("--session", help="stream into this existing session")
+    target.add_argument("--session", help="stream into this existing session, after the frames it already has "
+                                           "(give the same dataset, --stride and --max-frames to resume)")
     target.add_argument("--voxel-size", type=float, help="create a new session with this voxel size")
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)

@@ -72,7 +72,7 @@ def test_stream_resumes_after_the_frames_the_session_has(server, shelf_dir):
     session_id = next(line.split()[1] for line in first.stderr.splitlines() if line.startswith("session "))
     again = canonical("stream", *common, "--session", session_id, "--max-frames", "4")
     assert again.returncode == 0, again.stderr
-    assert f"resuming after its 2 frames" in again.stderr and again.stdout.startswith("2 frames in")
+    assert "resuming after its 2 frames" in again.stderr and again.stdout.startswith("2 frames in")
     stats = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert stats["frames"] == 4  # frames 0-1 once, then 2-3: none sent twice
 
