@@ -21,6 +21,16 @@ import torch
 from torch import Tensor
 
 ROTATION_TOLERANCE = 1e-3
+# Bounds that separate a real camera from numbers that are finite but absurd: the focal length in
+# units of the image's larger side (a field of view between about 0.06 and 179.9 degrees), and the
+# largest coordinate a pose may reach in scene units (beyond it float32 positions, as the fold and
+# the renderer keep them, are coarser than one unit).
+MIN_FOCAL_PER_SIDE = 1e-3
+MAX_FOCAL_PER_SIDE = 1e3
+MAX_TRANSLATION = 1e7
+# A view's principal point may lie outside its image (a crop or a tile of a larger view), but not
+# more than this many image sides away from it.
+MAX_PRINCIPAL_OFFSET = 4.0
 
 # OpenGL/NeRF camera axes (x right, y up, z backward) -> OpenCV axes (x right, y down, z forward).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -76,7 +86,27 @@ def validate_pose(c2w, field: str = "c2w") -> np.ndarray:
     det = np.linalg.det(R)
     if det < 0:
         raise ValueError(f"{field}: rotation has determinant {det:.3f}; expected +1 (a reflection, not a rotation)")
+    reach = np.abs(T[:3, 3]).max()
+    if reach > MAX_TRANSLATION:
+        raise ValueError(f"{field}: translation {T[:3, 3].tolist()} exceeds {MAX_TRANSLATION:g} in a coordinate")
     return T
+
+
+def validate_image_intrinsics(K: np.ndarray, width: int, height: int, field: str = "K", margin: float = MAX_PRINCIPAL_OFFSET) -> None:
+    """Check a validated ``K`` against its image size: the focal lengths within
+    [MIN_FOCAL_PER_SIDE, MAX_FOCAL_PER_SIDE] x the larger side, and the principal point at most
+    ``margin`` image sides outside the image (0: inside it). Raises ValueError naming ``field``."""
+    side = max(width, height)
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not MIN_FOCAL_PER_SIDE * side <= f <= MAX_FOCAL_PER_SIDE * side:
+            raise ValueError(f"{field}: {name}={f:g} pixels is not within [{MIN_FOCAL_PER_SIDE:g}, {MAX_FOCAL_PER_SIDE:g}] "
+                             f"x the image side {side}")
+    cx, cy = K[0, 2], K[1, 2]
+    pad_x, pad_y = margin * width, margin * height
+    if not (-0.5 - pad_x <= cx <= width - 0.5 + pad_x and -0.5 - pad_y <= cy <= height - 0.5 + pad_y):
+        where = "outside the image" if margin == 0 else f"more than {margin:g} image sides outside the image"
+        raise ValueError(f"{field}: principal point ({cx:g}, {cy:g}) lies {where} ({width}x{height}); "
+                         f"is K for another image size?")
 
 
 def quaternion_to_matrix(q) -> np.ndarray:
@@ -118,6 +148,7 @@ class Camera:
         for name, value in (("width", width), ("height", height)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
                 raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+        validate_image_intrinsics(K64, int(width), int(height))
         object.__setattr__(self, "K", torch.from_numpy(K64.astype(np.float32)))
         object.__setattr__(self, "c2w", torch.from_numpy(T64.astype(np.float32)))
         object.__setattr__(self, "width", int(width))

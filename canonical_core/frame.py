@@ -17,9 +17,18 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from .camera import Camera
+from .camera import Camera, validate_image_intrinsics
 
 MAX_IMAGE_PIXELS = 4096 * 4096
+# Frames without depth get it from a plane sweep and wait, whole, in the source window and the
+# pending list (and so in every snapshot) until a partner view arrives: they cost far more per
+# pixel than frames with depth, so their size has a lower bound.
+MAX_RGB_ONLY_PIXELS = 2048 * 2048
+# Client features and label scores are sampled at every valid image pixel (pixels x channels
+# values per frame), and label scores add one float per channel to every voxel of the scene.
+MAX_FEATURE_CHANNELS = 512
+MAX_LABEL_CHANNELS = 256
+MIN_RGB_ONLY_SIDE = 8  # the plane sweep matches at half resolution and needs a few pixels a side
 
 
 def _tensor(value, field: str) -> Tensor:
@@ -45,10 +54,12 @@ def _float_map(value, field: str, shape: tuple[int, int], allow_nonfinite: bool)
     return t.contiguous()
 
 
-def _channel_map(value, field: str) -> Tensor:
+def _channel_map(value, field: str, max_channels: int) -> Tensor:
     t = _tensor(value, field)
     if t.ndim != 3 or min(t.shape) < 1:
         raise ValueError(f"{field}: expected shape [H', W', C], got {list(t.shape)}")
+    if t.shape[-1] > max_channels:
+        raise ValueError(f"{field}: {t.shape[-1]} channels exceed the limit of {max_channels}")
     if not t.is_floating_point():
         raise ValueError(f"{field}: expected a float array, got dtype {t.dtype}")
     t = t.to(torch.float32)
@@ -94,6 +105,9 @@ class Frame:
             raise ValueError(
                 f"camera: size {self.camera.width}x{self.camera.height} does not match the rgb image {W}x{H}"
             )
+        # a frame's own principal point lies in its image; outside it, K usually belongs to another
+        # image size (e.g. full-resolution K with a downscaled image) and would fuse into the wrong place
+        validate_image_intrinsics(self.camera.K64(), W, H, "K", margin=0.0)
         object.__setattr__(self, "rgb", rgb.contiguous())
         if self.depth is not None:
             depth = _float_map(self.depth, "depth", (H, W), allow_nonfinite=True)
@@ -109,9 +123,9 @@ class Frame:
                 raise ValueError("depth_std: negative standard deviations")
             object.__setattr__(self, "depth_std", std)
         if self.features is not None:
-            object.__setattr__(self, "features", _channel_map(self.features, "features"))
+            object.__setattr__(self, "features", _channel_map(self.features, "features", MAX_FEATURE_CHANNELS))
         if self.labels is not None:
-            labels = _channel_map(self.labels, "labels")
+            labels = _channel_map(self.labels, "labels", MAX_LABEL_CHANNELS)
             object.__setattr__(self, "labels", labels)
         if self.frame_id is not None and not isinstance(self.frame_id, str):
             raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")
@@ -131,6 +145,41 @@ class Frame:
     def __repr__(self) -> str:
         extras = [n for n in ("depth", "depth_std", "features", "labels") if getattr(self, n) is not None]
         return f"Frame({self.width}x{self.height}, id={self.frame_id!r}, with={extras}, {self.camera!r})"
+
+
+def check_rgb_only(frame: Frame, max_pixels: int = MAX_RGB_ONLY_PIXELS) -> None:
+    """Raise ValueError naming ``rgb`` when a frame without depth is larger than ``max_pixels``, or
+    smaller than `MIN_RGB_ONLY_SIDE` pixels a side (too small to sweep)."""
+    if frame.depth is not None:
+        return
+    if frame.width * frame.height > max_pixels:
+        raise ValueError(f"rgb: a frame without depth of {frame.width}x{frame.height} pixels exceeds the limit of "
+                         f"{max_pixels} pixels for frames without depth; send depth or a smaller image")
+    if min(frame.width, frame.height) < MIN_RGB_ONLY_SIDE:
+        raise ValueError(f"rgb: a frame without depth of {frame.width}x{frame.height} pixels is too small to estimate "
+                         f"depth from; it needs at least {MIN_RGB_ONLY_SIDE} pixels a side (or send depth)")
+
+
+def depth_warnings(
+    depth: Tensor,  # [H, W] float32 metres, 0 = missing
+    near: float,
+    far: float,
+) -> list[str]:
+    """Why a frame's depth gives no usable pixel: none valid, or none within [near, far] (wrong units?).
+
+    Example:
+        >>> depth_warnings(torch.zeros(2, 2), 0.1, 10.0)
+        ['depth: no valid pixel (all zero, NaN or inf); the frame added nothing']
+    """
+    valid = depth[depth > 0]
+    if valid.numel() == 0:
+        return ["depth: no valid pixel (all zero, NaN or inf); the frame added nothing"]
+    inside = ((valid > near) & (valid < far)).sum().item()
+    if inside == 0:
+        median = float(valid.median())
+        return [f"depth: no pixel lies within near={near:g} .. far={far:g} m (median {median:g}); "
+                f"is the depth in metres (depth_scale)?"]
+    return []
 
 
 def resize_frame(frame: Frame, scale: float) -> Frame:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import httpx
 import numpy as np
 
 from .sdk import CanonicalError, Client
@@ -69,7 +70,9 @@ def run_serve(args) -> int:
     # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
     host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
     port = int(os.environ.get("CANONICAL_PORT", "8000"))
-    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level)
+    # The protocol closes connections whose request head is late (slowloris); bodies get 408 in the app.
+    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level,
+                http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
 
 
@@ -110,7 +113,8 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json)")
     _add_connection(p)
     target = p.add_mutually_exclusive_group(required=True)
-    target.add_argument("--session", help="stream into this existing session")
+    target.add_argument("--session", help="stream into this existing session, after the frames it already has "
+                                           "(give the same dataset, --stride and --max-frames to resume)")
     target.add_argument("--voxel-size", type=float, help="create a new session with this voxel size")
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
@@ -159,18 +163,33 @@ def frame_arrays(frame, scale: float = 1.0) -> dict:
     return out
 
 
-def stream_frames(session, frames, scale: float = 1.0) -> float:
-    """Post every frame with a progress bar; returns the elapsed seconds."""
+def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[int, float]:
+    """Post frames ``start`` .. end with a progress bar; returns (frames sent, elapsed seconds).
+
+    Ctrl-C stops after the frame in flight; the count says how many were acknowledged."""
     from tqdm import tqdm
 
-    t0, new = time.perf_counter(), 0
-    with tqdm(total=len(frames), unit="frame", desc=frames.name) as bar:
-        for i in range(len(frames)):
-            report = session.add_frame(**frame_arrays(frames[i], scale))
-            new += report["new_voxels"]
-            bar.set_postfix(voxels=new, refresh=False)
-            bar.update()
-    return time.perf_counter() - t0
+    t0, new, sent = time.perf_counter(), 0, 0
+    with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar:
+        try:
+            for i in range(start, len(frames)):
+                report = session.add_frame(**frame_arrays(frames[i], scale))
+                sent += 1
+                new += report["new_voxels"]
+                bar.set_postfix(voxels=new, refresh=False)
+                bar.update()
+        except KeyboardInterrupt:
+            bar.close()
+            raise StreamInterrupted(sent, time.perf_counter() - t0) from None
+    return sent, time.perf_counter() - t0
+
+
+class StreamInterrupted(Exception):
+    """Ctrl-C during `stream_frames`: ``sent`` frames were acknowledged in ``elapsed`` seconds."""
+
+    def __init__(self, sent: int, elapsed: float):
+        super().__init__(f"interrupted after {sent} frames")
+        self.sent, self.elapsed = sent, elapsed
 
 
 def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
@@ -190,13 +209,21 @@ def run_stream(args) -> int:
         return 2
     frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     with _client(args) as client:
+        start = 0
         if args.session:
             session = client.session(args.session)
+            start = min(session.stats()["frames"], len(frames))  # resume after the frames it already has
+            print(f"session {session.id}: resuming after its {start} frames", file=sys.stderr)
         else:
             session = client.create_session(voxel_size=args.voxel_size, **settings_from_pairs(args.settings))
-        print(f"session {session.id}", file=sys.stderr)
-        elapsed = stream_frames(session, frames, args.scale)
-        print(_stream_summary(len(frames), elapsed, session, session.stats()))
+            print(f"session {session.id}", file=sys.stderr)
+        try:
+            sent, elapsed = stream_frames(session, frames, args.scale, start)
+        except StreamInterrupted as stop:
+            print("interrupted: " + _stream_summary(stop.sent, stop.elapsed, session, session.stats())
+                  + f"; continue with --session {session.id}")
+            return 130
+        print(_stream_summary(sent, elapsed, session, session.stats()))
     return 0
 
 
@@ -351,8 +378,8 @@ def run_demo(args) -> int:
     try:
         with Client(f"http://127.0.0.1:{port}") as client:
             session = client.create_session(voxel_size=voxel)
-            elapsed = stream_frames(session, frames)
-            print(_stream_summary(len(frames), elapsed, session, session.stats()))
+            sent, elapsed = stream_frames(session, frames)
+            print(_stream_summary(sent, elapsed, session, session.stats()))
             view = frames[len(frames) // 2]
             cam = view.camera
             rendered = session.render(cam.K64(), cam.c2w64(), cam.width, cam.height)
@@ -421,11 +448,18 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (``canonical stream: error: ...``) instead of usage + error."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The ``canonical`` parser; with ``only``, just that command gets its arguments (the others
     are listed by name and help), so a command never pays for another's imports."""
-    parser = argparse.ArgumentParser(prog="canonical", description="CanonicalGS Fusion: service and client.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser = _Parser(prog="canonical", description="CanonicalGS Fusion: service and client.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for name, command in COMMANDS.items():
         p = sub.add_parser(name, help=command.help, description=command.help)
         if only is None or name == only:
@@ -441,6 +475,15 @@ def main(argv: list[str] | None = None) -> int:
     except CanonicalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except httpx.TransportError as exc:  # unreachable, refused, timed out
+        print(f"error: cannot reach the service at {getattr(args, 'url', '?')} ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return 1
+    except (OSError, ValueError) as exc:  # a missing file, a malformed number or matrix
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

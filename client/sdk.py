@@ -18,11 +18,11 @@ import time
 from pathlib import Path
 
 import httpx
-import msgpack
 import numpy as np
 
+from canonical_wire import decode_array, encode_array, pack, unpack  # the codec the service uses too
+
 MSGPACK = "application/msgpack"
-_DTYPES = {"uint8": "<u1", "uint16": "<u2", "float16": "<f2", "float32": "<f4"}
 
 
 class CanonicalError(Exception):
@@ -31,21 +31,6 @@ class CanonicalError(Exception):
     def __init__(self, status: int, code: str, message: str, field: str | None = None):
         super().__init__(f"{status} {code}: {message}")
         self.status, self.code, self.message, self.field = status, code, message, field
-
-
-# -- the array codec (the server has its own; the client never imports server/) ---------------------
-def encode_array(a) -> dict:
-    a = np.asarray(a)
-    if a.dtype == np.float64:
-        a = a.astype(np.float32)
-    if a.dtype.name not in _DTYPES:
-        raise ValueError(f"array: dtype {a.dtype} cannot travel; use uint8, uint16, float16 or float32")
-    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": np.ascontiguousarray(a, _DTYPES[a.dtype.name]).tobytes()}
-
-
-def decode_array(obj: dict) -> np.ndarray:
-    dtype = np.dtype(_DTYPES[obj["dtype"]])
-    return np.frombuffer(obj["data"], dtype).reshape(obj["shape"]).astype(dtype.newbyteorder("="))
 
 
 def _matrix(m, shape: tuple[int, int]) -> list:
@@ -88,7 +73,7 @@ class Session:
                 msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
         if frame_id is not None:
             msg["frame_id"] = str(frame_id)
-        body = msgpack.packb(msg, use_bin_type=True)
+        body = pack(msg)
         return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
 
     def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
@@ -120,7 +105,7 @@ class Session:
 
     def _arrays(self, route: str, body: dict) -> dict:
         r = self.client._request("POST", f"{self._path}/{route}", json=body, headers={"Accept": MSGPACK})
-        return {k: decode_array(v) for k, v in msgpack.unpackb(r.content, raw=False).items()}
+        return {k: decode_array(v, k) for k, v in unpack(r.content, route).items()}
 
     def export_ply(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
         return self._export(".ply", path, max_gaussians)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import secrets
 
 import torch
 from fastapi import FastAPI
@@ -26,46 +27,77 @@ from .store import DataDirLocked, SessionStore
 log = logging.getLogger("canonical.server")
 
 
-class GuardMiddleware:
-    """Pure ASGI: refuses bodies over ``max_bytes`` (413, by Content-Length or while streaming a
-    chunked body) and counts responses by status for /metrics."""
+class BodyTimeout(Exception):
+    """The request body stalled or took too long (the middleware answers 408)."""
 
-    def __init__(self, app, max_bytes: int, metrics: Metrics):
-        self.app, self.max_bytes, self.metrics = app, max_bytes, metrics
+
+class GuardMiddleware:
+    """Pure ASGI, in front of every route, so that no route pays for a request it refuses:
+
+    - the bearer token (with ``api_token`` set, everything but /healthz needs it), checked from the
+      headers before a byte of the body is read;
+    - the body size: 413 at once by Content-Length, or while reading a chunked body;
+    - body deadlines: 408 when the body stalls ``read_timeout_s`` between reads or is not complete
+      within ``body_timeout_s``; the route then gets the whole body at once;
+    - the count of responses by status for /metrics, 500s from unhandled errors included (those
+      are answered by Starlette's outermost error middleware, outside this one).
+    """
+
+    OPEN_PATHS = ("/healthz",)
+    DRAIN_IDLE_S, DRAIN_TOTAL_S = 0.25, 2.0  # courtesy reads of a refused body (see _reject)
+
+    def __init__(self, app, settings: Settings, metrics: Metrics):
+        self.app, self.settings, self.metrics = app, settings, metrics
+        self.max_bytes = settings.max_body_bytes
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        started = False
 
         async def counting_send(message):
+            nonlocal started
             if message["type"] == "http.response.start":
+                started = True
                 self.metrics.responses[message["status"]] += 1
             await send(message)
 
-        length = dict(scope["headers"]).get(b"content-length")
+        try:
+            await self._guarded(scope, receive, counting_send)
+        except Exception:
+            if not started:  # Starlette's ServerErrorMiddleware answers 500 outside this middleware
+                self.metrics.responses[500] += 1
+            raise
+
+    async def _guarded(self, scope, receive, send):
+        headers = dict(scope["headers"])
+        if not self._authorized(scope, headers):
+            return await self._reject(scope, receive, send, 401, "unauthorized", "Authorization: missing or wrong bearer token",
+                                      "Authorization", {"WWW-Authenticate": "Bearer"})
+        length = headers.get(b"content-length")
         if length is not None:
             try:
-                too_big = int(length) > self.max_bytes
+                size = int(length)
             except ValueError:
-                too_big = False
-            if too_big:
-                return await self._reject(scope, receive, counting_send, int(length))
-            return await self.app(scope, receive, counting_send)
-        if dict(scope["headers"]).get(b"transfer-encoding", b"").lower() != b"chunked":
-            return await self.app(scope, receive, counting_send)
-        # chunked: buffer (bounded), then hand the app the whole body
-        chunks, size = [], 0
-        while True:
-            message = await receive()
-            if message["type"] != "http.request":
-                return
-            chunks.append(message.get("body", b""))
-            size += len(chunks[-1])
+                size = -1
+            if size < 0:
+                return await self._reject(scope, receive, send, 400, "malformed_body", "Content-Length: not a non-negative integer",
+                                          "Content-Length")
             if size > self.max_bytes:
-                return await self._reject(scope, receive, counting_send, size, more=message.get("more_body", False))
-            if not message.get("more_body", False):
-                break
-        body, sent = b"".join(chunks), False
+                return await self._reject(scope, receive, send, 413, "too_large",
+                                          f"body: {size} bytes exceed the limit of {self.max_bytes} bytes", "body")
+        elif headers.get(b"transfer-encoding", b"").lower() != b"chunked":
+            return await self.app(scope, receive, send)
+        try:
+            body = await self._read_body(receive)
+        except BodyTimeout as exc:
+            return await error_response(408, "timeout", f"body: {exc}", "body", {"Connection": "close"})(scope, receive, send)
+        if body is None:  # the client went away
+            return None
+        if len(body) > self.max_bytes:
+            return await self._reject(scope, receive, send, 413, "too_large",
+                                      f"body: more than {self.max_bytes} bytes (the limit)", "body")
+        sent = False
 
         async def replay():
             nonlocal sent
@@ -74,20 +106,52 @@ class GuardMiddleware:
                 return {"type": "http.request", "body": body, "more_body": False}
             return await receive()
 
-        return await self.app(scope, replay, counting_send)
+        return await self.app(scope, replay, send)
 
-    async def _reject(self, scope, receive, send, size: int, more: bool = True):
-        # Read (and drop) what the client is still sending, up to a bound, so that it gets to read
-        # our answer instead of a reset connection; past the bound the connection is simply closed.
-        budget = 4 * self.max_bytes
-        while more and budget > 0:
-            message = await receive()
+    def _authorized(self, scope, headers: dict) -> bool:
+        token = self.settings.api_token
+        if token is None or scope.get("path") in self.OPEN_PATHS:
+            return True
+        scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
+        return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())
+
+    async def _read_body(self, receive) -> bytes | None:
+        """The whole body (stopping once it passes the limit), or None when the client disconnected."""
+        chunks, size = [], 0
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.settings.body_timeout_s
+        while True:
+            wait = min(self.settings.read_timeout_s, deadline - loop.time())
+            try:
+                message = await asyncio.wait_for(receive(), max(wait, 0.0))
+            except asyncio.TimeoutError:
+                stalled = wait >= self.settings.read_timeout_s
+                raise BodyTimeout(f"no data for {self.settings.read_timeout_s:g} s" if stalled
+                                  else f"not complete within {self.settings.body_timeout_s:g} s") from None
             if message["type"] != "http.request":
+                return None
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.max_bytes or not message.get("more_body", False):
+                return b"".join(chunks)
+
+    async def _reject(self, scope, receive, send, status: int, code: str, message: str, field: str, headers=None):
+        # Read (and drop) what the client is still sending, briefly, so that a client that writes its
+        # whole body before reading gets our answer instead of a reset connection; a client that
+        # sends nothing more (or too slowly) is answered at once, and the connection is closed.
+        loop = asyncio.get_running_loop()
+        deadline, budget = loop.time() + self.DRAIN_TOTAL_S, 4 * self.max_bytes
+        more = dict(scope["headers"]).get(b"expect", b"").lower() != b"100-continue"  # such a client waits for us
+        while more and budget > 0 and loop.time() < deadline:
+            try:
+                event = await asyncio.wait_for(receive(), self.DRAIN_IDLE_S)
+            except asyncio.TimeoutError:
                 break
-            budget -= len(message.get("body", b""))
-            more = message.get("more_body", False)
-        response = error_response(413, "too_large", f"body: {size} bytes exceed the limit of {self.max_bytes} bytes", "body")
-        await response(scope, receive, send)
+            if event["type"] != "http.request":
+                break
+            budget -= len(event.get("body", b""))
+            more = event.get("more_body", False)
+        await error_response(status, code, message, field, {**(headers or {}), "Connection": "close"})(scope, receive, send)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -128,7 +192,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.store = store
     app.state.metrics = metrics
     app.state.jobs = JobQueue(settings.queue_limit, settings.threads)
-    app.add_middleware(GuardMiddleware, max_bytes=settings.max_body_bytes, metrics=metrics)
+    app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics)
     install_error_handlers(app)
     for module in (health, sessions, frames, views, exports):
         app.include_router(module.router)

@@ -107,8 +107,8 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
-        field = "path" if exc.status_code == 404 else "method" if exc.status_code == 405 else None
-        message = f"{request.method} {request.url.path}: {exc.detail}"
+        field = {400: "body", 404: "path", 405: "method"}.get(exc.status_code)
+        message = f"body: {exc.detail}" if field == "body" else f"{request.method} {request.url.path}: {exc.detail}"
         return error_response(exc.status_code, _HTTP_CODES.get(exc.status_code, "error"), message, field, exc.headers)
 
     @app.exception_handler(Exception)

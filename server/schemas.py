@@ -20,8 +20,12 @@ def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:
     hints = typing.get_type_hints(cls)
     fields: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
-        default = ... if f.default is dataclasses.MISSING else f.default
-        fields[f.name] = (hints[f.name], Field(default, description=f.metadata.get("description")))
+        description = f.metadata.get("description")
+        if f.default_factory is not dataclasses.MISSING:
+            fields[f.name] = (hints[f.name], Field(default_factory=f.default_factory, description=description))
+        else:
+            default = ... if f.default is dataclasses.MISSING else f.default
+            fields[f.name] = (hints[f.name], Field(default, description=description))
     return create_model(name, __doc__=cls.__doc__, **fields)
 
 
@@ -83,7 +87,7 @@ Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4
 class ViewRequest(BaseModel):
     """A camera to render at: K (pixels), c2w (OpenCV camera-to-world), image size."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # strict: no strings or booleans taken as numbers
 
     K: Matrix3
     c2w: Matrix4

@@ -1,8 +1,8 @@
 """The wire format: msgpack arrays, PNG/JPEG images, 16-bit depth PNGs, and frame messages.
 
-An array travels as ``{"dtype": "uint8"|"uint16"|"float16"|"float32", "shape": [...], "data": <bytes,
-little-endian, C order>}``. A frame message is a msgpack map with ``rgb`` (array or PNG/JPEG bytes),
-``K`` [3][3], ``c2w`` [4][4] and optional ``depth`` (float array in metres, or a uint16 array / 16-bit
+Arrays travel in the codec of `canonical_wire` (re-exported here), the one the SDK uses. A frame
+message is a msgpack map with ``rgb`` (array or PNG/JPEG bytes), ``K`` [3][3], ``c2w`` [4][4] and
+optional ``depth`` (float array in metres, or a uint16 array / 16-bit
 PNG with ``depth_scale`` units per metre), ``depth_std``, ``features``, ``labels``, ``frame_id``,
 ``width``, ``height``.
 
@@ -14,82 +14,31 @@ from __future__ import annotations
 import colorsys
 import io
 import math
+from dataclasses import dataclass
 
-import msgpack
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from canonical_core import Camera, Frame
 from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16
+from canonical_core.frame import check_rgb_only
+from canonical_wire import DTYPES, FLOATS, WireError, array_shape, decode_array, encode_array, is_array, pack, unpack  # noqa: F401
 
-DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "float16": np.dtype("<f2"), "float32": np.dtype("<f4")}
-FLOATS = ("float16", "float32")
 IMAGE_FORMATS = ("PNG", "JPEG")
 FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "frame_id", "width", "height")
 NO_LABEL = 65535  # uint16 label maps: pixels that nothing covers
 
 
-class WireError(ValueError):
-    """A request that cannot be decoded. ``status`` is the HTTP status it deserves (400, 413, 422)."""
-
-    def __init__(self, field: str, message: str, status: int = 422, code: str = "invalid_value"):
-        super().__init__(f"{field}: {message}")
-        self.field, self.status, self.code = field, status, code
-
-
-# -- msgpack ------------------------------------------------------------------------------------
-def unpack(body: bytes) -> dict:
-    """A msgpack map from ``body``; WireError(400) when it is not one."""
-    try:
-        obj = msgpack.unpackb(body, raw=False, strict_map_key=False)
-    except Exception as exc:  # msgpack raises several unrelated types for broken input
-        raise WireError("body", f"malformed msgpack ({type(exc).__name__}: {exc})", 400, "malformed_body") from None
-    if not isinstance(obj, dict):
-        raise WireError("body", f"expected a msgpack map, got {type(obj).__name__}", 400, "malformed_body")
-    return obj
-
-
-def pack(obj) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
-
-
-def encode_array(a: np.ndarray) -> dict:
-    a = np.asarray(a)
-    name = a.dtype.name
-    if name not in DTYPES:
-        raise ValueError(f"array: dtype {name} is not one of {list(DTYPES)}")
-    return {"dtype": name, "shape": list(a.shape), "data": np.ascontiguousarray(a, DTYPES[name]).tobytes()}
-
-
-def is_array(obj) -> bool:
-    return isinstance(obj, dict) and set(obj) == {"dtype", "shape", "data"}
-
-
-def decode_array(obj, field: str, dtypes=tuple(DTYPES), ndim: int | None = None) -> np.ndarray:
-    """An owned, native-order numpy array from an array map; WireError(422) naming ``field``."""
-    if not is_array(obj):
-        got = sorted(obj) if isinstance(obj, dict) else type(obj).__name__
-        raise WireError(field, f"expected an array map {{dtype, shape, data}}, got {got}")
-    dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
-    if dtype not in dtypes:
-        raise WireError(field, f"dtype {dtype!r} is not accepted here; expected one of {list(dtypes)}")
-    if not isinstance(shape, (list, tuple)) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
-        raise WireError(field, f"shape must be a list of non-negative integers, got {shape!r}")
-    if ndim is not None and len(shape) != ndim:
-        raise WireError(field, f"expected {ndim} dimensions, got shape {list(shape)}")
-    if not isinstance(data, (bytes, bytearray)):
-        raise WireError(field, f"data must be bytes, got {type(data).__name__}")
-    expected = math.prod(shape) * DTYPES[dtype].itemsize
-    if len(data) != expected:
-        raise WireError(field, f"data holds {len(data)} bytes; shape {list(shape)} of {dtype} needs {expected}")
-    return np.frombuffer(data, DTYPES[dtype]).reshape(shape).astype(DTYPES[dtype].newbyteorder("="), copy=True)
-
-
 # -- images -------------------------------------------------------------------------------------
 def _open_image(data: bytes, field: str, max_pixels: int | None) -> Image.Image:
+    # Image.open reads only the header; the size is checked before a pixel is decoded, so a small
+    # file that decodes to gigapixels (a decompression bomb) costs nothing. Pillow refuses the
+    # largest ones already in open().
     try:
         image = Image.open(io.BytesIO(data))
-    except (UnidentifiedImageError, OSError, ValueError):
+    except Image.DecompressionBombError as exc:
+        raise WireError(field, f"image too large ({exc})", 413, "too_large") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
         raise WireError(field, f"not a PNG or JPEG image ({len(data)} bytes starting {data[:8]!r})") from None
     if image.format not in IMAGE_FORMATS:
         raise WireError(field, f"image format {image.format} is not accepted; send PNG or JPEG")
@@ -166,6 +115,23 @@ def labels_to_uint16(labels: np.ndarray) -> np.ndarray:
 
 
 # -- frames -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FrameLimits:
+    """What one frame message may cost; None = only the library's own bounds.
+
+    ``max_pixels``: image pixels (rgb, depth, and the feature/label maps' H' x W');
+    ``max_rgb_only_pixels``: image pixels of a frame without depth (it is plane-swept and kept whole);
+    ``max_label_channels``: label score channels (each one is a float per voxel for the session's life);
+    ``max_channel_values``: image pixels x channels of ``features`` and of ``labels`` (both are
+    sampled at every image pixel).
+    """
+
+    max_pixels: int | None = None
+    max_rgb_only_pixels: int | None = None
+    max_label_channels: int | None = None
+    max_channel_values: int | None = None
+
+
 def _positive_number(value, field: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise WireError(field, f"expected a positive finite number, got {value!r}")
@@ -173,12 +139,44 @@ def _positive_number(value, field: str) -> float:
 
 
 def _matrix(value, field: str):
-    return decode_array(value, field, FLOATS) if isinstance(value, dict) else value
+    if isinstance(value, dict):
+        return decode_array(value, field, FLOATS)
+    if not _is_number_matrix(value):
+        raise WireError(field, f"expected a matrix of numbers (a list of rows), got {str(value)[:80]!r}")
+    return value
 
 
-def frame_from_message(msg: dict, max_pixels: int | None = None) -> Frame:
-    """Decode and validate one frame message. Raises WireError (decoding) or ValueError (the library's
-    validation, message starting with the field name)."""
+def _is_number_matrix(value) -> bool:
+    # strict: no strings or booleans coerced to numbers
+    return isinstance(value, list) and all(
+        isinstance(row, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in row) for row in value)
+
+
+def _size(value, field: str, default: int) -> int:
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise WireError(field, f"expected an integer, got {value!r}")
+    return value
+
+
+def _check_channels(name: str, shape: list[int] | None, image_pixels: int, limits: FrameLimits) -> None:
+    if shape is None or len(shape) != 3:
+        return  # decode_array names the problem
+    check_pixels(shape[1], shape[0], name, limits.max_pixels)
+    channels = shape[2]
+    if name == "labels" and limits.max_label_channels is not None and channels > limits.max_label_channels:
+        raise WireError(name, f"{channels} label channels exceed the limit of {limits.max_label_channels}", 413, "too_large")
+    if limits.max_channel_values is not None and image_pixels * channels > limits.max_channel_values:
+        raise WireError(name, f"{channels} channels x {image_pixels} image pixels = {image_pixels * channels} values exceed "
+                              f"the limit of {limits.max_channel_values}", 413, "too_large")
+
+
+def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLimits | None = None) -> Frame:
+    """Decode and validate one frame message. Raises WireError (decoding, sizes over ``limits``) or
+    ValueError (the library's validation, message starting with the field name)."""
+    limits = limits or FrameLimits(max_pixels=max_pixels)
+    max_pixels = limits.max_pixels
     unknown = sorted(str(k) for k in msg if k not in FRAME_FIELDS)
     if unknown:
         raise WireError(unknown[0], f"unknown frame field (known: {list(FRAME_FIELDS)})")
@@ -189,11 +187,16 @@ def frame_from_message(msg: dict, max_pixels: int | None = None) -> Frame:
     if isinstance(rgb, (bytes, bytearray)):
         rgb = decode_rgb(bytes(rgb), "rgb", max_pixels)
     else:
-        if is_array(rgb) and isinstance(rgb["shape"], list) and len(rgb["shape"]) == 3 and all(isinstance(s, int) for s in rgb["shape"]):
-            check_pixels(rgb["shape"][1], rgb["shape"][0], "rgb", max_pixels)
+        shape = array_shape(rgb)
+        if shape is not None and len(shape) == 3:
+            check_pixels(shape[1], shape[0], "rgb", max_pixels)
         rgb = decode_array(rgb, "rgb", ("uint8",), ndim=3)
     height, width = rgb.shape[:2]
     depth, scale = msg.get("depth"), msg.get("depth_scale")
+    if depth is None and limits.max_rgb_only_pixels is not None and width * height > limits.max_rgb_only_pixels:
+        raise WireError("rgb", f"a frame without depth of {width}x{height} = {width * height} pixels exceeds the limit of "
+                               f"{limits.max_rgb_only_pixels} for frames without depth; send depth or a smaller image",
+                        413, "too_large")
     if scale is not None:
         scale = _positive_number(scale, "depth_scale")
     if isinstance(depth, (bytes, bytearray)):
@@ -212,19 +215,15 @@ def frame_from_message(msg: dict, max_pixels: int | None = None) -> Frame:
     for name in ("depth_std", "features", "labels"):
         if msg.get(name) is not None:
             value = msg[name]
-            if is_array(value) and isinstance(value["shape"], list) and len(value["shape"]) >= 2 and all(isinstance(s, int) for s in value["shape"]):
-                check_pixels(value["shape"][1], value["shape"][0], name, max_pixels)
+            if name == "depth_std":
+                shape = array_shape(value)
+                if shape is not None and len(shape) == 2:
+                    check_pixels(shape[1], shape[0], name, max_pixels)
+            else:
+                _check_channels(name, array_shape(value), width * height, limits)
             extras[name] = decode_array(value, name, FLOATS, ndim=2 if name == "depth_std" else 3)
-    size = (msg.get("width", width), msg.get("height", height))
+    size = (_size(msg.get("width"), "width", width), _size(msg.get("height"), "height", height))
     camera = Camera(_matrix(msg["K"], "K"), _matrix(msg["c2w"], "c2w"), *size)
     frame = Frame(rgb=rgb, camera=camera, depth=depth, frame_id=msg.get("frame_id"), **extras)
-    _check_principal_point(camera)
+    check_rgb_only(frame)
     return frame
-
-
-def _check_principal_point(camera: Camera) -> None:
-    # A principal point outside the image means K belongs to another image size (e.g. full-res K
-    # with a downscaled image): the library would fuse it silently into the wrong place.
-    w, h = camera.width, camera.height
-    if not (-0.5 <= camera.cx <= w - 0.5 and -0.5 <= camera.cy <= h - 0.5):
-        raise WireError("K", f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the {w}x{h} image; is K for another image size?")

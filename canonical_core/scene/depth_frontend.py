@@ -25,7 +25,7 @@ import torch
 from ..camera import Camera
 from ..evidence import (SourceView, SourceWindow, complete_depth, denoise_rough_depth, depth_range_from_points,
                         estimate_depth, sensor_depth_std, sensor_holes)
-from ..frame import Frame
+from ..frame import Frame, check_rgb_only
 from .config import SceneConfig
 from .keyframes import view_from_arrays, view_to_arrays
 
@@ -97,6 +97,7 @@ class DepthFrontEnd:
     # -- the stages ---------------------------------------------------------------------------
     def _without_depth(self, frame: Frame, check: Callable[[Frame], None], points: Points) -> Prepared:
         check(frame)
+        check_rgb_only(frame)
         sources = self._sources_for(frame.camera)
         if not sources and len(self.pending) >= self.config.depth.source_window:
             raise ValueError(f"depth: the frame has no depth and no earlier view overlaps it, and "

@@ -42,7 +42,7 @@ class Scratch:
         self.size = 0
 
     def reserve(self, m: int) -> None:
-        if m > self.size:
+        if m > self.size or not self.size:  # allocated on first use, even for a frame with no evidence
             self.size = max(m, 1024)
             for name in ("obs_keys", "frame_keys", "new_keys"):
                 setattr(self, name, np.empty(self.size, np.int64))

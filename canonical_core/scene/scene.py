@@ -18,14 +18,14 @@ import json
 import os
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
-from ..frame import Frame
+from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
 from .config import SceneConfig
 from .decoding import DecodeInputs, SceneDecoding
@@ -50,18 +50,24 @@ class FoldReport:
     view yet is ``pending``: accepted and kept, and folded (its depth estimated) by the call whose
     frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
     was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
+    ``warnings``: problems with the input that did not stop the fold, each ``"field: problem"``
+    (e.g. depth that gave no observation). The ``description`` metadata reaches the HTTP schema.
     """
 
-    frame_index: int
-    observations: int
-    new_voxels: int
-    updated_voxels: int
-    representative_switches: int
-    ms: float
-    pending: bool = False
-    also_folded: int = 0
-    completed_pixels: int = 0
-    denoised: bool = False
+    frame_index: int = field(metadata={"description": "the frame's arrival index in the session"})
+    observations: int = field(metadata={"description": "pixels folded"})
+    new_voxels: int = field(metadata={"description": "voxels the frame created"})
+    updated_voxels: int = field(metadata={"description": "existing voxels the frame touched"})
+    representative_switches: int = field(metadata={"description": "voxels whose representative this frame replaced"})
+    ms: float = field(metadata={"description": "the library's fold time, milliseconds"})
+    pending: bool = field(default=False, metadata={"description": "a frame without depth waiting for a partner view (folded later)"})
+    also_folded: int = field(default=0, metadata={"description": "earlier waiting frames this call folded"})
+    completed_pixels: int = field(default=0, metadata={
+        "description": "pixels whose missing depth the plane sweep filled (depth_completion)"})
+    denoised: bool = field(default=False, metadata={
+        "description": "the frame's depth was far rougher than its noise model and was replaced by a local median"})
+    warnings: list[str] = field(default_factory=list, metadata={
+        "description": "problems with the input that did not stop the fold, each 'field: problem'"})
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -138,8 +144,11 @@ class Scene:
             for waiting in self._front.ready(points):
                 self._integrate(waiting)
                 also += 1
+        gave_nothing = frame.depth is not None and counts[0] == 0
+        warnings = depth_warnings(frame.depth, self.config.near, self.config.far) if gave_nothing else []
         return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
-                          also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised)
+                          also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
+                          warnings=warnings)
 
     def _integrate(self, frame: Frame) -> tuple[int, int, int, int]:
         """Evidence, integration and free space of a frame with depth: (observations, new voxels,

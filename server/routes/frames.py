@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import email.parser
-import email.policy
 import json
 import time
 
@@ -12,6 +10,7 @@ from fastapi import APIRouter, Depends, Request, Response
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
 from ..errors import ApiError
+from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
 
 router = APIRouter(prefix="/v1/sessions", tags=["frames"], dependencies=[Depends(require_token)])
@@ -26,39 +25,50 @@ def media_type(request: Request) -> str:
 
 def parse_multipart(content_type: str, body: bytes) -> dict:
     """multipart/form-data with parts ``rgb`` (or ``image``; PNG/JPEG), optional ``depth`` (16-bit PNG)
-    and ``camera`` (JSON: K, c2w, depth_scale, frame_id, width, height) -> a frame message."""
-    parser = email.parser.BytesParser(policy=email.policy.HTTP)
-    try:
-        msg = parser.parsebytes(b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body)
-        parts = list(msg.iter_parts()) if msg.is_multipart() else []
-    except Exception as exc:  # the stdlib parser raises assorted errors on garbage
-        raise wire.WireError("body", f"malformed multipart body ({exc})", 400, "malformed_body") from None
-    if not parts:
-        raise wire.WireError("body", "malformed multipart body (no boundary or no parts)", 400, "malformed_body")
+    and ``camera`` (JSON: K, c2w, depth_scale, frame_id, width, height) -> a frame message. Each part
+    at most once; JSON values keep their types (a string is not a number)."""
     out: dict = {}
-    for part in parts:
-        name = part.get_param("name", header="content-disposition")
-        payload = part.get_payload(decode=True) or b""
-        if name == "image":
-            name = "rgb"
-        if name in ("rgb", "depth"):
-            out[name] = payload
-        elif name == "camera":
-            try:
-                camera = json.loads(payload)
-            except ValueError as exc:
-                raise wire.WireError("camera", f"not valid JSON ({exc})") from None
-            if not isinstance(camera, dict):
-                raise wire.WireError("camera", f"expected a JSON object with {list(CAMERA_FIELDS)}")
-            unknown = sorted(k for k in camera if k not in CAMERA_FIELDS)
-            if unknown:
-                raise wire.WireError(unknown[0], f"unknown camera field (known: {list(CAMERA_FIELDS)})")
-            out.update(camera)
-        else:
-            raise wire.WireError(str(name), "unknown form part (expected rgb, depth, camera)")
-    if "camera" not in [p.get_param("name", header="content-disposition") for p in parts]:
+    seen: set[str] = set()
+    for part in parse_form_data(content_type, body):
+        name = "rgb" if part.name == "image" else part.name
+        if name not in ("rgb", "depth", "camera"):
+            raise wire.WireError(name, "unknown form part (expected rgb, depth, camera)")
+        if name in seen:
+            raise wire.WireError(name, "form part given more than once")
+        seen.add(name)
+        if name != "camera":
+            out[name] = part.data
+            continue
+        try:
+            camera = json.loads(part.data, parse_constant=_no_constant)
+        except ValueError as exc:
+            raise wire.WireError("camera", f"not valid JSON ({exc})") from None
+        if not isinstance(camera, dict):
+            raise wire.WireError("camera", f"expected a JSON object with {list(CAMERA_FIELDS)}")
+        unknown = sorted(k for k in camera if k not in CAMERA_FIELDS)
+        if unknown:
+            raise wire.WireError(unknown[0], f"unknown camera field (known: {list(CAMERA_FIELDS)})")
+        out.update(camera)
+    if "camera" not in seen:
         raise wire.WireError("camera", "required form part is missing (JSON with K and c2w)")
     return out
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def frame_limits(settings) -> wire.FrameLimits:
+    return wire.FrameLimits(settings.max_image_pixels, settings.max_rgb_only_pixels, settings.max_label_channels,
+                            settings.max_channel_values)
+
+
+def check_session_accepts(frame, config) -> None:
+    """Client features sent to a session that computes its own would be dropped unseen: 422."""
+    if frame.features is not None and config.feature_backend != "client":
+        raise wire.WireError("features", f"this session computes its own features (feature_backend="
+                                         f"{config.feature_backend!r}); send features only to a session created "
+                                         f"with feature_backend='client'")
 
 
 @router.post("/{session_id}/frames", response_model=FoldReportOut,
@@ -84,7 +94,8 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             record = wire.pack(msg)
         else:
             msg, record = wire.unpack(body), body
-        frame = wire.frame_from_message(msg, settings.max_image_pixels)  # validated before it is logged
+        frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
+        check_session_accepts(frame, session.scene.config)
         return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds)
 
     t0 = time.perf_counter()

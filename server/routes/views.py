@@ -74,11 +74,26 @@ def _camera(view: ViewRequest, max_pixels: int) -> Camera:
     return Camera(view.K, view.c2w, view.width, view.height)  # ValueError naming K / c2w -> 422
 
 
+def view_channels(kind: str, feature_dim: int, label_dim: int) -> int:
+    """float32 channels a view renders per pixel (what its memory and its response grow with)."""
+    return {"render": 5, "features": feature_dim + 1, "segmentation": label_dim + 1}[kind]
+
+
+def check_view_bytes(view: ViewRequest, channels: int, max_bytes: int) -> None:
+    """413 naming ``width`` when the view's float maps (pixels x channels x 4 bytes) exceed ``max_bytes``."""
+    size = view.width * view.height * channels * 4
+    if size > max_bytes:
+        raise ApiError(413, "too_large", f"width: a {view.width}x{view.height} view of {channels} channels needs {size} bytes, "
+                                         f"above the limit of {max_bytes} (max_response_bytes); ask for a smaller view", "width")
+
+
 async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encode) -> Response:
     camera = _camera(view, settings.max_image_pixels)
     outputs = {"render": ("rgb", "depth", "alpha"), "features": ("features", "alpha"), "segmentation": ("labels", "alpha")}[kind]
     if kind == "segmentation" and session.scene.label_dim == 0:
         raise _no_labels()
+    check_view_bytes(view, view_channels(kind, session.scene.config.feature_dim, session.scene.label_dim),
+                     settings.max_response_bytes)
 
     def job():
         gaussians, label_dim = session.gaussians(view.max_gaussians)

@@ -1,0 +1,102 @@
+"""The ``canonical`` CLI as a user runs it (a subprocess): one-line errors, Ctrl-C, resuming a stream."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from client.cli import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def canonical(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".numba_cache")}
+    return subprocess.run([sys.executable, "-m", "client.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, code: int, *words: str) -> None:
+    assert result.returncode == code, (result.stdout, result.stderr)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in result.stderr, result.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+BAD_ARGUMENTS = [
+    ("no command", [], "required"),
+    ("unknown command", ["frobnicate"], "invalid choice"),
+    ("stream without target", ["stream", "somewhere"], "--session"),
+    ("voxel size not a number", ["stream", "somewhere", "--voxel-size", "big"], "--voxel-size"),
+    ("stride not an integer", ["stream", "somewhere", "--voxel-size", "0.01", "--stride", "1.5"], "--stride"),
+    ("bad --set", ["stream", "somewhere", "--voxel-size", "0.01", "--set", "nonsense"], "NAME=VALUE"),
+    ("render without output", ["render", "--session", "x", "--frame-like", "a:0"], "-o"),
+    ("unknown option", ["sessions", "--colour", "red"], "unrecognized"),
+]
+
+
+@pytest.mark.parametrize("argv, word", [c[1:] for c in BAD_ARGUMENTS], ids=[c[0] for c in BAD_ARGUMENTS])
+def test_bad_arguments_are_one_line(argv, word):
+    assert_one_line_error(canonical(*argv), 2, word)
+
+
+def test_unreachable_server_is_one_line():
+    url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    assert_one_line_error(canonical("sessions", "--url", url), 1, "cannot reach the service", url)
+    assert_one_line_error(canonical("export", "--url", url, "--session", "x", "-o", "a.ply"), 1, "cannot reach")
+
+
+def test_bad_values_after_parsing_are_one_line(server, tmp_path):
+    assert_one_line_error(canonical("render", "--url", server.url, "--session", "x", "--pose", str(tmp_path / "missing.txt"),
+                                     "--K", "1,2,3,4", "--width", "8", "--height", "8", "-o", str(tmp_path / "a.png")), 1, "missing.txt")
+    assert_one_line_error(canonical("render", "--url", server.url, "--session", "x", "--pose", "p", "--K", "1,two,3,4",
+                                    "--width", "8", "--height", "8", "-o", str(tmp_path / "a.png")), 1, "two")
+    assert_one_line_error(canonical("stream", str(tmp_path / "no-such-dataset"), "--url", server.url, "--voxel-size", "0.01"),
+                          1, "no-such-dataset")
+    assert_one_line_error(canonical("export", "--url", server.url, "--session", "no-such", "-o", str(tmp_path / "a.ply")),
+                          1, "404")
+
+
+def test_stream_resumes_after_the_frames_the_session_has(server, shelf_dir):
+    common = [str(shelf_dir), "--url", server.url, "--stride", "10", "--scale", "0.25"]
+    first = canonical("stream", *common, "--voxel-size", "0.02", "--max-frames", "2")
+    assert first.returncode == 0, first.stderr
+    session_id = next(line.split()[1] for line in first.stderr.splitlines() if line.startswith("session "))
+    again = canonical("stream", *common, "--session", session_id, "--max-frames", "4")
+    assert again.returncode == 0, again.stderr
+    assert "resuming after its 2 frames" in again.stderr and again.stdout.startswith("2 frames in")
+    stats = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()
+    assert stats["frames"] == 4  # frames 0-1 once, then 2-3: none sent twice
+
+
+def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".numba_cache")}
+    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "stream", str(shelf_dir), "--url", server.url,
+                             "--voxel-size", "0.02", "--scale", "0.25"], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()
+        assert line.startswith("session "), line
+        session_id = line.split()[1]
+        deadline = time.monotonic() + 120
+        while httpx.get(f"{server.url}/v1/sessions/{session_id}").json()["frames"] < 1:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    frames = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()["frames"]
+    assert out.startswith("interrupted: ") and f"session {session_id}: {frames} frames" in out
+    assert f"--session {session_id}" in out and 1 <= frames < 50
