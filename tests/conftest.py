@@ -11,6 +11,15 @@ import torch
 from canonical_core import Camera, Frame
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+REAL_DATA_FIXTURES = {"shelf_dir", "shelf_path", "slambook_path"}  # every fixture that reads ../shared/data
+
+
+def pytest_collection_modifyitems(items):
+    """A test that reaches a real capture through a fixture carries the ``realdata`` marker, whether or
+    not its module says so, so ``-m "not realdata"`` is exactly the unit tests on generated data."""
+    for item in items:
+        if REAL_DATA_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.realdata)
 
 
 @pytest.fixture(scope="session")

@@ -4,6 +4,7 @@ on a real service process and real files."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
@@ -37,6 +38,18 @@ def post(proc: ServerProcess, sid: str, kwargs: dict) -> httpx.Response:
                       headers=MSGPACK, timeout=120)
 
 
+@contextlib.contextmanager
+def serving(proc: ServerProcess):
+    """``proc`` started; its log printed if the test fails; killed at the end."""
+    try:
+        yield proc.start()
+    except BaseException:
+        print(proc.log())
+        raise
+    finally:
+        proc.kill9()
+
+
 @pytest.fixture()
 def tmpfs(tmp_path):
     """A 6 MiB tmpfs: a disk that really fills up (needs root to mount)."""
@@ -51,8 +64,7 @@ def tmpfs(tmp_path):
 
 def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_path, tmpfs, frames, reference):
     data = tmpfs / "data"
-    proc = server(tmp_path, data).start()
-    try:
+    with serving(server(tmp_path, data)) as proc:
         sid = Client(proc.url).create_session(voxel_size=VOXEL).id
         for kwargs in frames[:2]:
             assert post(proc, sid, kwargs).status_code == 200
@@ -79,17 +91,11 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
         proc.start()
         digest = Client(proc.url).session(sid).digest()
         assert digest["frames"] == 4 and digest["sha256"] == reference[4]["sha256"]
-    except BaseException:
-        print(proc.log())
-        raise
-    finally:
-        proc.kill9()
 
 
 def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, frames, reference):
     data = tmp_path / "data"
-    proc = server(tmp_path, data).start()
-    try:
+    with serving(server(tmp_path, data)) as proc:
         client = Client(proc.url)
         sid = client.create_session(voxel_size=VOXEL).id
         for kwargs in frames[:6]:
@@ -126,25 +132,17 @@ def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, fr
 
         proc.start()
         assert Client(proc.url).session(sid).digest()["frames"] == 5
-    except BaseException:
-        print(proc.log())
-        raise
-    finally:
-        proc.kill9()
 
 
 def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, reference):
     from server.store import SessionStore
 
     data = tmp_path / "data"
-    proc = server(tmp_path, data).start()
-    try:
+    with serving(server(tmp_path, data)) as proc:
         client = Client(proc.url)
         sid = client.create_session(voxel_size=VOXEL).id
         for kwargs in frames[:4]:
             client.session(sid).add_frame(**kwargs)
-    finally:
-        proc.kill9()
     damaged = bytearray(log_of(data, sid).read_bytes())
     damaged[framelog.scan(bytes(damaged)).records[2].offset + 5] ^= 0x01  # frame 2's length field
     log_of(data, sid).write_bytes(bytes(damaged))
@@ -163,8 +161,7 @@ def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, r
 
 def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, frames, reference):
     data = tmp_path / "data"
-    proc = server(tmp_path, data, snapshot_every_frames=1).start()
-    try:
+    with serving(server(tmp_path, data, snapshot_every_frames=1)) as proc:
         client = Client(proc.url)
         sid = client.create_session(voxel_size=VOXEL).id
         client.session(sid).add_frame(**frames[0])
@@ -180,17 +177,11 @@ def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, fr
         proc.start()
         digest = Client(proc.url).session(sid).digest()
         assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]
-    except BaseException:
-        print(proc.log())
-        raise
-    finally:
-        proc.kill9()
 
 
 def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_path, frames):
     data = tmp_path / "data"
-    proc = server(tmp_path, data, snapshot_every_frames=2).start()
-    try:
+    with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
         client = Client(proc.url)
         ids = [client.create_session(voxel_size=VOXEL).id for _ in range(3)]
         for sid in ids:
@@ -217,17 +208,11 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
         # an operator may delete an unavailable session
         assert httpx.delete(f"{proc.url}/v1/sessions/{ids[2]}").status_code == 200
         assert not (data / "sessions" / ids[2]).exists()
-    except BaseException:
-        print(proc.log())
-        raise
-    finally:
-        proc.kill9()
 
 
 def test_a_retried_frame_is_folded_once_across_a_restart(tmp_path, frames, reference):
     data = tmp_path / "data"
-    proc = server(tmp_path, data, snapshot_every_frames=2).start()
-    try:
+    with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
         sid = Client(proc.url).create_session(voxel_size=VOXEL).id
         tagged = [{**kwargs, "frame_id": f"cam0/{k}"} for k, kwargs in enumerate(frames[:3])]
         first = [post(proc, sid, kwargs) for kwargs in tagged]
@@ -247,8 +232,3 @@ def test_a_retried_frame_is_folded_once_across_a_restart(tmp_path, frames, refer
             assert {**r.json(), "ms": 0} == {**first[k].json(), "ms": 0}
         digest = Client(proc.url).session(sid).digest()
         assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]  # ids do not change the scene
-    except BaseException:
-        print(proc.log())
-        raise
-    finally:
-        proc.kill9()

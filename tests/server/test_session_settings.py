@@ -60,7 +60,7 @@ def test_create_takes_groups_and_fills_their_defaults(server, client):
 
 
 def test_openapi_schemas_are_generated_from_the_library(server):
-    schemas = httpx.get(f"{server.url}/openapi.json").json()["components"]["schemas"]
+    schemas = httpx.get(f"{server.url}/openapi.json", headers=AUTH).json()["components"]["schemas"]  # the docs need the token too
     create_schema = schemas["SessionCreate"]
     assert set(create_schema["properties"]) == set(SceneConfig.model_fields) - {"research"}
     assert create_schema["required"] == ["voxel_size"]
