@@ -79,6 +79,12 @@ class _Settings(BaseModel, metaclass=_NamedErrors):
 
 NonNegative = Annotated[float, Field(ge=0)]
 Positive = Annotated[float, Field(gt=0)]
+# A length of the sensor model, metres: beyond 10 m of depth noise no depth is worth folding.
+SensorLength = Annotated[float, Field(ge=0, le=10.0)]
+# Depths and voxels live on the lattice of KEY_BITS-bit indices; these bounds keep a session on it.
+MIN_VOXEL, MAX_VOXEL, MAX_DEPTH = 1e-5, 100.0, 1e5
+# rows are indexed with int32 in the hash table (and 300 bytes a voxel make 2^31 voxels absurd anyway)
+MAX_VOXELS = 2**31 - 1
 
 
 class SensorNoise(_Settings):
@@ -88,13 +94,13 @@ class SensorNoise(_Settings):
 
     _path: ClassVar[str] = "sensor"
 
-    sigma0: NonNegative = 0.0012
+    sigma0: SensorLength = 0.0012
     """Constant term of the depth std, metres."""
-    sigma2: NonNegative = 0.0019
+    sigma2: SensorLength = 0.0019
     """Quadratic term of the depth std, metres per square metre of distance from ``sigma_ref``."""
-    sigma_ref: NonNegative = 0.4
+    sigma_ref: Annotated[float, Field(ge=0, le=MAX_DEPTH)] = 0.4
     """Depth at which the std is smallest, metres."""
-    edge_weight: NonNegative = 0.5
+    edge_weight: Annotated[float, Field(ge=0, le=100.0)] = 0.5
     """Weight of the largest neighbour depth jump added to the std, so "flying pixels" on depth
     discontinuities get low reliability."""
 
@@ -185,16 +191,17 @@ class SceneConfig(_Settings):
     Groups accept a mapping or an instance: ``SceneConfig(voxel_size=0.01, depth={"sources": 3})``.
     """
 
-    voxel_size: Positive
-    """Edge length of the sparse lattice's voxels, in the scene's unit (metres)."""
-    max_voxels: Annotated[int, Field(gt=0)] | None = None
+    voxel_size: Annotated[float, Field(ge=MIN_VOXEL, le=MAX_VOXEL)]
+    """Edge length of the sparse lattice's voxels, in the scene's unit (metres). ``far`` must stay
+    on the lattice: at most 2^20 voxels from the origin."""
+    max_voxels: Annotated[int, Field(gt=0, le=MAX_VOXELS)] | None = None
     """Cap on the number of voxels (None = unbounded); a fold that would exceed it raises instead of
     folding part of a frame."""
     sh_degree: Annotated[int, Field(ge=0, le=3)] = 1
     """Degree of the per-voxel spherical-harmonics colour fit (0 = view-independent colour)."""
     near: NonNegative = 0.05
     """Nearest depth accepted from frames, metres; nearer pixels are ignored."""
-    far: Positive = 20.0
+    far: Annotated[float, Field(gt=0, le=MAX_DEPTH)] = 20.0
     """Farthest depth accepted from frames, metres; farther pixels are ignored."""
     feature_backend: FeatureBackend = "default"
     """``default`` (the training-free extractor) or ``client`` (``Frame.features``, resized to the
@@ -229,6 +236,9 @@ class SceneConfig(_Settings):
     def _depth_range(self) -> "SceneConfig":
         if self.near >= self.far:
             raise ValueError(f"near: must be below far ({self.near} >= {self.far})")
+        if self.far > self.voxel_size * KEY_OFFSET:
+            raise ValueError(f"far: {self.far} is {self.far / self.voxel_size:.3g} voxels of {self.voxel_size}, beyond the "
+                             f"lattice's {KEY_OFFSET} voxels from the origin; use larger voxels or a nearer far")
         return self
 
     @property

@@ -24,18 +24,18 @@ INF = math.inf
 # path -> (kind, lowest accepted, highest accepted, exclusive lower bound?); written out here, not read
 # from the definition, so that a changed bound fails a test.
 BOUNDS = {
-    "voxel_size": (float, 0.0, INF, True),
-    "max_voxels": (int, 1, INF, False),
+    "voxel_size": (float, 1e-5, 100.0, False),
+    "max_voxels": (int, 1, 2**31 - 1, False),
     "sh_degree": (int, 0, 3, False),
     "near": (float, 0.0, INF, False),
-    "far": (float, 0.0, INF, True),
+    "far": (float, 0.0, 1e5, True),
     "feature_dim": (int, 1, 512, False),
     "colour_solve_views": (int, 0, 64, False),
     "colour_solve_scale": (float, 0.0, 1.0, True),
-    "sensor.sigma0": (float, 0.0, INF, False),
-    "sensor.sigma2": (float, 0.0, INF, False),
-    "sensor.sigma_ref": (float, 0.0, INF, False),
-    "sensor.edge_weight": (float, 0.0, INF, False),
+    "sensor.sigma0": (float, 0.0, 10.0, False),
+    "sensor.sigma2": (float, 0.0, 10.0, False),
+    "sensor.sigma_ref": (float, 0.0, 1e5, False),
+    "sensor.edge_weight": (float, 0.0, 100.0, False),
     "free_space.margin": (float, 0.0, INF, False),
     "free_space.sigmas": (float, 0.0, INF, False),
     "free_space.cell": (int, 1, 64, False),
@@ -67,9 +67,11 @@ def leaf_paths(model=SceneConfig, prefix="") -> list[str]:
 
 
 def make(path: str, value, **others) -> SceneConfig:
-    settings = {"voxel_size": 0.01, "far": 1e9, **others}  # far: room for near's upper edge
+    settings = {"voxel_size": 0.1, "far": 1e5, **others}  # far: room for near's edges, on the lattice
     if path == "far":
         settings["near"] = 0.0
+    if path == "voxel_size":  # the finest voxels keep only 2^20 of them between the origin and far
+        settings.update(near=0.0, far=10.0)
     *groups, name = path.split(".")
     target = settings
     for g in groups:
@@ -145,6 +147,12 @@ def test_switches_are_booleans_only(path):
 def test_optional_settings_take_none():
     assert make("max_voxels", None).max_voxels is None
     assert make("decoder.opacity_bias", None).decoder.opacity_bias is None
+
+
+def test_far_must_stay_on_the_lattice():
+    assert SceneConfig(voxel_size=0.01, far=0.01 * 2**20).far == 0.01 * 2**20
+    with pytest.raises(ValueError, match=r"^far: .* beyond the lattice's 1048576 voxels"):
+        SceneConfig(voxel_size=0.01, far=0.01 * 2**20 * 1.001)
 
 
 def test_near_must_be_below_far():

@@ -170,7 +170,7 @@ def test_labels_fuse_with_the_same_weights():
 
 
 def test_sparse_index_has_a_fixed_origin_and_is_unbounded():
-    scene = Scene(SceneConfig(voxel_size=1.0, far=1e7))
+    scene = Scene(SceneConfig(voxel_size=1.0))
     far_pose = np.eye(4)
     far_pose[:3, 3] = [-5e5, 3e5, 1e5]  # half a million voxels from the origin
     scene.fold(make_frame(np.full((1, 1), 2.5), c2w=far_pose))
