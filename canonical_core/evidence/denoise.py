@@ -22,9 +22,8 @@ import numpy as np
 from .reliability import sensor_depth_std
 
 # Clean captures score below 1, noise that reliability already handles (a few sensor sigmas) stays
-# below; the evaluation's depth noise 0.05 (2 cm at 0.4 m) scores 8, noise 0.25 scores 40. Cost: about
-# 0.3 s per denoised 640x480 frame at radius 7 on 2 cores; a clean frame pays only the check (about 1 ms;
-# both measured by bench/fold.py).
+# below; noise of a few percent of the depth scores far above. A clean frame pays only the check; the
+# median's cost is in bench/fold.py's denoising table.
 ROUGHNESS_LIMIT = 4.0
 MIN_SAMPLES = 5
 _MEDIAN_STD = 1.2533  # std of the median of n Gaussian samples / (std / sqrt(n)), large n

@@ -3,9 +3,8 @@
 The fused descriptor F_view (`features.py`, 16 channels, unit norm) is built to say whether two
 observations of one voxel agree; it is too smooth to *find* the correspondence, and its unit norm
 bounds the paper's score <F_i, F_j> / sqrt(L) to [-1/4, 1/4], so the softmax over hypotheses is
-nearly uniform (U_pos ~ the whole depth range). Measured on the shelf capture at 640x480 (frame
-55 against 39 and 71, arg-max of the sweep within 5 % / 10 % of the sensor depth): F_view
-0.38 / 0.51, these features 0.48 / 0.64 (tests/evidence/test_mvs_shelf.py). The sweep therefore
+nearly uniform (U_pos ~ the whole depth range), and its arg-max finds the sensor's depth less
+often than these features do (tests/evidence/test_mvs_shelf.py holds that). The sweep therefore
 uses its own features (the "L used by the sweep can differ from the L that is fused"):
 
 **Band-limited normalised patches on a luminance pyramid.** For each level with spacing f in
@@ -21,19 +20,18 @@ repetitive texture. Coarse levels (spacing >= ``EDGE_AWARE_FROM``) are edge-awar
 weighted by ~exp(-(its luminance - the centre's)^2 / (2 ``EDGE_SIGMA``^2)) before the weighted mean
 is removed, so a coarse patch describes mostly the centre's own surface and depth edges fatten less.
 
-Measured on the shelf (median AbsRel, 2 sources 8 frames apart): on 4 frames, one 5 x 5 level
-0.22, levels 1-2-4-8 of 5 x 5 0.062, of 7 x 7 0.052; 9 x 9 / 11 x 11 grids, colour channels, a
-16 px level or sweeping at full resolution did not help. On all 50 frames (best 2 sources):
-levels 1-2-4-8 with edge-aware coarse levels 0.0501, levels 1-2-3-5-8 0.0490 (the choice).
+The grid size, the levels and the edge-aware coarse levels were chosen by the sweep's median
+AbsRel against sensor depth (the variants tried and their figures: docs/experiments.md, "Matching
+features").
 
 **Temperature.** The features are scaled so that the paper's score is
 
     <F_i, F_j> / sqrt(L) = MATCH_SHARPNESS * sum_l NCC_l        (L = 5 levels x 20 = 100)
 
 i.e. ``MATCH_SHARPNESS`` logits per unit of correlation and level. With unit-norm features the
-softmax is flat (median AbsRel 0.38, U_pos ~ 0.4 m on the shelf); a higher sharpness snaps D to the
-arg-max (slightly lower median error) but makes wrong peaks confident (higher AUSE); 28 is the
-balance measured in bench/depth.py (table "Sharpness").
+softmax is flat (U_pos spans the depth range); a higher sharpness snaps D to the arg-max (slightly
+lower median error) but makes wrong peaks confident (higher AUSE); 28 is the balance that
+bench/depth.py's table "Sharpness" shows.
 
 **Storage.** Features are quantised to int8 (``MATCHING_QUANT`` per step; entries are bounded by
 7 in magnitude, so the step is ~1/20 of a typical entry) so a window of source views costs
