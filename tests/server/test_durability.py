@@ -38,6 +38,14 @@ def post(proc: ServerProcess, sid: str, kwargs: dict) -> httpx.Response:
                       headers=MSGPACK, timeout=120)
 
 
+def new_session(proc: ServerProcess, frames: list[dict]) -> str:
+    """The id of a new session on ``proc`` that has folded ``frames`` (each acknowledged)."""
+    session = Client(proc.url).create_session(voxel_size=VOXEL)
+    for kwargs in frames:
+        session.add_frame(**kwargs)
+    return session.id
+
+
 @contextlib.contextmanager
 def serving(proc: ServerProcess):
     """``proc`` started; its log printed if the test fails; killed at the end."""
@@ -96,10 +104,7 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
 def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, frames, reference):
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
-        client = Client(proc.url)
-        sid = client.create_session(voxel_size=VOXEL).id
-        for kwargs in frames[:6]:
-            client.session(sid).add_frame(**kwargs)
+        sid = new_session(proc, frames[:6])
         proc.kill9()
         damaged = bytearray(log_of(data, sid).read_bytes())
         third = framelog.scan(bytes(damaged)).records[2]
@@ -139,10 +144,7 @@ def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, r
 
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
-        client = Client(proc.url)
-        sid = client.create_session(voxel_size=VOXEL).id
-        for kwargs in frames[:4]:
-            client.session(sid).add_frame(**kwargs)
+        sid = new_session(proc, frames[:4])
     damaged = bytearray(log_of(data, sid).read_bytes())
     damaged[framelog.scan(bytes(damaged)).records[2].offset + 5] ^= 0x01  # frame 2's length field
     log_of(data, sid).write_bytes(bytes(damaged))
@@ -162,14 +164,12 @@ def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, r
 def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, frames, reference):
     data = tmp_path / "data"
     with serving(server(tmp_path, data, snapshot_every_frames=1)) as proc:
-        client = Client(proc.url)
-        sid = client.create_session(voxel_size=VOXEL).id
-        client.session(sid).add_frame(**frames[0])
+        sid = new_session(proc, frames[:1])
         blocker = data / "sessions" / sid / "scene.snap.tmp"
         blocker.mkdir()  # the snapshot's temp file cannot be created (as root too, unlike chmod)
         for kwargs in frames[1:3]:
             assert post(proc, sid, kwargs).status_code == 200  # the truth: folded and durable in the log
-        stats = client.session(sid).stats()
+        stats = Client(proc.url).session(sid).stats()
         assert stats["frames"] == 3 and stats["snapshot_frames"] == 1 and "scene.snap" in stats["snapshot_error"]
         assert "canonical_snapshot_failures 1" in httpx.get(f"{proc.url}/metrics").text
         proc.kill9()
@@ -182,11 +182,7 @@ def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, fr
 def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_path, frames):
     data = tmp_path / "data"
     with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
-        client = Client(proc.url)
-        ids = [client.create_session(voxel_size=VOXEL).id for _ in range(3)]
-        for sid in ids:
-            for kwargs in frames[:3]:  # a snapshot at 2 frames, one frame in the log after it
-                client.session(sid).add_frame(**kwargs)
+        ids = [new_session(proc, frames[:3]) for _ in range(3)]  # a snapshot at 2 frames, one frame in the log after it
 
         second = server(tmp_path / "second", data)
         (tmp_path / "second").mkdir()
