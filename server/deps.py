@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import secrets
 from typing import Annotated, Callable, TypeVar
 
 from fastapi import Depends, Request
@@ -69,13 +68,3 @@ def get_session(session_id: str, store: StoreDep) -> Session:
 
 
 SessionDep = Annotated[Session, Depends(get_session)]
-
-
-def require_token(request: Request, settings: SettingsDep) -> None:
-    """With ``api_token`` set, require ``Authorization: Bearer <token>`` (401 otherwise)."""
-    if settings.api_token is None:
-        return
-    scheme, _, token = request.headers.get("authorization", "").partition(" ")
-    if scheme.lower() != "bearer" or not secrets.compare_digest(token.strip().encode(), settings.api_token.get_secret_value().encode()):
-        raise ApiError(401, "unauthorized", "Authorization: missing or wrong bearer token", "Authorization",
-                       {"WWW-Authenticate": "Bearer"})

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from canonical_core.gaussians import ply_bytes, splat_bytes
 
-from ..deps import JobsDep, SessionDep, require_token
+from ..deps import JobsDep, SessionDep
 from ..schemas import ErrorBody
 
-router = APIRouter(prefix="/v1/sessions", tags=["exports"], dependencies=[Depends(require_token)],
+router = APIRouter(prefix="/v1/sessions", tags=["exports"],
                    responses={c: {"model": ErrorBody} for c in (401, 404, 422, 429)})
 
 MaxGaussians = Annotated[int | None, Query(ge=0, description="level of detail: the best-supported N Gaussians")]

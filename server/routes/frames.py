@@ -5,15 +5,15 @@ from __future__ import annotations
 import json
 import time
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Request, Response
 
 from .. import wire
-from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
+from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
 
-router = APIRouter(prefix="/v1/sessions", tags=["frames"], dependencies=[Depends(require_token)])
+router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 CAMERA_FIELDS = ("K", "c2w", "depth_scale", "frame_id", "width", "height")

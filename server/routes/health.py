@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 
-from ..deps import JobsDep, MetricsDep, StoreDep, require_token
+from ..deps import JobsDep, MetricsDep, StoreDep
 from ..metrics import CONTENT_TYPE
 from ..schemas import Health
 
@@ -18,7 +18,7 @@ async def healthz(store: StoreDep) -> Health:
     return Health(status="ok", sessions=len(store))
 
 
-@router.get("/metrics", response_class=PlainTextResponse, dependencies=[Depends(require_token)])
+@router.get("/metrics", response_class=PlainTextResponse)
 async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainTextResponse:
     """Prometheus text format: fold/view latency histograms, frames, sessions, voxels, queue."""
     totals = store.totals()

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 
 from canonical_core import SceneConfig
 
-from ..deps import JobsDep, SessionDep, StoreDep, require_token
+from ..deps import JobsDep, SessionDep, StoreDep
 from ..schemas import Deleted, Digest, ErrorBody, SessionCreate, SessionCreated, SessionList, SessionStats, SessionSummary
 
-router = APIRouter(prefix="/v1/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 422: {"model": ErrorBody}})
 
 

@@ -14,11 +14,11 @@ from canonical_core.rendering import Colour, render
 from canonical_core.rendering.preview import feature_preview
 
 from .. import wire
-from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, require_token
+from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError
 from ..schemas import ErrorBody, ViewRequest
 
-router = APIRouter(prefix="/v1/sessions", tags=["views"], dependencies=[Depends(require_token)])
+router = APIRouter(prefix="/v1/sessions", tags=["views"])
 
 MSGPACK = "application/msgpack"
 PNG = "image/png"
