@@ -38,6 +38,16 @@ def shelf_frames(shelf_dir) -> list[Frame]:
     return list(load_tsdf_fusion(shelf_dir))
 
 
+def folded_scene(frames, voxel_size: float = 0.008, **settings):
+    """A `Scene` (``SceneConfig(voxel_size, **settings)``) that has folded ``frames`` in order."""
+    from canonical_core import Scene, SceneConfig
+
+    scene = Scene(SceneConfig(voxel_size=voxel_size, **settings))
+    for frame in frames:
+        scene.fold(frame)
+    return scene
+
+
 def make_frame(depth, rgb=None, features=None, depth_std=None, labels=None, fx=1.0, c2w=None) -> Frame:
     """A small hand-made frame: pixel (u, v) lifts to ((u - cx) z / fx, (v - cy) z / fx, z), cx = cy = 0."""
     depth = np.asarray(depth, np.float32)

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core import SceneConfig
 from canonical_core.camera import quaternion_to_matrix
 from canonical_core.decode import GaussianDecoder, symmetric_eigh3, symmetric_eigh3_reference
-from canonical_core.scene import Scene
+
+from ..conftest import folded_scene
 
 
 def random_covariances(n: int, seed: int = 0) -> torch.Tensor:  # [n, 3, 3] float64, of every kind the decoder meets
@@ -71,10 +71,7 @@ def covariances_of(g) -> np.ndarray:  # [N, 3, 3] R diag(s^2) R^T of decoded Gau
 def test_decoder_gives_the_same_gaussians_on_either_path(shelf_frames):
     # the service decodes with the numba path; a training step that needs gradients through the
     # fields takes the reference: the covariances they decode agree on the real capture
-    scene = Scene(SceneConfig(voxel_size=0.004))
-    for f in shelf_frames[:3]:
-        scene.fold(f)
-    fields = scene.fields()
+    fields = folded_scene(shelf_frames[:3], 0.004).fields()
     decoder = GaussianDecoder(feature_dim=fields["features"].shape[1])
     with torch.no_grad():
         fast = decoder(fields, 0.004)

@@ -11,7 +11,7 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.scene.decoded import PARTS
-from ..conftest import make_frame
+from ..conftest import folded_scene, make_frame
 
 
 def assert_same_gaussians(a, b):
@@ -49,9 +49,7 @@ def shelf(shelf_frames):
 
 @pytest.mark.realdata
 def test_a_decode_after_a_fold_decodes_only_what_the_fold_touched_and_equals_a_fresh_decode(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in shelf[:4]:
-        scene.fold(frame)
+    scene = folded_scene(shelf[:4])
     counts = decoded_row_counts(scene)
     first = scene.decode()
     assert counts == [len(first)]  # nothing to reuse yet
@@ -71,9 +69,7 @@ def test_a_decode_after_a_fold_decodes_only_what_the_fold_touched_and_equals_a_f
 
 @pytest.mark.realdata
 def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in shelf[:3]:
-        scene.fold(frame)
+    scene = folded_scene(shelf[:3])
     early = scene.decode_inputs()
     scene.fold(shelf[3])
     scene.decode()  # the cache now holds rows of the later state
@@ -82,8 +78,7 @@ def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(she
 
 @pytest.mark.realdata
 def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    scene.fold(shelf[0])
+    scene = folded_scene(shelf[:1])
     before = scene.decode()
     with torch.no_grad():
         scene.decoder.offset.bias += torch.tensor([0.25, 0.0, 0.0])  # a quarter voxel along x
@@ -108,9 +103,7 @@ def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
 
 @pytest.mark.realdata
 def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in shelf[:2]:
-        scene.fold(frame)
+    scene = folded_scene(shelf[:2])
     scene.decode()
     loaded = Scene.from_bytes(scene.to_bytes())
     assert_same_gaussians(loaded.decode(), scene.decode())
@@ -136,8 +129,7 @@ def test_labels_arriving_after_a_decode_reach_every_voxel():
 
 @pytest.mark.realdata
 def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    scene.fold(shelf[0])
+    scene = folded_scene(shelf[:1])
     before = scene.memory_bytes()
     g = scene.decode()
     per_gaussian = (3 + 3 + 4 + g.sh[0].numel() + g.features.shape[1]) * 4
@@ -186,15 +178,8 @@ def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf)
         assert_same_gaussians(g, from_scratch(scene, inputs))
 
 
-def folded(frames) -> Scene:
-    scene = Scene(SceneConfig(voxel_size=0.008))
-    for frame in frames:
-        scene.fold(frame)
-    return scene
-
-
 def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
-    scene = folded(shelf[:3])
+    scene = folded_scene(shelf[:3])
     counts = decoded_row_counts(scene)
     g = scene.gaussians()
     assert scene.gaussians() is g and scene.gaussians(len(scene)) is g  # a limit that leaves out nothing is the full decode
@@ -211,7 +196,7 @@ def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
 
 
 def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
-    scene = folded(shelf[:3])
+    scene = folded_scene(shelf[:3])
     decodes, decode = [], scene._decoding.decode_locked
 
     def counting(*args, **kwargs):
