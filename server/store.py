@@ -107,7 +107,9 @@ class FoldedFrame:
 
     index: int
     digest: str  # of its log record's payload
-    report: dict | None  # the fold report it got (None for frames folded before a repair)
+    # the fold report it got; None where a crash between a snapshot and the log's restart left only
+    # the frame's record (its report is then not known: the retry gets zero counts)
+    report: dict | None
 
 
 class Restored(NamedTuple):
