@@ -3,6 +3,8 @@
 - `load_tsdf_fusion`: tsdf-fusion / 7-Scenes (``frame-NNNNNN.color.png / .depth.png / .pose.txt``)
 - `load_tum`: TUM RGB-D (rgb.txt / depth.txt / groundtruth.txt) and slambook (pose.txt, color/, depth/)
 - `load_transforms_json`: nerfstudio / instant-ngp ``transforms.json`` (OpenGL poses, distortion)
+- `load_deep_video_mvs`: deep-video-mvs (``K.txt``, ``poses.txt``, ``images/``, ``depth/``)
+- `load_redwood`: Redwood / Open3D reconstruction system (``image/``, ``depth/``, ``trajectory.log``)
 - `load_dataset`: detects which of the above a path holds
 - `synthetic_rgbd`: an exactly ray-cast scene of textured boxes; `write_tsdf_fusion` saves any frames
 
@@ -18,7 +20,9 @@ Example:
     (torch.Size([48, 64, 3]), 64)
 """
 
+from .deep_video_mvs import load_deep_video_mvs
 from .detect import load_dataset
+from .redwood import load_redwood
 from .sequence import FrameSequence
 from .synthetic import synthetic_rgbd
 from .transforms_json import load_transforms_json
@@ -28,6 +32,8 @@ from .tum import load_tum
 __all__ = [
     "FrameSequence",
     "load_dataset",
+    "load_deep_video_mvs",
+    "load_redwood",
     "load_transforms_json",
     "load_tsdf_fusion",
     "load_tum",

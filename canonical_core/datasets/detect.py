@@ -9,18 +9,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+from .deep_video_mvs import is_deep_video_mvs, load_deep_video_mvs
+from .redwood import is_redwood, load_redwood
 from .sequence import FrameSequence
 from .transforms_json import load_transforms_json
 from .tsdf_fusion import find_frames_folder, load_tsdf_fusion
 from .tum import load_tum
 
-Layout = Literal["transforms_json", "tum", "tsdf_fusion"]
+Layout = Literal["transforms_json", "tum", "tsdf_fusion", "deep_video_mvs", "redwood"]
 
 
 def detect_layout(path: str | Path) -> Layout:
     """Which loader reads ``path``: a transforms.json (file or in the folder) -> "transforms_json";
-    groundtruth.txt, or pose.txt with a color/ folder -> "tum"; frame-*.pose.txt (in the folder or
-    one subfolder) -> "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
+    groundtruth.txt, or pose.txt with a color/ folder -> "tum"; K.txt, poses.txt and images/ ->
+    "deep_video_mvs"; trajectory.log and image/ -> "redwood"; frame-*.pose.txt (in the folder or one
+    subfolder) -> "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
     path = Path(path)
     if path.is_file() and path.suffix == ".json":
         return "transforms_json"
@@ -30,15 +33,20 @@ def detect_layout(path: str | Path) -> Layout:
         return "transforms_json"
     if (path / "groundtruth.txt").is_file() or ((path / "pose.txt").is_file() and (path / "color").is_dir()):
         return "tum"
+    if is_deep_video_mvs(path):
+        return "deep_video_mvs"
+    if is_redwood(path):
+        return "redwood"
     if find_frames_folder(path) is not None:
         return "tsdf_fusion"
     raise ValueError(
         f"{path}: no known capture layout (looked for transforms.json; groundtruth.txt or pose.txt + color/; "
-        "frame-*.pose.txt)"
+        "K.txt + poses.txt + images/; trajectory.log + image/; frame-*.pose.txt)"
     )
 
 
-_LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusion": load_tsdf_fusion}
+_LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusion": load_tsdf_fusion,
+            "deep_video_mvs": load_deep_video_mvs, "redwood": load_redwood}
 
 
 def load_dataset(path: str | Path, **kwargs) -> FrameSequence:

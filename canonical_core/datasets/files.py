@@ -284,3 +284,25 @@ class RGBDFile:
                 depth = undistort_image(depth, self.K, self.distortion, mode="nearest")
         camera = Camera(self.K, self.c2w, width, height)
         return Frame(rgb=rgb, camera=camera, depth=depth, frame_id=self.frame_id)
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def posed_images(images: Path, depth: Path, K: np.ndarray, poses: Sequence[np.ndarray], depth_scale: float,
+                 stride: int, max_frames: int | None, pose_file: Path) -> list[RGBDFile]:
+    """One `RGBDFile` per kept colour image of ``images`` (file-name order), the k-th taking
+    ``poses[k]`` and, where it exists, the depth image of the same stem (``.png``) in ``depth``
+    (else the frame is RGB-only). Layouts whose poses are listed in image order share this."""
+    if not depth_scale > 0:
+        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(poses) != len(files):
+        raise ValueError(f"{pose_file}: {len(poses)} poses for {len(files)} images in {images} "
+                         "(one per image, in sorted file-name order)")
+    out = []
+    for k in select(range(len(files)), stride, max_frames):
+        d = depth / (files[k].stem + ".png")
+        out.append(RGBDFile(files[k].stem, files[k], d if d.is_file() else None, K, poses[k], depth_scale))
+    return out
+

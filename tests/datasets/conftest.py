@@ -13,6 +13,8 @@ from canonical_core.datasets import load_tsdf_fusion, load_tum, synthetic_rgbd, 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 SHELF = DATA / "realsense_shelf"
 SLAMBOOK = DATA / "slambook_rgbd5"
+HOLOLENS = DATA / "hololens_office"
+LIVINGROOM = DATA / "livingroom_synthetic"
 SLAMBOOK_K = (518.0, 519.0, 325.5, 253.5)  # from the data README; not stored in the capture
 
 
@@ -30,6 +32,16 @@ def shelf_path() -> Path:
 @pytest.fixture(scope="session")
 def slambook_path() -> Path:
     return _require(SLAMBOOK)
+
+
+@pytest.fixture(scope="session")
+def hololens_path() -> Path:
+    return _require(HOLOLENS)
+
+
+@pytest.fixture(scope="session")
+def livingroom_path() -> Path:
+    return _require(LIVINGROOM)
 
 
 @pytest.fixture(scope="session")
