@@ -110,7 +110,7 @@ def run_repair(args) -> int:
 
 # -- stream -------------------------------------------------------------------------------------
 def add_stream(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json)")
+    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
     _add_connection(p)
     target = p.add_mutually_exclusive_group(required=True)
     target.add_argument("--session", help="stream into this existing session, after the frames it already has "

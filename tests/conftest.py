@@ -11,7 +11,7 @@ import torch
 from canonical_core import Camera, Frame
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-REAL_DATA_FIXTURES = {"shelf_dir", "shelf_path", "slambook_path", "hololens_path", "livingroom_path"}  # every fixture that reads ../shared/data
+REAL_DATA_FIXTURES = {"shelf_dir", "shelf_path", "slambook_path", "hololens_path", "livingroom_path", "apc_bins_path"}  # every fixture that reads ../shared/data
 
 
 def pytest_collection_modifyitems(items):

@@ -5,6 +5,7 @@
 - `load_transforms_json`: nerfstudio / instant-ngp ``transforms.json`` (OpenGL poses, distortion)
 - `load_deep_video_mvs`: deep-video-mvs (``K.txt``, ``poses.txt``, ``images/``, ``depth/``)
 - `load_redwood`: Redwood / Open3D reconstruction system (``image/``, ``depth/``, ``trajectory.log``)
+- `load_label_fusion`: label-fusion's bins (tsdf-fusion frames, bit-rotated depth, label maps as labels)
 - `load_dataset`: detects which of the above a path holds
 - `synthetic_rgbd`: an exactly ray-cast scene of textured boxes; `write_tsdf_fusion` saves any frames
 
@@ -22,6 +23,7 @@ Example:
 
 from .deep_video_mvs import load_deep_video_mvs
 from .detect import load_dataset
+from .label_fusion import load_label_fusion
 from .redwood import load_redwood
 from .sequence import FrameSequence
 from .synthetic import synthetic_rgbd
@@ -33,6 +35,7 @@ __all__ = [
     "FrameSequence",
     "load_dataset",
     "load_deep_video_mvs",
+    "load_label_fusion",
     "load_redwood",
     "load_transforms_json",
     "load_tsdf_fusion",

@@ -10,20 +10,22 @@ from pathlib import Path
 from typing import Literal
 
 from .deep_video_mvs import is_deep_video_mvs, load_deep_video_mvs
+from .label_fusion import has_label_maps, load_label_fusion
 from .redwood import is_redwood, load_redwood
 from .sequence import FrameSequence
 from .transforms_json import load_transforms_json
 from .tsdf_fusion import find_frames_folder, load_tsdf_fusion
 from .tum import load_tum
 
-Layout = Literal["transforms_json", "tum", "tsdf_fusion", "deep_video_mvs", "redwood"]
+Layout = Literal["transforms_json", "tum", "tsdf_fusion", "deep_video_mvs", "redwood", "label_fusion"]
 
 
 def detect_layout(path: str | Path) -> Layout:
     """Which loader reads ``path``: a transforms.json (file or in the folder) -> "transforms_json";
     groundtruth.txt, or pose.txt with a color/ folder -> "tum"; K.txt, poses.txt and images/ ->
     "deep_video_mvs"; trajectory.log and image/ -> "redwood"; frame-*.pose.txt (in the folder or one
-    subfolder) -> "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
+    subfolder) -> "label_fusion" with frame-*.segm.png or .mask.png label maps beside them, else
+    "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
     path = Path(path)
     if path.is_file() and path.suffix == ".json":
         return "transforms_json"
@@ -37,8 +39,9 @@ def detect_layout(path: str | Path) -> Layout:
         return "deep_video_mvs"
     if is_redwood(path):
         return "redwood"
-    if find_frames_folder(path) is not None:
-        return "tsdf_fusion"
+    folder = find_frames_folder(path)
+    if folder is not None:
+        return "label_fusion" if has_label_maps(folder) else "tsdf_fusion"
     raise ValueError(
         f"{path}: no known capture layout (looked for transforms.json; groundtruth.txt or pose.txt + color/; "
         "K.txt + poses.txt + images/; trajectory.log + image/; frame-*.pose.txt)"
@@ -46,7 +49,7 @@ def detect_layout(path: str | Path) -> Layout:
 
 
 _LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusion": load_tsdf_fusion,
-            "deep_video_mvs": load_deep_video_mvs, "redwood": load_redwood}
+            "deep_video_mvs": load_deep_video_mvs, "redwood": load_redwood, "label_fusion": load_label_fusion}
 
 
 def load_dataset(path: str | Path, **kwargs) -> FrameSequence:

@@ -44,7 +44,7 @@ INTRINSICS_PATTERNS = ("camera-intrinsics.txt", "intrinsics.K.txt", "*.K.txt")
 _COLOR_SUFFIXES = (".color.png", ".color.jpg")
 
 
-def _natural_key(path: Path) -> list:
+def natural_key(path: Path) -> list:
     # frame numbers are usually zero-padded, but a natural sort keeps unpadded ones in order too
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
 
@@ -100,7 +100,7 @@ def load_tsdf_fusion(
             )
         K = read_intrinsics_file(found)
     sources = []
-    for pose_path in select(sorted(folder.glob(POSE_PATTERN), key=_natural_key), stride, max_frames):
+    for pose_path in select(sorted(folder.glob(POSE_PATTERN), key=natural_key), stride, max_frames):
         stem = pose_path.name[: -len(".pose.txt")]
         colors = [folder / (stem + s) for s in _COLOR_SUFFIXES if (folder / (stem + s)).is_file()]
         if not colors:

@@ -1,0 +1,136 @@
+"""label-fusion's bins: the tsdf-fusion frame layout with its own depth code and per-frame label maps.
+
+- ``frame-NNNNNN.color.png``: 8-bit RGB; ``frame-NNNNNN.pose.txt``: 4x4 camera-to-world, OpenCV axes;
+  ``camera-intrinsics.color.txt`` (or any tsdf-fusion intrinsics file) at the folder root;
+- ``frame-NNNNNN.depth.png``: uint16 in tenths of a millimetre, bit-rotated: the value v holds
+  d = ((v >> 3) | (v << 13)) & 0xFFFF (in 32 bits), metres = d / 10000; 0 = missing;
+- ``frame-NNNNNN.segm.png`` (uint8 label id per pixel, 0 = background) or ``frame-NNNNNN.mask.png``
+  (0 or 255): read as one-hot label scores, one channel per id found in the capture's label maps
+  (`Frame.labels`), so that fused scenes carry them (segmentation views).
+
+Example:
+    >>> seq = load_label_fusion("../shared/data/apc_bins/bin_labels")  # doctest: +SKIP
+    >>> seq.label_ids, seq[0].labels.shape  # doctest: +SKIP
+    ((0, 48, 132), torch.Size([480, 640, 3]))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from ..camera import Camera, validate_pose
+from ..frame import Frame
+from .files import (as_intrinsics, depth_from_uint16, find_one, read_depth, read_intrinsics_file, read_matrix, read_rgb,
+                    select)
+from .sequence import FrameSequence
+from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key
+
+LABEL_SUFFIXES = (".segm.png", ".mask.png")
+DEPTH_UNITS_PER_METRE = 10000.0
+
+
+def has_label_maps(folder: Path) -> bool:
+    return any(any(folder.glob("frame-*" + suffix)) for suffix in LABEL_SUFFIXES)
+
+
+def unrotate_depth(raw: np.ndarray) -> np.ndarray:  # [H, W] uint16 as stored -> [H, W] uint16 tenths of a mm
+    """Undo label-fusion's bit rotation of its depth images: d = ((v >> 3) | (v << 13)) & 0xFFFF.
+
+    Example:
+        >>> unrotate_depth(np.array([[0, 8, 1]], np.uint16)).tolist()
+        [[0, 1, 8192]]
+    """
+    v = raw.astype(np.uint32)
+    return (((v >> 3) | (v << 13)) & 0xFFFF).astype(np.uint16)
+
+
+def read_label_map(path: Path) -> np.ndarray:  # [H, W] uint8 label ids
+    with Image.open(path) as image:
+        if image.mode not in ("L", "P", "1"):
+            raise ValueError(f"{path}: expected an 8-bit single-channel label map, got PIL mode {image.mode!r}")
+        return np.asarray(image.convert("L"))
+
+
+@dataclass(frozen=True, eq=False)
+class LabelledFrameFile:
+    """One label-fusion frame on disk; ``load()`` reads and decodes it."""
+
+    frame_id: str
+    color: Path
+    depth: Path
+    labels: Path | None
+    K: np.ndarray  # [3, 3] float64
+    c2w: np.ndarray  # [4, 4] float64
+    label_ids: tuple[int, ...]  # the capture's ids, one label channel each
+
+    def load(self) -> Frame:
+        rgb = read_rgb(self.color)
+        stored = read_depth(self.depth, 1.0).astype(np.uint16)  # the raw values (0 and 65535 read as 0)
+        depth = depth_from_uint16(unrotate_depth(stored), DEPTH_UNITS_PER_METRE)
+        labels = None
+        if self.labels is not None:
+            ids = read_label_map(self.labels)
+            if ids.shape != depth.shape:
+                raise ValueError(f"{self.labels}: label map {ids.shape[1]}x{ids.shape[0]} does not match the depth "
+                                 f"image {self.depth} ({depth.shape[1]}x{depth.shape[0]})")
+            labels = (ids[..., None] == np.array(self.label_ids, np.uint8)).astype(np.float32)
+        camera = Camera(self.K, self.c2w, rgb.shape[1], rgb.shape[0])
+        return Frame(rgb=rgb, camera=camera, depth=depth, labels=labels, frame_id=self.frame_id)
+
+
+class LabelledSequence(FrameSequence):
+    """A `FrameSequence` that also names its label channels (``label_ids[c]`` is channel c's id)."""
+
+    def __init__(self, name: str, sources, label_ids: tuple[int, ...]):
+        super().__init__(name, sources)
+        self.label_ids = label_ids
+
+
+def load_label_fusion(
+    path: str | Path,
+    intrinsics=None,
+    stride: int = 1,
+    max_frames: int | None = None,
+) -> LabelledSequence:
+    """Load a label-fusion bin folder as a lazily-read sequence of frames with depth and labels.
+
+    Args:
+        path: the capture folder (frames in it or in one subfolder; intrinsics file at its root).
+        intrinsics: 3x3 K or (fx, fy, cx, cy) in pixels; overrides the intrinsics file.
+        stride, max_frames: keep every stride-th frame, at most max_frames of them.
+
+    The label channels are the ids found in all of the capture's label maps (read once, here), so
+    every frame of it has the same channels whatever ``stride`` keeps.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a folder")
+    folder = find_frames_folder(root)
+    if folder is None or not has_label_maps(folder):
+        raise ValueError(f"{root}: not a label-fusion folder (expected {POSE_PATTERN} with "
+                         f"{' or '.join('frame-*' + s for s in LABEL_SUFFIXES)})")
+    patterns = ("camera-intrinsics.color.txt", *INTRINSICS_PATTERNS)
+    found = None if intrinsics is not None else find_one(list(dict.fromkeys([root, folder])), patterns)
+    if intrinsics is None and found is None:
+        raise ValueError(f"{root}: no intrinsics file ({', '.join(patterns)}); pass intrinsics=(fx, fy, cx, cy)")
+    K = as_intrinsics(intrinsics) if intrinsics is not None else read_intrinsics_file(found)
+    poses = sorted(folder.glob(POSE_PATTERN), key=natural_key)
+    label_files = {}
+    for pose in poses:
+        stem = pose.name[: -len(".pose.txt")]
+        label_files[stem] = next((folder / (stem + s) for s in LABEL_SUFFIXES if (folder / (stem + s)).is_file()), None)
+    ids = sorted(set().union(*(np.unique(read_label_map(p)).tolist() for p in label_files.values() if p is not None)))
+    sources = []
+    for pose in select(poses, stride, max_frames):
+        stem = pose.name[: -len(".pose.txt")]
+        color, depth = folder / f"{stem}.color.png", folder / f"{stem}.depth.png"
+        for needed in (color, depth):
+            if not needed.is_file():
+                raise ValueError(f"{needed}: file not found (for {pose.name})")
+        c2w = validate_pose(read_matrix(pose, 4, 4), str(pose))
+        sources.append(LabelledFrameFile(stem, color, depth, label_files[stem], K, c2w, tuple(ids)))
+    return LabelledSequence(root.name, sources, tuple(ids))
