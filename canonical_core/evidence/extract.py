@@ -12,6 +12,7 @@ import torch
 from ..frame import Frame
 from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
 from .features import DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features
+from .registration import registration_weight
 from .reliability import AppearanceUncertainty, positional_uncertainty
 
 if TYPE_CHECKING:  # the settings are read, never constructed, here; importing the scene package would run it
@@ -129,6 +130,9 @@ def extract_evidence(
         edge_weight=config.sensor.edge_weight,
     )
     log_r = -u_pos
+    if config.sensor.registration_px > 0:
+        log_r = log_r + np.log(registration_weight(depth, rows, cols, config.sensor.registration_px, config.voxel_size,
+                                                   config.sensor.sigma0, config.sensor.sigma2, config.sensor.sigma_ref))
     if appearance is not None and not appearance.is_zero:
         with torch.no_grad():
             log_r = log_r - appearance(torch.from_numpy(features)).numpy()

@@ -103,6 +103,11 @@ class SensorNoise(_Settings):
     edge_weight: Annotated[float, Field(ge=0, le=100.0)] = 0.5
     """Weight of the largest neighbour depth jump added to the std, so "flying pixels" on depth
     discontinuities get low reliability."""
+    registration_px: Annotated[float, Field(ge=0, le=32)] = 0.0
+    """Pixels; evidence within this distance of a depth edge is down-weighted (its reliability times
+    min(1, (d + 1) / (registration_px + 1)), d the distance), because colour and depth measured by
+    two sensors disagree there and the colour may belong to the surface behind
+    (`evidence.registration`). 0 turns it off."""
 
 
 class FreeSpace(_Settings):

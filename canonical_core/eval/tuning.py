@@ -1,0 +1,237 @@
+"""Defaults chosen across captures: setting variants scored on every capture, chosen leave-one-capture-out.
+
+A default tuned on one capture absorbs that capture's sensor, depth range and voxel size. Here each
+variant (a few `SceneConfig` settings changed from the defaults) is scored on every capture with the
+evaluation's own protocol (`protocol.interpolation_split`, `run.score`): per N, all-pixel and
+covered PSNR and depth agreement on the held-out frames. A capture's *objective* for a variant is the
+mean over N of (all-pixel + covered PSNR) / 2, minus the default's: the change in dB.
+
+Leave-one-capture-out: for each group of captures (captures of one sensor and place form a group, so
+that a held-out group teaches nothing through its twin), the variant with the best mean objective
+over the *other* groups is chosen, and its objective on the held-out group is what that choice is
+worth on a capture it never saw. A default changes only where the choice is the same in every fold
+and helps every held-out group.
+
+Run: ``python -m canonical_core.eval.tuning --out docs/eval/tuning`` (results.json, results.md and a
+PNG of the objectives).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..datasets import load_dataset
+from ..frame import resize_frame
+from ..scene import Scene, SceneConfig
+from .methods import SplatModel
+from .protocol import interpolation_split
+from .run import default_voxel_size, score
+
+VIEWS = (2, 4, 8, 16)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A name and the `SceneConfig` settings it changes (groups as dicts, e.g. ``{"sensor": {...}}``)."""
+
+    name: str
+    settings: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Capture:
+    """A capture folder (any `load_dataset` layout) and the group it belongs to for leave-one-out."""
+
+    path: str
+    group: str
+
+
+DEFAULT = Variant("default")
+VARIANTS = (
+    DEFAULT,
+    Variant("registration_px=1", {"sensor": {"registration_px": 1.0}}),
+    Variant("registration_px=2", {"sensor": {"registration_px": 2.0}}),
+    Variant("registration_px=4", {"sensor": {"registration_px": 4.0}}),
+    Variant("edge_weight=2", {"sensor": {"edge_weight": 2.0}}),
+    Variant("free_space.margin=1", {"free_space": {"margin": 1.0}}),
+    Variant("free_space.margin=4", {"free_space": {"margin": 4.0}}),
+    Variant("free_space.dominance=1", {"free_space": {"dominance": 1.0}}),
+    Variant("free_space.dominance=4", {"free_space": {"dominance": 4.0}}),
+    Variant("opacity_slope=10", {"decoder": {"opacity_slope": 10.0}}),
+    Variant("opacity_slope=90", {"decoder": {"opacity_slope": 90.0}}),
+    Variant("sh_degree=0", {"sh_degree": 0}),
+)
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+CAPTURES = (
+    Capture(str(DATA / "realsense_shelf"), "realsense_shelf"),
+    Capture(str(DATA / "hololens_office"), "hololens_office"),
+    Capture(str(DATA / "apc_bins" / "bin_labels"), "apc_bins"),
+    Capture(str(DATA / "apc_bins" / "bin_mask"), "apc_bins"),
+)
+
+
+def allowed_views(n: int, views: Sequence[int] = VIEWS) -> tuple[int, ...]:
+    """The longest prefix of ``views`` whose protocol split fits a sequence of ``n`` frames.
+
+    Example:
+        >>> allowed_views(15), allowed_views(50)
+        ((2, 4), (2, 4, 8, 16))
+    """
+    for k in range(len(views), 0, -1):
+        try:
+            interpolation_split(n, views[:k])
+            return tuple(views[:k])
+        except ValueError:
+            continue
+    raise ValueError(f"n: a sequence of {n} frames allows no split for views {list(views)}")
+
+
+def score_capture(capture: Capture, variants: Sequence[Variant], views: Sequence[int] = VIEWS, scale: float = 1.0,
+                  bar: tqdm | None = None) -> dict:
+    """Every variant on one capture (images downscaled by ``scale``, the voxel size following the
+    evaluation's rule): per variant and N, the held-out metrics of `run.score`."""
+    sequence = load_dataset(capture.path)
+    views = allowed_views(len(sequence), views)
+    split = interpolation_split(len(sequence), views)
+    frames = {p: resize_frame(sequence[p], scale) for p in sorted(set(split.heldout).union(*split.inputs.values()))}
+    targets = [frames[p] for p in split.heldout]
+    voxel = default_voxel_size([frames[p] for p in split.inputs[max(views)]])
+    rows = {}
+    for variant in variants:
+        config = SceneConfig(voxel_size=voxel, **variant.settings)
+        per_n = {}
+        for n_views, inputs in split.inputs.items():
+            scene = Scene(config)
+            for p in inputs:
+                scene.fold(frames[p])
+            metrics = score(SplatModel(scene.decode()), targets, voxel).metrics
+            per_n[n_views] = {k: metrics[k] for k in ("psnr", "psnr_covered", "coverage", "depth_agreement", "ssim")}
+            if bar is not None:
+                bar.update()
+        rows[variant.name] = per_n
+    return {"capture": sequence.name, "path": capture.path, "group": capture.group, "voxel_size": voxel, "scale": scale,
+            "views": list(views), "variants": rows}
+
+
+def objective(per_n: Mapping) -> float:
+    """Mean over N of (all-pixel + covered PSNR) / 2, in dB."""
+    return float(np.mean([(m["psnr"] + m["psnr_covered"]) / 2 for m in per_n.values()]))
+
+
+def group_objectives(captures: Sequence[dict]) -> dict[str, dict[str, float]]:
+    """{group: {variant: objective - the default's}}, averaged over the group's captures."""
+    out: dict[str, dict[str, list[float]]] = {}
+    for c in captures:
+        base = objective(c["variants"][DEFAULT.name])
+        for name, per_n in c["variants"].items():
+            out.setdefault(c["group"], {}).setdefault(name, []).append(objective(per_n) - base)
+    return {g: {name: float(np.mean(v)) for name, v in rows.items()} for g, rows in out.items()}
+
+
+def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]]) -> list[dict]:
+    """Per held-out group: the variant with the best mean change over the other groups (ties to the
+    default, then to the first listed), that mean, and the change it makes on the held-out group.
+
+    Example:
+        >>> d = {"a": {"default": 0.0, "x": 0.5}, "b": {"default": 0.0, "x": 0.3}, "c": {"default": 0.0, "x": -0.1}}
+        >>> [(r["held_out"], r["chosen"], r["held_out_change"]) for r in leave_one_capture_out(d)]
+        [('a', 'x', 0.5), ('b', 'x', 0.3), ('c', 'x', -0.1)]
+    """
+    groups = list(deltas)
+    if len(groups) < 2:
+        raise ValueError(f"deltas: leave-one-out needs at least two groups, got {groups}")
+    names = list(next(iter(deltas.values())))
+    rows = []
+    for held in groups:
+        train = [g for g in groups if g != held]
+        mean = {name: float(np.mean([deltas[g][name] for g in train])) for name in names}
+        best = max(names, key=lambda name: (round(mean[name], 9), name == DEFAULT.name, -names.index(name)))
+        rows.append({"held_out": held, "chosen": best, "train_change": mean[best], "held_out_change": deltas[held][best]})
+    return rows
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:+.{digits}f}"
+
+
+def write_report(results: dict, out: Path) -> None:
+    """results.json, results.md (the tables) and objectives.png (change per variant and capture group)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    deltas, loco, captures = results["group_changes"], results["leave_one_out"], results["captures"]
+    groups, names = list(deltas), list(next(iter(deltas.values())))
+    lines = ["# Defaults across captures: leave-one-capture-out", "",
+             "Each variant changes the named settings from the defaults; objective = mean over N of "
+             "(all-pixel + covered PSNR) / 2 on the held-out frames of the evaluation protocol; the tables "
+             "give its change from the default in dB (captures of one group averaged).", "",
+             "Made by `" + results["command"] + "`.", "",
+             "| capture | group | N | image scale | voxel size |", "|---|---|---|---|---|"]
+    lines += [f"| {c['capture']} | {c['group']} | {', '.join(map(str, c['views']))} | {c['scale']:g} | {c['voxel_size']:g} |"
+              for c in captures]
+    lines += ["", "## Change of the objective (dB) per variant and capture group", "",
+              "| variant | " + " | ".join(groups) + " | mean |", "|---|" + "---|" * (len(groups) + 1)]
+    for name in names:
+        values = [deltas[g][name] for g in groups]
+        lines.append(f"| {name} | " + " | ".join(_fmt(v) for v in values) + f" | {_fmt(float(np.mean(values)))} |")
+    lines += ["", "## Leave-one-capture-out", "",
+              "| held-out group | chosen on the others | change on the others | change on the held-out group |",
+              "|---|---|---|---|"]
+    lines += [f"| {r['held_out']} | {r['chosen']} | {_fmt(r['train_change'])} | {_fmt(r['held_out_change'])} |" for r in loco]
+    lines += ["", "## Depth agreement per variant (mean over N)", "",
+              "| variant | " + " | ".join(c["capture"] for c in captures) + " |", "|---|" + "---|" * len(captures)]
+    for name in names:
+        lines.append(f"| {name} | " + " | ".join(
+            f"{np.mean([m['depth_agreement'] for m in c['variants'][name].values()]):.3f}" for c in captures) + " |")
+    (out / "results.md").write_text("\n".join(lines) + "\n")
+
+    fig, ax = plt.subplots(figsize=(10, 0.35 * len(names) + 1.5))
+    height = 0.8 / len(groups)
+    for i, g in enumerate(groups):
+        ax.barh(np.arange(len(names)) + i * height, [deltas[g][n] for n in names], height, label=g)
+    ax.set_yticks(np.arange(len(names)) + 0.4 - height / 2, names)
+    ax.axvline(0, color="black", linewidth=0.8)
+    ax.invert_yaxis()
+    ax.set_xlabel("change of (all-pixel + covered PSNR) / 2 from the defaults, dB")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "objectives.png", dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m canonical_core.eval.tuning", description=__doc__.split("\n")[0])
+    parser.add_argument("--out", required=True, help="output folder (results.json, results.md, objectives.png)")
+    parser.add_argument("--variants", default=None, help="comma-separated subset of: " + ", ".join(v.name for v in VARIANTS))
+    parser.add_argument("--scale", type=float, default=1.0, help="image downscale factor in (0, 1] (default 1)")
+    parser.add_argument("--views", default=",".join(map(str, VIEWS)), help="input counts N (each capture uses the prefix it allows)")
+    args = parser.parse_args(argv)
+    by_name = {v.name: v for v in VARIANTS}
+    chosen = VARIANTS if args.variants is None else [DEFAULT] + [by_name[n] for n in args.variants.split(",") if n != DEFAULT.name]
+    views = tuple(int(v) for v in args.views.split(","))
+    steps = sum(len(chosen) * len(allowed_views(len(load_dataset(c.path)), views)) for c in CAPTURES)
+    bar = tqdm(total=steps, file=sys.stderr, desc="tuning", unit="run", dynamic_ncols=True)
+    captures = [score_capture(c, chosen, views, args.scale, bar) for c in CAPTURES]
+    bar.close()
+    deltas = group_objectives(captures)
+    results = {"command": "python -m canonical_core.eval.tuning " + " ".join(argv if argv is not None else sys.argv[1:]), "captures": captures, "group_changes": deltas, "leave_one_out": leave_one_capture_out(deltas)}
+    write_report(results, Path(args.out))
+    print((Path(args.out) / "results.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
