@@ -56,20 +56,32 @@ class Capture:
 
 
 DEFAULT = Variant("default")
-VARIANTS = (
-    DEFAULT,
-    Variant("registration_px=1", {"sensor": {"registration_px": 1.0}}),
-    Variant("registration_px=2", {"sensor": {"registration_px": 2.0}}),
-    Variant("registration_px=4", {"sensor": {"registration_px": 4.0}}),
-    Variant("edge_weight=2", {"sensor": {"edge_weight": 2.0}}),
-    Variant("free_space.margin=1", {"free_space": {"margin": 1.0}}),
-    Variant("free_space.margin=4", {"free_space": {"margin": 4.0}}),
-    Variant("free_space.dominance=1", {"free_space": {"dominance": 1.0}}),
-    Variant("free_space.dominance=4", {"free_space": {"dominance": 4.0}}),
-    Variant("opacity_slope=10", {"decoder": {"opacity_slope": 10.0}}),
-    Variant("opacity_slope=90", {"decoder": {"opacity_slope": 90.0}}),
-    Variant("sh_degree=0", {"sh_degree": 0}),
-)
+
+
+def knob_variants(path: str, values: Sequence) -> tuple[Variant, ...]:
+    """Variants setting one knob (``group.name`` or a top-level name) to each of ``values``."""
+    def settings(value) -> dict:
+        group, _, name = path.rpartition(".")
+        return {group: {name: value}} if group else {name: value}
+    return tuple(Variant(f"{path}={v:g}", settings(v)) for v in values)
+
+
+# each knob's values besides its default (the default itself is DEFAULT)
+KNOBS = {
+    "sensor.registration_px": (2.0, 4.0, 8.0),
+    "sensor.edge_weight": (1.0, 2.0),
+    "free_space.margin": (0.5, 1.0, 4.0),
+    "free_space.dominance": (1.0, 4.0),
+    "decoder.opacity_slope": (5.0, 10.0, 90.0),
+    "sh_degree": (0,),
+}
+VARIANTS = (DEFAULT, *(v for path, values in KNOBS.items() for v in knob_variants(path, values)))
+
+
+def knob_of(name: str) -> str | None:
+    """The knob a variant name sets (``None`` for the default and for joint variants)."""
+    path, sep, _ = name.partition("=")
+    return path if sep and path in KNOBS else None
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 CAPTURES = (
@@ -138,9 +150,10 @@ def group_objectives(captures: Sequence[dict]) -> dict[str, dict[str, float]]:
     return {g: {name: float(np.mean(v)) for name, v in rows.items()} for g, rows in out.items()}
 
 
-def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]]) -> list[dict]:
-    """Per held-out group: the variant with the best mean change over the other groups (ties to the
-    default, then to the first listed), that mean, and the change it makes on the held-out group.
+def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]], candidates: Sequence[str] | None = None) -> list[dict]:
+    """Per held-out group: among ``candidates`` (default: every variant; the default is always one),
+    the variant with the best mean change over the other groups (ties to the default, then to the
+    first listed), that mean, and the change it makes on the held-out group.
 
     Example:
         >>> d = {"a": {"default": 0.0, "x": 0.5}, "b": {"default": 0.0, "x": 0.3}, "c": {"default": 0.0, "x": -0.1}}
@@ -151,6 +164,7 @@ def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]]) -> list[dic
     if len(groups) < 2:
         raise ValueError(f"deltas: leave-one-out needs at least two groups, got {groups}")
     names = list(next(iter(deltas.values())))
+    names = [n for n in names if n == DEFAULT.name or candidates is None or n in candidates]
     rows = []
     for held in groups:
         train = [g for g in groups if g != held]
@@ -158,6 +172,42 @@ def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]]) -> list[dic
         best = max(names, key=lambda name: (round(mean[name], 9), name == DEFAULT.name, -names.index(name)))
         rows.append({"held_out": held, "chosen": best, "train_change": mean[best], "held_out_change": deltas[held][best]})
     return rows
+
+
+def choose_per_knob(deltas: Mapping[str, Mapping[str, float]]) -> dict[str, dict]:
+    """Leave-one-capture-out for each knob over its own values; a knob's value is *chosen* (a new
+    default) only when every fold picks the same non-default value and it helps every held-out group.
+
+    Example:
+        >>> d = {g: {"default": 0.0, "free_space.margin=1": m, "sh_degree=0": s}
+        ...      for g, m, s in (("a", 0.2, 0.3), ("b", 0.1, -0.2), ("c", 0.05, 0.1))}
+        >>> {k: v["chosen"] for k, v in choose_per_knob(d).items()}
+        {'free_space.margin': 'free_space.margin=1', 'sh_degree': None}
+    """
+    names = list(next(iter(deltas.values())))
+    out = {}
+    for knob in dict.fromkeys(k for n in names if (k := knob_of(n))):
+        folds = leave_one_capture_out(deltas, [n for n in names if knob_of(n) == knob])
+        picks = {r["chosen"] for r in folds}
+        consistent = len(picks) == 1 and DEFAULT.name not in picks and all(r["held_out_change"] > 0 for r in folds)
+        out[knob] = {"folds": folds, "chosen": picks.pop() if consistent else None}
+    return out
+
+
+def joint_variant(choices: Mapping[str, dict], variants: Sequence[Variant]) -> Variant | None:
+    """One variant setting every chosen knob (``None`` when no knob was chosen)."""
+    by_name = {v.name: v for v in variants}
+    chosen = [by_name[c["chosen"]] for c in choices.values() if c["chosen"]]
+    if not chosen:
+        return None
+    settings: dict = {}
+    for v in chosen:
+        for key, value in v.settings.items():
+            if isinstance(value, dict):
+                settings.setdefault(key, {}).update(value)
+            else:
+                settings[key] = value
+    return Variant("joint: " + ", ".join(v.name for v in chosen), settings)
 
 
 def _fmt(x: float | None, digits: int = 2) -> str:
@@ -172,7 +222,7 @@ def write_report(results: dict, out: Path) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=1))
-    deltas, loco, captures = results["group_changes"], results["leave_one_out"], results["captures"]
+    deltas, knobs, captures = results["group_changes"], results["knobs"], results["captures"]
     groups, names = list(deltas), list(next(iter(deltas.values())))
     lines = ["# Defaults across captures: leave-one-capture-out", "",
              "Each variant changes the named settings from the defaults; objective = mean over N of "
@@ -187,10 +237,17 @@ def write_report(results: dict, out: Path) -> None:
     for name in names:
         values = [deltas[g][name] for g in groups]
         lines.append(f"| {name} | " + " | ".join(_fmt(v) for v in values) + f" | {_fmt(float(np.mean(values)))} |")
-    lines += ["", "## Leave-one-capture-out", "",
-              "| held-out group | chosen on the others | change on the others | change on the held-out group |",
-              "|---|---|---|---|"]
-    lines += [f"| {r['held_out']} | {r['chosen']} | {_fmt(r['train_change'])} | {_fmt(r['held_out_change'])} |" for r in loco]
+    lines += ["", "## Leave-one-capture-out, per knob", "",
+              "Per knob, over its values and the default: the value best on the other groups, and what it "
+              "changes on the held-out group. A value becomes the default only when every fold picks it and "
+              "it helps every held-out group.", "",
+              "| knob | held-out group | chosen on the others | change on the others | change on the held-out group |",
+              "|---|---|---|---|---|"]
+    for knob, choice in knobs.items():
+        lines += [f"| {knob} | {r['held_out']} | {r['chosen']} | {_fmt(r['train_change'])} | {_fmt(r['held_out_change'])} |"
+                  for r in choice["folds"]]
+    lines += ["", "| knob | decision |", "|---|---|"]
+    lines += [f"| {knob} | {choice['chosen'] or 'default kept'} |" for knob, choice in knobs.items()]
     lines += ["", "## Depth agreement per variant (mean over N)", "",
               "| variant | " + " | ".join(c["capture"] for c in captures) + " |", "|---|" + "---|" * len(captures)]
     for name in names:
@@ -226,8 +283,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     bar = tqdm(total=steps, file=sys.stderr, desc="tuning", unit="run", dynamic_ncols=True)
     captures = [score_capture(c, chosen, views, args.scale, bar) for c in CAPTURES]
     bar.close()
+    knobs = choose_per_knob(group_objectives(captures))
+    joint = joint_variant(knobs, chosen)
+    if joint is not None and sum(1 for c in knobs.values() if c["chosen"]) > 1:  # the chosen values together
+        captures = [{**c, "variants": {**c["variants"], **score_capture(capture, [joint], views, args.scale)["variants"]}}
+                    for c, capture in zip(captures, CAPTURES)]
     deltas = group_objectives(captures)
-    results = {"command": "python -m canonical_core.eval.tuning " + " ".join(argv if argv is not None else sys.argv[1:]), "captures": captures, "group_changes": deltas, "leave_one_out": leave_one_capture_out(deltas)}
+    command = "python -m canonical_core.eval.tuning " + " ".join(argv if argv is not None else sys.argv[1:])
+    results = {"command": command, "captures": captures, "group_changes": deltas, "knobs": knobs}
     write_report(results, Path(args.out))
     print((Path(args.out) / "results.md").read_text())
     return 0
