@@ -132,3 +132,9 @@ def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
     serve.delete(APP_NAME)
     ray.shutdown()
     return 0
+
+
+def app_builder(args: dict):
+    """Serve config entry point (``import_path: server.cluster.serve:app_builder``, e.g. KubeRay's
+    RayService): ``args`` are `ClusterSettings` fields; the rest come from ``CANONICAL_*`` variables."""
+    return application(ClusterSettings(**args))
