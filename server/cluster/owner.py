@@ -56,6 +56,11 @@ def session_of(path: str) -> str | None:
     return match.group(1) if match else None
 
 
+def _log_failure(task: asyncio.Task) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("eviction failed: %r", task.exception())
+
+
 class OwnedSession(Session):
     """A `Session` whose log writes are fenced by its lease (``log.lease``): a snapshot holds the lease
     over both its files, and a fenced write marks the session ``stale`` (its owner drops it and reads
@@ -128,7 +133,8 @@ class OwnerStore(SessionStore):
         return session
 
     def get(self, session_id: str) -> Session:
-        session = self._sessions.get(session_id)
+        with self._lock:  # an eviction removes a session under this lock once it saw no request pinning it
+            session = self._sessions.get(session_id)
         if session is not None and not session.stale:
             return session
         with self._loading:
@@ -191,16 +197,17 @@ class OwnerStore(SessionStore):
         held = {s.id: s for s in self.list()}
         total = sum(s.scene.memory_bytes() for s in held.values())
         done = []
-        for session_id in [i for i in self.used if i in held] + [i for i in held if i not in self.used]:
+        order = list(self.used)  # one step under the GIL: the event loop touches it meanwhile
+        for session_id in [i for i in order if i in held] + [i for i in held if i not in order]:
             if total <= budget:
                 break
             session = held[session_id]
-            if session_id in busy:
-                continue
             with self._lock:
-                if self._sessions.get(session_id) is not session:
+                # a request pins its session before it looks it up (`get`, under this lock): either it
+                # is pinned now and the session stays, or its lookup comes after this and restores it
+                if session_id in busy or self._sessions.get(session_id) is not session:
                     continue
-                del self._sessions[session_id]  # from here a new request restores it from disk
+                del self._sessions[session_id]
             total -= session.scene.memory_bytes()
             session.snapshot()
             self.evicted[session_id] = session.summary()
@@ -284,6 +291,7 @@ class SessionOwner:
         if budget is None or (self._evicting is not None and not self._evicting.done()):
             return
         self._evicting = asyncio.create_task(asyncio.to_thread(self.store.evict, budget, self.busy))
+        self._evicting.add_done_callback(_log_failure)
 
     async def evict(self, budget: int) -> list[str]:
         """Evict idle sessions down to ``budget`` bytes now (operators, tests)."""
