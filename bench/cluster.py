@@ -112,11 +112,12 @@ def bench_streaming(payloads, counts, renders, voxel, threads) -> list[dict]:
             print("(cluster rows skipped: install the [cluster] extra)\n")
             return rows
         cluster.connect(num_cpus=2)
+        port = free_port()  # Serve's proxy keeps the port it started on
         try:
             for owners in (1, 2):
                 settings = ClusterSettings(data_dir=Path(tmp) / f"cluster{owners}", owners=owners, owner_cpus=0.75,
                                            ingress_cpus=0.25, ingress_min_replicas=1, ingress_max_replicas=2,
-                                           host="127.0.0.1", port=free_port(), threads=threads,
+                                           host="127.0.0.1", port=port, threads=threads,
                                            namespace=f"bench-{owners}")
                 cluster.start(settings)
                 url = f"http://127.0.0.1:{settings.port}"

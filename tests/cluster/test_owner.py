@@ -168,3 +168,10 @@ def test_the_single_process_service_and_the_owners_run_without_ray():
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "serve needs ray"
+
+
+def test_cluster_options_without_cluster_are_refused_before_anything_starts(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "client.cli", "serve", "--owners", "2", "--data-dir", str(tmp_path)],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "--address and --owners need --cluster" in out.stderr
+    assert not (tmp_path / "sessions").exists()
