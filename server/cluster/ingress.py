@@ -6,7 +6,8 @@ more middleware inside its guard that forwards each session's requests to the se
 - ``GET /v1/sessions``, ``GET /metrics``, ``GET /healthz``: gathered from every owner / the data dir.
 
 A request whose owner cannot be reached (its process died and is being restarted, or it is slow) is
-answered 429 ``busy`` with ``Retry-After``: nothing of it was acknowledged, and clients retry 429.
+answered 429 ``busy`` with ``Retry-After``, once the owner answers again (or after
+``owner_restart_wait_s``): nothing of it was acknowledged, and clients retry 429.
 Ingress replicas hold no state, so Serve can add and remove them at will.
 """
 
@@ -100,8 +101,20 @@ class ClusterRouter:
             status, headers, content = await self._call(shard, "handle", method, path, scope["query_string"],
                                                         scope["headers"], body)
         except OwnerUnreachable as exc:
+            await self._until_back(shard)  # so that the client's retry finds the owner running
             return await owner_busy(str(exc))(scope, receive, send)
         await send_response(send, status, headers, content)
+
+    async def _until_back(self, shard: int) -> None:
+        """Wait (at most ``owner_restart_wait_s``) until a lost owner answers again (Ray restarts it)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.settings.owner_restart_wait_s
+        while loop.time() < deadline:
+            try:
+                await asyncio.wait_for(self.owners.call(shard, "pid"), max(0.1, deadline - loop.time()))
+                return
+            except (OwnerUnreachable, asyncio.TimeoutError):
+                await asyncio.sleep(0.25)
 
     async def _call(self, shard: int, method: str, *args):
         try:

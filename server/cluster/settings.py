@@ -20,4 +20,6 @@ class ClusterSettings(Settings):
     ingress_target_requests: float = Field(8.0, gt=0, description="Serve autoscaling: requests in flight per ingress replica")
     ingress_cpus: float = Field(0.25, ge=0, description="CPUs each ingress replica declares (it only forwards)")
     owner_timeout_s: float = Field(300.0, gt=0, description="a forwarded request not answered in this time gets 429")
+    owner_restart_wait_s: float = Field(30.0, ge=0, description="a request whose owner died gets its 429 once the "
+                                        "restarted owner answers, or after this long")
     namespace: str = Field("canonical", description="Ray namespace of the owners' named actors")

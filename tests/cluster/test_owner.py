@@ -109,7 +109,7 @@ def test_an_evicted_session_restores_to_the_same_digest_and_png_bytes_under_conc
 
 
 def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_owner(tmp_path):
-    parts, client = cluster_client(tmp_path, max_sessions=1)
+    parts, client = cluster_client(tmp_path, max_sessions=1, owner_restart_wait_s=0.5)
 
     class Gone(LocalOwners):
         async def call(self, shard, method, *args):
