@@ -96,7 +96,7 @@ def warm(url: str, payload: dict, voxel: float, sessions: int) -> None:
         for _ in range(sessions):
             session = client.create_session(voxel_size=voxel)
             session.add_frame(**payload)
-            session.render_png(payload["K"], payload["c2w"], 64, 48)
+            session.render_png(payload["K"], payload["c2w"], payload["rgb"].shape[1], payload["rgb"].shape[0])
 
 
 def bench_streaming(payloads, counts, renders, voxel, threads) -> list[dict]:
