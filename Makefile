@@ -21,7 +21,9 @@ setup: $(VENV)/.installed
 demo: setup
 	$(PY) -m client.cli demo --out out/demo
 
+# the test command also installs the [cluster] extra (Ray Serve), which tests/cluster needs
 test: setup
+	$(PY) -m pip install -q -e '.[cluster]'
 	$(PY) -m pytest -q tests
 
 bench: setup

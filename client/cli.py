@@ -1,6 +1,6 @@
 """The ``canonical`` command line.
 
-    canonical serve [--host H] [--port P] [--data-dir D] [--threads N]
+    canonical serve [--host H] [--port P] [--data-dir D] [--threads N] [--cluster [--address A] [--owners N]]
     canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
     canonical export --url URL --session ID -o scene.ply|scene.splat
@@ -56,16 +56,31 @@ def add_serve(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-dir", default=None, help="session storage (default: $CANONICAL_DATA_DIR or ./data)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads per job (default: $CANONICAL_THREADS or all)")
     p.add_argument("--log-level", default="info")
+    p.add_argument("--cluster", action="store_true",
+                   help="run on Ray Serve (needs the [cluster] extra): start a local Ray cluster, or join --address; "
+                        "--data-dir must then be a folder every node mounts")
+    p.add_argument("--address", default=None, help="with --cluster: the Ray cluster to join (default: $RAY_ADDRESS, "
+                                                   "else a local one)")
+    p.add_argument("--owners", type=int, default=None, help="with --cluster: session owner processes "
+                                                            "(default: $CANONICAL_OWNERS or 2)")
 
 
 def run_serve(args) -> int:
-    import uvicorn
-
+    if not args.cluster and (args.address is not None or args.owners is not None):
+        print("error: --address and --owners need --cluster", file=sys.stderr)
+        return 2
     # Settings travel as CANONICAL_* variables to the service's own settings class (server.settings).
-    for name in ("host", "port", "data_dir", "threads"):
+    for name in ("host", "port", "data_dir", "threads", "owners"):
         value = getattr(args, name)
         if value is not None:
             os.environ[f"CANONICAL_{name.upper()}"] = str(value)
+    if args.cluster:
+        from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
+        from server.cluster.settings import ClusterSettings
+
+        return serve_forever(ClusterSettings(), args.address)
+    import uvicorn
+
     # threads reach the service as CANONICAL_THREADS (numba.set_num_threads per worker thread):
     # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
     host = os.environ.get("CANONICAL_HOST", "127.0.0.1")

@@ -20,6 +20,7 @@ served until an operator repairs it (`repair_log`).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import struct
@@ -49,6 +50,15 @@ class LogWedged(StorageError):
 
     def __init__(self, message: str):
         OSError.__init__(self, errno.EIO, message)
+        self.full = False
+
+
+class Fenced(StorageError):
+    """A write by an owner whose lease (``FrameLog.lease``, see `server.cluster.lease`) another owner
+    has taken since: refused, nothing written."""
+
+    def __init__(self, message: str):
+        OSError.__init__(self, errno.ESTALE, message)
         self.full = False
 
 
@@ -149,25 +159,34 @@ class FrameLog:
     def __init__(self, path: Path):
         self.path = path
         self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        # set where several processes may own the session (`server.cluster.lease.Lease`): every append
+        # and reset then runs inside ``lease.held()``, which raises `Fenced` once another owner took it
+        self.lease = None
 
     def append(self, index: int, payload: bytes) -> int:
         """Append one frame record and fsync it; returns its offset. On failure the partial record is
         cut off at once and `StorageError` raised; if even that fails, `LogWedged` (the file's tail is
-        unknown until a restart reads it again)."""
-        offset = os.fstat(self._fd).st_size
-        data = encode(index, payload)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(self._fd, view):]
-            os.fsync(self._fd)
-        except OSError as exc:
+        unknown until a restart reads it again). With a `lease`, `Fenced` when another owner took the
+        session: nothing is written."""
+        with self.fenced():
+            offset = os.fstat(self._fd).st_size
+            data = encode(index, payload)
             try:
-                self.truncate(offset)
-            except OSError as again:
-                raise LogWedged(f"{self.path}: cannot cut a failed append back ({again.strerror or again})") from exc
-            raise StorageError(f"{self.path.name}: cannot append the frame", exc) from exc
-        return offset
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(self._fd, view):]
+                os.fsync(self._fd)
+            except OSError as exc:
+                try:
+                    self.truncate(offset)
+                except OSError as again:
+                    raise LogWedged(f"{self.path}: cannot cut a failed append back ({again.strerror or again})") from exc
+                raise StorageError(f"{self.path.name}: cannot append the frame", exc) from exc
+            return offset
+
+    def fenced(self) -> contextlib.AbstractContextManager:
+        """The lease's check, held over a write; nothing to check without a lease."""
+        return self.lease.held() if self.lease is not None else contextlib.nullcontext()
 
     def truncate(self, offset: int) -> None:
         os.ftruncate(self._fd, offset)
@@ -178,9 +197,10 @@ class FrameLog:
 
     def reset(self, records: list[bytes]) -> None:
         """Replace the whole log by ``records`` (encoded), atomically: a crash leaves the old or the new."""
-        write_atomic(self.path, b"".join(records))
-        os.close(self._fd)
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        with self.fenced():
+            write_atomic(self.path, b"".join(records))
+            os.close(self._fd)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
 
     def close(self) -> None:
         if self._fd >= 0:

@@ -354,6 +354,8 @@ def repair(path: Path, action: RepairAction) -> str:
 class SessionStore:
     """All sessions of one data directory, which it locks: one server per directory."""
 
+    session_class = Session  # what `create` makes (`server.cluster` makes sessions that hold a lease)
+
     def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None):
         self.data_dir = Path(data_dir)
         self.root = self.data_dir / "sessions"
@@ -467,7 +469,7 @@ class SessionStore:
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
-            session_id = secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
+            session_id = self.new_session_id()
             path = self.root / session_id
             created = time.time()
             meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict()}
@@ -478,9 +480,12 @@ class SessionStore:
             except OSError as exc:
                 shutil.rmtree(path, ignore_errors=True)
                 raise StorageError(f"{META}: cannot create the session", exc) from exc
-            session = Session(session_id, path, config, created, Scene(config), frame_log, 0)
+            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0)
             self._sessions[session_id] = session
             return session
+
+    def new_session_id(self) -> str:
+        return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
 
     def get(self, session_id: str) -> Session:
         session = self._sessions.get(session_id)

@@ -1,0 +1,158 @@
+"""The cluster's HTTP front: the service's own FastAPI app (auth, body limits, errors, 404/405) with one
+more middleware inside its guard that forwards each session's requests to the session's owner.
+
+- ``/v1/sessions/{id}[/...]``: to owner ``shard_of(id)``, which runs it through the same app.
+- ``POST /v1/sessions``: to an owner picked at random, which makes an id that hashes to itself.
+- ``GET /v1/sessions``, ``GET /metrics``, ``GET /healthz``: gathered from every owner / the data dir.
+
+A request whose owner cannot be reached (its process died and is being restarted, or it is slow) is
+answered 429 ``busy`` with ``Retry-After``, once the owner answers again (or after
+``owner_restart_wait_s``): nothing of it was acknowledged, and clients retry 429.
+Ingress replicas hold no state, so Serve can add and remove them at will.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import secrets
+from typing import Protocol
+
+from fastapi import FastAPI
+from fastapi.encoders import jsonable_encoder
+from fastapi.responses import JSONResponse, PlainTextResponse
+from starlette.middleware import Middleware
+
+from ..app import create_app
+from ..errors import error_response
+from ..metrics import CONTENT_TYPE
+from ..schemas import Health, SessionList, SessionSummary
+from ..store import TOMBSTONE
+from .asgi import read_body, send_response
+from .metrics import exposition
+from .owner import session_of, shard_of
+from .settings import ClusterSettings
+
+log = logging.getLogger("canonical.cluster")
+
+
+class OwnerUnreachable(RuntimeError):
+    """The owner's process is gone (being restarted) or did not answer in time."""
+
+
+class Owners(Protocol):
+    """The session owners, by shard: `server.cluster.serve.RayOwners` (actors) or `LocalOwners`."""
+
+    count: int
+
+    async def call(self, shard: int, method: str, *args): ...
+
+
+class LocalOwners:
+    """Owners in this process (`SessionOwner` objects): the cluster's routing without Ray."""
+
+    def __init__(self, owners: list):
+        self.owners, self.count = owners, len(owners)
+
+    async def call(self, shard: int, method: str, *args):
+        result = getattr(self.owners[shard], method)(*args)
+        return await result if asyncio.iscoroutine(result) else result
+
+
+def sessions_on_disk(settings: ClusterSettings) -> int:
+    root = settings.data_dir / "sessions"
+    if not root.is_dir():
+        return 0
+    return sum(1 for p in root.iterdir() if p.is_dir() and not p.name.startswith(TOMBSTONE))
+
+
+def owner_busy(reason: str):
+    return error_response(429, "busy", f"session_id: {reason}; retry later", "session_id", {"Retry-After": "1"})
+
+
+class ClusterRouter:
+    """Pure ASGI, inside the app's guard (so auth and body limits are checked first), in front of its routes."""
+
+    def __init__(self, app, settings: ClusterSettings, owners: Owners):
+        self.app, self.settings, self.owners = app, settings, owners
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        path, method = scope["path"], scope["method"]
+        session_id = session_of(path)
+        if session_id is not None:
+            shard = shard_of(session_id, self.owners.count)
+        elif path == "/v1/sessions" and method == "POST":
+            held = await asyncio.to_thread(sessions_on_disk, self.settings)
+            if held >= self.settings.max_sessions:
+                return await error_response(409, "too_many_sessions", f"max_sessions: the service holds {held} sessions, "
+                                            "its limit", "max_sessions")(scope, receive, send)
+            shard = secrets.randbelow(self.owners.count)
+        elif method == "GET" and path in ("/v1/sessions", "/metrics", "/healthz"):
+            return await (await self._gathered(path))(scope, receive, send)
+        else:
+            return await self.app(scope, receive, send)
+        body = await read_body(receive)
+        if body is None:
+            return None
+        try:
+            status, headers, content = await self._call(shard, "handle", method, path, scope["query_string"],
+                                                        scope["headers"], body)
+        except OwnerUnreachable as exc:
+            await self._until_back(shard)  # so that the client's retry finds the owner running
+            return await owner_busy(str(exc))(scope, receive, send)
+        await send_response(send, status, headers, content)
+
+    async def _until_back(self, shard: int) -> None:
+        """Wait (at most ``owner_restart_wait_s``) until a lost owner answers again (Ray restarts it)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.settings.owner_restart_wait_s
+        while loop.time() < deadline:
+            try:
+                await asyncio.wait_for(self.owners.call(shard, "pid"), max(0.1, deadline - loop.time()))
+                return
+            except (OwnerUnreachable, asyncio.TimeoutError):
+                await asyncio.sleep(0.25)
+
+    async def _call(self, shard: int, method: str, *args):
+        try:
+            return await asyncio.wait_for(self.owners.call(shard, method, *args), self.settings.owner_timeout_s)
+        except asyncio.TimeoutError:
+            raise OwnerUnreachable(f"owner {shard} did not answer within {self.settings.owner_timeout_s:g} s") from None
+
+    async def _gathered(self, path: str):
+        if path == "/healthz":
+            return JSONResponse(Health(status="ok", sessions=await asyncio.to_thread(sessions_on_disk, self.settings)).model_dump())
+        method = "summaries" if path == "/v1/sessions" else "report"
+        answers = await asyncio.gather(*(self._call(k, method) for k in range(self.owners.count)), return_exceptions=True)
+        failed = [a for a in answers if isinstance(a, BaseException)]
+        for exc in failed:
+            if not isinstance(exc, OwnerUnreachable):
+                raise exc
+        if path == "/metrics":
+            reports = [a for a in answers if not isinstance(a, BaseException)]
+            text = exposition(reports, await asyncio.to_thread(sessions_on_disk, self.settings), len(failed))
+            return PlainTextResponse(text, media_type=CONTENT_TYPE)
+        if failed:
+            return owner_busy(str(failed[0]))
+        held = sorted((s for a in answers for s in a[0]), key=lambda s: s["created"])
+        unavailable = sorted((s for a in answers for s in a[1]), key=lambda s: s["id"])
+        return JSONResponse(jsonable_encoder(SessionList(sessions=[SessionSummary(**s) for s in held + unavailable])))
+
+
+@contextlib.asynccontextmanager
+async def _stateless(app: FastAPI):
+    yield  # the ingress opens no store: the owners hold the sessions
+
+
+def ingress_app(settings: ClusterSettings, owners: Owners) -> FastAPI:
+    """The service's app, routing session requests to ``owners``."""
+    app = create_app(settings)
+    app.router.lifespan_context = _stateless
+    app.user_middleware.append(Middleware(ClusterRouter, settings=settings, owners=owners))  # innermost: after the guard
+    return app
+
+
+__all__ = ["ClusterRouter", "LocalOwners", "OwnerUnreachable", "Owners", "ingress_app"]

@@ -1,0 +1,140 @@
+"""Ray Serve wiring (the one module that imports Ray): owners as named detached actors, the ingress as
+an autoscaled Serve deployment, and `serve_forever` behind ``canonical serve --cluster``.
+
+Why an actor per shard of sessions rather than per session: an owner process imports torch and
+numba and compiles kernels, hundreds of MB and seconds per process, so a process per session does not
+scale; Serve's multiplexing routes by affinity only, so it cannot make a session single-writer. A
+fixed number of shards (``owners``), each a named actor created on demand (``get_if_exists``), gives
+every session exactly one owner that every ingress replica finds by name; Ray restarts an owner that
+dies (``max_restarts=-1``) wherever its declared CPUs fit, and the new process takes each session's
+lease as it restores it from the shared data directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from pathlib import Path
+
+import ray
+from ray import serve
+from ray.exceptions import RayActorError
+
+from .ingress import OwnerUnreachable, ingress_app
+from .owner import SessionOwner
+from .settings import ClusterSettings
+
+log = logging.getLogger("canonical.cluster")
+
+APP_NAME = "canonical"
+REPO = Path(__file__).resolve().parents[2]
+OwnerActor = ray.remote(SessionOwner)
+
+
+def owner_name(shard: int) -> str:
+    return f"canonical-owner-{shard}"
+
+
+def owner_actor(settings: ClusterSettings, shard: int):
+    """The owner of shard ``shard``: the running actor of that name, or a new one."""
+    return OwnerActor.options(name=owner_name(shard), namespace=settings.namespace, get_if_exists=True, lifetime="detached",
+                              max_restarts=-1, max_task_retries=0, num_cpus=settings.owner_cpus,
+                              max_concurrency=1000).remote(settings, shard)
+
+
+class RayOwners:
+    """`server.cluster.ingress.Owners` over the owners' actors; a dead or restarting owner -> `OwnerUnreachable`."""
+
+    def __init__(self, settings: ClusterSettings):
+        self.settings, self.count = settings, settings.owners
+        self._handles: dict[int, object] = {}
+
+    def handle(self, shard: int):
+        if shard not in self._handles:
+            self._handles[shard] = owner_actor(self.settings, shard)
+        return self._handles[shard]
+
+    async def call(self, shard: int, method: str, *args):
+        try:
+            return await getattr(self.handle(shard), method).remote(*args)
+        except RayActorError as exc:
+            raise OwnerUnreachable(f"owner {shard} is restarting ({type(exc).__name__})") from None
+
+
+@serve.deployment
+@serve.ingress()
+class Ingress:
+    """A stateless ingress replica: the service's app, forwarding to the owners."""
+
+    def __init__(self, settings: ClusterSettings):
+        self.settings = settings
+
+    def __serve_build_asgi_app__(self):
+        return ingress_app(self.settings, RayOwners(self.settings))
+
+
+def application(settings: ClusterSettings):
+    """The Serve application: the autoscaled ingress (owners are created by it on demand)."""
+    return Ingress.options(
+        autoscaling_config={"min_replicas": settings.ingress_min_replicas, "max_replicas": settings.ingress_max_replicas,
+                            "target_ongoing_requests": settings.ingress_target_requests},
+        max_ongoing_requests=max(64, int(4 * settings.ingress_target_requests)),
+        ray_actor_options={"num_cpus": settings.ingress_cpus},
+    ).bind(settings)
+
+
+def connect(address: str | None = None, num_cpus: int | None = None, namespace: str = "canonical") -> None:
+    """Join the cluster at ``address`` (or ``RAY_ADDRESS``), or start a local one whose workers import
+    this checkout's code."""
+    if address or os.environ.get("RAY_ADDRESS"):
+        ray.init(address=address, namespace=namespace)
+        return
+    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)
+    ray.init(num_cpus=num_cpus, namespace=namespace, include_dashboard=False,
+             runtime_env={"env_vars": {"PYTHONPATH": path}})
+
+
+def start(settings: ClusterSettings) -> None:
+    """Run the app on the connected cluster, answering on settings.host:settings.port."""
+    serve.start(http_options={"host": settings.host, "port": settings.port})
+    serve.run(application(settings), name=APP_NAME, route_prefix="/")
+
+
+def close_owners(settings: ClusterSettings) -> None:
+    """Snapshot every owner's sessions (a graceful stop), skipping owners that are not running."""
+    refs = []
+    for shard in range(settings.owners):
+        try:
+            refs.append(ray.get_actor(owner_name(shard), namespace=settings.namespace).close.remote())
+        except ValueError:
+            continue
+    for ref in refs:
+        try:
+            ray.get(ref, timeout=120)
+        except Exception as exc:  # one owner that cannot snapshot must not stop the others
+            log.error("an owner did not close: %s", exc)
+
+
+def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
+    """``canonical serve --cluster``: start (or join) the cluster, run the app until SIGINT/SIGTERM,
+    then snapshot the owners' sessions and stop the app."""
+    connect(address, namespace=settings.namespace)
+    start(settings)
+    log.warning("serving on http://%s:%d with %d owners (data in %s)", settings.host, settings.port, settings.owners,
+                settings.data_dir)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    close_owners(settings)
+    serve.delete(APP_NAME)
+    ray.shutdown()
+    return 0
+
+
+def app_builder(args: dict):
+    """Serve config entry point (``import_path: server.cluster.serve:app_builder``, e.g. KubeRay's
+    RayService): ``args`` are `ClusterSettings` fields; the rest come from ``CANONICAL_*`` variables."""
+    return application(ClusterSettings(**args))

@@ -1,0 +1,177 @@
+"""The cluster's parts in this process, without Ray: routing by shard, eviction and restore, the merged
+/metrics, and that nothing outside server/cluster/serve.py needs Ray."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import sys
+
+import httpx
+import pytest
+
+from server.cluster.ingress import LocalOwners, OwnerUnreachable, ingress_app
+from server.cluster.metrics import merged, quantile
+from server.cluster.owner import SessionOwner, session_of, shard_of
+from server.metrics import SECONDS_BUCKETS, Histogram
+
+from ..server.harness import REPO, TOKEN
+from .conftest import MSGPACK, VOXEL, frame_body, request, run, settings
+
+VIEW = {"K": [[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]], "width": 320, "height": 240}
+
+
+def test_session_ids_route_by_a_stable_hash_and_each_owner_creates_only_its_own(tmp_path):
+    owners = [SessionOwner(settings(tmp_path, owners=3), k) for k in range(3)]
+    for k, owner in enumerate(owners):
+        ids = [owner.store.new_session_id() for _ in range(20)]
+        assert {shard_of(i, 3) for i in ids} == {k} and len(set(ids)) == 20
+    assert shard_of("0" * 32, 3) == shard_of("0" * 32, 3) == int.from_bytes(
+        __import__("hashlib").blake2b(b"0" * 32, digest_size=8).digest(), "little") % 3
+    assert session_of("/v1/sessions/abc/frames") == session_of("/v1/sessions/abc") == "abc"
+    assert session_of("/v1/sessions") is None and session_of("/healthz") is None
+
+
+def test_quantiles_of_merged_histograms_interpolate_within_the_bucket():
+    a, b = Histogram(), Histogram()
+    for v in (0.003, 0.004, 0.02):
+        a.observe(v)
+    b.observe(0.02), b.observe(0.2)
+    m = merged([(a.counts, a.sum), (b.counts, b.sum)])
+    assert m.counts[:6] == [2, 0, 2, 0, 0, 1] and m.sum == pytest.approx(0.247)
+    # rank 2.5 of 5 lies in (0.01, 0.025]: half of its 2 observations -> 0.01 + 0.015 * 0.25
+    assert quantile(m, 0.5) == pytest.approx(0.01 + 0.015 * 0.25)
+    assert quantile(m, 0.2) == pytest.approx(0.005 * 0.5)
+    assert quantile(Histogram(), 0.5) == 0.0
+    over = Histogram()
+    over.observe(99.0)
+    assert quantile(over, 0.95) == SECONDS_BUCKETS[-1]
+
+
+def cluster_client(tmp_path, owners: int = 2, **overrides):
+    parts = [SessionOwner(settings(tmp_path, owners=owners, api_token=TOKEN, **overrides), k) for k in range(owners)]
+    app = ingress_app(parts[0].settings, LocalOwners(parts))
+    client = httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://cluster",
+                               headers={"Authorization": f"Bearer {TOKEN}"})
+    return parts, client
+
+
+def test_an_evicted_session_restores_to_the_same_digest_and_png_bytes_under_concurrent_requests(tmp_path, frames):
+    # a budget of one byte: every request ends with an eviction of whatever is idle
+    parts, client = cluster_client(tmp_path, owner_memory_bytes=1)
+    view = {**VIEW, "c2w": frames[0]["c2w"].tolist()}
+
+    async def scenario():
+        async with client:
+            sid = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+            other = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+            owner = parts[shard_of(sid, 2)]
+
+            async def stream(session_id):
+                for kwargs in frames:
+                    r = await client.post(f"/v1/sessions/{session_id}/frames", content=frame_body(kwargs), headers=MSGPACK)
+                    assert r.status_code == 200, r.text
+
+            async def look(session_id):  # renders and stats racing the folds and evictions
+                for _ in range(6):
+                    r = await client.post(f"/v1/sessions/{session_id}/render", json=view)
+                    assert r.status_code == 200, r.text
+                    await asyncio.sleep(0)
+
+            await asyncio.gather(stream(sid), stream(other), look(sid), look(other))
+            before = (await client.get(f"/v1/sessions/{sid}/digest")).json()
+            png = (await client.post(f"/v1/sessions/{sid}/render", json=view)).content
+            await asyncio.gather(*(p._evicting for p in parts if p._evicting))  # the budget's own eviction
+            await owner.evict(0)
+            assert sid not in owner.store._sessions and sid in owner.store.evicted
+            listed = {s["id"]: s for s in (await client.get("/v1/sessions")).json()["sessions"]}
+            assert listed[sid]["frames"] == len(frames)  # listed without restoring it
+            assert sid not in owner.store._sessions
+            after = (await client.get(f"/v1/sessions/{sid}/digest")).json()
+            assert after == before and (await client.post(f"/v1/sessions/{sid}/render", json=view)).content == png
+            assert (await client.delete(f"/v1/sessions/{other}")).status_code == 200
+            assert (await client.get(f"/v1/sessions/{other}")).status_code == 404
+            return before, owner.store.evictions, owner.store.restores
+
+    digest, evictions, restores = run(scenario())
+    assert digest["frames"] == len(frames) and evictions >= 2 and restores >= 2
+    single = SessionOwner(settings(tmp_path / "single", owners=1), 0)  # the same frames, never evicted
+
+    async def reference():
+        sid = (await request(single, "POST", "/v1/sessions", json.dumps({"voxel_size": VOXEL}).encode(),
+                             {"Content-Type": "application/json"}))[1]["id"]
+        for kwargs in frames:
+            await request(single, "POST", f"/v1/sessions/{sid}/frames", frame_body(kwargs), MSGPACK)
+        return (await request(single, "GET", f"/v1/sessions/{sid}/digest"))[1]["sha256"]
+
+    assert run(reference()) == digest["sha256"]
+
+
+def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_owner(tmp_path):
+    parts, client = cluster_client(tmp_path, max_sessions=1, owner_restart_wait_s=0.5)
+
+    class Gone(LocalOwners):
+        async def call(self, shard, method, *args):
+            raise OwnerUnreachable(f"owner {shard} is restarting (ActorDiedError)")
+
+    async def scenario():
+        async with client:
+            r = await client.get("/v1/sessions", headers={"Authorization": "Bearer wrong"})
+            assert r.status_code == 401 and r.json()["error"]["field"] == "Authorization"
+            r = await client.get("/v1/sessions/" + "ab" * 16)
+            assert r.status_code == 404 and r.json() == {"error": {"code": "not_found", "message": "session_id: no such session",
+                                                                   "field": "session_id"}}
+            r = await client.post("/v1/sessions", json={"voxel_size": -1})
+            assert r.status_code == 422 and r.json()["error"]["field"] == "voxel_size"
+            assert (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).status_code == 201
+            r = await client.post("/v1/sessions", json={"voxel_size": VOXEL})
+            assert r.status_code == 409 and r.json()["error"]["field"] == "max_sessions"
+            assert (await client.get("/healthz", headers={"Authorization": ""})).json() == {"status": "ok", "sessions": 1}
+            assert (await client.get("/nowhere")).status_code == 404
+        gone = ingress_app(parts[0].settings, Gone(parts))
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=gone), base_url="http://cluster",
+                                     headers={"Authorization": f"Bearer {TOKEN}"}) as lost:
+            r = await lost.get("/v1/sessions/" + "ab" * 16 + "/digest")
+            assert r.status_code == 429 and r.headers["Retry-After"] and r.json()["error"]["field"] == "session_id"
+            text = (await lost.get("/metrics")).text
+            assert "canonical_cluster_owners_unreachable 2" in text
+
+    run(scenario())
+
+
+def test_metrics_sum_the_owners_and_label_each_by_node_and_owner(tmp_path, frames):
+    parts, client = cluster_client(tmp_path)
+
+    async def scenario():
+        async with client:
+            for _ in range(2):
+                sid = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+                for kwargs in frames[:2]:
+                    await client.post(f"/v1/sessions/{sid}/frames", content=frame_body(kwargs), headers=MSGPACK)
+            return (await client.get("/metrics")).text
+
+    text = run(scenario())
+    lines = dict(line.rsplit(" ", 1) for line in text.splitlines() if not line.startswith("#"))
+    assert lines["canonical_frames_folded_total"] == "4" and lines["canonical_fold_seconds_count"] == "4"
+    assert lines["canonical_sessions"] == "2"
+    per_owner = [int(lines[f'canonical_cluster_sessions{{node="{p.node}",owner="{p.shard}"}}']) for p in parts]
+    assert per_owner == [len(p.store) for p in parts] and sum(per_owner) == 2
+    assert float(lines['canonical_fold_seconds_quantile{quantile="0.5"}']) > 0
+
+
+def test_the_single_process_service_and_the_owners_run_without_ray():
+    code = ("import sys; sys.modules['ray'] = None\n"  # any import of ray now fails
+            "from server.app import create_app; create_app()\n"
+            "import client.cli, server.cluster.owner, server.cluster.ingress\n"
+            "try:\n    import server.cluster.serve\nexcept ImportError: print('serve needs ray')\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "serve needs ray"
+
+
+def test_cluster_options_without_cluster_are_refused_before_anything_starts(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "client.cli", "serve", "--owners", "2", "--data-dir", str(tmp_path)],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "--address and --owners need --cluster" in out.stderr
+    assert not (tmp_path / "sessions").exists()
