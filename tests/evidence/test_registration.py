@@ -75,3 +75,4 @@ def test_extract_evidence_lowers_reliability_only_near_edges():
     np.testing.assert_allclose(ratio[far], 1.0, rtol=1e-6)
     np.testing.assert_allclose(ratio[off.cols == 15], 0.25, rtol=1e-5)
     assert (ratio[~far] < 1).all()
+
