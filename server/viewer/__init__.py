@@ -4,7 +4,7 @@ the viewer's image route draws from rendered maps (depth colour-mapped, coverage
 Example:
     >>> import numpy as np
     >>> depth_picture(np.array([[1.0, 2.0]], np.float32), np.ones((1, 2), np.float32), (1.0, 2.0))[0].tolist()
-    [[250, 231, 80], [22, 18, 70]]
+    [[250, 231, 80], [14, 10, 64]]
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ STATIC = resources.files(__package__) / "static"
 
 # Depth colour map, near (index 0) to far (index 255): bright warm to dark cool, with lightness
 # falling monotonically so that the order of depths reads off the brightness too.
-DEPTH_STOPS = np.array([(250, 231, 80), (236, 142, 52), (196, 70, 86), (122, 40, 122), (60, 36, 120), (22, 18, 70)], np.float64)
+DEPTH_STOPS = np.array([(250, 231, 80), (236, 142, 52), (196, 70, 86), (122, 40, 122), (60, 36, 120), (14, 10, 64)], np.float64)
 UNCOVERED = (12, 12, 16)  # where nothing is drawn (alpha below COVERED)
 COVERED = 0.05
 # Coverage: where little is drawn (film there next) is magenta, fully covered is light grey.
