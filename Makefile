@@ -21,7 +21,11 @@ setup: $(VENV)/.installed
 demo: setup
 	$(PY) -m client.cli demo --out out/demo
 
+# The viewer's browser tests drive Debian's chromium through Playwright: both installed here when
+# missing (CI runs as root; `playwright install` is not used, it downloads from outside the registries).
 test: setup
+	@test -x /usr/bin/chromium || apt-get install -y chromium || (apt-get update && apt-get install -y chromium)
+	@$(PY) -c "import playwright" 2>/dev/null || $(PY) -m pip install -q playwright
 	$(PY) -m pytest -q tests
 
 bench: setup

@@ -173,7 +173,8 @@ def test_cameras_outlive_a_restart_and_an_open_stream_does_not_hold_up_shutdown(
         before = httpx.get(f"{proc.url}/v1/sessions/{session.id}/cameras").json()["cameras"]
         assert len(before) == 2
         with httpx.stream("GET", f"{proc.url}/v1/sessions/{session.id}/events", timeout=60) as r:
-            read_events(r.iter_lines(), 1)
+            lines = r.iter_lines()  # held: a dropped iterator would close the connection from this side
+            read_events(lines, 1)
             t0 = time.monotonic()
             proc.proc.terminate()
             proc.proc.wait(20)  # the stream ends with the service: no kill needed

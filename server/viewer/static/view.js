@@ -25,8 +25,9 @@ const state = {
   mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
   version: 0, changedAt: 0, inflight: null,
   drawn: { version: -1, full: false, mode: null, headers: {} },
-  images: 0, info: null, timing: {},
+  images: 0, info: null, timing: {}, history: [],  // history: timings of the last HISTORY images
 };
+const HISTORY = 500;
 window.viewer = state;
 
 // -- the image loop ---------------------------------------------------------------------------
@@ -75,7 +76,9 @@ function pump() {
       ctx.drawImage(bitmap, 0, 0, WIDTH, HEIGHT);
       state.images += 1;
       state.timing = { ...serverTiming(response.headers.get("Server-Timing")), fetch: t1 - t0,
-                       decode: performance.now() - t1, bytes: blob.size, full };
+                       decode: performance.now() - t1, bytes: blob.size, full, at: performance.now() };
+      state.history.push(state.timing);
+      if (state.history.length > HISTORY) state.history.shift();
       state.drawn = { version, full, mode, url: response.url, headers: Object.fromEntries(response.headers) };
       view.dataset.version = version;
       view.dataset.full = full;
