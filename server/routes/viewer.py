@@ -114,6 +114,17 @@ def _sse(event: str, data: dict) -> bytes:
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
 
 
+async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> dict | None:
+    """The next event of ``queue``; None after ``timeout`` seconds or once ``closing`` is set."""
+    getter, stop = asyncio.ensure_future(queue.get()), asyncio.ensure_future(closing.wait())
+    try:
+        done, _ = await asyncio.wait({getter, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        return getter.result() if getter in done else None
+    finally:  # also when the stream is closed while waiting: no task is left pending
+        getter.cancel()
+        stop.cancel()
+
+
 @router.get("/{session_id}/events", responses={200: {"content": {"text/event-stream": {}}},
                                                **{c: {"model": ErrorBody} for c in (401, 404)}})
 async def fold_events(request: Request, session: SessionDep) -> StreamingResponse:
@@ -128,20 +139,14 @@ async def fold_events(request: Request, session: SessionDep) -> StreamingRespons
             yield _sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
                                  "label_dim": session.scene.label_dim})
             while not events.closing.is_set():
-                getter = asyncio.ensure_future(queue.get())
-                closing = asyncio.ensure_future(events.closing.wait())
-                done, _ = await asyncio.wait({getter, closing}, timeout=KEEPALIVE_S, return_when=asyncio.FIRST_COMPLETED)
-                closing.cancel()
-                if getter not in done:
-                    getter.cancel()
-                    if session.deleted:
-                        yield _sse("deleted", {"id": session.id})
-                        return
-                    if not events.closing.is_set():
-                        yield b": keep-alive\n\n"
-                    continue
-                event = getter.result()
-                yield _sse(event["type"], event)
+                event = await _next_event(queue, events.closing, KEEPALIVE_S)
+                if event is not None:
+                    yield _sse(event["type"], event)
+                elif session.deleted:
+                    yield _sse("deleted", {"id": session.id})
+                    return
+                elif not events.closing.is_set():
+                    yield b": keep-alive\n\n"
         finally:
             events.unsubscribe(session.id, queue)
 

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from client.sdk import Client
-
+from ..server.conftest import client  # noqa: F401  (an SDK client of the `server` below)
 from ..server.harness import TOKEN, ServerProcess
 
 CHROMIUM = os.environ.get("CANONICAL_CHROMIUM", "/usr/bin/chromium")
@@ -36,12 +35,6 @@ def server(tmp_path_factory):
     proc.start()
     yield proc
     proc.stop()
-
-
-@pytest.fixture(scope="session")
-def client(server):
-    with Client(server.url, token=TOKEN) as c:
-        yield c
 
 
 @pytest.fixture

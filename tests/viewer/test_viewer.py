@@ -46,6 +46,11 @@ def open_viewer(page, server, session_id: str):
     page.wait_for_function(FULL, timeout=WAIT_MS)
 
 
+def center(page) -> tuple[float, float]:
+    box = page.locator("#stage").bounding_box()
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+
 def wait_new_image(page, after_version: int, mode: str | None = None):
     cond = f"{FULL} && window.viewer.drawn.version > {after_version}"
     if mode:
@@ -94,8 +99,7 @@ def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shot
     open_viewer(page, server, shelf_session.id)
     before_image, (_, before_pose, _, _) = canvas(page), view_camera(page)
     version = page.evaluate("viewer.version")
-    box = page.locator("#stage").bounding_box()
-    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    x, y = center(page)
     page.mouse.move(x, y)
     page.mouse.down()
     for k in range(1, 11):
@@ -107,6 +111,31 @@ def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shot
     after_image = canvas(page)
     assert np.abs(after_pose - before_pose).max() > 0.01
     assert np.abs(after_image.astype(int) - before_image).mean() > 3.0
+
+
+
+def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page, server, shelf_session, shelf):
+    open_viewer(page, server, shelf_session.id)
+    _, start, _, _ = view_camera(page)
+    forward = start[:3, 2]
+    page.locator("#stage").focus()
+    page.keyboard.down("KeyW")
+    page.wait_for_timeout(300)
+    page.keyboard.up("KeyW")
+    _, flown, _, _ = view_camera(page)
+    step = flown[:3, 3] - start[:3, 3]
+    np.testing.assert_allclose(flown[:3, :3], start[:3, :3], atol=1e-9)  # flying does not turn
+    assert step @ forward > 0.01 and np.linalg.norm(step - (step @ forward) * forward) < 1e-6
+    page.mouse.move(*center(page))
+    version = page.evaluate("viewer.version")
+    page.mouse.wheel(0, 200)  # away from the target
+    page.wait_for_function(f"viewer.version > {version}")
+    _, dollied, _, _ = view_camera(page)
+    assert (dollied[:3, 3] - flown[:3, 3]) @ forward < -0.01
+    page.locator("#scrub").fill("1")  # the second input camera
+    _, snapped, _, _ = view_camera(page)
+    np.testing.assert_allclose(snapped, shelf[1]["c2w"], atol=1e-6)
+    assert page.locator("#camera-k").inner_text() == "camera 2 / 4"
 
 
 def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):

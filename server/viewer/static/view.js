@@ -7,6 +7,8 @@ const params = new URLSearchParams(location.search);
 const WIDTH = Number(params.get("width")) || 512;  // full-quality view size (pixels)
 const HEIGHT = Number(params.get("height")) || 384;
 const LOW = 0.5;  // size factor of the images asked for while the pose moves
+// ... and their level of detail: the best-supported N Gaussians (rendering time grows with N)
+const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
 const REST_MS = 180;  // the pose counts as resting this long after its last change
 const ORBIT_RAD_PER_PX = 0.006;
 const FLY_SPEED = 0.6;  // orbit distances per second
@@ -49,6 +51,7 @@ function imageUrl(full) {
     format: full || mode === "labels" ? "png" : "jpeg", quality: 70,
   });
   if (state.mode === "composited") q.set("colour", "composited");
+  if (!full) q.set("max_gaussians", PREVIEW_GAUSSIANS);
   return `/v1/sessions/${encodeURIComponent(sessionId)}/image?${q}`;
 }
 
