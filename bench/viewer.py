@@ -70,7 +70,16 @@ def browse(url: str, session_id: str, drag_s: float, shots: Path | None) -> tupl
         page.wait_for_function(FULL, timeout=120_000)
         first = time.perf_counter() - t0
         first_timing = page.evaluate("viewer.history")
-        if shots:
+        box = page.locator("#stage").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        if shots:  # step back and turn a little, so that the input cameras' frustums are in view
+            version = page.evaluate("viewer.version")
+            page.mouse.move(x, y)
+            page.mouse.wheel(0, 500)
+            page.mouse.down()
+            page.mouse.move(x + 60, y - 20, steps=5)
+            page.mouse.up()
+            page.wait_for_function(f"{FULL} && viewer.version > {version}", timeout=120_000)
             page.screenshot(path=shots / "viewer_rgb.png")
             version = page.evaluate("viewer.version")
             page.select_option("#mode", "depth")
@@ -78,8 +87,6 @@ def browse(url: str, session_id: str, drag_s: float, shots: Path | None) -> tupl
             page.screenshot(path=shots / "viewer_depth.png")
             page.select_option("#mode", "rgb")
             page.wait_for_function(FULL, timeout=120_000)
-        box = page.locator("#stage").bounding_box()
-        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
         page.mouse.move(x, y)
         page.mouse.down()
         start = page.evaluate("performance.now()")

@@ -33,9 +33,11 @@ const HISTORY = 500;
 window.viewer = state;
 
 // -- the image loop ---------------------------------------------------------------------------
-function changed() {
+// moving: a pose change under the user's hand (previews until it rests); otherwise (a fold, a mode,
+// a snap) the full picture is asked for at once.
+function changed(moving = true) {
   state.version += 1;
-  state.changedAt = performance.now();
+  state.changedAt = moving ? performance.now() : -Infinity;
   drawFrustums();
   pump();
 }
@@ -182,7 +184,7 @@ function snapTo(k) {
   state.up = cam.scale(cam.column(state.pose.R, 1), -1);
   state.K = cam.viewIntrinsics(c, WIDTH, HEIGHT);
   updateScrubber();
-  changed();
+  changed(false);
 }
 
 // -- stats -------------------------------------------------------------------------------------
@@ -218,6 +220,7 @@ function onEvent(name, data) {
     setLabels(data.label_dim);
     return;
   }
+  if (name === "deleted") { showError("this session was deleted"); return; }
   if (name !== "fold") return;
   setFrames(data.frames);
   $("voxels").textContent = data.voxels;
@@ -225,7 +228,7 @@ function onEvent(name, data) {
   $("last-fold").textContent = formatAge(data.time);
   if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
   if ($("follow").checked || state.selected < 0) snapTo(state.cameras.length - 1);
-  else { updateScrubber(); changed(); }
+  else { updateScrubber(); changed(false); }
   refreshStats();
 }
 
@@ -312,7 +315,7 @@ function fly(now) {
 }
 
 // -- controls ----------------------------------------------------------------------------------------
-$("mode").addEventListener("change", (e) => { state.mode = e.target.value; changed(); });
+$("mode").addEventListener("change", (e) => { state.mode = e.target.value; changed(false); });
 $("scrub").addEventListener("input", (e) => snapTo(Number(e.target.value)));
 $("latest").addEventListener("click", () => snapTo(state.cameras.length - 1));
 $("frustums").addEventListener("change", drawFrustums);
@@ -334,7 +337,7 @@ async function start() {
   subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
   refreshStats();
   if (state.cameras.length) snapTo(state.cameras.length - 1);
-  else { updateScrubber(); changed(); }
+  else { updateScrubber(); changed(false); }
   setInterval(() => { if (state.lastFold) $("last-fold").textContent = formatAge(state.lastFold); }, 5000);
 }
 
