@@ -37,16 +37,32 @@ def server(tmp_path_factory):
     proc.stop()
 
 
-@pytest.fixture
-def page(browser, server):
-    """A fresh browser context whose tab holds the token; console errors fail the test."""
-    context = browser.new_context(viewport={"width": 900, "height": 520})
+def token_page(browser, **context_args):
+    """A page in a fresh browser context whose tab holds the token (as the token form leaves it),
+    and the list its uncaught page errors go to."""
+    context = browser.new_context(viewport={"width": 900, "height": 520}, **context_args)
     context.add_init_script(f"sessionStorage.setItem('canonical.token', {TOKEN!r})")
     page = context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
+    return page, errors
+
+
+@pytest.fixture
+def page(browser, server):
+    """A page holding the token; an uncaught error in the page fails the test."""
+    page, errors = token_page(browser)
     yield page
-    context.close()
+    page.context.close()
+    assert not errors, errors
+
+
+@pytest.fixture
+def touch_page(browser, server):
+    """The same on a touch screen."""
+    page, errors = token_page(browser, has_touch=True)
+    yield page
+    page.context.close()
     assert not errors, errors
 
 

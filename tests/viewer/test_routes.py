@@ -160,7 +160,7 @@ def test_event_stream_sends_state_then_one_fold_per_frame_with_its_camera(server
 def test_cameras_outlive_a_restart_and_an_open_stream_does_not_hold_up_shutdown(tmp_path):
     from .test_viewer import wall_frames
 
-    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_frames=1)
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_frames=1, warm_up=False)
     proc.start()
     try:
         from client.sdk import Client

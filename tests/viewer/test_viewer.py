@@ -138,6 +138,33 @@ def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page
     assert page.locator("#camera-k").inner_text() == "camera 2 / 4"
 
 
+
+def test_touch_one_finger_orbits_and_two_fingers_pinch_to_dolly(touch_page, server, shelf_session):
+    page = touch_page
+    open_viewer(page, server, shelf_session.id)
+    cdp = page.context.new_cdp_session(page)
+
+    def touch(kind: str, points) -> None:
+        cdp.send("Input.dispatchTouchEvent",
+                 {"type": kind, "touchPoints": [{"x": x, "y": y, "id": i} for i, (x, y) in enumerate(points)]})
+
+    x, y = center(page)
+    _, start, _, _ = view_camera(page)
+    touch("touchStart", [(x, y)])
+    for k in range(1, 6):
+        touch("touchMove", [(x + 15 * k, y)])
+    touch("touchEnd", [])
+    _, orbited, _, _ = view_camera(page)
+    assert np.abs(orbited[:3, :3] - start[:3, :3]).max() > 0.05  # turned
+    touch("touchStart", [(x - 40, y), (x + 40, y)])
+    for k in range(1, 6):
+        touch("touchMove", [(x - 40 - 12 * k, y), (x + 40 + 12 * k, y)])  # fingers apart: closer
+    touch("touchEnd", [])
+    _, pinched, _, _ = view_camera(page)
+    np.testing.assert_allclose(pinched[:3, :3], orbited[:3, :3], atol=1e-9)  # a pinch does not turn
+    assert (pinched[:3, 3] - orbited[:3, 3]) @ orbited[:3, 2] > 0.05
+
+
 def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):
     session = client.create_session(voxel_size=VOXEL)
     for kwargs in shelf[:2]:

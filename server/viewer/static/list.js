@@ -1,7 +1,7 @@
 // The session list: every session with its stats, refreshed every few seconds.
 import { formatAge, formatBytes, json, withToken } from "./api.js";
 
-const REFRESH_MS = 3000;
+const REFRESH_MS = 5000;  // each refresh asks every session for its stats (a decode where a fold changed it)
 const body = document.querySelector("#sessions tbody");
 const status = document.getElementById("status");
 

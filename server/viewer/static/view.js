@@ -54,6 +54,8 @@ function imageUrl(full) {
   });
   if (state.mode === "composited") q.set("colour", "composited");
   if (!full) q.set("max_gaussians", PREVIEW_GAUSSIANS);
+  // previews keep the colour scale of the last full depth picture, so colours do not flicker
+  if (!full && mode === "depth" && state.depthRange) q.set("depth_range", state.depthRange);
   return `/v1/sessions/${encodeURIComponent(sessionId)}/image?${q}`;
 }
 
@@ -62,6 +64,7 @@ function imageUrl(full) {
 function pump() {
   if (state.inflight || !state.info) return;
   const { version } = state;
+  if (state.failed === version) return;  // asked and refused: wait for the next change
   const resting = performance.now() - state.changedAt >= REST_MS;
   if (state.drawn.version === version && (state.drawn.full || !resting)) {
     if (!state.drawn.full) setTimeout(pump, REST_MS);
@@ -93,7 +96,11 @@ function pump() {
         `round trip ${state.timing.fetch.toFixed(0)} ms · ${(blob.size / 1024).toFixed(0)} KiB`;
       $("error").hidden = true;
     })
-    .catch((error) => showError(error))
+    .catch((error) => {
+      showError(error);
+      state.failed = version;
+      if (error.status === 429) setTimeout(() => { state.failed = null; pump(); }, 1000);  // busy: try again
+    })
     .finally(() => { state.inflight = null; pump(); });
 }
 
@@ -116,6 +123,7 @@ function showReading(mode, headers) {
   const range = headers.get("X-Canonical-Depth-Range");
   $("scale").hidden = mode !== "depth" || !range;
   if (mode === "depth" && range) {
+    if (state.drawn.full) state.depthRange = range;
     const [near, far] = range.split(",").map(Number);
     $("near").textContent = `${near.toFixed(2)} m`;
     $("far").textContent = `${far.toFixed(2)} m`;
@@ -315,7 +323,11 @@ function fly(now) {
 }
 
 // -- controls ----------------------------------------------------------------------------------------
-$("mode").addEventListener("change", (e) => { state.mode = e.target.value; changed(false); });
+$("mode").addEventListener("change", (e) => {
+  state.mode = e.target.value;
+  state.depthRange = null;
+  changed(false);
+});
 $("scrub").addEventListener("input", (e) => snapTo(Number(e.target.value)));
 $("latest").addEventListener("click", () => snapTo(state.cameras.length - 1));
 $("frustums").addEventListener("change", drawFrustums);
