@@ -75,9 +75,9 @@ def browse(url: str, session_id: str, drag_s: float, shots: Path | None) -> tupl
         if shots:  # step back and turn a little, so that the input cameras' frustums are in view
             version = page.evaluate("viewer.version")
             page.mouse.move(x, y)
-            page.mouse.wheel(0, 500)
+            page.mouse.wheel(0, 250)
             page.mouse.down()
-            page.mouse.move(x + 60, y - 20, steps=5)
+            page.mouse.move(x + 90, y - 10, steps=5)
             page.mouse.up()
             page.wait_for_function(f"{FULL} && viewer.version > {version}", timeout=120_000)
             page.screenshot(path=shots / "viewer_rgb.png")

@@ -25,6 +25,7 @@ from .. import viewer, wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..schemas import ErrorBody
+from ..store import SessionNotFound
 from . import views
 
 pages = APIRouter(include_in_schema=False)
@@ -91,8 +92,8 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> d
         for session in store.list():
             try:
                 rows.append({**session.stats(), "last_fold": events.last_fold_time(session)})
-            except Exception as exc:  # deleted meanwhile, or unreadable: list it as it is
-                rows.append({**session.summary(), "problem": str(exc)})
+            except SessionNotFound:  # deleted since the list was taken
+                continue
         return rows
 
     rows = await jobs.run(job)
@@ -166,19 +167,25 @@ def encode_image(rgb, fmt: ImageFormat, quality: int) -> bytes:
 
 def picture(mode: Mode, maps: dict, fixed_range: tuple[float, float] | None) -> tuple:
     """The maps of one view -> (uint8 [H, W, 3] picture, response headers saying how to read it)."""
-    if mode == "rgb":
-        return wire.to_uint8(maps["rgb"]), {}
-    if mode == "depth":
-        near_far = fixed_range or viewer.depth_range(maps["depth"], maps["alpha"])
-        return (viewer.depth_picture(maps["depth"], maps["alpha"], near_far),
-                {"X-Canonical-Depth-Range": f"{near_far[0]:.6g},{near_far[1]:.6g}"})
-    if mode == "alpha":
-        covered = float((maps["alpha"] > 0.5).mean())
-        return viewer.coverage_picture(maps["alpha"]), {"X-Canonical-Coverage": f"{covered:.4f}"}
+    if "depth" in maps:  # the viewer orbits about the surface in the middle of the view
+        centre = viewer.centre_depth(maps["depth"], maps["alpha"])
+        headers = {} if centre is None else {"X-Canonical-Centre-Depth": f"{centre:.6g}"}
+        return _render_picture(mode, maps, fixed_range, headers)
     if mode == "features":
         return feature_preview(maps["features"], maps["alpha"]), {}
     ids = viewer.visible_labels(maps["labels"])
     return viewer.label_picture(maps["labels"]), {"X-Canonical-Labels": ",".join(map(str, ids))}
+
+
+def _render_picture(mode: Mode, maps: dict, fixed_range, headers: dict) -> tuple:
+    if mode == "rgb":
+        return wire.to_uint8(maps["rgb"]), headers
+    if mode == "depth":
+        near_far = fixed_range or viewer.depth_range(maps["depth"], maps["alpha"])
+        return (viewer.depth_picture(maps["depth"], maps["alpha"], near_far),
+                {**headers, "X-Canonical-Depth-Range": f"{near_far[0]:.6g},{near_far[1]:.6g}"})
+    covered = float((maps["alpha"] > 0.5).mean())
+    return viewer.coverage_picture(maps["alpha"]), {**headers, "X-Canonical-Coverage": f"{covered:.4f}"}
 
 
 def _range(text: str | None) -> tuple[float, float] | None:
@@ -207,7 +214,9 @@ async def view_image(
     Headers: ``Server-Timing`` (``render``: queue + rasterise, ``picture``: colour mapping,
     ``encode``), ``X-Canonical-Gaussians``, and per mode ``X-Canonical-Depth-Range`` (near,far of
     the colour map), ``X-Canonical-Coverage`` (share of pixels with alpha > 0.5) or
-    ``X-Canonical-Labels`` (label ids in view). Labels: 409 where the session has none."""
+    ``X-Canonical-Labels`` (label ids in view); rgb, depth and alpha also carry
+    ``X-Canonical-Centre-Depth`` (the median depth drawn in the middle ninth of the view, where
+    anything is drawn there: the viewer orbits about it). Labels: 409 where the session has none."""
     fixed = _range(depth_range)
     kind = {"features": "features", "labels": "segmentation"}.get(mode, "render")
     timing: dict = {}

@@ -48,6 +48,15 @@ def depth_range(depth: np.ndarray, alpha: np.ndarray) -> tuple[float, float]:
     return float(near), float(max(far, near + 1e-6))
 
 
+def centre_depth(depth: np.ndarray, alpha: np.ndarray) -> float | None:
+    """Median depth drawn in the middle ninth of the view (the middle third of each side); None
+    where nothing is drawn there."""
+    h, w = depth.shape
+    d, a = depth[h // 3 : h - h // 3, w // 3 : w - w // 3], alpha[h // 3 : h - h // 3, w // 3 : w - w // 3]
+    drawn = d[(a > COVERED) & (d > 0)]
+    return float(np.median(drawn)) if drawn.size else None
+
+
 def depth_picture(
     depth: np.ndarray,  # [H, W] float depth along the optical axis (0 where nothing is drawn)
     alpha: np.ndarray,  # [H, W] accumulated opacity

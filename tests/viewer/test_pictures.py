@@ -11,8 +11,8 @@ from PIL import Image
 from canonical_core import Camera
 from server import wire
 from server.events import CAMERA_COLUMNS, camera_json, camera_row, read_track
-from server.viewer import (COVERED, DEPTH_LUT, PALETTE, UNCOVERED, coverage_picture, depth_picture, depth_range,
-                           label_picture, visible_labels)
+from server.viewer import (COVERED, DEPTH_LUT, PALETTE, UNCOVERED, centre_depth, coverage_picture, depth_picture,
+                           depth_range, label_picture, visible_labels)
 
 
 def test_depth_lut_is_injective_and_darkens_with_depth():
@@ -37,6 +37,15 @@ def test_depth_range_is_the_percentiles_of_drawn_depths():
     near, far = depth_range(depth, alpha)
     assert near == pytest.approx(1.02) and far == pytest.approx(1.98)
     assert depth_range(depth, np.zeros_like(depth)) == (0.0, 1.0)
+
+
+def test_centre_depth_is_the_median_drawn_in_the_middle_ninth():
+    depth = np.ones((9, 9), np.float32)
+    depth[3:6, 3:6] = [[2, 2, 2], [3, 3, 3], [4, 4, 0]]  # one pixel there draws nothing
+    alpha = np.ones_like(depth)
+    assert centre_depth(depth, alpha) == 3.0
+    alpha[3:6, 3:6] = 0
+    assert centre_depth(depth, alpha) is None
 
 
 def test_coverage_picture_runs_from_magenta_to_grey():

@@ -18,6 +18,7 @@ from PIL import Image
 from client.sdk import png_to_array
 
 from ..server.harness import REPO, TOKEN, VOXEL, ServerProcess
+from .walls import FAR, NEAR, wall_frames
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -25,8 +26,6 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 @pytest.fixture(scope="module")
 def walls(client):
     """A session of two frames of two walls (near left, far right) with labels 0 and 2."""
-    from .test_viewer import wall_frames
-
     session = client.create_session(voxel_size=0.02)
     frames = wall_frames()
     for kwargs in frames:
@@ -91,6 +90,7 @@ def test_depth_alpha_and_labels_pictures_say_how_to_read_them(server, walls):
     assert abs(index(png_to_array(fixed.content)[48, 20]) - 64) <= 3  # 1 m of 0..4 m
     r = get_image(server, session.id, image_query(frames[-1], mode="alpha"))
     assert 0.5 < float(r.headers["x-canonical-coverage"]) <= 1.0
+    assert NEAR - 0.1 < float(r.headers["x-canonical-centre-depth"]) < FAR + 0.1  # both walls are in the middle
     r = get_image(server, session.id, image_query(frames[-1], mode="labels"))
     assert r.headers["x-canonical-labels"] == "0,2"
     labels = png_to_array(r.content)
@@ -114,8 +114,6 @@ def test_bad_image_requests_name_the_field(server, walls, params, status, field)
 
 def test_labels_of_a_session_without_labels_is_409(server, client):
     session = client.create_session(voxel_size=VOXEL)
-    from .test_viewer import wall_frames
-
     kwargs = {k: v for k, v in wall_frames()[0].items() if k != "labels"}
     session.add_frame(**kwargs)
     r = get_image(server, session.id, image_query(kwargs, mode="labels"))
@@ -137,8 +135,6 @@ def read_events(lines, count: int) -> list[tuple[str, dict]]:
 
 
 def test_event_stream_sends_state_then_one_fold_per_frame_with_its_camera(server, client):
-    from .test_viewer import wall_frames
-
     session = client.create_session(voxel_size=0.02)
     frames = wall_frames()
     with httpx.stream("GET", f"{server.url}/v1/sessions/{session.id}/events", headers=AUTH, timeout=60) as r:
@@ -158,8 +154,6 @@ def test_event_stream_sends_state_then_one_fold_per_frame_with_its_camera(server
 
 
 def test_cameras_outlive_a_restart_and_an_open_stream_does_not_hold_up_shutdown(tmp_path):
-    from .test_viewer import wall_frames
-
     proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_frames=1, warm_up=False)
     proc.start()
     try:

@@ -40,9 +40,21 @@ export async function json(path, options) {
   return (await request(path, options)).json();
 }
 
+function tokenForm() {
+  let form = document.getElementById("token-form");
+  if (form) return form;
+  form = Object.assign(document.createElement("form"), { id: "token-form", className: "token", hidden: true });
+  const label = Object.assign(document.createElement("label"), { textContent: "This service needs its API token " });
+  label.append(Object.assign(document.createElement("input"),
+                             { type: "password", name: "token", autocomplete: "off", placeholder: "token" }));
+  form.append(label, Object.assign(document.createElement("button"), { type: "submit", textContent: "Use token" }));
+  document.body.append(form);
+  return form;
+}
+
 // Show the token form and resolve once the user submitted a token.
 export function askToken() {
-  const form = document.getElementById("token-form");
+  const form = tokenForm();
   form.hidden = false;
   form.querySelector("input").focus();
   return new Promise((resolve) => {

@@ -91,6 +91,8 @@ function pump() {
       view.dataset.version = version;
       view.dataset.full = full;
       showReading(mode, response.headers);
+      const centre = Number(response.headers.get("X-Canonical-Centre-Depth"));
+      if (state.retarget && full && centre > 0) { state.distance = centre; state.retarget = false; drawFrustums(); }
       $("timing").textContent = `${full ? "full" : "preview"} ${bitmap.width}×${bitmap.height} · ` +
         `render ${state.timing.render?.toFixed(0)} ms · encode ${state.timing.encode?.toFixed(0)} ms · ` +
         `round trip ${state.timing.fetch.toFixed(0)} ms · ${(blob.size / 1024).toFixed(0)} KiB`;
@@ -191,6 +193,7 @@ function snapTo(k) {
   state.pose = cam.fromMatrix(c.c2w);
   state.up = cam.scale(cam.column(state.pose.R, 1), -1);
   state.K = cam.viewIntrinsics(c, WIDTH, HEIGHT);
+  state.retarget = true;  // orbit about what the next picture shows in its middle
   updateScrubber();
   changed(false);
 }
