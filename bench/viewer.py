@@ -86,7 +86,9 @@ def browse(url: str, session_id: str, drag_s: float, shots: Path | None) -> tupl
             page.wait_for_function(f"{FULL} && viewer.version > {version}", timeout=120_000)
             page.screenshot(path=shots / "viewer_depth.png")
             page.select_option("#mode", "rgb")
-            page.wait_for_function(FULL, timeout=120_000)
+            version = page.evaluate("viewer.version")
+            page.click("#latest")  # the drag starts where a first visit does: at the latest input camera
+            page.wait_for_function(f"{FULL} && viewer.version > {version}", timeout=120_000)
         page.mouse.move(x, y)
         page.mouse.down()
         start = page.evaluate("performance.now()")

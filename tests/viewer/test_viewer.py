@@ -166,6 +166,22 @@ def test_touch_one_finger_orbits_and_two_fingers_pinch_to_dolly(touch_page, serv
     assert (pinched[:3, 3] - orbited[:3, 3]) @ orbited[:3, 2] > 0.05
 
 
+
+def test_download_buttons_save_the_sessions_ply_and_splat(page, server, shelf_session, tmp_path):
+    open_viewer(page, server, shelf_session.id)
+    gaussians = shelf_session.stats()["gaussians"]
+    saved = {}
+    for button, suffix in (("#ply", ".ply"), ("#splat", ".splat")):
+        with page.expect_download(timeout=WAIT_MS) as info:
+            page.click(button)
+        download = info.value
+        assert download.suggested_filename == f"{shelf_session.id}{suffix}"
+        download.save_as(tmp_path / download.suggested_filename)
+        saved[suffix] = (tmp_path / download.suggested_filename).read_bytes()
+    assert saved[".ply"].startswith(b"ply\n") and f"element vertex {gaussians}\n".encode() in saved[".ply"][:2000]
+    assert len(saved[".splat"]) == 32 * gaussians
+
+
 def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):
     session = client.create_session(voxel_size=VOXEL)
     for kwargs in shelf[:2]:
