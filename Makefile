@@ -21,9 +21,13 @@ setup: $(VENV)/.installed
 demo: setup
 	$(PY) -m client.cli demo --out out/demo
 
-# the test command also installs the [cluster] extra (Ray Serve), which tests/cluster needs
+# The test command also installs what the tests need beyond the service: the [cluster] extra (Ray
+# Serve, for tests/cluster), and Debian's chromium, which the viewer's browser tests drive through
+# Playwright (CI runs as root; `playwright install` is not used: it downloads from outside the registries).
 test: setup
 	$(PY) -m pip install -q -e '.[cluster]'
+	@test -x /usr/bin/chromium || apt-get install -y chromium || (apt-get update && apt-get install -y chromium)
+	@$(PY) -c "import playwright" 2>/dev/null || $(PY) -m pip install -q playwright
 	$(PY) -m pytest -q tests
 
 bench: setup

@@ -5,6 +5,7 @@
     canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical sessions --url URL
+    canonical view --url URL --session ID [--no-browser]   (print the web viewer's URL, open a browser)
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
     canonical depth DATASET --out DIR [--sources 2]   (plane-sweep depth + uncertainty pictures)
@@ -320,6 +321,37 @@ def run_sessions(args) -> int:
     return 0
 
 
+# -- view ---------------------------------------------------------------------------------------
+def add_view(p: argparse.ArgumentParser) -> None:
+    _add_connection(p)
+    p.add_argument("--session", required=True, help="session id")
+    p.add_argument("--no-browser", action="store_true", help="only print the URL")
+
+
+def viewer_url(base: str, session_id: str) -> str:
+    """The web viewer's page of a session (the token never goes into it: the page asks for it)."""
+    return f"{base.rstrip('/')}/sessions/{session_id}/view"
+
+
+def has_display() -> bool:
+    """Whether a graphical browser can open here (a console browser would take over the terminal)."""
+    return sys.platform in ("darwin", "win32") or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def run_view(args) -> int:
+    with _client(args) as client:
+        client.session(args.session)  # 404 for an unknown id, 401 for a missing token: said before any URL
+    url = viewer_url(args.url, args.session)
+    print(url)
+    if args.token or os.environ.get("CANONICAL_API_TOKEN"):
+        print("the page asks for the API token once (kept in the browser tab, sent as a bearer header)")
+    if not args.no_browser and has_display():
+        import webbrowser
+
+        webbrowser.open(url)
+    return 0
+
+
 # -- demo ---------------------------------------------------------------------------------------
 SHARED_SHELF = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -457,6 +489,7 @@ COMMANDS: dict[str, Command] = {
     "render": Command(add_render, run_render, "render a session at a camera to a PNG"),
     "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
+    "view": Command(add_view, run_view, "print a session's web viewer URL and open it in a browser"),
     "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
     "depth": Command(add_depth, run_depth, "estimate depth + uncertainty of a dataset's frames by plane sweep, write pictures"),
     "eval": Command(add_eval, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),

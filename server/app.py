@@ -19,8 +19,9 @@ from .warmup import warm_up
 
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers
+from .events import FoldEvents
 from .metrics import Metrics
-from .routes import exports, frames, health, sessions, views
+from .routes import exports, frames, health, sessions, viewer, views
 from .settings import Settings
 from .store import DataDirLocked, SessionStore
 
@@ -34,8 +35,8 @@ class BodyTimeout(Exception):
 class GuardMiddleware:
     """Pure ASGI, in front of every route, so that no route pays for a request it refuses:
 
-    - the bearer token (with ``api_token`` set, everything but /healthz needs it), checked from the
-      headers before a byte of the body is read;
+    - the bearer token (with ``api_token`` set, everything but /healthz and the viewer's static pages
+      needs it), checked from the headers before a byte of the body is read;
     - the body size: 413 at once by Content-Length, or while reading a chunked body;
     - body deadlines: 408 when the body stalls ``read_timeout_s`` between reads or is not complete
       within ``body_timeout_s``; the route then gets the whole body at once;
@@ -110,7 +111,7 @@ class GuardMiddleware:
 
     def _authorized(self, scope, headers: dict) -> bool:
         token = self.settings.api_token
-        if token is None or scope.get("path") in self.OPEN_PATHS:
+        if token is None or scope.get("path") in self.OPEN_PATHS or viewer.is_page(scope.get("path", "")):
             return True
         scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
         return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())
@@ -172,6 +173,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             seconds = await run_in_threadpool(warm_up, settings.threads)
             log.info("kernels loaded in %.2f s", seconds)
         await run_in_threadpool(store.open)
+        app.state.events.close_streams_on_exit()
         log.info("serving %d sessions from %s", len(store), settings.data_dir)
         snapshotter = asyncio.create_task(_snapshot_loop(store, settings.snapshot_every_seconds))
         try:
@@ -192,10 +194,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.store = store
     app.state.metrics = metrics
     app.state.jobs = JobQueue(settings.queue_limit, settings.threads)
+    app.state.events = FoldEvents()
     app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics)
     install_error_handlers(app)
-    for module in (health, sessions, frames, views, exports):
+    for module in (health, sessions, frames, views, exports, viewer):
         app.include_router(module.router)
+    app.include_router(viewer.info_router)
+    app.include_router(viewer.pages)
     return app
 
 

@@ -96,13 +96,14 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             msg, record = wire.unpack(body), body
         frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
         check_session_accepts(frame, session.scene.config)
-        return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds)
+        return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds), frame.camera
 
     t0 = time.perf_counter()
-    report, replay = await jobs.run(fold)
+    (report, replay), camera = await jobs.run(fold)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:
         metrics.fold_seconds.observe(time.perf_counter() - t0)
         metrics.frames_total += 1
+        request.app.state.events.folded(session, camera, report)
     return FoldReportOut(**report.to_dict())

@@ -1,0 +1,131 @@
+"""Fold events for live clients (the web viewer) and the track of input cameras they show.
+
+`FoldEvents` lives on the event loop: the frames route calls `FoldEvents.folded` after a fold is
+acknowledged, and every open event stream of that session gets the event (frame counts, the fold
+report, the frame's camera). A subscriber that does not keep up loses its oldest events, never
+blocks a fold: the latest state is in every event, so a dropped one costs nothing.
+
+The input cameras of a session (what the viewer draws as frustums and snaps to) are appended to
+``cameras.f64`` in the session's folder, one row of `CAMERA_COLUMNS` float64 per acknowledged frame,
+so they outlive a restart. They are a view aid, not scene state: a missing or short file only means
+fewer frustums.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from canonical_core import Camera
+
+log = logging.getLogger("canonical.events")
+
+CAMERAS_FILE = "cameras.f64"
+# frame_index, width, height, fx, fy, cx, cy, then c2w row-major (16)
+CAMERA_COLUMNS = 23
+
+
+def camera_row(frame_index: int, camera: Camera) -> np.ndarray:  # [CAMERA_COLUMNS] float64
+    K, c2w = camera.K64(), camera.c2w64()
+    return np.concatenate([[frame_index, camera.width, camera.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2]], c2w.ravel()])
+
+
+def camera_json(row: np.ndarray) -> dict:
+    """One track row -> ``{"frame_index", "width", "height", "K": [fx, fy, cx, cy], "c2w": 16 numbers}``."""
+    return {"frame_index": int(row[0]), "width": int(row[1]), "height": int(row[2]),
+            "K": [float(x) for x in row[3:7]], "c2w": [float(x) for x in row[7:23]]}
+
+
+def read_track(path: Path, frames: int) -> np.ndarray:  # [N, CAMERA_COLUMNS] float64
+    """The rows of ``path`` for frames the session holds (frame_index < ``frames``); a torn last row
+    (a crash mid-append) and rows of frames no longer in the session are left out."""
+    try:
+        data = np.fromfile(path, np.float64)
+    except (OSError, ValueError):
+        return np.zeros((0, CAMERA_COLUMNS))
+    rows = data[: len(data) // CAMERA_COLUMNS * CAMERA_COLUMNS].reshape(-1, CAMERA_COLUMNS)
+    return rows[rows[:, 0] < frames]
+
+
+class FoldEvents:
+    """Per-session fan-out of fold events to asyncio queues, and the sessions' camera tracks."""
+
+    def __init__(self, queue_size: int = 32):
+        self.queue_size = queue_size
+        self._subscribers: dict[str, set[asyncio.Queue]] = defaultdict(set)
+        self.last_fold: dict[str, float] = {}  # session id -> unix time of its last acknowledged fold
+        self.closing = asyncio.Event()  # set when the service begins to stop: open streams end
+
+    def close_streams_on_exit(self) -> None:
+        """Chain SIGINT / SIGTERM so that open event streams end when the server is told to stop.
+
+        A graceful shutdown waits for responses in progress, and an event stream never finishes on
+        its own; call this on the event loop after the server installed its handlers (at startup)."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous = signal.getsignal(sig)
+            if not callable(previous):
+                continue
+
+            def handler(signum, frame, previous=previous):
+                loop.call_soon_threadsafe(self.closing.set)
+                previous(signum, frame)
+
+            try:
+                signal.signal(sig, handler)
+            except ValueError:  # not the main thread (an in-process test client): no signals to chain
+                return
+
+    def subscribe(self, session_id: str) -> asyncio.Queue:
+        queue: asyncio.Queue = asyncio.Queue(self.queue_size)
+        self._subscribers[session_id].add(queue)
+        return queue
+
+    def unsubscribe(self, session_id: str, queue: asyncio.Queue) -> None:
+        queues = self._subscribers.get(session_id)
+        if queues is not None:
+            queues.discard(queue)
+            if not queues:
+                del self._subscribers[session_id]
+
+    def subscribers(self, session_id: str) -> int:
+        return len(self._subscribers.get(session_id, ()))
+
+    def publish(self, session_id: str, event: dict) -> None:
+        """Put ``event`` on every subscriber's queue, dropping a full queue's oldest event."""
+        for queue in self._subscribers.get(session_id, ()):
+            if queue.full():
+                queue.get_nowait()
+            queue.put_nowait(event)
+
+    def folded(self, session, camera: Camera, report) -> None:
+        """After an acknowledged fold: record the camera, then tell the session's subscribers."""
+        now = time.time()
+        self.last_fold[session.id] = now
+        row = camera_row(report.frame_index, camera)
+        try:
+            with open(session.path / CAMERAS_FILE, "ab") as f:
+                f.write(row.tobytes())
+        except OSError as exc:  # a view aid: the fold stands, the frustum is missing
+            log.warning("session %s: camera %d not recorded (%s)", session.id, report.frame_index, exc)
+        self.publish(session.id, {"type": "fold", "time": now, "frames": session.scene.frames,
+                                  "voxels": len(session.scene), "report": report.to_dict(), "camera": camera_json(row)})
+
+    def track(self, session) -> list[dict]:
+        """The session's input cameras, oldest first."""
+        return [camera_json(r) for r in read_track(session.path / CAMERAS_FILE, session.scene.frames)]
+
+    def last_fold_time(self, session) -> float | None:
+        """Unix time of the last fold: known since start, else the camera file's mtime, else None."""
+        if session.id in self.last_fold:
+            return self.last_fold[session.id]
+        try:
+            return (session.path / CAMERAS_FILE).stat().st_mtime
+        except OSError:
+            return None

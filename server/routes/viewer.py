@@ -1,0 +1,240 @@
+"""The web viewer: its pages, the images it draws, its live fold events and the input cameras.
+
+Pages (``/``, ``/sessions/{id}/view``, ``/viewer/<file>``) are static and carry no session data, so
+they are served without the token; the page asks for the token and sends it as a bearer header on
+every data request below (never in the URL).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import mimetypes
+import time
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response, StreamingResponse
+from PIL import Image
+
+from canonical_core.rendering.preview import feature_preview
+
+from .. import viewer, wire
+from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
+from ..errors import ApiError
+from ..schemas import ErrorBody
+from ..store import SessionNotFound
+from . import views
+
+pages = APIRouter(include_in_schema=False)
+router = APIRouter(prefix="/v1/sessions", tags=["viewer"])
+info_router = APIRouter(prefix="/v1/viewer", tags=["viewer"])
+
+Mode = Literal["rgb", "depth", "alpha", "features", "labels"]
+ImageFormat = Literal["png", "jpeg", "webp"]
+MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
+KEEPALIVE_S = 15.0  # an SSE comment this often keeps proxies from closing an idle stream
+PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"}
+
+
+# -- pages -----------------------------------------------------------------------------------------
+def _static(name: str) -> Response:
+    path = viewer.STATIC / name
+    if "/" in name or name.startswith(".") or not path.is_file():
+        raise ApiError(404, "not_found", f"path: no viewer file {name!r}", "path")
+    media = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    if name.endswith(".js"):
+        media = "text/javascript"  # ES modules need a JavaScript type whatever the host's mime table says
+    return Response(path.read_bytes(), media_type=media, headers=PAGE_HEADERS)
+
+
+@pages.get("/")
+async def index_page() -> Response:
+    """The session list."""
+    return _static("index.html")
+
+
+@pages.get("/sessions/{session_id}/view")
+async def view_page(session_id: str) -> Response:
+    """The viewer of one session (the page reads the id from its URL)."""
+    return _static("view.html")
+
+
+@pages.get("/viewer/{name}")
+async def viewer_file(name: str) -> Response:
+    return _static(name)
+
+
+def is_page(path: str) -> bool:
+    """Whether ``path`` is a viewer page or asset (static, no session data: open without the token)."""
+    parts = path.split("/")
+    return (path == "/" or path.startswith("/viewer/")
+            or (len(parts) == 4 and parts[1] == "sessions" and parts[3] == "view"))
+
+
+# -- data for the pages ----------------------------------------------------------------------------
+@info_router.get("/info")
+async def viewer_info() -> dict:
+    """The depth colour map (near first) and the label palette (index k + 1 = label k), so the page
+    draws the scale bar and the legend in the server's colours."""
+    return {"depth_colormap": viewer.DEPTH_LUT.tolist(), "label_palette": viewer.PALETTE.tolist()}
+
+
+@info_router.get("/sessions")
+async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> dict:
+    """Every session with its stats and the time of its last fold (null when unknown)."""
+    events = request.app.state.events
+
+    def job():
+        rows = []
+        for session in store.list():
+            try:
+                rows.append({**session.stats(), "last_fold": events.last_fold_time(session)})
+            except SessionNotFound:  # deleted since the list was taken
+                continue
+        return rows
+
+    rows = await jobs.run(job)
+    rows += [{**s, "last_fold": None} for s in store.unavailable_summaries()]
+    return {"sessions": rows}
+
+
+@router.get("/{session_id}/cameras", responses={c: {"model": ErrorBody} for c in (401, 404)})
+async def input_cameras(request: Request, session: SessionDep) -> dict:
+    """The input cameras, oldest first: ``frame_index``, ``width``, ``height``, ``K`` (fx, fy, cx, cy),
+    ``c2w`` (16 numbers, row-major, OpenCV axes): the poses the viewer snaps to and draws."""
+    events = request.app.state.events
+    cameras = await run_in_threadpool(events.track, session)
+    return {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim,
+            "last_fold": events.last_fold_time(session), "cameras": cameras}
+
+
+def _sse(event: str, data: dict) -> bytes:
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
+
+
+async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> dict | None:
+    """The next event of ``queue``; None after ``timeout`` seconds or once ``closing`` is set."""
+    getter, stop = asyncio.ensure_future(queue.get()), asyncio.ensure_future(closing.wait())
+    try:
+        done, _ = await asyncio.wait({getter, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        return getter.result() if getter in done else None
+    finally:  # also when the stream is closed while waiting: no task is left pending
+        getter.cancel()
+        stop.cancel()
+
+
+@router.get("/{session_id}/events", responses={200: {"content": {"text/event-stream": {}}},
+                                               **{c: {"model": ErrorBody} for c in (401, 404)}})
+async def fold_events(request: Request, session: SessionDep) -> StreamingResponse:
+    """Server-Sent Events: ``state`` at once (frames, voxels), then ``fold`` after each acknowledged
+    fold (frames, voxels, the fold report, the frame's camera); a comment every 15 s when idle; the
+    stream ends when the session is deleted or the service stops."""
+    events = request.app.state.events
+    queue = events.subscribe(session.id)
+
+    async def stream():
+        try:
+            yield _sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
+                                 "label_dim": session.scene.label_dim})
+            while not events.closing.is_set():
+                event = await _next_event(queue, events.closing, KEEPALIVE_S)
+                if event is not None:
+                    yield _sse(event["type"], event)
+                elif session.deleted:
+                    yield _sse("deleted", {"id": session.id})
+                    return
+                elif not events.closing.is_set():
+                    yield b": keep-alive\n\n"
+        finally:
+            events.unsubscribe(session.id, queue)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+# -- images ----------------------------------------------------------------------------------------
+def encode_image(rgb, fmt: ImageFormat, quality: int) -> bytes:
+    """uint8 [H, W, 3] -> PNG (lossless, the render route's encoder), JPEG or WebP at ``quality``."""
+    if fmt == "png":
+        return wire.encode_png(rgb)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format=fmt.upper(), quality=quality)
+    return buf.getvalue()
+
+
+def picture(mode: Mode, maps: dict, fixed_range: tuple[float, float] | None) -> tuple:
+    """The maps of one view -> (uint8 [H, W, 3] picture, response headers saying how to read it)."""
+    if "depth" in maps:  # the viewer orbits about the surface in the middle of the view
+        centre = viewer.centre_depth(maps["depth"], maps["alpha"])
+        headers = {} if centre is None else {"X-Canonical-Centre-Depth": f"{centre:.6g}"}
+        return _render_picture(mode, maps, fixed_range, headers)
+    if mode == "features":
+        return feature_preview(maps["features"], maps["alpha"]), {}
+    ids = viewer.visible_labels(maps["labels"])
+    return viewer.label_picture(maps["labels"]), {"X-Canonical-Labels": ",".join(map(str, ids))}
+
+
+def _render_picture(mode: Mode, maps: dict, fixed_range, headers: dict) -> tuple:
+    if mode == "rgb":
+        return wire.to_uint8(maps["rgb"]), headers
+    if mode == "depth":
+        near_far = fixed_range or viewer.depth_range(maps["depth"], maps["alpha"])
+        return (viewer.depth_picture(maps["depth"], maps["alpha"], near_far),
+                {**headers, "X-Canonical-Depth-Range": f"{near_far[0]:.6g},{near_far[1]:.6g}"})
+    covered = float((maps["alpha"] > 0.5).mean())
+    return viewer.coverage_picture(maps["alpha"]), {**headers, "X-Canonical-Coverage": f"{covered:.4f}"}
+
+
+def _range(text: str | None) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    near, far = views._numbers(text, "depth_range", 2)
+    if not far > near:
+        raise ApiError(422, "invalid_value", f"depth_range: far must exceed near, got {near}, {far}", "depth_range")
+    return near, far
+
+
+@router.get("/{session_id}/image", response_class=Response,
+            responses={200: {"content": {m: {} for m in MEDIA.values()}},
+                       **{c: {"model": ErrorBody} for c in (401, 404, 409, 413, 422, 429)}})
+async def view_image(
+    view: views.QueryView, session: SessionDep, settings: SettingsDep, jobs: JobsDep, metrics: MetricsDep,
+    mode: Annotated[Mode, Query(description="rgb (with `colour`), depth (colour-mapped), alpha (coverage), "
+                                            "features (PCA to RGB), labels (palette colours)")] = "rgb",
+    format: Annotated[ImageFormat, Query(description="png (lossless), jpeg or webp (smaller, faster to send)")] = "png",
+    quality: Annotated[int, Query(ge=1, le=100, description="jpeg/webp quality")] = 80,
+    depth_range: Annotated[str | None, Query(description="depth mode: near,far in metres (default: "
+                                                         "the 2nd-98th percentile of the view)")] = None,
+) -> Response:
+    """A picture of the view for people (the web viewer): one mode, one image format.
+
+    Headers: ``Server-Timing`` (``render``: queue + rasterise, ``picture``: colour mapping,
+    ``encode``), ``X-Canonical-Gaussians``, and per mode ``X-Canonical-Depth-Range`` (near,far of
+    the colour map), ``X-Canonical-Coverage`` (share of pixels with alpha > 0.5) or
+    ``X-Canonical-Labels`` (label ids in view); rgb, depth and alpha also carry
+    ``X-Canonical-Centre-Depth`` (the median depth drawn in the middle ninth of the view, where
+    anything is drawn there: the viewer orbits about it). Labels: 409 where the session has none."""
+    fixed = _range(depth_range)
+    kind = {"features": "features", "labels": "segmentation"}.get(mode, "render")
+    timing: dict = {}
+
+    def encode(maps):
+        t0 = time.perf_counter()
+        rgb, headers = picture(mode, maps, fixed)
+        t1 = time.perf_counter()
+        data = encode_image(rgb, format, quality)
+        timing.update(headers, picture=t1 - t0, encode=time.perf_counter() - t1)
+        return data, MEDIA[format]
+
+    t0 = time.perf_counter()
+    response = await views._view(kind, session, view, settings, jobs, metrics, encode)
+    total = time.perf_counter() - t0
+    picture_s, encode_s = timing.pop("picture"), timing.pop("encode")
+    response.headers.update(timing)
+    response.headers["Server-Timing"] = (f"render;dur={1000 * (total - picture_s - encode_s):.2f}, "
+                                         f"picture;dur={1000 * picture_s:.2f}, encode;dur={1000 * encode_s:.2f}")
+    response.headers["Cache-Control"] = "no-store"
+    return response

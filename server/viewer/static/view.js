@@ -1,0 +1,359 @@
+// The viewer of one session: server-rendered images of a camera the user flies, redrawn after each
+// fold (fold events over SSE), with the input cameras as frustums, a scrubber and snap buttons.
+import { download, formatAge, formatBytes, json, request, subscribe, withToken } from "./api.js";
+import * as cam from "./camera.js";
+
+const params = new URLSearchParams(location.search);
+const WIDTH = Number(params.get("width")) || 512;  // full-quality view size (pixels)
+const HEIGHT = Number(params.get("height")) || 384;
+const LOW = 0.5;  // size factor of the images asked for while the pose moves
+// ... and their level of detail: the best-supported N Gaussians (rendering time grows with N)
+const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
+const REST_MS = 180;  // the pose counts as resting this long after its last change
+const ORBIT_RAD_PER_PX = 0.006;
+const FLY_SPEED = 0.6;  // orbit distances per second
+const sessionId = decodeURIComponent(location.pathname.split("/")[2]);
+const $ = (id) => document.getElementById(id);
+
+const view = $("view"), overlay = $("overlay"), stage = $("stage");
+for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
+stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
+
+// Everything a test (or the console) may want to read is on window.viewer.
+const state = {
+  id: sessionId, width: WIDTH, height: HEIGHT,
+  pose: { R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], p: [0, 0, 0] }, distance: 1, up: [0, -1, 0],
+  K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
+  mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
+  version: 0, changedAt: 0, inflight: null,
+  drawn: { version: -1, full: false, mode: null, headers: {} },
+  images: 0, info: null, timing: {}, history: [],  // history: timings of the last HISTORY images
+};
+const HISTORY = 500;
+window.viewer = state;
+
+// -- the image loop ---------------------------------------------------------------------------
+// moving: a pose change under the user's hand (previews until it rests); otherwise (a fold, a mode,
+// a snap) the full picture is asked for at once.
+function changed(moving = true) {
+  state.version += 1;
+  state.changedAt = moving ? performance.now() : -Infinity;
+  drawFrustums();
+  pump();
+}
+
+function imageUrl(full) {
+  const w = full ? WIDTH : Math.round(WIDTH * LOW), h = full ? HEIGHT : Math.round(HEIGHT * LOW);
+  const s = w / WIDTH;
+  const K = [state.K[0] * s, state.K[1] * s, state.K[2] * s, state.K[3] * s];
+  const mode = state.mode === "composited" ? "rgb" : state.mode;
+  const q = new URLSearchParams({
+    pose: cam.toMatrix(state.pose).map((x) => x.toPrecision(9)).join(","),
+    K: K.map((x) => x.toPrecision(9)).join(","), width: w, height: h, mode,
+    format: full || mode === "labels" ? "png" : "jpeg", quality: 70,
+  });
+  if (state.mode === "composited") q.set("colour", "composited");
+  if (!full) q.set("max_gaussians", PREVIEW_GAUSSIANS);
+  // previews keep the colour scale of the last full depth picture, so colours do not flicker
+  if (!full && mode === "depth" && state.depthRange) q.set("depth_range", state.depthRange);
+  return `/v1/sessions/${encodeURIComponent(sessionId)}/image?${q}`;
+}
+
+// One request in flight at a time, always for the newest pose: a response that arrives after a
+// newer picture was drawn is dropped, so the view never goes back in time.
+function pump() {
+  if (state.inflight || !state.info) return;
+  const { version } = state;
+  if (state.failed === version) return;  // asked and refused: wait for the next change
+  const resting = performance.now() - state.changedAt >= REST_MS;
+  if (state.drawn.version === version && (state.drawn.full || !resting)) {
+    if (!state.drawn.full) setTimeout(pump, REST_MS);
+    return;
+  }
+  const full = resting;
+  const mode = state.mode;
+  const t0 = performance.now();
+  state.inflight = request(imageUrl(full))
+    .then(async (response) => {
+      const blob = await response.blob();
+      const t1 = performance.now();
+      const bitmap = await createImageBitmap(blob);
+      if (version < state.drawn.version || (version === state.drawn.version && state.drawn.full && !full)) return;
+      const ctx = view.getContext("2d");
+      ctx.imageSmoothingEnabled = !full;
+      ctx.drawImage(bitmap, 0, 0, WIDTH, HEIGHT);
+      state.images += 1;
+      state.timing = { ...serverTiming(response.headers.get("Server-Timing")), fetch: t1 - t0,
+                       decode: performance.now() - t1, bytes: blob.size, full, at: performance.now() };
+      state.history.push(state.timing);
+      if (state.history.length > HISTORY) state.history.shift();
+      state.drawn = { version, full, mode, url: response.url, headers: Object.fromEntries(response.headers) };
+      view.dataset.version = version;
+      view.dataset.full = full;
+      showReading(mode, response.headers);
+      const centre = Number(response.headers.get("X-Canonical-Centre-Depth"));
+      if (state.retarget && full && centre > 0) { state.distance = centre; state.retarget = false; drawFrustums(); }
+      $("timing").textContent = `${full ? "full" : "preview"} ${bitmap.width}×${bitmap.height} · ` +
+        `render ${state.timing.render?.toFixed(0)} ms · encode ${state.timing.encode?.toFixed(0)} ms · ` +
+        `round trip ${state.timing.fetch.toFixed(0)} ms · ${(blob.size / 1024).toFixed(0)} KiB`;
+      $("error").hidden = true;
+    })
+    .catch((error) => {
+      showError(error);
+      state.failed = version;
+      if (error.status === 429) setTimeout(() => { state.failed = null; pump(); }, 1000);  // busy: try again
+    })
+    .finally(() => { state.inflight = null; pump(); });
+}
+
+function serverTiming(text) {
+  const out = {};
+  for (const part of (text || "").split(",")) {
+    const m = part.trim().match(/^(\w+);dur=([\d.]+)/);
+    if (m) out[m[1]] = Number(m[2]);
+  }
+  return out;
+}
+
+function showError(error) {
+  $("error").textContent = error.message;
+  $("error").hidden = false;
+}
+
+// Scale bar (depth) and legend (labels) for the picture just drawn.
+function showReading(mode, headers) {
+  const range = headers.get("X-Canonical-Depth-Range");
+  $("scale").hidden = mode !== "depth" || !range;
+  if (mode === "depth" && range) {
+    if (state.drawn.full) state.depthRange = range;
+    const [near, far] = range.split(",").map(Number);
+    $("near").textContent = `${near.toFixed(2)} m`;
+    $("far").textContent = `${far.toFixed(2)} m`;
+  }
+  const labels = headers.get("X-Canonical-Labels");
+  const legend = $("legend");
+  legend.hidden = mode !== "labels";
+  if (mode === "labels") {
+    const ids = labels ? labels.split(",").map(Number) : [];
+    legend.replaceChildren(...ids.map((k) => {
+      const li = document.createElement("li");
+      li.dataset.label = k;
+      const swatch = document.createElement("span");
+      const [r, g, b] = state.info.label_palette[(k + 1) % 256];
+      swatch.style.background = `rgb(${r},${g},${b})`;
+      li.append(swatch, `label ${k}`);
+      return li;
+    }));
+  }
+}
+
+function drawScaleBar() {
+  const bar = $("scale-bar"), ctx = bar.getContext("2d");
+  const lut = state.info.depth_colormap;
+  lut.forEach(([r, g, b], i) => {
+    ctx.fillStyle = `rgb(${r},${g},${b})`;
+    ctx.fillRect(i * bar.width / lut.length, 0, bar.width / lut.length + 1, bar.height);
+  });
+}
+
+// -- input cameras -------------------------------------------------------------------------------
+function drawFrustums() {
+  const ctx = overlay.getContext("2d");
+  ctx.clearRect(0, 0, WIDTH, HEIGHT);
+  if (!$("frustums").checked) return;
+  const depth = Math.max(0.02, 0.08 * state.distance);
+  state.cameras.forEach((c, k) => {
+    const pts = cam.frustum(c, depth).map((X) => cam.project(state.pose, state.K, X));
+    if (pts.some((p) => p === null)) return;
+    ctx.strokeStyle = k === state.selected ? "rgba(240,192,72,0.95)" : "rgba(120,200,255,0.55)";
+    ctx.lineWidth = k === state.selected ? 2 : 1;
+    ctx.beginPath();
+    for (let i = 1; i <= 4; i++) { ctx.moveTo(...pts[0]); ctx.lineTo(...pts[i]); }
+    ctx.moveTo(...pts[1]);
+    for (const i of [2, 3, 4, 1]) ctx.lineTo(...pts[i]);
+    ctx.stroke();
+  });
+}
+
+function updateScrubber() {
+  const n = state.cameras.length;
+  const scrub = $("scrub");
+  scrub.max = Math.max(0, n - 1);
+  scrub.disabled = n === 0;
+  if (state.selected >= 0) scrub.value = state.selected;
+  $("camera-k").textContent = n ? `camera ${state.selected + 1} / ${n}` : "no input cameras";
+}
+
+// Put the view at input camera k: its pose, its field of view, the orbit target at the depth of
+// the scene's middle (kept from before, or 1 m).
+function snapTo(k) {
+  const c = state.cameras[k];
+  if (!c) return;
+  state.selected = k;
+  state.pose = cam.fromMatrix(c.c2w);
+  state.up = cam.scale(cam.column(state.pose.R, 1), -1);
+  state.K = cam.viewIntrinsics(c, WIDTH, HEIGHT);
+  state.retarget = true;  // orbit about what the next picture shows in its middle
+  updateScrubber();
+  changed(false);
+}
+
+// -- stats -------------------------------------------------------------------------------------
+let statsTimer = null;
+function refreshStats() {
+  clearTimeout(statsTimer);
+  statsTimer = setTimeout(async () => {
+    try {
+      const s = await json(`/v1/sessions/${encodeURIComponent(sessionId)}`);
+      setFrames(s.frames);
+      $("voxels").textContent = s.voxels;
+      $("gaussians").textContent = s.gaussians;
+      $("memory").textContent = formatBytes(s.memory_bytes);
+      setLabels(s.label_dim);
+    } catch (error) { showError(error); }
+  }, 150);
+}
+
+function setFrames(n) {
+  state.frames = n;
+  $("frames").textContent = n;
+}
+
+function setLabels(labelDim) {
+  state.labelDim = labelDim;
+  $("mode").querySelector("option[value=labels]").disabled = labelDim === 0;
+}
+
+function onEvent(name, data) {
+  if (name === "state") {
+    setFrames(data.frames);
+    $("voxels").textContent = data.voxels;
+    setLabels(data.label_dim);
+    return;
+  }
+  if (name === "deleted") { showError("this session was deleted"); return; }
+  if (name !== "fold") return;
+  setFrames(data.frames);
+  $("voxels").textContent = data.voxels;
+  state.lastFold = data.time;
+  $("last-fold").textContent = formatAge(data.time);
+  if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
+  if ($("follow").checked || state.selected < 0) snapTo(state.cameras.length - 1);
+  else { updateScrubber(); changed(false); }
+  refreshStats();
+}
+
+// -- navigation -----------------------------------------------------------------------------------
+const pointers = new Map();
+let gesture = null;
+
+stage.addEventListener("pointerdown", (e) => {
+  stage.setPointerCapture(e.pointerId);
+  stage.focus();
+  pointers.set(e.pointerId, [e.clientX, e.clientY]);
+  gesture = { pan: e.button === 2 || e.shiftKey };
+});
+
+stage.addEventListener("pointermove", (e) => {
+  if (!pointers.has(e.pointerId)) return;
+  const before = [...pointers.values()];
+  const last = pointers.get(e.pointerId);
+  pointers.set(e.pointerId, [e.clientX, e.clientY]);
+  const px = WIDTH / stage.clientWidth;  // screen pixels -> view pixels
+  if (pointers.size >= 2) {
+    const after = [...pointers.values()];
+    const spread = (p) => Math.hypot(p[0][0] - p[1][0], p[0][1] - p[1][1]);
+    const mid = (p) => [(p[0][0] + p[1][0]) / 2, (p[0][1] + p[1][1]) / 2];
+    const [m0, m1] = [mid(before), mid(after)];
+    pan((m1[0] - m0[0]) * px, (m1[1] - m0[1]) * px);
+    if (spread(before) > 0 && spread(after) > 0) zoomBy(spread(before) / spread(after));
+    return;
+  }
+  const dx = (e.clientX - last[0]) * px, dy = (e.clientY - last[1]) * px;
+  if (gesture?.pan) pan(dx, dy);
+  else {
+    state.pose = cam.orbit(state.pose, state.distance, state.up, -dx * ORBIT_RAD_PER_PX, -dy * ORBIT_RAD_PER_PX);
+    changed();
+  }
+});
+
+for (const type of ["pointerup", "pointercancel"]) {
+  stage.addEventListener(type, (e) => { pointers.delete(e.pointerId); if (!pointers.size) gesture = null; });
+}
+stage.addEventListener("contextmenu", (e) => e.preventDefault());
+stage.addEventListener("wheel", (e) => {
+  e.preventDefault();
+  zoomBy(Math.exp(e.deltaY * 0.0015));
+}, { passive: false });
+
+// Drag the scene with the pointer: metres per view pixel at the orbit target's depth.
+function pan(dx, dy) {
+  const m = state.distance / state.K[0];
+  state.pose = cam.translate(state.pose, [-dx * m, -dy * m, 0]);
+  changed();
+}
+
+function zoomBy(factor) {
+  ({ pose: state.pose, distance: state.distance } = cam.zoom(state.pose, state.distance, factor));
+  changed();
+}
+
+const keys = new Set();
+const FLY = { KeyW: [0, 0, 1], KeyS: [0, 0, -1], KeyA: [-1, 0, 0], KeyD: [1, 0, 0] };
+stage.addEventListener("keydown", (e) => {
+  if (FLY[e.code] || e.code === "KeyQ" || e.code === "KeyE") {
+    e.preventDefault();
+    if (!keys.size) requestAnimationFrame(fly);
+    keys.add(e.code);
+  }
+});
+stage.addEventListener("keyup", (e) => keys.delete(e.code));
+stage.addEventListener("blur", () => keys.clear());
+
+let lastFly = null;
+function fly(now) {
+  if (!keys.size) { lastFly = null; return; }
+  const dt = lastFly === null ? 1 / 60 : Math.min(0.1, (now - lastFly) / 1000);
+  lastFly = now;
+  const step = FLY_SPEED * state.distance * dt;
+  for (const code of keys) {
+    if (FLY[code]) state.pose = cam.translate(state.pose, cam.scale(FLY[code], step));
+    if (code === "KeyE") state.pose = cam.lift(state.pose, state.up, step);
+    if (code === "KeyQ") state.pose = cam.lift(state.pose, state.up, -step);
+  }
+  changed();
+  requestAnimationFrame(fly);
+}
+
+// -- controls ----------------------------------------------------------------------------------------
+$("mode").addEventListener("change", (e) => {
+  state.mode = e.target.value;
+  state.depthRange = null;
+  changed(false);
+});
+$("scrub").addEventListener("input", (e) => snapTo(Number(e.target.value)));
+$("latest").addEventListener("click", () => snapTo(state.cameras.length - 1));
+$("frustums").addEventListener("change", drawFrustums);
+const base = `/v1/sessions/${encodeURIComponent(sessionId)}`;
+$("ply").addEventListener("click", () => download(`${base}/gaussians.ply`, `${sessionId}.ply`).catch(showError));
+$("splat").addEventListener("click", () => download(`${base}/gaussians.splat`, `${sessionId}.splat`).catch(showError));
+
+// -- start -----------------------------------------------------------------------------------------
+async function start() {
+  $("title").textContent = sessionId;
+  document.title = `CanonicalGS Fusion · ${sessionId.slice(0, 8)}`;
+  const [info, track] = await withToken(() => Promise.all([json("/v1/viewer/info"), json(`${base}/cameras`)]));
+  state.info = info;
+  drawScaleBar();
+  state.cameras = track.cameras;
+  setFrames(track.frames);
+  setLabels(track.label_dim);
+  $("last-fold").textContent = formatAge(track.last_fold);
+  subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
+  refreshStats();
+  if (state.cameras.length) snapTo(state.cameras.length - 1);
+  else { updateScrubber(); changed(false); }
+  setInterval(() => { if (state.lastFold) $("last-fold").textContent = formatAge(state.lastFold); }, 5000);
+}
+
+start().catch(showError);

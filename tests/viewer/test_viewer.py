@@ -1,0 +1,283 @@
+"""The web viewer in a real browser (Debian's chromium through Playwright) against a real service.
+
+Each test drives the page the way a person does (goto, drag, select, type the token) and reads
+what the page drew from its canvas; screenshots of each state go to the test's tmp dir.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from client.sdk import png_to_array
+
+from ..server.harness import TOKEN, VOXEL, small_frames
+from .walls import FAR, LABELS, NEAR, wall_frames
+
+pytestmark = pytest.mark.slow
+FULL = "window.viewer && window.viewer.drawn.full && window.viewer.drawn.version === window.viewer.version"
+WAIT_MS = 60_000
+
+
+def canvas(page) -> np.ndarray:  # [H, W, 3] uint8: what the page drew
+    url = page.evaluate("document.getElementById('view').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"))
+
+
+def view_camera(page) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(K 3x3, c2w 4x4, width, height) of the page's current view."""
+    v = page.evaluate("({R: viewer.pose.R, p: viewer.pose.p, K: viewer.K, w: viewer.width, h: viewer.height})")
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = v["R"], v["p"]
+    fx, fy, cx, cy = v["K"]
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), c2w, v["w"], v["h"]
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+
+
+def open_viewer(page, server, session_id: str):
+    page.goto(f"{server.url}/sessions/{session_id}/view")
+    page.wait_for_function(FULL, timeout=WAIT_MS)
+
+
+def center(page) -> tuple[float, float]:
+    box = page.locator("#stage").bounding_box()
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+
+def wait_new_image(page, after_version: int, mode: str | None = None):
+    cond = f"{FULL} && window.viewer.drawn.version > {after_version}"
+    if mode:
+        cond += f" && window.viewer.drawn.mode === {mode!r}"
+    page.wait_for_function(cond, timeout=WAIT_MS)
+
+
+@pytest.fixture(scope="module")
+def shelf(shelf_dir):
+    """Shelf frames at 320x240: the first four fold before the page opens, the fifth while it is open."""
+    return small_frames(shelf_dir, count=5, step=8)
+
+
+@pytest.fixture(scope="module")
+def shelf_session(client, shelf):
+    session = client.create_session(voxel_size=VOXEL)
+    for kwargs in shelf[:4]:
+        session.add_frame(**kwargs)
+    return session
+
+
+def test_session_list_shows_a_session_made_through_the_api(page, server, client, shots):
+    session = client.create_session(voxel_size=VOXEL)
+    page.goto(f"{server.url}/")
+    row = page.locator(f"#sessions tr[data-id='{session.id}']")
+    row.wait_for(timeout=WAIT_MS)
+    assert row.locator(".frames").inner_text() == "0"
+    assert row.locator("a").get_attribute("href") == f"/sessions/{session.id}/view"
+    page.screenshot(path=shots / "list.png")
+
+
+def test_first_image_is_the_render_api_png_at_the_same_pose(page, server, shelf_session, shelf, shots):
+    open_viewer(page, server, shelf_session.id)
+    page.screenshot(path=shots / "first.png")
+    drawn = canvas(page)
+    K, c2w, w, h = view_camera(page)
+    # it starts at the latest input camera
+    np.testing.assert_allclose(c2w, shelf[3]["c2w"], atol=1e-6)
+    reference = png_to_array(shelf_session.render_png(K, c2w, w, h))
+    assert drawn.shape == reference.shape == (384, 512, 3)
+    assert (drawn.max(axis=2) > 20).mean() > 0.5 and drawn.std() > 20  # not blank
+    assert psnr(drawn, reference) > 40.0
+
+
+def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shots):
+    open_viewer(page, server, shelf_session.id)
+    before_image, (_, before_pose, _, _) = canvas(page), view_camera(page)
+    version = page.evaluate("viewer.version")
+    x, y = center(page)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(x + 12 * k, y + 3 * k)
+    page.mouse.up()
+    wait_new_image(page, version)
+    page.screenshot(path=shots / "dragged.png")
+    _, after_pose, _, _ = view_camera(page)
+    after_image = canvas(page)
+    assert np.abs(after_pose - before_pose).max() > 0.01
+    assert np.abs(after_image.astype(int) - before_image).mean() > 3.0
+
+
+
+def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page, server, shelf_session, shelf):
+    open_viewer(page, server, shelf_session.id)
+    _, start, _, _ = view_camera(page)
+    forward = start[:3, 2]
+    page.locator("#stage").focus()
+    page.keyboard.down("KeyW")
+    page.wait_for_timeout(300)
+    page.keyboard.up("KeyW")
+    _, flown, _, _ = view_camera(page)
+    step = flown[:3, 3] - start[:3, 3]
+    np.testing.assert_allclose(flown[:3, :3], start[:3, :3], atol=1e-9)  # flying does not turn
+    assert step @ forward > 0.01 and np.linalg.norm(step - (step @ forward) * forward) < 1e-6
+    page.mouse.move(*center(page))
+    version = page.evaluate("viewer.version")
+    page.mouse.wheel(0, 200)  # away from the target
+    page.wait_for_function(f"viewer.version > {version}")
+    _, dollied, _, _ = view_camera(page)
+    assert (dollied[:3, 3] - flown[:3, 3]) @ forward < -0.01
+    page.locator("#scrub").fill("1")  # the second input camera
+    _, snapped, _, _ = view_camera(page)
+    np.testing.assert_allclose(snapped, shelf[1]["c2w"], atol=1e-6)
+    assert page.locator("#camera-k").inner_text() == "camera 2 / 4"
+
+
+
+def test_touch_one_finger_orbits_and_two_fingers_pinch_to_dolly(touch_page, server, shelf_session):
+    page = touch_page
+    open_viewer(page, server, shelf_session.id)
+    cdp = page.context.new_cdp_session(page)
+
+    def touch(kind: str, points) -> None:
+        cdp.send("Input.dispatchTouchEvent",
+                 {"type": kind, "touchPoints": [{"x": x, "y": y, "id": i} for i, (x, y) in enumerate(points)]})
+
+    x, y = center(page)
+    _, start, _, _ = view_camera(page)
+    touch("touchStart", [(x, y)])
+    for k in range(1, 6):
+        touch("touchMove", [(x + 15 * k, y)])
+    touch("touchEnd", [])
+    _, orbited, _, _ = view_camera(page)
+    assert np.abs(orbited[:3, :3] - start[:3, :3]).max() > 0.05  # turned
+    touch("touchStart", [(x - 40, y), (x + 40, y)])
+    for k in range(1, 6):
+        touch("touchMove", [(x - 40 - 12 * k, y), (x + 40 + 12 * k, y)])  # fingers apart: closer
+    touch("touchEnd", [])
+    _, pinched, _, _ = view_camera(page)
+    np.testing.assert_allclose(pinched[:3, :3], orbited[:3, :3], atol=1e-9)  # a pinch does not turn
+    assert (pinched[:3, 3] - orbited[:3, 3]) @ orbited[:3, 2] > 0.05
+
+
+
+def test_download_buttons_save_the_sessions_ply_and_splat(page, server, shelf_session, tmp_path):
+    open_viewer(page, server, shelf_session.id)
+    gaussians = shelf_session.stats()["gaussians"]
+    saved = {}
+    for button, suffix in (("#ply", ".ply"), ("#splat", ".splat")):
+        with page.expect_download(timeout=WAIT_MS) as info:
+            page.click(button)
+        download = info.value
+        assert download.suggested_filename == f"{shelf_session.id}{suffix}"
+        download.save_as(tmp_path / download.suggested_filename)
+        saved[suffix] = (tmp_path / download.suggested_filename).read_bytes()
+    assert saved[".ply"].startswith(b"ply\n") and f"element vertex {gaussians}\n".encode() in saved[".ply"][:2000]
+    assert len(saved[".splat"]) == 32 * gaussians
+
+
+def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):
+    session = client.create_session(voxel_size=VOXEL)
+    for kwargs in shelf[:2]:
+        session.add_frame(**kwargs)
+    open_viewer(page, server, session.id)
+    page.evaluate("window.notReloaded = true")
+    assert page.locator("#frames").inner_text() == "2"
+    before, version = canvas(page), page.evaluate("viewer.version")
+    session.add_frame(**shelf[4])
+    page.wait_for_function("document.getElementById('frames').textContent === '3'", timeout=WAIT_MS)
+    wait_new_image(page, version)
+    assert page.evaluate("window.notReloaded === true")
+    assert page.evaluate("viewer.cameras.length") == 3
+    page.screenshot(path=shots / "after_fold.png")
+    assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
+
+
+# -- modes on a synthetic scene: two walls at known depths, with known labels (walls.py) ----------
+def lut_index(colour: np.ndarray, lut: np.ndarray) -> int:
+    return int(np.argmin(np.abs(lut.astype(int) - colour.astype(int)).sum(axis=1)))
+
+
+def test_every_mode_draws_what_it_should(page, server, client, shots):
+    session = client.create_session(voxel_size=0.02)
+    for kwargs in wall_frames():
+        session.add_frame(**kwargs)
+    open_viewer(page, server, session.id)
+    info = page.evaluate("viewer.info")
+    lut, palette = np.array(info["depth_colormap"]), np.array(info["label_palette"])
+    # sample patches well inside each wall (the view is the last input camera, 4x its size)
+    left, right = (slice(150, 230), slice(60, 180)), (slice(150, 230), slice(330, 450))
+    images, depth_range = {}, None
+    for mode in ("rgb", "composited", "depth", "alpha", "features", "labels"):
+        version = page.evaluate("viewer.version")
+        page.select_option("#mode", mode)
+        wait_new_image(page, version, mode)
+        page.screenshot(path=shots / f"mode_{mode}.png")
+        images[mode] = canvas(page)
+        if mode == "depth":
+            assert page.locator("#scale").is_visible()
+            depth_range = [float(x) for x in page.evaluate("viewer.drawn.headers")["x-canonical-depth-range"].split(",")]
+            assert page.locator("#near").inner_text() == f"{depth_range[0]:.2f} m"
+    l = {m: np.median(im[left].reshape(-1, 3), axis=0) for m, im in images.items()}
+    r = {m: np.median(im[right].reshape(-1, 3), axis=0) for m, im in images.items()}
+    np.testing.assert_allclose(l["rgb"], (200, 60, 40), atol=12)
+    np.testing.assert_allclose(r["rgb"], (40, 80, 200), atol=12)
+    # depth: the near wall sits nearer on the colour map than the far wall; the scale spans both walls
+    assert lut_index(l["depth"], lut) < lut_index(r["depth"], lut)
+    assert NEAR - 0.1 < depth_range[0] < NEAR + 0.1 and FAR - 0.1 < depth_range[1] < FAR + 0.1
+    assert page.locator("#scale").is_hidden()  # (labels are on now) the scale bar belongs to depth
+    # coverage: both walls are covered (light grey, not magenta)
+    assert l["alpha"].min() > 180 and r["alpha"].min() > 180
+    # features: a picture of its own, not the colours
+    assert np.abs(images["features"].astype(int) - images["rgb"]).mean() > 10
+    assert np.abs(l["features"] - r["features"]).max() > 20  # the walls differ in feature space
+    # labels: palette colour k + 1 for label k, and the legend lists the posted ids
+    np.testing.assert_array_equal(l["labels"], palette[LABELS[0] + 1])
+    np.testing.assert_array_equal(r["labels"], palette[LABELS[1] + 1])
+    legend = page.locator("#legend li").evaluate_all("els => els.map(e => Number(e.dataset.label))")
+    assert legend == list(LABELS)
+    # every mode draws something different
+    names = list(images)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            if {a, b} != {"rgb", "composited"}:
+                assert np.abs(images[a].astype(int) - images[b]).mean() > 5, (a, b)
+
+
+def test_with_a_token_set_no_data_without_it_and_the_page_works_with_it(browser, server, shelf_session, shots):
+    context = browser.new_context(viewport={"width": 900, "height": 520})  # no token in this tab
+    page = context.new_page()
+    requests = []
+    page.on("request", lambda r: requests.append((r.url, r.headers.get("authorization"))))
+    answers = []
+    page.on("response", lambda r: answers.append((r.url, r.status)))
+    try:
+        page.goto(f"{server.url}/sessions/{shelf_session.id}/view")
+        form = page.locator("#token-form")
+        form.wait_for(state="visible", timeout=WAIT_MS)
+        page.screenshot(path=shots / "token_asked.png")
+        data = [(u, s) for u, s in answers if "/v1/" in u]
+        assert data and all(s == 401 for _, s in data)  # every data request so far was refused
+        assert page.evaluate("viewer.images") == 0 and page.evaluate("viewer.cameras.length") == 0
+        form.locator("input").fill(TOKEN)
+        form.locator("button").click()
+        page.wait_for_function(FULL, timeout=WAIT_MS)
+        page.screenshot(path=shots / "token_given.png")
+        assert page.evaluate("viewer.images") >= 1 and page.evaluate("viewer.cameras.length") == 4
+        assert page.evaluate("sessionStorage.getItem('canonical.token')") == TOKEN
+        # the token travels as a bearer header on data requests, never in a URL
+        assert not any(TOKEN in u for u, _ in requests)
+        authorised = [h for u, h in requests if "/v1/" in u and h is not None]
+        assert authorised and set(authorised) == {f"Bearer {TOKEN}"}
+        # a wrong token stored in the tab is refused and asked for again
+        page.evaluate("sessionStorage.setItem('canonical.token', 'wrong')")
+        page.reload()
+        form.wait_for(state="visible", timeout=WAIT_MS)
+    finally:
+        context.close()
