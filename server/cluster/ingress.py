@@ -82,6 +82,11 @@ class ClusterRouter:
             return await self.app(scope, receive, send)
         path, method = scope["path"], scope["method"]
         session_id = session_of(path)
+        if session_id is not None and path.endswith("/events"):
+            # an owner answers a forwarded request as one whole response; a live event stream is not one
+            return await error_response(501, "not_implemented", "path: live fold events are served by the "
+                                        "single-process service only; poll GET /v1/sessions/{id} in cluster mode",
+                                        "path")(scope, receive, send)
         if session_id is not None:
             shard = shard_of(session_id, self.owners.count)
         elif path == "/v1/sessions" and method == "POST":
