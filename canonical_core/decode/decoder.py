@@ -10,7 +10,7 @@ For each voxel with support:
                gain and clamped to the voxel scale, then refined by a log-scale delta(F_scene)
     colour   = streamed SH fit (DC = fused colour at degree 0) + delta(F_scene) on the DC term
 The heads on F_scene start at zero, so an untrained decoder is the analytic solution; support(r)
-starts as the line 30 r and penalty(q) as 4 q (how the line reads: `SceneConfig.decoder.opacity_slope`).
+starts as the line 3 r and penalty(q) as 4 q (how the line reads: `SceneConfig.decoder.opacity_slope`).
 
 Mean. The analytic offset is the one that moves the representative's lifted point to the centroid
 sum W x / R_scene of the voxel's lifted points: the covariance is the second moment about that
@@ -47,7 +47,7 @@ FOOTPRINT_GAIN = math.sqrt(12.0 / (2.0 * math.pi))
 FULL_VOXEL_EXTENT = 0.5
 # The analytic opacity line a r + b (how it reads: `SceneConfig.decoder.opacity_slope`, whose defaults are
 # these).
-OPACITY_SLOPE, OPACITY_BIAS = 30.0, 0.0
+OPACITY_SLOPE, OPACITY_BIAS = 3.0, 0.0
 
 
 class MonotoneOpacity(nn.Module):

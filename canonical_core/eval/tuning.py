@@ -58,22 +58,32 @@ class Capture:
 DEFAULT = Variant("default")
 
 
+def default_of(path: str):
+    """The default value of a knob (``group.name`` or a top-level name) in a new `SceneConfig`."""
+    value = SceneConfig(voxel_size=1.0)
+    for part in path.split("."):
+        value = getattr(value, part)
+    return value
+
+
 def knob_variants(path: str, values: Sequence) -> tuple[Variant, ...]:
-    """Variants setting one knob (``group.name`` or a top-level name) to each of ``values``."""
+    """Variants setting one knob to each of ``values`` but its default (that one is `DEFAULT`)."""
     def settings(value) -> dict:
         group, _, name = path.rpartition(".")
         return {group: {name: value}} if group else {name: value}
-    return tuple(Variant(f"{path}={v:g}", settings(v)) for v in values)
+    return tuple(Variant(f"{path}={v:g}", settings(v)) for v in values if v != default_of(path))
 
 
-# each knob's values besides its default (the default itself is DEFAULT)
+# each knob's values (the current default is skipped: it is DEFAULT)
 KNOBS = {
-    "sensor.registration_px": (2.0, 4.0, 8.0),
-    "sensor.edge_weight": (1.0, 2.0),
-    "free_space.margin": (0.5, 1.0, 4.0),
-    "free_space.dominance": (1.0, 4.0),
-    "decoder.opacity_slope": (5.0, 10.0, 90.0),
-    "sh_degree": (0,),
+    "sensor.registration_px": (0.0, 2.0, 4.0, 8.0),
+    "sensor.edge_weight": (0.5, 1.0, 2.0),
+    "free_space.margin": (0.0, 0.25, 0.5, 1.0, 2.0, 4.0),
+    "free_space.dominance": (1.0, 2.0, 4.0),
+    # from 3 up: a fully supported surface must stay at least 95 % opaque (sigmoid(3)); flatter lines
+    # score higher in normalised colour only by letting renders blend through surfaces
+    "decoder.opacity_slope": (3.0, 5.0, 10.0, 30.0, 90.0),
+    "sh_degree": (0, 1),
 }
 VARIANTS = (DEFAULT, *(v for path, values in KNOBS.items() for v in knob_variants(path, values)))
 
@@ -140,13 +150,18 @@ def objective(per_n: Mapping) -> float:
     return float(np.mean([(m["psnr"] + m["psnr_covered"]) / 2 for m in per_n.values()]))
 
 
-def group_objectives(captures: Sequence[dict]) -> dict[str, dict[str, float]]:
-    """{group: {variant: objective - the default's}}, averaged over the group's captures."""
+def agreement(per_n: Mapping) -> float:
+    """Mean over N of held-out depth agreement."""
+    return float(np.mean([m["depth_agreement"] for m in per_n.values()]))
+
+
+def group_changes(captures: Sequence[dict], measure=objective) -> dict[str, dict[str, float]]:
+    """{group: {variant: measure - the default's}}, averaged over the group's captures."""
     out: dict[str, dict[str, list[float]]] = {}
     for c in captures:
-        base = objective(c["variants"][DEFAULT.name])
+        base = measure(c["variants"][DEFAULT.name])
         for name, per_n in c["variants"].items():
-            out.setdefault(c["group"], {}).setdefault(name, []).append(objective(per_n) - base)
+            out.setdefault(c["group"], {}).setdefault(name, []).append(measure(per_n) - base)
     return {g: {name: float(np.mean(v)) for name, v in rows.items()} for g, rows in out.items()}
 
 
@@ -174,20 +189,32 @@ def leave_one_capture_out(deltas: Mapping[str, Mapping[str, float]], candidates:
     return rows
 
 
-def choose_per_knob(deltas: Mapping[str, Mapping[str, float]]) -> dict[str, dict]:
+AGREEMENT_SLACK = 0.005  # a candidate may not lower any group's mean depth agreement by more than this
+
+
+def choose_per_knob(deltas: Mapping[str, Mapping[str, float]],
+                    agreement_changes: Mapping[str, Mapping[str, float]] | None = None) -> dict[str, dict]:
     """Leave-one-capture-out for each knob over its own values; a knob's value is *chosen* (a new
     default) only when every fold picks the same non-default value and it helps every held-out group.
+    With ``agreement_changes`` (`group_changes` of `agreement`), values that lower some group's depth
+    agreement by more than ``AGREEMENT_SLACK`` are not candidates: PSNR bought with floaters or
+    see-through surfaces is not a better default.
 
     Example:
         >>> d = {g: {"default": 0.0, "free_space.margin=1": m, "sh_degree=0": s}
         ...      for g, m, s in (("a", 0.2, 0.3), ("b", 0.1, -0.2), ("c", 0.05, 0.1))}
         >>> {k: v["chosen"] for k, v in choose_per_knob(d).items()}
         {'free_space.margin': 'free_space.margin=1', 'sh_degree': None}
+        >>> worse = {g: {"default": 0.0, "free_space.margin=1": -0.01, "sh_degree=0": 0.0} for g in d}
+        >>> {k: v["chosen"] for k, v in choose_per_knob(d, worse).items()}
+        {'free_space.margin': None, 'sh_degree': None}
     """
     names = list(next(iter(deltas.values())))
     out = {}
     for knob in dict.fromkeys(k for n in names if (k := knob_of(n))):
-        folds = leave_one_capture_out(deltas, [n for n in names if knob_of(n) == knob])
+        candidates = [n for n in names if knob_of(n) == knob and (agreement_changes is None or all(
+            agreement_changes[g][n] >= -AGREEMENT_SLACK for g in agreement_changes))]
+        folds = leave_one_capture_out(deltas, candidates)
         picks = {r["chosen"] for r in folds}
         consistent = len(picks) == 1 and DEFAULT.name not in picks and all(r["held_out_change"] > 0 for r in folds)
         out[knob] = {"folds": folds, "chosen": picks.pop() if consistent else None}
@@ -228,7 +255,8 @@ def write_report(results: dict, out: Path) -> None:
              "Each variant changes the named settings from the defaults; objective = mean over N of "
              "(all-pixel + covered PSNR) / 2 on the held-out frames of the evaluation protocol; the tables "
              "give its change from the default in dB (captures of one group averaged).", "",
-             "Made by `" + results["command"] + "`.", "",
+             "Made by `" + results["command"] + "`" + (f"; decided by `{results['decided_by']}`" if results.get("decided_by") else "")
+             + ". \"default\" is the defaults of the code that ran.", "",
              "| capture | group | N | image scale | voxel size |", "|---|---|---|---|---|"]
     lines += [f"| {c['capture']} | {c['group']} | {', '.join(map(str, c['views']))} | {c['scale']:g} | {c['voxel_size']:g} |"
               for c in captures]
@@ -240,7 +268,8 @@ def write_report(results: dict, out: Path) -> None:
     lines += ["", "## Leave-one-capture-out, per knob", "",
               "Per knob, over its values and the default: the value best on the other groups, and what it "
               "changes on the held-out group. A value becomes the default only when every fold picks it and "
-              "it helps every held-out group.", "",
+              "it helps every held-out group; values that lower some group's depth agreement by more than "
+              f"{AGREEMENT_SLACK} are not candidates.", "",
               "| knob | held-out group | chosen on the others | change on the others | change on the held-out group |",
               "|---|---|---|---|---|"]
     for knob, choice in knobs.items():
@@ -275,7 +304,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--variants", default=None, help="comma-separated subset of: " + ", ".join(v.name for v in VARIANTS))
     parser.add_argument("--scale", type=float, default=1.0, help="image downscale factor in (0, 1] (default 1)")
     parser.add_argument("--views", default=",".join(map(str, VIEWS)), help="input counts N (each capture uses the prefix it allows)")
+    parser.add_argument("--decide-from", metavar="RESULTS_JSON", default=None,
+                        help="no runs: decide again from a saved results.json (with today's rule) and write the report")
     args = parser.parse_args(argv)
+    if args.decide_from:
+        saved = json.loads(Path(args.decide_from).read_text())
+        captures = saved["captures"]
+        knobs = choose_per_knob(group_changes(captures), group_changes(captures, agreement))
+        command = f"python -m canonical_core.eval.tuning --out {args.out} --decide-from {args.decide_from}"
+        write_report({**saved, "group_changes": group_changes(captures), "knobs": knobs, "decided_by": command}, Path(args.out))
+        print((Path(args.out) / "results.md").read_text())
+        return 0
     by_name = {v.name: v for v in VARIANTS}
     chosen = VARIANTS if args.variants is None else [DEFAULT] + [by_name[n] for n in args.variants.split(",") if n != DEFAULT.name]
     views = tuple(int(v) for v in args.views.split(","))
@@ -283,12 +322,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     bar = tqdm(total=steps, file=sys.stderr, desc="tuning", unit="run", dynamic_ncols=True)
     captures = [score_capture(c, chosen, views, args.scale, bar) for c in CAPTURES]
     bar.close()
-    knobs = choose_per_knob(group_objectives(captures))
+    knobs = choose_per_knob(group_changes(captures), group_changes(captures, agreement))
     joint = joint_variant(knobs, chosen)
     if joint is not None and sum(1 for c in knobs.values() if c["chosen"]) > 1:  # the chosen values together
         captures = [{**c, "variants": {**c["variants"], **score_capture(capture, [joint], views, args.scale)["variants"]}}
                     for c, capture in zip(captures, CAPTURES)]
-    deltas = group_objectives(captures)
+    deltas = group_changes(captures)
     command = "python -m canonical_core.eval.tuning " + " ".join(argv if argv is not None else sys.argv[1:])
     results = {"command": command, "captures": captures, "group_changes": deltas, "knobs": knobs}
     write_report(results, Path(args.out))

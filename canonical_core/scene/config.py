@@ -118,9 +118,11 @@ class FreeSpace(_Settings):
 
     enabled: bool = True
     """Fold free-space evidence and use it in decoding."""
-    margin: NonNegative = 2.0
+    margin: NonNegative = 0.0
     """A voxel is seen through by a ray whose surface lies more than margin * voxel_size +
-    sigmas * sigma(depth) behind the voxel's centre (margin in voxels)."""
+    sigmas * sigma(depth) behind the voxel's centre (margin in voxels). 0: the distance is the
+    sensor's noise at that depth alone, which holds across sensors and voxel sizes
+    (leave-one-capture-out, `eval.tuning`)."""
     sigmas: NonNegative = 3.0
     """The depth-std part of that distance, in standard deviations of the ray's depth."""
     cell: Annotated[int, Field(ge=1, le=64)] = 8
@@ -160,10 +162,11 @@ class DecoderSettings(_Settings):
 
     _path: ClassVar[str] = "decoder"
 
-    opacity_slope: Positive = 30.0
-    """a of the opacity logit a r + b, r being support in typical views (`decode.decoder`). Steep,
-    because the weakly supported voxels of clean depth (depth edges, thin or sparse geometry) are
-    mostly real surface."""
+    opacity_slope: Positive = 3.0
+    """a of the opacity logit a r + b, r in [0, 1) being support in typical views (`decode.decoder`):
+    a fully supported surface is sigmoid(a + b) opaque (95 % at the default), a weakly supported one
+    (depth edges, thin or sparse geometry) about half. Chosen across captures (`eval.tuning`):
+    steeper lines draw weak evidence as solid as strong."""
     opacity_bias: Annotated[float, Field(allow_inf_nan=False)] | None = None
     """b of the same line, the logit of a voxel without reliable support. None (default) follows the
     depth denoising: 0 with it on, -3 with it off, where noisy depth leaves scattered voxels that

@@ -36,6 +36,7 @@ BOUNDS = {
     "sensor.sigma2": (float, 0.0, 10.0, False),
     "sensor.sigma_ref": (float, 0.0, 1e5, False),
     "sensor.edge_weight": (float, 0.0, 100.0, False),
+    "sensor.registration_px": (float, 0.0, 32.0, False),
     "free_space.margin": (float, 0.0, INF, False),
     "free_space.sigmas": (float, 0.0, INF, False),
     "free_space.cell": (int, 1, 64, False),
