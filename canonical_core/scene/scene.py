@@ -28,6 +28,7 @@ from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_b
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
 from .config import SceneConfig
+from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
@@ -86,7 +87,7 @@ class Scene:
         (0, 0)
     """
 
-    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15):
+    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False):
         if not isinstance(config, SceneConfig):
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
         self.config = config
@@ -101,6 +102,9 @@ class Scene:
         self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds
         self._lock = threading.Lock()  # the state's lock; `SceneDecoding.lock` is taken before it, never after
         self._generation = 0  # bumped by every fold, so a decode knows whether the state it read is current
+        # with keep_frames, the folded frames in order and their arrival indices, for update_poses / remove_frames
+        self._kept: list[Frame] | None = [] if keep_frames else None
+        self._arrivals: list[int] = []
 
     @property
     def decoder(self):
@@ -127,10 +131,14 @@ class Scene:
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         with self._lock:
             try:
-                return self._fold(frame, t0)
+                report = self._fold(frame, t0)
             finally:
                 self._generation += 1
                 self._decoding.forget()
+            if self._kept is not None:
+                self._arrivals.append(self._arrivals[-1] + 1 if self._arrivals else 0)
+                self._kept.append(frame)
+            return report
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:
         index, points = self.frames, self._voxels.representative_points
@@ -170,6 +178,77 @@ class Scene:
             raise ValueError("features: this session uses client-supplied features, but the frame carries none")
         if frame.labels is not None and self.label_dim and frame.labels.shape[-1] != self.label_dim:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
+
+    # -- corrections --------------------------------------------------------------------------
+    def frame_refs(self) -> list[FrameRef]:
+        """The kept frames' keys in fold order (arrival index, frame_id); needs ``keep_frames``."""
+        with self._lock:
+            self._check_keeps_frames("frames")
+            return [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)]
+
+    def update_poses(self, poses: dict[FrameKey, object]) -> None:
+        """Give kept frames new camera-to-world poses (``{frame key: c2w [4, 4]}``, keys as in
+        `corrections.resolve_frames`), as a SLAM back end revises them at a loop closure.
+
+        The scene then equals one that folded the corrected stream afresh in the same order (equal
+        `digest`): the kept frames are re-folded (see `corrections`). Needs ``keep_frames``; raises
+        ValueError naming ``poses.<key>`` (unknown frame, NaN, not rigid) with the scene unchanged."""
+        with self._lock:
+            self._check_keeps_frames("poses")
+            changed = check_poses(poses, [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)])
+        self._refold(changed, ())
+
+    def remove_frames(self, keys: list[FrameKey]) -> None:
+        """Forget kept frames: the scene then equals one that folded the other frames in the same
+        order (equal `digest`). Needs ``keep_frames``; raises ValueError naming ``frames.<key>`` for a
+        frame it does not keep, with the scene unchanged. The others keep their arrival indices."""
+        if isinstance(keys, (str, int)) or not isinstance(keys, (list, tuple, set)):
+            raise ValueError(f"frames: expected a list of frame keys, got {type(keys).__name__}")
+        with self._lock:
+            self._check_keeps_frames("frames")
+            removed = resolve_frames(keys, [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)], "frames")
+        self._refold({}, removed)
+
+    def _refold(self, poses: dict[int, np.ndarray], removed) -> None:
+        """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) into a
+        fresh scene and adopt its state; decodes wait, folds are serialised by the scene's lock."""
+        removed = set(removed)
+        with self._decoding.lock, self._lock:
+            frames = list(corrected_stream(self._kept, poses, removed))
+            arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
+            self._adopt(Scene.refolded(self.config, frames, self.appearance))
+            self._kept, self._arrivals = frames, arrivals
+
+    @classmethod
+    def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None) -> "Scene":
+        """A fresh scene that folded ``frames`` in order, with ``appearance`` (a scene's learned
+        appearance uncertainty) in place of the analytic one."""
+        scene = cls(config)
+        if appearance is not None:
+            scene.appearance = appearance
+        for frame in frames:
+            scene.fold(frame)
+        return scene
+
+    def adopt(self, other: "Scene") -> None:
+        """Take ``other``'s fused state (a re-fold of this scene's corrected frames) in one step; this
+        scene's decoder, appearance module and kept frames stay. A decode in progress finishes on the
+        old state (it took the decode lock first); the next one sees the new state."""
+        if other.config != self.config:
+            raise ValueError("other: a scene with another config")
+        with self._decoding.lock, self._lock:
+            self._adopt(other)
+
+    def _adopt(self, other: "Scene") -> None:
+        self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front
+        self._history, self._keyframes = other._history, other._keyframes
+        self._density_sum, self._density_frames = other._density_sum, other._density_frames
+        self._generation += 1
+        self._decoding.reset()
+
+    def _check_keeps_frames(self, field: str) -> None:
+        if self._kept is None:
+            raise ValueError(f"{field}: this scene keeps no frames (create it with keep_frames=True)")
 
     # -- reading ------------------------------------------------------------------------------
     def __len__(self) -> int:
