@@ -20,7 +20,7 @@ from .warmup import warm_up
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .metrics import Metrics
-from .routes import exports, frames, health, sessions, views
+from .routes import exports, frames, health, poses, sessions, views
 from .settings import Settings
 from .store import DataDirLocked, SessionStore
 
@@ -156,7 +156,7 @@ class GuardMiddleware:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads)
+    store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads, settings.archive_retention)
     metrics = Metrics()
 
     @contextlib.asynccontextmanager
@@ -194,7 +194,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.jobs = JobQueue(settings.queue_limit, settings.threads)
     app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics)
     install_error_handlers(app)
-    for module in (health, sessions, frames, views, exports):
+    for module in (health, sessions, frames, poses, views, exports):
         app.include_router(module.router)
     return app
 
