@@ -82,6 +82,9 @@ class Session:
         re-fold of the session's archived frames. A key is a frame's ``frame_id``, or its arrival
         index for frames sent without one. Returns what changed (frames, corrected, removed, ...)."""
         body = {"poses": {str(k): _matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove]}
+        for k, c2w in body["poses"].items():
+            if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
+                raise ValueError(f"poses.{k}: contains NaN or inf")
         return self.client._request("POST", f"{self._path}/poses", json=body).json()
 
     def remove_frame(self, frame_id) -> dict:
