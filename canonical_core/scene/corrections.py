@@ -26,10 +26,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..camera import validate_pose
+from ..camera import quaternion_to_matrix, validate_pose
 from ..frame import Frame
 
-__all__ = ["FrameKey", "FrameRef", "check_poses", "corrected_stream", "resolve_frames"]
+__all__ = ["FrameKey", "FrameRef", "check_poses", "corrected_stream", "drift_walk", "drifted", "resolve_frames"]
 
 FrameKey = int | str
 
@@ -85,3 +85,26 @@ def corrected_stream(frames: Iterable[Frame], poses: Mapping[int, np.ndarray], r
         if position in removed:
             continue
         yield replace(frame, camera=frame.camera.with_pose(poses[position])) if position in poses else frame
+
+
+def drift_walk(n: int, step: float, angle_deg: float, every: int = 1, seed: int = 0) -> np.ndarray:  # [n, 4, 4]
+    """Rigid motions that accumulate as odometry drift does: before every ``every``-th frame (the
+    first included) a step of ``step`` metres in a random direction and ``angle_deg`` degrees about
+    a random axis is composed onto the walk. Frame k's drifted pose is ``walk[k] @ c2w_k``."""
+    rng = np.random.default_rng(seed)
+    walk, out = np.eye(4), np.empty((n, 4, 4))
+    for k in range(n):
+        if k % every == 0:
+            axis, direction = rng.standard_normal(3), rng.standard_normal(3)
+            half = np.deg2rad(angle_deg) / 2
+            motion = np.eye(4)
+            motion[:3, :3] = quaternion_to_matrix(np.r_[np.cos(half), np.sin(half) * axis / np.linalg.norm(axis)])
+            motion[:3, 3] = step * direction / np.linalg.norm(direction)
+            walk = motion @ walk
+        out[k] = walk
+    return out
+
+
+def drifted(frames: Sequence[Frame], walk: np.ndarray) -> list[Frame]:
+    """The frames with ``walk`` (`drift_walk`) applied to their poses."""
+    return [replace(f, camera=f.camera.with_pose(T @ f.camera.c2w64())) for f, T in zip(frames, walk)]

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from canonical_core import Scene, SceneConfig
-from canonical_core.scene.corrections import FrameRef, check_poses, resolve_frames
+from canonical_core.scene.corrections import FrameRef, check_poses, drift_walk, resolve_frames
+from canonical_core.scene.corrections import drifted as drifted_frames
 from tests.conftest import make_frame
 
 CONFIG = SceneConfig(voxel_size=0.05)
@@ -42,14 +43,8 @@ def fold(frames, keep: bool = False) -> Scene:
 
 
 def drifted(frames, seed: int = 0) -> list:
-    """The frames with a random walk (about 1 cm, 0.5 degrees per frame) added to their poses."""
-    rng = np.random.default_rng(seed)
-    walk, out = np.eye(4), []
-    for frame in frames:
-        step = pose(*rng.normal(0, 0.01, 2), yaw=np.deg2rad(rng.normal(0, 0.5)))
-        walk = walk @ step
-        out.append(replace(frame, camera=frame.camera.with_pose(walk @ frame.camera.c2w64())))
-    return out
+    """The frames with a random walk (1 cm, 0.5 degrees per frame) added to their poses."""
+    return drifted_frames(frames, drift_walk(len(frames), 0.01, 0.5, seed=seed))
 
 
 def test_update_poses_equals_folding_the_corrected_stream():
@@ -95,6 +90,18 @@ def test_removing_every_frame_that_saw_a_region_empties_it():
     scene.remove_frames([1, 3, 5])
     assert len(scene) and not (scene.sums()["rep_pos"][:, 0] > 4.0).any()
     assert scene.digest() == fold(near).digest()
+
+
+def test_drift_walk_steps_by_the_given_size():
+    walk = drift_walk(25, 0.01, 0.5, every=10, seed=4)
+    assert np.array_equal(walk[0], walk[9]) and not np.array_equal(walk[9], walk[10])  # a step every 10 frames
+    steps = [np.linalg.inv(walk[k - 10]) @ walk[k] for k in (10, 20)]
+    for step in steps:  # each step: 1 cm and 0.5 degrees (the rotation's angle), a rigid motion
+        assert np.linalg.det(step[:3, :3]) == pytest.approx(1.0)
+        angle = np.degrees(np.arccos((np.trace(step[:3, :3]) - 1) / 2))
+        assert angle == pytest.approx(0.5, abs=1e-6)
+    first = walk[0][:3, 3]
+    assert np.linalg.norm(first) == pytest.approx(0.01)
 
 
 def test_removing_every_frame_leaves_an_empty_scene():

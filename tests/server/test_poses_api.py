@@ -10,6 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
+from canonical_core.scene.corrections import drift_walk
 from client.sdk import CanonicalError, Client
 from server.archive import ARCHIVE, SessionArchive
 
@@ -19,17 +20,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
 
 def drifted(frames: list[dict], seed: int = 0) -> list[dict]:
-    """The frames with a random walk on their poses (about 1 cm and 0.5 degrees per frame)."""
-    rng = np.random.default_rng(seed)
-    walk, out = np.eye(4), []
-    for kwargs in frames:
-        step = np.eye(4)
-        angle = np.deg2rad(rng.normal(0, 0.5))
-        step[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
-        step[:3, 3] = rng.normal(0, 0.01 / np.sqrt(3), 3)
-        walk = walk @ step
-        out.append({**kwargs, "c2w": walk @ kwargs["c2w"]})
-    return out
+    """The frames (add_frame kwargs) with a random walk on their poses (1 cm and 0.5 degrees per frame)."""
+    walk = drift_walk(len(frames), 0.01, 0.5, seed=seed)
+    return [{**kwargs, "c2w": T @ kwargs["c2w"]} for kwargs, T in zip(frames, walk)]
 
 
 def streamed(client: Client, frames: list[dict], **settings):
