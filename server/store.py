@@ -256,7 +256,7 @@ class Session:
         ``frames.<key>``, nothing changed."""
         with self.lock:
             self._check_alive()
-            archive = self._usable_archive("poses" if poses else "frame_id")
+            archive = self._usable_archive()
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
             refs, entries, version = archive.refs(), list(archive.entries), self.version
@@ -265,9 +265,8 @@ class Session:
             if not changed and not removed:
                 raise ValueError("poses: names no frame")
             dropped = {k for k, e in enumerate(entries) if not e.kept} - removed  # retention "keyframes"
-            appearance = self.scene.appearance
-        scene = Scene.refolded(self.config, corrected_stream(archive.frames(entries), changed, removed | dropped),
-                               appearance)
+            appearance, snapshot_frames = self.scene.appearance, self.snapshot_frames
+        scene = self._refolded(archive, entries, changed, removed | dropped, appearance, snapshot_frames)
         with self.lock:
             self._check_alive()
             if self.version != version:
@@ -282,7 +281,25 @@ class Session:
             return {"id": self.id, "frames": scene.frames, "corrected": len(set(changed) - removed), "removed": len(removed),
                     "dropped": len(dropped), "frames_before": old.frames}
 
-    def _usable_archive(self, field: str) -> SessionArchive:
+    def _refolded(self, archive: SessionArchive, entries: list, changed: dict, removed: set, appearance,
+                  snapshot_frames: int) -> Scene:
+        """The corrected stream folded. The snapshot holds the stream's first ``snapshot_frames`` frames
+        (a correction snapshots at once), so when the correction touches none of them the re-fold
+        starts from it: a correction of recent frames costs the folds since the last snapshot, and is
+        exact all the same (a snapshot round-trips the state bit for bit)."""
+        start, base = 0, None
+        if 0 < snapshot_frames <= min(set(changed) | removed):
+            try:
+                base = Scene.load(self.path / SNAPSHOT)
+            except (OSError, ValueError):
+                base = None
+            start = base.frames if base is not None and base.frames == snapshot_frames else 0
+            base = base if start else None
+        stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
+                                  {k - start for k in removed})
+        return Scene.refolded(self.config, stream, appearance, base)
+
+    def _usable_archive(self) -> SessionArchive:
         if self.archive is None:
             raise CorrectionRefused("archive_retention", "this session keeps no frame archive (retention 'none'), "
                                                          "so its poses cannot be corrected nor frames removed")

@@ -87,9 +87,12 @@ class Scene:
         (0, 0)
     """
 
-    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False):
+    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False,
+                 checkpoint_every: int = 0):
         if not isinstance(config, SceneConfig):
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
+        if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every: expected a non-negative integer, got {checkpoint_every!r}")
         self.config = config
         self.appearance = AppearanceUncertainty(config.feature_dim)
         self.frames = 0
@@ -105,6 +108,10 @@ class Scene:
         # with keep_frames, the folded frames in order and their arrival indices, for update_poses / remove_frames
         self._kept: list[Frame] | None = [] if keep_frames else None
         self._arrivals: list[int] = []
+        # with keep_frames and checkpoint_every, the state after every checkpoint_every-th frame (frame
+        # count -> `to_bytes`): a correction re-folds from the last one before the first frame it touches
+        self.checkpoint_every = checkpoint_every if keep_frames else 0
+        self._checkpoints: dict[int, bytes] = {}
 
     @property
     def decoder(self):
@@ -138,6 +145,8 @@ class Scene:
             if self._kept is not None:
                 self._arrivals.append(self._arrivals[-1] + 1 if self._arrivals else 0)
                 self._kept.append(frame)
+                if self.checkpoint_every and self.frames % self.checkpoint_every == 0:
+                    self._checkpoints[self.frames] = self._to_bytes()
             return report
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:
@@ -210,24 +219,37 @@ class Scene:
         self._refold({}, removed)
 
     def _refold(self, poses: dict[int, np.ndarray], removed) -> None:
-        """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) into a
-        fresh scene and adopt its state; decodes wait, folds are serialised by the scene's lock."""
+        """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) and
+        adopt the result; decodes wait, folds are serialised by the scene's lock. The frames before
+        the first one touched are unchanged, so the re-fold starts from the last checkpoint before it
+        (exact: a checkpoint round-trips the state bit for bit) and re-folds the rest."""
         removed = set(removed)
         with self._decoding.lock, self._lock:
+            first = min(set(poses) | removed)
+            start = max((c for c in self._checkpoints if c <= first), default=0)
             frames = list(corrected_stream(self._kept, poses, removed))
             arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
-            self._adopt(Scene.refolded(self.config, frames, self.appearance))
-            self._kept, self._arrivals = frames, arrivals
+            base = Scene.from_bytes(self._checkpoints[start]) if start else None
+            checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
+            scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints)
+            self._adopt(scene)
+            self._kept, self._arrivals, self._checkpoints = frames, arrivals, checkpoints
 
     @classmethod
-    def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None) -> "Scene":
-        """A fresh scene that folded ``frames`` in order, with ``appearance`` (a scene's learned
-        appearance uncertainty) in place of the analytic one."""
-        scene = cls(config)
+    def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None,
+                 base: "Scene | None" = None, checkpoint_every: int = 0,
+                 checkpoints: dict[int, bytes] | None = None) -> "Scene":
+        """A scene that folded ``frames`` in order: a fresh one, or ``base`` (a scene that folded the
+        stream's earlier frames) folding on; with ``appearance`` (a scene's learned appearance
+        uncertainty) in place of its own. With ``checkpoint_every``, the state after every such frame
+        count goes into ``checkpoints``."""
+        scene = base if base is not None else cls(config)
         if appearance is not None:
             scene.appearance = appearance
         for frame in frames:
             scene.fold(frame)
+            if checkpoint_every and checkpoints is not None and scene.frames % checkpoint_every == 0:
+                checkpoints[scene.frames] = scene.to_bytes()
         return scene
 
     def adopt(self, other: "Scene") -> None:
@@ -361,10 +383,20 @@ class Scene:
     def to_bytes(self) -> bytes:
         """One self-contained, versioned snapshot (an .npz with a JSON header)."""
         with self._lock:
-            header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
-                      "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
-                      "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames]}
-            arrays = self._snapshot_arrays()
+            header, arrays = self._snapshot_parts()
+        return self._encode(header, arrays)
+
+    def _to_bytes(self) -> bytes:
+        """`to_bytes`, for a caller that holds the scene's lock."""
+        return self._encode(*self._snapshot_parts())
+
+    def _snapshot_parts(self) -> tuple[dict, dict[str, np.ndarray]]:
+        header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
+                  "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
+                  "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames]}
+        return header, self._snapshot_arrays()
+
+    def _encode(self, header: dict, arrays: dict[str, np.ndarray]) -> bytes:
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
             for k, v in module.state_dict().items():
                 arrays[f"{prefix}.{k}"] = v.detach().cpu().numpy()

@@ -159,3 +159,37 @@ def test_keys_prefer_a_frame_id_over_an_arrival_index():
     assert list(check_poses({"2": np.eye(4)}, refs)) == [2]
     with pytest.raises(ValueError, match=r"^frames: frame keys"):
         resolve_frames([1.0], refs, "frames")
+
+
+@pytest.mark.parametrize("touch", [0, 4, 5, 9, 11])  # before, at and after the checkpoints (every 5 frames)
+def test_refolding_from_a_checkpoint_equals_refolding_all(touch):
+    frames = stream(12)
+    bad = drifted(frames)
+    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5)
+    for frame in bad:
+        scene.fold(frame)
+    assert sorted(scene._checkpoints) == [5, 10]
+    scene.update_poses({f"f{k}": frames[k].camera.c2w64() for k in range(touch, 12)})
+    assert scene.digest() == fold(bad[:touch] + frames[touch:]).digest()
+    assert sorted(scene._checkpoints) == [5, 10]
+    scene.remove_frames([f"f{touch}"])
+    rest = [f for k, f in enumerate(bad[:touch] + frames[touch:]) if k != touch]
+    assert scene.digest() == fold(rest).digest()
+    assert sorted(scene._checkpoints) == [5, 10]  # taken again at the new positions
+
+
+def test_a_correction_after_a_checkpoint_does_not_refold_the_frames_before_it():
+    frames = stream(12)
+    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5)
+    for frame in frames:
+        scene.fold(frame)
+    scene._kept[0] = drifted(frames)[0]  # were frame 0 re-folded, the digest would show it
+    scene.update_poses({"f11": frames[11].camera.c2w64()})
+    assert scene.digest() == fold(frames).digest()
+    scene.update_poses({"f3": frames[3].camera.c2w64()})  # before the first checkpoint: all re-folded
+    assert scene.digest() == fold(drifted(frames)[:1] + frames[1:]).digest()
+
+
+def test_checkpoint_every_is_checked():
+    with pytest.raises(ValueError, match=r"^checkpoint_every: "):
+        Scene(CONFIG, keep_frames=True, checkpoint_every=-1)

@@ -77,6 +77,19 @@ def test_removal_equals_streaming_the_rest(api, frames):
     assert session.digest()["sha256"] == streamed(api, rest + [frames[gone[0]]]).digest()["sha256"]
 
 
+def test_correcting_frames_after_the_snapshot_refolds_from_it(api, few):
+    """The service snapshots every 4 frames: a correction of frames 4 and 5 starts from the snapshot
+    of frames 0-3, and equals streaming the corrected frames all the same; then one of frame 1
+    re-folds everything."""
+    bad = drifted(few)
+    session = streamed(api, bad)
+    assert session.stats()["snapshot_frames"] == 4
+    session.update_poses({kw["frame_id"]: kw["c2w"] for kw in few[4:]})
+    assert session.digest()["sha256"] == streamed(api, bad[:4] + few[4:]).digest()["sha256"]
+    session.update_poses({few[1]["frame_id"]: few[1]["c2w"]})
+    assert session.digest()["sha256"] == streamed(api, bad[:1] + few[1:2] + bad[2:4] + few[4:]).digest()["sha256"]
+
+
 def test_frames_without_ids_are_named_by_arrival_index(api, few):
     plain = [{**kw, "frame_id": None} for kw in few[:4]]
     session = streamed(api, plain)
