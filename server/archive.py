@@ -36,7 +36,7 @@ from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
 
 from . import wire
-from .framelog import HEADER, StorageError, encode, scan
+from .framelog import HEADER, FrameLog, LogWedged, scan
 
 ARCHIVE = "archive.log"
 KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
@@ -87,9 +87,10 @@ class SessionArchive:
             self._apply(record.payload, record.offset)
         if found.damaged:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
-        self._fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+        self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
+        self._fd = os.open(path, os.O_RDONLY)  # reads of archived messages
         if found.torn:
-            self._truncate(found.end)
+            self._log.truncate(found.end)
 
     # -- state ------------------------------------------------------------------------------------
     def _apply(self, payload: bytes, record_offset: int) -> None:
@@ -112,7 +113,7 @@ class SessionArchive:
         return [FrameRef(e.arrival, e.frame_id) for e in self.entries]
 
     def nbytes(self) -> int:
-        return os.fstat(self._fd).st_size
+        return self._log.size()
 
     def frames(self, entries: list[Entry]) -> Iterator[Frame | None]:
         """The frames of ``entries`` in order, each with its current pose (None where not kept); lazy,
@@ -135,28 +136,20 @@ class SessionArchive:
         arrival = self.next_arrival
         body = {"arrival": arrival, "frame_id": frame_id, "digest": digest,
                 "message": compress_message(message) if self.keeps(arrival) else None}
-        self._append(msgpack.packb(body), "frame")
+        self._append(msgpack.packb(body))
 
     def append_correction(self, poses: dict[int, np.ndarray], removed: list[int]) -> None:
         """Archive a correction (fsynced): the commit point of `Session.correct`."""
         body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},
                 "removed": sorted(removed)}
-        self._append(msgpack.packb(body), "correction")
+        self._append(msgpack.packb(body))
 
-    def _append(self, payload: bytes, what: str) -> None:
-        offset = self.nbytes()
-        data = encode(len(self._records), payload)
+    def _append(self, payload: bytes) -> None:
         try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(self._fd, view):]
-            os.fsync(self._fd)
-        except OSError as exc:
-            try:
-                self._truncate(offset)
-            except OSError:
-                self.problem = f"{ARCHIVE}: a failed append could not be cut back; corrections are refused until a restart"
-            raise StorageError(f"{ARCHIVE}: cannot archive the {what}", exc) from exc
+            offset = self._log.append(len(self._records), payload)
+        except LogWedged:
+            self.problem = f"{ARCHIVE}: a failed append could not be cut back; corrections are refused until a restart"
+            raise
         self._apply(payload, offset)
 
     def cut(self) -> None:
@@ -164,25 +157,23 @@ class SessionArchive:
         offset, is_frame = self._records[-1]
         if not is_frame:
             raise ValueError("archive: the last record is a correction, not a frame")
-        self._truncate(offset)
+        self._log.truncate(offset)
         self._records.pop()
         self.next_arrival = self.entries.pop().arrival
 
     def cut_to(self, frames: int) -> None:
-        """Make the archive hold ``frames`` frames, the scene's count after a restart: frames archived
-        but never logged (a crash between the two) are cut off; an archive with fewer frames than the
-        scene (one that began after the session's first frames) cannot serve corrections."""
-        while len(self.entries) > frames and self._records and self._records[-1][1]:
+        """Make the archive hold ``frames`` frames, the scene's count after a restart. One frame archived
+        but never folded (a crash between archiving and logging it, or before a failed fold was cut
+        back) is cut off; any other difference (a log repaired by hand, an archive that began after
+        the session's first frames) leaves an archive that cannot serve corrections."""
+        if len(self.entries) == frames + 1 and self._records and self._records[-1][1]:
             self.cut()
         if len(self.entries) != frames:
             self.problem = (f"{ARCHIVE}: holds {len(self.entries)} of the session's {frames} frames; "
                             "corrections are refused")
 
-    def _truncate(self, offset: int) -> None:
-        os.ftruncate(self._fd, offset)
-        os.fsync(self._fd)
-
     def close(self) -> None:
+        self._log.close()
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
