@@ -88,7 +88,7 @@ def drift_figures(frames, voxel: float, held_every: int) -> list[dict]:
         for k in inputs:
             scene.fold(stream[k])
         if label.endswith("corrected"):
-            scene.update_poses({k: frames[k].camera.c2w64() for k in inputs})
+            scene.update_poses({frames[k].frame_id: frames[k].camera.c2w64() for k in inputs})
         digests[label] = scene.digest()
         m = score(SplatModel(scene.gaussians()), targets, voxel).metrics
         rows.append({"fusion": label, "PSNR all (dB)": f"{m['psnr']:.2f}", "PSNR covered (dB)": f"{m['psnr_covered']:.2f}",
