@@ -58,6 +58,8 @@ from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, 
 log = logging.getLogger("canonical.store")
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
+BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
+BASE_EVERY = 25  # a correction keeps the state at the last multiple of this below its frame count
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
@@ -265,39 +267,72 @@ class Session:
             if not changed and not removed:
                 raise ValueError("poses: names no frame")
             dropped = {k for k, e in enumerate(entries) if not e.kept} - removed  # retention "keyframes"
-            appearance, snapshot_frames = self.scene.appearance, self.snapshot_frames
-        scene = self._refolded(archive, entries, changed, removed | dropped, appearance, snapshot_frames)
+            first = min(set(changed) | removed | dropped)
+            bases = self._bases(archive, first)
+            appearance = self.scene.appearance
+        scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
         with self.lock:
             self._check_alive()
             if self.version != version:
                 raise CorrectionRefused("session_id", "a frame or another correction reached the session while this "
                                                       "correction was computed; send it again")
             archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
-                                      [entries[k].arrival for k in removed | dropped])
+                                      [entries[k].arrival for k in removed | dropped], first)
             old = self.scene
             self.scene, self.version = scene, self.version + 1
             self.frame_ids = archived_frame_ids(archive, self.frame_ids)
             self._persist_correction()
+            self._keep_base(checkpoints)
             return {"id": self.id, "frames": scene.frames, "corrected": len(set(changed) - removed), "removed": len(removed),
                     "dropped": len(dropped), "frames_before": old.frames}
 
+    def _bases(self, archive: SessionArchive, first: int) -> list[tuple[int, Path]]:
+        """Saved states of the stream's first frames that a correction whose first touched frame is
+        ``first`` may start from, latest first: the snapshot (it holds the stream's first
+        ``snapshot_frames`` frames), and the state a correction kept (`BASE`) while no later
+        correction touched a frame before it."""
+        bases = [(self.snapshot_frames, self.path / SNAPSHOT)]
+        try:
+            meta = json.loads((self.path / BASE_META).read_text())
+            if all(f >= meta["frames"] for f in archive.firsts[meta["corrections"]:]):
+                bases.append((int(meta["frames"]), self.path / BASE))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        return sorted(((n, path) for n, path in bases if 0 < n <= first), reverse=True)
+
     def _refolded(self, archive: SessionArchive, entries: list, changed: dict, removed: set, appearance,
-                  snapshot_frames: int) -> Scene:
-        """The corrected stream folded. The snapshot holds the stream's first ``snapshot_frames`` frames
-        (a correction snapshots at once), so when the correction touches none of them the re-fold
-        starts from it: a correction of recent frames costs the folds since the last snapshot, and is
-        exact all the same (a snapshot round-trips the state bit for bit)."""
+                  bases: list[tuple[int, Path]]) -> tuple[Scene, dict[int, bytes]]:
+        """The corrected stream folded, from the latest saved state of its unchanged first frames
+        (`_bases`; exact: a snapshot round-trips the state bit for bit), so a correction of recent
+        frames costs the folds since that state. Also returns the states at multiples of `BASE_EVERY`
+        that the re-fold passed (frame count -> `Scene.to_bytes`)."""
         start, base = 0, None
-        if 0 < snapshot_frames <= min(set(changed) | removed):
+        for frames, path in bases:
             try:
-                base = Scene.load(self.path / SNAPSHOT)
+                base = Scene.load(path)
             except (OSError, ValueError):
-                base = None
-            start = base.frames if base is not None and base.frames == snapshot_frames else 0
-            base = base if start else None
+                continue
+            if base.frames == frames:
+                start = frames
+                break
+            base = None
         stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
                                   {k - start for k in removed})
-        return Scene.refolded(self.config, stream, appearance, base)
+        checkpoints: dict[int, bytes] = {}
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
+
+    def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
+        """Keep the latest state the re-fold passed before the scene's end (`BASE`), for the next
+        correction of recent frames. Written after the correction is durable; a failure only costs
+        that next correction a longer re-fold."""
+        frames = max((n for n in checkpoints if n < self.scene.frames), default=0)
+        if not frames:
+            return
+        try:
+            write_atomic(self.path / BASE, checkpoints[frames])
+            write_atomic(self.path / BASE_META, json.dumps({"frames": frames, "corrections": self._corrections()}).encode())
+        except OSError as exc:
+            log.warning("session %s: the re-fold's base state could not be kept (%s)", self.id, exc.strerror or exc)
 
     def _usable_archive(self) -> SessionArchive:
         if self.archive is None:
@@ -401,7 +436,7 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tu
     dropped = {k for k, e in enumerate(entries) if not e.kept}
     scene.adopt(Scene.refolded(config, corrected_stream(archive.frames(entries), {}, dropped), scene.appearance))
     if dropped:
-        archive.append_correction({}, [entries[k].arrival for k in dropped])
+        archive.append_correction({}, [entries[k].arrival for k in dropped], min(dropped))
     frame_ids = archived_frame_ids(archive, {})
     write_atomic(snap, scene.to_bytes())
     write_atomic(path / LOG, encode(scene.frames, checkpoint_payload(frame_ids, archive.corrections), checkpoint=True))
