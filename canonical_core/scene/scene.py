@@ -81,6 +81,11 @@ class Scene:
     several threads; the scene's lock serialises what reads or writes its state, and decoding runs
     outside it (`gaussians`), so a fold never waits for a decode.
 
+    With ``keep_frames=True`` the scene keeps the frames it folded (in memory, not in snapshots), so
+    that `update_poses` and `remove_frames` can re-fold them (`corrections`); ``checkpoint_every=N``
+    also keeps the state after every N-th frame, so that a correction of recent frames re-folds only
+    the frames after the last such state.
+
     Example:
         >>> scene = Scene(SceneConfig(voxel_size=0.01))
         >>> len(scene), scene.frames
@@ -109,7 +114,8 @@ class Scene:
         self._kept: list[Frame] | None = [] if keep_frames else None
         self._arrivals: list[int] = []
         # with keep_frames and checkpoint_every, the state after every checkpoint_every-th frame (frame
-        # count -> `to_bytes`): a correction re-folds from the last one before the first frame it touches
+        # count -> `to_bytes`; each costs the state's bytes in memory): a correction re-folds from the
+        # last one before the first frame it touches
         self.checkpoint_every = checkpoint_every if keep_frames else 0
         self._checkpoints: dict[int, bytes] = {}
 
@@ -193,7 +199,10 @@ class Scene:
         """The kept frames' keys in fold order (arrival index, frame_id); needs ``keep_frames``."""
         with self._lock:
             self._check_keeps_frames("frames")
-            return [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)]
+            return self._refs()
+
+    def _refs(self) -> list[FrameRef]:
+        return [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)]
 
     def update_poses(self, poses: dict[FrameKey, object]) -> None:
         """Give kept frames new camera-to-world poses (``{frame key: c2w [4, 4]}``, keys as in
@@ -202,10 +211,9 @@ class Scene:
         The scene then equals one that folded the corrected stream afresh in the same order (equal
         `digest`): the kept frames are re-folded (see `corrections`). Needs ``keep_frames``; raises
         ValueError naming ``poses.<key>`` (unknown frame, NaN, not rigid) with the scene unchanged."""
-        with self._lock:
+        with self._decoding.lock, self._lock:
             self._check_keeps_frames("poses")
-            changed = check_poses(poses, [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)])
-        self._refold(changed, ())
+            self._refold(check_poses(poses, self._refs()), ())
 
     def remove_frames(self, keys: list[FrameKey]) -> None:
         """Forget kept frames: the scene then equals one that folded the other frames in the same
@@ -213,27 +221,25 @@ class Scene:
         frame it does not keep, with the scene unchanged. The others keep their arrival indices."""
         if isinstance(keys, (str, int)) or not isinstance(keys, (list, tuple, set)):
             raise ValueError(f"frames: expected a list of frame keys, got {type(keys).__name__}")
-        with self._lock:
+        with self._decoding.lock, self._lock:
             self._check_keeps_frames("frames")
-            removed = resolve_frames(keys, [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)], "frames")
-        self._refold({}, removed)
+            self._refold({}, resolve_frames(keys, self._refs(), "frames"))
 
     def _refold(self, poses: dict[int, np.ndarray], removed) -> None:
         """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) and
-        adopt the result; decodes wait, folds are serialised by the scene's lock. The frames before
+        adopt the result; the caller holds the decode lock and the scene's lock. The frames before
         the first one touched are unchanged, so the re-fold starts from the last checkpoint before it
         (exact: a checkpoint round-trips the state bit for bit) and re-folds the rest."""
         removed = set(removed)
-        with self._decoding.lock, self._lock:
-            first = min(set(poses) | removed)
-            start = max((c for c in self._checkpoints if c <= first), default=0)
-            frames = list(corrected_stream(self._kept, poses, removed))
-            arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
-            base = Scene.from_bytes(self._checkpoints[start]) if start else None
-            checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
-            scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints)
-            self._adopt(scene)
-            self._kept, self._arrivals, self._checkpoints = frames, arrivals, checkpoints
+        first = min(set(poses) | removed)
+        start = max((c for c in self._checkpoints if c <= first), default=0)
+        frames = list(corrected_stream(self._kept, poses, removed))
+        arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
+        base = Scene.from_bytes(self._checkpoints[start]) if start else None
+        checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
+        scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints)
+        self._adopt(scene)
+        self._kept, self._arrivals, self._checkpoints = frames, arrivals, checkpoints
 
     @classmethod
     def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None,
