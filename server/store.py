@@ -318,7 +318,7 @@ class Session:
             base = None
         stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
                                   {k - start for k in removed})
-        checkpoints: dict[int, bytes] = {}
+        checkpoints = LatestStates()
         return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
@@ -394,6 +394,16 @@ class Session:
         with self.lock:
             self._check_alive()
             return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "sha256": self.scene.digest()}
+
+
+class LatestStates(dict):
+    """Frame count -> state bytes, holding the two latest only: the states a re-fold passes cost a
+    whole scene each, and a correction keeps one, from before the scene's end."""
+
+    def __setitem__(self, frames: int, state: bytes) -> None:
+        super().__setitem__(frames, state)
+        while len(self) > 2:
+            del self[min(self)]
 
 
 def checkpoint_payload(frame_ids: dict[str, FoldedFrame], corrections: int = 0) -> bytes:
