@@ -304,26 +304,26 @@ class Session:
                   bases: list[tuple[int, Path]]) -> tuple[Scene, dict[int, bytes]]:
         """The corrected stream folded, from the latest saved state of its unchanged first frames
         (`_bases`; exact: a snapshot round-trips the state bit for bit), so a correction of recent
-        frames costs the folds since that state. Also returns the states at multiples of `BASE_EVERY`
-        that the re-fold passed (frame count -> `Scene.to_bytes`)."""
-        start, base = 0, None
+        frames costs the folds since that state. Also returns the latest states it started from or
+        passed at multiples of `BASE_EVERY` (frame count -> `Scene.to_bytes`)."""
+        start, base, checkpoints = 0, None, LatestStates()
         for frames, path in bases:
             try:
-                base = Scene.load(path)
+                state = path.read_bytes()
+                base = Scene.from_bytes(state)
             except (OSError, ValueError):
                 continue
             if base.frames == frames:
-                start = frames
+                start, checkpoints[frames] = frames, state  # still a valid base after this correction
                 break
             base = None
         stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
                                   {k - start for k in removed})
-        checkpoints = LatestStates()
         return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
-        """Keep the latest state the re-fold passed before the scene's end (`BASE`), for the next
-        correction of recent frames. Written after the correction is durable; a failure only costs
+        """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
+        for the next correction of recent frames (the snapshot is about to hold the whole scene). Written after the correction is durable; a failure only costs
         that next correction a longer re-fold."""
         frames = max((n for n in checkpoints if n < self.scene.frames), default=0)
         if not frames:
