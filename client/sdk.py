@@ -16,6 +16,7 @@ import math
 import os
 import time
 from pathlib import Path
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -75,6 +76,20 @@ class Session:
             msg["frame_id"] = str(frame_id)
         body = pack(msg)
         return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
+
+    def update_poses(self, poses: dict, remove=()) -> dict:
+        """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
+        re-fold of the session's archived frames. A key is a frame's ``frame_id``, or its arrival
+        index for frames sent without one. Returns what changed (frames, corrected, removed, ...)."""
+        body = {"poses": {str(k): _matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove]}
+        for k, c2w in body["poses"].items():
+            if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
+                raise ValueError(f"poses.{k}: contains NaN or inf")
+        return self.client._request("POST", f"{self._path}/poses", json=body).json()
+
+    def remove_frame(self, frame_id) -> dict:
+        """Remove one frame (its ``frame_id`` or arrival index) from the session's scene."""
+        return self.client._request("DELETE", f"{self._path}/frames/{quote(str(frame_id), safe='')}").json()
 
     def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
                colour: str | None = None) -> dict:

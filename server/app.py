@@ -21,7 +21,7 @@ from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .events import FoldEvents
 from .metrics import Metrics
-from .routes import exports, frames, health, sessions, viewer, views
+from .routes import exports, frames, health, poses, sessions, viewer, views
 from .settings import Settings
 from .store import DataDirLocked, SessionStore
 
@@ -157,7 +157,7 @@ class GuardMiddleware:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads)
+    store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads, settings.archive_retention)
     metrics = Metrics()
 
     @contextlib.asynccontextmanager
@@ -197,7 +197,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.events = FoldEvents()
     app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics)
     install_error_handlers(app)
-    for module in (health, sessions, frames, views, exports, viewer):
+    for module in (health, sessions, frames, poses, views, exports, viewer):
         app.include_router(module.router)
     app.include_router(viewer.info_router)
     app.include_router(viewer.pages)

@@ -189,8 +189,9 @@ class FrameLog:
         return self.lease.held() if self.lease is not None else contextlib.nullcontext()
 
     def truncate(self, offset: int) -> None:
-        os.ftruncate(self._fd, offset)
-        os.fsync(self._fd)
+        with self.fenced():
+            os.ftruncate(self._fd, offset)
+            os.fsync(self._fd)
 
     def size(self) -> int:
         return os.fstat(self._fd).st_size

@@ -56,6 +56,11 @@ class SessionList(BaseModel):
 
 
 class SessionStats(SessionSummary):
+    archive_retention: Literal["all", "keyframes", "none"] = Field(
+        "none", description="which frames the session keeps for pose corrections and frame removal")
+    archive_bytes: int = Field(0, description="bytes of the frame archive on disk (compressed frames and corrections)")
+    archive_frames: int = Field(0, description="frames whose content the archive keeps")
+    archive_problem: str | None = Field(None, description="why the archive cannot serve corrections, if it cannot")
     gaussians: int
     memory_bytes: int
     disk_bytes: int
@@ -116,3 +121,23 @@ class ErrorBody(BaseModel):
 class Health(BaseModel):
     status: str
     sessions: int
+
+
+class PosesRequest(BaseModel):
+    """One correction: new camera-to-world poses and/or frames to remove, applied as one re-fold.
+
+    Frames are named by their ``frame_id``, or by their arrival index (decimal) when they carry none."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    poses: dict[str, Matrix4] = Field(default_factory=dict, description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
+    remove: list[str] = Field(default_factory=list, description="frame keys to remove")
+
+
+class Correction(BaseModel):
+    id: str
+    frames: int = Field(description="frames the scene holds after the correction")
+    frames_before: int
+    corrected: int = Field(description="frames given a new pose")
+    removed: int = Field(description="frames removed on request")
+    dropped: int = Field(description="frames the archive did not keep (retention 'keyframes'), left out of the re-fold")

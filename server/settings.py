@@ -8,6 +8,7 @@ Example:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -30,6 +31,9 @@ class Settings(BaseSettings):
     read_timeout_s: float = Field(15.0, gt=0, description="a request body that stalls this long between reads gets 408")
     body_timeout_s: float = Field(120.0, gt=0, description="a request body not complete in this time gets 408")
     max_sessions: int = Field(64, gt=0, description="creating one more session gets 409")
+    archive_retention: Literal["all", "keyframes", "none"] = Field("all", description=(
+        "the frames new sessions keep for pose corrections and frame removal: all, keyframes (one in five; a "
+        "correction then re-folds those alone) or none (corrections get 409)"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")

@@ -48,14 +48,18 @@ import numba
 
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.scene import FoldReport, Scene
+from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
 
 from . import wire
+from .archive import ARCHIVE, Retention, SessionArchive
 from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
 log = logging.getLogger("canonical.store")
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
+BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
+BASE_EVERY = 25  # a correction keeps the state at the last multiple of this below its frame count
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
@@ -80,6 +84,14 @@ class SessionUnavailable(RuntimeError):
 
 class FrameIdConflict(ValueError):
     """A frame_id that the session already folded, sent again with other content."""
+
+
+class CorrectionRefused(ValueError):
+    """A correction the session cannot take (no archive, or one that cannot serve it): 409 naming ``field``."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
 
 
 class DataDirLocked(RuntimeError):
@@ -136,6 +148,8 @@ class Session:
     snapshot_error: str | None = None  # why the last snapshot failed (frames stay durable in the log)
     snapshot_failures: int = 0
     snapshot_retry_at: float = 0.0  # monotonic time before which a fold does not retry a failed snapshot
+    archive: SessionArchive | None = None  # the kept frames (None: retention "none")
+    version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
@@ -158,9 +172,14 @@ class Session:
                 return FoldReport(**report), True
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+            archived = self.archive is not None and self.archive.problem is None
+            if archived:  # archived first: a crash before the log append leaves a frame `cut_to` removes
+                self.archive.append_frame(frame.frame_id, digest, wire.unpack(payload))
             try:
                 offset = self.log.append(self.scene.frames, payload)
             except StorageError as exc:
+                if archived:
+                    self.archive.cut()
                 if not isinstance(exc, LogWedged):
                     raise
                 self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
@@ -170,10 +189,14 @@ class Session:
                 report = self.scene.fold(frame)
             except ValueError:
                 self.log.truncate(offset)
+                if archived:
+                    self.archive.cut()
                 raise
             except Exception:
                 # not an input error: the scene may be half-folded; rebuild it from disk (without this frame)
                 self.log.truncate(offset)
+                if archived:
+                    self.archive.cut()
                 try:
                     self._reload()
                 except Exception:
@@ -182,6 +205,7 @@ class Session:
                 raise
             if frame.frame_id is not None:
                 self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
+            self.version += 1
             now = time.monotonic()
             self.dirty_since = self.dirty_since or now
             if now >= self.snapshot_retry_at and (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
@@ -207,13 +231,125 @@ class Session:
             return
         self.snapshot_frames, self.dirty_since, self.snapshot_error = self.scene.frames, None, None
         try:
-            self.log.reset([encode(self.snapshot_frames, checkpoint_payload(self.frame_ids), checkpoint=True)])
+            self.log.reset([encode(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()),
+                                   checkpoint=True)])
         except OSError as exc:  # the old records stay; a restart skips those the snapshot holds
             log.error("session %s: the log could not be restarted after a snapshot (%s)", self.id, exc.strerror or exc)
 
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
+
+    def _corrections(self) -> int:
+        return self.archive.corrections if self.archive is not None else 0
+
+    # -- corrections ------------------------------------------------------------------------------
+    def correct(self, poses: dict | None = None, remove: list | None = None) -> dict:
+        """Give archived frames new poses (``{frame key: c2w}``) and/or remove frames (keys as in
+        `corrections.resolve_frames`), as one durable step; returns what it did.
+
+        The corrected scene is the re-fold of the archived frames, in order, with the corrections
+        applied (`Scene.refolded`): equal to a session that was streamed the corrected frames. It is
+        computed outside the session's lock, so the old scene is served meanwhile; a fold or another
+        correction that lands in the meantime makes it `CorrectionRefused` (409), nothing changed.
+        The correction is archived (fsynced) before the scene is swapped and acknowledged, then the
+        scene is snapshotted and the log restarted; a restart between the two re-folds from the
+        archive (`restore_session`). Bad keys or poses raise ValueError naming ``poses.<key>`` or
+        ``frames.<key>``, nothing changed."""
+        with self.lock:
+            self._check_alive()
+            archive = self._usable_archive()
+            if self.wedged:
+                raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+            refs, entries, version = archive.refs(), list(archive.entries), self.version
+            changed = check_poses(poses, refs) if poses else {}
+            removed = set(resolve_frames(remove or [], refs, "frames"))
+            if not changed and not removed:
+                raise ValueError("poses: names no frame")
+            dropped = {k for k, e in enumerate(entries) if not e.kept} - removed  # retention "keyframes"
+            first = min(set(changed) | removed | dropped)
+            bases = self._bases(archive, first)
+            appearance = self.scene.appearance
+        scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
+        with self.lock:
+            self._check_alive()
+            if self.version != version:
+                raise CorrectionRefused("session_id", "a frame or another correction reached the session while this "
+                                                      "correction was computed; send it again")
+            archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
+                                      [entries[k].arrival for k in removed | dropped], first)
+            old = self.scene
+            self.scene, self.version = scene, self.version + 1
+            self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+            self._persist_correction()
+            self._keep_base(checkpoints)
+            return {"id": self.id, "frames": scene.frames, "corrected": len(set(changed) - removed), "removed": len(removed),
+                    "dropped": len(dropped), "frames_before": old.frames}
+
+    def _bases(self, archive: SessionArchive, first: int) -> list[tuple[int, Path]]:
+        """Saved states of the stream's first frames that a correction whose first touched frame is
+        ``first`` may start from, latest first: the snapshot (it holds the stream's first
+        ``snapshot_frames`` frames), and the state a correction kept (`BASE`) while no later
+        correction touched a frame before it."""
+        bases = [(self.snapshot_frames, self.path / SNAPSHOT)]
+        try:
+            meta = json.loads((self.path / BASE_META).read_text())
+            if all(f >= meta["frames"] for f in archive.firsts[meta["corrections"]:]):
+                bases.append((int(meta["frames"]), self.path / BASE))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        return sorted(((n, path) for n, path in bases if 0 < n <= first), reverse=True)
+
+    def _refolded(self, archive: SessionArchive, entries: list, changed: dict, removed: set, appearance,
+                  bases: list[tuple[int, Path]]) -> tuple[Scene, dict[int, bytes]]:
+        """The corrected stream folded, from the latest saved state of its unchanged first frames
+        (`_bases`; exact: a snapshot round-trips the state bit for bit), so a correction of recent
+        frames costs the folds since that state. Also returns the latest states it started from or
+        passed at multiples of `BASE_EVERY` (frame count -> `Scene.to_bytes`)."""
+        start, base, checkpoints = 0, None, LatestStates()
+        for frames, path in bases:
+            try:
+                state = path.read_bytes()
+                base = Scene.from_bytes(state)
+            except (OSError, ValueError):
+                continue
+            if base.frames == frames:
+                start, checkpoints[frames] = frames, state  # still a valid base after this correction
+                break
+            base = None
+        stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
+                                  {k - start for k in removed})
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
+
+    def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
+        """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
+        for the next correction of recent frames (the snapshot is about to hold the whole scene). Written after the correction is durable; a failure only costs
+        that next correction a longer re-fold."""
+        frames = max((n for n in checkpoints if n < self.scene.frames), default=0)
+        if not frames:
+            return
+        try:
+            write_atomic(self.path / BASE, checkpoints[frames])
+            write_atomic(self.path / BASE_META, json.dumps({"frames": frames, "corrections": self._corrections()}).encode())
+        except OSError as exc:
+            log.warning("session %s: the re-fold's base state could not be kept (%s)", self.id, exc.strerror or exc)
+
+    def _usable_archive(self) -> SessionArchive:
+        if self.archive is None:
+            raise CorrectionRefused("archive_retention", "this session keeps no frame archive (retention 'none'), "
+                                                         "so its poses cannot be corrected nor frames removed")
+        if self.archive.problem:
+            raise CorrectionRefused("archive_retention", self.archive.problem)
+        return self.archive
+
+    def _persist_correction(self) -> None:
+        """Snapshot the corrected scene and restart the log with a checkpoint that counts the archive's
+        corrections. A failure leaves the correction durable in the archive (a restart re-folds it), but
+        the log cannot take frames on the old snapshot: the session is read-only until a restart."""
+        self._snapshot()
+        if self.snapshot_error or self.snapshot_frames != self.scene.frames:
+            self.wedged = f"{self.snapshot_error}; the correction is durable, restart the service to apply it to the files"
+            log.error("session %s: %s", self.id, self.wedged)
 
     def _check_alive(self) -> None:
         if self.deleted:
@@ -237,7 +373,12 @@ class Session:
         with self.lock:
             self._check_alive()
             stats = self.scene.stats()
+            archive = self.archive
             return {
+                "archive_retention": archive.retention if archive is not None else "none",
+                "archive_bytes": archive.nbytes() if archive is not None else 0,
+                "archive_frames": sum(e.kept for e in archive.entries) if archive is not None else 0,
+                "archive_problem": archive.problem if archive is not None else None,
                 **self.summary(),
                 "gaussians": gaussians,
                 "memory_bytes": stats["memory_bytes"],
@@ -255,8 +396,62 @@ class Session:
             return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "sha256": self.scene.digest()}
 
 
-def checkpoint_payload(frame_ids: dict[str, FoldedFrame]) -> bytes:
-    return msgpack.packb({"frame_ids": {k: [v.index, v.digest, v.report] for k, v in frame_ids.items()}})
+class LatestStates(dict):
+    """Frame count -> state bytes, holding the two latest only: the states a re-fold passes cost a
+    whole scene each, and a correction keeps one, from before the scene's end."""
+
+    def __setitem__(self, frames: int, state: bytes) -> None:
+        super().__setitem__(frames, state)
+        while len(self) > 2:
+            del self[min(self)]
+
+
+def checkpoint_payload(frame_ids: dict[str, FoldedFrame], corrections: int = 0) -> bytes:
+    """The checkpoint's payload: the frame-id table and how many archived corrections the snapshot holds."""
+    return msgpack.packb({"frame_ids": {k: [v.index, v.digest, v.report] for k, v in frame_ids.items()},
+                          "corrections": corrections})
+
+
+def _corrections_of(path: Path) -> int:
+    """How many archived corrections the snapshot holds, by the log's last checkpoint (0 without one)."""
+    data = (path / LOG).read_bytes() if (path / LOG).is_file() else b""
+    checkpoints = [r for r in scan(data).records if r.checkpoint]
+    return int(msgpack.unpackb(checkpoints[-1].payload).get("corrections", 0)) if checkpoints else 0
+
+
+def archived_frame_ids(archive: SessionArchive, known: dict[str, FoldedFrame]) -> dict[str, FoldedFrame]:
+    """The frame-id table after a correction: the archive's frames with their new positions; a
+    removed frame's id is forgotten (sending it again folds it again). Reports keep their counts."""
+    out = {}
+    for position, e in enumerate(archive.entries):
+        if e.frame_id is not None:
+            report = (known.get(e.frame_id) or FoldedFrame(0, "", None)).report
+            out[e.frame_id] = FoldedFrame(position, e.digest, report and {**report, "frame_index": position})
+    return out
+
+
+def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tuple[Restored, SessionArchive | None]:
+    """`restore_scene`, with the session's frame archive. When the archive holds a correction that the
+    snapshot does not (a crash between archiving a correction and snapshotting its scene), the scene is
+    re-folded from the archive and snapshotted, so a restart gives the corrected scene, never a mixture."""
+    archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
+    if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
+        restored = restore_scene(path, config)
+        if archive is not None and archive.problem is None:
+            archive.cut_to(restored.scene.frames)
+        return restored, archive
+    snap = path / SNAPSHOT
+    scene = Scene.load(snap) if snap.exists() else Scene(config)
+    entries = list(archive.entries)
+    dropped = {k for k, e in enumerate(entries) if not e.kept}
+    scene.adopt(Scene.refolded(config, corrected_stream(archive.frames(entries), {}, dropped), scene.appearance))
+    if dropped:
+        archive.append_correction({}, [entries[k].arrival for k in dropped], min(dropped))
+    frame_ids = archived_frame_ids(archive, {})
+    write_atomic(snap, scene.to_bytes())
+    write_atomic(path / LOG, encode(scene.frames, checkpoint_payload(frame_ids, archive.corrections), checkpoint=True))
+    log.warning("%s: re-folded %d frames from the archive (a correction the snapshot did not hold)", path, scene.frames)
+    return Restored(scene, FrameLog(path / LOG), scene.frames, frame_ids), archive
 
 
 def _frame_ids_of(checkpoint: bytes) -> dict[str, FoldedFrame]:
@@ -356,8 +551,10 @@ class SessionStore:
 
     session_class = Session  # what `create` makes (`server.cluster` makes sessions that hold a lease)
 
-    def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None):
+    def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None,
+                 retention: Retention = "all"):
         self.data_dir = Path(data_dir)
+        self.retention = retention  # the frame archive's retention of sessions created from now on
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -395,7 +592,7 @@ class SessionStore:
                 shutil.rmtree(path, ignore_errors=True)
                 continue
             if not (path / META).is_file():
-                if {p.name for p in path.iterdir()} <= {LOG} and not any(p.stat().st_size for p in path.iterdir()):
+                if {p.name for p in path.iterdir()} <= {LOG, ARCHIVE} and not any(p.stat().st_size for p in path.iterdir()):
                     log.warning("%s: no %s and nothing logged (creation never completed); removing it", path, META)
                     shutil.rmtree(path, ignore_errors=True)
                 else:
@@ -405,7 +602,7 @@ class SessionStore:
             try:
                 meta = json.loads((path / META).read_text())
                 config = SceneConfig.from_dict(meta["config"])
-                restored = restore_scene(path, config)
+                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
             except Unrestorable as exc:
                 self._unavailable(path.name, str(exc))
                 continue
@@ -413,7 +610,7 @@ class SessionStore:
                 log.exception("%s: cannot be restored", path)
                 self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
                 continue
-            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored)
+            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive)
             log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
                      restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
 
@@ -460,6 +657,8 @@ class SessionStore:
                     session.snapshot()
                 finally:
                     session.log.close()
+                    if session.archive is not None:
+                        session.archive.close()
         finally:
             if self._dir_lock is not None:
                 os.close(self._dir_lock)
@@ -472,15 +671,17 @@ class SessionStore:
             session_id = self.new_session_id()
             path = self.root / session_id
             created = time.time()
-            meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict()}
+            meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict(),
+                    "archive_retention": self.retention}
             try:
                 path.mkdir()
                 frame_log = FrameLog(path / LOG)
+                archive = SessionArchive(path / ARCHIVE, self.retention) if self.retention != "none" else None
                 write_atomic(path / META, json.dumps(meta, indent=1).encode())
             except OSError as exc:
                 shutil.rmtree(path, ignore_errors=True)
                 raise StorageError(f"{META}: cannot create the session", exc) from exc
-            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0)
+            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0, archive=archive)
             self._sessions[session_id] = session
             return session
 
@@ -514,6 +715,8 @@ class SessionStore:
             session._check_alive()
             session.deleted = True
             session.log.close()
+            if session.archive is not None:
+                session.archive.close()
             with self._lock:
                 self._sessions.pop(session_id, None)
             self._bury(session.path)
@@ -542,5 +745,5 @@ class SessionStore:
                 "snapshot_failures": sum(s.snapshot_failures for s in sessions)}
 
 
-__all__ = ["DataDirLocked", "FrameIdConflict", "FrameLog", "Session", "SessionNotFound", "SessionStore", "SessionUnavailable",
+__all__ = ["CorrectionRefused", "DataDirLocked", "FrameIdConflict", "FrameLog", "Session", "SessionNotFound", "SessionStore", "SessionUnavailable",
            "StorageError", "TooManySessions", "Unrestorable", "configure_thread", "repair"]

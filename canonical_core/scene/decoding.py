@@ -72,6 +72,12 @@ class SceneDecoding:
         """The scene changed: its decoded Gaussians are stale."""
         self._gaussians.clear()
 
+    def reset(self) -> None:
+        """The scene's state was replaced by a re-fold: its decoded rows are stale too (their stamps
+        belong to the old voxel map). Callers hold `lock` and the scene's lock."""
+        self._rows = None
+        self._gaussians.clear()
+
     # -- decoding -----------------------------------------------------------------------------
     def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel of ``inputs`` with R_scene > ``min_support``; with

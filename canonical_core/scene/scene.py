@@ -28,6 +28,7 @@ from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_b
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
 from .config import SceneConfig
+from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
@@ -80,15 +81,23 @@ class Scene:
     several threads; the scene's lock serialises what reads or writes its state, and decoding runs
     outside it (`gaussians`), so a fold never waits for a decode.
 
+    With ``keep_frames=True`` the scene keeps the frames it folded (in memory, not in snapshots), so
+    that `update_poses` and `remove_frames` can re-fold them (`corrections`); ``checkpoint_every=N``
+    also keeps the state after every N-th frame, so that a correction of recent frames re-folds only
+    the frames after the last such state.
+
     Example:
         >>> scene = Scene(SceneConfig(voxel_size=0.01))
         >>> len(scene), scene.frames
         (0, 0)
     """
 
-    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15):
+    def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False,
+                 checkpoint_every: int = 0):
         if not isinstance(config, SceneConfig):
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
+        if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every: expected a non-negative integer, got {checkpoint_every!r}")
         self.config = config
         self.appearance = AppearanceUncertainty(config.feature_dim)
         self.frames = 0
@@ -101,6 +110,14 @@ class Scene:
         self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds
         self._lock = threading.Lock()  # the state's lock; `SceneDecoding.lock` is taken before it, never after
         self._generation = 0  # bumped by every fold, so a decode knows whether the state it read is current
+        # with keep_frames, the folded frames in order and their arrival indices, for update_poses / remove_frames
+        self._kept: list[Frame] | None = [] if keep_frames else None
+        self._arrivals: list[int] = []
+        # with keep_frames and checkpoint_every, the state after every checkpoint_every-th frame (frame
+        # count -> `to_bytes`; each costs the state's bytes in memory): a correction re-folds from the
+        # last one before the first frame it touches
+        self.checkpoint_every = checkpoint_every if keep_frames else 0
+        self._checkpoints: dict[int, bytes] = {}
 
     @property
     def decoder(self):
@@ -127,10 +144,16 @@ class Scene:
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         with self._lock:
             try:
-                return self._fold(frame, t0)
+                report = self._fold(frame, t0)
             finally:
                 self._generation += 1
                 self._decoding.forget()
+            if self._kept is not None:
+                self._arrivals.append(self._arrivals[-1] + 1 if self._arrivals else 0)
+                self._kept.append(frame)
+                if self.checkpoint_every and self.frames % self.checkpoint_every == 0:
+                    self._checkpoints[self.frames] = self._to_bytes()
+            return report
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:
         index, points = self.frames, self._voxels.representative_points
@@ -170,6 +193,90 @@ class Scene:
             raise ValueError("features: this session uses client-supplied features, but the frame carries none")
         if frame.labels is not None and self.label_dim and frame.labels.shape[-1] != self.label_dim:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
+
+    # -- corrections --------------------------------------------------------------------------
+    def frame_refs(self) -> list[FrameRef]:
+        """The kept frames' keys in fold order (arrival index, frame_id); needs ``keep_frames``."""
+        with self._lock:
+            self._check_keeps_frames("frames")
+            return self._refs()
+
+    def _refs(self) -> list[FrameRef]:
+        return [FrameRef(a, f.frame_id) for a, f in zip(self._arrivals, self._kept)]
+
+    def update_poses(self, poses: dict[FrameKey, object]) -> None:
+        """Give kept frames new camera-to-world poses (``{frame key: c2w [4, 4]}``, keys as in
+        `corrections.resolve_frames`), as a SLAM back end revises them at a loop closure.
+
+        The scene then equals one that folded the corrected stream afresh in the same order (equal
+        `digest`): the kept frames are re-folded (see `corrections`). Needs ``keep_frames``; raises
+        ValueError naming ``poses.<key>`` (unknown frame, NaN, not rigid) with the scene unchanged."""
+        with self._decoding.lock, self._lock:
+            self._check_keeps_frames("poses")
+            self._refold(check_poses(poses, self._refs()), ())
+
+    def remove_frames(self, keys: list[FrameKey]) -> None:
+        """Forget kept frames: the scene then equals one that folded the other frames in the same
+        order (equal `digest`). Needs ``keep_frames``; raises ValueError naming ``frames.<key>`` for a
+        frame it does not keep, with the scene unchanged. The others keep their arrival indices."""
+        if isinstance(keys, (str, int)) or not isinstance(keys, (list, tuple, set)):
+            raise ValueError(f"frames: expected a list of frame keys, got {type(keys).__name__}")
+        with self._decoding.lock, self._lock:
+            self._check_keeps_frames("frames")
+            self._refold({}, resolve_frames(keys, self._refs(), "frames"))
+
+    def _refold(self, poses: dict[int, np.ndarray], removed) -> None:
+        """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) and
+        adopt the result; the caller holds the decode lock and the scene's lock. The frames before
+        the first one touched are unchanged, so the re-fold starts from the last checkpoint before it
+        (exact: a checkpoint round-trips the state bit for bit) and re-folds the rest."""
+        removed = set(removed)
+        first = min(set(poses) | removed)
+        start = max((c for c in self._checkpoints if c <= first), default=0)
+        frames = list(corrected_stream(self._kept, poses, removed))
+        arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
+        base = Scene.from_bytes(self._checkpoints[start]) if start else None
+        checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
+        scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints)
+        self._adopt(scene)
+        self._kept, self._arrivals, self._checkpoints = frames, arrivals, checkpoints
+
+    @classmethod
+    def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None,
+                 base: "Scene | None" = None, checkpoint_every: int = 0,
+                 checkpoints: dict[int, bytes] | None = None) -> "Scene":
+        """A scene that folded ``frames`` in order: a fresh one, or ``base`` (a scene that folded the
+        stream's earlier frames) folding on; with ``appearance`` (a scene's learned appearance
+        uncertainty) in place of its own. With ``checkpoint_every``, the state after every such frame
+        count goes into ``checkpoints``."""
+        scene = base if base is not None else cls(config)
+        if appearance is not None:
+            scene.appearance = appearance
+        for frame in frames:
+            scene.fold(frame)
+            if checkpoint_every and checkpoints is not None and scene.frames % checkpoint_every == 0:
+                checkpoints[scene.frames] = scene.to_bytes()
+        return scene
+
+    def adopt(self, other: "Scene") -> None:
+        """Take ``other``'s fused state (a re-fold of this scene's corrected frames) in one step; this
+        scene's decoder, appearance module and kept frames stay. A decode in progress finishes on the
+        old state (it took the decode lock first); the next one sees the new state."""
+        if other.config != self.config:
+            raise ValueError("other: a scene with another config")
+        with self._decoding.lock, self._lock:
+            self._adopt(other)
+
+    def _adopt(self, other: "Scene") -> None:
+        self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front
+        self._history, self._keyframes = other._history, other._keyframes
+        self._density_sum, self._density_frames = other._density_sum, other._density_frames
+        self._generation += 1
+        self._decoding.reset()
+
+    def _check_keeps_frames(self, field: str) -> None:
+        if self._kept is None:
+            raise ValueError(f"{field}: this scene keeps no frames (create it with keep_frames=True)")
 
     # -- reading ------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -282,10 +389,20 @@ class Scene:
     def to_bytes(self) -> bytes:
         """One self-contained, versioned snapshot (an .npz with a JSON header)."""
         with self._lock:
-            header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
-                      "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
-                      "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames]}
-            arrays = self._snapshot_arrays()
+            header, arrays = self._snapshot_parts()
+        return self._encode(header, arrays)
+
+    def _to_bytes(self) -> bytes:
+        """`to_bytes`, for a caller that holds the scene's lock."""
+        return self._encode(*self._snapshot_parts())
+
+    def _snapshot_parts(self) -> tuple[dict, dict[str, np.ndarray]]:
+        header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
+                  "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
+                  "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames]}
+        return header, self._snapshot_arrays()
+
+    def _encode(self, header: dict, arrays: dict[str, np.ndarray]) -> bytes:
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
             for k, v in module.state_dict().items():
                 arrays[f"{prefix}.{k}"] = v.detach().cpu().numpy()

@@ -33,7 +33,7 @@ from canonical_core import SceneConfig
 from ..app import create_app
 from ..framelog import Fenced
 from ..metrics import Histogram
-from ..store import META, Session, SessionNotFound, SessionStore, SessionUnavailable, Unrestorable, configure_thread, restore_scene
+from ..store import META, Session, SessionNotFound, SessionStore, SessionUnavailable, Unrestorable, configure_thread, restore_session
 from ..warmup import warm_up
 from .asgi import call_app
 from .lease import Lease
@@ -88,6 +88,12 @@ class OwnedSession(Session):
         super()._reload()
         self.log.lease = lease
 
+    def fence(self, lease: Lease) -> None:
+        """Fence every append of this owner (the frame log's and the frame archive's) by ``lease``."""
+        self.log.lease = lease
+        if self.archive is not None:
+            self.archive.fence(lease)
+
     def release(self) -> None:
         """Close the log and the lease (after an eviction or a deletion)."""
         self.log.close()
@@ -128,7 +134,7 @@ class OwnerStore(SessionStore):
         session = super().create(config)
         lease = Lease(session.path)
         with lease.take():
-            session.log.lease = lease
+            session.fence(lease)
         self.touch(session.id)
         return session
 
@@ -158,7 +164,7 @@ class OwnerStore(SessionStore):
             with lease.take():
                 meta = json.loads((path / META).read_text())
                 config = SceneConfig.from_dict(meta["config"])
-                restored = restore_scene(path, config)
+                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
         except Unrestorable as exc:
             lease.close()
             self._unavailable(session_id, str(exc))
@@ -166,8 +172,8 @@ class OwnerStore(SessionStore):
         except BaseException:
             lease.close()
             raise
-        restored.log.lease = lease
-        session = OwnedSession(meta["id"], path, config, meta["created"], *restored)
+        session = OwnedSession(meta["id"], path, config, meta["created"], *restored, archive=archive)
+        session.fence(lease)
         with self._lock:
             self._sessions[session_id] = session
         self.evicted.pop(session_id, None)

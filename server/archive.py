@@ -1,0 +1,187 @@
+"""The frame archive of one session: the frames it folded, kept so that poses can be corrected and
+frames removed after the fact (`Scene.refolded` of the corrected stream).
+
+File ``archive.log`` in the session folder, in the frame log's record format (`server.framelog`:
+magic, length, index, CRC-32, payload; ``index`` is the record's number), appended and fsynced.
+Each payload is a msgpack map of one of two kinds:
+
+- a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
+  frame_id, the digest of its wire payload (to recognise a retry), and its wire message, losslessly
+  compressed (`compress_message`: an 8-bit colour array becomes a PNG, the whole map is then
+  zlib-compressed), or None where the retention setting did not keep it;
+- a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
+  "first": the stream position of the first frame it touches}``.
+
+The archive's state is the replay of its records in order: the frames the scene holds, in fold
+order, each with its current pose. A frame is archived before it is logged and folded (a crash in
+between leaves an archived frame that the scene lacks: `SessionArchive.cut_to` removes it on
+start), and a correction is archived (the commit point) before it is acknowledged.
+
+Retention (`Retention`): ``all`` keeps every frame; ``keyframes`` keeps one frame in
+`KEYFRAME_EVERY` (by arrival index), and a correction re-folds those alone, so the other frames
+leave the scene at the first correction; ``none`` keeps no archive and refuses corrections.
+"""
+
+from __future__ import annotations
+
+import os
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Literal
+
+import msgpack
+import numpy as np
+
+from canonical_core import Frame
+from canonical_core.scene.corrections import FrameRef
+
+from . import wire
+from .framelog import HEADER, FrameLog, LogWedged, scan
+
+ARCHIVE = "archive.log"
+KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
+Retention = Literal["all", "keyframes", "none"]
+RETENTIONS = ("all", "keyframes", "none")
+
+
+def compress_message(msg: dict) -> bytes:
+    """A frame message, losslessly smaller: an 8-bit colour array as PNG, then zlib over the map."""
+    rgb = msg.get("rgb")
+    if wire.is_array(rgb) and rgb.get("dtype") == "uint8":
+        msg = {**msg, "rgb": wire.encode_png(wire.decode_array(rgb, "rgb"))}
+    return zlib.compress(wire.pack(msg), 6)
+
+
+def decompress_message(data: bytes) -> dict:
+    return wire.unpack(zlib.decompress(data))
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One frame the scene holds: where its archive record is, and what names it."""
+
+    arrival: int
+    frame_id: str | None
+    digest: str
+    offset: int  # of the record's payload in the file
+    length: int
+    kept: bool  # whether its message is in the archive (retention)
+
+
+class SessionArchive:
+    """An open archive: its file, appended by one writer (the session's lock), and its replayed state."""
+
+    def __init__(self, path: Path, retention: Retention):
+        if retention not in RETENTIONS:
+            raise ValueError(f"archive_retention: expected one of {list(RETENTIONS)}, got {retention!r}")
+        self.path, self.retention = path, retention
+        self.entries: list[Entry] = []
+        self.poses: dict[int, list[float]] = {}  # arrival -> corrected c2w (16 numbers)
+        self.corrections = 0
+        self.firsts: list[int] = []  # per correction: the stream position of the first frame it touched
+        self.next_arrival = 0
+        self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
+        self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
+        data = path.read_bytes() if path.is_file() else b""
+        found = scan(data)
+        for record in found.records:
+            self._apply(record.payload, record.offset)
+        if found.damaged:
+            self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
+        self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
+        self._fd = os.open(path, os.O_RDONLY)  # reads of archived messages
+        if found.torn:
+            self._log.truncate(found.end)
+
+    # -- state ------------------------------------------------------------------------------------
+    def _apply(self, payload: bytes, record_offset: int) -> None:
+        body = msgpack.unpackb(payload, strict_map_key=False)
+        self._records.append((record_offset, "arrival" in body))
+        if "arrival" in body:
+            message = body["message"] or b""
+            # the message is the map's last value, so its bytes end the payload: read back alone later
+            offset = record_offset + HEADER.size + len(payload) - len(message)
+            self.entries.append(Entry(body["arrival"], body["frame_id"], body["digest"], offset, len(message),
+                                      body["message"] is not None))
+            self.next_arrival = max(self.next_arrival, body["arrival"] + 1)
+            return
+        gone = set(body["removed"])
+        self.entries = [e for e in self.entries if e.arrival not in gone]
+        self.poses = {a: p for a, p in self.poses.items() if a not in gone} | {int(a): p for a, p in body["poses"].items()}
+        self.firsts.append(body.get("first", 0))
+        self.corrections += 1
+
+    def refs(self) -> list[FrameRef]:
+        return [FrameRef(e.arrival, e.frame_id) for e in self.entries]
+
+    def nbytes(self) -> int:
+        return self._log.size()
+
+    def frames(self, entries: list[Entry]) -> Iterator[Frame | None]:
+        """The frames of ``entries`` in order, each with its current pose (None where not kept); lazy,
+        so a re-fold holds one decoded frame at a time."""
+        for e in entries:
+            if not e.kept:
+                yield None
+                continue
+            msg = decompress_message(os.pread(self._fd, e.length, e.offset))
+            if e.arrival in self.poses:
+                msg["c2w"] = np.asarray(self.poses[e.arrival], np.float64).reshape(4, 4).tolist()
+            yield wire.frame_from_message(msg)
+
+    # -- writing ----------------------------------------------------------------------------------
+    def keeps(self, arrival: int) -> bool:
+        return self.retention == "all" or (self.retention == "keyframes" and arrival % KEYFRAME_EVERY == 0)
+
+    def append_frame(self, frame_id: str | None, digest: str, message: dict) -> None:
+        """Archive the next frame (fsynced); `cut` takes it back if it is not folded."""
+        arrival = self.next_arrival
+        body = {"arrival": arrival, "frame_id": frame_id, "digest": digest,
+                "message": compress_message(message) if self.keeps(arrival) else None}
+        self._append(msgpack.packb(body))
+
+    def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0) -> None:
+        """Archive a correction (fsynced): the commit point of `Session.correct`. ``first``: the stream
+        position of the first frame it touches (the states of the frames before it stay valid)."""
+        body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},
+                "removed": sorted(removed), "first": first}
+        self._append(msgpack.packb(body))
+
+    def _append(self, payload: bytes) -> None:
+        try:
+            offset = self._log.append(len(self._records), payload)
+        except LogWedged:
+            self.problem = f"{ARCHIVE}: a failed append could not be cut back; corrections are refused until a restart"
+            raise
+        self._apply(payload, offset)
+
+    def fence(self, lease) -> None:
+        """Fence this archive's appends and cuts by an owner's lease (`server.cluster.lease.Lease`)."""
+        self._log.lease = lease
+
+    def cut(self) -> None:
+        """Remove the last record, a frame's: its frame was not folded."""
+        offset, is_frame = self._records[-1]
+        if not is_frame:
+            raise ValueError("archive: the last record is a correction, not a frame")
+        self._log.truncate(offset)
+        self._records.pop()
+        self.next_arrival = self.entries.pop().arrival
+
+    def cut_to(self, frames: int) -> None:
+        """Make the archive hold ``frames`` frames, the scene's count after a restart. One frame archived
+        but never folded (a crash between archiving and logging it, or before a failed fold was cut
+        back) is cut off; any other difference (a log repaired by hand, an archive that began after
+        the session's first frames) leaves an archive that cannot serve corrections."""
+        if len(self.entries) == frames + 1 and self._records and self._records[-1][1]:
+            self.cut()
+        if len(self.entries) != frames:
+            self.problem = (f"{ARCHIVE}: holds {len(self.entries)} of the session's {frames} frames; "
+                            "corrections are refused")
+
+    def close(self) -> None:
+        self._log.close()
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1

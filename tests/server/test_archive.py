@@ -1,0 +1,93 @@
+"""The frame archive on real files: lossless compression, replay of frames and corrections on open,
+a torn tail cut, damage refused, and the start-up reconciliation with the scene's frame count."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from canonical_wire import encode_array, pack
+from server.archive import ARCHIVE, SessionArchive, compress_message, decompress_message
+from server.wire import frame_from_message
+
+
+def message(k: int, frame_id: str | None = None) -> dict:
+    rng = np.random.default_rng(k)
+    c2w = np.eye(4)
+    c2w[0, 3] = 0.1 * k
+    msg = {"rgb": encode_array(rng.integers(0, 255, (12, 16, 3), dtype=np.uint8)),
+           "K": [[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]], "c2w": c2w.tolist(),
+           "depth": encode_array(rng.uniform(0.5, 2.0, (12, 16)).astype(np.float32))}
+    return msg | ({"frame_id": frame_id} if frame_id else {})
+
+
+def archive_of(tmp_path, n: int, retention="all") -> SessionArchive:
+    archive = SessionArchive(tmp_path / ARCHIVE, retention)
+    for k in range(n):
+        archive.append_frame(f"f{k}", f"digest{k}", message(k, f"f{k}"))
+    return archive
+
+
+def test_compression_is_lossless_and_smaller():
+    msg = message(3, "a")
+    data = compress_message(msg)
+    a, b = frame_from_message(msg), frame_from_message(decompress_message(data))
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth) and b.frame_id == "a"
+    assert np.array_equal(a.camera.c2w64(), b.camera.c2w64())
+    smooth = {**msg, "rgb": encode_array(np.broadcast_to(np.arange(16, dtype=np.uint8)[None, :, None] * 8, (12, 16, 3)).copy()),
+              "depth": encode_array(np.full((12, 16), 1.5, np.float32))}
+    assert len(compress_message(smooth)) < len(pack(smooth)) / 3  # real images are smooth, noise is not
+
+
+def test_reopening_replays_frames_and_corrections(tmp_path):
+    archive = archive_of(tmp_path, 4)
+    archive.append_correction({2: np.diag([1.0, -1.0, -1.0, 1.0])}, [1])
+    archive.close()
+    again = SessionArchive(tmp_path / ARCHIVE, "all")
+    assert [(e.arrival, e.frame_id, e.digest) for e in again.entries] == [(0, "f0", "digest0"), (2, "f2", "digest2"),
+                                                                          (3, "f3", "digest3")]
+    assert again.corrections == 1 and again.next_arrival == 4 and again.problem is None
+    frames = list(again.frames(again.entries))
+    assert np.array_equal(frames[1].camera.c2w64(), np.diag([1.0, -1.0, -1.0, 1.0]))  # the corrected pose
+    assert np.array_equal(frames[2].camera.c2w64(), frame_from_message(message(3)).camera.c2w64())
+    assert torch.equal(frames[0].rgb, frame_from_message(message(0)).rgb)
+    again.append_frame(None, "digest4", message(4))  # arrival indices go on after the removed frame
+    assert again.entries[-1].arrival == 4
+
+
+def test_a_torn_tail_is_cut_and_damage_refuses_corrections(tmp_path):
+    archive_of(tmp_path, 3).close()
+    path = tmp_path / ARCHIVE
+    intact = path.read_bytes()
+    path.write_bytes(intact + intact[:30])  # a crash mid-append
+    torn = SessionArchive(path, "all")
+    assert len(torn.entries) == 3 and torn.problem is None and path.read_bytes() == intact
+    torn.close()
+    damaged = bytearray(intact)
+    damaged[len(intact) // 2] ^= 0xFF
+    path.write_bytes(bytes(damaged))
+    broken = SessionArchive(path, "all")
+    assert broken.problem and "damaged record" in broken.problem
+    assert path.read_bytes() == bytes(damaged)  # nothing cut
+
+
+def test_cut_to_removes_one_unfolded_frame_and_flags_any_other_difference(tmp_path):
+    archive = archive_of(tmp_path, 3)
+    archive.cut_to(2)  # the last frame was archived, never folded
+    assert len(archive.entries) == 2 and archive.problem is None and archive.next_arrival == 2
+    archive.cut_to(2)
+    assert archive.problem is None
+    archive.cut_to(5)  # the scene holds frames the archive lacks
+    assert archive.problem and "holds 2 of the session's 5 frames" in archive.problem
+    archive.close()
+    reopened = SessionArchive(tmp_path / ARCHIVE, "all")
+    assert len(reopened.entries) == 2
+
+
+def test_keyframes_retention_keeps_one_frame_in_five(tmp_path):
+    archive = archive_of(tmp_path, 7, "keyframes")
+    assert [e.kept for e in archive.entries] == [True, False, False, False, False, True, False]
+    assert [f is None for f in archive.frames(archive.entries)] == [False, True, True, True, True, False, True]
+    with pytest.raises(ValueError, match=r"^archive_retention: "):
+        SessionArchive(tmp_path / "other.log", "some")

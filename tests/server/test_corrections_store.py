@@ -1,0 +1,91 @@
+"""The store's corrections on real files, in-process: a correction of recent frames starts from the
+state a previous correction kept, and equals the full re-fold."""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import pytest
+
+from canonical_core import SceneConfig
+from canonical_wire import encode_array, pack
+from client.cli import frame_arrays
+from server import store as store_module
+from server import wire
+from server.archive import ARCHIVE
+from server.store import BASE, SessionStore
+
+pytestmark = pytest.mark.realdata
+CONFIG = SceneConfig(voxel_size=0.01)
+
+
+def payload(kwargs: dict, c2w=None) -> tuple[bytes, object]:
+    msg = {"rgb": encode_array(kwargs["rgb"]), "K": kwargs["K"].tolist(), "depth": encode_array(kwargs["depth"]),
+           "c2w": (kwargs["c2w"] if c2w is None else c2w).tolist(), "frame_id": kwargs["frame_id"]}
+    return pack(msg), wire.frame_from_message(msg)
+
+
+@pytest.fixture(scope="module")
+def shelf(shelf_dir) -> list[dict]:
+    from canonical_core.datasets import load_tsdf_fusion
+
+    return [frame_arrays(f, 0.25) for f in load_tsdf_fusion(shelf_dir, stride=5, max_frames=7)]
+
+
+def streamed(store: SessionStore, frames: list[dict], poses: dict | None = None, snapshot_every: int = 1000):
+    session = store.create(CONFIG)
+    for k, kwargs in enumerate(frames):
+        session.add_frame(*payload(kwargs, (poses or {}).get(k)), snapshot_every, 3600)
+    return session
+
+
+def damage_first_frame(session) -> None:
+    """Zero some bytes of frame 0's archived message: a re-fold that read it again would fail."""
+    archive = session.path / ARCHIVE
+    data = bytearray(archive.read_bytes())
+    entry = session.archive.entries[0]
+    data[entry.offset + 10: entry.offset + 20] = bytes(10)
+    archive.write_bytes(bytes(data))
+
+
+def test_a_correction_of_recent_frames_starts_from_the_kept_state(tmp_path, shelf, monkeypatch):
+    monkeypatch.setattr(store_module, "BASE_EVERY", 2)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    try:
+        shift = np.zeros((4, 4))
+        shift[:3, 3] = 0.01
+        moved = {k: kw["c2w"] + shift for k, kw in enumerate(shelf)}  # every frame 1.7 cm off
+        session = streamed(store, shelf, moved)
+        session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:2]})  # touches frame 0: a full re-fold
+        assert (session.path / BASE).is_file() and session.snapshot_frames == len(shelf)
+        damage_first_frame(session)
+        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # starts from the kept state after 6 frames
+        session.correct({shelf[6]["frame_id"]: moved[6]})  # and again: that state is kept on
+        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})
+        expected = streamed(store, shelf, {k: moved[k] for k in (2, 3, 4, 5)})
+        assert session.digest()["sha256"] == expected.digest()["sha256"]
+        with pytest.raises(zlib.error):  # frame 5 lies before every kept state: frame 0 is read, and it is damaged
+            session.correct({shelf[5]["frame_id"]: shelf[5]["c2w"]})
+        assert session.digest()["sha256"] == expected.digest()["sha256"]  # and nothing changed
+    finally:
+        store.close()
+
+
+def test_the_snapshot_a_correction_started_from_is_kept_for_the_next(tmp_path, shelf, monkeypatch):
+    monkeypatch.setattr(store_module, "BASE_EVERY", 4)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    try:
+        session = streamed(store, shelf, snapshot_every=3)
+        assert session.snapshot_frames == 6
+        damage_first_frame(session)
+        other = np.eye(4)
+        other[:3, 3] = [0.01, 0.0, 0.0]
+        session.correct({shelf[6]["frame_id"]: other @ shelf[6]["c2w"]})  # from the snapshot of 6 frames
+        assert session.snapshot_frames == 7  # the snapshot now holds the corrected scene
+        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # from the state after 6 frames, kept
+        assert session.digest()["sha256"] == streamed(store, shelf).digest()["sha256"]
+    finally:
+        store.close()

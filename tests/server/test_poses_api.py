@@ -1,0 +1,227 @@
+"""Pose corrections and frame removal over HTTP, on a real service process and real files: the
+corrected session equals one streamed the corrected frames (digest), survives kill -9 at the
+commit point, and bad input changes nothing."""
+
+from __future__ import annotations
+
+import threading
+
+import httpx
+import numpy as np
+import pytest
+
+from canonical_core.scene.corrections import drift_walk
+from client.sdk import CanonicalError, Client
+from server.archive import ARCHIVE, SessionArchive
+
+from .harness import VOXEL, ServerProcess
+
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
+
+
+def drifted(frames: list[dict], seed: int = 0) -> list[dict]:
+    """The frames (add_frame kwargs) with a random walk on their poses (1 cm and 0.5 degrees per frame)."""
+    walk = drift_walk(len(frames), 0.01, 0.5, seed=seed)
+    return [{**kwargs, "c2w": T @ kwargs["c2w"]} for kwargs, T in zip(frames, walk)]
+
+
+def streamed(client: Client, frames: list[dict], **settings):
+    session = client.create_session(voxel_size=VOXEL, **settings)
+    for kwargs in frames:
+        session.add_frame(**kwargs)
+    return session
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("poses")
+    proc = ServerProcess(root / "data", root / "server.log", snapshot_every_seconds=3600, snapshot_every_frames=4,
+                         warm_up="false")
+    proc.start()
+    yield proc
+    proc.kill9()
+
+
+@pytest.fixture(scope="module")
+def api(service):
+    with Client(service.url) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def few(frames) -> list[dict]:
+    return frames[:6]
+
+
+def test_correction_equals_streaming_the_true_poses(api, few):
+    session = streamed(api, drifted(few))
+    clean = streamed(api, few).digest()["sha256"]
+    assert session.digest()["sha256"] != clean
+    done = session.update_poses({kw["frame_id"]: kw["c2w"] for kw in few})
+    assert done["corrected"] == len(few) and done["frames"] == len(few)
+    assert session.digest()["sha256"] == clean
+    stats = session.stats()
+    assert stats["archive_retention"] == "all" and stats["archive_frames"] == len(few) and stats["archive_bytes"] > 0
+
+
+def test_removal_equals_streaming_the_rest(api, frames):
+    session = streamed(api, frames)
+    rng = np.random.default_rng(7)
+    gone = sorted(rng.choice(len(frames), len(frames) // 3, replace=False).tolist())
+    session.remove_frame(frames[gone[0]]["frame_id"])  # one DELETE
+    session.update_poses({}, remove=[frames[k]["frame_id"] for k in gone[1:]])  # the rest as one request
+    rest = [kw for k, kw in enumerate(frames) if k not in gone]
+    assert session.digest()["sha256"] == streamed(api, rest).digest()["sha256"]
+    # folding goes on from the corrected scene as it would from the fresh one; a removed id may be sent again
+    session.add_frame(**frames[gone[0]])
+    assert session.digest()["sha256"] == streamed(api, rest + [frames[gone[0]]]).digest()["sha256"]
+
+
+def test_correcting_frames_after_the_snapshot_refolds_from_it(api, few):
+    """The service snapshots every 4 frames: a correction of frames 4 and 5 starts from the snapshot
+    of frames 0-3, and equals streaming the corrected frames all the same; then one of frame 1
+    re-folds everything."""
+    bad = drifted(few)
+    session = streamed(api, bad)
+    assert session.stats()["snapshot_frames"] == 4
+    session.update_poses({kw["frame_id"]: kw["c2w"] for kw in few[4:]})
+    assert session.digest()["sha256"] == streamed(api, bad[:4] + few[4:]).digest()["sha256"]
+    session.update_poses({few[1]["frame_id"]: few[1]["c2w"]})
+    assert session.digest()["sha256"] == streamed(api, bad[:1] + few[1:2] + bad[2:4] + few[4:]).digest()["sha256"]
+
+
+def test_frames_without_ids_are_named_by_arrival_index(api, few):
+    plain = [{**kw, "frame_id": None} for kw in few[:4]]
+    session = streamed(api, plain)
+    session.remove_frame(1)
+    session.update_poses({"2": drifted(plain)[2]["c2w"]})
+    expected = [plain[0], {**plain[2], "c2w": drifted(plain)[2]["c2w"]}, plain[3]]
+    assert session.digest()["sha256"] == streamed(api, expected).digest()["sha256"]
+
+
+@pytest.mark.parametrize("body, field", [
+    ({"poses": {"nope": np.eye(4).tolist()}}, "poses.nope"),
+    ({"poses": {"999": np.eye(4).tolist()}}, "poses.999"),
+    ({"poses": {"F": np.diag([2.0, 1, 1, 1]).tolist()}}, "poses.F"),  # not rigid
+    ({"poses": {"F": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}, "poses.F.0"),  # 3x3
+    ({"poses": {"F": "eye"}}, "poses.F"),
+    ({"remove": ["nope"]}, "frames.nope"),
+    ({}, "poses"),
+    ({"poses": {}, "extra": 1}, "extra"),
+])
+def test_bad_corrections_name_the_field_and_change_nothing(service, api, few, body, field):
+    session = streamed(api, few[:2])
+    key = few[1]["frame_id"]
+    body = {k: ({key if p == "F" else p: v for p, v in val.items()} if k == "poses" else val) for k, val in body.items()}
+    field = field.replace(".F", f".{key}")
+    before = session.digest()["sha256"]
+    r = httpx.post(f"{service.url}/v1/sessions/{session.id}/poses", json=body, timeout=60)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["field"] == field
+    assert session.digest()["sha256"] == before
+
+
+def test_nan_pose_is_refused(service, api, few):
+    session = streamed(api, few[:2])
+    before = session.digest()["sha256"]
+    key = few[0]["frame_id"]
+    body = '{"poses": {"%s": [[1, 0, 0, NaN], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}}' % key  # Python's JSON reads NaN
+    r = httpx.post(f"{service.url}/v1/sessions/{session.id}/poses", content=body,
+                   headers={"content-type": "application/json"}, timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == f"poses.{key}", r.text
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(ValueError, match=rf"^poses\.{key}: contains NaN"):  # the SDK says so before sending
+        session.update_poses({key: bad})
+    with pytest.raises(CanonicalError) as info:
+        session.remove_frame("not-a-frame")
+    assert info.value.status == 422 and info.value.field == "frames.not-a-frame"
+    assert session.digest()["sha256"] == before
+
+
+def test_a_session_without_archive_refuses_corrections(tmp_path, few):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", archive_retention="none", warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            session = streamed(c, few[:2])
+            before = session.digest()["sha256"]
+            for call in (lambda: session.update_poses({few[0]["frame_id"]: few[0]["c2w"]}),
+                         lambda: session.remove_frame(few[0]["frame_id"])):
+                with pytest.raises(CanonicalError) as info:
+                    call()
+                assert info.value.status == 409 and info.value.field == "archive_retention"
+            assert session.digest()["sha256"] == before and session.stats()["archive_bytes"] == 0
+    finally:
+        proc.kill9()
+
+
+def test_keyframes_retention_refolds_the_kept_frames(tmp_path, frames):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", archive_retention="keyframes", warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            session = streamed(c, drifted(frames[:7]))
+            assert session.stats()["archive_frames"] == 2  # arrivals 0 and 5
+            done = session.update_poses({frames[0]["frame_id"]: frames[0]["c2w"]})
+            assert done["dropped"] == 5 and done["frames"] == 2
+            kept = [frames[0], drifted(frames[:7])[5]]
+            assert session.digest()["sha256"] == streamed(c, kept).digest()["sha256"]
+    finally:
+        proc.kill9()
+
+
+def test_kill9_after_the_correction_is_archived_restarts_corrected(tmp_path, few):
+    """The commit point is the archived correction: killed right after it (before the snapshot), the
+    restart re-folds; killed after the acknowledgement, the restart loads the corrected snapshot."""
+    data = tmp_path / "data"
+    proc = ServerProcess(data, tmp_path / "server.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            acked = streamed(c, drifted(few))
+            acked.update_poses({kw["frame_id"]: kw["c2w"] for kw in few[:3]})
+            acked_digest = acked.digest()["sha256"]
+            mid = streamed(c, drifted(few))
+            clean = streamed(c, few).digest()["sha256"]
+            expected_acked = streamed(c, few[:3] + drifted(few)[3:]).digest()["sha256"]
+    finally:
+        proc.kill9()
+    # the state a kill -9 leaves between archiving a correction and snapshotting its scene
+    archive = SessionArchive(data / "sessions" / mid.id / ARCHIVE, "all")
+    archive.append_correction({k: kw["c2w"] for k, kw in enumerate(few)}, [])
+    archive.close()
+    proc = ServerProcess(data, tmp_path / "server2.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            assert c.session(acked.id).digest()["sha256"] == acked_digest == expected_acked
+            assert c.session(mid.id).digest()["sha256"] == clean
+    finally:
+        proc.kill9()
+    proc = ServerProcess(data, tmp_path / "server3.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:  # the re-fold was snapshotted: a second restart loads it (same digest), and frames go on
+        with Client(proc.url) as c:
+            assert c.session(mid.id).digest()["sha256"] == clean
+    finally:
+        proc.kill9()
+
+
+def test_correction_racing_a_fold_is_refused_or_ordered(api, frames):
+    """A frame folded while a correction is computed: the correction gets 409 and changes nothing, or
+    it finished first and the frame folded on the corrected scene; never a mixture."""
+    session = streamed(api, drifted(frames[:8]))
+    outcome: dict = {}
+
+    def correct():
+        try:
+            outcome["done"] = session.update_poses({kw["frame_id"]: kw["c2w"] for kw in frames[:8]})
+        except CanonicalError as exc:
+            outcome["error"] = exc
+
+    worker = threading.Thread(target=correct)
+    worker.start()
+    session.add_frame(**frames[8])
+    worker.join()
+    if "error" in outcome:
+        assert outcome["error"].status == 409 and outcome["error"].field == "session_id"
+        expected = drifted(frames[:8]) + [frames[8]]
+    else:
+        expected = frames[:9]
+    assert session.digest()["sha256"] == streamed(api, expected).digest()["sha256"]
