@@ -18,7 +18,6 @@ import math
 import numba
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..decode.colour_solve import COVERED_ALPHA as COVERAGE_THRESHOLD  # the colour solve's covered pixels

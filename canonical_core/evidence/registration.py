@@ -137,6 +137,8 @@ def registration_weight_reference(
     """Whole-image PyTorch definition of `registration_weight`: edges by the jump rule, distances by
     dilating the edge mask one 3x3 step at a time."""
     H, W = depth.shape
+    if radius_px <= 0:
+        return torch.ones((H, W))
     padded = torch.nn.functional.pad(depth[None, None], (1, 1, 1, 1))[0, 0]
     jump = torch.zeros_like(depth)
     for dv in range(3):
@@ -144,13 +146,11 @@ def registration_weight_reference(
             zn = padded[dv: dv + H, du: du + W]
             jump = torch.maximum(jump, torch.where((zn > 0) & (depth > 0), (zn - depth).abs(), torch.zeros_like(depth)))
     edges = (depth > 0) & (jump > 2 * voxel_size + 3 * sensor_depth_std(depth, sigma0, sigma2, z_ref))
-    cap = int(np.ceil(radius_px)) if radius_px > 0 else 0
+    cap = int(np.ceil(radius_px))
     distance = torch.full((H, W), float(cap))
     reached = edges.clone()
     for step in range(cap):
         distance = torch.where(reached & (distance > step), torch.full_like(distance, float(step)), distance)
         reached = torch.nn.functional.max_pool2d(reached[None, None].float(), 3, 1, 1)[0, 0] > 0
-    if radius_px <= 0:
-        return torch.ones((H, W))
     return torch.clamp((distance + 1.0) / (radius_px + 1.0), max=1.0)
 
