@@ -6,7 +6,8 @@ MVSplat): one Gaussian per valid pixel of every input view, nothing fused.
 - shape: a flat disc facing the camera (axes = the camera's x, y, z), in-plane std = the pixel
   footprint z / f times a coverage gain, thickness 0.1 x the in-plane std;
 - colour: the pixel's colour (SH degree 0); features: the pixel's F_view (the same training-free
-  extractor the scene fuses), so feature splats are comparable;
+  extractor the scene fuses), so feature splats are comparable; labels: the frame's label scores at
+  the pixel (when it carries them), as the scene samples them for fusion;
 - opacity: the decoder's analytic opacity at full support, the value ``plain_decoding`` gives
   every Gaussian, so the two differ only in fusion.
 
@@ -38,6 +39,7 @@ from torch import Tensor
 from ..camera import quaternion_to_matrix
 from ..decode import GaussianDecoder, matrix_to_quaternion
 from ..evidence.extract import frame_features, lift_pixels
+from ..evidence.features import sample_client_features
 from ..frame import Frame
 from ..gaussians import Gaussians, rgb_to_sh_dc
 from ..scene import SceneConfig
@@ -89,6 +91,8 @@ def pixel_gaussians(frame: Frame, config: SceneConfig, opacity: float, features:
         opacities=torch.full((m,), opacity),
         sh=rgb_to_sh_dc(torch.from_numpy(colors))[:, None, :],
         features=torch.from_numpy(frame_features(frame, rows, cols, config)) if features else None,
+        labels=None if frame.labels is None else torch.from_numpy(
+            sample_client_features(frame.labels.numpy(), rows, cols, (frame.height, frame.width))),
     )
 
 
@@ -128,6 +132,7 @@ def merge_per_voxel(gaussians: Gaussians, voxel_size: float) -> Gaussians:
         opacities=mean(gaussians.opacities).float(),
         sh=mean(gaussians.sh).float(),
         features=None if gaussians.features is None else mean(gaussians.features).float(),
+        labels=None if gaussians.labels is None else mean(gaussians.labels).float(),
     )
 
 

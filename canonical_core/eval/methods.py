@@ -27,9 +27,9 @@ Example:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
-from typing import Protocol
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -108,19 +108,28 @@ class Method:
     unavailable: Callable[[], str | None] = lambda: None
 
 
-def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
-    """A `Scene` method: aggregation rule ``weighting`` and other `SceneConfig` settings (groups as dicts)."""
+@dataclass(frozen=True)
+class SceneBuilder:
+    """A `Scene` method's builder: aggregation rule ``weighting`` and other `SceneConfig` settings
+    (groups as dicts), kept as data so that `configured` can add settings to it."""
 
-    def build(frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
-        scene = Scene(SceneConfig(voxel_size=voxel_size, research={"weighting": weighting}, **settings))
+    weighting: Weighting
+    uniform_opacity: bool = False
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def __call__(self, frames: Sequence[Frame], voxel_size: float, features: bool) -> Model:
+        scene = Scene(SceneConfig(voxel_size=voxel_size, research={"weighting": self.weighting}, **self.settings))
         for frame in frames:
             scene.fold(frame)
         splats = scene.decode()
-        if uniform_opacity:
+        if self.uniform_opacity:
             splats = replace(splats, opacities=torch.full_like(splats.opacities, full_support_opacity(scene.decoder)))
         return SplatModel(splats)
 
-    return build
+
+def _scene(weighting: Weighting, uniform_opacity: bool = False, **settings) -> Builder:
+    """A `Scene` method: aggregation rule ``weighting`` and other `SceneConfig` settings (groups as dicts)."""
+    return SceneBuilder(weighting, uniform_opacity, settings)
 
 
 def _splats(make: Callable[[Sequence[Frame], float, bool], Gaussians]) -> Builder:
@@ -167,6 +176,45 @@ def check_methods(names: Sequence[str]) -> list[str]:
         if name not in METHODS:
             raise ValueError(f"methods: unknown method {name!r}; expected some of {list(METHODS)}")
     return list(dict.fromkeys(names))
+
+
+def _nested(settings: Mapping[str, Any]) -> dict:
+    """Dotted setting paths (``free_space.margin``) as nested dicts (``{"free_space": {"margin": ...}}``)."""
+    out: dict = {}
+    for path, value in settings.items():
+        *groups, leaf = path.split(".")
+        node = out
+        for g in groups:
+            node = node.setdefault(g, {})
+        node[leaf] = value
+    return out
+
+
+def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict:
+    out = dict(base)
+    for key, value in extra.items():
+        out[key] = _merged(out[key], value) if isinstance(value, Mapping) and isinstance(out.get(key), Mapping) else value
+    return out
+
+
+def configured(name: str, settings: Mapping[str, Any]) -> Method:
+    """Method ``name`` with extra `SceneConfig` settings on top of its own, e.g. ``{"sh_degree": 0}``
+    or a decoder checkpoint; paths may be dotted (``free_space.margin``), values as
+    `parse_setting` reads them. Only `Scene` methods take settings (ValueError naming ``methods``
+    otherwise); the settings are checked when the method builds its scene.
+
+    Example:
+        >>> configured("average", {"sh_degree": 0}).build.settings
+        {'sh_degree': 0}
+    """
+    (name,) = check_methods([name])
+    method = METHODS[name]
+    if not settings:
+        return method
+    if not isinstance(method.build, SceneBuilder):
+        raise ValueError(f"methods: {name} builds no Scene and takes no settings (got {dict(settings)!r})")
+    builder = replace(method.build, settings=_merged(method.build.settings, _nested(settings)))
+    return replace(method, build=builder)
 
 
 def build(name: str, frames: Sequence[Frame], voxel_size: float, features: bool = False) -> tuple[Model, float]:
