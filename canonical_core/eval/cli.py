@@ -2,6 +2,7 @@
 
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise 0.05,0.1,0.25,0.5]
                    [--mixed-noise 0.25]
+    canonical eval LABELLED_DATASET --segmentation --views 2,4,8 --out DIR [--methods canonical:SETTING=VALUE,...]
 
 `configure_parser` adds its arguments to a parser (the ``canonical`` console script's ``eval``),
 `add_eval_parser` registers the subcommand on any subparsers object, and
@@ -50,6 +51,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--no-extrapolation", action="store_true", help="skip the extrapolation split")
     parser.add_argument("--colour", choices=list(get_args(Colour)), default="normalised",
                         help="how Gaussians are rendered for scoring (rendering.render's colour modes; default normalised)")
+    parser.add_argument("--segmentation", action="store_true",
+                        help="run the segmentation experiment instead (label-fusion captures: fused label maps and a linear "
+                             "probe at held-out views); --methods then also takes NAME:SETTING=VALUE[:...] "
+                             "(default canonical,average,pixel_aligned)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no tables on stdout")
     return parser
 
@@ -65,15 +70,20 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    """Run `evaluate` with the parsed arguments; prints results.md unless --quiet. Returns 0, or 2
-    (with the message on stderr) for invalid arguments."""
+    """Run `evaluate` (`evaluate_segmentation` with --segmentation) with the parsed arguments; prints
+    results.md unless --quiet. Returns 0, or 2 (with the message on stderr) for invalid arguments."""
     from .run import evaluate
+    from .segmentation import evaluate_segmentation
 
     try:
-        evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise, out_dir=args.out,
-                 progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
-                 stability_views=args.stability_views, extrapolation=not args.no_extrapolation,
-                 colour=args.colour)
+        if args.segmentation:
+            evaluate_segmentation(args.dataset, views=args.views, methods=args.methods or ("canonical", "average", "pixel_aligned"),
+                                  out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size)
+        else:
+            evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise,
+                     out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
+                     stability_views=args.stability_views, extrapolation=not args.no_extrapolation,
+                     colour=args.colour)
     except (ValueError, ImportError) as exc:
         print(f"canonical eval: error: {exc}", file=sys.stderr)
         return 2

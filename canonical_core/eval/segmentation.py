@@ -281,7 +281,10 @@ def find_bins(path: str | Path) -> list[Path]:
         raise ValueError(f"dataset: {root}: not a folder")
 
     def labelled(folder: Path) -> bool:
-        frames = find_frames_folder(folder)
+        try:
+            frames = find_frames_folder(folder)
+        except ValueError:  # frames in several subfolders: each may be a capture
+            return False
         return frames is not None and has_label_maps(frames)
 
     if labelled(root):
