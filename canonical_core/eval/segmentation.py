@@ -33,8 +33,8 @@ Metrics, from one confusion matrix per (capture, method, N) summed over the held
 Example:
     >>> gt = torch.tensor([[0, 0], [1, 1]])
     >>> pred = torch.tensor([[0, 1], [1, -1]])  # -1: uncovered
-    >>> scores(label_confusion(gt, pred, 3))["miou"]  # IoU 1/2 (class 0) and 1/3 (class 1); class 2 absent
-    0.4166666666666667
+    >>> round(scores(label_confusion(gt, pred, 3))["miou"], 4)  # IoU 1/2 (class 0) and 1/3 (class 1); class 2 absent
+    0.4167
 """
 
 from __future__ import annotations

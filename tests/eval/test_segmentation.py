@@ -22,17 +22,9 @@ from canonical_core.eval.cli import main
 from canonical_core.eval.methods import configured
 from canonical_core.eval.segmentation import (fit_probe, find_bins, label_confusion, label_map, parse_method, probe_confusion,
                                               render_labels, scores, segmentation_split)
-from tests.conftest import DATA
+from tests.datasets.conftest import apc_bins_path  # noqa: F401 (the real bins, skipped when absent)
 
 VOXEL = 0.03
-
-
-@pytest.fixture(scope="module")
-def apc_bins_path() -> Path:
-    path = DATA / "apc_bins"
-    if not path.is_dir():
-        pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
-    return path
 
 
 def box_labels(frame):
