@@ -121,6 +121,11 @@ class SessionArchive:
     def frames(self, entries: list[Entry]) -> Iterator[Frame | None]:
         """The frames of ``entries`` in order, each with its current pose (None where not kept); lazy,
         so a re-fold holds one decoded frame at a time."""
+        for msg in self.messages(entries):
+            yield None if msg is None else wire.frame_from_message(msg)
+
+    def messages(self, entries: list[Entry]) -> Iterator[dict | None]:
+        """The wire messages of ``entries`` in order, each with its current pose (None where not kept)."""
         for e in entries:
             if not e.kept:
                 yield None
@@ -128,7 +133,7 @@ class SessionArchive:
             msg = decompress_message(os.pread(self._fd, e.length, e.offset))
             if e.arrival in self.poses:
                 msg["c2w"] = np.asarray(self.poses[e.arrival], np.float64).reshape(4, 4).tolist()
-            yield wire.frame_from_message(msg)
+            yield msg
 
     # -- writing ----------------------------------------------------------------------------------
     def keeps(self, arrival: int) -> bool:

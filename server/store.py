@@ -60,6 +60,7 @@ log = logging.getLogger("canonical.store")
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
 BASE_EVERY = 25  # a correction keeps the state at the last multiple of this below its frame count
+UNDO_DEPTH = 32  # folds an archived session's scene can roll back in place (`Scene.rollback`)
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
@@ -151,6 +152,15 @@ class Session:
     archive: SessionArchive | None = None  # the kept frames (None: retention "none")
     version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
 
+    def __post_init__(self):
+        self._keep_undo()
+
+    def _keep_undo(self) -> None:
+        """Sessions that can be corrected keep undo records of their last folds: a correction of
+        recent frames then rolls the served scene back and re-folds only them (`correct`)."""
+        if self.archive is not None:
+            self.scene.keep_undo(UNDO_DEPTH)
+
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
                   snapshot_every_seconds: float) -> tuple[FoldReport, bool]:
@@ -239,6 +249,7 @@ class Session:
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
+        self._keep_undo()
 
     def _corrections(self) -> int:
         return self.archive.corrections if self.archive is not None else 0
@@ -249,13 +260,19 @@ class Session:
         `corrections.resolve_frames`), as one durable step; returns what it did.
 
         The corrected scene is the re-fold of the archived frames, in order, with the corrections
-        applied (`Scene.refolded`): equal to a session that was streamed the corrected frames. It is
-        computed outside the session's lock, so the old scene is served meanwhile; a fold or another
-        correction that lands in the meantime makes it `CorrectionRefused` (409), nothing changed.
-        The correction is archived (fsynced) before the scene is swapped and acknowledged, then the
-        scene is snapshotted and the log restarted; a restart between the two re-folds from the
-        archive (`restore_session`). Bad keys or poses raise ValueError naming ``poses.<key>`` or
-        ``frames.<key>``, nothing changed."""
+        applied (`Scene.refolded`): equal to a session that was streamed the corrected frames.
+
+        A correction whose frames are among the scene's last folds (`UNDO_DEPTH`) rolls the served
+        scene back and re-folds them under the session's lock (`Scene.rollback`): about k folds for
+        the k most recent frames. Any other is computed outside the lock from the latest saved state
+        before its first frame, so the old scene is served meanwhile; a fold or another correction
+        that lands in the meantime makes it `CorrectionRefused` (409), nothing changed.
+
+        The correction is archived (fsynced) before the scene is swapped and acknowledged. Then the
+        files catch up: where the correction leaves the snapshot's frames as they were, the log is
+        rewritten with the corrected frames after them; otherwise the scene is snapshotted and the
+        log restarted. A restart between the two re-folds from the archive (`restore_session`). Bad
+        keys or poses raise ValueError naming ``poses.<key>`` or ``frames.<key>``, nothing changed."""
         with self.lock:
             self._check_alive()
             archive = self._usable_archive()
@@ -268,23 +285,78 @@ class Session:
                 raise ValueError("poses: names no frame")
             dropped = {k for k, e in enumerate(entries) if not e.kept} - removed  # retention "keyframes"
             first = min(set(changed) | removed | dropped)
+            done = {"id": self.id, "corrected": len(set(changed) - removed), "removed": len(removed),
+                    "dropped": len(dropped), "frames_before": self.scene.frames}
+            if first >= self.scene.undo_floor and all(e.kept for e in entries[first:]):
+                self._correct_in_place(archive, entries, changed, removed | dropped, first)
+                return {**done, "frames": self.scene.frames}
             bases = self._bases(archive, first)
             appearance = self.scene.appearance
         scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
+        scene.keep_undo(UNDO_DEPTH)
         with self.lock:
             self._check_alive()
             if self.version != version:
                 raise CorrectionRefused("session_id", "a frame or another correction reached the session while this "
                                                       "correction was computed; send it again")
-            archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
-                                      [entries[k].arrival for k in removed | dropped], first)
-            old = self.scene
-            self.scene, self.version = scene, self.version + 1
-            self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+            self._commit_correction(archive, entries, changed, removed | dropped, first)
+            self.scene = scene
             self._persist_correction()
             self._keep_base(checkpoints)
-            return {"id": self.id, "frames": scene.frames, "corrected": len(set(changed) - removed), "removed": len(removed),
-                    "dropped": len(dropped), "frames_before": old.frames}
+            return {**done, "frames": scene.frames}
+
+    def _commit_correction(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
+                           first: int) -> None:
+        """Archive the correction (fsynced: the commit point), and what follows from it in memory."""
+        archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
+                                  [entries[k].arrival for k in removed], first)
+        self.version += 1
+        self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+
+    def _correct_in_place(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
+                          first: int) -> None:
+        """`correct` for frames among the last folds, under the session's lock: roll the scene back to
+        ``first`` frames, fold the corrected frames after it, then archive the correction. If a fold
+        or the archive write fails, the scene is rolled back again and the old frames re-folded (they
+        folded before), and the error is raised: nothing changed."""
+        scene = self.scene
+
+        def fold_from_first(frames) -> None:
+            scene.rollback(first)
+            for frame in frames:
+                scene.fold(frame)
+
+        tail = entries[first:]
+        try:
+            fold_from_first(corrected_stream(archive.frames(tail), {k - first: c2w for k, c2w in changed.items()},
+                                             {k - first for k in removed}))
+            self._commit_correction(archive, entries, changed, removed, first)
+        except BaseException:
+            fold_from_first(list(archive.frames(tail)))
+            raise
+        if first >= self.snapshot_frames:
+            self._rewrite_log(archive, first)
+        else:
+            self._persist_correction()
+
+    def _rewrite_log(self, archive: SessionArchive, first: int) -> None:
+        """After a correction whose first frame ``first`` comes after the snapshot's: the log's records
+        from that frame on are cut off, the corrected frames appended, then a checkpoint counting the
+        archive's corrections, so a restart (snapshot + log) gives the corrected scene without a new
+        snapshot, and this costs the corrected frames' records only. Until that checkpoint is written
+        the log counts fewer corrections than the archive, and a restart re-folds from the archive
+        (`restore_session`). A failure makes the session read-only until a restart."""
+        found = scan(self.log.path.read_bytes())
+        head = found.records[0].offset if found.records and found.records[0].checkpoint else -1  # the snapshot's
+        after = [r for r in found.records if not r.checkpoint and r.index >= first and r.offset > head]
+        try:
+            self.log.truncate(after[0].offset if after else found.end)
+            for k, msg in enumerate(archive.messages(archive.entries[first:])):
+                self.log.append(first + k, wire.pack(msg))
+            self.log.append(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()), checkpoint=True)
+        except OSError as exc:
+            self.wedged = f"{LOG}: {exc.strerror or exc}; the correction is durable, restart the service to apply it to the files"
+            log.error("session %s: %s", self.id, self.wedged)
 
     def _bases(self, archive: SessionArchive, first: int) -> list[tuple[int, Path]]:
         """Saved states of the stream's first frames that a correction whose first touched frame is
@@ -522,8 +594,10 @@ def restore_scene(path: Path, config: SceneConfig) -> Restored:
             log.warning("%s: dropping the unacknowledged last log record (frame %d): %s", path, record.index, exc)
             frame_log.truncate(record.offset)
             break
-        if msg.get("frame_id") is not None:
-            frame_ids[msg["frame_id"]] = FoldedFrame(record.index, payload_digest(record.payload), report)
+        if msg.get("frame_id") is not None:  # a frame the checkpoint names was rewritten by a correction: its digest stays
+            known = frame_ids.get(msg["frame_id"])
+            digest = known.digest if known is not None else payload_digest(record.payload)
+            frame_ids[msg["frame_id"]] = FoldedFrame(record.index, digest, report)
     return Restored(scene, frame_log, snapshot_frames, frame_ids)
 
 

@@ -187,6 +187,14 @@ class Scene:
                         (list(self._keyframes.indices), self._keyframes.frames()),
                         (self._density_sum, self._density_frames))
 
+    def keep_undo(self, depth: int) -> None:
+        """Keep undo records of the next ``depth`` folds from now on (0: none); the records kept so far
+        are dropped (a loaded snapshot has none)."""
+        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 0:
+            raise ValueError(f"undo_depth: expected a non-negative integer, got {depth!r}")
+        with self._lock:
+            self._undo = UndoRing(depth)
+
     @property
     def undo_floor(self) -> int:
         """The smallest frame count `rollback` can return the scene to (``frames`` when none)."""
@@ -310,7 +318,7 @@ class Scene:
         base = Scene.from_bytes(self._checkpoints[start]) if start else None
         checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
         if base is not None:
-            base._undo = UndoRing(self._undo.depth)
+            base.keep_undo(self._undo.depth)
         scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints,
                                self._undo.depth)
         self._adopt(scene)
