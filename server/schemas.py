@@ -31,13 +31,21 @@ def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:
 
 # The settings a client may choose, generated from SceneConfig (types, bounds, defaults, docs); the
 # evaluation-only groups are left out, so they are unknown fields here (422).
-SessionCreate = public_model("SessionCreate", doc="Scene settings of a new session (canonical_core.SceneConfig "
-                             "without its research group); voxel_size is required.")
+SessionCreate = create_model(
+    "SessionCreate", __base__=public_model("SessionSettings", doc="Scene settings of a new session"),
+    __doc__="Scene settings of a new session (canonical_core.SceneConfig without its research group; voxel_size "
+            "is required) and its frame archive's retention.",
+    archive_retention=(Literal["all", "keyframes", "none"] | None, Field(
+        None, description="which frames the session keeps for pose corrections and frame removal: all, keyframes "
+                          "(one in five) or none (corrections are refused); default: the service's "
+                          "CANONICAL_ARCHIVE_RETENTION")))
 
 
 class SessionCreated(BaseModel):
     id: str
     config: dict[str, Any]
+    archive_retention: Literal["all", "keyframes", "none"] = Field(
+        "all", description="which frames the session keeps for pose corrections and frame removal")
 
 
 class SessionSummary(BaseModel):
@@ -45,6 +53,8 @@ class SessionSummary(BaseModel):
     frames: int | None = Field(description="None while the session is unavailable")
     voxels: int | None
     created: float
+    archive_retention: Literal["all", "keyframes", "none"] | None = Field(
+        None, description="which frames the session keeps for pose corrections (None while unavailable)")
     state: Literal["ok", "read_only", "unavailable"] = Field(
         "ok", description="read_only: its log cannot take frames until a restart; unavailable: its files need "
                           "`canonical repair` (or a backup), it is not served")
@@ -56,8 +66,6 @@ class SessionList(BaseModel):
 
 
 class SessionStats(SessionSummary):
-    archive_retention: Literal["all", "keyframes", "none"] = Field(
-        "none", description="which frames the session keeps for pose corrections and frame removal")
     archive_bytes: int = Field(0, description="bytes of the frame archive on disk (compressed frames and corrections)")
     archive_frames: int = Field(0, description="frames whose content the archive keeps")
     archive_problem: str | None = Field(None, description="why the archive cannot serve corrections, if it cannot")

@@ -51,7 +51,7 @@ from canonical_core.scene import FoldReport, Scene
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
 
 from . import wire
-from .archive import ARCHIVE, Retention, SessionArchive
+from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
@@ -436,9 +436,13 @@ class Session:
         g = scene.gaussians(max_gaussians)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
 
+    @property
+    def retention(self) -> str:
+        return self.archive.retention if self.archive is not None else "none"
+
     def summary(self) -> dict:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
-                "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
+                "archive_retention": self.retention, "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
 
     def stats(self) -> dict:
         gaussians = len(self.gaussians()[0])  # a decode if none is cached, outside the scene's lock
@@ -447,7 +451,7 @@ class Session:
             stats = self.scene.stats()
             archive = self.archive
             return {
-                "archive_retention": archive.retention if archive is not None else "none",
+                "archive_retention": self.retention,
                 "archive_bytes": archive.nbytes() if archive is not None else 0,
                 "archive_frames": sum(e.kept for e in archive.entries) if archive is not None else 0,
                 "archive_problem": archive.problem if archive is not None else None,
@@ -628,7 +632,7 @@ class SessionStore:
     def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None,
                  retention: Retention = "all"):
         self.data_dir = Path(data_dir)
-        self.retention = retention  # the frame archive's retention of sessions created from now on
+        self.retention = retention  # the frame archive's retention of sessions created without one
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -738,7 +742,11 @@ class SessionStore:
                 os.close(self._dir_lock)
                 self._dir_lock = None
 
-    def create(self, config: SceneConfig) -> Session:
+    def create(self, config: SceneConfig, retention: Retention | None = None) -> Session:
+        """A new, empty session; ``retention``: its frame archive's (None: the store's default)."""
+        retention = self.retention if retention is None else retention
+        if retention not in RETENTIONS:
+            raise ValueError(f"archive_retention: expected one of {list(RETENTIONS)}, got {retention!r}")
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
@@ -746,11 +754,11 @@ class SessionStore:
             path = self.root / session_id
             created = time.time()
             meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict(),
-                    "archive_retention": self.retention}
+                    "archive_retention": retention}
             try:
                 path.mkdir()
                 frame_log = FrameLog(path / LOG)
-                archive = SessionArchive(path / ARCHIVE, self.retention) if self.retention != "none" else None
+                archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
                 write_atomic(path / META, json.dumps(meta, indent=1).encode())
             except OSError as exc:
                 shutil.rmtree(path, ignore_errors=True)

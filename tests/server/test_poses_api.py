@@ -5,6 +5,7 @@ commit point, and bad input changes nothing."""
 from __future__ import annotations
 
 import threading
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -106,6 +107,9 @@ def test_frames_without_ids_are_named_by_arrival_index(api, few):
     ({"poses": {"F": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}, "poses.F.0"),  # 3x3
     ({"poses": {"F": "eye"}}, "poses.F"),
     ({"remove": ["nope"]}, "frames.nope"),
+    ({"poses": {"odd key: ü": np.eye(4).tolist()}}, "poses.odd key: ü"),  # keys the message alone cannot delimit
+    ({"remove": ["a: b"]}, "frames.a: b"),
+    ({"remove": [""]}, "frames."),
     ({}, "poses"),
     ({"poses": {}, "extra": 1}, "extra"),
 ])
@@ -119,6 +123,47 @@ def test_bad_corrections_name_the_field_and_change_nothing(service, api, few, bo
     assert r.status_code == 422, r.text
     assert r.json()["error"]["field"] == field
     assert session.digest()["sha256"] == before
+
+
+def test_errors_name_frame_keys_with_any_character(service, api, few):
+    """A frame_id holding spaces, colons or non-ASCII: every error of /poses and DELETE /frames names
+    ``poses.<key>`` or ``frames.<key>`` exactly, and nothing changes."""
+    key = "shelf: frame #1 ü"
+    session = streamed(api, [few[0], {**few[1], "frame_id": key}])
+    before = session.digest()["sha256"]
+    for bad, field in ((np.diag([2.0, 1, 1, 1]), f"poses.{key}"), (np.full((4, 4), np.nan), f"poses.{key}")):
+        r = httpx.post(f"{service.url}/v1/sessions/{session.id}/poses",
+                       content='{"poses": {"%s": %s}}' % (key, str(bad.tolist()).replace("nan", "NaN")),
+                       headers={"content-type": "application/json"}, timeout=60)
+        assert r.status_code == 422 and r.json()["error"]["field"] == field, r.text
+    r = httpx.delete(f"{service.url}/v1/sessions/{session.id}/frames/{quote(key + ' x', safe='')}", timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == f"frames.{key} x", r.text
+    assert session.digest()["sha256"] == before
+    session.remove_frame(key)  # the odd key itself names the frame
+    assert session.digest()["sha256"] == streamed(api, few[:1]).digest()["sha256"]
+
+
+def test_retention_is_chosen_per_session(service, api, few):
+    """``archive_retention`` at creation overrides the service's default, shows in the session's info,
+    and a bad value is a 422 naming it that creates nothing."""
+    none = streamed(api, few[:2], archive_retention="none")
+    keyframes = api.create_session(voxel_size=VOXEL, archive_retention="keyframes")
+    default = api.create_session(voxel_size=VOXEL)
+    assert [s.stats()["archive_retention"] for s in (none, keyframes, default)] == ["none", "keyframes", "all"]
+    listed = {s["id"]: s["archive_retention"] for s in api.sessions()}
+    assert listed[none.id] == "none" and listed[keyframes.id] == "keyframes"
+    with pytest.raises(CanonicalError) as info:
+        none.update_poses({few[0]["frame_id"]: few[0]["c2w"]})
+    assert info.value.status == 409 and info.value.field == "archive_retention"
+    count = len(api.sessions())
+    for bad in ("some", 3, None):
+        r = httpx.post(f"{service.url}/v1/sessions", json={"voxel_size": VOXEL, "archive_retention": bad}, timeout=60)
+        if bad is None:  # null: the service's default
+            assert r.status_code == 201 and r.json()["archive_retention"] == "all", r.text
+            count += 1
+            continue
+        assert r.status_code == 422 and r.json()["error"]["field"] == "archive_retention", r.text
+    assert len(api.sessions()) == count
 
 
 def test_nan_pose_is_refused(service, api, few):
