@@ -140,6 +140,8 @@ class PosesRequest(BaseModel):
 
     poses: dict[str, Matrix4] = Field(default_factory=dict, description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
     remove: list[str] = Field(default_factory=list, description="frame keys to remove")
+    wait: bool = Field(True, description="answer once the scene is corrected (200), unless the re-fold is long "
+                                         "(then 202 and a status to poll); false: always 202 at once")
 
 
 class Correction(BaseModel):
@@ -149,3 +151,18 @@ class Correction(BaseModel):
     corrected: int = Field(description="frames given a new pose")
     removed: int = Field(description="frames removed on request")
     dropped: int = Field(description="frames the archive did not keep (retention 'keyframes'), left out of the re-fold")
+    state: Literal["pending", "running", "done", "failed"] = Field(
+        "done", description="done; or, in a 202 answer, pending: the scene re-folds in the background")
+    correction_id: str | None = Field(None, description="a background correction's id (GET .../corrections/{id})")
+
+
+class CorrectionStatus(BaseModel):
+    """A background correction: the old scene is served until ``state`` is done, then the corrected one."""
+
+    correction_id: str
+    state: Literal["pending", "running", "done", "failed"] = Field(
+        description="failed: the old scene is still served and the session is read-only; a restart retries")
+    refolded: int = Field(description="frames re-folded so far")
+    total: int = Field(description="frames to re-fold, including those that arrived meanwhile")
+    error: str | None = None
+    result: Correction | None = Field(None, description="what the correction did, once done")

@@ -132,3 +132,56 @@ def test_a_correction_of_recent_frames_rolls_back_in_place_and_survives_a_restar
         assert restored.digest()["sha256"] == digest
     finally:
         again.close()
+
+
+def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_path, shelf, monkeypatch):
+    """``wait=False``: the correction is archived and answered at once; frames sent while it re-folds
+    fold into the served (old) scene, and the re-fold catches up on them before the swap, so the
+    corrected scene equals the corrected stream folded afresh; a second correction meanwhile is refused."""
+    import threading
+    import time
+
+    from server.store import CorrectionRefused
+
+    started, gate = threading.Event(), threading.Event()
+    real = store_module.counted
+
+    def gated(frames, job):  # the background re-fold waits here until the frames below have arrived
+        started.set()
+        gate.wait(120)
+        yield from real(frames, job)
+
+    monkeypatch.setattr(store_module, "counted", gated)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
+    done = session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, [shelf[1]["frame_id"]], wait=False)
+    assert done["state"] == "pending" and done["frames"] == 5
+    assert started.wait(120)
+    for kwargs in shelf[5:]:  # folded into the old scene meanwhile, not refused
+        session.add_frame(*payload(kwargs), 1000, 3600)
+    old = streamed(store, [{**kw, "c2w": shift @ kw["c2w"]} for kw in shelf[:5]] + shelf[5:]).digest()["sha256"]
+    assert session.digest()["sha256"] == old
+    with pytest.raises(CorrectionRefused, match=done["correction_id"]):
+        session.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})
+    assert session.correction_status(done["correction_id"])["state"] == "running"
+    gate.set()
+    for _ in range(600):
+        status = session.correction_status(done["correction_id"])
+        if status["state"] != "running":
+            break
+        time.sleep(0.2)
+    assert status["state"] == "done" and status["refolded"] == status["total"] == len(shelf) - 1, status
+    assert status["result"]["frames"] == len(shelf) - 1
+    expected = streamed(store, shelf[:1] + shelf[2:]).digest()["sha256"]
+    assert session.digest()["sha256"] == expected
+    again = reopened(store, tmp_path)
+    try:
+        assert again.get(session.id).digest()["sha256"] == expected
+        assert again.get(session.id).correction_status(done["correction_id"])["state"] == "done"
+        with pytest.raises(KeyError):
+            again.get(session.id).correction_status("nope")
+    finally:
+        again.close()
