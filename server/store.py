@@ -320,7 +320,8 @@ class Session:
             first = min(set(changed) | removed | dropped)
             done = {"id": self.id, "corrected": len(set(changed) - removed), "removed": len(removed),
                     "dropped": len(dropped), "frames_before": self.scene.frames, "state": "done", "correction_id": None}
-            if wait and first >= self.scene.undo_floor and all(e.kept for e in entries[first:]):
+            short = len(entries) - first <= self.background_frames
+            if wait and short and first >= self.scene.undo_floor and all(e.kept for e in entries[first:]):
                 self._correct_in_place(archive, entries, changed, removed | dropped, first)
                 return {**done, "frames": self.scene.frames}
             bases = self._bases(archive, first)

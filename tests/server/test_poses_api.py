@@ -270,3 +270,45 @@ def test_correction_racing_a_fold_is_refused_or_ordered(api, frames):
     else:
         expected = frames[:9]
     assert session.digest()["sha256"] == streamed(api, expected).digest()["sha256"]
+
+
+def test_long_corrections_refold_in_the_background_and_a_restart_finishes_them(tmp_path, few, capsys):
+    """With corrections of more than 2 frames in the background: POST /poses answers 202, the SDK polls
+    to the result and the CLI shows progress; a kill -9 right after the 202 restarts corrected, and
+    the status then says done."""
+    from client import cli
+
+    data = tmp_path / "data"
+    proc = ServerProcess(data, tmp_path / "server.log", snapshot_every_seconds=3600, correction_background_frames=2,
+                         warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            clean = streamed(c, few).digest()["sha256"]
+            polled = streamed(c, drifted(few))
+            seen = []
+            done = polled.update_poses({kw["frame_id"]: kw["c2w"] for kw in few}, progress=seen.append)
+            assert done["state"] == "done" and done["corrected"] == len(few) and polled.digest()["sha256"] == clean
+            assert seen and seen[0]["state"] in ("pending", "running") and seen[-1]["state"] == "done"
+            assert polled.correction(seen[0]["correction_id"])["result"]["frames"] == len(few)
+            with pytest.raises(CanonicalError) as info:
+                polled.correction("nope")
+            assert info.value.status == 404 and info.value.field == "correction_id"
+            shown = streamed(c, drifted(few))
+            path = tmp_path / "true.txt"
+            path.write_text("".join(f"{kw['frame_id']} " + " ".join(map(repr, kw["c2w"].reshape(16).tolist())) + "\n"
+                                    for kw in few))
+            assert cli.main(["poses", str(path), "--session", shown.id, "--url", proc.url]) == 0
+            assert "frames re-folded" in capsys.readouterr().err and shown.digest()["sha256"] == clean
+            killed = streamed(c, drifted(few))
+            status = killed.update_poses({kw["frame_id"]: kw["c2w"] for kw in few}, wait=False)
+            assert status["state"] in ("pending", "running", "done") and status["correction_id"]
+    finally:
+        proc.kill9()
+    proc = ServerProcess(data, tmp_path / "server2.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            session = c.session(killed.id)
+            assert session.digest()["sha256"] == clean
+            assert session.correction(status["correction_id"])["state"] == "done"
+    finally:
+        proc.kill9()
