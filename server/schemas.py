@@ -71,6 +71,8 @@ class SessionStats(SessionSummary):
     archive_problem: str | None = Field(None, description="why the archive cannot serve corrections, if it cannot")
     gaussians: int
     memory_bytes: int
+    undo_bytes: int = Field(0, description="bytes of the undo records of the last folds, which make corrections of "
+                                           "recent frames cheap (beside memory_bytes)")
     disk_bytes: int
     label_dim: int
     snapshot_frames: int

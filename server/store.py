@@ -337,7 +337,6 @@ class Session:
                                  name=f"correction-{job.id}", daemon=True).start()
                 return answer
         scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
-        scene.keep_undo(UNDO_DEPTH)
         with self.lock:
             self._check_alive()
             if self.version != version:
@@ -400,7 +399,6 @@ class Session:
 
     def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive) -> None:
         """The background re-fold's scene becomes the served one (the caller holds the lock)."""
-        scene.keep_undo(UNDO_DEPTH)
         self.scene, self.version = scene, self.version + 1
         self.frame_ids = archived_frame_ids(archive, self.frame_ids)
         self.background = None
@@ -500,7 +498,9 @@ class Session:
         if job is not None:
             job.total = len(entries) - len(removed) - start
             stream = counted(stream, job)
-        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
+        if base is not None:
+            base.keep_undo(UNDO_DEPTH)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints, UNDO_DEPTH), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
         """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
@@ -567,6 +567,7 @@ class Session:
                 **self.summary(),
                 "gaussians": gaussians,
                 "memory_bytes": stats["memory_bytes"],
+                "undo_bytes": self.scene.undo_bytes(),
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "snapshot_frames": self.snapshot_frames,

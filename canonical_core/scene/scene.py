@@ -476,6 +476,11 @@ class Scene:
     def memory_bytes(self) -> int:
         return int(self._voxels.nbytes() + self._keyframes.nbytes() + self._decoding.nbytes())
 
+    def undo_bytes(self) -> int:
+        """Bytes of the undo records kept for `rollback` (not in `memory_bytes`)."""
+        with self._lock:
+            return self._undo.nbytes()
+
     def bytes_per_voxel(self) -> float:
         """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes
         per stored voxel (row slack reserved for growth is excluded; `memory_bytes` includes it)."""

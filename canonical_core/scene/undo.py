@@ -71,7 +71,9 @@ class FoldUndo:
     history: list[tuple] = field(default_factory=list)  # per history push, in order (`history_slot`)
 
     def nbytes(self) -> int:
-        return int(self.free.nbytes + sum(r.rows.nbytes + r.index.nbytes for r in self.rows))
+        rows = sum(r.index.nbytes + r.rows.nbytes + r.rep_rgb.nbytes + r.n_obs.nbytes for r in self.rows)
+        history = sum(a.nbytes for *_, slot in self.history for a in slot.values())
+        return int(self.free.nbytes + rows + history)
 
 
 def history_slot(history: SeeThroughHistory) -> tuple:

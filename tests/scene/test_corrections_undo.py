@@ -49,7 +49,7 @@ def test_rollback_reaches_back_undo_depth_folds_only():
     scene = Scene(CONFIG, undo_depth=3)
     for frame in frames:
         scene.fold(frame)
-    assert scene.undo_floor == 5
+    assert scene.undo_floor == 5 and scene.undo_bytes() > 0 and Scene(CONFIG).undo_bytes() == 0
     with pytest.raises(ValueError, match=r"^frames: the undo records reach back to 5 frames"):
         scene.rollback(4)
     assert scene.digest() == fold(frames).digest()  # refused: nothing changed

@@ -63,6 +63,7 @@ def test_correction_equals_streaming_the_true_poses(api, few):
     assert session.digest()["sha256"] == clean
     stats = session.stats()
     assert stats["archive_retention"] == "all" and stats["archive_frames"] == len(few) and stats["archive_bytes"] > 0
+    assert stats["undo_bytes"] > 0  # the re-fold's folds can be rolled back again
 
 
 def test_removal_equals_streaming_the_rest(api, frames):
