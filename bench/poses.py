@@ -3,10 +3,12 @@ and 100 frames and of the whole session, against re-streaming the session; the a
 
     python bench/poses.py [--data ../shared/data/hololens_office] [--scale 0.5] [--voxel 0.03] [--checkpoint-every 25]
 
-A correction re-folds the corrected stream from the last exact state before the first frame it
-touches (a library checkpoint, or the service's snapshot), so its cost depends on where its frames
-are: the most recent k frames cost about k folds plus the folds since that state; k frames spread
-over the session (a loop closure) cost a re-fold of nearly all of it. Both are measured, in-process
+A correction re-folds the corrected stream from an exact state before the first frame it touches,
+so its cost depends on where its frames are: the most recent k frames (among the last folds' undo
+records) cost about k folds, rolled back in place; k frames spread over the session (a loop
+closure) cost a re-fold of nearly all of it from a saved state (a library checkpoint, or the
+service's snapshot), which the service runs in the background past its threshold (the SDK polls
+its status every half second until it is done). Both are measured, in-process
 (`Scene.update_poses`) and over HTTP (`POST /v1/sessions/{id}/poses`, a real service started here),
 next to re-streaming every frame. Prints tables and the machine they ran on; never asserts timings.
 """

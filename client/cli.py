@@ -396,8 +396,12 @@ def run_poses(args) -> int:
         print("poses: give a pose file, --remove, or both", file=sys.stderr)
         return 2
     poses = read_pose_file(args.poses) if args.poses else {}
+    def progress(status: dict) -> None:  # a long re-fold runs in the service's background: show how far it is
+        print(f"correction {status['correction_id']}: {status['state']}, {status['refolded']} of {status['total']} "
+              "frames re-folded", file=sys.stderr)
+
     with _client(args) as client:
-        done = client.session(args.session).update_poses(poses, remove=args.remove)
+        done = client.session(args.session).update_poses(poses, remove=args.remove, progress=progress)
     print(f"session {done['id']}: {done['corrected']} poses corrected, {done['removed']} frames removed"
           + (f", {done['dropped']} not archived dropped" if done["dropped"] else "") + f"; it holds {done['frames']} frames")
     return 0

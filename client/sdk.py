@@ -77,19 +77,47 @@ class Session:
         body = pack(msg)
         return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
 
-    def update_poses(self, poses: dict, remove=()) -> dict:
+    def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
         re-fold of the session's archived frames. A key is a frame's ``frame_id``, or its arrival
-        index for frames sent without one. Returns what changed (frames, corrected, removed, ...)."""
-        body = {"poses": {str(k): _matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove]}
+        index for frames sent without one. Returns what changed (frames, corrected, removed, ...).
+
+        A long re-fold runs in the service's background (it answers 202): with ``wait`` this polls its
+        status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
+        without, the service answers at once and this returns the status (``correction_id``, ``state``;
+        see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
+        body = {"poses": {str(k): _matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove],
+                "wait": bool(wait)}
         for k, c2w in body["poses"].items():
             if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
                 raise ValueError(f"poses.{k}: contains NaN or inf")
-        return self.client._request("POST", f"{self._path}/poses", json=body).json()
+        return self._finished(self.client._request("POST", f"{self._path}/poses", json=body), wait, progress, poll)
 
-    def remove_frame(self, frame_id) -> dict:
-        """Remove one frame (its ``frame_id`` or arrival index) from the session's scene."""
-        return self.client._request("DELETE", f"{self._path}/frames/{quote(str(frame_id), safe='')}").json()
+    def remove_frame(self, frame_id, wait: bool = True, progress=None, poll: float = 0.5) -> dict:
+        """Remove one frame (its ``frame_id`` or arrival index) from the session's scene (``wait``,
+        ``progress``, ``poll``: as for `update_poses`)."""
+        r = self.client._request("DELETE", f"{self._path}/frames/{quote(str(frame_id), safe='')}")
+        return self._finished(r, wait, progress, poll)
+
+    def correction(self, correction_id: str) -> dict:
+        """A background correction's status: ``state`` (pending, running, done, failed), ``refolded``
+        of ``total`` frames, and once done its ``result``."""
+        return self.client._request("GET", f"{self._path}/corrections/{quote(correction_id, safe='')}").json()
+
+    def _finished(self, r: httpx.Response, wait: bool, progress, poll: float) -> dict:
+        """A correction's answer: as it came (200, or 202 without ``wait``), else its polled result."""
+        status = r.json()
+        if r.status_code != 202 or not wait:
+            return status
+        while True:
+            if progress is not None:
+                progress(status)
+            if status["state"] == "done":
+                return status["result"]
+            if status["state"] == "failed":
+                raise CanonicalError(409, "correction_failed", status["error"] or "the re-fold failed", "correction_id")
+            time.sleep(poll)
+            status = self.correction(status["correction_id"])
 
     def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
                colour: str | None = None) -> dict:

@@ -10,7 +10,8 @@ Each payload is a msgpack map of one of two kinds:
   compressed (`compress_message`: an 8-bit colour array becomes a PNG, the whole map is then
   zlib-compressed), or None where the retention setting did not keep it;
 - a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
-  "first": the stream position of the first frame it touches}``.
+  "first": the stream position of the first frame it touches, "id": the id of a background
+  correction or None}``.
 
 The archive's state is the replay of its records in order: the frames the scene holds, in fold
 order, each with its current pose. A frame is archived before it is logged and folded (a crash in
@@ -80,6 +81,7 @@ class SessionArchive:
         self.poses: dict[int, list[float]] = {}  # arrival -> corrected c2w (16 numbers)
         self.corrections = 0
         self.firsts: list[int] = []  # per correction: the stream position of the first frame it touched
+        self.correction_ids: set[str] = set()  # of the background corrections archived
         self.next_arrival = 0
         self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
         self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
@@ -110,6 +112,8 @@ class SessionArchive:
         self.entries = [e for e in self.entries if e.arrival not in gone]
         self.poses = {a: p for a, p in self.poses.items() if a not in gone} | {int(a): p for a, p in body["poses"].items()}
         self.firsts.append(body.get("first", 0))
+        if body.get("id") is not None:
+            self.correction_ids.add(body["id"])
         self.corrections += 1
 
     def refs(self) -> list[FrameRef]:
@@ -121,6 +125,11 @@ class SessionArchive:
     def frames(self, entries: list[Entry]) -> Iterator[Frame | None]:
         """The frames of ``entries`` in order, each with its current pose (None where not kept); lazy,
         so a re-fold holds one decoded frame at a time."""
+        for msg in self.messages(entries):
+            yield None if msg is None else wire.frame_from_message(msg)
+
+    def messages(self, entries: list[Entry]) -> Iterator[dict | None]:
+        """The wire messages of ``entries`` in order, each with its current pose (None where not kept)."""
         for e in entries:
             if not e.kept:
                 yield None
@@ -128,7 +137,7 @@ class SessionArchive:
             msg = decompress_message(os.pread(self._fd, e.length, e.offset))
             if e.arrival in self.poses:
                 msg["c2w"] = np.asarray(self.poses[e.arrival], np.float64).reshape(4, 4).tolist()
-            yield wire.frame_from_message(msg)
+            yield msg
 
     # -- writing ----------------------------------------------------------------------------------
     def keeps(self, arrival: int) -> bool:
@@ -141,11 +150,13 @@ class SessionArchive:
                 "message": compress_message(message) if self.keeps(arrival) else None}
         self._append(msgpack.packb(body))
 
-    def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0) -> None:
+    def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0,
+                          correction_id: str | None = None) -> None:
         """Archive a correction (fsynced): the commit point of `Session.correct`. ``first``: the stream
-        position of the first frame it touches (the states of the frames before it stay valid)."""
+        position of the first frame it touches (the states of the frames before it stay valid);
+        ``correction_id``: a background correction's id, by which a restart knows it done."""
         body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},
-                "removed": sorted(removed), "first": first}
+                "removed": sorted(removed), "first": first, "id": correction_id}
         self._append(msgpack.packb(body))
 
     def _append(self, payload: bytes) -> None:

@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from canonical_core.scene import CapacityError
+from canonical_core.scene.corrections import FieldError
 
 from .store import FrameIdConflict, SessionNotFound, SessionUnavailable, StorageError, TooManySessions
 from .wire import WireError
@@ -51,7 +52,7 @@ def from_value_error(exc: ValueError) -> ApiError:
         return ApiError(409, "capacity", message, field_of(message) or "max_voxels")
     if isinstance(exc, FrameIdConflict):
         return ApiError(409, "frame_id_conflict", message, "frame_id")
-    return ApiError(422, "invalid_value", message, field_of(message))
+    return ApiError(422, "invalid_value", message, exc.field if isinstance(exc, FieldError) else field_of(message))
 
 
 def _validation_field(loc) -> str:

@@ -163,14 +163,14 @@ class FrameLog:
         # and reset then runs inside ``lease.held()``, which raises `Fenced` once another owner took it
         self.lease = None
 
-    def append(self, index: int, payload: bytes) -> int:
-        """Append one frame record and fsync it; returns its offset. On failure the partial record is
-        cut off at once and `StorageError` raised; if even that fails, `LogWedged` (the file's tail is
-        unknown until a restart reads it again). With a `lease`, `Fenced` when another owner took the
-        session: nothing is written."""
+    def append(self, index: int, payload: bytes, checkpoint: bool = False) -> int:
+        """Append one frame record (or a checkpoint) and fsync it; returns its offset. On failure the
+        partial record is cut off at once and `StorageError` raised; if even that fails, `LogWedged`
+        (the file's tail is unknown until a restart reads it again). With a `lease`, `Fenced` when
+        another owner took the session: nothing is written."""
         with self.fenced():
             offset = os.fstat(self._fd).st_size
-            data = encode(index, payload)
+            data = encode(index, payload, checkpoint)
             try:
                 view = memoryview(data)
                 while view:

@@ -31,13 +31,21 @@ def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:
 
 # The settings a client may choose, generated from SceneConfig (types, bounds, defaults, docs); the
 # evaluation-only groups are left out, so they are unknown fields here (422).
-SessionCreate = public_model("SessionCreate", doc="Scene settings of a new session (canonical_core.SceneConfig "
-                             "without its research group); voxel_size is required.")
+SessionCreate = create_model(
+    "SessionCreate", __base__=public_model("SessionSettings", doc="Scene settings of a new session"),
+    __doc__="Scene settings of a new session (canonical_core.SceneConfig without its research group; voxel_size "
+            "is required) and its frame archive's retention.",
+    archive_retention=(Literal["all", "keyframes", "none"] | None, Field(
+        None, description="which frames the session keeps for pose corrections and frame removal: all, keyframes "
+                          "(one in five) or none (corrections are refused); default: the service's "
+                          "CANONICAL_ARCHIVE_RETENTION")))
 
 
 class SessionCreated(BaseModel):
     id: str
     config: dict[str, Any]
+    archive_retention: Literal["all", "keyframes", "none"] = Field(
+        "all", description="which frames the session keeps for pose corrections and frame removal")
 
 
 class SessionSummary(BaseModel):
@@ -45,6 +53,8 @@ class SessionSummary(BaseModel):
     frames: int | None = Field(description="None while the session is unavailable")
     voxels: int | None
     created: float
+    archive_retention: Literal["all", "keyframes", "none"] | None = Field(
+        None, description="which frames the session keeps for pose corrections (None while unavailable)")
     state: Literal["ok", "read_only", "unavailable"] = Field(
         "ok", description="read_only: its log cannot take frames until a restart; unavailable: its files need "
                           "`canonical repair` (or a backup), it is not served")
@@ -56,13 +66,13 @@ class SessionList(BaseModel):
 
 
 class SessionStats(SessionSummary):
-    archive_retention: Literal["all", "keyframes", "none"] = Field(
-        "none", description="which frames the session keeps for pose corrections and frame removal")
     archive_bytes: int = Field(0, description="bytes of the frame archive on disk (compressed frames and corrections)")
     archive_frames: int = Field(0, description="frames whose content the archive keeps")
     archive_problem: str | None = Field(None, description="why the archive cannot serve corrections, if it cannot")
     gaussians: int
     memory_bytes: int
+    undo_bytes: int = Field(0, description="bytes of the undo records of the last folds, which make corrections of "
+                                           "recent frames cheap (beside memory_bytes)")
     disk_bytes: int
     label_dim: int
     snapshot_frames: int
@@ -132,6 +142,8 @@ class PosesRequest(BaseModel):
 
     poses: dict[str, Matrix4] = Field(default_factory=dict, description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
     remove: list[str] = Field(default_factory=list, description="frame keys to remove")
+    wait: bool = Field(True, description="answer once the scene is corrected (200), unless the re-fold is long "
+                                         "(then 202 and a status to poll); false: always 202 at once")
 
 
 class Correction(BaseModel):
@@ -141,3 +153,18 @@ class Correction(BaseModel):
     corrected: int = Field(description="frames given a new pose")
     removed: int = Field(description="frames removed on request")
     dropped: int = Field(description="frames the archive did not keep (retention 'keyframes'), left out of the re-fold")
+    state: Literal["pending", "running", "done", "failed"] = Field(
+        "done", description="done; or, in a 202 answer, pending: the scene re-folds in the background")
+    correction_id: str | None = Field(None, description="a background correction's id (GET .../corrections/{id})")
+
+
+class CorrectionStatus(BaseModel):
+    """A background correction: the old scene is served until ``state`` is done, then the corrected one."""
+
+    correction_id: str
+    state: Literal["pending", "running", "done", "failed"] = Field(
+        description="failed: the old scene is still served and the session is read-only; a restart retries")
+    refolded: int = Field(description="frames re-folded so far")
+    total: int = Field(description="frames to re-fold, including those that arrived meanwhile")
+    error: str | None = None
+    result: Correction | None = Field(None, description="what the correction did, once done")

@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     archive_retention: Literal["all", "keyframes", "none"] = Field("all", description=(
         "the frames new sessions keep for pose corrections and frame removal: all, keyframes (one in five; a "
         "correction then re-folds those alone) or none (corrections get 409)"))
+    correction_background_frames: int = Field(64, ge=0, description=(
+        "a pose correction that would re-fold more frames than this re-folds in the background: POST /poses "
+        "answers 202 and the client polls its status"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")

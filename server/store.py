@@ -51,7 +51,7 @@ from canonical_core.scene import FoldReport, Scene
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
 
 from . import wire
-from .archive import ARCHIVE, Retention, SessionArchive
+from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
@@ -60,6 +60,8 @@ log = logging.getLogger("canonical.store")
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
 BASE_EVERY = 25  # a correction keeps the state at the last multiple of this below its frame count
+UNDO_DEPTH = 32  # folds an archived session's scene can roll back in place (`Scene.rollback`)
+BACKGROUND_FRAMES = 64  # default: a correction that would re-fold more frames re-folds in the background
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
 
@@ -124,6 +126,22 @@ class FoldedFrame:
     report: dict | None
 
 
+@dataclass
+class CorrectionJob:
+    """A correction re-folding in the background (`Session.correct`), as its status reports it."""
+
+    id: str
+    total: int  # frames to re-fold (grows with the frames that arrive meanwhile)
+    state: str = "pending"  # pending, running, done, failed
+    refolded: int = 0
+    error: str | None = None
+    result: dict | None = None
+
+    def status(self) -> dict:
+        return {"correction_id": self.id, "state": self.state, "refolded": self.refolded, "total": self.total,
+                "error": self.error, "result": self.result}
+
+
 class Restored(NamedTuple):
     scene: Scene
     log: FrameLog
@@ -150,6 +168,18 @@ class Session:
     snapshot_retry_at: float = 0.0  # monotonic time before which a fold does not retry a failed snapshot
     archive: SessionArchive | None = None  # the kept frames (None: retention "none")
     version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
+    background: CorrectionJob | None = None  # the correction re-folding in the background, if one is
+    background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
+    jobs: dict[str, CorrectionJob] = field(default_factory=dict)  # background corrections since the start
+
+    def __post_init__(self):
+        self._keep_undo()
+
+    def _keep_undo(self) -> None:
+        """Sessions that can be corrected keep undo records of their last folds: a correction of
+        recent frames then rolls the served scene back and re-folds only them (`correct`)."""
+        if self.archive is not None:
+            self.scene.keep_undo(UNDO_DEPTH)
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
@@ -220,7 +250,11 @@ class Session:
 
     def _snapshot(self) -> None:
         """Snapshot, then start the log afresh with a checkpoint. A failure is recorded, not raised: every
-        frame is durable in the log already, and the next due snapshot tries again."""
+        frame is durable in the log already, and the next due snapshot tries again. None while a
+        correction re-folds in the background: its swap snapshots (the saved states it starts from
+        stay as they are, and a restart before it re-folds from the archive)."""
+        if self.background is not None:
+            return
         try:
             write_atomic(self.path / SNAPSHOT, self.scene.to_bytes())
         except OSError as exc:
@@ -239,28 +273,44 @@ class Session:
     def _reload(self) -> None:
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
+        self._keep_undo()
 
     def _corrections(self) -> int:
-        return self.archive.corrections if self.archive is not None else 0
+        """Archived corrections the served scene holds (not one still re-folding in the background)."""
+        if self.archive is None:
+            return 0
+        return self.archive.corrections - (self.background is not None)
 
     # -- corrections ------------------------------------------------------------------------------
-    def correct(self, poses: dict | None = None, remove: list | None = None) -> dict:
+    def correct(self, poses: dict | None = None, remove: list | None = None, wait: bool = True) -> dict:
         """Give archived frames new poses (``{frame key: c2w}``) and/or remove frames (keys as in
         `corrections.resolve_frames`), as one durable step; returns what it did.
 
         The corrected scene is the re-fold of the archived frames, in order, with the corrections
-        applied (`Scene.refolded`): equal to a session that was streamed the corrected frames. It is
-        computed outside the session's lock, so the old scene is served meanwhile; a fold or another
-        correction that lands in the meantime makes it `CorrectionRefused` (409), nothing changed.
-        The correction is archived (fsynced) before the scene is swapped and acknowledged, then the
-        scene is snapshotted and the log restarted; a restart between the two re-folds from the
-        archive (`restore_session`). Bad keys or poses raise ValueError naming ``poses.<key>`` or
-        ``frames.<key>``, nothing changed."""
+        applied (`Scene.refolded`): equal to a session that was streamed the corrected frames.
+
+        A correction whose frames are among the scene's last folds (`UNDO_DEPTH`) rolls the served
+        scene back and re-folds them under the session's lock (`Scene.rollback`): about k folds for
+        the k most recent frames. Any other is computed outside the lock from the latest saved state
+        before its first frame, so the old scene is served meanwhile; a fold or another correction
+        that lands in the meantime makes it `CorrectionRefused` (409), nothing changed.
+
+        The correction is archived (fsynced) before the scene is swapped and acknowledged. Then the
+        files catch up: where the correction leaves the snapshot's frames as they were, the log is
+        rewritten with the corrected frames after them; otherwise the scene is snapshotted and the
+        log restarted. A restart between the two re-folds from the archive (`restore_session`). Bad
+        keys or poses raise ValueError naming ``poses.<key>`` or ``frames.<key>``, nothing changed.
+
+        A correction that would re-fold more than ``background_frames`` frames, or any with ``wait``
+        False, is archived and answered at once (``state`` "pending", a ``correction_id``), and
+        re-folds in the background (`_refold_in_background`); the old scene is served and takes
+        frames meanwhile. Another correction that arrives then is `CorrectionRefused` (409)."""
         with self.lock:
             self._check_alive()
             archive = self._usable_archive()
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+            self._check_no_background()
             refs, entries, version = archive.refs(), list(archive.entries), self.version
             changed = check_poses(poses, refs) if poses else {}
             removed = set(resolve_frames(remove or [], refs, "frames"))
@@ -268,23 +318,148 @@ class Session:
                 raise ValueError("poses: names no frame")
             dropped = {k for k, e in enumerate(entries) if not e.kept} - removed  # retention "keyframes"
             first = min(set(changed) | removed | dropped)
+            done = {"id": self.id, "corrected": len(set(changed) - removed), "removed": len(removed),
+                    "dropped": len(dropped), "frames_before": self.scene.frames, "state": "done", "correction_id": None}
+            short = len(entries) - first <= self.background_frames
+            if wait and short and first >= self.scene.undo_floor and all(e.kept for e in entries[first:]):
+                self._correct_in_place(archive, entries, changed, removed | dropped, first)
+                return {**done, "frames": self.scene.frames}
             bases = self._bases(archive, first)
             appearance = self.scene.appearance
+            start = bases[0][0] if bases else 0
+            # retention "keyframes" re-folds in the request: a frame it does not keep cannot be caught up on
+            if archive.retention == "all" and (not wait or len(entries) - start > self.background_frames):
+                job = CorrectionJob(secrets.token_hex(8), len(entries) - len(removed | dropped) - start)
+                self._commit_correction(archive, entries, changed, removed | dropped, first, job.id)
+                self.background = self.jobs[job.id] = job
+                answer = {**done, "frames": self.scene.frames, "state": job.state, "correction_id": job.id}
+                threading.Thread(target=self._refold_in_background, args=(job, archive, bases, appearance, done),
+                                 name=f"correction-{job.id}", daemon=True).start()
+                return answer
         scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
         with self.lock:
             self._check_alive()
             if self.version != version:
                 raise CorrectionRefused("session_id", "a frame or another correction reached the session while this "
                                                       "correction was computed; send it again")
-            archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
-                                      [entries[k].arrival for k in removed | dropped], first)
-            old = self.scene
-            self.scene, self.version = scene, self.version + 1
-            self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+            self._commit_correction(archive, entries, changed, removed | dropped, first)
+            self.scene = scene
             self._persist_correction()
             self._keep_base(checkpoints)
-            return {"id": self.id, "frames": scene.frames, "corrected": len(set(changed) - removed), "removed": len(removed),
-                    "dropped": len(dropped), "frames_before": old.frames}
+            return {**done, "frames": scene.frames}
+
+    def _commit_correction(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
+                           first: int, job: str | None = None) -> None:
+        """Archive the correction (fsynced: the commit point), and what follows from it in memory (for a
+        background correction ``job``, at its swap)."""
+        archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
+                                  [entries[k].arrival for k in removed], first, job)
+        self.version += 1
+        if job is None:
+            self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+
+    def _check_no_background(self) -> None:
+        job = self.background
+        if job is not None:
+            raise CorrectionRefused("session_id", f"correction {job.id} is still re-folding in the background "
+                                                  f"({job.refolded} of {job.total} frames); send this one when its "
+                                                  "status (GET .../corrections/{id}) says done")
+
+    def _refold_in_background(self, job: CorrectionJob, archive: SessionArchive, bases: list[tuple[int, Path]],
+                              appearance, done: dict) -> None:
+        """Re-fold the archived (corrected) stream from the latest valid saved state, then catch up on
+        the frames that arrived meanwhile, in arrival order, and swap the scene in under the lock once
+        none is left: the result equals the corrected stream folded afresh. A failure leaves the old
+        scene served and the session read-only (the archive holds the correction: a restart retries)."""
+        job.state = "running"
+        try:
+            with self.lock:
+                entries = list(archive.entries)
+            scene, checkpoints = self._refolded(archive, entries, {}, set(), appearance, bases, job)
+            while True:
+                with self.lock:
+                    self._check_alive()
+                    arrived = archive.entries[len(entries):]
+                    if not arrived:
+                        self._swap_in(scene, checkpoints, archive)
+                        job.result = {**done, "frames": scene.frames, "state": "done", "correction_id": job.id}
+                        job.state, self.background = "done", None
+                        return
+                    job.total += len(arrived)
+                for frame in archive.frames(arrived):
+                    scene.fold(frame)
+                    job.refolded += 1
+                entries += arrived
+        except Exception as exc:  # noqa: BLE001 - recorded in the status and the session's state
+            log.exception("session %s: background correction %s failed", self.id, job.id)
+            with self.lock:
+                job.state, job.error, self.background = "failed", f"{type(exc).__name__}: {exc}", None
+                self.wedged = (f"correction {job.id} failed while re-folding ({job.error}); it is in the archive, "
+                               "so a restart retries it")
+
+    def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive) -> None:
+        """The background re-fold's scene becomes the served one (the caller holds the lock)."""
+        self.scene, self.version = scene, self.version + 1
+        self.frame_ids = archived_frame_ids(archive, self.frame_ids)
+        self.background = None
+        self._persist_correction()
+        self._keep_base(checkpoints)
+
+    def correction_status(self, correction_id: str) -> dict:
+        """The status of a background correction; one this process did not start but the archive holds
+        was finished by the restart that replayed it. Raises KeyError for an unknown id."""
+        job = self.jobs.get(correction_id)
+        if job is not None:
+            return job.status()
+        if self.archive is not None and correction_id in self.archive.correction_ids:
+            return {"correction_id": correction_id, "state": "done", "refolded": 0, "total": 0, "error": None,
+                    "result": None}
+        raise KeyError(correction_id)
+
+    def _correct_in_place(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
+                          first: int) -> None:
+        """`correct` for frames among the last folds, under the session's lock: roll the scene back to
+        ``first`` frames, fold the corrected frames after it, then archive the correction. If a fold
+        or the archive write fails, the scene is rolled back again and the old frames re-folded (they
+        folded before), and the error is raised: nothing changed."""
+        scene = self.scene
+
+        def fold_from_first(frames) -> None:
+            scene.rollback(first)
+            for frame in frames:
+                scene.fold(frame)
+
+        tail = entries[first:]
+        try:
+            fold_from_first(corrected_stream(archive.frames(tail), {k - first: c2w for k, c2w in changed.items()},
+                                             {k - first for k in removed}))
+            self._commit_correction(archive, entries, changed, removed, first)
+        except BaseException:
+            fold_from_first(list(archive.frames(tail)))
+            raise
+        if first >= self.snapshot_frames:
+            self._rewrite_log(archive, first)
+        else:
+            self._persist_correction()
+
+    def _rewrite_log(self, archive: SessionArchive, first: int) -> None:
+        """After a correction whose first frame ``first`` comes after the snapshot's: the log's records
+        from that frame on are cut off, the corrected frames appended, then a checkpoint counting the
+        archive's corrections, so a restart (snapshot + log) gives the corrected scene without a new
+        snapshot, and this costs the corrected frames' records only. Until that checkpoint is written
+        the log counts fewer corrections than the archive, and a restart re-folds from the archive
+        (`restore_session`). A failure makes the session read-only until a restart."""
+        found = scan(self.log.path.read_bytes())
+        head = found.records[0].offset if found.records and found.records[0].checkpoint else -1  # the snapshot's
+        after = [r for r in found.records if not r.checkpoint and r.index >= first and r.offset > head]
+        try:
+            self.log.truncate(after[0].offset if after else found.end)
+            for k, msg in enumerate(archive.messages(archive.entries[first:])):
+                self.log.append(first + k, wire.pack(msg))
+            self.log.append(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()), checkpoint=True)
+        except OSError as exc:
+            self.wedged = f"{LOG}: {exc.strerror or exc}; the correction is durable, restart the service to apply it to the files"
+            log.error("session %s: %s", self.id, self.wedged)
 
     def _bases(self, archive: SessionArchive, first: int) -> list[tuple[int, Path]]:
         """Saved states of the stream's first frames that a correction whose first touched frame is
@@ -301,11 +476,12 @@ class Session:
         return sorted(((n, path) for n, path in bases if 0 < n <= first), reverse=True)
 
     def _refolded(self, archive: SessionArchive, entries: list, changed: dict, removed: set, appearance,
-                  bases: list[tuple[int, Path]]) -> tuple[Scene, dict[int, bytes]]:
+                  bases: list[tuple[int, Path]], job: CorrectionJob | None = None) -> tuple[Scene, dict[int, bytes]]:
         """The corrected stream folded, from the latest saved state of its unchanged first frames
         (`_bases`; exact: a snapshot round-trips the state bit for bit), so a correction of recent
         frames costs the folds since that state. Also returns the latest states it started from or
-        passed at multiples of `BASE_EVERY` (frame count -> `Scene.to_bytes`)."""
+        passed at multiples of `BASE_EVERY` (frame count -> `Scene.to_bytes`). With ``job``, counts its
+        progress."""
         start, base, checkpoints = 0, None, LatestStates()
         for frames, path in bases:
             try:
@@ -319,7 +495,12 @@ class Session:
             base = None
         stream = corrected_stream(archive.frames(entries[start:]), {k - start: c2w for k, c2w in changed.items()},
                                   {k - start for k in removed})
-        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
+        if job is not None:
+            job.total = len(entries) - len(removed) - start
+            stream = counted(stream, job)
+        if base is not None:
+            base.keep_undo(UNDO_DEPTH)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints, UNDO_DEPTH), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
         """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
@@ -364,9 +545,13 @@ class Session:
         g = scene.gaussians(max_gaussians)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
 
+    @property
+    def retention(self) -> str:
+        return self.archive.retention if self.archive is not None else "none"
+
     def summary(self) -> dict:
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
-                "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
+                "archive_retention": self.retention, "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
 
     def stats(self) -> dict:
         gaussians = len(self.gaussians()[0])  # a decode if none is cached, outside the scene's lock
@@ -375,13 +560,14 @@ class Session:
             stats = self.scene.stats()
             archive = self.archive
             return {
-                "archive_retention": archive.retention if archive is not None else "none",
+                "archive_retention": self.retention,
                 "archive_bytes": archive.nbytes() if archive is not None else 0,
                 "archive_frames": sum(e.kept for e in archive.entries) if archive is not None else 0,
                 "archive_problem": archive.problem if archive is not None else None,
                 **self.summary(),
                 "gaussians": gaussians,
                 "memory_bytes": stats["memory_bytes"],
+                "undo_bytes": self.scene.undo_bytes(),
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "snapshot_frames": self.snapshot_frames,
@@ -394,6 +580,13 @@ class Session:
         with self.lock:
             self._check_alive()
             return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "sha256": self.scene.digest()}
+
+
+def counted(frames, job: CorrectionJob):
+    """``frames``, counting each one in ``job.refolded`` as the re-fold takes the next."""
+    for frame in frames:
+        yield frame
+        job.refolded += 1
 
 
 class LatestStates(dict):
@@ -522,8 +715,10 @@ def restore_scene(path: Path, config: SceneConfig) -> Restored:
             log.warning("%s: dropping the unacknowledged last log record (frame %d): %s", path, record.index, exc)
             frame_log.truncate(record.offset)
             break
-        if msg.get("frame_id") is not None:
-            frame_ids[msg["frame_id"]] = FoldedFrame(record.index, payload_digest(record.payload), report)
+        if msg.get("frame_id") is not None:  # a frame the checkpoint names was rewritten by a correction: its digest stays
+            known = frame_ids.get(msg["frame_id"])
+            digest = known.digest if known is not None else payload_digest(record.payload)
+            frame_ids[msg["frame_id"]] = FoldedFrame(record.index, digest, report)
     return Restored(scene, frame_log, snapshot_frames, frame_ids)
 
 
@@ -554,7 +749,8 @@ class SessionStore:
     def __init__(self, data_dir: str | os.PathLike, max_sessions: int, threads: int | None = None,
                  retention: Retention = "all"):
         self.data_dir = Path(data_dir)
-        self.retention = retention  # the frame archive's retention of sessions created from now on
+        self.retention = retention  # the frame archive's retention of sessions created without one
+        self.background_frames = BACKGROUND_FRAMES  # corrections that re-fold more run in the background
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -610,7 +806,8 @@ class SessionStore:
                 log.exception("%s: cannot be restored", path)
                 self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
                 continue
-            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive)
+            self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive,
+                                                 background_frames=self.background_frames)
             log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
                      restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
 
@@ -664,7 +861,11 @@ class SessionStore:
                 os.close(self._dir_lock)
                 self._dir_lock = None
 
-    def create(self, config: SceneConfig) -> Session:
+    def create(self, config: SceneConfig, retention: Retention | None = None) -> Session:
+        """A new, empty session; ``retention``: its frame archive's (None: the store's default)."""
+        retention = self.retention if retention is None else retention
+        if retention not in RETENTIONS:
+            raise ValueError(f"archive_retention: expected one of {list(RETENTIONS)}, got {retention!r}")
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
@@ -672,16 +873,17 @@ class SessionStore:
             path = self.root / session_id
             created = time.time()
             meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict(),
-                    "archive_retention": self.retention}
+                    "archive_retention": retention}
             try:
                 path.mkdir()
                 frame_log = FrameLog(path / LOG)
-                archive = SessionArchive(path / ARCHIVE, self.retention) if self.retention != "none" else None
+                archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
                 write_atomic(path / META, json.dumps(meta, indent=1).encode())
             except OSError as exc:
                 shutil.rmtree(path, ignore_errors=True)
                 raise StorageError(f"{META}: cannot create the session", exc) from exc
-            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0, archive=archive)
+            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0, archive=archive,
+                                         background_frames=self.background_frames)
             self._sessions[session_id] = session
             return session
 

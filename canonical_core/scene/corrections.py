@@ -29,9 +29,18 @@ import numpy as np
 from ..camera import quaternion_to_matrix, validate_pose
 from ..frame import Frame
 
-__all__ = ["FrameKey", "FrameRef", "check_poses", "corrected_stream", "drift_walk", "drifted", "resolve_frames"]
+__all__ = ["FieldError", "FrameKey", "FrameRef", "check_poses", "corrected_stream", "drift_walk", "drifted", "resolve_frames"]
 
 FrameKey = int | str
+
+
+class FieldError(ValueError):
+    """A ValueError ``"field: problem"`` that also carries ``field``: a frame key may hold any
+    character (spaces, colons), so the field cannot always be read back from the message."""
+
+    def __init__(self, field: str, problem: str):
+        super().__init__(f"{field}: {problem}")
+        self.field = field
 
 
 class FrameRef(NamedTuple):
@@ -57,9 +66,9 @@ def resolve_frames(keys: Iterable[FrameKey], refs: Sequence[FrameRef], field: st
         else:
             position = None
         if position is None:
-            raise ValueError(f"{field}.{key}: no kept frame has this frame_id or arrival index")
+            raise FieldError(f"{field}.{key}", "no kept frame has this frame_id or arrival index")
         if position in positions:
-            raise ValueError(f"{field}.{key}: names a frame that another key names too")
+            raise FieldError(f"{field}.{key}", "names a frame that another key names too")
         positions.append(position)
     return positions
 
@@ -67,14 +76,20 @@ def resolve_frames(keys: Iterable[FrameKey], refs: Sequence[FrameRef], field: st
 def check_poses(poses: Mapping[FrameKey, object], refs: Sequence[FrameRef], field: str = "poses") -> dict[int, np.ndarray]:
     """``{key: c2w}`` -> ``{position in refs: c2w float64 [4, 4]}``, every pose checked as a frame's is
     (`camera.validate_pose`: finite, rigid, bottom row [0, 0, 0, 1]). Raises ValueError naming
-    ``field.key`` before anything changes."""
+    ``field.key`` (a `FieldError`) before anything changes."""
     if not isinstance(poses, Mapping):
         raise ValueError(f"{field}: expected a mapping of frame key to a 4x4 camera-to-world matrix")
     if not poses:
         raise ValueError(f"{field}: names no frame")
     keys = list(poses)
     positions = resolve_frames(keys, refs, field)
-    return {p: validate_pose(poses[key], f"{field}.{key}") for key, p in zip(keys, positions)}
+    checked = {}
+    for key, position in zip(keys, positions):
+        try:
+            checked[position] = validate_pose(poses[key], f"{field}.{key}")
+        except ValueError as exc:
+            raise FieldError(f"{field}.{key}", str(exc).removeprefix(f"{field}.{key}: ")) from None
+    return checked
 
 
 def corrected_stream(frames: Iterable[Frame], poses: Mapping[int, np.ndarray], removed: Iterable[int] = ()) -> Iterable[Frame]:

@@ -23,6 +23,7 @@ from ..frame import Frame
 from .config import SceneConfig
 from .free_space import SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map
 from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
+from .undo import rows_before
 from .voxel_map import VoxelMap, next_pow2
 
 
@@ -78,6 +79,8 @@ def integrate(
     if ev.labels is not None and not voxels.label_dim:
         voxels.set_label_dim(ev.labels.shape[1])
     voxels.reserve(len(voxels) + n_new)
+    if voxels.journal is not None:
+        voxels.journal.append(rows_before(voxels, t.touched[:n_touched]))
     s = voxels.state
     labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
     switches = fold_kernel(

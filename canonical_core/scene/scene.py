@@ -35,12 +35,14 @@ from .fields import fields_from_sums
 from .free_space import SeeThroughHistory
 from .integrate import Scratch, integrate, integrate_free_space
 from .keyframes import Keyframes
+from .undo import FoldUndo, UndoRing, history_slot, restore_history, restore_voxels
 from .voxel_map import CapacityError, VoxelMap
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
 FORMAT_NAME = "canonicalgs-scene"
 FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
+DEFAULT_UNDO_DEPTH = 32  # folds a scene that keeps its frames can roll back in place
 
 
 @dataclass(frozen=True)
@@ -83,8 +85,11 @@ class Scene:
 
     With ``keep_frames=True`` the scene keeps the frames it folded (in memory, not in snapshots), so
     that `update_poses` and `remove_frames` can re-fold them (`corrections`); ``checkpoint_every=N``
-    also keeps the state after every N-th frame, so that a correction of recent frames re-folds only
-    the frames after the last such state.
+    also keeps the state after every N-th frame, so that a correction re-folds only the frames after
+    the last such state before the first frame it touches. ``undo_depth=D`` keeps undo records of the
+    last D folds (`undo`; by default 32 with ``keep_frames``, else none): a correction of frames among
+    them rolls the state back in place (`rollback`) and re-folds from there, so correcting the k most
+    recent frames costs about k folds.
 
     Example:
         >>> scene = Scene(SceneConfig(voxel_size=0.01))
@@ -93,11 +98,15 @@ class Scene:
     """
 
     def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False,
-                 checkpoint_every: int = 0):
+                 checkpoint_every: int = 0, undo_depth: int | None = None):
         if not isinstance(config, SceneConfig):
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
         if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 0:
             raise ValueError(f"checkpoint_every: expected a non-negative integer, got {checkpoint_every!r}")
+        if undo_depth is None:
+            undo_depth = DEFAULT_UNDO_DEPTH if keep_frames else 0
+        if isinstance(undo_depth, bool) or not isinstance(undo_depth, int) or undo_depth < 0:
+            raise ValueError(f"undo_depth: expected a non-negative integer, got {undo_depth!r}")
         self.config = config
         self.appearance = AppearanceUncertainty(config.feature_dim)
         self.frames = 0
@@ -118,6 +127,8 @@ class Scene:
         # last one before the first frame it touches
         self.checkpoint_every = checkpoint_every if keep_frames else 0
         self._checkpoints: dict[int, bytes] = {}
+        self._undo = UndoRing(undo_depth)
+        self._recording: FoldUndo | None = None  # the undo record of the fold in progress
 
     @property
     def decoder(self):
@@ -143,17 +154,81 @@ class Scene:
         if not isinstance(frame, Frame):
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         with self._lock:
-            try:
-                report = self._fold(frame, t0)
-            finally:
-                self._generation += 1
-                self._decoding.forget()
-            if self._kept is not None:
-                self._arrivals.append(self._arrivals[-1] + 1 if self._arrivals else 0)
-                self._kept.append(frame)
-                if self.checkpoint_every and self.frames % self.checkpoint_every == 0:
-                    self._checkpoints[self.frames] = self._to_bytes()
-            return report
+            return self._fold_kept(frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
+
+    def _fold_kept(self, frame: Frame, arrival: int, t0: float) -> FoldReport:
+        """`fold` for a caller that holds the scene's lock: the fold with its undo record, then the
+        frame kept (with ``keep_frames``) and a checkpoint where one is due."""
+        record = self._recording = self._undo_record() if self._undo.depth else None
+        self._voxels.journal = record.rows if record is not None else None
+        try:
+            report = self._fold(frame, t0)
+        finally:
+            self._voxels.journal, self._recording = None, None
+            self._generation += 1
+            self._decoding.forget()
+        if record is not None:
+            if self.label_dim != record.label_dim:  # rows were widened: earlier records no longer fit
+                self._undo.clear()
+            else:
+                self._undo.push(record)
+        if self._kept is not None:
+            self._arrivals.append(arrival)
+            self._kept.append(frame)
+            if self.checkpoint_every and self.frames % self.checkpoint_every == 0:
+                self._checkpoints[self.frames] = self._to_bytes()
+        return report
+
+    def _undo_record(self) -> FoldUndo:
+        """What the next fold may overwrite, but for the rows it touches (see `undo`)."""
+        n = len(self._voxels)
+        return FoldUndo(self.frames, n, self.label_dim, self._voxels.state["free"][:n].copy(),
+                        list(self._front.window.views), list(self._front.pending),
+                        (list(self._keyframes.indices), self._keyframes.frames()),
+                        (self._density_sum, self._density_frames))
+
+    def keep_undo(self, depth: int) -> None:
+        """Keep undo records of the next ``depth`` folds from now on (0: none); the records kept so far
+        are dropped (a loaded snapshot has none)."""
+        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 0:
+            raise ValueError(f"undo_depth: expected a non-negative integer, got {depth!r}")
+        with self._lock:
+            self._undo = UndoRing(depth)
+
+    @property
+    def undo_floor(self) -> int:
+        """The smallest frame count `rollback` can return the scene to (``frames`` when none)."""
+        with self._lock:
+            return self._undo.floor(self.frames)
+
+    def rollback(self, frames: int) -> None:
+        """Return the fused state to what it was after its first ``frames`` frames, exactly (equal
+        `digest`), by the undo records of the last folds (``undo_depth``). Folding the stream's later
+        frames again then gives the scene they gave before. Kept frames and checkpoints after that
+        point are forgotten. Raises ValueError naming ``frames`` if the records do not reach back."""
+        if isinstance(frames, bool) or not isinstance(frames, int) or not 0 <= frames <= self.frames:
+            raise ValueError(f"frames: expected a frame count in [0, {self.frames}], got {frames!r}")
+        with self._decoding.lock, self._lock:
+            self._rollback(frames)
+
+    def _rollback(self, frames: int) -> None:
+        undone = self._undo.take(frames, self.frames)
+        if not undone:
+            return
+        target = undone[-1]
+        restore_voxels(self._voxels, undone)
+        for record in undone:  # newest first: each push's slot back as it was
+            for slot in reversed(record.history):
+                restore_history(self._history, slot)
+        self._front.window.views, self._front.pending = list(target.window), list(target.pending)
+        self._keyframes.indices, self._keyframes._frames = list(target.keyframes[0]), list(target.keyframes[1])
+        self._density_sum, self._density_frames = target.density
+        self.frames = target.frames
+        if self._kept is not None:
+            del self._kept[frames:], self._arrivals[frames:]
+        self._checkpoints = {c: b for c, b in self._checkpoints.items() if c <= frames}
+        self._generation += 1
+        self._decoding.reset()
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:
         index, points = self.frames, self._voxels.representative_points
@@ -181,6 +256,8 @@ class Scene:
         done = integrate(self._voxels, ev, observation_sh_basis(ev, frame.camera, self.config.sh_degree), self.config,
                          self._scratch)
         if self.config.free_space.enabled:
+            if self._recording is not None:
+                self._recording.history.append(history_slot(self._history))
             integrate_free_space(self._voxels, frame, self.config, self._history, first_new)
         if done.touched_voxels:
             self._density_sum += done.observations / done.touched_voxels
@@ -232,24 +309,46 @@ class Scene:
         (exact: a checkpoint round-trips the state bit for bit) and re-folds the rest."""
         removed = set(removed)
         first = min(set(poses) | removed)
-        start = max((c for c in self._checkpoints if c <= first), default=0)
         frames = list(corrected_stream(self._kept, poses, removed))
         arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
+        if first >= self._undo.floor(self.frames):
+            self._refold_in_place(first, frames, arrivals)
+            return
+        start = max((c for c in self._checkpoints if c <= first), default=0)
         base = Scene.from_bytes(self._checkpoints[start]) if start else None
         checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
-        scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints)
+        if base is not None:
+            base.keep_undo(self._undo.depth)
+        scene = Scene.refolded(self.config, frames[start:], self.appearance, base, self.checkpoint_every, checkpoints,
+                               self._undo.depth)
         self._adopt(scene)
         self._kept, self._arrivals, self._checkpoints = frames, arrivals, checkpoints
+
+    def _refold_in_place(self, first: int, frames: list[Frame], arrivals: list[int]) -> None:
+        """Roll back to the state after ``first`` frames and fold ``frames[first:]`` on it. If a fold
+        fails (a corrected pose that takes the scene past ``max_voxels``), the old frames are folded
+        again (they folded before), so the scene is as it was."""
+        old_frames, old_arrivals = self._kept[first:], self._arrivals[first:]
+        self._rollback(first)
+        try:
+            for frame, arrival in zip(frames[first:], arrivals[first:]):
+                self._fold_kept(frame, arrival, time.perf_counter())
+        except Exception:
+            self._rollback(first)
+            for frame, arrival in zip(old_frames, old_arrivals):
+                self._fold_kept(frame, arrival, time.perf_counter())
+            raise
 
     @classmethod
     def refolded(cls, config: SceneConfig, frames, appearance: AppearanceUncertainty | None = None,
                  base: "Scene | None" = None, checkpoint_every: int = 0,
-                 checkpoints: dict[int, bytes] | None = None) -> "Scene":
+                 checkpoints: dict[int, bytes] | None = None, undo_depth: int = 0) -> "Scene":
         """A scene that folded ``frames`` in order: a fresh one, or ``base`` (a scene that folded the
         stream's earlier frames) folding on; with ``appearance`` (a scene's learned appearance
         uncertainty) in place of its own. With ``checkpoint_every``, the state after every such frame
-        count goes into ``checkpoints``."""
-        scene = base if base is not None else cls(config)
+        count goes into ``checkpoints``; with ``undo_depth``, a fresh scene keeps undo records of its
+        last folds (`rollback`)."""
+        scene = base if base is not None else cls(config, undo_depth=undo_depth)
         if appearance is not None:
             scene.appearance = appearance
         for frame in frames:
@@ -271,6 +370,7 @@ class Scene:
         self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front
         self._history, self._keyframes = other._history, other._keyframes
         self._density_sum, self._density_frames = other._density_sum, other._density_frames
+        self._undo = other._undo if other._undo.depth == self._undo.depth else UndoRing(self._undo.depth)
         self._generation += 1
         self._decoding.reset()
 
@@ -375,6 +475,11 @@ class Scene:
 
     def memory_bytes(self) -> int:
         return int(self._voxels.nbytes() + self._keyframes.nbytes() + self._decoding.nbytes())
+
+    def undo_bytes(self) -> int:
+        """Bytes of the undo records kept for `rollback` (not in `memory_bytes`)."""
+        with self._lock:
+            return self._undo.nbytes()
 
     def bytes_per_voxel(self) -> float:
         """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes

@@ -79,6 +79,8 @@ class VoxelMap:
         self.chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self.changed_at = np.zeros(self.capacity, np.int64)
+        # when a list: `integrate` appends the rows it is about to overwrite (`undo.rows_before`)
+        self.journal: list | None = None
 
     def __len__(self) -> int:
         return self.n
@@ -139,6 +141,10 @@ class VoxelMap:
         self.changed_at[self.n: self.n + n_new] = stamp
         update_chunk_boxes_kernel(self.state["keys"], self.n, self.n + n_new, self.chunk_lo, self.chunk_hi)
         self.n += n_new
+
+    def touch_all(self) -> None:
+        """Stamp every voxel as changed (after its rows were restored from elsewhere)."""
+        self.changed_at[: self.n] = next(_STAMPS)
 
     # -- reading ------------------------------------------------------------------------------
     def find(self, keys: np.ndarray) -> np.ndarray:  # [M] int64 keys -> [M] int32 voxel indices, -1 absent

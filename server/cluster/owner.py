@@ -31,6 +31,7 @@ import torch
 from canonical_core import SceneConfig
 
 from ..app import create_app
+from ..archive import Retention
 from ..framelog import Fenced
 from ..metrics import Histogram
 from ..store import META, Session, SessionNotFound, SessionStore, SessionUnavailable, Unrestorable, configure_thread, restore_session
@@ -130,8 +131,8 @@ class OwnerStore(SessionStore):
             if shard_of(session_id, self.owners) == self.shard:
                 return session_id
 
-    def create(self, config: SceneConfig) -> Session:
-        session = super().create(config)
+    def create(self, config: SceneConfig, retention: Retention | None = None) -> Session:
+        session = super().create(config, retention)
         lease = Lease(session.path)
         with lease.take():
             session.fence(lease)

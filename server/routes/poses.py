@@ -3,37 +3,58 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
+from fastapi.responses import JSONResponse
 
 from ..deps import JobsDep, SessionDep
 from ..errors import ApiError
-from ..schemas import Correction, ErrorBody, PosesRequest
+from ..schemas import Correction, CorrectionStatus, ErrorBody, PosesRequest
 from ..store import CorrectionRefused, Session
 
 router = APIRouter(prefix="/v1/sessions", tags=["poses"],
                    responses={c: {"model": ErrorBody} for c in (401, 404, 409, 422, 429, 503, 507)})
 
 
-async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list) -> Correction:
+async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list, wait: bool = True):
     try:
-        return Correction(**await jobs.run(session.correct, poses, remove))
+        done = await jobs.run(session.correct, poses, remove, wait)
     except CorrectionRefused as exc:
         raise ApiError(409, "correction_refused", str(exc), exc.field) from None
+    if done["state"] == "done":
+        return Correction(**done)
+    status = CorrectionStatus(**session.correction_status(done["correction_id"]))
+    return JSONResponse(status.model_dump(), status_code=202)
 
 
-@router.post("/{session_id}/poses", response_model=Correction)
-async def correct_poses(body: PosesRequest, session: SessionDep, jobs: JobsDep) -> Correction:
+@router.post("/{session_id}/poses", response_model=Correction, responses={202: {"model": CorrectionStatus}})
+async def correct_poses(body: PosesRequest, session: SessionDep, jobs: JobsDep):
     """New poses for archived frames (one loop closure = one request), and/or frames to remove.
 
     The scene becomes the re-fold of the session's archived frames, in arrival order, with the new
-    poses: equal (digest) to a session streamed the corrected frames. The old scene is served until
-    the new one is ready; the correction is durable before it is answered. An unknown frame key, a
-    pose that is not a rigid transform or holds NaN: 422 naming ``poses.<key>``; a session without a
-    frame archive, or a frame folded while the correction was computed: 409. Nothing changes then."""
-    return await _correct(session, jobs, dict(body.poses), list(body.remove))
+    poses: equal (digest) to a session streamed the corrected frames. A correction of recent frames
+    re-folds only them and answers 200 when done. A long one (or any with ``"wait": false``) is
+    archived, answered 202 with a ``correction_id``, and re-folds in the background: the old scene is
+    served and takes frames meanwhile, which the re-fold catches up on before it swaps the corrected
+    scene in; ``GET .../corrections/{correction_id}`` tells its progress. The correction is durable
+    before it is answered. An unknown frame key, a pose that is not a rigid transform or holds NaN:
+    422 naming ``poses.<key>`` (``frames.<key>`` for removals); a session without a frame archive, a
+    frame folded while a short correction was computed, or a correction while a background one
+    runs: 409. Nothing changes then."""
+    return await _correct(session, jobs, dict(body.poses), list(body.remove), body.wait)
 
 
-@router.delete("/{session_id}/frames/{frame_id}", response_model=Correction)
-async def remove_frame(frame_id: str, session: SessionDep, jobs: JobsDep) -> Correction:
+@router.delete("/{session_id}/frames/{frame_id}", response_model=Correction, responses={202: {"model": CorrectionStatus}})
+async def remove_frame(frame_id: str, session: SessionDep, jobs: JobsDep):
     """Remove one frame (its ``frame_id``, or its arrival index): the scene becomes that of the
-    session streamed without it. Errors as for ``POST .../poses``."""
+    session streamed without it. Answers and errors as for ``POST .../poses``."""
     return await _correct(session, jobs, {}, [frame_id])
+
+
+@router.get("/{session_id}/corrections/{correction_id}", response_model=CorrectionStatus)
+async def correction_status(correction_id: str, session: SessionDep) -> CorrectionStatus:
+    """A background correction's state (pending, running, done, failed) and progress (frames
+    re-folded of the total); once done, what it did. 404 naming ``correction_id`` for an unknown id."""
+    try:
+        return CorrectionStatus(**session.correction_status(correction_id))
+    except KeyError:
+        raise ApiError(404, "not_found", f"correction_id: no correction {correction_id!r} in this session",
+                       "correction_id") from None

@@ -16,10 +16,13 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
 @router.post("", status_code=201, response_model=SessionCreated, responses={409: {"model": ErrorBody}})
 async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) -> SessionCreated:  # type: ignore[valid-type]
     """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required; nested
-    groups as objects, e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``)."""
-    config = SceneConfig(**body.model_dump(exclude_unset=True))  # ValueError naming the field -> 422
-    session = await jobs.run(store.create, config)
-    return SessionCreated(id=session.id, config=config.to_dict())
+    groups as objects, e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``), and the frame
+    archive's ``archive_retention`` (all, keyframes or none; default: the service's setting)."""
+    settings = body.model_dump(exclude_unset=True)
+    retention = settings.pop("archive_retention", None)
+    config = SceneConfig(**settings)  # ValueError naming the field -> 422
+    session = await jobs.run(store.create, config, retention)
+    return SessionCreated(id=session.id, config=config.to_dict(), archive_retention=session.retention)
 
 
 @router.get("", response_model=SessionList)

@@ -161,11 +161,12 @@ def test_keys_prefer_a_frame_id_over_an_arrival_index():
         resolve_frames([1.0], refs, "frames")
 
 
+@pytest.mark.parametrize("undo_depth", [0, 3])  # 3: the last frames roll back in place, earlier ones use checkpoints
 @pytest.mark.parametrize("touch", [0, 4, 5, 9, 11])  # before, at and after the checkpoints (every 5 frames)
-def test_refolding_from_a_checkpoint_equals_refolding_all(touch):
+def test_refolding_from_a_checkpoint_equals_refolding_all(touch, undo_depth):
     frames = stream(12)
     bad = drifted(frames)
-    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5)
+    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5, undo_depth=undo_depth)
     for frame in bad:
         scene.fold(frame)
     assert sorted(scene._checkpoints) == [5, 10]
@@ -180,7 +181,7 @@ def test_refolding_from_a_checkpoint_equals_refolding_all(touch):
 
 def test_a_correction_after_a_checkpoint_does_not_refold_the_frames_before_it():
     frames = stream(12)
-    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5)
+    scene = Scene(CONFIG, keep_frames=True, checkpoint_every=5, undo_depth=0)
     for frame in frames:
         scene.fold(frame)
     scene._kept[0] = drifted(frames)[0]  # were frame 0 re-folded, the digest would show it

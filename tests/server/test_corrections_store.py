@@ -1,5 +1,5 @@
-"""The store's corrections on real files, in-process: a correction of recent frames starts from the
-state a previous correction kept, and equals the full re-fold."""
+"""The store's corrections on real files, in-process: a correction of recent frames rolls the served
+scene back in place, or starts from the state a previous correction kept, and equals the full re-fold."""
 
 from __future__ import annotations
 
@@ -51,6 +51,7 @@ def damage_first_frame(session) -> None:
 
 def test_a_correction_of_recent_frames_starts_from_the_kept_state(tmp_path, shelf, monkeypatch):
     monkeypatch.setattr(store_module, "BASE_EVERY", 2)
+    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
     store = SessionStore(tmp_path, 8)
     store.open()
     try:
@@ -75,6 +76,7 @@ def test_a_correction_of_recent_frames_starts_from_the_kept_state(tmp_path, shel
 
 def test_the_snapshot_a_correction_started_from_is_kept_for_the_next(tmp_path, shelf, monkeypatch):
     monkeypatch.setattr(store_module, "BASE_EVERY", 4)
+    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
     store = SessionStore(tmp_path, 8)
     store.open()
     try:
@@ -89,3 +91,97 @@ def test_the_snapshot_a_correction_started_from_is_kept_for_the_next(tmp_path, s
         assert session.digest()["sha256"] == streamed(store, shelf).digest()["sha256"]
     finally:
         store.close()
+
+
+def reopened(store: SessionStore, tmp_path) -> SessionStore:
+    """The data directory opened afresh as a restart after a kill -9 would: no snapshot on the way out."""
+    import os
+
+    os.close(store._dir_lock)
+    store._dir_lock = None
+    again = SessionStore(tmp_path, 8)
+    again.open()
+    return again
+
+
+@pytest.mark.parametrize("snapshot_every, touch", [(1000, 5), (3, 6), (3, 4)])
+def test_a_correction_of_recent_frames_rolls_back_in_place_and_survives_a_restart(tmp_path, shelf, snapshot_every, touch):
+    """(1000, 5) and (3, 6): after the snapshot's frames, so the log is rewritten and no snapshot is
+    taken; (3, 4): before them, so the corrected scene is snapshotted."""
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session = streamed(store, shelf, {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)}, snapshot_every)
+    snapshot_frames = session.snapshot_frames
+    damage_first_frame(session)  # a correction that re-read frame 0 would fail
+    done = session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[touch:]}, [shelf[touch]["frame_id"]])
+    assert (done["frames"], done["corrected"], done["removed"]) == (len(shelf) - 1, len(shelf) - touch - 1, 1)
+    expected = [kw if k > touch else {**kw, "c2w": shift @ kw["c2w"]} for k, kw in enumerate(shelf) if k != touch]
+    digest = streamed(store, expected).digest()["sha256"]
+    assert session.digest()["sha256"] == digest
+    assert session.snapshot_frames == (snapshot_frames if touch >= snapshot_frames else len(shelf) - 1)
+    again = reopened(store, tmp_path)
+    try:
+        restored = again.get(session.id)
+        assert restored.digest()["sha256"] == digest
+        k = touch + 1 if touch + 1 < len(shelf) else touch - 1  # a frame whose log record was rewritten, if any
+        retry = shelf[k]  # a retry of an acknowledged frame, as first sent, is recognised
+        report, replay = restored.add_frame(*payload(retry, shift @ retry["c2w"]), 1000, 3600)
+        assert replay and report.frame_index == (k - 1 if k > touch else k)
+        assert restored.digest()["sha256"] == digest
+    finally:
+        again.close()
+
+
+def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_path, shelf, monkeypatch):
+    """``wait=False``: the correction is archived and answered at once; frames sent while it re-folds
+    fold into the served (old) scene, and the re-fold catches up on them before the swap, so the
+    corrected scene equals the corrected stream folded afresh; a second correction meanwhile is refused."""
+    import threading
+    import time
+
+    from server.store import CorrectionRefused
+
+    started, gate = threading.Event(), threading.Event()
+    real = store_module.counted
+
+    def gated(frames, job):  # the background re-fold waits here until the frames below have arrived
+        started.set()
+        gate.wait(120)
+        yield from real(frames, job)
+
+    monkeypatch.setattr(store_module, "counted", gated)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
+    done = session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, [shelf[1]["frame_id"]], wait=False)
+    assert done["state"] == "pending" and done["frames"] == 5
+    assert started.wait(120)
+    for kwargs in shelf[5:]:  # folded into the old scene meanwhile, not refused
+        session.add_frame(*payload(kwargs), 1000, 3600)
+    old = streamed(store, [{**kw, "c2w": shift @ kw["c2w"]} for kw in shelf[:5]] + shelf[5:]).digest()["sha256"]
+    assert session.digest()["sha256"] == old
+    with pytest.raises(CorrectionRefused, match=done["correction_id"]):
+        session.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})
+    assert session.correction_status(done["correction_id"])["state"] == "running"
+    gate.set()
+    for _ in range(600):
+        status = session.correction_status(done["correction_id"])
+        if status["state"] != "running":
+            break
+        time.sleep(0.2)
+    assert status["state"] == "done" and status["refolded"] == status["total"] == len(shelf) - 1, status
+    assert status["result"]["frames"] == len(shelf) - 1
+    expected = streamed(store, shelf[:1] + shelf[2:]).digest()["sha256"]
+    assert session.digest()["sha256"] == expected
+    again = reopened(store, tmp_path)
+    try:
+        assert again.get(session.id).digest()["sha256"] == expected
+        assert again.get(session.id).correction_status(done["correction_id"])["state"] == "done"
+        with pytest.raises(KeyError):
+            again.get(session.id).correction_status("nope")
+    finally:
+        again.close()

@@ -5,6 +5,7 @@ commit point, and bad input changes nothing."""
 from __future__ import annotations
 
 import threading
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -62,6 +63,7 @@ def test_correction_equals_streaming_the_true_poses(api, few):
     assert session.digest()["sha256"] == clean
     stats = session.stats()
     assert stats["archive_retention"] == "all" and stats["archive_frames"] == len(few) and stats["archive_bytes"] > 0
+    assert stats["undo_bytes"] > 0  # the re-fold's folds can be rolled back again
 
 
 def test_removal_equals_streaming_the_rest(api, frames):
@@ -106,6 +108,9 @@ def test_frames_without_ids_are_named_by_arrival_index(api, few):
     ({"poses": {"F": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}, "poses.F.0"),  # 3x3
     ({"poses": {"F": "eye"}}, "poses.F"),
     ({"remove": ["nope"]}, "frames.nope"),
+    ({"poses": {"odd key: ü": np.eye(4).tolist()}}, "poses.odd key: ü"),  # keys the message alone cannot delimit
+    ({"remove": ["a: b"]}, "frames.a: b"),
+    ({"remove": [""]}, "frames."),
     ({}, "poses"),
     ({"poses": {}, "extra": 1}, "extra"),
 ])
@@ -119,6 +124,47 @@ def test_bad_corrections_name_the_field_and_change_nothing(service, api, few, bo
     assert r.status_code == 422, r.text
     assert r.json()["error"]["field"] == field
     assert session.digest()["sha256"] == before
+
+
+def test_errors_name_frame_keys_with_any_character(service, api, few):
+    """A frame_id holding spaces, colons or non-ASCII: every error of /poses and DELETE /frames names
+    ``poses.<key>`` or ``frames.<key>`` exactly, and nothing changes."""
+    key = "shelf: frame #1 ü"
+    session = streamed(api, [few[0], {**few[1], "frame_id": key}])
+    before = session.digest()["sha256"]
+    for bad, field in ((np.diag([2.0, 1, 1, 1]), f"poses.{key}"), (np.full((4, 4), np.nan), f"poses.{key}")):
+        r = httpx.post(f"{service.url}/v1/sessions/{session.id}/poses",
+                       content='{"poses": {"%s": %s}}' % (key, str(bad.tolist()).replace("nan", "NaN")),
+                       headers={"content-type": "application/json"}, timeout=60)
+        assert r.status_code == 422 and r.json()["error"]["field"] == field, r.text
+    r = httpx.delete(f"{service.url}/v1/sessions/{session.id}/frames/{quote(key + ' x', safe='')}", timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == f"frames.{key} x", r.text
+    assert session.digest()["sha256"] == before
+    session.remove_frame(key)  # the odd key itself names the frame
+    assert session.digest()["sha256"] == streamed(api, few[:1]).digest()["sha256"]
+
+
+def test_retention_is_chosen_per_session(service, api, few):
+    """``archive_retention`` at creation overrides the service's default, shows in the session's info,
+    and a bad value is a 422 naming it that creates nothing."""
+    none = streamed(api, few[:2], archive_retention="none")
+    keyframes = api.create_session(voxel_size=VOXEL, archive_retention="keyframes")
+    default = api.create_session(voxel_size=VOXEL)
+    assert [s.stats()["archive_retention"] for s in (none, keyframes, default)] == ["none", "keyframes", "all"]
+    listed = {s["id"]: s["archive_retention"] for s in api.sessions()}
+    assert listed[none.id] == "none" and listed[keyframes.id] == "keyframes"
+    with pytest.raises(CanonicalError) as info:
+        none.update_poses({few[0]["frame_id"]: few[0]["c2w"]})
+    assert info.value.status == 409 and info.value.field == "archive_retention"
+    count = len(api.sessions())
+    for bad in ("some", 3, None):
+        r = httpx.post(f"{service.url}/v1/sessions", json={"voxel_size": VOXEL, "archive_retention": bad}, timeout=60)
+        if bad is None:  # null: the service's default
+            assert r.status_code == 201 and r.json()["archive_retention"] == "all", r.text
+            count += 1
+            continue
+        assert r.status_code == 422 and r.json()["error"]["field"] == "archive_retention", r.text
+    assert len(api.sessions()) == count
 
 
 def test_nan_pose_is_refused(service, api, few):
@@ -225,3 +271,45 @@ def test_correction_racing_a_fold_is_refused_or_ordered(api, frames):
     else:
         expected = frames[:9]
     assert session.digest()["sha256"] == streamed(api, expected).digest()["sha256"]
+
+
+def test_long_corrections_refold_in_the_background_and_a_restart_finishes_them(tmp_path, few, capsys):
+    """With corrections of more than 2 frames in the background: POST /poses answers 202, the SDK polls
+    to the result and the CLI shows progress; a kill -9 right after the 202 restarts corrected, and
+    the status then says done."""
+    from client import cli
+
+    data = tmp_path / "data"
+    proc = ServerProcess(data, tmp_path / "server.log", snapshot_every_seconds=3600, correction_background_frames=2,
+                         warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            clean = streamed(c, few).digest()["sha256"]
+            polled = streamed(c, drifted(few))
+            seen = []
+            done = polled.update_poses({kw["frame_id"]: kw["c2w"] for kw in few}, progress=seen.append)
+            assert done["state"] == "done" and done["corrected"] == len(few) and polled.digest()["sha256"] == clean
+            assert seen and seen[0]["state"] in ("pending", "running") and seen[-1]["state"] == "done"
+            assert polled.correction(seen[0]["correction_id"])["result"]["frames"] == len(few)
+            with pytest.raises(CanonicalError) as info:
+                polled.correction("nope")
+            assert info.value.status == 404 and info.value.field == "correction_id"
+            shown = streamed(c, drifted(few))
+            path = tmp_path / "true.txt"
+            path.write_text("".join(f"{kw['frame_id']} " + " ".join(map(repr, kw["c2w"].reshape(16).tolist())) + "\n"
+                                    for kw in few))
+            assert cli.main(["poses", str(path), "--session", shown.id, "--url", proc.url]) == 0
+            assert "frames re-folded" in capsys.readouterr().err and shown.digest()["sha256"] == clean
+            killed = streamed(c, drifted(few))
+            status = killed.update_poses({kw["frame_id"]: kw["c2w"] for kw in few}, wait=False)
+            assert status["state"] in ("pending", "running", "done") and status["correction_id"]
+    finally:
+        proc.kill9()
+    proc = ServerProcess(data, tmp_path / "server2.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            session = c.session(killed.id)
+            assert session.digest()["sha256"] == clean
+            assert session.correction(status["correction_id"])["state"] == "done"
+    finally:
+        proc.kill9()

@@ -62,7 +62,7 @@ def test_create_takes_groups_and_fills_their_defaults(server, client):
 def test_openapi_schemas_are_generated_from_the_library(server):
     schemas = httpx.get(f"{server.url}/openapi.json", headers=AUTH).json()["components"]["schemas"]  # the docs need the token too
     create_schema = schemas["SessionCreate"]
-    assert set(create_schema["properties"]) == set(SceneConfig.model_fields) - {"research"}
+    assert set(create_schema["properties"]) == set(SceneConfig.model_fields) - {"research"} | {"archive_retention"}
     assert create_schema["required"] == ["voxel_size"]
     report = schemas["FoldReportOut"]
     assert list(report["properties"]) == list(FoldReport.__dataclass_fields__)

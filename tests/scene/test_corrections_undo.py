@@ -1,0 +1,117 @@
+"""Undo records: a scene rolls back its last folds exactly, and a correction of recent frames re-folds only them."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from canonical_core import Frame, Scene, SceneConfig
+from canonical_core.scene.undo import FoldUndo, UndoRing
+from tests.scene.test_corrections import CONFIG, drifted, fold, pose, stream
+
+
+def mixed_stream(n: int = 10) -> list[Frame]:
+    """`stream` with frames 0 and 4 without depth: 0 waits for a partner (pending) until 4 arrives."""
+    frames = stream(n)
+    for k in (0, 4):
+        frames[k] = Frame(rgb=frames[k].rgb, camera=frames[k].camera, frame_id=frames[k].frame_id)
+    return frames
+
+
+def state(scene: Scene) -> dict[str, np.ndarray]:
+    return {k: v.copy() for k, v in scene._snapshot_arrays().items()}
+
+
+@pytest.mark.parametrize("back_to", [0, 3, 5, 9])
+def test_rollback_restores_every_array_and_folding_on_gives_the_same_scene(back_to):
+    frames = mixed_stream()
+    scene = Scene(CONFIG, undo_depth=len(frames))
+    digests, states = [scene.digest()], [state(scene)]
+    for frame in frames:
+        scene.fold(frame)
+        digests.append(scene.digest())
+        states.append(state(scene))
+    scene.rollback(back_to)
+    assert scene.frames == back_to and scene.digest() == digests[back_to]
+    after = state(scene)
+    assert sorted(after) == sorted(states[back_to])
+    for name, array in states[back_to].items():
+        np.testing.assert_array_equal(after[name], array, err_msg=name)
+    for frame in frames[back_to:]:
+        scene.fold(frame)
+    assert scene.digest() == digests[-1]
+
+
+def test_rollback_reaches_back_undo_depth_folds_only():
+    frames = stream(8)
+    scene = Scene(CONFIG, undo_depth=3)
+    for frame in frames:
+        scene.fold(frame)
+    assert scene.undo_floor == 5 and scene.undo_bytes() > 0 and Scene(CONFIG).undo_bytes() == 0
+    with pytest.raises(ValueError, match=r"^frames: the undo records reach back to 5 frames"):
+        scene.rollback(4)
+    assert scene.digest() == fold(frames).digest()  # refused: nothing changed
+    with pytest.raises(ValueError, match=r"^frames: expected a frame count"):
+        scene.rollback(9)
+    with pytest.raises(ValueError, match=r"^undo_depth: "):
+        Scene(CONFIG, undo_depth=-1)
+    assert Scene(CONFIG).undo_floor == 0 and Scene(CONFIG, keep_frames=True)._undo.depth > 0
+
+
+def test_a_correction_of_recent_frames_refolds_only_them():
+    frames = stream(12)
+    scene = Scene(CONFIG, keep_frames=True, undo_depth=4)
+    for frame in frames:
+        scene.fold(frame)
+    scene._kept[7] = drifted(frames)[7]  # were frame 7 re-folded, the digest would show it
+    scene.update_poses({"f10": frames[10].camera.c2w64(), "f11": pose(0.5)})
+    moved = replace(frames[11], camera=frames[11].camera.with_pose(pose(0.5)))
+    assert scene.digest() == fold(frames[:11] + [moved]).digest()
+    scene.remove_frames(["f9"])  # the re-fold left records for the frames it folded: in place again
+    assert scene.digest() == fold(frames[:9] + frames[10:11] + [moved]).digest()
+    assert scene.undo_floor == 8  # the last 4 folds: 8, 9 (kept) and the two the removal re-folded
+
+
+def test_labels_that_widen_the_rows_end_the_records_before_them():
+    frames = stream(6)
+    labels = np.zeros((20, 24, 2), np.float32)
+    labels[..., 1] = 1.0
+    frames[3] = replace(frames[3], labels=__import__("torch").from_numpy(labels))
+    scene = Scene(CONFIG, keep_frames=True, undo_depth=8)
+    for frame in frames:
+        scene.fold(frame)
+    assert scene.undo_floor == 4  # the fold that widened the rows cannot be undone; those after it can
+    scene.update_poses({"f5": pose(0.3)})
+    moved = replace(frames[5], camera=frames[5].camera.with_pose(pose(0.3)))
+    assert scene.digest() == fold(frames[:5] + [moved]).digest()
+    scene.update_poses({"f1": pose(0.3)})  # before the records: a re-fold from the start
+    first = replace(frames[1], camera=frames[1].camera.with_pose(pose(0.3)))
+    assert scene.digest() == fold(frames[:1] + [first] + frames[2:5] + [moved]).digest()
+
+
+def test_a_correction_that_fails_in_place_leaves_the_scene_as_it_was():
+    frames = stream(6)
+    full = fold(frames)
+    scene = Scene(SceneConfig(voxel_size=CONFIG.voxel_size, max_voxels=len(full) + 5), keep_frames=True)
+    for frame in frames:
+        scene.fold(frame)
+    before = scene.digest()
+    with pytest.raises(ValueError, match=r"^max_voxels: "):
+        scene.update_poses({"f4": pose(3.0), "f5": pose(6.0)})  # new ground: past the cap
+    assert scene.digest() == before and scene.frames == 6
+    assert [r.frame_id for r in scene.frame_refs()] == [f.frame_id for f in frames]
+    scene.update_poses({"f5": frames[5].camera.c2w64()})  # the records still serve
+    assert scene.digest() == before
+
+
+def test_the_ring_keeps_the_last_records_only():
+    ring = UndoRing(depth=2)
+    assert ring.floor(7) == 7 and ring.take(7, 7) == []
+    with pytest.raises(ValueError, match=r"^frames: the undo records reach back to 7 frames, not 3"):
+        ring.take(3, 7)
+    for frames in (7, 8, 9):
+        ring.push(FoldUndo(frames, 0, 0, np.zeros(0, np.float32), [], [], ([], []), (0.0, 0)))
+    assert len(ring) == 2 and ring.floor(10) == 8
+    assert [r.frames for r in ring.take(9, 10)] == [9] and ring.floor(9) == 8
