@@ -14,9 +14,15 @@ Each payload is a msgpack map of one of two kinds:
   correction or None}``.
 
 The archive's state is the replay of its records in order: the frames the scene holds, in fold
-order, each with its current pose. A frame is archived before it is logged and folded (a crash in
-between leaves an archived frame that the scene lacks: `SessionArchive.cut_to` removes it on
-start), and a correction is archived (the commit point) before it is acknowledged.
+order, each with its current pose. A correction is archived (the commit point) before it is
+acknowledged.
+
+Frames are archived off the acknowledged path. A folded frame is durable in the session's frame log
+(fsynced before the answer); compressing it costs more than the fold itself, so `defer_frame` queues
+it and a writer thread of the archive compresses and appends it. The frame log is not restarted
+while the archive lacks frames (`flush` comes first), so after a crash the frames the archive lacks
+are all in the log, and the restart archives them from there (`store.restore_session`). Whatever
+reads the archive's frames (a correction) flushes it first.
 
 Retention (`Retention`): ``all`` keeps every frame; ``keyframes`` keeps one frame in
 `KEYFRAME_EVERY` (by arrival index), and a correction re-folds those alone, so the other frames
@@ -25,7 +31,10 @@ leave the scene at the first correction; ``none`` keeps no archive and refuses c
 
 from __future__ import annotations
 
+import hashlib
 import os
+import queue
+import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +53,17 @@ ARCHIVE = "archive.log"
 KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
 Retention = Literal["all", "keyframes", "none"]
 RETENTIONS = ("all", "keyframes", "none")
+
+
+def archive_failure(exc: Exception) -> str:
+    """The archive's `problem` after a frame could not be archived."""
+    reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else f"{type(exc).__name__}: {exc}"
+    return f"{ARCHIVE}: a frame could not be archived ({reason}); corrections are refused until a restart"
+
+
+def payload_digest(payload: bytes) -> str:
+    """The digest that names a frame's wire payload (a retry with the same frame_id must match it)."""
+    return hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
 def compress_message(msg: dict) -> bytes:
@@ -93,6 +113,8 @@ class SessionArchive:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
         self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
         self._fd = os.open(path, os.O_RDONLY)  # reads of archived messages
+        self._queue: queue.Queue = queue.Queue()  # frames deferred to the writer: (frame_id, digest, payload)
+        self._writer: threading.Thread | None = None
         if found.torn:
             self._log.truncate(found.end)
 
@@ -150,6 +172,34 @@ class SessionArchive:
                 "message": compress_message(message) if self.keeps(arrival) else None}
         self._append(msgpack.packb(body))
 
+    def defer_frame(self, frame_id: str | None, digest: str, payload: bytes) -> None:
+        """Archive the next frame (its wire payload) from the writer thread, off the caller's path;
+        `flush` waits for it. The caller keeps the frame durable meanwhile (the frame log)."""
+        if self._writer is None:
+            self._writer = threading.Thread(target=self._write_deferred, name=f"archive-{self.path.parent.name}",
+                                            daemon=True)
+            self._writer.start()
+        self._queue.put((frame_id, digest, payload))
+
+    def flush(self) -> None:
+        """Wait until every deferred frame is archived (or the archive has a `problem`)."""
+        self._queue.join()
+
+    def _write_deferred(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                if self.problem is None:
+                    frame_id, digest, payload = item
+                    try:
+                        self.append_frame(frame_id, digest, wire.unpack(payload))
+                    except Exception as exc:  # noqa: BLE001 - the frame stays in the frame log; a restart archives it
+                        self.problem = archive_failure(exc)
+            finally:
+                self._queue.task_done()
+
     def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0,
                           correction_id: str | None = None) -> None:
         """Archive a correction (fsynced): the commit point of `Session.correct`. ``first``: the stream
@@ -180,11 +230,18 @@ class SessionArchive:
         self._records.pop()
         self.next_arrival = self.entries.pop().arrival
 
-    def cut_to(self, frames: int) -> None:
-        """Make the archive hold ``frames`` frames, the scene's count after a restart. One frame archived
-        but never folded (a crash between archiving and logging it, or before a failed fold was cut
-        back) is cut off; any other difference (a log repaired by hand, an archive that began after
-        the session's first frames) leaves an archive that cannot serve corrections."""
+    def cut_to(self, frames: int, logged: dict[int, bytes] | None = None) -> None:
+        """Make the archive hold ``frames`` frames, the scene's count after a restart. Frames it lacks
+        (deferred, not yet written when the service stopped) are archived from ``logged`` (stream
+        position -> wire payload: the frame log's records). One frame archived but never folded (an
+        archive written before frames were deferred: a crash between archiving and logging it) is cut
+        off. Any other difference (a log repaired by hand, an archive that began after the session's
+        first frames) leaves an archive that cannot serve corrections."""
+        logged = logged or {}
+        while len(self.entries) < frames and len(self.entries) in logged:
+            payload = logged[len(self.entries)]
+            message = wire.unpack(payload)
+            self.append_frame(message.get("frame_id"), payload_digest(payload), message)
         if len(self.entries) == frames + 1 and self._records and self._records[-1][1]:
             self.cut()
         if len(self.entries) != frames:
@@ -192,6 +249,11 @@ class SessionArchive:
                             "corrections are refused")
 
     def close(self) -> None:
+        """Archive the deferred frames, stop the writer, close the files."""
+        if self._writer is not None:
+            self._queue.put(None)
+            self._writer.join()
+            self._writer = None
         self._log.close()
         if self._fd >= 0:
             os.close(self._fd)

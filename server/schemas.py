@@ -72,7 +72,7 @@ class SessionStats(SessionSummary):
     gaussians: int
     memory_bytes: int
     undo_bytes: int = Field(0, description="bytes of the undo records of the last folds, which make corrections of "
-                                           "recent frames cheap (beside memory_bytes)")
+                                           "recent frames cheap (part of memory_bytes)")
     disk_bytes: int
     label_dim: int
     snapshot_frames: int

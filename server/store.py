@@ -48,10 +48,11 @@ import numba
 
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.scene import FoldReport, Scene
+from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
 
 from . import wire
-from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
+from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive, archive_failure, payload_digest
 from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
@@ -60,7 +61,7 @@ log = logging.getLogger("canonical.store")
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
 BASE_EVERY = 25  # a correction keeps the state at the last multiple of this below its frame count
-UNDO_DEPTH = 32  # folds an archived session's scene can roll back in place (`Scene.rollback`)
+UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll back in place (`Scene.rollback`)
 BACKGROUND_FRAMES = 64  # default: a correction that would re-fold more frames re-folds in the background
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
@@ -102,10 +103,6 @@ class DataDirLocked(RuntimeError):
 
 class Unrestorable(RuntimeError):
     """The files of a session do not add up; the message says how, and what ``canonical repair`` can do."""
-
-
-def payload_digest(payload: bytes) -> str:
-    return hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
 def configure_thread(threads: int | None) -> None:
@@ -202,14 +199,9 @@ class Session:
                 return FoldReport(**report), True
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
-            archived = self.archive is not None and self.archive.problem is None
-            if archived:  # archived first: a crash before the log append leaves a frame `cut_to` removes
-                self.archive.append_frame(frame.frame_id, digest, wire.unpack(payload))
             try:
                 offset = self.log.append(self.scene.frames, payload)
             except StorageError as exc:
-                if archived:
-                    self.archive.cut()
                 if not isinstance(exc, LogWedged):
                     raise
                 self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
@@ -219,20 +211,17 @@ class Session:
                 report = self.scene.fold(frame)
             except ValueError:
                 self.log.truncate(offset)
-                if archived:
-                    self.archive.cut()
                 raise
             except Exception:
                 # not an input error: the scene may be half-folded; rebuild it from disk (without this frame)
                 self.log.truncate(offset)
-                if archived:
-                    self.archive.cut()
                 try:
                     self._reload()
                 except Exception:
                     log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
                     self.deleted = True
                 raise
+            self._archive_frame(frame.frame_id, digest, payload)
             if frame.frame_id is not None:
                 self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
             self.version += 1
@@ -242,6 +231,23 @@ class Session:
                                                   or now - self.dirty_since >= snapshot_every_seconds):
                 self._snapshot()
             return report, False
+
+    def _archive_frame(self, frame_id: str | None, digest: str, payload: bytes) -> None:
+        """Archive a folded frame: off the acknowledged path (the log holds it durably until the
+        archive does), but at once while a background correction re-folds, which catches up on the
+        archive's frames. A failure leaves the frame in the log and corrections refused until a restart
+        archives it from there."""
+        archive = self.archive
+        if archive is None or archive.problem is not None:
+            return
+        if self.background is None:
+            archive.defer_frame(frame_id, digest, payload)
+            return
+        archive.flush()
+        try:
+            archive.append_frame(frame_id, digest, wire.unpack(payload))
+        except Exception as exc:  # noqa: BLE001 - the frame is folded and in the log; a restart archives it
+            archive.problem = archive_failure(exc)
 
     def snapshot(self) -> None:
         with self.lock:
@@ -255,6 +261,8 @@ class Session:
         stay as they are, and a restart before it re-folds from the archive)."""
         if self.background is not None:
             return
+        if self.archive is not None:
+            self.archive.flush()  # the log is restarted below: the archive must hold its frames first
         try:
             write_atomic(self.path / SNAPSHOT, self.scene.to_bytes())
         except OSError as exc:
@@ -264,6 +272,8 @@ class Session:
             log.error("session %s: snapshot failed (%s); its frames stay in the log", self.id, self.snapshot_error)
             return
         self.snapshot_frames, self.dirty_since, self.snapshot_error = self.scene.frames, None, None
+        if self.archive is not None and self.archive.problem is not None:
+            return  # the log keeps the frames the archive may lack: a restart archives them from it
         try:
             self.log.reset([encode(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()),
                                    checkpoint=True)])
@@ -516,6 +526,8 @@ class Session:
             log.warning("session %s: the re-fold's base state could not be kept (%s)", self.id, exc.strerror or exc)
 
     def _usable_archive(self) -> SessionArchive:
+        if self.archive is not None:
+            self.archive.flush()  # corrections read every frame the scene holds
         if self.archive is None:
             raise CorrectionRefused("archive_retention", "this session keeps no frame archive (retention 'none'), "
                                                          "so its poses cannot be corrected nor frames removed")
@@ -631,7 +643,7 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tu
     if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
         restored = restore_scene(path, config)
         if archive is not None and archive.problem is None:
-            archive.cut_to(restored.scene.frames)
+            archive.cut_to(restored.scene.frames, logged_frames(path))
         return restored, archive
     snap = path / SNAPSHOT
     scene = Scene.load(snap) if snap.exists() else Scene(config)
@@ -645,6 +657,13 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tu
     write_atomic(path / LOG, encode(scene.frames, checkpoint_payload(frame_ids, archive.corrections), checkpoint=True))
     log.warning("%s: re-folded %d frames from the archive (a correction the snapshot did not hold)", path, scene.frames)
     return Restored(scene, FrameLog(path / LOG), scene.frames, frame_ids), archive
+
+
+def logged_frames(path: Path) -> dict[int, bytes]:
+    """The frame log's frames: stream position -> wire payload (what a restart archives when the
+    archive had not caught up with them)."""
+    data = (path / LOG).read_bytes() if (path / LOG).is_file() else b""
+    return {r.index: r.payload for r in scan(data).records if not r.checkpoint}
 
 
 def _frame_ids_of(checkpoint: bytes) -> dict[str, FoldedFrame]:

@@ -42,7 +42,9 @@ __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
 FORMAT_NAME = "canonicalgs-scene"
 FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
-DEFAULT_UNDO_DEPTH = 32  # folds a scene that keeps its frames can roll back in place
+# folds a scene that keeps its frames can roll back in place: each record holds the rows the fold
+# touched and the whole see-through column, several times the fold's share of the state, so few
+DEFAULT_UNDO_DEPTH = 4
 
 
 @dataclass(frozen=True)
@@ -87,7 +89,7 @@ class Scene:
     that `update_poses` and `remove_frames` can re-fold them (`corrections`); ``checkpoint_every=N``
     also keeps the state after every N-th frame, so that a correction re-folds only the frames after
     the last such state before the first frame it touches. ``undo_depth=D`` keeps undo records of the
-    last D folds (`undo`; by default 32 with ``keep_frames``, else none): a correction of frames among
+    last D folds (`undo`; by default `DEFAULT_UNDO_DEPTH` with ``keep_frames``, else none): a correction of frames among
     them rolls the state back in place (`rollback`) and re-folds from there, so correcting the k most
     recent frames costs about k folds.
 
@@ -474,10 +476,12 @@ class Scene:
             return h.hexdigest()
 
     def memory_bytes(self) -> int:
-        return int(self._voxels.nbytes() + self._keyframes.nbytes() + self._decoding.nbytes())
+        """Bytes the scene holds: its state, the colour solve's kept views, the decoded rows and the
+        undo records (`undo_bytes`)."""
+        return int(self._voxels.nbytes() + self._keyframes.nbytes() + self._decoding.nbytes() + self._undo.nbytes())
 
     def undo_bytes(self) -> int:
-        """Bytes of the undo records kept for `rollback` (not in `memory_bytes`)."""
+        """Bytes of the undo records kept for `rollback` (part of `memory_bytes`)."""
         with self._lock:
             return self._undo.nbytes()
 

@@ -42,6 +42,7 @@ def streamed(store: SessionStore, frames: list[dict], poses: dict | None = None,
 
 def damage_first_frame(session) -> None:
     """Zero some bytes of frame 0's archived message: a re-fold that read it again would fail."""
+    session.archive.flush()  # the writer thread appends deferred frames: rewrite the file after it
     archive = session.path / ARCHIVE
     data = bytearray(archive.read_bytes())
     entry = session.archive.entries[0]
