@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from canonical_wire import encode_array, pack
-from server.archive import ARCHIVE, SessionArchive, compress_message, decompress_message
+from server.archive import ARCHIVE, SessionArchive, compress_message, decompress_message, payload_digest
 from server.wire import frame_from_message
 
 
@@ -91,3 +91,41 @@ def test_keyframes_retention_keeps_one_frame_in_five(tmp_path):
     assert [f is None for f in archive.frames(archive.entries)] == [False, True, True, True, True, False, True]
     with pytest.raises(ValueError, match=r"^archive_retention: "):
         SessionArchive(tmp_path / "other.log", "some")
+
+
+def test_deferred_frames_are_archived_in_order_by_the_writer(tmp_path):
+    archive = SessionArchive(tmp_path / ARCHIVE, "all")
+    payloads = [pack(message(k, f"f{k}")) for k in range(5)]
+    for k, p in enumerate(payloads):
+        archive.defer_frame(f"f{k}", payload_digest(p), p)
+    archive.flush()
+    assert [(e.arrival, e.frame_id, e.digest) for e in archive.entries] == [
+        (k, f"f{k}", payload_digest(p)) for k, p in enumerate(payloads)]
+    archive.defer_frame("f5", "d5", pack(message(5, "f5")))
+    archive.close()  # archives what is still queued
+    again = SessionArchive(tmp_path / ARCHIVE, "all")
+    assert len(again.entries) == 6 and torch.equal(next(iter(again.frames(again.entries[5:]))).rgb,
+                                                   frame_from_message(message(5)).rgb)
+
+
+def test_a_writer_failure_refuses_corrections_and_does_not_hang_a_flush(tmp_path):
+    archive = archive_of(tmp_path, 1)
+    archive._log.close()  # every append fails from here on
+    archive.defer_frame("f1", "d1", pack(message(1, "f1")))
+    archive.defer_frame("f2", "d2", pack(message(2, "f2")))
+    archive.flush()
+    assert archive.problem is not None and "could not be archived" in archive.problem
+    assert len(archive.entries) == 1
+
+
+def test_cut_to_archives_the_frames_it_lacks_from_the_log(tmp_path):
+    archive = archive_of(tmp_path, 2)
+    logged = {k: pack(message(k, f"f{k}")) for k in range(1, 4)}  # the log after a snapshot of 1 frame
+    archive.cut_to(4, logged)
+    assert archive.problem is None
+    assert [(e.arrival, e.frame_id) for e in archive.entries] == [(k, f"f{k}") for k in range(4)]
+    assert [e.digest for e in archive.entries[2:]] == [payload_digest(logged[2]), payload_digest(logged[3])]
+    (tmp_path / "b").mkdir()
+    short = archive_of(tmp_path / "b", 1)
+    short.cut_to(3, {2: logged[2]})  # frame 1 is in neither: the archive cannot serve corrections
+    assert short.problem is not None and len(short.entries) == 1

@@ -186,3 +186,26 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
             again.get(session.id).correction_status("nope")
     finally:
         again.close()
+
+
+def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restart(tmp_path, shelf):
+    """A kill -9 after frames were acknowledged (in the fsynced log) but before the archive's writer
+    wrote them: the restart archives them from the log, and a correction then reaches them."""
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    session = streamed(store, shelf[:5], snapshot_every=3)  # a snapshot after 3 frames: the log holds 3 and 4
+    session.archive.flush()
+    archive = session.path / ARCHIVE
+    cut = session.archive._records[3][0]  # the offset of frame 3's record: frames 3 and 4 never written
+    archive.write_bytes(archive.read_bytes()[:cut])
+    again = reopened(store, tmp_path)
+    try:
+        restored = again.get(session.id)
+        assert restored.archive.problem is None and len(restored.archive.entries) == 5
+        shift = np.eye(4)
+        shift[:3, 3] = [0.01, 0.0, 0.0]
+        restored.correct({shelf[3]["frame_id"]: shift @ shelf[3]["c2w"]})
+        expected = streamed(again, shelf[:5], {3: shift @ shelf[3]["c2w"]})
+        assert restored.digest()["sha256"] == expected.digest()["sha256"]
+    finally:
+        again.close()
