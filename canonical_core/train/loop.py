@@ -2,8 +2,9 @@
 
 Each step takes one fused sample of the pool (`data.draw_pool`: N sampled input views of a
 training capture, folded once) and one of its target frames, decodes the sample with the decoder
-(`data.decode`, gradients to every head), renders it at the target with the PyTorch reference
-renderer in the evaluation's "normalised" colour, and takes an Adam step on `losses.render_loss`.
+(`data.decode`, gradients to every head), renders a random window of the target (`draw_crop`,
+`crop_camera`) with the PyTorch reference renderer in the evaluation's "normalised" colour, and
+takes an Adam step on `losses.render_loss` over the window.
 The fold does not depend on the decoder, which is why the pool can be folded up front.
 
 What trains (`checkpoint.TRAINED_HEADS`): the opacity head on support and the free-space penalty
@@ -32,10 +33,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..camera import Camera
 from ..decode import GaussianDecoder
+from ..frame import Frame
 from ..eval.methods import SplatModel
 from ..eval.run import score
 from ..rendering import render
+from ..rendering.splat_geometry import TILE_SIZE
 from ..scene import Scene
 from .checkpoint import TRAINED_HEADS, save_checkpoint
 from .data import Capture, FusedSample, decode, draw_pool, load_captures, scene_config
@@ -59,13 +63,16 @@ class TrainSettings:
     """N, input views per sample, drawn uniformly from these."""
     pool: int = 48
     """Fused samples drawn up front (each folded once), round-robin over the captures."""
-    lr: float = 3e-3
+    crop: int = 64
+    """Each step renders a random window of this many pixels square of its target (the loss is
+    over the window), a few tiles instead of the whole image."""
+    lr: float = 1e-2
     """Adam's learning rate."""
     ssim_weight: float = SSIM_WEIGHT
     device: Device = "cpu"
 
     def __post_init__(self):
-        for name, low in (("seed", 0), ("steps", 0), ("width", 32), ("pool", 1)):
+        for name, low in (("seed", 0), ("steps", 0), ("width", 32), ("pool", 1), ("crop", 16)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
@@ -106,13 +113,39 @@ def _to(sample: FusedSample, device: torch.device) -> FusedSample:
                        move(sample.free), sample.unit, sample.voxel_size, sample.targets)
 
 
-def step_loss(decoder: GaussianDecoder, sample: FusedSample, target: int, ssim_weight: float = SSIM_WEIGHT) -> torch.Tensor:
-    """The render loss of ``decoder`` on ``sample`` at its target frame number ``target``."""
+def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
+    """The camera whose image is the ``width`` x ``height`` window at (x0, y0) of ``camera``'s: same
+    pose, principal point shifted. Rendering it gives those pixels of the full render (each pixel's
+    blend depends on its own ray alone) at the cost of the window's tiles only; exactly, but for
+    the window's border pixels, where a splat centred far outside the window has its projection
+    clamped to the window's field of view instead of the image's (the EWA Jacobian's clamp)."""
+    K = camera.K64().copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Camera(K, camera.c2w64(), width, height)
+
+
+def step_loss(decoder: GaussianDecoder, sample: FusedSample, target: int, ssim_weight: float = SSIM_WEIGHT,
+              crop: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+    """The render loss of ``decoder`` on ``sample`` at its target frame number ``target``, over the
+    whole image or the window ``crop`` = (x0, y0, width, height)."""
     frame = sample.targets[target]
+    x0, y0, w, h = crop if crop is not None else (0, 0, frame.width, frame.height)
     gaussians = decode(decoder, sample)
     device = sample.support.device
-    view = render(gaussians, frame.camera, outputs=("rgb", "alpha"), colour="normalised", backend="reference")
-    return render_loss(view.rgb, frame.rgb.to(device).float() / 255.0, ssim_weight)
+    view = render(gaussians, crop_camera(frame.camera, x0, y0, w, h), outputs=("rgb",), colour="normalised",
+                  backend="reference")
+    truth = frame.rgb[y0: y0 + h, x0: x0 + w].to(device).float() / 255.0
+    return render_loss(view.rgb, truth, ssim_weight)
+
+
+def draw_crop(frame: Frame, size: int, rng: np.random.Generator) -> tuple[int, int, int, int]:
+    """A random ``size`` x ``size`` window of ``frame`` (the whole image where it is smaller), on the
+    renderer's tile grid so that it costs (size / 16)^2 tiles."""
+    w, h = min(size, frame.width), min(size, frame.height)
+    x0 = int(rng.integers(0, (frame.width - w) // TILE_SIZE + 1)) * TILE_SIZE
+    y0 = int(rng.integers(0, (frame.height - h) // TILE_SIZE + 1)) * TILE_SIZE
+    return x0, y0, w, h
 
 
 def heldout_report(decoder: GaussianDecoder, captures: Sequence[Capture]) -> list[dict]:
@@ -150,8 +183,9 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
             break
         sample = pool[int(rng.integers(len(pool)))]
         target = int(rng.integers(len(sample.targets)))
+        crop = draw_crop(sample.targets[target], settings.crop, rng)
         optimiser.zero_grad()
-        loss = step_loss(decoder, sample, target, settings.ssim_weight)
+        loss = step_loss(decoder, sample, target, settings.ssim_weight, crop)
         loss.backward()
         optimiser.step()
         losses.append(float(loss.detach()))
