@@ -232,7 +232,7 @@ class SceneConfig(_Settings):
     model: Annotated[str, Field(min_length=1, max_length=4096)] = "default"
     """The decoder's parameters: ``default`` (the checkpoint shipped with the library when one ships,
     else the training-free decoder), ``none`` (the training-free, analytic decoder) or the path of a
-    ``.safetensors`` checkpoint written by ``canonical train`` (`train.checkpoint`). A snapshot keeps
+    ``.safetensors`` checkpoint written by ``canonical train`` (`decode.checkpoint`). A snapshot keeps
     the parameters it was decoded with, so a restored scene decodes the same without the file."""
     sensor: SensorNoise = SensorNoise()
     """The depth sensor's noise model."""

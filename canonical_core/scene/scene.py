@@ -27,7 +27,7 @@ import torch
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
-from ..train.checkpoint import load_model as _load_model
+from ..decode.checkpoint import load_model as _load_model
 from .config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
@@ -87,7 +87,7 @@ class Scene:
     also keeps the state after every N-th frame, so that a correction of recent frames re-folds only
     the frames after the last such state.
 
-    The decoder starts with the parameters of ``config.model`` (`train.checkpoint.resolve_model`);
+    The decoder starts with the parameters of ``config.model`` (`decode.checkpoint.resolve_model`);
     ``load_model=False`` leaves it training-free, for a caller that sets its parameters itself
     (`from_bytes` restores a snapshot's). ``model_sha256`` names the checkpoint file that was loaded.
 
@@ -112,7 +112,7 @@ class Scene:
         self._history = SeeThroughHistory(config.free_space.history)
         self._keyframes = Keyframes(config.colour_solve_views, config.colour_solve_scale)  # the colour solve's views
         self._decoding = SceneDecoding(config)
-        # the trained checkpoint `config.model` names (`train.checkpoint`); a snapshot brings its own parameters
+        # the trained checkpoint `config.model` names (`decode.checkpoint`); a snapshot brings its own parameters
         checkpoint = _load_model(self._decoding.decoder, config.model) if load_model else None
         self.model_sha256: str | None = checkpoint.sha256 if checkpoint is not None else None
         self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds

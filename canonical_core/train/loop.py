@@ -7,7 +7,7 @@ training capture, folded once) and one of its target frames, decodes the sample 
 takes an Adam step on `losses.render_loss` over the window.
 The fold does not depend on the decoder, which is why the pool can be folded up front.
 
-What trains (`checkpoint.TRAINED_HEADS`): the opacity head on support and the free-space penalty
+What trains (`decode.checkpoint.TRAINED_HEADS`): the opacity head on support and the free-space penalty
 (monotone by construction: their weights are clamped non-negative in the forward pass, so no step
 can break the monotonicity), and the heads on F_scene (mean offset, log-scale delta, colour delta).
 The appearance uncertainty U_app is not trained: it acts inside the numba fold, so no gradient
@@ -41,7 +41,7 @@ from ..eval.run import score
 from ..rendering import render
 from ..rendering.splat_geometry import TILE_SIZE
 from ..scene import Scene
-from .checkpoint import TRAINED_HEADS, save_checkpoint
+from ..decode.checkpoint import save_checkpoint
 from .data import Capture, FusedSample, decode, draw_pool, load_captures, scene_config
 from .losses import SSIM_WEIGHT, render_loss
 

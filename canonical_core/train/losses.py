@@ -12,7 +12,7 @@ from torch import Tensor
 
 from ..eval.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window
 
-SSIM_WEIGHT = 0.2  # weight of (1 - SSIM) next to the MSE
+SSIM_WEIGHT = 0.02  # weight of (1 - SSIM) next to the MSE: small, so that PSNR (what the evaluation scores) leads the loss
 
 
 def ssim_torch(

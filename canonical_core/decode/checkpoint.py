@@ -11,7 +11,9 @@ each under ``decoder.<parameter>``, and in the safetensors metadata (strings):
 `load_checkpoint` checks all of it and raises a ValueError that starts with ``model:`` and names
 the problem (unreadable or truncated file, another format or version, a missing or extra tensor, a
 tensor of the wrong shape or with non-finite values). `resolve_model` turns the `SceneConfig.model`
-setting into a checkpoint path (or None for the training-free decoder).
+setting into a checkpoint path (or None for the training-free decoder). Checkpoints are written by
+``canonical train`` (`canonical_core.train`); they live here, below the scene, because every scene
+loads one.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..decode import GaussianDecoder
+from .decoder import GaussianDecoder
 
 CHECKPOINT_FORMAT = "canonicalgs-decoder"
 CHECKPOINT_VERSION = 1
