@@ -71,19 +71,21 @@ def load_captures(paths: Sequence[str | Path], width: int = 160) -> list[Capture
             n = len(frames)
             views = [v for v in (2, 4, REPORT_VIEWS) if v <= n]
             split = _split(n, views)
-            report = split.inputs[max(views)]
+            report = split.inputs[max(split.inputs)]
             captures.append(Capture(seq.name, frames, default_voxel_size([frames[p] for p in report]),
                                     split.heldout, report))
     return captures
 
 
 def _split(n: int, views: list[int]):
-    """The protocol's split with as many held-out frames (up to its 10) as a short capture leaves."""
-    for count in range(10, 0, -1):
-        try:
-            return interpolation_split(n, views, heldout_count=count)
-        except ValueError:
-            continue
+    """The protocol's split with as many held-out frames (up to its 10) as a short capture leaves,
+    dropping the largest view counts where it leaves none."""
+    for k in range(len(views), 0, -1):
+        for count in range(10, 0, -1):
+            try:
+                return interpolation_split(n, views[:k], heldout_count=count)
+            except ValueError:
+                continue
     raise ValueError(f"captures: {n} frames are too few to hold any frame out")
 
 

@@ -116,9 +116,9 @@ def _to(sample: FusedSample, device: torch.device) -> FusedSample:
 def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
     """The camera whose image is the ``width`` x ``height`` window at (x0, y0) of ``camera``'s: same
     pose, principal point shifted. Rendering it gives those pixels of the full render (each pixel's
-    blend depends on its own ray alone) at the cost of the window's tiles only; exactly, but for
-    the window's border pixels, where a splat centred far outside the window has its projection
-    clamped to the window's field of view instead of the image's (the EWA Jacobian's clamp)."""
+    blend depends on its own ray alone) at the cost of the window's tiles only: exactly for splats
+    centred in the window; a splat centred well outside it has its projection's Jacobian clamped
+    to the window's field of view instead of the image's (3DGS's clamp), which changes its tail."""
     K = camera.K64().copy()
     K[0, 2] -= x0
     K[1, 2] -= y0
