@@ -175,3 +175,20 @@ def test_feature_width_mismatch_is_a_clear_error(tmp_path, frames):
     path = save_checkpoint(tmp_path / "m8.safetensors", perturbed(feature_dim=8), {})
     with pytest.raises(ValueError, match=r"^model: the checkpoint's heads read 8 feature channels, the scene has feature_dim 16"):
         Scene(SceneConfig(voxel_size=VOXEL, model=str(path)))
+
+
+def test_a_session_whose_model_cannot_load_is_refused_and_leaves_no_files(tmp_path):
+    from server.store import SessionStore
+
+    store = SessionStore(tmp_path / "data", max_sessions=4)
+    store.open()
+    try:
+        before = sorted(p.name for p in (tmp_path / "data").iterdir())
+        with pytest.raises(ValueError, match=r"^model: cannot read checkpoint"):
+            store.create(SceneConfig(voxel_size=VOXEL, model=str(tmp_path / "absent.safetensors")))
+        assert sorted(p.name for p in (tmp_path / "data").iterdir()) == before
+        path = save_checkpoint(tmp_path / "m.safetensors", perturbed(), {})
+        session = store.create(SceneConfig(voxel_size=VOXEL, model=str(path)))
+        assert session.scene.model_sha256 == load_checkpoint(path).sha256
+    finally:
+        store.close()
