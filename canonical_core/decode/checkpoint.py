@@ -33,8 +33,9 @@ CHECKPOINT_FORMAT = "canonicalgs-decoder"
 CHECKPOINT_VERSION = 1
 # The decoder's heads, by module name: the two monotone opacity heads and the three on F_scene.
 TRAINED_HEADS = ("opacity", "free_space_penalty", "offset", "log_scale_delta", "color_delta")
-# The checkpoint `SceneConfig(model="default")` loads, relative to this package; None: "default"
-# is the training-free decoder (no shipped checkpoint measured better on the evaluation capture).
+# The checkpoint `SceneConfig(model="default")` loads, a file in `SHIPPED_FOLDER`; None: "default"
+# is the training-free decoder (no trained checkpoint measured better on the evaluation capture:
+# docs/training.md). A shipped file also needs its pyproject.toml package-data entry.
 SHIPPED_CHECKPOINT: str | None = None
 SHIPPED_FOLDER = Path(__file__).parent / "checkpoints"
 
