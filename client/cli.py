@@ -9,6 +9,7 @@
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
     canonical depth DATASET --out DIR [--sources 2]   (plane-sweep depth + uncertainty pictures)
+    canonical train CAPTURE... --out MODEL.safetensors [--seed S] [--steps K] [--minutes M] [--device cpu|cuda]
 
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
@@ -523,6 +524,28 @@ def run_depth(args) -> int:
     return 0
 
 
+# -- train --------------------------------------------------------------------------------------
+def add_train(p: argparse.ArgumentParser) -> None:
+    p.add_argument("captures", nargs="+", help="RGB-D capture folders (never the evaluation capture, realsense_shelf)")
+    p.add_argument("--out", required=True, help="the checkpoint to write (.safetensors); the report goes to <stem>_report/")
+    p.add_argument("--seed", type=int, default=0, help="seed of the samples, the step order and the initial heads (default 0)")
+    p.add_argument("--steps", type=int, default=400, help="optimisation steps (default 400)")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes even if steps remain")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where the decode and render run (default cpu)")
+    p.add_argument("--width", type=int, default=160, help="training image width in pixels (default 160)")
+
+
+def run_train(args) -> int:
+    from canonical_core.train.loop import TrainSettings, run_training
+
+    settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width, device=args.device)
+    result = run_training(args.captures, args.out, settings)
+    report = Path(args.out).with_name(Path(args.out).stem + "_report")
+    print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")
+    print((report / "report.md").read_text())
+    return 0
+
+
 # -- eval ---------------------------------------------------------------------------------------
 # canonical_core (torch) is imported only when `eval` is the command: the other commands start fast.
 def add_eval(p: argparse.ArgumentParser) -> None:
@@ -549,6 +572,7 @@ COMMANDS: dict[str, Command] = {
     "demo": Command(add_demo, run_demo, "start a service, stream a sample capture, write a render and a PLY"),
     "depth": Command(add_depth, run_depth, "estimate depth + uncertainty of a dataset's frames by plane sweep, write pictures"),
     "eval": Command(add_eval, run_eval, "evaluate methods on held-out views of a dataset (results.json/md, plots, grids)"),
+    "train": Command(add_train, run_train, "train the decoder's heads on RGB-D captures, write a checkpoint and a report"),
 }
 
 

@@ -888,6 +888,7 @@ class SessionStore:
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
+            scene = Scene(config)  # before any file: a config whose model cannot load leaves nothing behind
             session_id = self.new_session_id()
             path = self.root / session_id
             created = time.time()
@@ -901,7 +902,7 @@ class SessionStore:
             except OSError as exc:
                 shutil.rmtree(path, ignore_errors=True)
                 raise StorageError(f"{META}: cannot create the session", exc) from exc
-            session = self.session_class(session_id, path, config, created, Scene(config), frame_log, 0, archive=archive,
+            session = self.session_class(session_id, path, config, created, scene, frame_log, 0, archive=archive,
                                          background_frames=self.background_frames)
             self._sessions[session_id] = session
             return session

@@ -21,10 +21,12 @@ ROOT = REPO / "canonical_core"
 
 # the layer order, lowest first: each layer may import the ones before it (deprecation: the shims that
 # keep renamed public names working for a release, a leaf every layer may use)
-LAYERS = ["deprecation", "settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval"]
+LAYERS = ["deprecation", "settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
+          "train"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
 ALLOWED["datasets"] = {"camera", "frame"}  # loaders need cameras and frames, nothing of the method
 ALLOWED["eval"] |= {"datasets"}
+ALLOWED["train"] |= {"datasets"}
 ALLOWED["canonical_core"] = set(ALLOWED) - {"canonical_core"}  # the package's facade re-exports every layer
 
 

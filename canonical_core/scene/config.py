@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, create_model, field_validator, model_validator
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
@@ -229,6 +229,11 @@ class SceneConfig(_Settings):
     colour_solve_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
     """Size of the kept views relative to the input (0.5: a quarter of the pixels, of the solve's
     time and of the views' memory)."""
+    model: Annotated[str, Field(min_length=1, max_length=4096)] = "default"
+    """The decoder's parameters: ``default`` (the checkpoint shipped with the library when one ships,
+    else the training-free decoder), ``none`` (the training-free, analytic decoder) or the path of a
+    ``.safetensors`` checkpoint written by ``canonical train`` (`decode.checkpoint`). A snapshot keeps
+    the parameters it was decoded with, so a restored scene decodes the same without the file."""
     sensor: SensorNoise = SensorNoise()
     """The depth sensor's noise model."""
     free_space: FreeSpace = FreeSpace()
@@ -239,6 +244,13 @@ class SceneConfig(_Settings):
     """The analytic decoder of a new scene."""
     research: Research = Research()
     """Ablations, for the evaluation only."""
+
+    @field_validator("model")
+    @classmethod
+    def _model_name(cls, value: str) -> str:
+        if value not in ("default", "none") and not value.endswith(".safetensors"):
+            raise ValueError(f"model: expected 'default', 'none' or the path of a .safetensors checkpoint, got {value!r}")
+        return value
 
     @model_validator(mode="after")
     def _depth_range(self) -> "SceneConfig":

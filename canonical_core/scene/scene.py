@@ -27,6 +27,7 @@ import torch
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
+from ..decode.checkpoint import load_model as _load_model
 from .config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
@@ -93,6 +94,10 @@ class Scene:
     them rolls the state back in place (`rollback`) and re-folds from there, so correcting the k most
     recent frames costs about k folds.
 
+    The decoder starts with the parameters of ``config.model`` (`decode.checkpoint.resolve_model`);
+    ``load_model=False`` leaves it training-free, for a caller that sets its parameters itself
+    (`from_bytes` restores a snapshot's). ``model_sha256`` names the checkpoint file that was loaded.
+
     Example:
         >>> scene = Scene(SceneConfig(voxel_size=0.01))
         >>> len(scene), scene.frames
@@ -100,7 +105,7 @@ class Scene:
     """
 
     def __init__(self, config: SceneConfig, initial_capacity: int = 1 << 15, keep_frames: bool = False,
-                 checkpoint_every: int = 0, undo_depth: int | None = None):
+                 checkpoint_every: int = 0, undo_depth: int | None = None, *, load_model: bool = True):
         if not isinstance(config, SceneConfig):
             raise ValueError(f"config: expected a SceneConfig, got {type(config).__name__}")
         if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 0:
@@ -118,6 +123,9 @@ class Scene:
         self._history = SeeThroughHistory(config.free_space.history)
         self._keyframes = Keyframes(config.colour_solve_views, config.colour_solve_scale)  # the colour solve's views
         self._decoding = SceneDecoding(config)
+        # the trained checkpoint `config.model` names (`decode.checkpoint`); a snapshot brings its own parameters
+        checkpoint = _load_model(self._decoding.decoder, config.model) if load_model else None
+        self.model_sha256: str | None = checkpoint.sha256 if checkpoint is not None else None
         self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds
         self._lock = threading.Lock()  # the state's lock; `SceneDecoding.lock` is taken before it, never after
         self._generation = 0  # bumped by every fold, so a decode knows whether the state it read is current
@@ -508,7 +516,8 @@ class Scene:
     def _snapshot_parts(self) -> tuple[dict, dict[str, np.ndarray]]:
         header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
                   "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
-                  "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames]}
+                  "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames],
+                  "model": {"setting": self.config.model, "sha256": self.model_sha256}}
         return header, self._snapshot_arrays()
 
     def _encode(self, header: dict, arrays: dict[str, np.ndarray]) -> bytes:
@@ -545,7 +554,10 @@ class Scene:
             raise ValueError(f"snapshot: unknown format {header.get('format')!r}")
         if header.get("version") not in (3, FORMAT_VERSION):
             raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected 3 or {FORMAT_VERSION})")
-        scene = cls(SceneConfig.from_dict(header["config"]), initial_capacity=max(int(header["voxels"]), 16))
+        # the decoder's parameters come from the snapshot, not from the model file (which may be gone)
+        scene = cls(SceneConfig.from_dict(header["config"]), initial_capacity=max(int(header["voxels"]), 16),
+                    load_model=False)
+        scene.model_sha256 = (header.get("model") or {}).get("sha256")
         if header["label_dim"]:
             scene._voxels.set_label_dim(int(header["label_dim"]))
         scene._voxels.load_sums({k[len("state."):]: npz[k] for k in npz.files if k.startswith("state.")})

@@ -7,6 +7,7 @@ from fastapi import APIRouter
 from canonical_core import SceneConfig
 
 from ..deps import JobsDep, SessionDep, StoreDep
+from ..errors import ApiError
 from ..schemas import Deleted, Digest, ErrorBody, SessionCreate, SessionCreated, SessionList, SessionStats, SessionSummary
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
@@ -21,6 +22,9 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) ->
     settings = body.model_dump(exclude_unset=True)
     retention = settings.pop("archive_retention", None)
     config = SceneConfig(**settings)  # ValueError naming the field -> 422
+    if config.model not in ("default", "none"):  # a client must not make the service read a file of its choosing
+        raise ApiError(422, "invalid_value", "model: a checkpoint path cannot be chosen over HTTP; use 'default' "
+                                               "or 'none'", "model")
     session = await jobs.run(store.create, config, retention)
     return SessionCreated(id=session.id, config=config.to_dict(), archive_retention=session.retention)
 

@@ -55,6 +55,7 @@ BOUNDS = {
 CHOICES = {
     "feature_backend": ("default", "client"),
     "research.weighting": ("full", "no_reliability", "no_similarity", "average"),
+    "model": ("default", "none", "checkpoint.safetensors"),  # names or a checkpoint's path (read when a scene starts)
 }
 SWITCHES = ("depth_completion", "free_space.enabled")
 

@@ -39,6 +39,8 @@ def create(server, body):
     ({"voxel_size": 0.01, "depth": {"hypotheses": 513}}, "depth.hypotheses"),
     ({"voxel_size": 0.01, "decoder": {"opacity_slope": "steep"}}, "decoder.opacity_slope"),
     ({"voxel_size": 0.01, "near": 2.0, "far": 1.0}, "near"),
+    ({"voxel_size": 0.01, "model": "/etc/passwd"}, "model"),
+    ({"voxel_size": 0.01, "model": "/tmp/trained.safetensors"}, "model"),  # the service reads no file a client names
 ])
 def test_create_refuses_naming_the_field_and_makes_nothing(server, client, body, field):
     before = len(client.sessions())

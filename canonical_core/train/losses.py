@@ -1,0 +1,51 @@
+"""The render loss of training: MSE plus a differentiable SSIM, on a held-out frame.
+
+SSIM uses the evaluation's window and constants (`eval.metrics`: an 11-tap Gaussian of std 1.5,
+C1 = 0.01^2, C2 = 0.03^2) over the valid part of the image, so ``1 - ssim_loss`` of two images is
+the evaluation's `eval.metrics.ssim` of them up to float rounding.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..eval.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window
+
+SSIM_WEIGHT = 0.02  # weight of (1 - SSIM) next to the MSE: small, so that PSNR (what the evaluation scores) leads the loss
+
+
+def ssim_torch(
+    pred: Tensor,  # [H, W, C] in [0, 1]
+    target: Tensor,  # [H, W, C] in [0, 1]
+) -> Tensor:  # [] mean SSIM, differentiable in pred
+    """Mean structural similarity over the valid windows (Wang et al. 2004)."""
+    if pred.shape != target.shape or pred.ndim != 3:
+        raise ValueError(f"pred: expected [H, W, C] like target {list(target.shape)}, got {list(pred.shape)}")
+    if min(pred.shape[:2]) < SSIM_WINDOW:
+        raise ValueError(f"pred: SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {list(pred.shape[:2])}")
+    c = pred.shape[2]
+    g = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA).to(pred)
+    kernel = (g[:, None] * g[None, :]).expand(c, 1, SSIM_WINDOW, SSIM_WINDOW)
+
+    def blur(t: Tensor) -> Tensor:  # [1, C, H, W] -> [1, C, H - 10, W - 10]
+        return torch.nn.functional.conv2d(t, kernel, groups=c)
+
+    x, y = pred.permute(2, 0, 1)[None], target.to(pred).permute(2, 0, 1)[None]
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return (num / den).mean()
+
+
+def render_loss(
+    pred: Tensor,  # [H, W, 3] rendered colour in [0, 1]
+    target: Tensor,  # [H, W, 3] the held-out frame's colour in [0, 1]
+    ssim_weight: float = SSIM_WEIGHT,
+) -> Tensor:  # [] scalar
+    """MSE + ``ssim_weight`` (1 - SSIM) over all pixels."""
+    target = target.to(pred)
+    return torch.mean((pred - target) ** 2) + ssim_weight * (1.0 - ssim_torch(pred, target))
