@@ -159,6 +159,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads, settings.archive_retention)
     store.background_frames = settings.correction_background_frames
+    store.undo_depth = settings.correction_undo_frames
     metrics = Metrics()
 
     @contextlib.asynccontextmanager

@@ -37,6 +37,10 @@ class Settings(BaseSettings):
     correction_background_frames: int = Field(64, ge=0, description=(
         "a pose correction that would re-fold more frames than this re-folds in the background: POST /poses "
         "answers 202 and the client polls its status"))
+    correction_undo_frames: int = Field(4, ge=0, le=1024, description=(
+        "a session keeps undo records of its last this many folds, so that a pose correction of them rolls "
+        "back in place and re-folds only them; each record costs about the rows its fold touched (megabytes "
+        "at 640x480), counted in the session's memory_bytes"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")

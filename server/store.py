@@ -167,6 +167,7 @@ class Session:
     version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
     background: CorrectionJob | None = None  # the correction re-folding in the background, if one is
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
+    undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     jobs: dict[str, CorrectionJob] = field(default_factory=dict)  # background corrections since the start
 
     def __post_init__(self):
@@ -176,7 +177,7 @@ class Session:
         """Sessions that can be corrected keep undo records of their last folds: a correction of
         recent frames then rolls the served scene back and re-folds only them (`correct`)."""
         if self.archive is not None:
-            self.scene.keep_undo(UNDO_DEPTH)
+            self.scene.keep_undo(self.undo_depth)
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
@@ -299,7 +300,7 @@ class Session:
         The corrected scene is the re-fold of the archived frames, in order, with the corrections
         applied (`Scene.refolded`): equal to a session that was streamed the corrected frames.
 
-        A correction whose frames are among the scene's last folds (`UNDO_DEPTH`) rolls the served
+        A correction whose frames are among the scene's last folds (``undo_depth``) rolls the served
         scene back and re-folds them under the session's lock (`Scene.rollback`): about k folds for
         the k most recent frames. Any other is computed outside the lock from the latest saved state
         before its first frame, so the old scene is served meanwhile; a fold or another correction
@@ -509,8 +510,8 @@ class Session:
             job.total = len(entries) - len(removed) - start
             stream = counted(stream, job)
         if base is not None:
-            base.keep_undo(UNDO_DEPTH)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
-        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints, UNDO_DEPTH), checkpoints
+            base.keep_undo(self.undo_depth)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints, self.undo_depth), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
         """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
@@ -770,6 +771,7 @@ class SessionStore:
         self.data_dir = Path(data_dir)
         self.retention = retention  # the frame archive's retention of sessions created without one
         self.background_frames = BACKGROUND_FRAMES  # corrections that re-fold more run in the background
+        self.undo_depth: int | None = None  # folds a session's scene can roll back in place (None: UNDO_DEPTH)
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -826,7 +828,7 @@ class SessionStore:
                 self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
                 continue
             self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive,
-                                                 background_frames=self.background_frames)
+                                                 **self._session_options())
             log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
                      restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
 
@@ -903,9 +905,14 @@ class SessionStore:
                 shutil.rmtree(path, ignore_errors=True)
                 raise StorageError(f"{META}: cannot create the session", exc) from exc
             session = self.session_class(session_id, path, config, created, scene, frame_log, 0, archive=archive,
-                                         background_frames=self.background_frames)
+                                         **self._session_options())
             self._sessions[session_id] = session
             return session
+
+    def _session_options(self) -> dict:
+        """The store's settings that its sessions carry."""
+        undo = {} if self.undo_depth is None else {"undo_depth": self.undo_depth}
+        return {"background_frames": self.background_frames, **undo}
 
     def new_session_id(self) -> str:
         return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag

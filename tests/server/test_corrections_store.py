@@ -209,3 +209,21 @@ def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restar
         assert restored.digest()["sha256"] == expected.digest()["sha256"]
     finally:
         again.close()
+
+
+def test_the_services_undo_setting_reaches_its_sessions_and_their_memory(tmp_path, shelf):
+    from server.app import create_app
+    from server.settings import Settings
+
+    memory, undo = {}, {}
+    for depth in (0, 7):
+        store = create_app(Settings(data_dir=tmp_path / str(depth), correction_undo_frames=depth)).state.store
+        store.open()
+        try:
+            session = streamed(store, shelf[:3])
+            assert session.undo_depth == depth and session.scene._undo.depth == depth
+            memory[depth], undo[depth] = session.scene.memory_bytes(), session.scene.undo_bytes()
+        finally:
+            store.close()
+    assert undo[0] == 0 and undo[7] > 0
+    assert memory[7] == memory[0] + undo[7]  # the records count in the session's memory
