@@ -77,6 +77,8 @@ class OwnedSession(Session):
             raise
 
     def _snapshot(self) -> None:
+        if self.archive is not None:  # before the lease is held: the archive's writer takes it for each append
+            self.archive.flush()
         try:
             with self.log.fenced():  # the snapshot and the log's restart are one step for other owners
                 super()._snapshot()
