@@ -7,8 +7,9 @@ Each payload is a msgpack map of one of two kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
   frame_id, the digest of its wire payload (to recognise a retry), and its wire message, losslessly
-  compressed (`compress_message`: an 8-bit colour array becomes a PNG, the whole map is then
-  zlib-compressed), or None where the retention setting did not keep it;
+  compressed (`compress_message`: zstandard over the packed map; archives written before read back
+  too: an 8-bit colour array as PNG, zlib over the map), or None where the retention setting did not
+  keep it;
 - a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
   "first": the stream position of the first frame it touches, "id": the id of a background
   correction or None}``.
@@ -18,8 +19,8 @@ order, each with its current pose. A correction is archived (the commit point) b
 acknowledged.
 
 Frames are archived off the acknowledged path. A folded frame is durable in the session's frame log
-(fsynced before the answer); compressing it costs more than the fold itself, so `defer_frame` queues
-it and a writer thread of the archive compresses and appends it. The frame log is not restarted
+(fsynced before the answer); compressing and appending it (a second fsync) need not delay the answer,
+so `defer_frame` queues it and a writer thread of the archive compresses and appends it. The frame log is not restarted
 while the archive lacks frames (`flush` comes first), so after a crash the frames the archive lacks
 are all in the log, and the restart archives them from there (`store.restore_session`). Whatever
 reads the archive's frames (a correction) flushes it first.
@@ -42,6 +43,7 @@ from typing import Iterator, Literal
 
 import msgpack
 import numpy as np
+import zstandard
 
 from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
@@ -66,16 +68,20 @@ def payload_digest(payload: bytes) -> str:
     return hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
+ZSTD_LEVEL = 1  # zstandard's fastest levels: a frame in a few ms; higher levels cost several times more for a few %
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
 def compress_message(msg: dict) -> bytes:
-    """A frame message, losslessly smaller: an 8-bit colour array as PNG, then zlib over the map."""
-    rgb = msg.get("rgb")
-    if wire.is_array(rgb) and rgb.get("dtype") == "uint8":
-        msg = {**msg, "rgb": wire.encode_png(wire.decode_array(rgb, "rgb"))}
-    return zlib.compress(wire.pack(msg), 6)
+    """A frame message, losslessly smaller: zstandard over the packed map."""
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(wire.pack(msg))
 
 
 def decompress_message(data: bytes) -> dict:
-    return wire.unpack(zlib.decompress(data))
+    """The inverse of `compress_message`, and of the PNG + zlib form of earlier archives."""
+    if data[:4] == _ZSTD_MAGIC:
+        return wire.unpack(zstandard.ZstdDecompressor().decompress(data))
+    return wire.unpack(zlib.decompress(data))  # its colour as PNG bytes, which the wire takes as they are
 
 
 @dataclass(frozen=True)

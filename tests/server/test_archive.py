@@ -3,13 +3,15 @@ a torn tail cut, damage refused, and the start-up reconciliation with the scene'
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 import pytest
 import torch
 
 from canonical_wire import encode_array, pack
 from server.archive import ARCHIVE, SessionArchive, compress_message, decompress_message, payload_digest
-from server.wire import frame_from_message
+from server.wire import encode_png, frame_from_message
 
 
 def message(k: int, frame_id: str | None = None) -> dict:
@@ -38,6 +40,15 @@ def test_compression_is_lossless_and_smaller():
     smooth = {**msg, "rgb": encode_array(np.broadcast_to(np.arange(16, dtype=np.uint8)[None, :, None] * 8, (12, 16, 3)).copy()),
               "depth": encode_array(np.full((12, 16), 1.5, np.float32))}
     assert len(compress_message(smooth)) < len(pack(smooth)) / 3  # real images are smooth, noise is not
+
+
+def test_frames_archived_as_png_and_zlib_read_back():
+    """Archives written before zstandard: colour as PNG bytes, zlib over the map."""
+    msg = message(4, "b")
+    rgb = frame_from_message(msg).rgb.numpy()
+    legacy = zlib.compress(pack({**msg, "rgb": encode_png(rgb)}), 6)
+    a, b = frame_from_message(msg), frame_from_message(decompress_message(legacy))
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth) and b.frame_id == "b"
 
 
 def test_reopening_replays_frames_and_corrections(tmp_path):
