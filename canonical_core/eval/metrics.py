@@ -108,15 +108,23 @@ def ssim(
         _blur_valid_kernel(np.ascontiguousarray(t[0].numpy()), g, out)
         return torch.from_numpy(out)[None]
 
-    x = pred.double().permute(2, 0, 1)[None]
-    y = target.double().permute(2, 0, 1)[None]
+    return float(mean_ssim(pred.double().permute(2, 0, 1)[None], target.double().permute(2, 0, 1)[None], blur))
+
+
+def mean_ssim(
+    x: Tensor,  # [1, C, H, W]
+    y: Tensor,  # [1, C, H, W]
+    blur,  # [1, C, H, W] -> [1, C, H', W']: the SSIM window's Gaussian average at every valid position
+) -> Tensor:  # [] the mean of the SSIM map
+    """SSIM's formula over the local means, variances and covariance that ``blur`` gives (the metric's
+    blur is a float64 numba kernel; the training loss's a differentiable convolution)."""
     mu_x, mu_y = blur(x), blur(y)
     var_x = blur(x * x) - mu_x**2
     var_y = blur(y * y) - mu_y**2
     cov = blur(x * y) - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
-    return float((num / den).mean())
+    return (num / den).mean()
 
 
 def covered(alpha: Tensor) -> Tensor:  # [H, W] -> [H, W] bool

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..eval.metrics import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, _gaussian_window
+from ..eval.metrics import SSIM_SIGMA, SSIM_WINDOW, _gaussian_window, mean_ssim
 
 SSIM_WEIGHT = 0.02  # weight of (1 - SSIM) next to the MSE: small, so that PSNR (what the evaluation scores) leads the loss
 
@@ -31,14 +31,7 @@ def ssim_torch(
     def blur(t: Tensor) -> Tensor:  # [1, C, H, W] -> [1, C, H - 10, W - 10]
         return torch.nn.functional.conv2d(t, kernel, groups=c)
 
-    x, y = pred.permute(2, 0, 1)[None], target.to(pred).permute(2, 0, 1)[None]
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x**2
-    var_y = blur(y * y) - mu_y**2
-    cov = blur(x * y) - mu_x * mu_y
-    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
-    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
-    return (num / den).mean()
+    return mean_ssim(pred.permute(2, 0, 1)[None], target.to(pred).permute(2, 0, 1)[None], blur)
 
 
 def render_loss(
