@@ -74,14 +74,23 @@ _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 def compress_message(msg: dict) -> bytes:
     """A frame message, losslessly smaller: zstandard over the packed map."""
-    return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(wire.pack(msg))
+    # with the frame's checksum, so a damaged record is detected when it is read back
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(wire.pack(msg))
+
+
+class DamagedFrame(Exception):
+    """An archived frame's message does not decompress: the archive's file was damaged."""
 
 
 def decompress_message(data: bytes) -> dict:
-    """The inverse of `compress_message`, and of the PNG + zlib form of earlier archives."""
-    if data[:4] == _ZSTD_MAGIC:
-        return wire.unpack(zstandard.ZstdDecompressor().decompress(data))
-    return wire.unpack(zlib.decompress(data))  # its colour as PNG bytes, which the wire takes as they are
+    """The inverse of `compress_message`, and of the PNG + zlib form of earlier archives. Raises
+    `DamagedFrame` when the bytes are not what either wrote."""
+    try:
+        if data[:4] == _ZSTD_MAGIC:
+            return wire.unpack(zstandard.ZstdDecompressor().decompress(data))
+        return wire.unpack(zlib.decompress(data))  # its colour as PNG bytes, which the wire takes as they are
+    except (zstandard.ZstdError, zlib.error) as exc:
+        raise DamagedFrame(f"{ARCHIVE}: an archived frame does not decompress ({exc})") from None
 
 
 @dataclass(frozen=True)

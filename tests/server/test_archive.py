@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from canonical_wire import encode_array, pack
-from server.archive import ARCHIVE, SessionArchive, compress_message, decompress_message, payload_digest
+from server.archive import ARCHIVE, DamagedFrame, SessionArchive, compress_message, decompress_message, payload_digest
 from server.wire import encode_png, frame_from_message
 
 
@@ -140,3 +140,10 @@ def test_cut_to_archives_the_frames_it_lacks_from_the_log(tmp_path):
     short = archive_of(tmp_path / "b", 1)
     short.cut_to(3, {2: logged[2]})  # frame 1 is in neither: the archive cannot serve corrections
     assert short.problem is not None and len(short.entries) == 1
+
+
+def test_a_damaged_frame_record_is_named():
+    data = bytearray(compress_message(message(5, "c")))
+    data[len(data) // 2] ^= 0xFF
+    with pytest.raises(DamagedFrame, match=r"^archive\.log: an archived frame does not decompress"):
+        decompress_message(bytes(data))
