@@ -1,4 +1,4 @@
-"""Rasterizer benchmark: ms per frame of render() for the cpu and reference backends.
+"""Rasterizer benchmark: ms per frame of render() for the cpu and reference backends, and gsplat on CUDA.
 
 Usage: NUMBA_CACHE_DIR=.numba_cache python bench/render.py [--quick]
 
@@ -6,7 +6,8 @@ Prints a table; asserts nothing. The scene is synthetic but shaped like a decode
 Gaussians on a back wall, a floor and two boxes 2-4 m in front of the camera, flattened along
 the surface normal, standard deviation 0.7-3 px at 640x480 (boxes of 5-19 px across their 3 sigma),
 opacity 0.3-1, degree-1 SH colour, in random order. Rows "shelf" render the real scene decoded from
-all of ../shared/data/realsense_shelf (when it is there). Timings are
+all of ../shared/data/realsense_shelf (when it is there). Rows "gsplat" appear where CUDA and
+gsplat are installed: the same scenes moved to the GPU, timed to the end of the GPU's work. Timings are
 wall-clock medians after warm-up on a machine that may be shared: read them with the load
 average printed at the top.
 """
@@ -33,6 +34,7 @@ from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
 from canonical_core.gaussians import Gaussians, rgb_to_sh_dc  # noqa: E402
 from canonical_core.rendering import render  # noqa: E402
 from canonical_core.rendering.cpu_tiles import compositor_build  # noqa: E402
+from canonical_core.rendering.gsplat_backend import gsplat_available  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 
 FOCAL_AT_640 = 525.0
@@ -120,8 +122,15 @@ def machine() -> str:
 
 
 def time_render(gaussians: Gaussians, camera: Camera, outputs, backend: str, threads: int, repeats: int) -> list[float]:
-    """Milliseconds per render, after a warm-up render."""
-    draw = lambda _: render(gaussians, camera, outputs, backend=backend, num_threads=threads)  # noqa: E731
+    """Milliseconds per render, after a warm-up render. On the GPU the clock stops when its work ends."""
+    if backend == "gsplat":
+        gaussians = gaussians.to("cuda")
+
+    def draw(_) -> None:
+        render(gaussians, camera, outputs, backend=backend, num_threads=threads)
+        if backend == "gsplat":
+            torch.cuda.synchronize()
+
     draw(None)
     return time_each(draw, range(repeats))
 
@@ -164,6 +173,9 @@ def main() -> None:
     threads = sorted({1, min(2, os.cpu_count() or 1)})
     render(Gaussians.empty(), make_camera(16, 16))  # starts numba's thread pool, which machine() names
     print(machine())
+    gpu = torch.cuda.is_available() and gsplat_available()
+    if gpu:
+        print(f"gsplat on {torch.cuda.get_device_name()}")
     scenes = {n: make_scene(n, FEATURE_DIM) for n in sizes}
     cases = [(n, scenes[n], make_camera(width, height)) for n in sizes for width, height in RESOLUTIONS]
     cases += shelf_cases()
@@ -178,9 +190,11 @@ def main() -> None:
             runs = [("cpu", t) for t in threads]
             if n == SIZES[0] and width == 256:  # the reference is O(splats x pixels): small cases only
                 runs.append(("reference", threads[-1]))
+            if gpu:
+                runs.append(("gsplat", threads[-1]))
             for backend, t in runs:
                 torch.set_num_threads(t)
-                times = time_render(gaussians, camera, outputs, backend, t, repeats if backend == "cpu" else 3)
+                times = time_render(gaussians, camera, outputs, backend, t, 3 if backend == "reference" else repeats)
                 target = TARGETS_MS.get((n, (width, height), channels)) if backend == "cpu" and t == 2 else None
                 print(f"{backend:<10}{n:>10}{f'{width}x{height}':>10}{channels:>10}{t:>8}{statistics.median(times):>9.1f}"
                       f"{min(times):>8.1f}{max(times):>8.1f}  {f'<= {target} ms' if target else ''}")  # fmt: skip

@@ -33,6 +33,10 @@ def composite_gsplat(
     dtype, device = gaussians.means.dtype, gaussians.means.device
     w2c = world_to_camera(camera, dtype, device)
     values = channel_values(gaussians, camera, channels)
+    # gsplat samples pixel (u, v) at (u + 0.5, v + 0.5); this project centres it at (u, v). Moving
+    # the principal point half a pixel makes both sample the same rays.
+    K = camera.K64().copy()
+    K[:2, 2] += 0.5
     # Colours are evaluated here (not by gsplat's sh_degree path) so that RGB, features and
     # label scores go through one call; the expected depth comes back as the last channel.
     rendered, alpha, _ = gsplat.rasterization(
@@ -42,7 +46,7 @@ def composite_gsplat(
         opacities=gaussians.opacities,
         colors=values,
         viewmats=w2c[None],
-        Ks=torch.from_numpy(camera.K64()).to(dtype=dtype, device=device)[None],
+        Ks=torch.from_numpy(K).to(dtype=dtype, device=device)[None],
         width=camera.width,
         height=camera.height,
         near_plane=near_plane,
