@@ -89,7 +89,7 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:  # [N, 3, 3] -> [N, 4] (w, x, y, 
     )  # [N, 4 candidates, 4]; candidate k has component k equal to 4 q_k^2, largest is most stable
     diag = torch.stack([trace, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
     pick = diag.argmax(-1)
-    q = cands[torch.arange(R.shape[0]), pick]
+    q = cands[torch.arange(R.shape[0], device=R.device), pick]
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return torch.where(q[:, :1] < 0, -q, q)
 
@@ -168,11 +168,11 @@ class GaussianDecoder(nn.Module):
         eigh = symmetric_eigh3_reference if torch.is_grad_enabled() and cov.requires_grad else symmetric_eigh3
         eigval, eigvec = eigh(cov)
         std = eigval.clamp_min(0.0).sqrt().float() * FOOTPRINT_GAIN
-        lo = torch.tensor([self.min_thickness, self.min_extent, self.min_extent])
-        std = torch.minimum(torch.maximum(std, lo), torch.tensor(self.max_extent))
+        lo = torch.tensor([self.min_thickness, self.min_extent, self.min_extent], device=std.device)
+        std = torch.minimum(torch.maximum(std, lo), torch.tensor(self.max_extent, device=std.device))
         scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
         rot = eigvec.float()
-        rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0]), rot)
+        rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0], device=rot.device), rot)
         sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(get_renamed(fields, "colour", "color"))[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
         return {"means": means, "scales": scales, "quats": matrix_to_quaternion(rot), "sh": sh, "features": feats,

@@ -87,7 +87,8 @@ def symmetric_eigh3(
     cov: Tensor,  # [N, 3, 3] symmetric (the symmetric part is used)
 ) -> tuple[Tensor, Tensor]:  # eigenvalues [N, 3] ascending, eigenvectors [N, 3, 3] as columns, float64
     """Eigenvalues and eigenvectors of symmetric 3x3 matrices by cyclic Jacobi rotations (numba);
-    the same decomposition as `symmetric_eigh3_reference`, not differentiable.
+    the same decomposition as `symmetric_eigh3_reference`, not differentiable. Matrices on an
+    accelerator go to its batched library solver instead, where they are (numba reads host memory).
 
     Example:
         >>> cov = torch.tensor([[[2.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 5.0]]])
@@ -100,6 +101,8 @@ def symmetric_eigh3(
     _check(cov)
     a = cov.detach().to(torch.float64)
     a = (0.5 * (a + a.transpose(1, 2))).contiguous()
+    if a.device.type != "cpu":
+        return torch.linalg.eigh(a)
     vectors = torch.empty_like(a)
     if a.shape[0]:
         _jacobi_kernel(a.numpy(), vectors.numpy())

@@ -39,6 +39,7 @@ from ..frame import Frame
 from ..eval.methods import SplatModel
 from ..eval.run import score
 from ..rendering import render
+from ..rendering.gsplat_backend import gsplat_available
 from ..rendering.splat_geometry import TILE_SIZE
 from ..scene import Scene
 from ..decode.checkpoint import save_checkpoint
@@ -133,8 +134,10 @@ def step_loss(decoder: GaussianDecoder, sample: FusedSample, target: int, ssim_w
     x0, y0, w, h = crop if crop is not None else (0, 0, frame.width, frame.height)
     gaussians = decode(decoder, sample)
     device = sample.support.device
+    # Both differentiable backends: gsplat's fused CUDA kernels where they run, else the PyTorch reference.
+    backend = "gsplat" if device.type == "cuda" and gsplat_available() else "reference"
     view = render(gaussians, crop_camera(frame.camera, x0, y0, w, h), outputs=("rgb",), colour="normalised",
-                  backend="reference")
+                  backend=backend)
     truth = frame.rgb[y0: y0 + h, x0: x0 + w].to(device).float() / 255.0
     return render_loss(view.rgb, truth, ssim_weight)
 
