@@ -63,10 +63,10 @@ def voxel_keys_kernel(points, inv_voxel, out):
 
 
 @numba.njit(cache=True)
-def rebuild_table_kernel(table, keys, n_voxels):
-    table[:] = -1
+def insert_range_kernel(table, keys, start, stop):
+    """Enter voxels ``start`` .. ``stop - 1`` into ``table`` (their keys are not in it yet)."""
     mask = table.shape[0] - 1
-    for idx in range(n_voxels):
+    for idx in range(start, stop):
         table[-1 - _find(table, keys, keys[idx], mask)] = idx
 
 

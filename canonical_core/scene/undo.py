@@ -32,7 +32,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .free_space import SeeThroughHistory, update_chunk_boxes_kernel
-from .kernels import rebuild_table_kernel
 from .voxel_map import VoxelMap
 
 __all__ = ["FoldUndo", "RowsBefore", "UndoRing"]
@@ -105,7 +104,7 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
         array[n:end] = 0
     voxels.state["free"][:n] = target.free
     voxels.n = n
-    rebuild_table_kernel(voxels.table, voxels.state["keys"], n)
+    voxels.rebuild_table()
     voxels.chunk_lo[:], voxels.chunk_hi[:] = 0, 0
     update_chunk_boxes_kernel(voxels.state["keys"], 0, n, voxels.chunk_lo, voxels.chunk_hi)
     voxels.touch_all()

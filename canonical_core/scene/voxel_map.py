@@ -6,11 +6,19 @@ It knows nothing of frames. It holds, for ``len(map)`` voxels:
 - ``rows`` [V, width] float32, the representative and every weighted sum (`kernels.VoxelRows`);
 - ``rep_rgb`` [V, 3] uint8, ``free`` [V] float32 (see-through evidence), ``n_obs`` [V] int32;
 - ``table``, a power-of-two hash table of voxel indices (-1 empty, linear probing), kept at a load
-  of at most `MAX_TABLE_LOAD` so that a probe ends after a few slots;
+  of at most `MAX_TABLE_LOAD` so that a probe ends after a few slots. Its successor, twice the
+  size, is filled a slice per fold from a load of `NEXT_TABLE_LOAD` on and replaces it once it
+  holds every voxel, so no fold pays for rehashing the whole map;
 - per chunk of `free_space.CHUNK` voxels, their keys' bounding box (the free-space kernels skip
   chunks outside a frustum);
 - per voxel, the stamp of the last change of its sums (`changed_at`), which the decoder side uses
   to decode again only what changed. Stamps are unique in the process.
+
+Growth never copies the records on the fold path: each per-voxel array is a view of the first
+`capacity` rows of a zeroed block of `RESERVED_ROWS` rows allocated up front. A block that large is
+address space, not memory: the allocator maps it lazily, and a page costs memory (and a zero fill)
+only when a fold first writes a row in it. Growing the capacity is a new, longer view. Only a map
+that outgrows its block (or one where the reservation is refused) copies its rows into a new one.
 
 Integration (`integrate`) writes the records; the snapshot reads and restores them as arrays
 (`sums`, `load_sums`).
@@ -24,9 +32,15 @@ import numpy as np
 
 from .fields import sh_sum_widths
 from .free_space import CHUNK, update_chunk_boxes_kernel
-from .kernels import VoxelRows, lookup_kernel, rebuild_table_kernel
+from .kernels import VoxelRows, insert_range_kernel, lookup_kernel
 
 MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
+# rows reserved per array up front (about 5 GB of address space with the default layout, none of
+# it memory until written): a map copies its records only if it outgrows this
+RESERVED_ROWS = 1 << 24
+NEXT_TABLE_LOAD = 0.5  # the load at which the next table starts filling
+NEXT_TABLE_CLEAR = 1 / 8  # slots of it marked empty per fold (its pages are first touched then)
+NEXT_TABLE_SLICE = 1 / 32  # voxels entered into it per fold once it is clear, as a share of its slots
 
 # per-voxel arrays beside the float32 record (`VoxelRows`): name -> (dtype, trailing shape)
 ARRAYS = {
@@ -60,7 +74,8 @@ class VoxelMap:
     Args:
         feature_dim: L, the feature channels of each record.
         sh_degree: the SH degree whose fit sums each record keeps.
-        initial_capacity: rows allocated up front (growth is x1.5, amortised).
+        initial_capacity: rows counted as allocated at the start (growth is x1.5); the backing
+            block reserves `RESERVED_ROWS` (at most ``max_voxels``, at least this).
         max_voxels: the cap `check_room` enforces (None: no cap).
 
     Example:
@@ -74,11 +89,13 @@ class VoxelMap:
         self.feature_dim, self.sh_degree, self.max_voxels = feature_dim, sh_degree, max_voxels
         self.layout = VoxelRows(feature_dim, sh_sum_widths(sh_degree))
         self.n = 0
-        self.state = self._allocate(initial_capacity)
+        self._backing: dict[str, np.ndarray] = {}  # the reserved blocks that `state` and `changed_at` view
+        self._provide(initial_capacity)
         self.table = np.full(table_size(initial_capacity), -1, np.int32)
+        self._next_table: np.ndarray | None = None  # the successor: slots [0, _next_cleared) marked empty,
+        self._next_cleared = self._next_filled = 0  # then voxels [0, _next_filled) entered
         self.chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
-        self.changed_at = np.zeros(self.capacity, np.int64)
         # when a list: `integrate` appends the rows it is about to overwrite (`undo.rows_before`)
         self.journal: list | None = None
 
@@ -93,10 +110,34 @@ class VoxelMap:
     def label_dim(self) -> int:
         return self.layout.label_dim
 
-    def _allocate(self, capacity: int) -> dict[str, np.ndarray]:
-        state = {name: np.zeros((capacity, *shape), dtype) for name, (dtype, shape) in ARRAYS.items()}
-        state["rows"] = np.zeros((capacity, self.layout.width), np.float32)
-        return state
+    def _shapes(self) -> dict[str, tuple[type, tuple[int, ...]]]:
+        return ARRAYS | {"rows": (np.float32, (self.layout.width,)), "changed_at": (np.int64, ())}
+
+    def _reserve(self, capacity: int, rows: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """Zeroed blocks of ``rows`` rows (of every array, or of ``names``), fewer (down to
+        ``capacity``) where the system refuses that much address space (a small machine's
+        overcommit limit, ``ulimit -v``)."""
+        shapes = {k: v for k, v in self._shapes().items() if names is None or k in names}
+        while True:
+            try:
+                return {name: np.zeros((rows, *shape), dtype) for name, (dtype, shape) in shapes.items()}
+            except MemoryError:
+                if rows == capacity:
+                    raise
+                rows = max(capacity, rows // 4)
+
+    def _provide(self, capacity: int) -> None:
+        """Point `state` and `changed_at` at ``capacity`` rows holding the current `len(self)` ones:
+        a longer view of the backing blocks where they are large enough, else new blocks (sized for
+        ``capacity`` at least) that the current rows are copied into."""
+        backing = self._backing
+        if not backing or capacity > min(block.shape[0] for block in backing.values()):
+            backing = self._reserve(capacity, max(capacity, min(RESERVED_ROWS, self.max_voxels or RESERVED_ROWS)))
+            for name, block in self._backing.items():
+                backing[name][: self.n] = block[: self.n]
+            self._backing = backing
+        self.state = {name: block[:capacity] for name, block in backing.items() if name != "changed_at"}
+        self.changed_at = backing["changed_at"][:capacity]
 
     # -- growth -------------------------------------------------------------------------------
     def check_room(self, n_new: int) -> None:
@@ -108,30 +149,61 @@ class VoxelMap:
             )
 
     def reserve(self, n_voxels: int) -> None:
-        """Grow the rows (x1.5, amortised) and the hash table (load <= MAX_TABLE_LOAD) to hold ``n_voxels``."""
+        """Grow the rows (x1.5, amortised; a view of the reserved blocks, no copy) and the hash table
+        (load <= MAX_TABLE_LOAD) to hold ``n_voxels``."""
         if n_voxels > self.capacity:
-            new = self._allocate(max(n_voxels, int(self.capacity * 1.5)))
-            for name, arr in self.state.items():
-                new[name][: self.n] = arr[: self.n]
-            self.state = new
-            changed_at = np.zeros(self.capacity, np.int64)
-            changed_at[: self.n] = self.changed_at[: self.n]
-            self.changed_at = changed_at
+            self._provide(max(n_voxels, int(self.capacity * 1.5)))
             for name in ("chunk_lo", "chunk_hi"):
                 grown = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
                 grown[: getattr(self, name).shape[0]] = getattr(self, name)
                 setattr(self, name, grown)
-        if n_voxels > MAX_TABLE_LOAD * self.table.shape[0]:
-            self.table = np.empty(table_size(n_voxels), np.int32)
-            rebuild_table_kernel(self.table, self.state["keys"], self.n)
+        if n_voxels > MAX_TABLE_LOAD * self.table.shape[0]:  # a fold outran the successor: finish it now
+            successor = self._next_table
+            if successor is not None and n_voxels <= MAX_TABLE_LOAD * successor.shape[0]:
+                successor[self._next_cleared:] = -1
+                insert_range_kernel(successor, self.state["keys"], self._next_filled, self.n)
+                self.table = successor
+            else:
+                self.table = np.empty(table_size(n_voxels), np.int32)
+                self.rebuild_table()
+            self._next_table = None
+
+    def _fill_next_table(self) -> None:
+        """One fold's share of the successor table (started at `NEXT_TABLE_LOAD`): a slice of it
+        marked empty, or once all of it is, the next slice of voxels entered; it replaces the table
+        in place once it holds them all."""
+        if self._next_table is None:
+            if self.n <= NEXT_TABLE_LOAD * self.table.shape[0]:
+                return
+            self._next_table = np.empty(2 * self.table.shape[0], np.int32)  # address space, untouched
+            self._next_cleared = self._next_filled = 0
+        size = self._next_table.shape[0]
+        if self._next_cleared < size:
+            stop = min(size, self._next_cleared + int(NEXT_TABLE_CLEAR * size))
+            self._next_table[self._next_cleared: stop] = -1
+            self._next_cleared = stop
+            return
+        stop = min(self.n, self._next_filled + int(NEXT_TABLE_SLICE * size))
+        insert_range_kernel(self._next_table, self.state["keys"], self._next_filled, stop)
+        self._next_filled = stop
+        if stop == self.n:
+            self.table, self._next_table = self._next_table, None
+
+    def rebuild_table(self) -> None:
+        """Rehash the first `len(self)` voxels into the table (after their keys were replaced wholesale)."""
+        self._next_table = None
+        self.table.fill(-1)
+        insert_range_kernel(self.table, self.state["keys"], 0, self.n)
 
     def set_label_dim(self, label_dim: int) -> None:
         """Widen every row by the label columns (zero so far) once the first frame with labels arrives."""
         old = self.layout
         self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
-        rows = np.zeros((self.capacity, self.layout.width), np.float32)
-        rows[:, : old.width] = self.state["rows"]  # the label columns come last
-        self.state["rows"] = rows
+        narrow = self._backing["rows"]
+        wide = self._reserve(self.capacity, narrow.shape[0], ("rows",))["rows"]
+        wide[: self.n, : old.width] = narrow[: self.n]  # the label columns come last, zero so far
+        self._backing["rows"] = wide
+        self._provide(self.capacity)
 
     def commit(self, touched: np.ndarray, n_new: int) -> None:
         """After integration wrote rows ``touched`` (existing voxels, -1 entries ignored) and ``n_new``
@@ -141,6 +213,7 @@ class VoxelMap:
         self.changed_at[self.n: self.n + n_new] = stamp
         update_chunk_boxes_kernel(self.state["keys"], self.n, self.n + n_new, self.chunk_lo, self.chunk_hi)
         self.n += n_new
+        self._fill_next_table()
 
     def touch_all(self) -> None:
         """Stamp every voxel as changed (after its rows were restored from elsewhere)."""
@@ -190,11 +263,12 @@ class VoxelMap:
             self.layout.field(self.state["rows"][:n], name)[...] = sums[name]
         self.n = n
         self.changed_at[:n] = next(_STAMPS)
-        rebuild_table_kernel(self.table, self.state["keys"], n)
+        self.rebuild_table()
         update_chunk_boxes_kernel(self.state["keys"], 0, n, self.chunk_lo, self.chunk_hi)
 
     def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in self.state.values()) + self.table.nbytes + self.changed_at.nbytes)
+        successor = 0 if self._next_table is None else self._next_table.nbytes
+        return int(sum(a.nbytes for a in self.state.values()) + self.table.nbytes + successor + self.changed_at.nbytes)
 
     def bytes_per_voxel(self) -> float:
         """Bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes per

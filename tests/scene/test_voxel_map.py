@@ -1,6 +1,7 @@
-"""The voxel map's hash table and growth: every key finds its own row through any growth, lookups
-end even in a full table, the cap is enforced before anything changes, and the lattice's extreme
-keys are stored and found like any other."""
+"""The voxel map's hash table and growth: every key finds its own row through any growth (rows
+grown in place, the table replaced by a successor filled a slice per fold), lookups end even in a
+full table, the cap is enforced before anything changes, and the lattice's extreme keys are stored
+and found like any other."""
 
 import numpy as np
 import pytest
@@ -8,8 +9,9 @@ import pytest
 from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
-from canonical_core.scene.kernels import rebuild_table_kernel, voxel_keys_kernel
-from canonical_core.scene.voxel_map import ARRAYS, MAX_TABLE_LOAD, CapacityError, VoxelMap, table_size
+from canonical_core.scene.kernels import insert_range_kernel, voxel_keys_kernel
+from canonical_core.scene.voxel_map import (ARRAYS, MAX_TABLE_LOAD, NEXT_TABLE_LOAD, CapacityError, VoxelMap,
+                                            table_size)
 
 FEATURE_DIM = 4
 
@@ -52,6 +54,52 @@ def test_growth_keeps_every_key_and_row():
     assert_sums_equal(voxels.sums(), {k: v for k, v in sums.items()} | {"label_sum": np.zeros((12, 0), np.float32)})
 
 
+def append(voxels: VoxelMap, keys: np.ndarray) -> None:
+    """What a fold does with new voxels: room, keys written and entered into the table, commit."""
+    n = len(voxels)
+    voxels.reserve(n + len(keys))
+    voxels.state["keys"][n: n + len(keys)] = keys
+    insert_range_kernel(voxels.table, voxels.state["keys"], n, n + len(keys))
+    voxels.commit(np.empty(0, np.int64), len(keys))
+
+
+def test_rows_grow_in_place_without_copying():
+    voxels, sums = load(distinct_keys(100))
+    rows = voxels.state["rows"]
+    voxels.reserve(20 * voxels.capacity)
+    assert np.shares_memory(rows, voxels.state["rows"])  # the same block, a longer view
+    assert_sums_equal(voxels.sums(), sums | {"label_sum": np.zeros((100, 0), np.float32)})
+
+
+def test_the_successor_table_fills_a_slice_per_fold_and_every_key_is_found_throughout():
+    voxels = VoxelMap(FEATURE_DIM, sh_degree=0, initial_capacity=1 << 12)
+    keys = distinct_keys(60_000)
+    sizes, filling = set(), 0
+    for start in range(0, len(keys), 500):  # folds of 500 new voxels
+        append(voxels, keys[start: start + 500])
+        n = len(voxels)
+        sizes.add(voxels.table.shape[0])
+        filling += voxels._next_table is not None
+        assert n <= MAX_TABLE_LOAD * voxels.table.shape[0]
+        probe = np.r_[keys[:n: 97], keys[n - 1]]
+        np.testing.assert_array_equal(voxels.find(probe), np.r_[np.arange(0, n, 97), n - 1])
+    assert len(sizes) >= 4 and filling > 0  # it grew several times, through successors part-filled over folds
+    np.testing.assert_array_equal(voxels.find(keys), np.arange(len(keys)))
+
+
+def test_a_fold_that_outruns_the_successor_finishes_it_at_once():
+    voxels = VoxelMap(FEATURE_DIM, sh_degree=0, initial_capacity=1 << 12)
+    keys = distinct_keys(200_000)
+    append(voxels, keys[:100_000])  # one rehash, to a table at a load below NEXT_TABLE_LOAD
+    slots = voxels.table.shape[0]
+    assert voxels._next_table is None and 100_000 <= NEXT_TABLE_LOAD * slots
+    append(voxels, keys[100_000:140_000])  # past NEXT_TABLE_LOAD: the successor gets its first slice
+    assert voxels._next_table is not None and voxels._next_filled < len(voxels)
+    append(voxels, keys[140_000:])  # past MAX_TABLE_LOAD of the table in place: the successor completes
+    assert voxels.table.shape[0] == 2 * slots and voxels._next_table is None
+    np.testing.assert_array_equal(voxels.find(keys), np.arange(len(keys)))
+
+
 def test_the_table_load_stays_below_the_limit_at_every_size():
     voxels = VoxelMap(FEATURE_DIM, sh_degree=0, initial_capacity=16)
     for n in (1, 11, 12, 100, 1000, 12345):
@@ -75,7 +123,7 @@ def test_folding_into_a_tiny_map_equals_folding_into_a_large_one():
 def test_lookups_of_absent_keys_end_in_a_full_table():
     voxels, sums = load(distinct_keys(16), initial_capacity=16)
     voxels.table = np.empty(16, np.int32)  # a table with no empty slot left (the map never makes one)
-    rebuild_table_kernel(voxels.table, voxels.state["keys"], 16)
+    voxels.rebuild_table()
     assert (voxels.table >= 0).all()
     absent = np.setdiff1d(distinct_keys(40, seed=7), sums["keys"])[:8]
     np.testing.assert_array_equal(voxels.find(absent), -1)
