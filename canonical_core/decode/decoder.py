@@ -157,11 +157,11 @@ class GaussianDecoder(nn.Module):
             logit = logit - self.free_space_penalty(free / (free + support).clamp_min(1e-12))
         return torch.sigmoid(logit)
 
-    def shapes_and_colours(self, fields: dict[str, Tensor], voxel_size: float) -> dict[str, Tensor]:
-        """Every Gaussian field but opacity (means, scales, quats, sh, features, labels), each a
-        function of its own voxel's fields alone."""
-        feats = fields["features"]
-        means = fields["position_mean"] + voxel_size * self.offset(feats)
+    def base_shapes(self, fields: dict[str, Tensor], voxel_size: float) -> tuple[Tensor, Tensor, Tensor]:
+        """What the heads on F_scene refine: the centroid [N, 3], the per-axis std in voxels from the
+        second moments (footprint gain, clamps) [N, 3] and the axes' rotation as a quaternion
+        [N, 4] (axis 0, the smallest, is the surface normal). `scene.shapes.voxel_shapes` is the
+        fast path from the raw sums, held to this by the tests."""
         cov = fields["position_cov"] / (voxel_size * voxel_size)  # voxel units
         cov = 0.5 * (cov + cov.transpose(1, 2))
         # ascending: axis 0 is the surface normal (the numba path unless a gradient must reach the fields)
@@ -170,10 +170,20 @@ class GaussianDecoder(nn.Module):
         std = eigval.clamp_min(0.0).sqrt().float() * FOOTPRINT_GAIN
         lo = torch.tensor([self.min_thickness, self.min_extent, self.min_extent], device=std.device)
         std = torch.minimum(torch.maximum(std, lo), torch.tensor(self.max_extent, device=std.device))
-        scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
         rot = eigvec.float()
         rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0], device=rot.device), rot)
+        return fields["position_mean"], std, matrix_to_quaternion(rot)
+
+    def shapes_and_colours(self, fields: dict[str, Tensor], voxel_size: float,
+                           base: tuple[Tensor, Tensor, Tensor] | None = None) -> dict[str, Tensor]:
+        """Every Gaussian field but opacity (means, scales, quats, sh, features, labels), each a
+        function of its own voxel's fields alone; ``base`` is `base_shapes` where the caller has it
+        (then ``fields`` needs no positions)."""
+        feats = fields["features"]
+        centroid, std, quats = self.base_shapes(fields, voxel_size) if base is None else base
+        means = centroid + voxel_size * self.offset(feats)
+        scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
         sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(get_renamed(fields, "colour", "color"))[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
-        return {"means": means, "scales": scales, "quats": matrix_to_quaternion(rot), "sh": sh, "features": feats,
+        return {"means": means, "scales": scales, "quats": quats, "sh": sh, "features": feats,
                 "labels": fields.get("labels")}

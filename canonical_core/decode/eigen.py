@@ -20,7 +20,6 @@ from torch import Tensor
 # cyclic Jacobi converges quadratically, so a 3x3 takes 4-6 sweeps, and the cap is never reached.
 _RELATIVE_TOLERANCE = 1e-30
 _MAX_SWEEPS = 50
-_PAIRS = ((0, 1), (0, 2), (1, 2))
 
 
 def _check(cov: Tensor) -> None:
@@ -49,38 +48,61 @@ def _jacobi_kernel(
     v: np.ndarray,  # [N, 3, 3] float64, out: the rotations' product, eigenvectors as columns
 ) -> None:
     for n in numba.prange(a.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                v[n, i, j] = 1.0 if i == j else 0.0
-        for _ in range(_MAX_SWEEPS):
-            off = a[n, 0, 1] * a[n, 0, 1] + a[n, 0, 2] * a[n, 0, 2] + a[n, 1, 2] * a[n, 1, 2]
-            diag = a[n, 0, 0] * a[n, 0, 0] + a[n, 1, 1] * a[n, 1, 1] + a[n, 2, 2] * a[n, 2, 2]
-            if off <= _RELATIVE_TOLERANCE * diag or off == 0.0:
-                break
-            for p, q in _PAIRS:
-                apq = a[n, p, q]
-                if apq == 0.0:
-                    continue
-                # the rotation J (J_pp = J_qq = c, J_pq = s, J_qp = -s) with (J^T A J)_pq = 0:
-                # t = tan(angle) is the smaller root of t^2 + 2 theta t - 1 = 0
-                theta = (a[n, q, q] - a[n, p, p]) / (2.0 * apq)
-                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / np.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(3):  # A J
-                    akp, akq = a[n, k, p], a[n, k, q]
-                    a[n, k, p] = c * akp - s * akq
-                    a[n, k, q] = s * akp + c * akq
-                for k in range(3):  # J^T (A J)
-                    apk, aqk = a[n, p, k], a[n, q, k]
-                    a[n, p, k] = c * apk - s * aqk
-                    a[n, q, k] = s * apk + c * aqk
-                for k in range(3):  # V J
-                    vkp, vkq = v[n, k, p], v[n, k, q]
-                    v[n, k, p] = c * vkp - s * vkq
-                    v[n, k, q] = s * vkp + c * vkq
+        jacobi3(a, v, n)
+
+
+@numba.njit(inline="always")
+def _rotation(app, aqq, apq):  # t = tan, c = cos, s = sin of the rotation that zeroes a_pq
+    # t is the smaller root of t^2 + 2 theta t - 1 = 0 (the smaller angle: stable convergence)
+    theta = (aqq - app) / (2.0 * apq)
+    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+    if theta < 0.0:
+        t = -t
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    return t, c, t * c
+
+
+@numba.njit(inline="always")
+def jacobi3(a, v, n):
+    """Diagonalise a[n] in place by cyclic Jacobi rotations, their product into v[n] (eigenvectors
+    as columns); inlined into the kernels that decompose one matrix per voxel. The six distinct
+    entries and the nine of V stay in registers; each rotation J (J_pp = J_qq = c, J_pq = s,
+    J_qp = -s) updates A <- J^T A J by the symmetric formulas (a_pq becomes exactly 0)."""
+    a00, a01, a02, a11, a12, a22 = a[n, 0, 0], a[n, 0, 1], a[n, 0, 2], a[n, 1, 1], a[n, 1, 2], a[n, 2, 2]
+    v00, v01, v02, v10, v11, v12, v20, v21, v22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    for _ in range(_MAX_SWEEPS):
+        off = a01 * a01 + a02 * a02 + a12 * a12
+        diag = a00 * a00 + a11 * a11 + a22 * a22
+        if off <= _RELATIVE_TOLERANCE * diag or off == 0.0:
+            break
+        if a01 != 0.0:  # (p, q) = (0, 1), r = 2
+            t, c, s = _rotation(a00, a11, a01)
+            a00, a11, a01 = a00 - t * a01, a11 + t * a01, 0.0
+            a02, a12 = c * a02 - s * a12, s * a02 + c * a12
+            v00, v01 = c * v00 - s * v01, s * v00 + c * v01
+            v10, v11 = c * v10 - s * v11, s * v10 + c * v11
+            v20, v21 = c * v20 - s * v21, s * v20 + c * v21
+        if a02 != 0.0:  # (p, q) = (0, 2), r = 1
+            t, c, s = _rotation(a00, a22, a02)
+            a00, a22, a02 = a00 - t * a02, a22 + t * a02, 0.0
+            a01, a12 = c * a01 - s * a12, s * a01 + c * a12
+            v00, v02 = c * v00 - s * v02, s * v00 + c * v02
+            v10, v12 = c * v10 - s * v12, s * v10 + c * v12
+            v20, v22 = c * v20 - s * v22, s * v20 + c * v22
+        if a12 != 0.0:  # (p, q) = (1, 2), r = 0
+            t, c, s = _rotation(a11, a22, a12)
+            a11, a22, a12 = a11 - t * a12, a22 + t * a12, 0.0
+            a01, a02 = c * a01 - s * a02, s * a01 + c * a02
+            v01, v02 = c * v01 - s * v02, s * v01 + c * v02
+            v11, v12 = c * v11 - s * v12, s * v11 + c * v12
+            v21, v22 = c * v21 - s * v22, s * v21 + c * v22
+    a[n, 0, 0], a[n, 1, 1], a[n, 2, 2] = a00, a11, a22
+    a[n, 0, 1] = a[n, 1, 0] = a01
+    a[n, 0, 2] = a[n, 2, 0] = a02
+    a[n, 1, 2] = a[n, 2, 1] = a12
+    v[n, 0, 0], v[n, 0, 1], v[n, 0, 2] = v00, v01, v02
+    v[n, 1, 0], v[n, 1, 1], v[n, 1, 2] = v10, v11, v12
+    v[n, 2, 0], v[n, 2, 1], v[n, 2, 2] = v20, v21, v22
 
 
 def symmetric_eigh3(

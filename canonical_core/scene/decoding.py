@@ -19,17 +19,55 @@ from __future__ import annotations
 import threading
 from typing import NamedTuple
 
+import numba
 import numpy as np
 import torch
 
-from ..decode import GaussianDecoder, solve_colours, support_unit
+from ..decode import GaussianDecoder, solve_colours
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
 from .decoded import DecodedRows
 from .fields import fields_from_sums
+from .shapes import voxel_shapes
 
+POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
 DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
+
+
+@numba.njit(cache=True)
+def _decoded_rows_kernel(r_sum, n_obs, free, min_support, dominance, free_space, keep, ratios):
+    kept = seen = 0
+    for v in range(r_sum.shape[0]):
+        r = r_sum[v]
+        if n_obs[v] > 0:
+            ratios[seen] = r / np.float32(n_obs[v])
+            seen += 1
+        if r > min_support and (not free_space or free[v] <= dominance * r):
+            keep[kept] = v
+            kept += 1
+    return kept, seen
+
+
+def decoded_rows(
+    sums: dict[str, np.ndarray],  # a scene's sums, every row
+    min_support: float,
+    config: SceneConfig,
+) -> tuple[np.ndarray, float]:  # [K] int64 rows that decode, the support unit
+    """In one pass over the rows: those that decode (R_scene > ``min_support`` and, with free space
+    on, no more see-through evidence than `FreeSpace.dominance` x R_scene: voxels that more rays saw
+    through than saw at are not surface), and `decode.support_unit` of the scene (the lower median
+    of R_scene / count, as ``torch.median``)."""
+    r_sum = np.ascontiguousarray(sums["r_sum"], np.float32)
+    keep, ratios = np.empty(r_sum.shape[0], np.int64), np.empty(r_sum.shape[0], np.float32)
+    kept, seen = _decoded_rows_kernel(
+        r_sum, np.ascontiguousarray(sums["n_obs"]), np.ascontiguousarray(sums["free"], np.float32),
+        np.float32(min_support), np.float32(config.free_space.dominance), config.free_space.enabled, keep, ratios,
+    )  # fmt: skip
+    if not seen:
+        return keep[:kept], 1.0
+    unit = float(np.partition(ratios[:seen], (seen - 1) // 2)[(seen - 1) // 2])
+    return keep[:kept], unit if unit > 1e-6 else 1e-6
 
 
 class DecodeInputs(NamedTuple):
@@ -95,11 +133,8 @@ class SceneDecoding:
         # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
         # per-voxel SH solve among them, are then computed for those rows alone
         reliability = torch.as_tensor(inputs.sums["r_sum"])
-        unit = support_unit(reliability, torch.as_tensor(inputs.sums["n_obs"])) * inputs.observations_per_view
-        supported = reliability > min_support
-        if self.config.free_space.enabled:  # voxels that more rays saw through than saw at are not surface
-            supported &= torch.as_tensor(inputs.sums["free"]) <= self.config.free_space.dominance * reliability
-        keep = torch.nonzero(supported).squeeze(1)
+        keep, unit = decoded_rows(inputs.sums, min_support, self.config)
+        keep, unit = torch.from_numpy(keep), unit * inputs.observations_per_view
         if max_gaussians is not None and keep.numel() > max_gaussians:
             top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
             keep = keep[torch.sort(top).values]
@@ -118,10 +153,12 @@ class SceneDecoding:
         stamps = inputs.changed_at[rows] if inputs.changed_at is not None else None
         todo = rows if stamps is None else rows[~cache.current(rows, stamps)]
         index = torch.from_numpy(todo)
-        f = fields_from_sums({k: torch.as_tensor(v).index_select(0, index) for k, v in inputs.sums.items()},
-                             self.config, sort=False)
+        # the shapes come from the position sums in place (one pass); the other fields from a gather
+        f = fields_from_sums({k: torch.as_tensor(v).index_select(0, index) for k, v in inputs.sums.items()
+                              if k not in POSITION_SUMS}, self.config, sort=False, positions=False)
+        base = voxel_shapes(inputs.sums, todo, self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
-            fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size)
+            fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
         if stamps is None:
             return fresh
         cache.store(todo, inputs.changed_at[todo], fresh)

@@ -172,8 +172,12 @@ def solve_sh(
 FIELD_RENAMES = {"color": "colour", "representative_color": "representative_colour"}
 
 
-def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True) -> dict[str, Tensor]:
-    """Scene fields from raw sums (rows are voxels; local positions in voxel units).
+def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True,
+                     positions: bool = True) -> dict[str, Tensor]:
+    """Scene fields from raw sums (rows are voxels; local positions in voxel units). Without
+    ``positions`` (a decode that takes its shapes from `scene.shapes.voxel_shapes`), the position
+    fields are left out and ``sums`` needs no keys, rep_pos, pos_sum or pos_sq; such fields cannot
+    be sorted.
 
     Returns a dict of tensors, one row per voxel (sorted by key when ``sort``):
         keys [V] int64, reliability [V] (R_scene = sum W), features [V, L] (F_scene =
@@ -186,6 +190,8 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     (``(sum W x + eps x_rep) / (R_scene + eps)``), so no voxel decodes to black or to the origin.
     """
     voxel_size, eps = config.voxel_size, config.research.eps
+    if sort and not positions:
+        raise ValueError("sort: fields without positions have no keys to sort by")
     t = {k: torch.as_tensor(v) for k, v in sums.items()}
     t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
@@ -193,29 +199,29 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         t = {k: v[order] for k, v in t.items()}
     r = t["r_sum"]
     den = (r + eps)[:, None]
-    centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
-    local_rep = t["rep_pos"].double() / voxel_size - centres  # representative in local voxel units
-    mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
-    sq = t["pos_sq"].double()
-    second = torch.stack([torch.stack([sq[:, j] for j in row], -1) for row in _SQ_INDEX], -2)
-    second = (second + eps * local_rep[:, :, None] * local_rep[:, None, :]) / den.double()[:, :, None]
-    cov_local = second - mean_local[:, :, None] * mean_local[:, None, :]
     color_sum = t["rgb_sum"] + eps * t["rep_rgb"]
     out = {
-        "keys": t["keys"],
         "reliability": r,
         "features": t["f_sum"] / den,
-        "representative_position": t["rep_pos"],
         "representative_reliability": t["rep_r"],
         "representative_feature": t["rep_f"],
         "representative_colour": t["rep_rgb"],
         "colour": color_sum / den,
-        "position_mean": ((centres + mean_local) * voxel_size).float(),
-        "position_cov": (cov_local * voxel_size * voxel_size).float(),
         "observations": t["n_obs"].to(torch.int64),
         "free_space": t["free"],
         "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
     }
+    if positions:
+        centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
+        local_rep = t["rep_pos"].double() / voxel_size - centres  # representative in local voxel units
+        mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
+        sq = t["pos_sq"].double()
+        second = torch.stack([torch.stack([sq[:, j] for j in row], -1) for row in _SQ_INDEX], -2)
+        second = (second + eps * local_rep[:, :, None] * local_rep[:, None, :]) / den.double()[:, :, None]
+        cov_local = second - mean_local[:, :, None] * mean_local[:, None, :]
+        out |= {"keys": t["keys"], "representative_position": t["rep_pos"],
+                "position_mean": ((centres + mean_local) * voxel_size).float(),
+                "position_cov": (cov_local * voxel_size * voxel_size).float()}
     if t["label_sum"].shape[1] > 0:
         out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]
     return RenamedKeys(out, FIELD_RENAMES)

@@ -10,7 +10,9 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
+from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS
+from canonical_core.scene.decoding import decoded_rows
 from ..conftest import folded_scene, make_frame
 
 
@@ -34,9 +36,9 @@ def decoded_row_counts(scene: Scene) -> list[int]:
     """Record how many voxels each decode of ``scene`` runs through the decoder (the real one)."""
     counts, decode = [], scene.decoder.shapes_and_colours
 
-    def recording(fields, voxel_size):
+    def recording(fields, voxel_size, base=None):
         counts.append(len(fields["features"]))
-        return decode(fields, voxel_size)
+        return decode(fields, voxel_size, base)
 
     scene.decoder.shapes_and_colours = recording
     return counts
@@ -216,3 +218,24 @@ def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
     for t in threads:
         t.join()
     assert len(decodes) == 1 and len(answers) == 4 and all(a is answers[0] for a in answers)
+
+
+@pytest.mark.parametrize("free_space", [True, False])
+@pytest.mark.parametrize("min_support", [0.0, 0.3])
+def test_decoded_rows_equals_its_reference(free_space, min_support):
+    """The one-pass row selection and support unit against the PyTorch rule (`support_unit`, masks)."""
+    rng = np.random.default_rng(3)
+    n = 10_001
+    sums = {"r_sum": rng.gamma(1.0, 0.5, n).astype(np.float32), "n_obs": rng.integers(0, 6, n).astype(np.int32),
+            "free": rng.gamma(1.0, 0.4, n).astype(np.float32)}
+    sums["r_sum"][sums["n_obs"] == 0] = 0.0
+    config = SceneConfig(voxel_size=0.01, free_space={"enabled": free_space})
+    keep, unit = decoded_rows(sums, min_support, config)
+    r = torch.from_numpy(sums["r_sum"])
+    mask = r > min_support
+    if free_space:
+        mask &= torch.from_numpy(sums["free"]) <= config.free_space.dominance * r
+    np.testing.assert_array_equal(keep, torch.nonzero(mask).squeeze(1).numpy())
+    assert unit == support_unit(r, torch.from_numpy(sums["n_obs"]))
+    none_seen = {k: v[:0] for k, v in sums.items()}
+    assert decoded_rows(none_seen, 0.0, config)[1] == support_unit(r[:0], torch.from_numpy(sums["n_obs"][:0]))
