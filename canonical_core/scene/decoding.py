@@ -58,11 +58,11 @@ def decoded_rows(
     on, no more see-through evidence than `FreeSpace.dominance` x R_scene: voxels that more rays saw
     through than saw at are not surface), and `decode.support_unit` of the scene (the lower median
     of R_scene / count, as ``torch.median``)."""
-    r_sum = np.ascontiguousarray(sums["r_sum"], np.float32)
+    r_sum = sums["r_sum"]  # read where they are (columns of the scene's rows: strided)
     keep, ratios = np.empty(r_sum.shape[0], np.int64), np.empty(r_sum.shape[0], np.float32)
     kept, seen = _decoded_rows_kernel(
-        r_sum, np.ascontiguousarray(sums["n_obs"]), np.ascontiguousarray(sums["free"], np.float32),
-        np.float32(min_support), np.float32(config.free_space.dominance), config.free_space.enabled, keep, ratios,
+        r_sum, sums["n_obs"], sums["free"], np.float32(min_support), np.float32(config.free_space.dominance),
+        config.free_space.enabled, keep, ratios,
     )  # fmt: skip
     if not seen:
         return keep[:kept], 1.0

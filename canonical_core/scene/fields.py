@@ -87,6 +87,7 @@ def _solve_sh_kernel(
     for first in numba.prange((V + chunk - 1) // chunk):
         a = np.empty((k, k))
         b = np.empty((k, 3))
+        inverse = np.empty(k)  # 1 / L_jj (0 for an undetermined direction): products, not divisions
         for n in range(first * chunk, min(V, (first + 1) * chunk)):
             rn = np.float64(r[n])
             column = 0
@@ -117,25 +118,27 @@ def _solve_sh_kernel(
                 if d <= floor:
                     for i in range(j, k):
                         a[i, j] = 0.0
+                    inverse[j] = 0.0
                     continue
                 d = np.sqrt(d)
                 a[j, j] = d
+                inverse[j] = 1.0 / d
                 for i in range(j + 1, k):
                     s = a[i, j]
                     for p in range(j):
                         s -= a[i, p] * a[j, p]
-                    a[i, j] = s / d
+                    a[i, j] = s * inverse[j]
             for c in range(3):  # L y = b, then L^T x = y (zero pivots give zero components)
                 for i in range(k):
                     s = b[i, c]
                     for p in range(i):
                         s -= a[i, p] * b[p, c]
-                    b[i, c] = s / a[i, i] if a[i, i] != 0.0 else 0.0
+                    b[i, c] = s * inverse[i]
                 for i in range(k - 1, -1, -1):
                     s = b[i, c]
                     for p in range(i + 1, k):
                         s -= a[p, i] * b[p, c]
-                    b[i, c] = s / a[i, i] if a[i, i] != 0.0 else 0.0
+                    b[i, c] = s * inverse[i]
                 for i in range(k):
                     out[n, i, c] = b[i, c]
 
