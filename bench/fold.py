@@ -11,6 +11,7 @@ VoxelBlockGrid TSDF integration runs on the same frames and voxel size in the sa
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from pathlib import Path
 
@@ -121,25 +122,42 @@ def main(argv=None) -> None:
 def long_stream(stream: list[Frame], name: str, voxel: float, passes: int, repeats: int) -> None:
     """A growing map: fold time of the last `WINDOW` folds over the first, and the slowest fold over
     the median (a fold that pays for the map's growth stands out). The ratio compares different
-    frames of one stream, so a burst of load on a shared machine moves it: each run is printed."""
+    frames of one stream, so a burst of load on a shared machine moves it: each run is printed.
+    Then, after one decode (whose decoded rows the scene keeps), the scene's `memory_bytes` per voxel
+    against the growth of the process's resident memory over the run."""
     config = SceneConfig(voxel_size=voxel)
     time_folds(stream[:2], config)  # compile / load the numba cache outside the measurement
+
     def row(run, ms: list[float], scene: Scene) -> dict:
         median = np.median(ms)
         first, last = [t for m in ms for t in m[:WINDOW]], [t for m in ms for t in m[-WINDOW:]]
         return {"run": run, "median ms": f"{median:.1f}", f"first {WINDOW} ms": f"{np.median(first):.1f}",
                 f"last {WINDOW} ms": f"{np.median(last):.1f}", "ratio last/first": f"{np.median(last) / np.median(first):.2f}",
                 "slowest ms": f"{np.max(ms):.0f}", "slowest/median": f"{np.max(ms) / median:.1f}",
-                "voxels at the end": f"{len(scene):,}", "bytes/voxel": f"{scene.bytes_per_voxel():.0f}"}
+                "voxels at the end": f"{len(scene):,}", "state bytes/voxel": f"{scene.bytes_per_voxel():.0f}"}
 
     runs, rows = [], []
     for run in range(repeats):
+        gc.collect()
+        before = resident_bytes()
         ms, scene = time_folds(stream, config)
         runs.append(ms)
         rows.append(row(run + 1, [ms], scene))
+        gaussians = len(scene.decode())
+        gc.collect()
+        rows[-1] |= {"Gaussians": f"{gaussians:,}", "memory_bytes/voxel": f"{scene.memory_bytes() / len(scene):.0f}",
+                     "RSS growth/voxel": f"{(resident_bytes() - before) / len(scene):.0f}"}
+        if run < repeats - 1:
+            del scene
     rows.append(row("all (windows pooled)", runs, scene))
     print_table(f"Long stream: {name} played {passes} times ({len(stream)} folds) at {voxel * 1000:g} mm, "
-                f"defaults; targets: ratio <= 1.2, slowest <= 3x the median", rows)
+                f"defaults; targets: ratio <= 1.2, slowest <= 3x the median; memory <= 250 bytes/voxel", rows)
+
+
+def resident_bytes() -> int:
+    """The process's resident memory (VmRSS)."""
+    line = next(ln for ln in Path("/proc/self/status").read_text().splitlines() if ln.startswith("VmRSS:"))
+    return int(line.split()[1]) * 1024
 
 
 if __name__ == "__main__":

@@ -15,8 +15,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-# the parts of a decoded row, in `GaussianDecoder.shapes_and_colours`' names
-PARTS = ("means", "scales", "quats", "sh", "features", "labels")
+# the parts of a decoded row that are kept, in `GaussianDecoder.shapes_and_colours`' names; the
+# features (F_scene, 64 bytes a voxel at 16 channels) are recomputed from the sums instead
+PARTS = ("means", "scales", "quats", "sh", "labels")
 
 
 class DecodedRows:

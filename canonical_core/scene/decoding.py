@@ -27,7 +27,7 @@ from ..decode import GaussianDecoder, solve_colours
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
-from .decoded import DecodedRows
+from .decoded import PARTS, DecodedRows
 from .fields import fields_from_sums
 from .shapes import voxel_shapes
 
@@ -161,8 +161,15 @@ class SceneDecoding:
             fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
         if stamps is None:
             return fresh
-        cache.store(todo, inputs.changed_at[todo], fresh)
-        return fresh if len(todo) == len(rows) else cache.gather(rows)
+        cache.store(todo, inputs.changed_at[todo], {k: v for k, v in fresh.items() if k in PARTS})
+        if len(todo) == len(rows):
+            return fresh
+        kept = cache.gather(rows)
+        # F_scene = sum W F / (R_scene + eps), as `fields_from_sums` has it: a division, cheaper to
+        # redo from the sums than to keep (it is the largest part of a decoded row)
+        index = torch.from_numpy(rows)
+        den = torch.as_tensor(inputs.sums["r_sum"]).index_select(0, index) + self.config.research.eps
+        return kept | {"features": torch.as_tensor(inputs.sums["f_sum"]).index_select(0, index) / den[:, None]}
 
     def nbytes(self) -> int:
         """Bytes of the decoded rows (the cached Gaussians are shared with callers and not counted)."""

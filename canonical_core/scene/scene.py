@@ -495,7 +495,7 @@ class Scene:
 
     def bytes_per_voxel(self) -> float:
         """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes
-        per stored voxel (row slack reserved for growth is excluded; `memory_bytes` includes it)."""
+        per stored voxel (`memory_bytes` also counts rows written and since rolled back)."""
         return self._voxels.bytes_per_voxel()
 
     def stats(self) -> dict:

@@ -89,6 +89,7 @@ class VoxelMap:
         self.feature_dim, self.sh_degree, self.max_voxels = feature_dim, sh_degree, max_voxels
         self.layout = VoxelRows(feature_dim, sh_sum_widths(sh_degree))
         self.n = 0
+        self._written = 0  # rows of the blocks ever written: the part of them that is memory
         self._backing: dict[str, np.ndarray] = {}  # the reserved blocks that `state` and `changed_at` view
         self._provide(initial_capacity)
         self.table = np.full(table_size(initial_capacity), -1, np.int32)
@@ -135,7 +136,7 @@ class VoxelMap:
             backing = self._reserve(capacity, max(capacity, min(RESERVED_ROWS, self.max_voxels or RESERVED_ROWS)))
             for name, block in self._backing.items():
                 backing[name][: self.n] = block[: self.n]
-            self._backing = backing
+            self._backing, self._written = backing, self.n
         self.state = {name: block[:capacity] for name, block in backing.items() if name != "changed_at"}
         self.changed_at = backing["changed_at"][:capacity]
 
@@ -213,6 +214,7 @@ class VoxelMap:
         self.changed_at[self.n: self.n + n_new] = stamp
         update_chunk_boxes_kernel(self.state["keys"], self.n, self.n + n_new, self.chunk_lo, self.chunk_hi)
         self.n += n_new
+        self._written = max(self._written, self.n)
         self._fill_next_table()
 
     def touch_all(self) -> None:
@@ -262,16 +264,20 @@ class VoxelMap:
         for name in self.layout.columns:
             self.layout.field(self.state["rows"][:n], name)[...] = sums[name]
         self.n = n
+        self._written = max(self._written, n)
         self.changed_at[:n] = next(_STAMPS)
         self.rebuild_table()
         update_chunk_boxes_kernel(self.state["keys"], 0, n, self.chunk_lo, self.chunk_hi)
 
     def nbytes(self) -> int:
-        successor = 0 if self._next_table is None else self._next_table.nbytes
-        return int(sum(a.nbytes for a in self.state.values()) + self.table.nbytes + successor + self.changed_at.nbytes)
+        """Bytes of memory the map holds: the rows of its blocks written so far (the rest of a block
+        is address space the system has not backed), the hash table and the successor's cleared part."""
+        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values()) + self.changed_at.itemsize
+        successor = 0 if self._next_table is None else self._next_cleared * self._next_table.itemsize
+        return int(row * self._written + self.table.nbytes + successor)
 
     def bytes_per_voxel(self) -> float:
         """Bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes per
-        stored voxel (row slack reserved for growth is excluded; `nbytes` includes it)."""
+        stored voxel."""
         row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values() if a.shape[0] == self.capacity)
         return row + self.table.nbytes / max(self.n, 1)
