@@ -2,8 +2,10 @@
  *
  * The same image model and per-pixel arithmetic as the PyTorch reference (see splat_geometry.py):
  * per tile, the splats in stable depth order; per pixel, alpha = min(0.99, opacity exp(-q / 2))
- * where q <= support and alpha >= 1/255, front to back, with the transmittance in float64 (as
- * torch.cumprod accumulates it) and a stop before the splat that would take it below 1e-4.
+ * where q <= support and alpha >= 1/255, front to back, with a stop before the splat that would
+ * take the transmittance below 1e-4. The transmittance is a float32 product (the reference's is a
+ * float64 cumprod; over the tens of layers a pixel blends they differ by about 1e-7, and float64
+ * here cost two conversions and a split into 4-lane halves per 8-pixel step).
  *
  * Why C: the blend is serial in splats but independent across the pixels of a row. numba/LLVM did
  * not vectorise that loop (the variants tried are in docs/experiments.md); GCC's vector
@@ -33,16 +35,11 @@ enum { U, V, CONIC_A, CONIC_B, CONIC_C, DEPTH, OPACITY, SUPPORT, RECORD };
 
 typedef float v8f __attribute__((vector_size(32)));
 typedef int32_t v8i __attribute__((vector_size(32)));
-typedef double v4d __attribute__((vector_size(32)));
-typedef int64_t v4l __attribute__((vector_size(32)));
-typedef float v4f __attribute__((vector_size(16)));
-typedef int32_t v4i __attribute__((vector_size(16)));
 
 static const float MAX_ALPHA = 0.99f, MIN_ALPHA = 1.0f / 255.0f, MIN_TRANSMITTANCE = 1e-4f;
 
 static inline __attribute__((always_inline)) v8f splat8(float x) { return (v8f){x, x, x, x, x, x, x, x}; }
 static inline __attribute__((always_inline)) v8f select8(v8i mask, v8f a, v8f b) { return (v8f)((mask & (v8i)a) | (~mask & (v8i)b)); }
-static inline __attribute__((always_inline)) v4d select4(v4l mask, v4d a, v4d b) { return (v4d)((mask & (v4l)a) | (~mask & (v4l)b)); }
 /* Bit l set where lane l of the mask is set. */
 static inline __attribute__((always_inline)) int lanes8(v8i mask) {
 #ifdef __AVX__
@@ -141,14 +138,14 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     const int64_t u1 = u0 + TILE < job->width ? u0 + TILE : job->width;
     const int64_t v1 = v0 + TILE < job->height ? v0 + TILE : job->height;
 
-    double transmittance[TILE_PIXELS] __attribute__((aligned(32)));
+    float transmittance[TILE_PIXELS] __attribute__((aligned(32)));
     /* float32 sums: their rounding, ~1e-6 relative over the ~30 layers a pixel blends, is far
      * inside the tests' 1e-4, and a vector then holds 8 pixels instead of 4 */
     float depth_sum[TILE_PIXELS] __attribute__((aligned(32)));
     float weight_sum[TILE_PIXELS] __attribute__((aligned(32)));
     int32_t done[TILE_PIXELS] __attribute__((aligned(32)));
     float *accum = s->accum;
-    for (int p = 0; p < TILE_PIXELS; p++) transmittance[p] = 1.0;
+    for (int p = 0; p < TILE_PIXELS; p++) transmittance[p] = 1.0f;
     memset(depth_sum, 0, sizeof depth_sum);
     memset(weight_sum, 0, sizeof weight_sum);
     memset(done, 0, sizeof done);
@@ -192,17 +189,11 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 alpha = select8((v8i)(alpha < splat8(MAX_ALPHA)), alpha, splat8(MAX_ALPHA));
                 mask &= (v8i)(alpha >= splat8(MIN_ALPHA));
                 if (!lanes8(mask)) continue;
-                /* transmittance in float64, as torch.cumprod accumulates in the reference */
-                const v8f keep = splat8(1.0f) - alpha;
-                v4d t_lo, t_hi;
-                memcpy(&t_lo, transmittance + p, sizeof t_lo);
-                memcpy(&t_hi, transmittance + p + 4, sizeof t_hi);
-                const v4d next_lo = t_lo * __builtin_convertvector(__builtin_shufflevector(keep, keep, 0, 1, 2, 3), v4d);
-                const v4d next_hi = t_hi * __builtin_convertvector(__builtin_shufflevector(keep, keep, 4, 5, 6, 7), v4d);
-                const v4f next_lo_f = __builtin_convertvector(next_lo, v4f), next_hi_f = __builtin_convertvector(next_hi, v4f);
-                const v8f next_f = __builtin_shufflevector(next_lo_f, next_hi_f, 0, 1, 2, 3, 4, 5, 6, 7);
+                v8f t;
+                memcpy(&t, transmittance + p, sizeof t);
+                const v8f next = t * (splat8(1.0f) - alpha);
                 /* 3DGS: stop before the splat that would take the transmittance below 1e-4 */
-                const v8i stop = mask & (v8i)(next_f < splat8(MIN_TRANSMITTANCE));
+                const v8i stop = mask & (v8i)(next < splat8(MIN_TRANSMITTANCE));
                 const int stopped = lanes8(stop);
                 if (stopped) {
                     done_now |= stop;
@@ -210,14 +201,9 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                     active -= __builtin_popcount(stopped);
                     mask &= ~stop;
                 }
-                const v4f t_lo_f = __builtin_convertvector(t_lo, v4f), t_hi_f = __builtin_convertvector(t_hi, v4f);
-                const v8f weight = (v8f)(mask & (v8i)(alpha * __builtin_shufflevector(t_lo_f, t_hi_f, 0, 1, 2, 3, 4, 5, 6, 7)));
-                const v4i mask_lo = __builtin_shufflevector(mask, mask, 0, 1, 2, 3);
-                const v4i mask_hi = __builtin_shufflevector(mask, mask, 4, 5, 6, 7);
-                t_lo = select4(__builtin_convertvector(mask_lo, v4l), next_lo, t_lo);
-                t_hi = select4(__builtin_convertvector(mask_hi, v4l), next_hi, t_hi);
-                memcpy(transmittance + p, &t_lo, sizeof t_lo);
-                memcpy(transmittance + p + 4, &t_hi, sizeof t_hi);
+                const v8f weight = (v8f)(mask & (v8i)(alpha * t));
+                t = select8(mask, next, t);
+                memcpy(transmittance + p, &t, sizeof t);
                 if (channels <= PLANAR_MAX) {
                     for (int64_t ch = 0; ch < channels; ch++) {
                         float *sum = accum + ch * TILE_PIXELS + p;
@@ -254,7 +240,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             }
             job->out_depth_sums[pixel] = depth_sum[p];
             job->out_weight_sums[pixel] = weight_sum[p];
-            job->out_transmittance[pixel] = (float)transmittance[p];
+            job->out_transmittance[pixel] = transmittance[p];
         }
     }
 }
