@@ -66,8 +66,31 @@ def decoded_rows(
     )  # fmt: skip
     if not seen:
         return keep[:kept], 1.0
-    unit = float(np.partition(ratios[:seen], (seen - 1) // 2)[(seen - 1) // 2])
+    middle = ratios[:seen]
+    middle.partition((seen - 1) // 2)  # in place: the scratch is ours
+    unit = float(middle[(seen - 1) // 2])
     return keep[:kept], unit if unit > 1e-6 else 1e-6
+
+
+@numba.njit(parallel=True, cache=True)
+def _features_kernel(rows, f_sum, r_sum, eps, out):
+    for i in numba.prange(rows.shape[0]):
+        den = r_sum[rows[i]] + eps
+        for j in range(f_sum.shape[1]):
+            out[i, j] = f_sum[rows[i], j] / den
+
+
+def scene_features(
+    sums: dict[str, np.ndarray],  # a scene's sums, every row
+    rows: np.ndarray,  # [N] int64
+    eps: float,  # `SceneConfig.research.eps`
+) -> torch.Tensor:  # [N, L] float32
+    """F_scene = sum W F / (R_scene + eps) of ``rows``, as `fields_from_sums` has it (float32). The
+    decoded rows do not keep it (it is the largest part of a row): a division, cheaper to redo
+    from the sums, read in place (a numba gather: torch's of a strided column is several times slower)."""
+    out = np.empty((len(rows), sums["f_sum"].shape[1]), np.float32)
+    _features_kernel(rows, sums["f_sum"], sums["r_sum"], np.float32(eps), out)
+    return torch.from_numpy(out)
 
 
 class DecodeInputs(NamedTuple):
@@ -139,7 +162,8 @@ class SceneDecoding:
             top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
             keep = keep[torch.sort(top).values]
         with torch.no_grad():
-            opacities = self.decoder.opacities(reliability[keep], torch.as_tensor(inputs.sums["free"])[keep], unit)
+            opacities = self.decoder.opacities(reliability.index_select(0, keep),
+                                               torch.as_tensor(inputs.sums["free"]).index_select(0, keep), unit)
         gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep.numpy()))
         return solve_colours(gaussians, inputs.views) if inputs.views else gaussians
 
@@ -164,12 +188,7 @@ class SceneDecoding:
         cache.store(todo, inputs.changed_at[todo], {k: v for k, v in fresh.items() if k in PARTS})
         if len(todo) == len(rows):
             return fresh
-        kept = cache.gather(rows)
-        # F_scene = sum W F / (R_scene + eps), as `fields_from_sums` has it: a division, cheaper to
-        # redo from the sums than to keep (it is the largest part of a decoded row)
-        index = torch.from_numpy(rows)
-        den = torch.as_tensor(inputs.sums["r_sum"]).index_select(0, index) + self.config.research.eps
-        return kept | {"features": torch.as_tensor(inputs.sums["f_sum"]).index_select(0, index) / den[:, None]}
+        return cache.gather(rows) | {"features": scene_features(inputs.sums, rows, self.config.research.eps)}
 
     def nbytes(self) -> int:
         """Bytes of the decoded rows (the cached Gaussians are shared with callers and not counted)."""

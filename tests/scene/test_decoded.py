@@ -12,7 +12,8 @@ from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS
-from canonical_core.scene.decoding import decoded_rows
+from canonical_core.scene.decoding import decoded_rows, scene_features
+from canonical_core.scene.fields import fields_from_sums
 from ..conftest import folded_scene, make_frame
 
 
@@ -239,3 +240,11 @@ def test_decoded_rows_equals_its_reference(free_space, min_support):
     assert unit == support_unit(r, torch.from_numpy(sums["n_obs"]))
     none_seen = {k: v[:0] for k, v in sums.items()}
     assert decoded_rows(none_seen, 0.0, config)[1] == support_unit(r[:0], torch.from_numpy(sums["n_obs"][:0]))
+
+
+def test_scene_features_equal_the_fields_features():
+    scene = folded_scene([make_frame(np.full((12, 16), 2.0, np.float32))], 0.05)
+    sums = scene.sums()
+    rows = np.array([3, 0, len(scene) - 1, 3], np.int64)
+    expected = fields_from_sums({k: v[rows] for k, v in sums.items()}, scene.config, sort=False)["features"]
+    assert torch.equal(scene_features(sums, rows, scene.config.research.eps), expected)
