@@ -180,3 +180,13 @@ def test_keys_at_the_lattice_extremes_are_stored_and_found():
     voxels, _ = load(keys[:3])
     np.testing.assert_array_equal(voxels.find(keys[:3]), [0, 1, 2])
     np.testing.assert_array_equal(voxels.find(np.array([1, top], np.int64)), [-1, -1])
+
+
+def test_a_reservation_the_system_refuses_falls_back_to_smaller_blocks(monkeypatch):
+    # far beyond any machine's address space: every block is refused until it is a quarter of a
+    # quarter ... of that, and the map still works (and grows by copying past its smaller blocks)
+    monkeypatch.setattr("canonical_core.scene.voxel_map.RESERVED_ROWS", 1 << 46)
+    voxels, sums = load(distinct_keys(3000))
+    rows = voxels._backing["rows"].shape[0]
+    assert 3000 <= rows < 1 << 46
+    np.testing.assert_array_equal(voxels.find(sums["keys"]), np.arange(3000))
