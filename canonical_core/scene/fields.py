@@ -88,59 +88,74 @@ def _solve_sh_kernel(
         a = np.empty((k, k))
         b = np.empty((k, 3))
         inverse = np.empty(k)  # 1 / L_jj (0 for an undetermined direction): products, not divisions
-        for n in range(first * chunk, min(V, (first + 1) * chunk)):
-            rn = np.float64(r[n])
-            column = 0
-            for i in range(k):  # the upper triangle, row by row, as `sh_sum_widths` lays it out
-                for j in range(i, k):
-                    if i == 0 and j == 0:
-                        a[0, 0] = SH_C0 * SH_C0 * rn
-                    else:
-                        a[i, j] = sh_a[n, column]
-                        column += 1
-                    a[j, i] = a[i, j]
-                if i > 0:
-                    a[i, i] += regularization * rn
-            for c in range(3):
-                b[0, c] = SH_C0 * (color_sum[n, c] - 0.5 * rn)
-            for i in range(1, k):
-                for c in range(3):
-                    b[i, c] = sh_b[n, 3 * (i - 1) + c]
-            scale = 0.0
-            for i in range(k):
-                scale = max(scale, abs(a[i, i]))
-            floor = _PIVOT_FLOOR * scale
-            # Cholesky A = L L^T in the lower triangle; an undetermined direction gets a zero column
-            for j in range(k):
-                d = a[j, j]
-                for p in range(j):
-                    d -= a[j, p] * a[j, p]
-                if d <= floor:
-                    for i in range(j, k):
-                        a[i, j] = 0.0
-                    inverse[j] = 0.0
-                    continue
-                d = np.sqrt(d)
-                a[j, j] = d
-                inverse[j] = 1.0 / d
-                for i in range(j + 1, k):
-                    s = a[i, j]
-                    for p in range(j):
-                        s -= a[i, p] * a[j, p]
-                    a[i, j] = s * inverse[j]
-            for c in range(3):  # L y = b, then L^T x = y (zero pivots give zero components)
-                for i in range(k):
-                    s = b[i, c]
-                    for p in range(i):
-                        s -= a[i, p] * b[p, c]
-                    b[i, c] = s * inverse[i]
-                for i in range(k - 1, -1, -1):
-                    s = b[i, c]
-                    for p in range(i + 1, k):
-                        s -= a[p, i] * b[p, c]
-                    b[i, c] = s * inverse[i]
-                for i in range(k):
-                    out[n, i, c] = b[i, c]
+        stop = min(V, (first + 1) * chunk)
+        # the degrees in use get K as a constant (inlined), so their loops are unrolled; the same code
+        if k == 4:
+            for n in range(first * chunk, stop):
+                _solve_sh_voxel(n, 4, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+        elif k == 1:
+            for n in range(first * chunk, stop):
+                _solve_sh_voxel(n, 1, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+        else:
+            for n in range(first * chunk, stop):
+                _solve_sh_voxel(n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+
+
+@numba.njit(inline="always")
+def _solve_sh_voxel(n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse):
+    """Voxel ``n``'s K x K normal equations, assembled into ``a``, ``b`` and solved into ``out[n]``."""
+    rn = np.float64(r[n])
+    column = 0
+    for i in range(k):  # the upper triangle, row by row, as `sh_sum_widths` lays it out
+        for j in range(i, k):
+            if i == 0 and j == 0:
+                a[0, 0] = SH_C0 * SH_C0 * rn
+            else:
+                a[i, j] = sh_a[n, column]
+                column += 1
+            a[j, i] = a[i, j]
+        if i > 0:
+            a[i, i] += regularization * rn
+    for c in range(3):
+        b[0, c] = SH_C0 * (color_sum[n, c] - 0.5 * rn)
+    for i in range(1, k):
+        for c in range(3):
+            b[i, c] = sh_b[n, 3 * (i - 1) + c]
+    scale = 0.0
+    for i in range(k):
+        scale = max(scale, abs(a[i, i]))
+    floor = _PIVOT_FLOOR * scale
+    # Cholesky A = L L^T in the lower triangle; an undetermined direction gets a zero column
+    for j in range(k):
+        d = a[j, j]
+        for p in range(j):
+            d -= a[j, p] * a[j, p]
+        if d <= floor:
+            for i in range(j, k):
+                a[i, j] = 0.0
+            inverse[j] = 0.0
+            continue
+        d = np.sqrt(d)
+        a[j, j] = d
+        inverse[j] = 1.0 / d
+        for i in range(j + 1, k):
+            s = a[i, j]
+            for p in range(j):
+                s -= a[i, p] * a[j, p]
+            a[i, j] = s * inverse[j]
+    for c in range(3):  # L y = b, then L^T x = y (zero pivots give zero components)
+        for i in range(k):
+            s = b[i, c]
+            for p in range(i):
+                s -= a[i, p] * b[p, c]
+            b[i, c] = s * inverse[i]
+        for i in range(k - 1, -1, -1):
+            s = b[i, c]
+            for p in range(i + 1, k):
+                s -= a[p, i] * b[p, c]
+            b[i, c] = s * inverse[i]
+        for i in range(k):
+            out[n, i, c] = b[i, c]
 
 
 def solve_sh(
