@@ -52,14 +52,18 @@ def _jacobi_kernel(
 
 
 @numba.njit(inline="always")
-def _rotation(app, aqq, apq):  # t = tan, c = cos, s = sin of the rotation that zeroes a_pq
+def _rotate(app, aqq, apq, arp, arq, v0p, v0q, v1p, v1q, v2p, v2q):
+    """One Jacobi rotation (p, q) of the symmetric entries (r: the third index) and of V's columns
+    p and q: the rotation's t = tan, c = cos, s = sin zero a_pq."""
     # t is the smaller root of t^2 + 2 theta t - 1 = 0 (the smaller angle: stable convergence)
     theta = (aqq - app) / (2.0 * apq)
     t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
     if theta < 0.0:
         t = -t
     c = 1.0 / np.sqrt(t * t + 1.0)
-    return t, c, t * c
+    s = t * c
+    return (app - t * apq, aqq + t * apq, 0.0, c * arp - s * arq, s * arp + c * arq,
+            c * v0p - s * v0q, s * v0p + c * v0q, c * v1p - s * v1q, s * v1p + c * v1q, c * v2p - s * v2q, s * v2p + c * v2q)
 
 
 @numba.njit(inline="always")
@@ -75,27 +79,13 @@ def jacobi3(a, v, n):
         diag = a00 * a00 + a11 * a11 + a22 * a22
         if off <= _RELATIVE_TOLERANCE * diag or off == 0.0:
             break
+        # each rotation (p, q), with r the third index and V's columns p and q
         if a01 != 0.0:  # (p, q) = (0, 1), r = 2
-            t, c, s = _rotation(a00, a11, a01)
-            a00, a11, a01 = a00 - t * a01, a11 + t * a01, 0.0
-            a02, a12 = c * a02 - s * a12, s * a02 + c * a12
-            v00, v01 = c * v00 - s * v01, s * v00 + c * v01
-            v10, v11 = c * v10 - s * v11, s * v10 + c * v11
-            v20, v21 = c * v20 - s * v21, s * v20 + c * v21
+            a00, a11, a01, a02, a12, v00, v01, v10, v11, v20, v21 = _rotate(a00, a11, a01, a02, a12, v00, v01, v10, v11, v20, v21)
         if a02 != 0.0:  # (p, q) = (0, 2), r = 1
-            t, c, s = _rotation(a00, a22, a02)
-            a00, a22, a02 = a00 - t * a02, a22 + t * a02, 0.0
-            a01, a12 = c * a01 - s * a12, s * a01 + c * a12
-            v00, v02 = c * v00 - s * v02, s * v00 + c * v02
-            v10, v12 = c * v10 - s * v12, s * v10 + c * v12
-            v20, v22 = c * v20 - s * v22, s * v20 + c * v22
+            a00, a22, a02, a01, a12, v00, v02, v10, v12, v20, v22 = _rotate(a00, a22, a02, a01, a12, v00, v02, v10, v12, v20, v22)
         if a12 != 0.0:  # (p, q) = (1, 2), r = 0
-            t, c, s = _rotation(a11, a22, a12)
-            a11, a22, a12 = a11 - t * a12, a22 + t * a12, 0.0
-            a01, a02 = c * a01 - s * a02, s * a01 + c * a02
-            v01, v02 = c * v01 - s * v02, s * v01 + c * v02
-            v11, v12 = c * v11 - s * v12, s * v11 + c * v12
-            v21, v22 = c * v21 - s * v22, s * v21 + c * v22
+            a11, a22, a12, a01, a02, v01, v02, v11, v12, v21, v22 = _rotate(a11, a22, a12, a01, a02, v01, v02, v11, v12, v21, v22)
     a[n, 0, 0], a[n, 1, 1], a[n, 2, 2] = a00, a11, a22
     a[n, 0, 1] = a[n, 1, 0] = a01
     a[n, 0, 2] = a[n, 2, 0] = a02
