@@ -73,6 +73,26 @@ def decoded_rows(
 
 
 @numba.njit(parallel=True, cache=True)
+def _gather_kernel(source, rows, out):  # out[i] = source[rows[i]], [V, C] -> [N, C]
+    for i in numba.prange(rows.shape[0]):
+        for j in range(source.shape[1]):
+            out[i, j] = source[rows[i], j]
+
+
+def gather_rows(
+    source: np.ndarray,  # [V] or [V, C], a column of the scene's sums (often strided: a view of its rows)
+    rows: np.ndarray,  # [N] int64
+) -> torch.Tensor:  # [N] or [N, C], contiguous
+    """``source[rows]`` on the numba threads: over a strided view this is several times faster than
+    torch's index_select or numpy's fancy indexing, which copy element by element."""
+    flat = source.reshape(len(source), -1)
+    out = np.empty((len(rows), flat.shape[1]), source.dtype)
+    if len(rows) and flat.shape[1]:
+        _gather_kernel(flat, rows, out)
+    return torch.from_numpy(out.reshape(len(rows), *source.shape[1:]))
+
+
+@numba.njit(parallel=True, cache=True)
 def _features_kernel(rows, f_sum, r_sum, eps, out):
     for i in numba.prange(rows.shape[0]):
         den = r_sum[rows[i]] + eps
@@ -176,10 +196,9 @@ class SceneDecoding:
             cache = self._rows = DecodedRows(key)
         stamps = inputs.changed_at[rows] if inputs.changed_at is not None else None
         todo = rows if stamps is None else rows[~cache.current(rows, stamps)]
-        index = torch.from_numpy(todo)
         # the shapes come from the position sums in place (one pass); the other fields from a gather
-        f = fields_from_sums({k: torch.as_tensor(v).index_select(0, index) for k, v in inputs.sums.items()
-                              if k not in POSITION_SUMS}, self.config, sort=False, positions=False)
+        f = fields_from_sums({k: gather_rows(v, todo) for k, v in inputs.sums.items() if k not in POSITION_SUMS},
+                             self.config, sort=False, positions=False)
         base = voxel_shapes(inputs.sums, todo, self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
             fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)

@@ -12,7 +12,7 @@ from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS
-from canonical_core.scene.decoding import decoded_rows, scene_features
+from canonical_core.scene.decoding import decoded_rows, gather_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
 from ..conftest import folded_scene, make_frame
 
@@ -248,3 +248,15 @@ def test_scene_features_equal_the_fields_features():
     rows = np.array([3, 0, len(scene) - 1, 3], np.int64)
     expected = fields_from_sums({k: v[rows] for k, v in sums.items()}, scene.config, sort=False)["features"]
     assert torch.equal(scene_features(sums, rows, scene.config.research.eps), expected)
+
+
+def test_gather_rows_equals_fancy_indexing_on_the_scenes_columns():
+    scene = folded_scene([make_frame(np.full((12, 16), 2.0, np.float32))], 0.05)
+    sums = scene.decode_inputs().sums  # strided views of the rows, 1-D arrays, uint8 colours, [V, 0] labels
+    assert not sums["f_sum"].flags.c_contiguous and not sums["r_sum"].flags.c_contiguous
+    rows = np.array([5, 0, len(scene) - 1, 5], np.int64)
+    for name, column in sums.items():
+        gathered = gather_rows(column, rows)
+        assert gathered.shape == column[rows].shape and gathered.numpy().dtype == column.dtype, name
+        np.testing.assert_array_equal(gathered.numpy(), column[rows], err_msg=name)
+    assert gather_rows(sums["f_sum"], np.empty(0, np.int64)).shape == (0, sums["f_sum"].shape[1])
