@@ -85,10 +85,10 @@ def gather_rows(
 ) -> torch.Tensor:  # [N] or [N, C], contiguous
     """``source[rows]`` on the numba threads: over a strided view this is several times faster than
     torch's index_select or numpy's fancy indexing, which copy element by element."""
-    flat = source.reshape(len(source), -1)
-    out = np.empty((len(rows), flat.shape[1]), source.dtype)
-    if len(rows) and flat.shape[1]:
-        _gather_kernel(flat, rows, out)
+    width = int(np.prod(source.shape[1:]))  # not -1: an empty scene's columns have no size to infer it from
+    out = np.empty((len(rows), width), source.dtype)
+    if len(rows) and width:
+        _gather_kernel(source.reshape(len(source), width), rows, out)
     return torch.from_numpy(out.reshape(len(rows), *source.shape[1:]))
 
 

@@ -260,3 +260,11 @@ def test_gather_rows_equals_fancy_indexing_on_the_scenes_columns():
         assert gathered.shape == column[rows].shape and gathered.numpy().dtype == column.dtype, name
         np.testing.assert_array_equal(gathered.numpy(), column[rows], err_msg=name)
     assert gather_rows(sums["f_sum"], np.empty(0, np.int64)).shape == (0, sums["f_sum"].shape[1])
+
+
+def test_an_empty_scene_decodes_to_no_gaussians():
+    scene = Scene(SceneConfig(voxel_size=0.05))
+    assert len(scene.decode()) == 0 and len(scene.decode_from(scene.decode_inputs())) == 0
+    empty = scene.decode_inputs().sums
+    for name, column in empty.items():
+        assert gather_rows(column, np.empty(0, np.int64)).shape == column.shape, name
