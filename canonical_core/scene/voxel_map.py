@@ -272,12 +272,13 @@ class VoxelMap:
     def nbytes(self) -> int:
         """Bytes of memory the map holds: the rows of its blocks written so far (the rest of a block
         is address space the system has not backed), the hash table and the successor's cleared part."""
-        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values()) + self.changed_at.itemsize
         successor = 0 if self._next_table is None else self._next_cleared * self._next_table.itemsize
-        return int(row * self._written + self.table.nbytes + successor)
+        return int((self._row_bytes() + self.changed_at.itemsize) * self._written + self.table.nbytes + successor)
+
+    def _row_bytes(self) -> int:
+        return sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values())
 
     def bytes_per_voxel(self) -> float:
         """Bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes per
         stored voxel."""
-        row = sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values() if a.shape[0] == self.capacity)
-        return row + self.table.nbytes / max(self.n, 1)
+        return self._row_bytes() + self.table.nbytes / max(self.n, 1)

@@ -1,9 +1,10 @@
-"""The training loop: the decoder's heads, trained through the differentiable reference renderer.
+"""The training loop: the decoder's heads, trained through a differentiable renderer.
 
 Each step takes one fused sample of the pool (`data.draw_pool`: N sampled input views of a
 training capture, folded once) and one of its target frames, decodes the sample with the decoder
 (`data.decode`, gradients to every head), renders a random window of the target (`draw_crop`,
-`crop_camera`) with the PyTorch reference renderer in the evaluation's "normalised" colour, and
+`crop_camera`) with the PyTorch reference renderer (gsplat's fused one on CUDA, where installed)
+in the evaluation's "normalised" colour, and
 takes an Adam step on `losses.render_loss` over the window.
 The fold does not depend on the decoder, which is why the pool can be folded up front.
 
