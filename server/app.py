@@ -121,20 +121,25 @@ class GuardMiddleware:
         chunks, size = [], 0
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.settings.body_timeout_s
-        while True:
-            wait = min(self.settings.read_timeout_s, deadline - loop.time())
-            try:
-                message = await asyncio.wait_for(receive(), max(wait, 0.0))
-            except asyncio.TimeoutError:
-                stalled = wait >= self.settings.read_timeout_s
-                raise BodyTimeout(f"no data for {self.settings.read_timeout_s:g} s" if stalled
-                                  else f"not complete within {self.settings.body_timeout_s:g} s") from None
-            if message["type"] != "http.request":
-                return None
-            chunks.append(message.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.max_bytes or not message.get("more_body", False):
-                return b"".join(chunks)
+        stalled = False
+        try:
+            # one timer moved before each read: a 2 MB frame arrives in dozens of chunks, and a task per
+            # chunk (asyncio.wait_for) cost milliseconds of the acknowledged path
+            async with asyncio.timeout(None) as timer:
+                while True:
+                    read_by = loop.time() + self.settings.read_timeout_s
+                    stalled = read_by < deadline
+                    timer.reschedule(min(read_by, deadline))
+                    message = await receive()
+                    if message["type"] != "http.request":
+                        return None
+                    chunks.append(message.get("body", b""))
+                    size += len(chunks[-1])
+                    if size > self.max_bytes or not message.get("more_body", False):
+                        return b"".join(chunks)
+        except TimeoutError:
+            raise BodyTimeout(f"no data for {self.settings.read_timeout_s:g} s" if stalled
+                              else f"not complete within {self.settings.body_timeout_s:g} s") from None
 
     async def _reject(self, scope, receive, send, status: int, code: str, message: str, field: str, headers=None):
         # Read (and drop) what the client is still sending, briefly, so that a client that writes its

@@ -5,8 +5,11 @@ session under ``<data_dir>/sessions/<id>/``:
 
 - ``meta.json``: id, creation time and the SceneConfig, written once, atomically.
 - ``frames.log``: the append-only frame log (`server.framelog`). A frame is appended and fsynced
-  before it is folded and acknowledged; an append that fails (a full disk) is cut off at once and
-  nothing is folded; a record whose fold fails is cut off again. On start a torn tail (a crash
+  before it is acknowledged; the append runs on a writer thread while the frame folds (the fsync is
+  a wait on the disk, the fold is compute), and the acknowledgement waits for both. An append that
+  fails (a full disk) is cut off at once and the fold is undone (the scene rolled back, or rebuilt
+  from disk); a record whose fold fails is cut off again. A render in that moment may show a frame
+  that is not yet acknowledged; it never loses one that is. On start a torn tail (a crash
   mid-append: never acknowledged) is cut off; damage anywhere else is never cut: the log is copied to
   ``quarantine/`` and the session is not served until ``canonical repair`` decides.
 - ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Written every
@@ -39,6 +42,7 @@ import secrets
 import shutil
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -53,10 +57,14 @@ from canonical_core.scene.corrections import check_poses, corrected_stream, reso
 
 from . import wire
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive, archive_failure, payload_digest
-from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
+from .framelog import (Fenced, FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
 log = logging.getLogger("canonical.store")
+
+# the frame log's appends (digest, write, fsync) run here while their frames fold: one writer per job
+# that can fold at a time is enough (a session's appends are ordered by its lock)
+LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
@@ -188,39 +196,28 @@ class Session:
         comes back (replay = True), or `FrameIdConflict` if its content differs. A frame that cannot be
         made durable raises `StorageError` and is not folded. On a ValueError the log record is cut off
         again and the scene is unchanged (the library validates before it mutates)."""
-        digest = payload_digest(payload)
         with self.lock:
             self._check_alive()
             known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
             if known is not None:
-                if known.digest != digest:
+                if known.digest != payload_digest(payload):
                     raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
                 report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
                                           "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
                 return FoldReport(**report), True
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
-            try:
-                offset = self.log.append(self.scene.frames, payload)
-            except StorageError as exc:
-                if not isinstance(exc, LogWedged):
-                    raise
-                self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
-                log.error("session %s: %s", self.id, self.wedged)
-                raise
+            frames = self.scene.frames
+            logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
             try:
                 report = self.scene.fold(frame)
-            except ValueError:
-                self.log.truncate(offset)
+            except Exception as exc:
+                self._fold_failed(logged, exc)
                 raise
-            except Exception:
-                # not an input error: the scene may be half-folded; rebuild it from disk (without this frame)
-                self.log.truncate(offset)
-                try:
-                    self._reload()
-                except Exception:
-                    log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
-                    self.deleted = True
+            try:
+                digest, _ = logged.result()
+            except StorageError as exc:
+                self._append_failed(exc, frames)
                 raise
             self._archive_frame(frame.frame_id, digest, payload)
             if frame.frame_id is not None:
@@ -232,6 +229,45 @@ class Session:
                                                   or now - self.dirty_since >= snapshot_every_seconds):
                 self._snapshot()
             return report, False
+
+    def _fold_failed(self, logged, exc: Exception) -> None:
+        """A fold raised while its record was being logged: the record is cut off again once written.
+        A ValueError left the scene unchanged (the library validates before it mutates); anything else
+        may have left it half-folded, so it is rebuilt from disk (without this frame)."""
+        try:
+            _, offset = logged.result()
+        except StorageError as storage:
+            self._note_wedged(storage)
+        else:
+            self.log.truncate(offset)
+        if isinstance(exc, ValueError):
+            return
+        try:
+            self._reload()
+        except Exception:
+            log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
+            self.deleted = True
+
+    def _append_failed(self, exc: StorageError, frames: int) -> None:
+        """The frame folded but its record is not durable (cut off, or the log wedged): the fold is
+        undone, by the scene's undo records where they reach back, else by a rebuild from disk. A
+        fenced session is dropped by its owner and needs neither."""
+        self._note_wedged(exc)
+        if isinstance(exc, Fenced):
+            return
+        try:
+            if self.scene.undo_floor <= frames:
+                self.scene.rollback(frames)
+            else:
+                self._reload()
+        except Exception:
+            log.exception("session %s: cannot undo a fold whose frame was not logged; no longer serving it", self.id)
+            self.deleted = True
+
+    def _note_wedged(self, exc: StorageError) -> None:
+        if isinstance(exc, LogWedged):
+            self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
+            log.error("session %s: %s", self.id, self.wedged)
 
     def _archive_frame(self, frame_id: str | None, digest: str, payload: bytes) -> None:
         """Archive a folded frame: off the acknowledged path (the log holds it durably until the

@@ -1,8 +1,11 @@
-"""The session store in process (the HTTP tests drive it through a real service): the decode cache, and
-decoding (with the colour solve) outside the session's lock, so that folds go on while it runs."""
+"""The session store in process (the HTTP tests drive it through a real service): the decode cache,
+decoding (with the colour solve) outside the session's lock, so that folds go on while it runs, and
+the frame log written while its frame folds: acknowledged after the fsync, undone when it fails."""
 
 from __future__ import annotations
 
+import errno
+import os
 import re
 import threading
 import time
@@ -14,8 +17,9 @@ from canonical_core import SceneConfig
 from canonical_core.datasets import load_tsdf_fusion
 from canonical_core.decode import solve_colours
 from client.cli import frame_arrays
-from server import wire
-from server.store import SessionStore
+from server import framelog, wire
+from server.framelog import StorageError
+from server.store import SessionStore, SessionUnavailable
 
 from .harness import msgpack_frame
 
@@ -96,3 +100,60 @@ def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_serv
     current = session.gaussians()[0]  # after the fold: the overtaken solve was not cached
     assert len(current) != before
     assert same(current, session.scene.decode())
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("retention", ["all", "none"])  # undo records roll the fold back; without, a rebuild from disk
+def test_a_frame_whose_log_append_fails_while_it_folds_is_undone(store, shelf_frames, monkeypatch, retention):
+    session = store.create(SceneConfig(voxel_size=0.008), retention=retention)
+    for frame in shelf_frames[:2]:
+        fold(session, frame)
+    before = session.digest()
+    real_write = os.write
+
+    def disk_full(fd, data):
+        if fd == session.log._fd:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(framelog.os, "write", disk_full)
+    with pytest.raises(StorageError, match="No space left"):
+        fold(session, shelf_frames[2])
+    assert session.digest() == before and session.wedged is None
+    monkeypatch.undo()
+    fold(session, shelf_frames[2])  # the same frame, once there is space: folded as frame 2
+    assert session.digest()["frames"] == 3 and len(framelog.scan(session.log.path.read_bytes()).records) == 3
+
+
+@pytest.mark.realdata
+def test_a_wedged_log_undoes_the_fold_and_refuses_the_next_frames(store, shelf_frames, monkeypatch):
+    session = store.create(SceneConfig(voxel_size=0.008))
+    fold(session, shelf_frames[0])
+    before = session.digest()
+
+    def failing(*args):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(framelog.os, "write", failing)
+    monkeypatch.setattr(framelog.os, "ftruncate", failing)
+    with pytest.raises(framelog.LogWedged):
+        fold(session, shelf_frames[1])
+    assert session.digest() == before and "Input/output error" in session.wedged
+    with pytest.raises(SessionUnavailable):
+        fold(session, shelf_frames[1])
+
+
+@pytest.mark.realdata
+def test_a_frame_is_acknowledged_only_after_its_record_is_fsynced(store, shelf_frames, monkeypatch):
+    session = store.create(SceneConfig(voxel_size=0.008))
+    real_fsync, synced = os.fsync, []
+
+    def slow_fsync(fd):  # a disk slower than the fold: the acknowledgement must wait for it
+        time.sleep(0.5)
+        real_fsync(fd)
+        synced.append(time.monotonic())
+
+    monkeypatch.setattr(framelog.os, "fsync", slow_fsync)
+    fold(session, shelf_frames[0])
+    acknowledged = time.monotonic()
+    assert len(synced) == 1 and synced[0] <= acknowledged
