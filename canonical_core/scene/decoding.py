@@ -27,7 +27,7 @@ from ..decode import GaussianDecoder, solve_colours
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
-from .decoded import PARTS, DecodedRows
+from .decoded import PARTS, DecodedRows, gather_rows
 from .fields import fields_from_sums
 from .shapes import voxel_shapes
 
@@ -35,61 +35,75 @@ POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` 
 DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
 
 
-@numba.njit(cache=True)
-def _decoded_rows_kernel(r_sum, n_obs, free, min_support, dominance, free_space, keep, ratios):
-    kept = seen = 0
-    for v in range(r_sum.shape[0]):
-        r = r_sum[v]
-        if n_obs[v] > 0:
-            ratios[seen] = r / np.float32(n_obs[v])
-            seen += 1
-        if r > min_support and (not free_space or free[v] <= dominance * r):
-            keep[kept] = v
-            kept += 1
-    return kept, seen
+# rows are scanned in this many blocks on the numba threads, each block's results written at its own
+# offset and then closed up in block order, so the rows stay ascending whatever the thread count
+ROW_BLOCKS = 64
+
+
+@numba.njit(parallel=True, cache=True)
+def _decoded_rows_kernel(r_sum, n_obs, free, min_support, dominance, free_space, keep, support, freeness, ratios):
+    n = r_sum.shape[0]
+    size = (n + ROW_BLOCKS - 1) // ROW_BLOCKS
+    kept, seen = np.zeros(ROW_BLOCKS, np.int64), np.zeros(ROW_BLOCKS, np.int64)
+    for b in numba.prange(ROW_BLOCKS):
+        start = b * size
+        k = s = start
+        for v in range(start, min(start + size, n)):
+            r = r_sum[v]
+            if n_obs[v] > 0:
+                ratios[s] = r / np.float32(n_obs[v])
+                s += 1
+            if r > min_support and (not free_space or free[v] <= dominance * r):
+                keep[k], support[k], freeness[k] = v, r, free[v]
+                k += 1
+        kept[b], seen[b] = k - start, s - start
+    total_kept = total_seen = 0
+    for b in range(ROW_BLOCKS):  # close up: blocks are disjoint and each moves down, in order
+        start = b * size
+        for j in range(kept[b]):
+            keep[total_kept + j], support[total_kept + j], freeness[total_kept + j] = (
+                keep[start + j], support[start + j], freeness[start + j])
+        for j in range(seen[b]):
+            ratios[total_seen + j] = ratios[start + j]
+        total_kept += kept[b]
+        total_seen += seen[b]
+    return total_kept, total_seen
+
+
+class DecodedRowSet(NamedTuple):
+    """The rows of a scene that decode, with what their opacities need (`decoded_rows`)."""
+
+    rows: np.ndarray  # [K] int64 ascending
+    support: torch.Tensor  # [K] float32 R_scene of each
+    free: torch.Tensor  # [K] float32 free-space evidence of each
+    unit: float  # `decode.support_unit` of the whole scene
 
 
 def decoded_rows(
     sums: dict[str, np.ndarray],  # a scene's sums, every row
     min_support: float,
     config: SceneConfig,
-) -> tuple[np.ndarray, float]:  # [K] int64 rows that decode, the support unit
-    """In one pass over the rows: those that decode (R_scene > ``min_support`` and, with free space
-    on, no more see-through evidence than `FreeSpace.dominance` x R_scene: voxels that more rays saw
-    through than saw at are not surface), and `decode.support_unit` of the scene (the lower median
-    of R_scene / count, as ``torch.median``)."""
+) -> DecodedRowSet:
+    """In one pass over the rows (on the numba threads): those that decode (R_scene > ``min_support``
+    and, with free space on, no more see-through evidence than `FreeSpace.dominance` x R_scene:
+    voxels that more rays saw through than saw at are not surface), their R_scene and free-space
+    evidence, and `decode.support_unit` of the scene (the lower median of R_scene / count, as
+    ``torch.median``)."""
     r_sum = sums["r_sum"]  # read where they are (columns of the scene's rows: strided)
-    keep, ratios = np.empty(r_sum.shape[0], np.int64), np.empty(r_sum.shape[0], np.float32)
+    n = r_sum.shape[0]
+    keep, ratios = np.empty(n, np.int64), np.empty(n, np.float32)
+    support, free = np.empty(n, np.float32), np.empty(n, np.float32)
     kept, seen = _decoded_rows_kernel(
         r_sum, sums["n_obs"], sums["free"], np.float32(min_support), np.float32(config.free_space.dominance),
-        config.free_space.enabled, keep, ratios,
+        config.free_space.enabled, keep, support, free, ratios,
     )  # fmt: skip
+    chosen = (keep[:kept], torch.from_numpy(support[:kept]), torch.from_numpy(free[:kept]))
     if not seen:
-        return keep[:kept], 1.0
+        return DecodedRowSet(*chosen, 1.0)
     middle = ratios[:seen]
     middle.partition((seen - 1) // 2)  # in place: the scratch is ours
     unit = float(middle[(seen - 1) // 2])
-    return keep[:kept], unit if unit > 1e-6 else 1e-6
-
-
-@numba.njit(parallel=True, cache=True)
-def _gather_kernel(source, rows, out):  # out[i] = source[rows[i]], [V, C] -> [N, C]
-    for i in numba.prange(rows.shape[0]):
-        for j in range(source.shape[1]):
-            out[i, j] = source[rows[i], j]
-
-
-def gather_rows(
-    source: np.ndarray,  # [V] or [V, C], a column of the scene's sums (often strided: a view of its rows)
-    rows: np.ndarray,  # [N] int64
-) -> torch.Tensor:  # [N] or [N, C], contiguous
-    """``source[rows]`` on the numba threads: over a strided view this is several times faster than
-    torch's index_select or numpy's fancy indexing, which copy element by element."""
-    width = int(np.prod(source.shape[1:]))  # not -1: an empty scene's columns have no size to infer it from
-    out = np.empty((len(rows), width), source.dtype)
-    if len(rows) and width:
-        _gather_kernel(source.reshape(len(source), width), rows, out)
-    return torch.from_numpy(out.reshape(len(rows), *source.shape[1:]))
+    return DecodedRowSet(*chosen, unit if unit > 1e-6 else 1e-6)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -175,16 +189,13 @@ class SceneDecoding:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
         # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
         # per-voxel SH solve among them, are then computed for those rows alone
-        reliability = torch.as_tensor(inputs.sums["r_sum"])
-        keep, unit = decoded_rows(inputs.sums, min_support, self.config)
-        keep, unit = torch.from_numpy(keep), unit * inputs.observations_per_view
-        if max_gaussians is not None and keep.numel() > max_gaussians:
-            top = torch.argsort(reliability[keep], descending=True, stable=True)[:max_gaussians]
-            keep = keep[torch.sort(top).values]
+        keep, support, free, unit = decoded_rows(inputs.sums, min_support, self.config)
+        if max_gaussians is not None and len(keep) > max_gaussians:
+            top = torch.sort(torch.argsort(support, descending=True, stable=True)[:max_gaussians]).values
+            keep, support, free = keep[top.numpy()], support[top], free[top]
         with torch.no_grad():
-            opacities = self.decoder.opacities(reliability.index_select(0, keep),
-                                               torch.as_tensor(inputs.sums["free"]).index_select(0, keep), unit)
-        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep.numpy()))
+            opacities = self.decoder.opacities(support, free, unit * inputs.observations_per_view)
+        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep))
         return solve_colours(gaussians, inputs.views) if inputs.views else gaussians
 
     def _shapes_and_colours(self, inputs: DecodeInputs, rows: np.ndarray) -> dict[str, torch.Tensor | None]:

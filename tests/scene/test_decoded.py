@@ -223,23 +223,25 @@ def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
 
 @pytest.mark.parametrize("free_space", [True, False])
 @pytest.mark.parametrize("min_support", [0.0, 0.3])
-def test_decoded_rows_equals_its_reference(free_space, min_support):
-    """The one-pass row selection and support unit against the PyTorch rule (`support_unit`, masks)."""
+@pytest.mark.parametrize("n", [10_001, 5])  # more rows than the scan's blocks, and fewer
+def test_decoded_rows_equals_its_reference(free_space, min_support, n):
+    """The one-pass row selection, the rows' support and free space, and the support unit against the
+    PyTorch rule (`support_unit`, masks)."""
     rng = np.random.default_rng(3)
-    n = 10_001
     sums = {"r_sum": rng.gamma(1.0, 0.5, n).astype(np.float32), "n_obs": rng.integers(0, 6, n).astype(np.int32),
             "free": rng.gamma(1.0, 0.4, n).astype(np.float32)}
     sums["r_sum"][sums["n_obs"] == 0] = 0.0
     config = SceneConfig(voxel_size=0.01, free_space={"enabled": free_space})
-    keep, unit = decoded_rows(sums, min_support, config)
-    r = torch.from_numpy(sums["r_sum"])
+    keep, support, free, unit = decoded_rows(sums, min_support, config)
+    r, f = torch.from_numpy(sums["r_sum"]), torch.from_numpy(sums["free"])
     mask = r > min_support
     if free_space:
-        mask &= torch.from_numpy(sums["free"]) <= config.free_space.dominance * r
+        mask &= f <= config.free_space.dominance * r
     np.testing.assert_array_equal(keep, torch.nonzero(mask).squeeze(1).numpy())
+    assert torch.equal(support, r[mask]) and torch.equal(free, f[mask])
     assert unit == support_unit(r, torch.from_numpy(sums["n_obs"]))
     none_seen = {k: v[:0] for k, v in sums.items()}
-    assert decoded_rows(none_seen, 0.0, config)[1] == support_unit(r[:0], torch.from_numpy(sums["n_obs"][:0]))
+    assert decoded_rows(none_seen, 0.0, config).unit == support_unit(r[:0], torch.from_numpy(sums["n_obs"][:0]))
 
 
 def test_scene_features_equal_the_fields_features():
