@@ -533,12 +533,22 @@ def add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes even if steps remain")
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where the decode and render run (default cpu)")
     p.add_argument("--width", type=int, default=160, help="training image width in pixels (default 160)")
+    p.add_argument("--coverage-weight", type=float, default=0.0,
+                   help="weight of the coverage term (1 - alpha)^2 at pixels with measured depth (default 0)")
+    p.add_argument("--heads", default=None,
+                   help="comma-separated heads to train (default all: opacity,free_space_penalty,offset,log_scale_delta,color_delta)")
 
 
 def run_train(args) -> int:
     from canonical_core.train.loop import TrainSettings, run_training
 
-    settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width, device=args.device)
+    heads = {} if args.heads is None else {"heads": tuple(h.strip() for h in args.heads.split(",") if h.strip())}
+    try:
+        settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width,
+                                 device=args.device, coverage_weight=args.coverage_weight, **heads)
+    except ValueError as exc:
+        print(f"canonical train: {exc}", file=sys.stderr)
+        return 2
     result = run_training(args.captures, args.out, settings)
     report = Path(args.out).with_name(Path(args.out).stem + "_report")
     print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")

@@ -43,9 +43,9 @@ from ..rendering import render
 from ..rendering.gsplat_backend import gsplat_available
 from ..rendering.splat_geometry import TILE_SIZE
 from ..scene import Scene
-from ..decode.checkpoint import save_checkpoint
+from ..decode.checkpoint import TRAINED_HEADS, save_checkpoint
 from .data import Capture, FusedSample, decode, draw_pool, load_captures, scene_config
-from .losses import SSIM_WEIGHT, render_loss
+from .losses import SSIM_WEIGHT, coverage_loss, render_loss
 
 Device = Literal["cpu", "cuda"]
 
@@ -71,6 +71,14 @@ class TrainSettings:
     lr: float = 1e-2
     """Adam's learning rate."""
     ssim_weight: float = SSIM_WEIGHT
+    coverage_weight: float = 0.0
+    """Weight of `losses.coverage_loss` next to the render loss: the mean (1 - alpha)^2 over the
+    window's pixels where the target frame measured depth. The normalised colour that the loss and
+    the evaluation compare is blind to how much of the image a scene covers, so without it a head
+    can gain covered PSNR by drawing fewer pixels."""
+    heads: tuple[str, ...] = TRAINED_HEADS
+    """The heads that train (`decode.checkpoint.TRAINED_HEADS` names); the others keep their
+    analytic start, and the checkpoint holds only these."""
     device: Device = "cpu"
 
     def __post_init__(self):
@@ -84,6 +92,12 @@ class TrainSettings:
             raise ValueError(f"views: expected input view counts in 1..64, got {self.views!r}")
         if not (isinstance(self.lr, float) and self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"lr: expected a positive float, got {self.lr!r}")
+        for name in ("ssim_weight", "coverage_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name}: expected a non-negative number, got {value!r}")
+        if not self.heads or len(set(self.heads)) != len(self.heads) or any(h not in TRAINED_HEADS for h in self.heads):
+            raise ValueError(f"heads: expected distinct names from {list(TRAINED_HEADS)}, got {list(self.heads)!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device: expected 'cpu' or 'cuda', got {self.device!r}")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -128,19 +142,23 @@ def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Ca
 
 
 def step_loss(decoder: GaussianDecoder, sample: FusedSample, target: int, ssim_weight: float = SSIM_WEIGHT,
-              crop: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+              crop: tuple[int, int, int, int] | None = None, coverage_weight: float = 0.0) -> torch.Tensor:
     """The render loss of ``decoder`` on ``sample`` at its target frame number ``target``, over the
-    whole image or the window ``crop`` = (x0, y0, width, height)."""
+    whole image or the window ``crop`` = (x0, y0, width, height), plus ``coverage_weight`` x
+    `losses.coverage_loss` where the target has depth."""
     frame = sample.targets[target]
     x0, y0, w, h = crop if crop is not None else (0, 0, frame.width, frame.height)
     gaussians = decode(decoder, sample)
     device = sample.support.device
     # Both differentiable backends: gsplat's fused CUDA kernels where they run, else the PyTorch reference.
     backend = "gsplat" if device.type == "cuda" and gsplat_available() else "reference"
-    view = render(gaussians, crop_camera(frame.camera, x0, y0, w, h), outputs=("rgb",), colour="normalised",
+    view = render(gaussians, crop_camera(frame.camera, x0, y0, w, h), outputs=("rgb", "alpha"), colour="normalised",
                   backend=backend)
     truth = frame.rgb[y0: y0 + h, x0: x0 + w].to(device).float() / 255.0
-    return render_loss(view.rgb, truth, ssim_weight)
+    loss = render_loss(view.rgb, truth, ssim_weight)
+    if coverage_weight and frame.depth is not None:
+        loss = loss + coverage_weight * coverage_loss(view.alpha, frame.depth[y0: y0 + h, x0: x0 + w].to(device) > 0)
+    return loss
 
 
 def draw_crop(frame: Frame, size: int, rng: np.random.Generator) -> tuple[int, int, int, int]:
@@ -178,7 +196,10 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
     decoder = new_decoder().to(device)
     before = heldout_report(decoder, captures) if report else []
     pool = [_to(s, device) for s in draw_pool(captures, settings.pool, settings.seed, settings.views)]
-    optimiser = torch.optim.Adam(decoder.parameters(), lr=settings.lr)
+    trained = [p for name, p in decoder.named_parameters() if name.split(".")[0] in settings.heads]
+    for name, p in decoder.named_parameters():
+        p.requires_grad_(name.split(".")[0] in settings.heads)
+    optimiser = torch.optim.Adam(trained, lr=settings.lr)
     losses: list[float] = []
     bar = tqdm(total=settings.steps, disable=not progress, file=sys.stderr, desc="train", unit="step", dynamic_ncols=True)
     deadline = None if settings.minutes is None else t0 + 60.0 * settings.minutes
@@ -189,14 +210,14 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
         target = int(rng.integers(len(sample.targets)))
         crop = draw_crop(sample.targets[target], settings.crop, rng)
         optimiser.zero_grad()
-        loss = step_loss(decoder, sample, target, settings.ssim_weight, crop)
+        loss = step_loss(decoder, sample, target, settings.ssim_weight, crop, settings.coverage_weight)
         loss.backward()
         optimiser.step()
         losses.append(float(loss.detach()))
         bar.set_postfix_str(f"loss {np.mean(losses[-20:]):.4f}")
         bar.update()
     bar.close()
-    decoder = decoder.cpu()
+    decoder = decoder.cpu().requires_grad_(True)
     after = heldout_report(decoder, captures) if report else []
     heldout = [{"capture": b["capture"], "views": b["views"], "before": b, "after": a} for b, a in zip(before, after)]
     return TrainResult(decoder, losses, len(losses), time.perf_counter() - t0, heldout)
@@ -218,7 +239,8 @@ def write_report(result: TrainResult, settings: TrainSettings, captures: Sequenc
         smooth = np.convolve(result.losses, np.ones(k) / k, mode="valid")
         ax.plot(steps[k - 1:], smooth, lw=1.5, label=f"mean of {k}")
     ax.set_xlabel("step")
-    ax.set_ylabel(f"MSE + {settings.ssim_weight:g} (1 - SSIM)")
+    coverage = f" + {settings.coverage_weight:g} coverage" if settings.coverage_weight else ""
+    ax.set_ylabel(f"MSE + {settings.ssim_weight:g} (1 - SSIM){coverage}")
     ax.legend()
     fig.tight_layout()
     fig.savefig(folder / "loss.png", dpi=120)
@@ -251,6 +273,7 @@ def run_training(capture_paths: Sequence[str | Path], out: str | Path, settings:
     captures = load_captures(capture_paths, settings.width)
     result = train(captures, settings, progress=progress)
     names = [c.name for c in captures]
-    save_checkpoint(out, result.decoder, {**_settings_dict(settings), "captures": names, "steps_done": result.steps})
+    save_checkpoint(out, result.decoder, {**_settings_dict(settings), "captures": names, "steps_done": result.steps},
+                    heads=settings.heads)
     write_report(result, settings, names, out.with_name(out.stem + "_report"))
     return result

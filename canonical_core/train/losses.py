@@ -42,3 +42,15 @@ def render_loss(
     """MSE + ``ssim_weight`` (1 - SSIM) over all pixels."""
     target = target.to(pred)
     return torch.mean((pred - target) ** 2) + ssim_weight * (1.0 - ssim_torch(pred, target))
+
+
+def coverage_loss(
+    alpha: Tensor,  # [H, W] or [H, W, 1] rendered opacity in [0, 1]
+    measured: Tensor,  # [H, W] bool: pixels where the target frame measured depth (a surface is there)
+) -> Tensor:  # [] scalar; 0 where nothing was measured
+    """Mean (1 - alpha)^2 over the ``measured`` pixels: a render that leaves a measured surface
+    uncovered pays for it, which the normalised colour of `render_loss` does not see."""
+    alpha = alpha.reshape(measured.shape)
+    if not bool(measured.any()):
+        return alpha.sum() * 0.0
+    return torch.mean((1.0 - alpha[measured]) ** 2)

@@ -16,7 +16,7 @@ from canonical_core.rendering import render
 from canonical_core.train import TRAINED_HEADS, load_checkpoint
 from canonical_core.train.data import Capture, decode, fuse, load_captures
 from canonical_core.train.loop import TrainSettings, crop_camera, new_decoder, step_loss, train
-from canonical_core.train.losses import ssim_torch
+from canonical_core.train.losses import coverage_loss, ssim_torch
 from canonical_core.eval.metrics import ssim
 
 VOXEL = 0.05
@@ -138,6 +138,38 @@ def test_crop_camera_renders_the_window_of_the_full_image(sample):
     assert torch.allclose(window, full[16:32, 16:48], atol=1e-5)
 
 
+def test_coverage_loss_is_the_mean_uncovered_square_at_measured_pixels():
+    alpha = torch.tensor([[1.0, 0.5], [0.0, 0.25]], requires_grad=True)
+    measured = torch.tensor([[True, True], [False, True]])
+    loss = coverage_loss(alpha, measured)
+    assert loss.item() == pytest.approx((0.0 + 0.25 + 0.5625) / 3)
+    loss.backward()
+    assert alpha.grad[1, 0] == 0 and alpha.grad[0, 1] < 0  # more opacity where measured lowers it
+    assert coverage_loss(alpha, torch.zeros(2, 2, dtype=torch.bool)).item() == 0.0
+
+
+def test_the_coverage_term_pays_for_an_uncovered_measured_surface(sample):
+    decoder = new_decoder()
+    plain = float(step_loss(decoder, sample, 0))
+    with_coverage = float(step_loss(decoder, sample, 0, coverage_weight=1.0))
+    assert with_coverage > plain
+    with torch.no_grad():  # a fainter scene leaves more of the measured surface uncovered
+        decoder.opacity.b.sub_(3.0)
+    assert float(step_loss(decoder, sample, 0, coverage_weight=1.0)) - float(step_loss(decoder, sample, 0)) > with_coverage - plain
+
+
+def test_only_the_chosen_heads_train_and_are_written(capture, tmp_path):
+    from canonical_core.decode.checkpoint import save_checkpoint
+
+    heads = ("opacity", "free_space_penalty")
+    result = train([capture], TrainSettings(steps=3, pool=2, views=(2, 3), crop=32, lr=0.05, heads=heads), report=False)
+    start = dict(new_decoder().named_parameters())
+    moved = {name.split(".")[0] for name, p in result.decoder.named_parameters() if not torch.equal(p, start[name])}
+    assert moved == set(heads)  # every chosen head moved, no other
+    save_checkpoint(tmp_path / "m.safetensors", result.decoder, {}, heads=heads)
+    assert load_checkpoint(tmp_path / "m.safetensors").heads == heads
+
+
 def test_ssim_loss_matches_the_evaluation_ssim():
     g = torch.Generator().manual_seed(0)
     a, b = torch.rand(24, 20, 3, generator=g), torch.rand(24, 20, 3, generator=g)
@@ -150,6 +182,12 @@ def test_settings_are_validated():
         TrainSettings(steps=-1)
     with pytest.raises(ValueError, match=r"^views: "):
         TrainSettings(views=())
+    with pytest.raises(ValueError, match=r"^coverage_weight: "):
+        TrainSettings(coverage_weight=-0.1)
+    with pytest.raises(ValueError, match=r"^heads: "):
+        TrainSettings(heads=("opacity", "colour"))
+    with pytest.raises(ValueError, match=r"^heads: "):
+        TrainSettings(heads=())
     with pytest.raises(ValueError, match=r"^captures: .*evaluation capture"):
         load_captures(["../shared/data/realsense_shelf"])
 
