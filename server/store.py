@@ -193,9 +193,10 @@ class Session:
         """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
 
         A frame whose ``frame_id`` the session already folded is not folded again: its first report
-        comes back (replay = True), or `FrameIdConflict` if its content differs. A frame that cannot be
-        made durable raises `StorageError` and is not folded. On a ValueError the log record is cut off
-        again and the scene is unchanged (the library validates before it mutates)."""
+        comes back (replay = True), or `FrameIdConflict` if its content differs. The record is logged
+        on a writer thread while the frame folds, and the report is returned once both are done. A
+        frame that cannot be made durable raises `StorageError`, its fold undone. On a ValueError the
+        log record is cut off again and the scene is unchanged (the library validates before it mutates)."""
         with self.lock:
             self._check_alive()
             known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
