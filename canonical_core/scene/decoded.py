@@ -43,13 +43,18 @@ def gather_rows(
 
 
 @numba.njit(cache=True)
-def _current_kernel(kept, rows, stamps, out):
+def _current_kernel(slot_of, slot_stamps, rows, stamps, out):
     for i in range(rows.shape[0]):
-        out[i] = rows[i] < kept.shape[0] and kept[rows[i]] == stamps[i]
+        slot = slot_of[rows[i]] if rows[i] < slot_of.shape[0] else -1
+        out[i] = slot >= 0 and slot_stamps[slot] == stamps[i]
 
 
 class DecodedRows:
-    """Decoded shapes and colours by scene row, each with its sums' fold stamp (-1: none yet).
+    """Decoded shapes and colours by scene row, each with its sums' fold stamp.
+
+    Results live in slots, one per row that was ever decoded (`slot_of`: a row's slot, -1 for none),
+    so the rows that never decode (a third to a half of a scene: too little support, or seen
+    through) cost 4 bytes each instead of a whole decoded row.
 
     ``key`` names what else the results depend on (the decoder's parameters, the label channels):
     a scene starts a new `DecodedRows` when it changes. Not locked itself: `scene.decoding.SceneDecoding`
@@ -66,7 +71,9 @@ class DecodedRows:
 
     def __init__(self, key):
         self.key = key
-        self.stamps = np.full(0, -1, np.int64)
+        self.slot_of = np.full(0, -1, np.int32)  # [rows seen] each row's slot, -1: none
+        self.slots = 0  # slots in use
+        self.stamps = np.full(0, -1, np.int64)  # [slot capacity] the stamp each slot was decoded from
         self._parts: dict[str, Tensor | None] = {}
 
     def current(
@@ -75,7 +82,7 @@ class DecodedRows:
         stamps: np.ndarray,  # [M] the fold stamps of their current sums
     ) -> np.ndarray:  # [M] bool: decoded from these very sums
         hit = np.empty(len(rows), np.bool_)
-        _current_kernel(self.stamps, rows, stamps, hit)
+        _current_kernel(self.slot_of, self.stamps, rows, stamps, hit)
         return hit
 
     def store(
@@ -87,8 +94,15 @@ class DecodedRows:
         if not len(rows):
             return
         size = int(rows.max()) + 1
-        if size > len(self.stamps):  # grow by half at least: a scene grows every fold
-            capacity = max(size, len(self.stamps) * 3 // 2)
+        if size > len(self.slot_of):  # grow by half at least: a scene grows every fold
+            grown = np.full(max(size, len(self.slot_of) * 3 // 2), -1, np.int32)
+            grown[: len(self.slot_of)] = self.slot_of
+            self.slot_of = grown
+        new = rows[self.slot_of[rows] < 0]
+        self.slot_of[new] = np.arange(self.slots, self.slots + len(new), dtype=np.int32)
+        self.slots += len(new)
+        if self.slots > len(self.stamps):
+            capacity = max(self.slots, len(self.stamps) * 3 // 2)
             stamps_grown = np.full(capacity, -1, np.int64)
             stamps_grown[: len(self.stamps)] = self.stamps
             self.stamps = stamps_grown
@@ -97,18 +111,21 @@ class DecodedRows:
                 if part is None:
                     self._parts[name] = None
                     continue
-                grown = torch.zeros((capacity, *part.shape[1:]), dtype=part.dtype)
+                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=part.dtype)
                 if old is not None:
-                    grown[: len(old)] = old
-                self._parts[name] = grown
-        index = torch.from_numpy(rows)
+                    grown_part[: len(old)] = old
+                self._parts[name] = grown_part
+        slots = self.slot_of[rows]
+        index = torch.from_numpy(slots.astype(np.int64))
         for name, part in parts.items():
             if part is not None:
                 self._parts[name].index_copy_(0, index, part.detach())
-        self.stamps[rows] = stamps
+        self.stamps[slots] = stamps
 
     def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...]
-        return {name: None if part is None else gather_rows(part.numpy(), rows) for name, part in self._parts.items()}
+        slots = self.slot_of[rows].astype(np.int64)
+        return {name: None if part is None else gather_rows(part.numpy(), slots) for name, part in self._parts.items()}
 
     def nbytes(self) -> int:
-        return int(self.stamps.nbytes + sum(p.numel() * p.element_size() for p in self._parts.values() if p is not None))
+        return int(self.slot_of.nbytes + self.stamps.nbytes
+                   + sum(p.numel() * p.element_size() for p in self._parts.values() if p is not None))
