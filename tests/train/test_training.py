@@ -205,3 +205,13 @@ def test_canonical_train_writes_a_checkpoint_and_a_report(tmp_path, frames):
     assert len(report["losses"]) == 2 and all(np.isfinite(report["losses"]))
     assert {"before", "after"} <= set(report["heldout"][0])
     assert (tmp_path / "model" / "m_report" / "loss.png").stat().st_size > 0
+
+
+def test_canonical_train_names_a_bad_setting_before_it_loads_anything(tmp_path, capsys):
+    from client.cli import main
+
+    out = str(tmp_path / "m.safetensors")
+    assert main(["train", str(tmp_path / "none"), "--out", out, "--heads", "opacity,colour"]) == 2
+    assert "heads: " in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "none"), "--out", out, "--coverage-weight", "-1"]) == 2
+    assert "coverage_weight: " in capsys.readouterr().err
