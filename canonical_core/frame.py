@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import torch
 from PIL import Image
@@ -42,16 +43,50 @@ def _tensor(value, field: str) -> Tensor:
     raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
 
 
-def _float_map(value, field: str, shape: tuple[int, int], allow_nonfinite: bool) -> Tensor:
+def _float_map(value, field: str, shape: tuple[int, int]) -> Tensor:
     t = _tensor(value, field)
     if not (t.is_floating_point()):
         raise ValueError(f"{field}: expected a float array (metres), got dtype {t.dtype}")
     if tuple(t.shape) != shape:
         raise ValueError(f"{field}: expected shape {list(shape)} to match the image, got {list(t.shape)}")
     t = t.to(torch.float32)
-    if not allow_nonfinite and not torch.isfinite(t).all():
+    if not torch.isfinite(t).all():
         raise ValueError(f"{field}: contains NaN or inf")
     return t.contiguous()
+
+
+@numba.njit(cache=True)
+def _cleaned_depth(depth, out) -> bool:  # [H, W] float32 -> out; True if a value is negative
+    """Missing depth (NaN, inf) as 0 in ``out``, in one pass; stops at the first negative value
+    (-inf included), which is an error of the frame, not a missing measurement."""
+    source, target = depth.ravel(), out.ravel()
+    for i in range(source.shape[0]):
+        v = source[i]
+        if v < 0:
+            return True
+        target[i] = v if np.isfinite(v) else np.float32(0.0)
+    return False
+
+
+def _depth_map(value, shape: tuple[int, int]) -> Tensor:
+    """``depth`` as float32 [H, W] metres with missing values as 0, checked and cleaned in one pass
+    (it is on every fold's path: a wire frame's depth is read where it arrived, not copied first)."""
+    if isinstance(value, Tensor):
+        if not value.is_floating_point():
+            raise ValueError(f"depth: expected a float array (metres), got dtype {value.dtype}")
+        array = value.detach().cpu().to(torch.float32).numpy()
+    elif isinstance(value, np.ndarray):
+        if not np.issubdtype(value.dtype, np.floating):
+            raise ValueError(f"depth: expected a float array (metres), got dtype {value.dtype}")
+        array = value
+    else:
+        raise ValueError(f"depth: expected a numpy array or torch tensor, got {type(value).__name__}")
+    if tuple(array.shape) != shape:
+        raise ValueError(f"depth: expected shape {list(shape)} to match the image, got {list(array.shape)}")
+    cleaned = np.empty(shape, np.float32)
+    if _cleaned_depth(np.ascontiguousarray(array, dtype=np.float32), cleaned):
+        raise ValueError("depth: negative values (depth is metres along the optical axis; 0 = missing)")
+    return torch.from_numpy(cleaned)
 
 
 def _channel_map(value, field: str, max_channels: int) -> Tensor:
@@ -110,15 +145,11 @@ class Frame:
         validate_image_intrinsics(self.camera.K64(), W, H, "K", margin=0.0)
         object.__setattr__(self, "rgb", rgb.contiguous())
         if self.depth is not None:
-            depth = _float_map(self.depth, "depth", (H, W), allow_nonfinite=True)
-            if (depth < 0).any():
-                raise ValueError("depth: negative values (depth is metres along the optical axis; 0 = missing)")
-            depth = torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth))
-            object.__setattr__(self, "depth", depth)
+            object.__setattr__(self, "depth", _depth_map(self.depth, (H, W)))
         if self.depth_std is not None:
             if self.depth is None:
                 raise ValueError("depth_std: given without depth")
-            std = _float_map(self.depth_std, "depth_std", (H, W), allow_nonfinite=False)
+            std = _float_map(self.depth_std, "depth_std", (H, W))
             if (std < 0).any():
                 raise ValueError("depth_std: negative standard deviations")
             object.__setattr__(self, "depth_std", std)

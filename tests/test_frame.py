@@ -18,6 +18,21 @@ def test_valid_frame_and_missing_depth_normalised():
     assert f.features.shape == (3, 4, 5) and f.labels.shape == (6, 8, 2) and f.has_depth
 
 
+def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.0, 5.0, (12, 16)).astype(np.float32)
+    depth[rng.random((12, 16)) < 0.2] = np.nan
+    depth[rng.random((12, 16)) < 0.1] = np.inf
+    reference = torch.from_numpy(depth.copy())
+    reference = torch.where(torch.isfinite(reference), reference, torch.zeros_like(reference))
+    read_only = np.frombuffer(depth.tobytes(), np.float32).reshape(12, 16)  # as a wire frame arrives
+    for given in (depth, read_only, torch.from_numpy(depth).double(), np.asfortranarray(depth.astype(np.float64))):
+        assert torch.equal(Frame(rgb=RGB, camera=CAM, depth=given).depth, reference)
+    assert np.isnan(depth).any()  # the caller's array is left as it was
+    with pytest.raises(ValueError, match="^depth: negative"):
+        Frame(rgb=RGB, camera=CAM, depth=np.where(np.isnan(depth), -np.inf, depth).astype(np.float32))
+
+
 @pytest.mark.parametrize(
     "kwargs, field, message",
     [
