@@ -57,7 +57,7 @@ from canonical_core.scene.corrections import check_poses, corrected_stream, reso
 
 from . import wire
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive, archive_failure, payload_digest
-from .framelog import (Fenced, FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
+from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
 log = logging.getLogger("canonical.store")
@@ -250,12 +250,10 @@ class Session:
             self.deleted = True
 
     def _append_failed(self, exc: StorageError, frames: int) -> None:
-        """The frame folded but its record is not durable (cut off, or the log wedged): the fold is
-        undone, by the scene's undo records where they reach back, else by a rebuild from disk. A
-        fenced session is dropped by its owner and needs neither."""
+        """The frame folded but its record is not durable (cut off, the log wedged, or the session
+        fenced by another owner): the fold is undone, by the scene's undo records where they reach
+        back, else by a rebuild from disk."""
         self._note_wedged(exc)
-        if isinstance(exc, Fenced):
-            return
         try:
             if self.scene.undo_floor <= frames:
                 self.scene.rollback(frames)
