@@ -80,59 +80,54 @@ def _tile_weights_numba(
     splat_ids: np.ndarray,  # [K] int32 per tile, front to back
     splats: np.ndarray,  # [N, SPLAT_RECORD] float32, in depth order
     boxes: np.ndarray,  # [N, 4] int32
-    gaussian_ids: np.ndarray,  # [N] int32 the Gaussian of each splat record
+    gaussian_ids: np.ndarray,  # [N] int64 the Gaussian of each splat record
     tiles_x: int,
     width: int,
     height: int,
     min_weight: float,
     starts: np.ndarray,  # [T] int64 where each tile's entries may start (`_tile_bounds` apart)
-    out_pixels: np.ndarray,  # [E] int32 (the bound-sized scratch: half the bytes of int64)
-    out_ids: np.ndarray,  # [E] int32
+    out_pixels: np.ndarray,  # [E] int64
+    out_ids: np.ndarray,  # [E] int64
     out_weights: np.ndarray,  # [E] float32
     counts: np.ndarray,  # [T] int64 entries written per tile
 ) -> None:
-    """Per tile, the splats front to back as the C compositor blends them (float32 alpha and
+    """Per tile, the splats front to back as the C compositor blends them (float32 alpha, float64
     transmittance, a pixel stops before T < 1e-4); writes the weights >= min_weight. Splat-outer,
     as the compositor: each splat visits only its box's pixels in the tile (a pixel-outer loop
-    would test every splat of the tile at every pixel), with the splat's values and each row's
-    terms read once."""
+    would test every splat of the tile at every pixel)."""
     for tile in numba.prange(tile_starts.shape[0] - 1):
         u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
         u1, v1 = min(u0 + TILE_SIZE, width) - 1, min(v0 + TILE_SIZE, height) - 1
-        transmittance = np.ones(TILE_SIZE * TILE_SIZE, np.float32)  # -1 once a pixel has stopped
+        transmittance = np.ones(TILE_SIZE * TILE_SIZE)  # -1 once a pixel has stopped
         running = (u1 - u0 + 1) * (v1 - v0 + 1)
         k = starts[tile]
         for j in range(tile_starts[tile], tile_starts[tile + 1]):
             if running == 0:
                 break
             s = splat_ids[j]
-            cu, cv, support, opacity = splats[s, U], splats[s, V], splats[s, SUPPORT], splats[s, OPACITY]
-            a, b, c = splats[s, CONIC_A], splats[s, CONIC_B] + splats[s, CONIC_B], splats[s, CONIC_C]
-            gaussian = gaussian_ids[s]
-            first, last = max(u0, boxes[s, 0]), min(u1, boxes[s, 1])
+            r = splats[s]
             for v in range(max(v0, boxes[s, 2]), min(v1, boxes[s, 3]) + 1):
-                dy = cv - np.float32(v)
-                row = (v - v0) * TILE_SIZE - u0
-                for u in range(first, last + 1):
-                    t = transmittance[row + u]
-                    if t < np.float32(0.0):
+                for u in range(max(u0, boxes[s, 0]), min(u1, boxes[s, 1]) + 1):
+                    p = (v - v0) * TILE_SIZE + (u - u0)
+                    t = transmittance[p]
+                    if t < 0.0:
                         continue
-                    dx = cu - np.float32(u)
-                    q = a * dx * dx + b * dx * dy + c * dy * dy
-                    if q > support:
+                    dx, dy = r[U] - np.float32(u), r[V] - np.float32(v)
+                    q = r[CONIC_A] * dx * dx + (r[CONIC_B] + r[CONIC_B]) * dx * dy + r[CONIC_C] * dy * dy
+                    if q > r[SUPPORT]:
                         continue
-                    alpha = min(opacity * np.float32(np.exp(np.float32(-0.5) * q)), np.float32(MAX_ALPHA))
+                    alpha = min(r[OPACITY] * np.float32(np.exp(np.float32(-0.5) * q)), np.float32(MAX_ALPHA))
                     if alpha < np.float32(MIN_ALPHA):
                         continue
-                    after = t * (np.float32(1.0) - alpha)
-                    if after < np.float32(MIN_TRANSMITTANCE):
-                        transmittance[row + u] = np.float32(-1.0)
+                    after = t * (1.0 - alpha)
+                    if after < MIN_TRANSMITTANCE:
+                        transmittance[p] = -1.0
                         running -= 1
                         continue
-                    weight = alpha * t
-                    transmittance[row + u] = after
+                    weight = alpha * np.float32(t)
+                    transmittance[p] = after
                     if weight >= min_weight:
-                        out_pixels[k], out_ids[k], out_weights[k] = v * width + u, gaussian, weight
+                        out_pixels[k], out_ids[k], out_weights[k] = v * width + u, gaussian_ids[s], weight
                         k += 1
         counts[tile] = k - starts[tile]
 
@@ -141,10 +136,10 @@ def _tile_weights_numba(
 def _compact(
     starts: np.ndarray,  # [T] int64 where each tile's entries start in the bounded arrays
     counts: np.ndarray,  # [T] int64 entries per tile
-    pixels: np.ndarray,  # [B] int32
-    ids: np.ndarray,  # [B] int32
+    pixels: np.ndarray,  # [B] int64
+    ids: np.ndarray,  # [B] int64
     weights: np.ndarray,  # [B] float32
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # the written entries, tile after tile: [E] int64, int64, float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # the written entries, tile after tile: [E] each
     ends = np.cumsum(counts)
     out_pixels, out_ids, out_weights = np.empty(ends[-1], np.int64), np.empty(ends[-1], np.int64), np.empty(ends[-1], np.float32)
     for tile in numba.prange(starts.shape[0]):
@@ -171,9 +166,9 @@ def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_we
     bounds = _tile_bounds(tile_starts, splat_ids, boxes, tiles_x)
     starts = np.concatenate([[0], np.cumsum(bounds)[:-1]]).astype(np.int64)
     size = int(bounds.sum())
-    pixels, ids, weights = np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.float32)
+    pixels, ids, weights = np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.float32)
     counts = np.zeros(len(bounds), np.int64)
-    _tile_weights_numba(tile_starts, splat_ids, records, boxes, order.astype(np.int32), tiles_x, width, height,
+    _tile_weights_numba(tile_starts, splat_ids, records, boxes, order.astype(np.int64), tiles_x, width, height,
                         min_weight, starts, pixels, ids, weights, counts)
     return BlendWeights(*(torch.from_numpy(a) for a in _compact(starts, counts, pixels, ids, weights)))
 
