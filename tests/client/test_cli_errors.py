@@ -86,12 +86,12 @@ def frames_of(server, session_id: str) -> int:
 
 def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".numba_cache")}
-    # the office walk's 187 frames: a stream long enough (seconds, even at a quarter size) that the
-    # interrupt lands while it runs, however fast a fold is
-    walk = shelf_dir.parent / "hololens_office"
-    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "stream", str(walk), "--url", server.url,
-                             "--voxel-size", "0.05", "--scale", "0.25"], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    # SIGINT back to its default in the child: a test run started in the background of a shell
+    # without job control inherits it ignored, and the stream would never see the interrupt
+    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "stream", str(shelf_dir), "--url", server.url,
+                             "--voxel-size", "0.02", "--scale", "0.25"], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = proc.stderr.readline()
         assert line.startswith("session "), line
@@ -109,4 +109,4 @@ def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
     assert "Traceback" not in err and "KeyboardInterrupt" not in err
     frames = frames_of(server, session_id)
     assert out.startswith("interrupted: ") and f"session {session_id}: {frames} frames" in out
-    assert f"--session {session_id}" in out and 1 <= frames < 187
+    assert f"--session {session_id}" in out and 1 <= frames < 50
