@@ -150,12 +150,13 @@ def test_coverage_loss_is_the_mean_uncovered_square_at_measured_pixels():
 
 def test_the_coverage_term_pays_for_an_uncovered_measured_surface(sample):
     decoder = new_decoder()
-    plain = float(step_loss(decoder, sample, 0))
-    with_coverage = float(step_loss(decoder, sample, 0, coverage_weight=1.0))
-    assert with_coverage > plain
-    with torch.no_grad():  # a fainter scene leaves more of the measured surface uncovered
-        decoder.opacity.b.sub_(3.0)
-    assert float(step_loss(decoder, sample, 0, coverage_weight=1.0)) - float(step_loss(decoder, sample, 0)) > with_coverage - plain
+    with torch.no_grad():
+        plain = step_loss(decoder, sample, 0).item()
+        with_coverage = step_loss(decoder, sample, 0, coverage_weight=1.0).item()
+        assert with_coverage > plain
+        decoder.opacity.b.sub_(3.0)  # a fainter scene leaves more of the measured surface uncovered
+        fainter = step_loss(decoder, sample, 0, coverage_weight=1.0).item() - step_loss(decoder, sample, 0).item()
+    assert fainter > with_coverage - plain
 
 
 def test_only_the_chosen_heads_train_and_are_written(capture, tmp_path):
