@@ -43,16 +43,30 @@ def _tensor(value, field: str) -> Tensor:
     raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
 
 
+def _float_array(value, field: str, shape: tuple[int, int]) -> np.ndarray:
+    """``value`` checked as a float map of ``shape`` (metres), as a numpy array: the caller's own
+    memory where it can be (a wire frame's read-only buffer included), converted only from a tensor."""
+    if isinstance(value, Tensor):
+        if not value.is_floating_point():
+            raise ValueError(f"{field}: expected a float array (metres), got dtype {value.dtype}")
+        array = value.detach().cpu().to(torch.float32).numpy()
+    elif isinstance(value, np.ndarray):
+        if not np.issubdtype(value.dtype, np.floating):
+            raise ValueError(f"{field}: expected a float array (metres), got dtype {value.dtype}")
+        array = value
+    else:
+        raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
+    if tuple(array.shape) != shape:
+        raise ValueError(f"{field}: expected shape {list(shape)} to match the image, got {list(array.shape)}")
+    return array
+
+
 def _float_map(value, field: str, shape: tuple[int, int]) -> Tensor:
-    t = _tensor(value, field)
-    if not (t.is_floating_point()):
-        raise ValueError(f"{field}: expected a float array (metres), got dtype {t.dtype}")
-    if tuple(t.shape) != shape:
-        raise ValueError(f"{field}: expected shape {list(shape)} to match the image, got {list(t.shape)}")
-    t = t.to(torch.float32)
+    """A float map that must be finite everywhere, as float32 [H, W] (a copy: the frame owns it)."""
+    t = torch.from_numpy(np.array(_float_array(value, field, shape), dtype=np.float32))
     if not torch.isfinite(t).all():
         raise ValueError(f"{field}: contains NaN or inf")
-    return t.contiguous()
+    return t
 
 
 @numba.njit(cache=True)
@@ -71,20 +85,8 @@ def _cleaned_depth(depth, out) -> bool:  # [H, W] float32 -> out; True if a valu
 def _depth_map(value, shape: tuple[int, int]) -> Tensor:
     """``depth`` as float32 [H, W] metres with missing values as 0, checked and cleaned in one pass
     (it is on every fold's path: a wire frame's depth is read where it arrived, not copied first)."""
-    if isinstance(value, Tensor):
-        if not value.is_floating_point():
-            raise ValueError(f"depth: expected a float array (metres), got dtype {value.dtype}")
-        array = value.detach().cpu().to(torch.float32).numpy()
-    elif isinstance(value, np.ndarray):
-        if not np.issubdtype(value.dtype, np.floating):
-            raise ValueError(f"depth: expected a float array (metres), got dtype {value.dtype}")
-        array = value
-    else:
-        raise ValueError(f"depth: expected a numpy array or torch tensor, got {type(value).__name__}")
-    if tuple(array.shape) != shape:
-        raise ValueError(f"depth: expected shape {list(shape)} to match the image, got {list(array.shape)}")
     cleaned = np.empty(shape, np.float32)
-    if _cleaned_depth(np.ascontiguousarray(array, dtype=np.float32), cleaned):
+    if _cleaned_depth(np.ascontiguousarray(_float_array(value, "depth", shape), dtype=np.float32), cleaned):
         raise ValueError("depth: negative values (depth is metres along the optical axis; 0 = missing)")
     return torch.from_numpy(cleaned)
 

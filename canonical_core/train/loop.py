@@ -8,9 +8,11 @@ in the evaluation's "normalised" colour, and
 takes an Adam step on `losses.render_loss` over the window.
 The fold does not depend on the decoder, which is why the pool can be folded up front.
 
-What trains (`decode.checkpoint.TRAINED_HEADS`): the opacity head on support and the free-space penalty
-(monotone by construction: their weights are clamped non-negative in the forward pass, so no step
-can break the monotonicity), and the heads on F_scene (mean offset, log-scale delta, colour delta).
+What trains (`decode.checkpoint.TRAINED_HEADS`, or the subset `TrainSettings.heads` names): the opacity
+head on support and the free-space penalty (monotone by construction: their weights are clamped
+non-negative in the forward pass, so no step can break the monotonicity), and the heads on F_scene
+(mean offset, log-scale delta, colour delta). `TrainSettings.coverage_weight` adds a term that
+makes leaving a measured surface uncovered cost something (`losses.coverage_loss`).
 The appearance uncertainty U_app is not trained: it acts inside the numba fold, so no gradient
 reaches it through a pool folded once.
 
