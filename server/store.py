@@ -241,26 +241,25 @@ class Session:
             self._note_wedged(storage)
         else:
             self.log.truncate(offset)
-        if isinstance(exc, ValueError):
-            return
-        try:
-            self._reload()
-        except Exception:
-            log.exception("session %s: cannot be rebuilt after a failed fold; no longer serving it", self.id)
-            self.deleted = True
+        if not isinstance(exc, ValueError):
+            self._recover(None, "a failed fold")
 
     def _append_failed(self, exc: StorageError, frames: int) -> None:
         """The frame folded but its record is not durable (cut off, the log wedged, or the session
-        fenced by another owner): the fold is undone, by the scene's undo records where they reach
-        back, else by a rebuild from disk."""
+        fenced by another owner): the fold is undone."""
         self._note_wedged(exc)
+        self._recover(frames, "a fold whose frame was not logged")
+
+    def _recover(self, frames: int | None, after: str) -> None:
+        """The scene back to its first ``frames`` frames by its undo records where they reach back
+        (None: not by them), else rebuilt from disk; a session that cannot be is no longer served."""
         try:
-            if self.scene.undo_floor <= frames:
+            if frames is not None and self.scene.undo_floor <= frames:
                 self.scene.rollback(frames)
             else:
                 self._reload()
         except Exception:
-            log.exception("session %s: cannot undo a fold whose frame was not logged; no longer serving it", self.id)
+            log.exception("session %s: cannot be rebuilt after %s; no longer serving it", self.id, after)
             self.deleted = True
 
     def _note_wedged(self, exc: StorageError) -> None:

@@ -198,10 +198,9 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
     decoder = new_decoder().to(device)
     before = heldout_report(decoder, captures) if report else []
     pool = [_to(s, device) for s in draw_pool(captures, settings.pool, settings.seed, settings.views)]
-    trained = [p for name, p in decoder.named_parameters() if name.split(".")[0] in settings.heads]
-    for name, p in decoder.named_parameters():
+    for name, p in decoder.named_parameters():  # the heads not trained keep their analytic start
         p.requires_grad_(name.split(".")[0] in settings.heads)
-    optimiser = torch.optim.Adam(trained, lr=settings.lr)
+    optimiser = torch.optim.Adam([p for p in decoder.parameters() if p.requires_grad], lr=settings.lr)
     losses: list[float] = []
     bar = tqdm(total=settings.steps, disable=not progress, file=sys.stderr, desc="train", unit="step", dynamic_ncols=True)
     deadline = None if settings.minutes is None else t0 + 60.0 * settings.minutes
