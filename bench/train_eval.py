@@ -5,7 +5,7 @@ was never trained on.
                                [--views 2,4,8,16] [--scale 1] [--out DIR]
 
 Runs `eval.run.evaluate` with two scene methods that differ only in `SceneConfig.model`:
-``training_free`` (``model="none"``) and ``trained`` (``model=MODEL``), everything else the
+``canonical:model=none`` (training-free) and ``canonical:model=MODEL`` (trained), everything else the
 ``canonical`` method's settings; prints PSNR over all pixels and over covered pixels per N, and
 the trained decoder's gain. The full report (results.json / results.md) goes to ``--out``.
 """
@@ -16,16 +16,15 @@ import argparse
 import json
 from pathlib import Path
 
-from canonical_core.eval.methods import METHODS, Method, _scene
 from canonical_core.eval.run import evaluate
 
 
-def compare(results: dict) -> list[dict]:
+def compare(results: dict, free_label: str, trained_label: str) -> list[dict]:
     """Per N: both methods' PSNR (all pixels, covered) and the trained decoder's gain."""
     runs = {(r["method"], r["views"]): r for r in results["runs"] if r["noise"] == 0}
     rows = []
     for n in sorted({v for _, v in runs}):
-        free, trained = runs[("training_free", n)], runs[("trained", n)]
+        free, trained = runs[(free_label, n)], runs[(trained_label, n)]
         rows.append({"views": n, "psnr_free": free["psnr"], "psnr_trained": trained["psnr"],
                      "covered_free": free["psnr_covered"], "covered_trained": trained["psnr_covered"],
                      "coverage_free": free["coverage"], "coverage_trained": trained["coverage"],
@@ -41,11 +40,10 @@ def main() -> None:
     parser.add_argument("--scale", type=float, default=1.0)
     parser.add_argument("--out", type=Path, default=Path("out/train_eval"))
     args = parser.parse_args()
-    METHODS["training_free"] = Method(_scene("full", model="none"), features=True)
-    METHODS["trained"] = Method(_scene("full", model=str(args.model.resolve())), features=True)
-    results = evaluate(args.dataset, views=[int(v) for v in args.views.split(",")], methods=["training_free", "trained"],
+    free, trained = "canonical:model=none", f"canonical:model={args.model.resolve()}"
+    results = evaluate(args.dataset, views=[int(v) for v in args.views.split(",")], methods=[free, trained],
                        out_dir=args.out, scale=args.scale, stability_views=[], extrapolation=False)
-    rows = compare(results)
+    rows = compare(results, free, trained)
     (args.out / "comparison.json").write_text(json.dumps(rows, indent=1))
     print("| N | PSNR free | PSNR trained | gain | covered free | covered trained | gain covered | coverage free / trained |")
     print("|---|---|---|---|---|---|---|---|")

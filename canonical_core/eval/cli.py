@@ -39,7 +39,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
     parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
     parser.add_argument("--methods", type=_list(str, "methods"), default=None,
-                        help=f"comma-separated subset of {','.join(METHODS)} (default: all)")
+                        help=f"comma-separated subset of {','.join(METHODS)} (default: all); a Scene method also as "
+                             "NAME:SETTING=VALUE[:...], e.g. canonical:model=ckpt.safetensors")
     parser.add_argument("--noise", type=_list(float, "noise"), default=[],
                         help="depth-noise levels, sigma / median depth (e.g. 0.05,0.1,0.25,0.5; default none)")
     parser.add_argument("--mixed-noise", type=float, default=None, metavar="LEVEL",
@@ -53,8 +54,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help="how Gaussians are rendered for scoring (rendering.render's colour modes; default normalised)")
     parser.add_argument("--segmentation", action="store_true",
                         help="run the segmentation experiment instead (label-fusion captures: fused label maps and a linear "
-                             "probe at held-out views); --methods then also takes NAME:SETTING=VALUE[:...] "
-                             "(default canonical,average,pixel_aligned)")
+                             "probe at held-out views; default methods canonical,average,pixel_aligned)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no tables on stdout")
     return parser
 

@@ -39,7 +39,7 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..rendering import Colour, render
 from ..scene import Scene, SceneConfig
-from ..scene.config import Weighting
+from ..scene.config import Weighting, parse_setting
 from .baselines import full_support_opacity, gaussian_merge, pixel_aligned
 from .open3d_tsdf import Open3DTSDF, open3d_import_error
 
@@ -169,13 +169,11 @@ METHODS: dict[str, Method] = {
 
 
 def check_methods(names: Sequence[str]) -> list[str]:
-    """Validate method names (order kept, duplicates dropped)."""
+    """Validate method specs (`parse_method`: a name, or a Scene method's name with settings);
+    returns their labels, order kept and duplicates dropped."""
     if isinstance(names, str) or not names:
         raise ValueError(f"methods: expected a non-empty list of names from {list(METHODS)}, got {names!r}")
-    for name in names:
-        if name not in METHODS:
-            raise ValueError(f"methods: unknown method {name!r}; expected some of {list(METHODS)}")
-    return list(dict.fromkeys(names))
+    return list(dict.fromkeys(parse_method(name).label for name in names))
 
 
 def _nested(settings: Mapping[str, Any]) -> dict:
@@ -207,7 +205,8 @@ def configured(name: str, settings: Mapping[str, Any]) -> Method:
         >>> configured("average", {"sh_degree": 0}).build.settings
         {'sh_degree': 0}
     """
-    (name,) = check_methods([name])
+    if name not in METHODS:
+        raise ValueError(f"methods: unknown method {name!r}; expected some of {list(METHODS)}")
     method = METHODS[name]
     if not settings:
         return method
@@ -217,10 +216,44 @@ def configured(name: str, settings: Mapping[str, Any]) -> Method:
     return replace(method, build=builder)
 
 
-def build(name: str, frames: Sequence[Frame], voxel_size: float, features: bool = False) -> tuple[Model, float]:
-    """Build method ``name`` from ``frames``; returns the model and the wall time in ms (for the
-    scene methods: fold of every frame + decode)."""
-    (name,) = check_methods([name])
+@dataclass(frozen=True)
+class MethodSpec:
+    """A method to run: its name in `METHODS` and extra `SceneConfig` settings (dotted paths)."""
+
+    name: str
+    settings: Mapping[str, Any]
+
+    @property
+    def label(self) -> str:
+        """How results name it: ``NAME`` or ``NAME:SETTING=VALUE[:...]``."""
+        return ":".join([self.name, *(f"{k}={v}" for k, v in self.settings.items())])
+
+    def method(self, extra: Mapping[str, Any] | None = None) -> Method:
+        return configured(self.name, {**self.settings, **(extra or {})})
+
+
+def parse_method(text: str) -> MethodSpec:
+    """``NAME`` or ``NAME:SETTING=VALUE[:SETTING=VALUE...]`` (settings as `parse_setting` reads
+    them, e.g. ``canonical:model=ckpt.safetensors``) -> `MethodSpec`; ValueError naming ``methods``
+    or the setting for a bad one. Only `Scene` methods take settings.
+
+    Example:
+        >>> parse_method("canonical:sh_degree=0").settings, parse_method("average").label
+        ({'sh_degree': 0}, 'average')
+    """
+    if not isinstance(text, str):
+        raise ValueError(f"methods: expected a method name, got {text!r}")
+    name, *parts = text.strip().split(":")
+    spec = MethodSpec(name, dict(parse_setting(p) for p in parts))
+    spec.method()  # checks the name, and that only Scene methods take settings
+    return spec
+
+
+def build(spec: str, frames: Sequence[Frame], voxel_size: float, features: bool = False) -> tuple[Model, float]:
+    """Build method ``spec`` (`parse_method`: a name, or a Scene method with settings) from
+    ``frames``; returns the model and the wall time in ms (for the scene methods: fold of every
+    frame + decode)."""
+    method = parse_method(spec).method()
     t0 = time.perf_counter()
-    model = METHODS[name].build(frames, voxel_size, features)
+    model = method.build(frames, voxel_size, features)
     return model, (time.perf_counter() - t0) * 1000.0

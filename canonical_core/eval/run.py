@@ -42,7 +42,7 @@ from tqdm import tqdm
 from ..datasets import FrameSequence, load_dataset
 from ..frame import Frame, resize_frame
 from ..rendering import Colour
-from .methods import METHODS, Model, build, check_methods
+from .methods import METHODS, Model, build, check_methods, parse_method
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
@@ -193,7 +193,9 @@ def evaluate(
     Args:
         dataset: a path any loader reads (`load_dataset`), or a FrameSequence.
         views: input counts N.
-        methods: names from `METHODS` (default: all); ones that cannot run here are skipped with a note.
+        methods: names from `METHODS` (default: all), or a Scene method with settings
+            (`methods.parse_method`: ``canonical:model=PATH``); ones that cannot run here are
+            skipped with a note. Results name each by its label.
         noise: depth-noise levels (fractions of the median depth) besides the clean run.
         mixed_noise: a level for the mixed-quality run: noise on every other input view, the rest
             clean (evidence of uneven quality, which reliability weighting is for); None skips it.
@@ -216,9 +218,10 @@ def evaluate(
     n = len(sequence)
     split = interpolation_split(n, views)
     extra: Split | None = extrapolation_split(n, views, split.heldout) if extrapolation else None
-    skipped = {m: reason for m in methods if (reason := METHODS[m].unavailable())}
+    resolved = {m: parse_method(m).method() for m in methods}
+    skipped = {m: reason for m in methods if (reason := resolved[m].unavailable())}
     runnable = [m for m in methods if m not in skipped]
-    feature_methods = [m for m in runnable if METHODS[m].features]
+    feature_methods = [m for m in runnable if resolved[m].features]
     stab = stability_inputs(n, split.heldout, stability_views) if feature_methods else {}
     stab_methods = feature_methods if stab else []
 

@@ -55,8 +55,7 @@ from ..datasets.tsdf_fusion import find_frames_folder
 from ..evidence.features import sample_client_features
 from ..frame import Frame, resize_frame
 from ..rendering import render
-from ..scene.config import parse_setting
-from .methods import Method, SceneBuilder, SplatModel, configured
+from .methods import MethodSpec, SceneBuilder, SplatModel, parse_method
 from .metrics import covered
 from .protocol import Split, spread
 from .report import _finite, _method_colours, _num, _pyplot, _save, _table, image_grid, require_matplotlib
@@ -240,36 +239,18 @@ def segmentation_split(n: int, views: Sequence[int], every: int = HELDOUT_EVERY)
     return Split(heldout=heldout, inputs={v: tuple(free[i] for i in spread(len(free), v)) for v in sorted(set(views))})
 
 
-@dataclass(frozen=True)
-class MethodSpec:
-    """A method to run: its name in `METHODS` and extra `SceneConfig` settings (dotted paths)."""
-
-    name: str
-    settings: Mapping[str, object]
-
-    @property
-    def label(self) -> str:
-        return ":".join([self.name, *(f"{k}={v}" for k, v in self.settings.items())])
-
-    def method(self, extra: Mapping[str, object] | None = None) -> Method:
-        return configured(self.name, {**self.settings, **(extra or {})})
-
-
-def parse_method(text: str) -> MethodSpec:
-    """``NAME`` or ``NAME:SETTING=VALUE[:SETTING=VALUE...]`` (settings as `parse_setting` reads
-    them, e.g. ``canonical:model=ckpt.safetensors``) -> `MethodSpec`; ValueError naming ``methods``
-    or the setting for a bad one.
+def parse_label_method(text: str) -> MethodSpec:
+    """`methods.parse_method` for this experiment: also refuses a method that cannot splat labels
+    and features here.
 
     Example:
-        >>> parse_method("canonical:sh_degree=0").settings
+        >>> parse_label_method("canonical:sh_degree=0").settings
         {'sh_degree': 0}
     """
-    name, *parts = text.strip().split(":")
-    method = configured(name, {})  # checks the name
+    spec = parse_method(text)
+    method = spec.method()
     if not method.features or method.unavailable() is not None:
-        raise ValueError(f"methods: {name} cannot splat labels and features here")
-    spec = MethodSpec(name, dict(parse_setting(p) for p in parts))
-    spec.method()  # only Scene methods take settings
+        raise ValueError(f"methods: {spec.name} cannot splat labels and features here")
     return spec
 
 
@@ -408,7 +389,7 @@ def evaluate_segmentation(
         dataset: a label-fusion capture folder, a folder of them (e.g. ``apc_bins``: each bin is
             evaluated, and the mean over bins reported), or labelled FrameSequences.
         views: input counts N.
-        methods: `parse_method` specs, e.g. ``canonical`` or ``canonical:model=PATH``.
+        methods: `parse_label_method` specs, e.g. ``canonical`` or ``canonical:model=PATH``.
         scale: image downscale factor in (0, 1] (label maps stay full size and are looked up nearest).
         voxel_size: voxel edge in metres; default `run.default_voxel_size` of each capture's largest-N inputs.
         heldout_every: hold out every this-many-th frame (from position 1).
@@ -417,7 +398,7 @@ def evaluate_segmentation(
     require_matplotlib()
     if isinstance(methods, str) or not methods:
         raise ValueError(f"methods: expected a non-empty list of method specs, got {methods!r}")
-    specs = list({s.label: s for s in map(parse_method, methods)}.values())
+    specs = list({s.label: s for s in map(parse_label_method, methods)}.values())
     if not (isinstance(scale, (int, float)) and 0 < scale <= 1):
         raise ValueError(f"scale: expected a number in (0, 1], got {scale!r}")
     if voxel_size is not None and not voxel_size > 0:

@@ -13,7 +13,7 @@ from canonical_core.datasets import synthetic_rgbd
 from canonical_core import SceneConfig
 from canonical_core.decode import GaussianDecoder, solve_colours
 from canonical_core.eval.baselines import full_support_opacity
-from canonical_core.eval.methods import METHODS, build, check_methods
+from canonical_core.eval.methods import METHODS, build, check_methods, configured, parse_method
 from canonical_core.eval.metrics import covered, psnr
 from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available
 from canonical_core.frame import resize_frame
@@ -35,6 +35,29 @@ def test_registry_names_the_issue_methods():
         check_methods(["canonical", "nerf"])
     with pytest.raises(ValueError, match="methods"):
         check_methods("canonical")
+
+
+def test_method_specs_carry_scene_settings_and_only_scene_methods_take_them():
+    spec = parse_method("average:sh_degree=0:free_space.margin=3")
+    assert spec.label == "average:sh_degree=0:free_space.margin=3.0"
+    builder = spec.method().build
+    assert builder.weighting == "average"
+    assert builder.settings == {"sh_degree": 0, "free_space": {"margin": 3.0}}
+    assert configured("no_free_space", {"free_space.margin": 3.0}).build.settings == {
+        "free_space": {"enabled": False, "margin": 3.0}}  # merged with the method's own group
+    with pytest.raises(ValueError, match="^methods:"):
+        parse_method("pixel_aligned:sh_degree=0")
+    with pytest.raises(ValueError, match="^methods:"):
+        parse_method("nerf")
+    with pytest.raises(ValueError, match="^no_such_setting:"):
+        parse_method("canonical:no_such_setting=1")
+    assert check_methods(["canonical:sh_degree=0", "canonical:sh_degree=0", "canonical"]) == ["canonical:sh_degree=0", "canonical"]
+
+
+def test_a_method_setting_reaches_the_scene(frames):
+    plain, _ = build("canonical", frames[:2], 0.02)
+    degree0, _ = build("canonical:sh_degree=0", frames[:2], 0.02)
+    assert plain.splats.sh.shape[1] > 1 and degree0.splats.sh.shape[1] == 1
 
 
 @pytest.mark.skipif(open3d_available(), reason="checks the message of a machine where Open3D cannot be imported")

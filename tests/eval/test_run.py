@@ -90,6 +90,17 @@ def test_synthetic_sample_end_to_end(tmp_path):
         assert grid.width == 48 * (1 + len(methods))
 
 
+def test_a_method_with_settings_runs_under_its_label(tmp_path):
+    seq = synthetic_rgbd(num_frames=22, width=48, height=36)
+    methods = ["canonical", "canonical:sh_degree=0"]
+    results = evaluate(seq, views=[2], methods=methods, out_dir=tmp_path, progress=False, voxel_size=0.04,
+                       stability_views=[], extrapolation=False)
+    assert results["methods"] == methods
+    runs = {r["method"]: r for r in results["runs"]}
+    assert set(runs) == set(methods) and runs["canonical"]["gaussians"] == runs["canonical:sh_degree=0"]["gaussians"]
+    assert "canonical:sh_degree=0" in (tmp_path / "results.md").read_text()
+
+
 @pytest.mark.realdata
 def test_downscaled_shelf_slice_end_to_end(tmp_path, shelf_dir):
     seq = load_dataset(shelf_dir, max_frames=16)

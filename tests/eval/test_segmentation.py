@@ -20,7 +20,7 @@ from canonical_core.datasets.sequence import FrameSequence
 from canonical_core.eval.baselines import gaussian_merge, pixel_aligned
 from canonical_core.eval.cli import main
 from canonical_core.eval.methods import configured
-from canonical_core.eval.segmentation import (fit_probe, find_bins, label_confusion, label_map, parse_method, probe_confusion,
+from canonical_core.eval.segmentation import (fit_probe, find_bins, label_confusion, label_map, parse_label_method, probe_confusion,
                                               render_labels, scores, segmentation_split)
 from tests.datasets.conftest import apc_bins_path  # noqa: F401 (the real bins, skipped when absent)
 
@@ -165,7 +165,7 @@ def client_features(frame) -> np.ndarray:  # [H, W, 8]: a fixed random projectio
 def test_probe_runs_on_client_features_fused_by_the_scene(labelled_frames):
     frames = [replace(f, features=client_features(f)) for f in labelled_frames]
     inputs, targets = [frames[p] for p in (0, 2, 3, 5)], [frames[1], frames[4]]
-    method = parse_method("canonical").method({"feature_backend": "client", "feature_dim": 8})
+    method = parse_label_method("canonical").method({"feature_backend": "client", "feature_dim": 8})
     model = method.build(inputs, VOXEL, True)
     assert model.splats.features.shape[1] == 8
     all_pixels, on_covered = probe_confusion(model, inputs, targets, 2)
@@ -173,27 +173,11 @@ def test_probe_runs_on_client_features_fused_by_the_scene(labelled_frames):
     assert scores(on_covered)["accuracy"] > 0.8  # box vs ground from colour, height and depth
 
 
-# -- methods with settings -------------------------------------------------------------------------
-def test_method_specs_carry_scene_settings_and_only_scene_methods_take_them():
-    spec = parse_method("average:sh_degree=0:free_space.margin=3")
-    assert spec.label == "average:sh_degree=0:free_space.margin=3.0"
-    builder = spec.method().build
-    assert builder.weighting == "average"
-    assert builder.settings == {"sh_degree": 0, "free_space": {"margin": 3.0}}
-    assert configured("no_free_space", {"free_space.margin": 3.0}).build.settings == {
-        "free_space": {"enabled": False, "margin": 3.0}}  # merged with the method's own group
-    with pytest.raises(ValueError, match="^methods:"):
-        parse_method("pixel_aligned:sh_degree=0")
-    with pytest.raises(ValueError, match="^methods:"):
-        parse_method("nerf")
-    with pytest.raises(ValueError, match="^no_such_setting:"):
-        parse_method("canonical:no_such_setting=1")
-
-
-def test_a_method_setting_reaches_the_scene(labelled_frames):
-    plain = parse_method("canonical").method().build(labelled_frames[:2], VOXEL, True)
-    degree0 = parse_method("canonical:sh_degree=0").method().build(labelled_frames[:2], VOXEL, True)
-    assert plain.splats.sh.shape[1] > 1 and degree0.splats.sh.shape[1] == 1
+# -- methods -----------------------------------------------------------------------------------------
+def test_only_methods_that_splat_labels_and_features_run():
+    assert parse_label_method("canonical:sh_degree=0").settings == {"sh_degree": 0}
+    with pytest.raises(ValueError, match="^methods: open3d_tsdf cannot splat labels"):
+        parse_label_method("open3d_tsdf")
 
 
 # -- captures and the command line -----------------------------------------------------------------
