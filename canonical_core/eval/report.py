@@ -86,22 +86,34 @@ ABLATIONS = ("canonical", "no_reliability", "no_similarity", "average")
 ORDER_METRICS = (("psnr", "PSNR"), ("psnr_covered", "covered PSNR"), ("ssim", "SSIM"), ("depth_agreement", "depth agree"))
 
 
+def _settings_of(label: str) -> tuple[str, str] | None:
+    """(ablation, settings) of a run's method label (``average:model=P`` -> ``("average", "model=P")``),
+    or None for a method outside `ABLATIONS`."""
+    name, _, settings = label.partition(":")
+    return (name, settings) if name in ABLATIONS else None
+
+
 def ablation_order(runs: Sequence[dict]) -> list[list[str]]:
-    """Rows (metric, N, the ablations best first, the full rule's rank, `average`'s rank) over
-    ``runs`` of one condition (clean, or the mixed-quality run), for every N where all of
-    `ABLATIONS` ran; ties keep `ABLATIONS`' order. The paper's order is the full rule first and
-    `average` last or near it."""
-    value = {(r["method"], r["views"]): r for r in runs}
-    views = sorted({n for (m, n) in value if all((a, n) in value for a in ABLATIONS)})
+    """Rows (settings, metric, N, the ablations best first, the full rule's rank, `average`'s rank)
+    over ``runs`` of one condition (clean, or the mixed-quality run), for every N where all of
+    `ABLATIONS` ran with the same settings (none: "defaults"; e.g. ``model=PATH`` for a trained
+    decoder, each group ranked on its own); ties keep `ABLATIONS`' order. The paper's order is the
+    full rule first and `average` last or near it."""
+    value = {}
+    for r in runs:
+        if (parsed := _settings_of(r["method"])) is not None:
+            value[parsed[1], parsed[0], r["views"]] = r
     rows = []
-    for key, label in ORDER_METRICS:
-        for n in views:
-            scores = {a: _finite(value[a, n].get(key)) for a in ABLATIONS}
-            if any(v is None for v in scores.values()):
-                continue
-            order = sorted(ABLATIONS, key=lambda a: -scores[a])  # stable: ties in ABLATIONS' order
-            rank = {a: f"{order.index(a) + 1} of {len(order)}" for a in ("canonical", "average")}
-            rows.append([label, str(n), " > ".join(order), rank["canonical"], rank["average"]])
+    for settings in dict.fromkeys(s for s, _, _ in value):
+        views = sorted({n for (s, _, n) in value if s == settings and all((s, a, n) in value for a in ABLATIONS)})
+        for key, label in ORDER_METRICS:
+            for n in views:
+                scores = {a: _finite(value[settings, a, n].get(key)) for a in ABLATIONS}
+                if any(v is None for v in scores.values()):
+                    continue
+                order = sorted(ABLATIONS, key=lambda a: -scores[a])  # stable: ties in ABLATIONS' order
+                rank = {a: f"{order.index(a) + 1} of {len(order)}" for a in ("canonical", "average")}
+                rows.append([settings or "defaults", label, str(n), " > ".join(order), rank["canonical"], rank["average"]])
     return rows
 
 
@@ -145,7 +157,7 @@ def markdown(results: Mapping) -> str:
         ["method", *(f"N={n} ({_num(share[n], 3)} of the image)" for n in views)],
         [[m, *(_num(by_key[m, n, 0.0]["psnr_common"]) for n in views)] for m in methods])]
 
-    order_header = ["metric", "N", "best first", "canonical's rank", "average's rank"]
+    order_header = ["settings", "metric", "N", "best first", "canonical's rank", "average's rank"]
     order = ablation_order(clean)
     if order:
         lines += ["", "## Ablation order, clean depth (the paper's: the full rule first, `average` last or near it)", "",

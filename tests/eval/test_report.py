@@ -21,7 +21,7 @@ def test_the_ablation_order_ranks_the_four_aggregation_rules_per_metric_and_n():
             _run("canonical", 8, 14.0, float("nan")), _run("no_reliability", 8, 14.0), _run("no_similarity", 8, 13.0),
             _run("average", 8, 12.0),
             _run("canonical", 16, 15.0), _run("average", 16, 14.0)]  # an ablation missing: no rows for N = 16
-    rows = {(metric, n): rest for metric, n, *rest in ablation_order(runs)}
+    rows = {(metric, n): rest for settings, metric, n, *rest in ablation_order(runs) if settings == "defaults"}
     assert rows["PSNR", "4"] == ["average > no_similarity > canonical > no_reliability", "3 of 4", "1 of 4"]
     assert rows["depth agree", "4"] == ["canonical > no_reliability > no_similarity > average", "1 of 4", "4 of 4"]
     # ties keep the full rule first; a metric one rule lacks (nan) has no row for that N
@@ -30,3 +30,14 @@ def test_the_ablation_order_ranks_the_four_aggregation_rules_per_metric_and_n():
     assert ("depth agree", "8") not in rows
     assert not any(n == "16" for _, n in rows)
     assert ablation_order([r for r in runs if r["method"] != "average"]) == []
+
+
+def test_each_settings_group_of_the_four_rules_is_ranked_on_its_own():
+    plain = [_run(m, 4, p) for m, p in (("canonical", 13.0), ("no_reliability", 12.9), ("no_similarity", 13.1), ("average", 13.2))]
+    trained = [_run(f"{m}:model=ckpt", 4, p) for m, p in (("canonical", 13.4), ("no_reliability", 13.3),
+                                                         ("no_similarity", 13.2), ("average", 13.1))]
+    rows = {(settings, metric): rest for settings, metric, n, *rest in ablation_order(plain + trained)}
+    assert rows["defaults", "PSNR"] == ["average > no_similarity > canonical > no_reliability", "3 of 4", "1 of 4"]
+    assert rows["model=ckpt", "PSNR"] == ["canonical > no_reliability > no_similarity > average", "1 of 4", "4 of 4"]
+    # a group with a rule missing has no rows; a method outside the four is ignored
+    assert {s for s, *_ in ablation_order(plain + trained[1:] + [_run("pixel_aligned", 4, 20.0)])} == {"defaults"}
