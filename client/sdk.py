@@ -41,10 +41,13 @@ def _matrix(m, shape: tuple[int, int]) -> list:
     return a.tolist()
 
 
-def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None) -> dict:
+def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None,
+          depth: str | None = None) -> dict:
     body = {"K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4)), "width": int(width), "height": int(height)}
     if colour is not None:
         body["colour"] = colour
+    if depth is not None:
+        body["depth"] = depth
     if max_gaussians is not None:
         body["max_gaussians"] = int(max_gaussians)
     if background is not None:
@@ -120,10 +123,11 @@ class Session:
             status = self.correction(status["correction_id"])
 
     def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
-               colour: str | None = None) -> dict:
+               colour: str | None = None, depth: str | None = None) -> dict:
         """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}; ``colour``
-        "normalised" (the service's default) or "composited" (see `canonical_core.rendering.render`)."""
-        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background, colour))
+        "normalised" (the service's default) or "composited", ``depth`` "median" (the service's
+        default) or "expected" (see `canonical_core.rendering.render`)."""
+        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background, colour, depth))
 
     def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
                    colour: str | None = None) -> bytes:

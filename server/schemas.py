@@ -8,7 +8,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from canonical_core.rendering import Colour
+from canonical_core.rendering import Colour, DepthMode
 from canonical_core.scene import FoldReport
 from canonical_core.scene.config import public_model
 
@@ -116,6 +116,10 @@ class ViewRequest(BaseModel):
         "expected colour of the surface the ray hits, i.e. straight, not premultiplied, colour next to "
         "alpha; the background only where nothing is drawn) or 'composited' (the 3DGS blend over the "
         "background)"))
+    depth: DepthMode = Field("median", description=(
+        "render only, msgpack's depth map: 'median' (default: the depth of the surface that covers most of "
+        "each pixel, where its transmittance falls below 1/2; no depths between a foreground edge and the "
+        "background) or 'expected' (the blend of every splat's depth on the ray)"))
 
 
 class ErrorDetail(BaseModel):

@@ -63,7 +63,8 @@ class Model(Protocol):
 
 @dataclass
 class SplatModel:
-    """Gaussians, rendered with `canonical_core.rendering.render` on a black background."""
+    """Gaussians, rendered with `canonical_core.rendering.render` on a black background; depth is
+    the median depth (the surface that covers most of a pixel), as the service renders it."""
 
     splats: Gaussians
 
@@ -73,7 +74,7 @@ class SplatModel:
 
     def render(self, camera: Camera, features: bool = False, colour: Colour = "normalised") -> View:
         out = render(self.splats, camera, outputs=("features", "alpha") if features else ("rgb", "depth", "alpha"),
-                     colour=colour)
+                     colour=colour, depth_mode="median")
         return View(rgb=out.rgb, alpha=out.alpha, depth=out.depth, features=out.features)
 
 

@@ -131,7 +131,7 @@ def markdown(results: Mapping) -> str:
         f"Metrics are means over the held-out frames; background black; covered = accumulated alpha >= {COVERAGE_THRESHOLD:g};",
         COLOUR_MODES[results.get("colour", "composited")],
         f"depth agree = share of covered pixels with sensor depth whose rendered depth is within {DEPTH_TOLERANCE_VOXELS:g} "
-        "voxels of it.",
+        "voxels of it (Gaussians: the median depth, where a pixel's transmittance falls below 1/2; Open3D: its ray cast's hit).",
         "ceiling = the all-pixel PSNR the method's drawing allows (the pixels it shows in full colour exact, the rest black: "
         "every drawn pixel in normalised colour, the covered ones in composited): above it needs more coverage, not better colours.",
         "common = PSNR over the pixels that every method of the table covers (share of the image in the pivot below): "

@@ -1,5 +1,5 @@
 """Rendering: ``render(gaussians, camera, ...)`` with a PyTorch reference, a fast CPU path (numba + C) and gsplat on CUDA."""
 
-from .renderer import Backend, Colour, Output, RenderResult, render
+from .renderer import Backend, Colour, DepthMode, Output, RenderResult, render
 
-__all__ = ["Backend", "Colour", "Output", "RenderResult", "render"]
+__all__ = ["Backend", "Colour", "DepthMode", "Output", "RenderResult", "render"]

@@ -3,7 +3,8 @@
  * The same image model and per-pixel arithmetic as the PyTorch reference (see splat_geometry.py):
  * per tile, the splats in stable depth order; per pixel, alpha = min(0.99, opacity exp(-q / 2))
  * where q <= support and alpha >= 1/255, front to back, with a stop before the splat that would
- * take the transmittance below 1e-4. The transmittance is a float32 product (the reference's is a
+ * take the transmittance below 1e-4. Besides the sums, each pixel records its median depth: the
+ * depth of the splat at which its transmittance first falls below 1/2. The transmittance is a float32 product (the reference's is a
  * float64 cumprod; over the tens of layers a pixel blends they differ by about 1e-7, and float64
  * here cost two conversions and a split into 4-lane halves per 8-pixel step).
  *
@@ -36,7 +37,7 @@ enum { U, V, CONIC_A, CONIC_B, CONIC_C, DEPTH, OPACITY, SUPPORT, RECORD };
 typedef float v8f __attribute__((vector_size(32)));
 typedef int32_t v8i __attribute__((vector_size(32)));
 
-static const float MAX_ALPHA = 0.99f, MIN_ALPHA = 1.0f / 255.0f, MIN_TRANSMITTANCE = 1e-4f;
+static const float MAX_ALPHA = 0.99f, MIN_ALPHA = 1.0f / 255.0f, MIN_TRANSMITTANCE = 1e-4f, HALF = 0.5f;
 
 static inline __attribute__((always_inline)) v8f splat8(float x) { return (v8f){x, x, x, x, x, x, x, x}; }
 static inline __attribute__((always_inline)) v8f select8(v8i mask, v8f a, v8f b) { return (v8f)((mask & (v8i)a) | (~mask & (v8i)b)); }
@@ -107,7 +108,7 @@ typedef struct {
     const int32_t *boxes;
     const float *values;
     int64_t channels, tiles_x, width, height;
-    float *out_values, *out_depth_sums, *out_weight_sums, *out_transmittance;
+    float *out_values, *out_depth_sums, *out_weight_sums, *out_transmittance, *out_median_depth;
     int64_t max_tile_splats;
     int64_t next_tile; /* shared work counter: tiles differ a lot in cost, so hand them out one at a time */
     int failed;
@@ -144,11 +145,13 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     float depth_sum[TILE_PIXELS] __attribute__((aligned(32)));
     float weight_sum[TILE_PIXELS] __attribute__((aligned(32)));
     int32_t done[TILE_PIXELS] __attribute__((aligned(32)));
+    float median_depth[TILE_PIXELS] __attribute__((aligned(32))); /* 0 until the transmittance falls below 1/2 */
     float *accum = s->accum;
     for (int p = 0; p < TILE_PIXELS; p++) transmittance[p] = 1.0f;
     memset(depth_sum, 0, sizeof depth_sum);
     memset(weight_sum, 0, sizeof weight_sum);
     memset(done, 0, sizeof done);
+    memset(median_depth, 0, sizeof median_depth);
     memset(accum, 0, channels * TILE_PIXELS * sizeof(float));
     int64_t active = (u1 - u0) * (v1 - v0);
     const v8f lane = {0, 1, 2, 3, 4, 5, 6, 7};
@@ -202,6 +205,13 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                     mask &= ~stop;
                 }
                 const v8f weight = (v8f)(mask & (v8i)(alpha * t));
+                const v8i crosses_half = mask & (v8i)(t >= splat8(HALF)) & (v8i)(next < splat8(HALF));
+                if (lanes8(crosses_half)) {
+                    v8f m;
+                    memcpy(&m, median_depth + p, sizeof m);
+                    m = select8(crosses_half, depth, m);
+                    memcpy(median_depth + p, &m, sizeof m);
+                }
                 t = select8(mask, next, t);
                 memcpy(transmittance + p, &t, sizeof t);
                 if (channels <= PLANAR_MAX) {
@@ -241,6 +251,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             job->out_depth_sums[pixel] = depth_sum[p];
             job->out_weight_sums[pixel] = weight_sum[p];
             job->out_transmittance[pixel] = transmittance[p];
+            job->out_median_depth[pixel] = median_depth[p];
         }
     }
 }
@@ -270,9 +281,9 @@ int canonical_composite_tiles(const int64_t *tile_starts, int64_t num_tiles, con
                               const float *splats, const int32_t *boxes, const float *values, int64_t channels,
                               int64_t tiles_x, int64_t width, int64_t height, float *out_values,
                               float *out_depth_sums, float *out_weight_sums, float *out_transmittance,
-                              int64_t num_threads) {
+                              float *out_median_depth, int64_t num_threads) {
     Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, channels, tiles_x, width, height,
-               out_values, out_depth_sums, out_weight_sums, out_transmittance, 0, 0, 0};
+               out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth, 0, 0, 0};
     for (int64_t t = 0; t < num_tiles; t++) {
         int64_t count = tile_starts[t + 1] - tile_starts[t];
         if (count > job.max_tile_splats) job.max_tile_splats = count;

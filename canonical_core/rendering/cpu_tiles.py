@@ -87,7 +87,7 @@ def load_compositor(name: str) -> ctypes.CDLL:
     library = ctypes.CDLL(compositor_builds()[name])
     pointer, size = ctypes.c_void_p, ctypes.c_int64
     library.canonical_composite_tiles.argtypes = [pointer, size, pointer, pointer, pointer, pointer, size] + [
-        size, size, size, pointer, pointer, pointer, pointer, size
+        size, size, size, pointer, pointer, pointer, pointer, pointer, size
     ]
     library.canonical_composite_tiles.restype = ctypes.c_int
     library.canonical_stable_depth_order.argtypes = [pointer, size, pointer]
@@ -140,12 +140,14 @@ def composite_tiles(
     out_depth_sums: np.ndarray,  # [H, W] float32
     out_weight_sums: np.ndarray,  # [H, W] float32
     out_transmittance: np.ndarray,  # [H, W] float32
+    out_median_depth: np.ndarray,  # [H, W] float32, 0 where the transmittance never falls below 1/2
     num_threads: int,
     compositor: ctypes.CDLL | None = None,  # a build from load_compositor; default: compositor_build
 ) -> None:
     """Blend each tile's splats front to back (the C library, on ``num_threads`` threads that take
     tiles one at a time: tiles differ a lot in work). Splat-outer within the tile: each splat visits
-    the 8-pixel blocks of its box's rows; every pixel still sees the splats in depth order."""
+    the 8-pixel blocks of its box's rows; every pixel still sees the splats in depth order. Each
+    pixel's median depth is the depth of the splat at which its transmittance first falls below 1/2."""
     height, width, num_channels = out_values.shape
     if splats.shape[1] != SPLAT_RECORD:
         raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
@@ -156,7 +158,8 @@ def composite_tiles(
         tiles_x, width, height, _address(out_values, np.float32, "out_values"),
         _address(out_depth_sums, np.float32, "out_depth_sums"),
         _address(out_weight_sums, np.float32, "out_weight_sums"),
-        _address(out_transmittance, np.float32, "out_transmittance"), num_threads,
+        _address(out_transmittance, np.float32, "out_transmittance"),
+        _address(out_median_depth, np.float32, "out_median_depth"), num_threads,
     )  # fmt: skip
     if status:
         raise MemoryError("composite_tiles: out of memory for the per-thread tile buffers")
@@ -201,7 +204,7 @@ def render_cpu(
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
     f32 = np.float32
     out_depth_sums, out_weight_sums = np.zeros((height, width), f32), np.zeros((height, width), f32)
-    out_transmittance = np.ones((height, width), f32)
+    out_transmittance, out_median_depth = np.ones((height, width), f32), np.zeros((height, width), f32)
     num_threads = min(num_threads, numba.config.NUMBA_NUM_THREADS)  # at most one thread a core
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(num_threads)
@@ -212,8 +215,9 @@ def render_cpu(
         tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
         composite_tiles(
             tile_starts, splat_ids, splats, boxes, values, tiles_x,
-            out_values, out_depth_sums, out_weight_sums, out_transmittance, num_threads, compositor,
+            out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth, num_threads, compositor,
         )  # fmt: skip
     finally:
         numba.set_num_threads(previous_threads)
-    return Blend(*(torch.from_numpy(a) for a in (out_values, out_depth_sums, out_weight_sums, out_transmittance)))
+    maps = (out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth)
+    return Blend(*(torch.from_numpy(a) for a in maps))

@@ -47,6 +47,8 @@ class Blend(NamedTuple):
     depth_sums: Tensor  # [H, W] sum of w_i z_i
     weight_sums: Tensor  # [H, W] sum of w_i: 1 - transmittance in exact arithmetic, precise where alpha is small
     transmittance: Tensor  # [H, W] product of (1 - alpha_i) over the blended splats
+    median_depth: Tensor | None = None  # [H, W] z of the splat at which the transmittance first falls
+    # below 1/2, 0 where it never does; None from a backend that cannot tell (gsplat)
 
 
 def world_to_camera(camera: Camera, dtype: torch.dtype, device: torch.device) -> Tensor:  # [4, 4]

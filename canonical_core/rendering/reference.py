@@ -57,10 +57,15 @@ def _composite_tile(
     splats: Splats,
     ids: Tensor,  # [m] splats touching the tile, front to back
     pixels: Tensor,  # [P, 2] pixel centres (u, v)
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:  # per pixel: values [P, D], depth, weight sums, transmittance
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:  # per pixel: values [P, D], depth, weight sums,
+    # transmittance, median depth
     weights, transmittance_after = tile_weights(splats, ids, pixels)
-    transmittance = torch.cat([weights.new_ones(weights.shape[0], 1), transmittance_after], 1).amin(dim=1)
-    return weights @ splats.values[ids], weights @ splats.depths[ids], weights.sum(1), transmittance
+    before_and_after = torch.cat([weights.new_ones(weights.shape[0], 1), transmittance_after], 1)
+    transmittance = before_and_after.amin(dim=1)
+    # the splat at which the transmittance first falls below 1/2 (after the stop it reads 1: never)
+    crosses_half = (before_and_after[:, :-1] >= 0.5) & (transmittance_after < 0.5)
+    median_depth = torch.where(crosses_half, splats.depths[ids][None], torch.zeros_like(weights)).sum(1)
+    return weights @ splats.values[ids], weights @ splats.depths[ids], weights.sum(1), transmittance, median_depth
 
 
 def composite_reference(

@@ -18,6 +18,7 @@ from .reference import composite_reference
 Output = Literal["rgb", "depth", "alpha", "features", "labels"]
 Backend = Literal["auto", "reference", "cpu", "gsplat"]
 Colour = Literal["composited", "normalised"]
+DepthMode = Literal["median", "expected"]
 
 
 @dataclass
@@ -28,7 +29,7 @@ class RenderResult:
         rgb: [H, W, 3] colour in [0, 1]: with ``colour="composited"`` sum(w_i c_i) + T_final *
             background (3DGS); with ``"normalised"`` sum(w_i c_i) / sum(w_i), the background only
             where nothing is drawn.
-        depth: [H, W] expected view-space depth sum(w_i z_i) / sum(w_i); 0 where alpha is 0.
+        depth: [H, W] view-space depth (``depth_mode``); 0 where alpha is 0.
         alpha: [H, W] accumulated opacity, 1 - final transmittance.
         features: [H, W, C] composited features sum(w_i f_i) (no background, not normalised).
         labels: [H, W] int64 argmax of the composited label scores; -1 where alpha is 0.
@@ -66,13 +67,18 @@ def _channel_width(gaussians: Gaussians, channel: Channel) -> int:
     return 3 if channel == "rgb" else getattr(gaussians, channel).shape[1]
 
 
-def _resolve_backend(backend: str, device: torch.device) -> str:
+def _resolve_backend(backend: str, device: torch.device, median_depth: bool) -> str:
+    """The backend to run; ``median_depth``: a median depth map is asked for, which gsplat does not
+    compute (``auto`` then takes the cpu backend)."""
     if backend not in get_args(Backend):
         raise ValueError(f"backend: expected one of {list(get_args(Backend))}, got {backend!r}")
     if backend == "auto":
-        return "gsplat" if device.type == "cuda" and gsplat_available() else "cpu"
+        return "gsplat" if device.type == "cuda" and gsplat_available() and not median_depth else "cpu"
     if backend == "gsplat" and not (device.type == "cuda" and gsplat_available()):
         raise ValueError(f"backend: 'gsplat' needs the gsplat package and CUDA tensors (Gaussians are on {device})")
+    if backend == "gsplat" and median_depth:
+        raise ValueError("depth_mode: 'median' is computed by the cpu and reference backends, not by gsplat; "
+                         "ask for 'expected' depth or another backend")
     return backend
 
 
@@ -82,6 +88,7 @@ def render(
     outputs: Sequence[Output] = ("rgb", "depth", "alpha"),
     background: Tensor | Sequence[float] | None = None,  # [3] rgb, default black
     colour: Colour = "composited",
+    depth_mode: DepthMode = "expected",
     backend: Backend = "auto",
     near_plane: float = 0.01,
     num_threads: int | None = None,
@@ -104,6 +111,13 @@ def render(
             angle) the composited blend darkens toward the background; the normalised one keeps the
             surface's colour, as surface splatting normalises by the sum of its kernels. ``alpha``
             still says how much of the pixel is covered.
+        depth_mode: "expected": sum(w_i z_i) / sum(w_i), the blend of every splat on the ray;
+            "median": the depth of the splat at which the pixel's transmittance first falls below
+            1/2, i.e. the surface that covers most of the pixel, and the expected depth where the
+            pixel stays more than half transparent. The expected depth mixes surfaces where a ray
+            grazes an edge or meets a semi-transparent one (a foreground edge over the background
+            reads as a depth between them); the median depth does not. gsplat computes only the
+            expected depth ("auto" renders median depth on the cpu backend).
         backend: "reference" (PyTorch, differentiable, O(splats x pixels) per tile), "cpu"
             (fast: numba projection and a vectorised C compositor, float32, no autograd), "gsplat"
             (CUDA) or "auto" (gsplat for CUDA tensors when it is installed, else cpu).
@@ -114,8 +128,9 @@ def render(
         RenderResult with the requested maps on the Gaussians' device, each [H, W] or [H, W, C].
 
     Raises:
-        ValueError: unknown output, colour mode or backend, features/labels requested but absent, a
-            background that is not [3], a non-positive near plane or thread count.
+        ValueError: unknown output, colour mode, depth mode or backend, features/labels requested but
+            absent, a background that is not [3], a non-positive near plane or thread count, median
+            depth asked of gsplat.
     """
     if not isinstance(gaussians, Gaussians):
         raise ValueError(f"gaussians: expected Gaussians, got {type(gaussians).__name__}")
@@ -125,13 +140,15 @@ def render(
     background = _background(background)
     if colour not in get_args(Colour):
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
+    if depth_mode not in get_args(DepthMode):
+        raise ValueError(f"depth_mode: expected one of {list(get_args(DepthMode))}, got {depth_mode!r}")
     if not near_plane > 0:
         raise ValueError(f"near_plane: expected a positive distance, got {near_plane!r}")
     num_threads = torch.get_num_threads() if num_threads is None else num_threads
     if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
         raise ValueError(f"num_threads: expected a positive integer, got {num_threads!r}")
     device = gaussians.means.device
-    backend = _resolve_backend(backend, device)
+    backend = _resolve_backend(backend, device, median_depth="depth" in outputs and depth_mode == "median")
     channels: tuple[Channel, ...] = tuple(c for c in ("rgb", "features", "labels") if c in outputs)
 
     if backend == "gsplat":
@@ -156,7 +173,10 @@ def render(
             rgb = split["rgb"] + blend.transmittance[..., None] * background
         result.rgb = rgb.clamp(0.0, 1.0)
     if "depth" in outputs:
-        result.depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
+        depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
+        if depth_mode == "median":  # depths are beyond the near plane, so 0 means "never below 1/2"
+            depth = torch.where(blend.median_depth > 0, blend.median_depth.to(depth), depth)
+        result.depth = depth
     if "alpha" in outputs:
         result.alpha = alpha
     if "features" in outputs:

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from canonical_core import Camera
-from canonical_core.rendering import Colour, render
+from canonical_core.rendering import Colour, DepthMode, render
 from canonical_core.rendering.preview import feature_preview
 
 from .. import wire
@@ -58,12 +58,14 @@ def view_from_query(
     max_gaussians: Annotated[int | None, Query(ge=0)] = None,
     background: Annotated[str | None, Query(description="r,g,b in [0, 1]")] = None,
     colour: Annotated[Colour, Query(description="render only: normalised (default) or composited")] = "normalised",
+    depth: Annotated[DepthMode, Query(description="render only, msgpack: median (default) or expected depth")] = "median",
 ) -> ViewRequest:
     p = _numbers(pose, "pose", 16)
     fx, fy, cx, cy = _numbers(K, "K", 4)
     return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=[p[0:4], p[4:8], p[8:12], p[12:16]],
                        width=width, height=height, max_gaussians=max_gaussians,
-                       background=None if background is None else _numbers(background, "background", 3), colour=colour)
+                       background=None if background is None else _numbers(background, "background", 3), colour=colour,
+                       depth=depth)
 
 
 QueryView = Annotated[ViewRequest, Depends(view_from_query)]
@@ -99,7 +101,8 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
         gaussians, label_dim = session.gaussians(view.max_gaussians)
         if kind == "segmentation" and label_dim == 0:
             raise _no_labels()
-        result = render(gaussians, camera, outputs, background=view.background, colour=view.colour, num_threads=settings.threads)
+        result = render(gaussians, camera, outputs, background=view.background, colour=view.colour, depth_mode=view.depth,
+                        num_threads=settings.threads)
         maps = {name: getattr(result, name).numpy() for name in outputs}
         return encode(maps), len(gaussians)
 

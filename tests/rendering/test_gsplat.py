@@ -41,3 +41,14 @@ def test_gsplat_backend_is_differentiable():
     (result.rgb.sum() + result.depth.sum()).backward()
     assert gaussians.means.grad is not None and torch.isfinite(gaussians.means.grad).all()
     assert gaussians.means.grad.abs().sum() > 0
+
+
+def test_median_depth_on_cuda_tensors_comes_from_the_cpu_backend():
+    pytest.importorskip("gsplat")
+    gaussians = random_scene(500, 23, scale_range=(0.02, 0.1), opacity_range=(0.3, 1.0))
+    camera = look_at_camera(48, 40, 40.0, [0.2, 0.1, -3.0], [0.0, 0.0, 0.0])
+    cpu = render(gaussians, camera, ("depth", "alpha"), depth_mode="median", backend="cpu")
+    gpu = render(gaussians.to("cuda"), camera, ("depth", "alpha"), depth_mode="median", backend="auto")
+    assert gpu.depth.is_cuda and torch.equal(gpu.depth.cpu(), cpu.depth)
+    with pytest.raises(ValueError, match="^depth_mode: 'median' is computed by the cpu and reference backends"):
+        render(gaussians.to("cuda"), camera, ("depth",), depth_mode="median", backend="gsplat")

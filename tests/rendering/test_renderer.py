@@ -108,6 +108,45 @@ def test_opaque_gaussians_composite_in_depth_order_regardless_of_input_order(bac
 
 
 @pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_median_depth_is_the_surface_that_covers_most_of_the_pixel(backend):
+    camera = pinhole(16, 16, 40.0, cx=7.0, cy=7.0)  # every mean projects onto pixel (7, 7)
+    scales = [[0.2] * 3] * 3
+    # alpha 0.3 at 2 m (T 0.7), 0.6 at 3 m (T 0.28: below 1/2 here), 0.9 at 4 m
+    layers = gaussians_at([[0, 0, 2.0], [0, 0, 3.0], [0, 0, 4.0]], scales, [0.3, 0.6, 0.9], [RED, GREEN, BLUE])
+    median = render(layers, camera, ("depth", "alpha"), depth_mode="median", backend=backend)
+    expected = render(layers, camera, ("depth", "alpha"), depth_mode="expected", backend=backend)
+    assert median.depth[7, 7] == pytest.approx(3.0, abs=1e-6)
+    weights = torch.tensor([0.3, 0.7 * 0.6, 0.28 * 0.9])
+    assert expected.depth[7, 7] == pytest.approx(float((weights * torch.tensor([2.0, 3.0, 4.0])).sum() / weights.sum()), abs=1e-5)
+    assert torch.equal(median.alpha, expected.alpha)
+    # where a pixel stays more than half transparent, the median depth is the expected one
+    thin = median.alpha < 0.5
+    assert thin.any() and torch.equal(median.depth[thin], expected.depth[thin])
+    assert (median.depth[median.alpha == 0] == 0).all()
+
+
+@pytest.mark.parametrize("seed,n,sh_degree,scales,opacities,distance", SCENES[:4])
+def test_median_depth_of_the_cpu_backend_matches_the_reference(seed, n, sh_degree, scales, opacities, distance):
+    gaussians = random_scene(n, seed, sh_degree=sh_degree, scale_range=scales, opacity_range=opacities)
+    camera = look_at_camera(45, 37, 40.0, [0.3 * seed, 0.2, -distance], [0.1, -0.1, 0.0], roll=0.4 * seed)
+    reference = render(gaussians, camera, ("depth", "alpha"), depth_mode="median", backend="reference")
+    fast = render(gaussians, camera, ("depth", "alpha"), depth_mode="median", backend="cpu")
+    expected = render(gaussians, camera, ("depth",), backend="cpu")
+    crossed = reference.alpha >= 0.5
+    assert crossed.float().mean() > 0.2
+    # a pixel whose transmittance lands within rounding of 1/2 may pick the neighbouring splat
+    same = (reference.depth - fast.depth).abs() <= 1e-5
+    assert same.float().mean() > 0.999, f"{int((~same).sum())} pixels differ"
+    assert not torch.equal(fast.depth[crossed], expected.depth[crossed])  # it is not the expected depth
+
+
+def test_an_unknown_depth_mode_is_refused():
+    camera = pinhole(8, 8, 20.0, cx=3.5, cy=3.5)
+    with pytest.raises(ValueError, match="^depth_mode: expected one of"):
+        render(gaussians_at([0, 0, 2.0], [0.1] * 3, [0.5], [RED]), camera, depth_mode="mean")
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
 def test_stops_before_the_splat_that_would_drop_transmittance_below_1e_4(backend):
     # Six stacked layers of alpha 0.8 at the centre: T = 0.2^k. The sixth would leave
     # T = 6.4e-5 < 1e-4, so 3DGS stops before it: five layers count, T_final = 0.2^5.

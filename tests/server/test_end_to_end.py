@@ -74,6 +74,14 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
     assert (np.abs(normalised["rgb"][partly].astype(np.float32) - expected) <= rounding).all()
     assert (normalised["rgb"][partly].astype(int) >= blend["rgb"][partly]).all()  # never darker than the blend
 
+    # the default depth is the median depth: where a pixel stays more than half transparent it is the
+    # expected one; elsewhere the surface covering most of the pixel, nearer the sensor's depth
+    expected_depth = session.render(K, c2w, w, h, depth="expected")["depth"]
+    thin = view["alpha"] < 0.5
+    assert np.array_equal(view["depth"][thin], expected_depth[thin])
+    assert not np.array_equal(view["depth"][covered], expected_depth[covered])
+    assert np.median(np.abs(view["depth"][both] - sensor[both])) <= np.median(np.abs(expected_depth[both] - sensor[both]))
+
     feats = session.features(K, c2w, w, h)
     stats = session.stats()
     assert feats["features"].dtype == np.float16
