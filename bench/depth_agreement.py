@@ -1,4 +1,4 @@
-"""Why held-out depth agreement changes with N: floaters, or a different mix of pixels.
+"""Why held-out depth agreement and covered PSNR change with N: floaters, or a different mix of pixels.
 
     python bench/depth_agreement.py ../shared/data/hololens_office [--methods canonical,open3d_tsdf] [--scale 1]
 
@@ -12,7 +12,10 @@ method and N (the evaluation's protocol and scoring), this prints:
   fixed pixel set: a fall here means the scene got worse where it was already drawn);
 - ``in front`` / ``behind``: shares of the covered pixels whose rendered depth is more than 2 voxels
   in front of the sensor's (floaters, or foreground colour spilling past its edge) or behind it
-  (see-through surfaces, holes the render looks past).
+  (see-through surfaces, holes the render looks past);
+- ``PSNR covered`` and ``PSNR@N=2 pixels``: the evaluation's covered PSNR (each N on the pixels it
+  covers), and the PSNR on the pixels the smallest N covered (those of them still covered): whether
+  colour got worse where the scene was already drawn, or the newly drawn pixels are harder.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from common import machine_summary, print_table  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import build, check_methods  # noqa: E402
-from canonical_core.eval.metrics import DEPTH_TOLERANCE_VOXELS, covered  # noqa: E402
+from canonical_core.eval.metrics import DEPTH_TOLERANCE_VOXELS, covered, psnr  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.run import default_voxel_size  # noqa: E402
 from canonical_core.eval.tuning import allowed_views  # noqa: E402
@@ -59,15 +62,21 @@ def main() -> int:
     rows = []
     for name in methods:
         first: list[torch.Tensor] = []
+        first_drawn: list[torch.Tensor] = []
         for n_views in views:
             model, _ = build(name, [frames[p] for p in split.inputs[n_views]], voxel)
-            counts = {"agree": [], "fixed": [], "front": [], "behind": [], "coverage": []}
+            counts = {"agree": [], "fixed": [], "front": [], "behind": [], "coverage": [], "psnr": [], "psnr_fixed": []}
             for i, target in enumerate(targets):
                 view = model.render(target.camera)
                 has = target.depth > 0
-                mask = covered(view.alpha) & has
+                drawn = covered(view.alpha)
+                mask = drawn & has
                 if n_views == views[0]:
                     first.append(mask)
+                    first_drawn.append(drawn)
+                truth = target.rgb.float() / 255.0
+                counts["psnr"].append(psnr(view.rgb, truth, drawn))
+                counts["psnr_fixed"].append(psnr(view.rgb, truth, drawn & first_drawn[i]))
                 err = view.depth - target.depth
                 counts["agree"].append(share(err.abs() <= tol, mask))
                 counts["fixed"].append(share(err.abs() <= tol, first[i] & mask))
@@ -77,8 +86,9 @@ def main() -> int:
             mean = {k: float(torch.tensor(v).nanmean()) for k, v in counts.items()}
             rows.append({"method": name, "N": n_views, "covered with depth": f"{mean['coverage']:.3f}",
                          "agree": f"{mean['agree']:.3f}", "agree@N=2 pixels": f"{mean['fixed']:.3f}",
-                         "in front": f"{mean['front']:.3f}", "behind": f"{mean['behind']:.3f}"})
-    print_table(f"Held-out depth agreement, {sequence.name}", rows)
+                         "in front": f"{mean['front']:.3f}", "behind": f"{mean['behind']:.3f}",
+                         "PSNR covered": f"{mean['psnr']:.2f}", "PSNR@N=2 pixels": f"{mean['psnr_fixed']:.2f}"})
+    print_table(f"Held-out depth agreement and covered PSNR, {sequence.name}", rows)
     return 0
 
 
