@@ -3,8 +3,9 @@
  * The same image model and per-pixel arithmetic as the PyTorch reference (see splat_geometry.py):
  * per tile, the splats in stable depth order; per pixel, alpha = min(0.99, opacity exp(-q / 2))
  * where q <= support and alpha >= 1/255, front to back, with a stop before the splat that would
- * take the transmittance below 1e-4. Besides the sums, each pixel records its median depth: the
- * depth of the splat at which its transmittance first falls below 1/2. The transmittance is a float32 product (the reference's is a
+ * take the transmittance below 1e-4. Besides the sums, when asked (a non-NULL out_median_depth),
+ * each pixel records its median depth: the depth of the splat at which its transmittance first
+ * falls below 1/2. The transmittance is a float32 product (the reference's is a
  * float64 cumprod; over the tens of layers a pixel blends they differ by about 1e-7, and float64
  * here cost two conversions and a split into 4-lane halves per 8-pixel step).
  *
@@ -154,6 +155,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     memset(median_depth, 0, sizeof median_depth);
     memset(accum, 0, channels * TILE_PIXELS * sizeof(float));
     int64_t active = (u1 - u0) * (v1 - v0);
+    const int track_median = job->out_median_depth != NULL;
     const v8f lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
 
@@ -205,12 +207,14 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                     mask &= ~stop;
                 }
                 const v8f weight = (v8f)(mask & (v8i)(alpha * t));
-                const v8i crosses_half = mask & (v8i)(t >= splat8(HALF)) & (v8i)(next < splat8(HALF));
-                if (lanes8(crosses_half)) {
-                    v8f m;
-                    memcpy(&m, median_depth + p, sizeof m);
-                    m = select8(crosses_half, depth, m);
-                    memcpy(median_depth + p, &m, sizeof m);
+                if (track_median) {
+                    const v8i crosses_half = mask & (v8i)(t >= splat8(HALF)) & (v8i)(next < splat8(HALF));
+                    if (lanes8(crosses_half)) {
+                        v8f m;
+                        memcpy(&m, median_depth + p, sizeof m);
+                        m = select8(crosses_half, depth, m);
+                        memcpy(median_depth + p, &m, sizeof m);
+                    }
                 }
                 t = select8(mask, next, t);
                 memcpy(transmittance + p, &t, sizeof t);
@@ -251,7 +255,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             job->out_depth_sums[pixel] = depth_sum[p];
             job->out_weight_sums[pixel] = weight_sum[p];
             job->out_transmittance[pixel] = transmittance[p];
-            job->out_median_depth[pixel] = median_depth[p];
+            if (track_median) job->out_median_depth[pixel] = median_depth[p];
         }
     }
 }

@@ -148,7 +148,8 @@ def render(
     if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
         raise ValueError(f"num_threads: expected a positive integer, got {num_threads!r}")
     device = gaussians.means.device
-    backend = _resolve_backend(backend, device, median_depth="depth" in outputs and depth_mode == "median")
+    median_depth = "depth" in outputs and depth_mode == "median"
+    backend = _resolve_backend(backend, device, median_depth)
     channels: tuple[Channel, ...] = tuple(c for c in ("rgb", "features", "labels") if c in outputs)
 
     if backend == "gsplat":
@@ -157,7 +158,8 @@ def render(
         splats = project_splats(gaussians, camera, channels, near_plane)
         blend = composite_reference(splats, camera.width, camera.height)
     else:
-        blend = Blend(*(t.to(device) for t in render_cpu(gaussians, camera, channels, near_plane, num_threads)))
+        blend = Blend(*(None if t is None else t.to(device)
+                        for t in render_cpu(gaussians, camera, channels, near_plane, num_threads, median_depth=median_depth)))
 
     alpha = 1 - blend.transmittance
     covered = blend.weight_sums > 0
@@ -174,7 +176,7 @@ def render(
         result.rgb = rgb.clamp(0.0, 1.0)
     if "depth" in outputs:
         depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
-        if depth_mode == "median":  # depths are beyond the near plane, so 0 means "never below 1/2"
+        if median_depth:  # depths are beyond the near plane, so 0 means "never below 1/2"
             depth = torch.where(blend.median_depth > 0, blend.median_depth.to(depth), depth)
         result.depth = depth
     if "alpha" in outputs:

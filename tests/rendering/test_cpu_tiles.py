@@ -41,8 +41,12 @@ def test_every_build_gives_the_image_of_the_loaded_build(build_name):
     gaussians = random_scene(1500, 11, sh_degree=1, scale_range=(0.01, 0.3), opacity_range=(0.05, 1.0))
     camera = look_at_camera(61, 47, 45.0, [0.3, -0.5, -2.5], [0.0, 0.0, 0.0], roll=0.2)
     threads = min(2, numba.config.NUMBA_NUM_THREADS)
-    loaded = cpu_tiles.render_cpu(gaussians, camera, ("rgb", "features"), 0.01, threads)
-    built = cpu_tiles.render_cpu(gaussians, camera, ("rgb", "features"), 0.01, threads, load_compositor(build_name))
+    loaded = cpu_tiles.render_cpu(gaussians, camera, ("rgb", "features"), 0.01, threads, median_depth=True)
+    built = cpu_tiles.render_cpu(gaussians, camera, ("rgb", "features"), 0.01, threads, load_compositor(build_name),
+                                 median_depth=True)
     assert (loaded.transmittance < 0.5).float().mean() > 0.3, "the scene should cover much of the image"
     for name, a, b in zip(loaded._fields, loaded, built):
         assert torch.allclose(a, b, rtol=0, atol=2e-6), f"{name}: max diff {(a - b).abs().max().item():.3g}"
+    # without the median depth the sums are the same, and no median map comes back
+    plain = cpu_tiles.render_cpu(gaussians, camera, ("rgb", "features"), 0.01, threads, load_compositor(build_name))
+    assert plain.median_depth is None and all(torch.equal(a, b) for a, b in zip(plain[:4], built[:4]))
