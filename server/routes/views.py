@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Annotated, Callable, NamedTuple
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
@@ -89,9 +89,16 @@ def check_view_bytes(view: ViewRequest, channels: int, max_bytes: int) -> None:
                                          f"above the limit of {max_bytes} (max_response_bytes); ask for a smaller view", "width")
 
 
-async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encode) -> Response:
+class Encoder(NamedTuple):
+    """The maps a response needs, and how they become its body: maps -> (bytes, media type)."""
+
+    outputs: tuple[str, ...]
+    encode: Callable[[dict[str, np.ndarray]], tuple[bytes, str]]
+
+
+async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encoder: Encoder) -> Response:
     camera = _camera(view, settings.max_image_pixels)
-    outputs = {"render": ("rgb", "depth", "alpha"), "features": ("features", "alpha"), "segmentation": ("labels", "alpha")}[kind]
+    outputs, encode = encoder
     if kind == "segmentation" and session.scene.label_dim == 0:
         raise _no_labels()
     check_view_bytes(view, view_channels(kind, session.scene.config.feature_dim, session.scene.label_dim),
@@ -116,28 +123,31 @@ def _no_labels() -> ApiError:
     return ApiError(409, "no_labels", "labels: this session has no fused labels; send frames with 'labels' to segment", "labels")
 
 
-def _render_encoder(request: Request):
+def _render_encoder(request: Request) -> Encoder:
     if wants_msgpack(request):
-        return lambda m: (wire.pack({"rgb": wire.encode_array(wire.to_uint8(m["rgb"])),
-                                     "depth": wire.encode_array(m["depth"].astype(np.float32)),
-                                     "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
-    return lambda m: (wire.encode_png(wire.to_uint8(m["rgb"])), PNG)
+        return Encoder(("rgb", "depth", "alpha"), lambda m: (wire.pack({
+            "rgb": wire.encode_array(wire.to_uint8(m["rgb"])), "depth": wire.encode_array(m["depth"].astype(np.float32)),
+            "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
+    # a picture needs no depth (nor its median's test in the compositor)
+    return Encoder(("rgb",), lambda m: (wire.encode_png(wire.to_uint8(m["rgb"])), PNG))
 
 
-def _features_encoder(preview: str | None):
+def _features_encoder(preview: str | None) -> Encoder:
     if preview is not None:
         if preview != "png":
             raise ApiError(422, "invalid_value", f"preview: expected 'png', got {preview!r}", "preview")
-        return lambda m: (wire.encode_png(feature_preview(m["features"], m["alpha"])), PNG)
-    return lambda m: (wire.pack({"features": wire.encode_array(m["features"].astype(np.float16)),
-                                 "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
+        return Encoder(("features", "alpha"), lambda m: (wire.encode_png(feature_preview(m["features"], m["alpha"])), PNG))
+    return Encoder(("features", "alpha"), lambda m: (wire.pack({
+        "features": wire.encode_array(m["features"].astype(np.float16)),
+        "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
 
 
-def _segmentation_encoder(request: Request):
+def _segmentation_encoder(request: Request) -> Encoder:
     if wants_msgpack(request):
-        return lambda m: (wire.pack({"labels": wire.encode_array(wire.labels_to_uint16(m["labels"])),
-                                     "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK)
-    return lambda m: (wire.encode_label_png(m["labels"]), PNG)
+        return Encoder(("labels", "alpha"), lambda m: (wire.pack({
+            "labels": wire.encode_array(wire.labels_to_uint16(m["labels"])),
+            "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
+    return Encoder(("labels",), lambda m: (wire.encode_label_png(m["labels"]), PNG))
 
 
 @router.post("/{session_id}/render", response_class=Response, responses=_responses(PNG, MSGPACK))
