@@ -197,18 +197,20 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 v8f t;
                 memcpy(&t, transmittance + p, sizeof t);
                 const v8f next = t * (splat8(1.0f) - alpha);
-                /* 3DGS: stop before the splat that would take the transmittance below 1e-4 */
-                const v8i stop = mask & (v8i)(next < splat8(MIN_TRANSMITTANCE));
-                const int stopped = lanes8(stop);
-                if (stopped) {
-                    done_now |= stop;
-                    memcpy(done + p, &done_now, sizeof done_now);
-                    active -= __builtin_popcount(stopped);
-                    mask &= ~stop;
-                }
-                const v8f weight = (v8f)(mask & (v8i)(alpha * t));
-                if (track_median) {
-                    const v8i crosses_half = mask & (v8i)(t >= splat8(HALF)) & (v8i)(next < splat8(HALF));
+                /* 3DGS: stop before the splat that would take the transmittance below 1e-4. With the
+                 * median depth, one test finds both that and the splat taking it below 1/2: from 1/2
+                 * or above one splat cannot reach 1e-4 (alpha <= 0.99), so those lanes test 1/2. */
+                const v8i above_half = track_median ? (v8i)(t >= splat8(HALF)) : (v8i){0, 0, 0, 0, 0, 0, 0, 0};
+                const v8i hit = mask & (v8i)(next < select8(above_half, splat8(HALF), splat8(MIN_TRANSMITTANCE)));
+                if (lanes8(hit)) {
+                    const v8i stop = hit & ~above_half, crosses_half = hit & above_half;
+                    const int stopped = lanes8(stop);
+                    if (stopped) {
+                        done_now |= stop;
+                        memcpy(done + p, &done_now, sizeof done_now);
+                        active -= __builtin_popcount(stopped);
+                        mask &= ~stop;
+                    }
                     if (lanes8(crosses_half)) {
                         v8f m;
                         memcpy(&m, median_depth + p, sizeof m);
@@ -216,6 +218,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                         memcpy(median_depth + p, &m, sizeof m);
                     }
                 }
+                const v8f weight = (v8f)(mask & (v8i)(alpha * t));
                 t = select8(mask, next, t);
                 memcpy(transmittance + p, &t, sizeof t);
                 if (channels <= PLANAR_MAX) {
