@@ -230,7 +230,7 @@ async def view_image(
         return data, MEDIA[format]
 
     t0 = time.perf_counter()
-    response = await views._view(kind, session, view, settings, jobs, metrics, encode)
+    response = await views._view(kind, session, view, settings, jobs, metrics, views.Encoder(views.OUTPUTS[kind], encode))
     total = time.perf_counter() - t0
     picture_s, encode_s = timing.pop("picture"), timing.pop("encode")
     response.headers.update(timing)

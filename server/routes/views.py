@@ -89,6 +89,10 @@ def check_view_bytes(view: ViewRequest, channels: int, max_bytes: int) -> None:
                                          f"above the limit of {max_bytes} (max_response_bytes); ask for a smaller view", "width")
 
 
+# every map a view of each kind can give (a response may need fewer: `Encoder.outputs`)
+OUTPUTS = {"render": ("rgb", "depth", "alpha"), "features": ("features", "alpha"), "segmentation": ("labels", "alpha")}
+
+
 class Encoder(NamedTuple):
     """The maps a response needs, and how they become its body: maps -> (bytes, media type)."""
 
@@ -125,7 +129,7 @@ def _no_labels() -> ApiError:
 
 def _render_encoder(request: Request) -> Encoder:
     if wants_msgpack(request):
-        return Encoder(("rgb", "depth", "alpha"), lambda m: (wire.pack({
+        return Encoder(OUTPUTS["render"], lambda m: (wire.pack({
             "rgb": wire.encode_array(wire.to_uint8(m["rgb"])), "depth": wire.encode_array(m["depth"].astype(np.float32)),
             "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
     # a picture needs no depth (nor its median's test in the compositor)
@@ -136,15 +140,15 @@ def _features_encoder(preview: str | None) -> Encoder:
     if preview is not None:
         if preview != "png":
             raise ApiError(422, "invalid_value", f"preview: expected 'png', got {preview!r}", "preview")
-        return Encoder(("features", "alpha"), lambda m: (wire.encode_png(feature_preview(m["features"], m["alpha"])), PNG))
-    return Encoder(("features", "alpha"), lambda m: (wire.pack({
+        return Encoder(OUTPUTS["features"], lambda m: (wire.encode_png(feature_preview(m["features"], m["alpha"])), PNG))
+    return Encoder(OUTPUTS["features"], lambda m: (wire.pack({
         "features": wire.encode_array(m["features"].astype(np.float16)),
         "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
 
 
 def _segmentation_encoder(request: Request) -> Encoder:
     if wants_msgpack(request):
-        return Encoder(("labels", "alpha"), lambda m: (wire.pack({
+        return Encoder(OUTPUTS["segmentation"], lambda m: (wire.pack({
             "labels": wire.encode_array(wire.labels_to_uint16(m["labels"])),
             "alpha": wire.encode_array(m["alpha"].astype(np.float32))}), MSGPACK))
     return Encoder(("labels",), lambda m: (wire.encode_label_png(m["labels"]), PNG))
