@@ -13,11 +13,11 @@ from canonical_core.datasets import load_dataset, synthetic_rgbd
 from canonical_core.eval import evaluate
 from canonical_core.eval.open3d_tsdf import open3d_available
 from canonical_core.eval.methods import build
-from canonical_core.eval.run import Scored, add_common_psnr, add_depth_noise, add_mixed_depth_noise, default_voxel_size, score
+from canonical_core.eval.run import Scored, add_common_psnr, add_fixed_psnr, add_depth_noise, add_mixed_depth_noise, default_voxel_size, score
 from canonical_core.frame import resize_frame
 
 RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "psnr_ceiling", "ssim", "gaussians", "fold_ms", "render_ms",
-            "depth_agreement", "psnr_common", "common_coverage"}
+            "depth_agreement", "psnr_common", "common_coverage", "psnr_fixed"}
 
 
 def _check_group_common(runs: list[dict]) -> None:
@@ -65,6 +65,13 @@ def _check_results(results: dict, out_dir, methods, views, noise, mixed=None) ->
     md = (out_dir / "results.md").read_text()
     assert "Held-out positions" in md and all(f"| {m} |" in md for m in methods)
     assert "pixels every method covers" in md and ("Mixed-quality inputs" in md) == (mixed is not None)
+    assert "pixels the smallest N covers" in md
+    # at the smallest N of each condition the fixed pixels are the run's own covered ones
+    for group_runs in (runs, mixed_runs, extra_runs):
+        for r in group_runs:
+            first = min(x["views"] for x in group_runs if x["noise"] == r["noise"])
+            if r["views"] == first and r["psnr_covered"] is not None:
+                assert r["psnr_fixed"] == pytest.approx(r["psnr_covered"], abs=0.05)
     pngs = sorted(p.name for p in out_dir.glob("*.png"))
     expected = {"psnr_vs_views.png", *(f"grid_N{n}.png" for n in views)}
     expected |= {"noise_psnr.png"} if noise else set()
@@ -182,6 +189,22 @@ def test_common_psnr_is_the_psnr_on_the_pixels_every_run_covers():
     runs = [{}, {}]
     add_common_psnr(runs, [Scored({}, [img.numpy()], [m]) for img, m in zip(images, masks)], [target])
     assert runs[0]["psnr_common"] is None and runs[0]["common_coverage"] == 0
+
+
+def test_fixed_psnr_is_the_psnr_on_the_pixels_the_smallest_n_covered_and_still_covers():
+    torch.manual_seed(1)
+    target = synthetic_rgbd(num_frames=1, width=8, height=8)[0]
+    gt = target.rgb.float() / 255.0
+    image = torch.randint(0, 256, (8, 8, 3), dtype=torch.uint8)
+    first, now = torch.zeros(8, 8, dtype=torch.bool), torch.zeros(8, 8, dtype=torch.bool)
+    first[:, :3] = True  # columns 0-2 at the smallest N
+    now[:, 1:] = True  # columns 1-7 now: columns 1-2 are the fixed pixels
+    run = {}
+    add_fixed_psnr(run, Scored({}, [image.numpy()], [now]), [first], [target])
+    err = (image[:, 1:3].double() / 255.0 - gt[:, 1:3].double()) ** 2
+    assert run["psnr_fixed"] == pytest.approx(-10 * math.log10(float(err.mean())), abs=1e-5)
+    add_fixed_psnr(run, Scored({}, [image.numpy()], [~first]), [first], [target])
+    assert run["psnr_fixed"] is None  # none of the first pixels is still covered: no number
 
 
 def test_default_voxel_size_is_positive():
