@@ -149,15 +149,20 @@ def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Seq
         run["common_coverage"] = share
 
 
-def add_fixed_psnr(run: dict, scored: Scored, first_covered: list[Tensor], targets: Sequence[Frame]) -> None:
+def add_fixed_psnr(
+    run: dict,
+    scored: Scored,
+    first_covered: list[Tensor],  # per target [H, W] bool: the method's covered pixels at the smallest N
+    truths: Sequence[Tensor],  # per target [H, W, 3] colour in [0, 1]
+) -> None:
     """Give ``run`` ``psnr_fixed``: its mean PSNR over the pixels that its method's run at the
     smallest N of the same condition covered (``first_covered``, per target) and this run still
     covers. Covered PSNR falls when added views draw new, harder pixels (far walls, grazing floors)
     even where the pixels already drawn got better; on this fixed set only the latter counts, which
     is the promise that more views make the scene better. From the 8-bit renders, as `add_common_psnr`.
     """
-    values = [psnr(torch.from_numpy(image).float() / 255.0, t.rgb.float() / 255.0, first & mask)
-              for image, t, first, mask in zip(scored.images, targets, first_covered, scored.covered)]
+    values = [psnr(torch.from_numpy(image).float() / 255.0, truth, first & mask)
+              for image, truth, first, mask in zip(scored.images, truths, first_covered, scored.covered)]
     run["psnr_fixed"] = _nanmean(values)
 
 
@@ -254,6 +259,7 @@ def evaluate(
     bar = tqdm(total=steps, disable=not progress, file=sys.stderr, desc="eval", unit="run", dynamic_ncols=True)
     if progress:
         bar.write(f"{sequence.name}: {n} frames, voxel {voxel_size:g}, held out {list(split.heldout)}")
+    truths = [t.rgb.float() / 255.0 for t in targets]  # once, for every run's fixed-pixel PSNR
     for name in runnable:  # warm-up: JIT compilation and caches stay out of the timings
         build(name, [frames[split.inputs[min(split.inputs)][0]]], voxel_size)[0].render(targets[0].camera)
 
@@ -272,7 +278,7 @@ def evaluate(
             if keep_grid:
                 grids[n_views][name] = [scored[-1].images[i] for i in grid_at]
             runs.append({"method": name, "views": n_views, "noise": level, **metrics, "fold_ms": build_ms})
-            add_fixed_psnr(runs[-1], scored[-1], first_covered.setdefault(name, scored[-1].covered), targets)
+            add_fixed_psnr(runs[-1], scored[-1], first_covered.setdefault(name, scored[-1].covered), truths)
         add_common_psnr(runs, scored, targets)
         return runs
 

@@ -152,10 +152,10 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     memset(depth_sum, 0, sizeof depth_sum);
     memset(weight_sum, 0, sizeof weight_sum);
     memset(done, 0, sizeof done);
-    memset(median_depth, 0, sizeof median_depth);
+    const int track_median = job->out_median_depth != NULL;
+    if (track_median) memset(median_depth, 0, sizeof median_depth);
     memset(accum, 0, channels * TILE_PIXELS * sizeof(float));
     int64_t active = (u1 - u0) * (v1 - v0);
-    const int track_median = job->out_median_depth != NULL;
     const v8f lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
 

@@ -200,10 +200,10 @@ def test_fixed_psnr_is_the_psnr_on_the_pixels_the_smallest_n_covered_and_still_c
     first[:, :3] = True  # columns 0-2 at the smallest N
     now[:, 1:] = True  # columns 1-7 now: columns 1-2 are the fixed pixels
     run = {}
-    add_fixed_psnr(run, Scored({}, [image.numpy()], [now]), [first], [target])
+    add_fixed_psnr(run, Scored({}, [image.numpy()], [now]), [first], [gt])
     err = (image[:, 1:3].double() / 255.0 - gt[:, 1:3].double()) ** 2
     assert run["psnr_fixed"] == pytest.approx(-10 * math.log10(float(err.mean())), abs=1e-5)
-    add_fixed_psnr(run, Scored({}, [image.numpy()], [~first]), [first], [target])
+    add_fixed_psnr(run, Scored({}, [image.numpy()], [~first]), [first], [gt])
     assert run["psnr_fixed"] is None  # none of the first pixels is still covered: no number
 
 
