@@ -1,13 +1,22 @@
 """Colour-solve benchmark: the render-consistent colour solve's cost and what it buys.
 
     python bench/colour_solve.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scales 1,0.5] [--repeats 3]
+    python bench/colour_solve.py --stream [--refresh 1,4,8,16] [--kept 16]
 
 For N input views of the evaluation protocol (640x480, its voxel size), kept at each keyframe
 scale (`SceneConfig.colour_solve_scale`; 0.5 is the default): ms for the compositing weights of
-one kept view (numba fast path; the PyTorch reference on the first view once, for the ratio), ms
+one kept view as the solve's rows (`blend_weight_rows`: the numba fast path; the PyTorch reference
+on the first view once, for the ratio), ms
 for the whole solve (weights of every view, the sparse system, 10 CG iterations), its nonzeros,
 and held-out all-pixel / covered PSNR before and after. Prints medians / min / max and the
 machine. Never asserts timings.
+
+``--stream`` measures a streaming session instead: every frame of the capture that the protocol
+does not hold out is folded in order, and the scene decoded after each fold, as a viewer does, by a
+scene that solves colours (``--kept`` views, `SceneConfig.colour_solve_refresh` each of
+``--refresh``) and by one that does not. Per refresh: the solves made, the decode's extra ms per
+fold (mean: the solve's cost amortised over the stream; median; largest), and held-out all-pixel /
+covered PSNR of the last decode, against the same scene solved from scratch over the same kept views.
 """
 
 from __future__ import annotations
@@ -27,9 +36,45 @@ from canonical_core.eval.methods import SplatModel, build  # noqa: E402
 from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.run import default_voxel_size, score  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
-from canonical_core.rendering.weights import blend_weights  # noqa: E402
+from canonical_core.decode.colour_solve import COVERED_ALPHA  # noqa: E402
+from canonical_core.decode import colour_offsets, with_colour_offsets  # noqa: E402
+from canonical_core.rendering.weights import blend_weight_rows  # noqa: E402
+from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
+
+
+def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> None:
+    """The ``--stream`` table (module docstring)."""
+    targets = [sequence[p] for p in split.heldout]
+    frames = [sequence[p] for p in range(len(sequence)) if p not in split.heldout]
+    rows = []
+    for refresh in refreshes:
+        solving = Scene(SceneConfig(voxel_size=voxel, colour_solve_views=kept, colour_solve_refresh=refresh))
+        plain = Scene(SceneConfig(voxel_size=voxel))
+        extra, solves = [], 0
+        for frame in frames:
+            solving.fold(frame)
+            plain.fold(frame)
+            before = solving._decoding.solution
+            (with_solve,), (without,) = time_each(lambda _: solving.decode(), [0]), time_each(lambda _: plain.decode(), [0])
+            extra.append(with_solve - without)
+            solves += solving._decoding.solution is not before
+        base = plain.decode()
+        full = with_colour_offsets(base, colour_offsets(base, solving._keyframes.frames()))
+        streamed = score(SplatModel(solving.decode()), targets, voxel).metrics
+        scratch = score(SplatModel(full), targets, voxel).metrics
+        fused = score(SplatModel(base), targets, voxel).metrics
+        rows.append({
+            "refresh": refresh, "solves": solves, "extra ms / fold: mean": f"{np.mean(extra):.0f}",
+            "median": f"{np.median(extra):.0f}", "max": f"{max(extra):.0f}",
+            "held-out dB, streamed": f"{streamed['psnr']:.2f} / {streamed['psnr_covered']:.2f}",
+            "solved from scratch": f"{scratch['psnr']:.2f} / {scratch['psnr_covered']:.2f}",
+            "fused colours": f"{fused['psnr']:.2f} / {fused['psnr_covered']:.2f}",
+        })  # fmt: skip
+        print(f"refresh {refresh} done", file=sys.stderr, flush=True)
+    print_table(f"Streaming colour solve: {len(frames)} frames folded, decoded after each, {kept} kept views at "
+                f"{SceneConfig(voxel_size=voxel).colour_solve_scale:g}, voxel {voxel:.4f} m", rows)
 
 
 def main() -> None:
@@ -38,6 +83,9 @@ def main() -> None:
     parser.add_argument("--views", default="4,8,16", help="input view counts of the protocol (2, 4, 8, 16)")
     parser.add_argument("--scales", default="1,0.5", help="keyframe scales, each in (0, 1]")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--stream", action="store_true", help="a streaming session decoded after every fold")
+    parser.add_argument("--refresh", default="1,4,8,16", help="with --stream: colour_solve_refresh values")
+    parser.add_argument("--kept", type=int, default=16, help="with --stream: colour_solve_views")
     args = parser.parse_args()
     views = [int(v) for v in args.views.split(",")]
     scales = [float(s) for s in args.scales.split(",")]
@@ -48,6 +96,8 @@ def main() -> None:
     targets = [sequence[p] for p in split.heldout]
     voxel = default_voxel_size([sequence[p] for p in split.inputs[16]])
     print(machine_summary())
+    if args.stream:
+        return stream(sequence, split, voxel, [int(r) for r in args.refresh.split(",")], args.kept)
     rows = []
     for n in views:
         full_size = [sequence[p] for p in split.inputs[n]]
@@ -56,8 +106,8 @@ def main() -> None:
         before = score(model, targets, voxel).metrics
         for scale in scales:
             inputs = [resize_frame(f, scale) for f in full_size]
-            weights_ms = time_each(lambda f: blend_weights(splats, f.camera), inputs * args.repeats)
-            reference_ms = time_each(lambda f: blend_weights(splats, f.camera, backend="reference"), inputs[:1])
+            weights_ms = time_each(lambda f: blend_weight_rows(splats, f.camera, COVERED_ALPHA), inputs * args.repeats)
+            reference_ms = time_each(lambda f: blend_weight_rows(splats, f.camera, COVERED_ALPHA, backend="reference"), inputs[:1])
             solve_ms = time_each(lambda _: solve_colours(splats, inputs), range(args.repeats))
             nonzeros = colour_system(splats, inputs)[0].values().numel()
             after = score(SplatModel(solve_colours(splats, inputs)), targets, voxel).metrics

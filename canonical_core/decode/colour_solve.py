@@ -4,7 +4,7 @@ The analytic decoder gives each Gaussian its voxel's fused colour, a weighted me
 that landed in the voxel. But a rendered pixel blends several overlapping Gaussians, so even a
 view the scene was fused from does not get its own colours back. With geometry and opacity fixed a
 render is linear in the SH coefficients,
-colour_v(p) = sum_i w_i(p) sum_k Y_k(d_vi) sh_ik + 0.5 (`canonical_core.rendering.blend_weights`,
+colour_v(p) = sum_i w_i(p) sum_k Y_k(d_vi) sh_ik + 0.5 (`rendering.weights.blend_weight_rows`,
 d_vi the direction from view v's centre to Gaussian i), so the coefficients that make the renders
 reproduce the input views are a linear least-squares problem. This solves it for offsets x_ik to
 the coefficients up to ``degree`` (1: DC and the three linear terms, so the fit can tell a colour
@@ -46,12 +46,11 @@ from ..gaussians.container import SH_C0
 from ..rendering import Colour
 from ..rendering.projection import channel_values
 from ..rendering.sh import SH_C1, sh_basis_at_points
-from ..rendering.weights import WeightsBackend, blend_weights
+from ..rendering.weights import WeightsBackend, blend_weight_rows
 
 # accumulated alpha at or above which a pixel counts as covered: the pixels the solve fits in normalised
 # colour, and the evaluation's "covered" pixels (`eval.metrics`), so the two agree
 COVERED_ALPHA = 0.5
-
 
 
 def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int, colour: str) -> None:
@@ -73,41 +72,6 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, 
         raise ValueError(f"degree: expected 0 (DC only) or 1, got {degree!r}")
     if colour not in get_args(Colour):
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
-
-
-@numba.njit(cache=True)
-def _csr(
-    rows: np.ndarray,  # [K] int64 each entry's row
-    columns: np.ndarray,  # [K] int64 each entry's column
-    values: np.ndarray,  # [K] float32
-    num_rows: int,
-    normalised: bool,  # rows over their sum (alpha), rows summing below `COVERED_ALPHA` dropped
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Entries to CSR by a counting sort in O(K + R): within a row, entries keep their order.
-    Returns row starts [R + 1] int32, columns [E] int32, values [E] float32 and each row's scale
-    [R] float64 (1 / alpha, 0 for a dropped row; all 1 unless ``normalised``)."""
-    scale = np.ones(num_rows)
-    if normalised:
-        alpha = np.zeros(num_rows)
-        for k in range(rows.shape[0]):
-            alpha[rows[k]] += values[k]
-        for r in range(num_rows):
-            scale[r] = 1.0 / alpha[r] if alpha[r] >= COVERED_ALPHA else 0.0
-    starts = np.zeros(num_rows + 1, np.int32)
-    for r in rows:
-        if scale[r] > 0.0:
-            starts[r + 1] += 1
-    for r in range(num_rows):
-        starts[r + 1] += starts[r]
-    cursor = starts[:-1].copy()
-    out_columns, out_values = np.empty(starts[num_rows], np.int32), np.empty(starts[num_rows], np.float32)
-    for k in range(rows.shape[0]):
-        r = rows[k]
-        if scale[r] > 0.0:
-            at = cursor[r]
-            out_columns[at], out_values[at] = columns[k], values[k] * scale[r]
-            cursor[r] = at + 1
-    return starts, out_columns, out_values, scale
 
 
 @numba.njit(parallel=True, cache=True)
@@ -249,9 +213,7 @@ def colour_system(
     starts, columns, weights, residuals = [np.zeros(1, np.int64)], [], [], []
     for view in views:
         camera = view.camera
-        w = blend_weights(gaussians, camera, backend=backend)
-        s, c, v, scale = _csr(w.pixels.numpy(), w.ids.numpy(), w.weights.numpy(), camera.height * camera.width,
-                              colour == "normalised")
+        s, c, v, scale = blend_weight_rows(gaussians, camera, COVERED_ALPHA if colour == "normalised" else None, backend)
         render = _csr_matmul(s, c, v, channel_values(gaussians, camera, ("rgb",)).float().numpy())
         residual = view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render)
         if colour == "normalised":
@@ -268,6 +230,73 @@ def colour_system(
         A = torch.sparse_csr_tensor(torch.from_numpy(starts.astype(np.int32)), torch.from_numpy(np.concatenate(columns)),
                                     torch.from_numpy(np.concatenate(weights)), (len(starts) - 1, len(gaussians)))
     return A, torch.cat(residuals)
+
+
+def colour_offsets(
+    gaussians: Gaussians,
+    views: Sequence[Frame],  # the frames the scene was fused from: rgb and camera are used
+    initial: Tensor | None = None,  # [N, K, 3] float32 offsets to start from (a warm start); None: zeros
+    ridge: float = 0.3,
+    prior: float = 1.0,
+    iterations: int = 10,
+    degree: int = 1,
+    backend: WeightsBackend = "cpu",
+    colour: Colour = "normalised",
+) -> Tensor:  # [N, K, 3] float32 offsets x_ik, K = (min(degree, sh_degree) + 1)^2
+    """The offsets of `solve_colours` (module docstring), by ``iterations`` steps of conjugate
+    gradients from ``initial``. A solution of a scene that has changed little since is a good
+    start: a few steps from it come close to a full solve from zero (a streaming scene re-solves so).
+
+    Raises:
+        ValueError: as `solve_colours`, and an ``initial`` of the wrong shape.
+    """
+    _check(views, ridge, prior, iterations, degree, colour)
+    num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
+    if initial is not None and tuple(initial.shape) != (len(gaussians), num_bases, 3):
+        raise ValueError(f"initial: expected shape {[len(gaussians), num_bases, 3]}, got {list(initial.shape)}")
+    offsets = torch.zeros(len(gaussians), num_bases, 3) if initial is None else initial.detach().float().clone()
+    if len(gaussians) == 0:
+        return offsets
+    A, b = colour_system(gaussians, views, backend, colour)
+    view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
+    means = gaussians.means.detach().numpy()
+    bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])
+    system = (*_arrays(A), view_rows, bases)  # the basis once per view, not once per product
+
+    def transposed(y: np.ndarray, squared: bool = False) -> Tensor:  # [R, 3] -> [N, K, 3]
+        return torch.from_numpy(_sh_rmatmul(*system, y, squared))
+
+    evidence = transposed(np.ones((A.shape[0], 3), np.float32), squared=True)  # e_ik
+    peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
+    damping = ridge * evidence + prior * peak**2
+    diagonal = evidence + damping
+
+    def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
+        return torch.from_numpy(_sh_normal(*system, x.numpy())) + damping * x
+
+    # conjugate gradients, one step length per colour channel
+    residual = transposed(b.numpy())
+    if initial is not None:
+        residual -= normal(offsets)
+    z = residual / diagonal
+    direction, rz = z.clone(), (residual * z).sum((0, 1))
+    for _ in range(iterations):
+        product = normal(direction)
+        step = rz / (direction * product).sum((0, 1)).clamp_min(1e-30)
+        offsets += step * direction
+        residual -= step * product
+        z = residual / diagonal
+        rz_next = (residual * z).sum((0, 1))
+        direction = z + (rz_next / rz.clamp_min(1e-30)) * direction
+        rz = rz_next
+    return offsets
+
+
+def with_colour_offsets(gaussians: Gaussians, offsets: Tensor) -> Gaussians:  # offsets [N, K, 3]
+    """``gaussians`` with ``offsets`` added to their first K SH coefficients."""
+    sh = gaussians.sh.clone()
+    sh[:, : offsets.shape[1], :] += offsets.to(sh)
+    return replace(gaussians, sh=sh)
 
 
 def solve_colours(
@@ -304,38 +333,4 @@ def solve_colours(
     _check(views, ridge, prior, iterations, degree, colour)
     if len(gaussians) == 0:
         return gaussians
-    num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
-    A, b = colour_system(gaussians, views, backend, colour)
-    view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
-    means = gaussians.means.detach().numpy()
-    bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])
-    system = (*_arrays(A), view_rows, bases)  # the basis once per view, not once per product
-
-    def transposed(y: np.ndarray, squared: bool = False) -> Tensor:  # [R, 3] -> [N, K, 3]
-        return torch.from_numpy(_sh_rmatmul(*system, y, squared))
-
-    evidence = transposed(np.ones((A.shape[0], 3), np.float32), squared=True)  # e_ik
-    peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
-    damping = ridge * evidence + prior * peak**2
-    diagonal = evidence + damping
-
-    def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
-        return torch.from_numpy(_sh_normal(*system, x.numpy())) + damping * x
-
-    # conjugate gradients, one step length per colour channel
-    offsets = torch.zeros(len(gaussians), num_bases, 3)
-    residual = transposed(b.numpy())
-    z = residual / diagonal
-    direction, rz = z.clone(), (residual * z).sum((0, 1))
-    for _ in range(iterations):
-        product = normal(direction)
-        step = rz / (direction * product).sum((0, 1)).clamp_min(1e-30)
-        offsets += step * direction
-        residual -= step * product
-        z = residual / diagonal
-        rz_next = (residual * z).sum((0, 1))
-        direction = z + (rz_next / rz.clamp_min(1e-30)) * direction
-        rz = rz_next
-    sh = gaussians.sh.clone()
-    sh[:, :num_bases, :] += offsets.to(sh)
-    return replace(gaussians, sh=sh)
+    return with_colour_offsets(gaussians, colour_offsets(gaussians, views, None, ridge, prior, iterations, degree, backend, colour))

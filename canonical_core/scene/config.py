@@ -224,8 +224,13 @@ class SceneConfig(_Settings):
     colour_solve_views: Annotated[int, Field(ge=0, le=64)] = 0
     """Keep this many input views (colour and camera, spread over the stream: `scene.keyframes`) and
     solve the decoded Gaussians' colours (SH up to degree 1) so that renders reproduce them
-    (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode then takes
-    seconds instead of milliseconds."""
+    (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode that solves
+    takes seconds instead of milliseconds (``colour_solve_refresh`` says which decodes do)."""
+    colour_solve_refresh: Annotated[int, Field(ge=1, le=1_000_000)] = 4
+    """Frames folded between two colour solves of a streaming scene. The first decode solves from
+    scratch; later decodes reuse the last solution (its offsets, on the voxels it solved: voxels
+    decoded since keep their fused colours) until this many frames were folded since, and then
+    solve again in a few steps, starting from it (`decode.colour_offsets`)."""
     colour_solve_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
     """Size of the kept views relative to the input (0.5: a quarter of the pixels, of the solve's
     time and of the views' memory)."""

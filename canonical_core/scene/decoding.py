@@ -3,7 +3,8 @@
 Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one scene take turns):
 
 - the decoder (`decode.GaussianDecoder`) and the colour solve against the kept input views
-  (`decode.solve_colours`);
+  (`decode.colour_offsets`) with its last solution (`ColourSolution`), which decodes reuse until
+  `SceneConfig.colour_solve_refresh` frames were folded since, and which starts the next solve;
 - the decoded rows (`decoded.DecodedRows`): what the last decode made of each voxel, with the
   change stamp of the sums it came from, so that a decode after a fold decodes again only the
   voxels whose sums changed; opacities, which depend on the scene-wide support unit and on free
@@ -23,7 +24,7 @@ import numba
 import numpy as np
 import torch
 
-from ..decode import GaussianDecoder, solve_colours
+from ..decode import GaussianDecoder, colour_offsets, with_colour_offsets
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
@@ -32,6 +33,9 @@ from .fields import fields_from_sums
 from .shapes import voxel_shapes
 
 POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
+# conjugate-gradient steps of a colour solve that starts from the last solution (one from zero takes the
+# library's default, 10): a few steps from a solution a handful of frames old reach about what 10 do
+REFRESH_ITERATIONS = 3
 DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
 
 
@@ -135,6 +139,35 @@ class DecodeInputs(NamedTuple):
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)
     # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
+    frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve_refresh`)
+
+
+class ColourSolution(NamedTuple):
+    """The colour solve's last answer: SH offsets of the voxel rows it solved."""
+
+    rows: np.ndarray  # [M] int64 ascending
+    offsets: torch.Tensor  # [M, K, 3] float32
+    frames: int  # the scene's frame count when solved
+
+    def at(self, rows: np.ndarray) -> torch.Tensor:  # [N] int64 ascending -> [N, K, 3]: zeros where unsolved
+        """The offsets of ``rows``; rows it did not solve (decoded since) get none."""
+        out = torch.zeros(len(rows), *self.offsets.shape[1:])
+        if len(self.rows):
+            at = np.minimum(np.searchsorted(self.rows, rows), len(self.rows) - 1)
+            hit = self.rows[at] == rows
+            out[torch.from_numpy(hit)] = self.offsets[torch.from_numpy(at[hit])]
+        return out
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"rows": self.rows, "offsets": self.offsets.numpy(), "frames": np.asarray(self.frames, np.int64)}
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "ColourSolution":
+        return cls(np.asarray(arrays["rows"], np.int64), torch.from_numpy(np.array(arrays["offsets"], np.float32)),
+                   int(arrays["frames"]))
+
+    def nbytes(self) -> int:
+        return self.rows.nbytes + self.offsets.numel() * 4
 
 
 class SceneDecoding:
@@ -147,6 +180,7 @@ class SceneDecoding:
         self.lock = threading.Lock()  # taken before the scene's lock, never after
         self._rows: DecodedRows | None = None
         self._gaussians: dict = {}  # (level of detail, decoder key) -> Gaussians of the current state
+        self.solution: ColourSolution | None = None  # the colour solve's last answer (snapshots keep it)
 
     def key(self) -> tuple:
         """What a row's decode depends on besides its sums: the decoder's parameters and clamps."""
@@ -172,6 +206,7 @@ class SceneDecoding:
         belong to the old voxel map). Callers hold `lock` and the scene's lock."""
         self._rows = None
         self._gaussians.clear()
+        self.solution = None
 
     # -- decoding -----------------------------------------------------------------------------
     def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
@@ -190,13 +225,33 @@ class SceneDecoding:
         # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
         # per-voxel SH solve among them, are then computed for those rows alone
         keep, support, free, unit = decoded_rows(inputs.sums, min_support, self.config)
+        whole = min_support == 0  # every voxel that decodes: the scene's colours may be solved and kept
         if max_gaussians is not None and len(keep) > max_gaussians:
+            whole = False
             top = torch.sort(torch.argsort(support, descending=True, stable=True)[:max_gaussians]).values
             keep, support, free = keep[top.numpy()], support[top], free[top]
         with torch.no_grad():
             opacities = self.decoder.opacities(support, free, unit * inputs.observations_per_view)
         gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep))
-        return solve_colours(gaussians, inputs.views) if inputs.views else gaussians
+        if not inputs.views:
+            return gaussians
+        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, keep, inputs, whole))
+
+    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, inputs: DecodeInputs, whole: bool) -> torch.Tensor:
+        """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
+        is fresh (fewer than `SceneConfig.colour_solve_refresh` frames folded since) and for a decode
+        of part of the scene (a level of detail or a support floor, which never replaces the whole
+        scene's solution); else solved, from the last solution where there is one, and kept."""
+        solution = self.solution
+        if solution is not None and (not whole or inputs.frames - solution.frames < self.config.colour_solve_refresh):
+            return solution.at(rows)
+        if solution is None:
+            offsets = colour_offsets(gaussians, inputs.views)
+        else:
+            offsets = colour_offsets(gaussians, inputs.views, solution.at(rows), iterations=REFRESH_ITERATIONS)
+        if whole:
+            self.solution = ColourSolution(rows.copy(), offsets, inputs.frames)
+        return offsets
 
     def _shapes_and_colours(self, inputs: DecodeInputs, rows: np.ndarray) -> dict[str, torch.Tensor | None]:
         """`GaussianDecoder.shapes_and_colours` of ``rows``: reused from an earlier decode for the rows
@@ -221,5 +276,7 @@ class SceneDecoding:
         return cache.gather(rows) | {"features": scene_features(inputs.sums, rows, self.config.research.eps)}
 
     def nbytes(self) -> int:
-        """Bytes of the decoded rows (the cached Gaussians are shared with callers and not counted)."""
-        return self._rows.nbytes() if self._rows is not None else 0
+        """Bytes of the decoded rows and the colour solution (the cached Gaussians are shared with
+        callers and not counted)."""
+        return ((self._rows.nbytes() if self._rows is not None else 0)
+                + (self.solution.nbytes() if self.solution is not None else 0))

@@ -30,7 +30,7 @@ from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
 from .config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
-from .decoding import DecodeInputs, SceneDecoding
+from .decoding import ColourSolution, DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
 from .free_space import SeeThroughHistory
@@ -415,7 +415,7 @@ class Scene:
     def _decode_inputs(self) -> DecodeInputs:
         v = self._voxels
         return DecodeInputs(v.copied_sums(), self.observations_per_view(), self._keyframes.frames(),
-                            v.changed_at[: len(v)].copy())
+                            v.changed_at[: len(v)].copy(), self.frames)
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
@@ -518,7 +518,11 @@ class Scene:
                   "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
                   "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames],
                   "model": {"setting": self.config.model, "sha256": self.model_sha256}}
-        return header, self._snapshot_arrays()
+        arrays = self._snapshot_arrays()
+        solution = self._decoding.solution
+        if solution is not None:  # not in the digest: decodes made it of the state, and they may differ in when
+            arrays |= {f"colour_solution.{k}": v for k, v in solution.to_arrays().items()}
+        return header, arrays
 
     def _encode(self, header: dict, arrays: dict[str, np.ndarray]) -> bytes:
         for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
@@ -571,6 +575,9 @@ class Scene:
                                                  {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})
+        if "colour_solution.rows" in npz.files:
+            scene._decoding.solution = ColourSolution.from_arrays(
+                {k[len("colour_solution."):]: npz[k] for k in npz.files if k.startswith("colour_solution.")})
         return scene
 
     @classmethod

@@ -1,4 +1,4 @@
-"""solve_colours: the least-squares equations against a dense solve, invariants and errors."""
+"""solve_colours and colour_offsets: the least-squares equations against a dense solve, invariants and errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.decode import colour_system, solve_colours
+from canonical_core.decode import colour_offsets, colour_system, solve_colours, with_colour_offsets
 from canonical_core.decode.colour_solve import _sh_normal, _sh_rmatmul
 from canonical_core.gaussians.container import SH_C0
 from canonical_core.rendering.sh import SH_C1, sh_basis, sh_basis_at_points
@@ -226,3 +226,32 @@ def test_bad_arguments_name_the_field(scene, kwargs, field):
     arguments = {"views": views_of(g, cameras[:1])} | kwargs
     with pytest.raises(ValueError, match=field):
         solve_colours(g, **arguments)
+
+
+def test_offsets_are_what_solve_colours_adds(scene):
+    g, cameras = scene
+    views = views_of(g, cameras, shift=0.1)
+    offsets = colour_offsets(g, views)
+    assert offsets.shape == (len(g), 4, 3) and offsets.abs().max() > 0.05
+    assert torch.equal(with_colour_offsets(g, offsets).sh, solve_colours(g, views).sh)
+
+
+def test_a_warm_start_goes_on_from_where_it_starts(scene):
+    g, cameras = scene
+    views = views_of(g, cameras, shift=0.1)
+    converged = colour_offsets(g, views, iterations=200)
+    # from the solution, a step stays there; from zero, one step is far from it
+    assert (colour_offsets(g, views, converged, iterations=1) - converged).abs().max() < 1e-4
+    assert (colour_offsets(g, views, iterations=1) - converged).abs().max() > 1e-2
+    # from a part-way answer, 3 steps go on: closer than 3 steps from zero, about as close as 6 from zero
+    part_way = colour_offsets(g, views, iterations=3)
+    error = {name: float((x - converged).norm()) for name, x in (
+        ("warm", colour_offsets(g, views, part_way, iterations=3)), ("cold 3", part_way),
+        ("cold 6", colour_offsets(g, views, iterations=6)))}
+    assert error["warm"] < 0.5 * error["cold 3"] and error["warm"] < 2 * error["cold 6"], error
+
+
+def test_a_warm_start_of_the_wrong_shape_is_named(scene):
+    g, cameras = scene
+    with pytest.raises(ValueError, match=r"^initial: expected shape \[60, 4, 3\], got \[60, 1, 3\]"):
+        colour_offsets(g, views_of(g, cameras[:1]), torch.zeros(len(g), 1, 3))

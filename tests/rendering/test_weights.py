@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from canonical_core.rendering import render
 from canonical_core.rendering.projection import channel_values
-from canonical_core.rendering.weights import blend_weights
+from canonical_core.rendering.weights import blend_weight_rows, blend_weights
 
 from .scenes import gaussians_at, look_at_camera, pinhole, random_scene
 
@@ -70,3 +71,59 @@ def test_bad_arguments_name_the_field(scene):
         blend_weights(g, camera, backend="gpu")
     with pytest.raises(ValueError, match="min_weight"):
         blend_weights(g, camera, min_weight=-1.0)
+
+
+def row_entries(rows, num_pixels: int) -> torch.Tensor:  # [P, 2]: (pixel, id) of each entry, in row order
+    pixels = torch.repeat_interleave(torch.arange(num_pixels), torch.from_numpy(np.diff(rows.starts.astype(np.int64))))
+    return torch.stack([pixels, torch.from_numpy(rows.ids).long()], 1)
+
+
+@pytest.mark.parametrize("normalised_from", [None, 0.5])
+def test_rows_hold_the_weights_of_each_pixel_front_to_back(scene, normalised_from):
+    g, camera = scene
+    num_pixels = camera.height * camera.width
+    w = blend_weights(g, camera)
+    rows = blend_weight_rows(g, camera, normalised_from)
+    assert rows.starts.dtype == np.int32 and rows.ids.dtype == np.int32 and rows.scale.shape == (num_pixels,)
+    alpha = torch.zeros(num_pixels, dtype=torch.float64).index_add_(0, w.pixels, w.weights.double())
+    kept = torch.ones(num_pixels, dtype=torch.bool) if normalised_from is None else alpha >= normalised_from
+    assert 0.05 < kept.float().mean() <= 1.0
+    expected = dense(w, camera, len(g)) * torch.where(kept, 1 / alpha.clamp_min(1e-12) if normalised_from else 1.0, 0.0)[:, None]
+    got = torch.zeros_like(expected).index_put_(tuple(row_entries(rows, num_pixels).T), torch.from_numpy(rows.weights).double())
+    assert (got - expected).abs().max() < 1e-6
+    assert np.allclose(rows.scale, np.where(kept, 1 / alpha.clamp_min(1e-12), 0.0) if normalised_from else 1.0)
+    # within a row the entries keep the compositing order: the same Gaussians as blend_weights lists them
+    for p in torch.nonzero(kept).flatten()[:50].tolist():
+        assert rows.ids[rows.starts[p]:rows.starts[p + 1]].tolist() == w.ids[w.pixels == p].tolist()
+
+
+@pytest.mark.parametrize("normalised_from", [None, 0.5])
+def test_fast_rows_equal_the_reference_rows(scene, normalised_from):
+    g, camera = scene
+    fast = blend_weight_rows(g, camera, normalised_from, backend="cpu")
+    reference = blend_weight_rows(g, camera, normalised_from, backend="reference")
+    num_pixels = camera.height * camera.width
+    assert len(fast.ids) > 1000
+
+    def matrix(rows):
+        return torch.zeros(num_pixels, len(g), dtype=torch.float64).index_put_(
+            tuple(row_entries(rows, num_pixels).T), torch.from_numpy(rows.weights).double(), accumulate=True)
+
+    assert (matrix(fast) - matrix(reference)).abs().max() < 1e-5
+    assert np.allclose(fast.scale, reference.scale, rtol=1e-5)
+
+
+def test_rows_of_a_scene_behind_the_camera_are_empty():
+    g = gaussians_at([[0, 0, -2]], [[0.1] * 3], [0.9], [[1, 1, 1]])
+    for backend in ("cpu", "reference"):
+        rows = blend_weight_rows(g, pinhole(16, 16, 10.0, 7.5, 7.5), 0.5, backend=backend)
+        assert len(rows.ids) == 0 and not rows.starts.any() and not rows.scale.any()
+
+
+def test_rows_name_a_bad_normalisation(scene):
+    g, camera = scene
+    for bad in (0.0, -1.0, True, "0.5"):
+        with pytest.raises(ValueError, match="^normalised_from: expected a positive alpha or None"):
+            blend_weight_rows(g, camera, bad)
+    with pytest.raises(ValueError, match="backend"):
+        blend_weight_rows(g, camera, backend="gpu")

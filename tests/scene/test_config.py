@@ -32,6 +32,7 @@ BOUNDS = {
     "feature_dim": (int, 1, 512, False),
     "colour_solve_views": (int, 0, 64, False),
     "colour_solve_scale": (float, 0.0, 1.0, True),
+    "colour_solve_refresh": (int, 1, 1_000_000, False),
     "sensor.sigma0": (float, 0.0, 10.0, False),
     "sensor.sigma2": (float, 0.0, 10.0, False),
     "sensor.sigma_ref": (float, 0.0, 1e5, False),

@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from canonical_core import SceneConfig
-from canonical_core.decode import solve_colours
+from canonical_core.decode import colour_offsets, solve_colours, with_colour_offsets
 from canonical_core.frame import resize_frame
 from canonical_core.scene import Scene
+from canonical_core.scene.decoding import REFRESH_ITERATIONS, decoded_rows
 from canonical_core.scene.keyframes import Keyframes
 
 from ..conftest import make_frame
@@ -85,7 +86,9 @@ def test_decode_solves_colours_against_the_kept_views(small):
     for name in ("means", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(got, name)), name
     assert not torch.equal(plain.decode().sh, got.sh)
-    assert solving.memory_bytes() == plain.memory_bytes() + sum(k.rgb.numel() for k in kept)
+    solution = solving._decoding.solution  # kept: later decodes start from it
+    assert solution.frames == 4 and np.array_equal(solution.rows, np.sort(solution.rows)) and len(solution.rows) == len(got)
+    assert solving.memory_bytes() == plain.memory_bytes() + sum(k.rgb.numel() for k in kept) + solution.nbytes()
 
 
 @pytest.mark.realdata
@@ -129,3 +132,68 @@ def test_a_frame_that_fails_to_fold_is_not_kept(small):
     with pytest.raises(ValueError, match="max_voxels"):  # the second frame would need more voxels
         scene.fold(small[3])
     assert scene._keyframes.indices == [0]
+
+
+def rows_of(scene: Scene) -> np.ndarray:  # the voxel rows a full decode of the scene turns into Gaussians
+    return decoded_rows(scene.decode_inputs().sums, 0.0, scene.config).rows
+
+
+@pytest.mark.realdata
+def test_decodes_reuse_the_solution_until_refresh_frames_were_folded(small):
+    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=2))
+    plain = Scene(SceneConfig(voxel_size=0.008))
+    for f in small[:2]:
+        solving.fold(f)
+        plain.fold(f)
+    solving.decode()
+    first = solving._decoding.solution
+    assert first.frames == 2
+    solving.fold(small[2])
+    plain.fold(small[2])
+    got, base, rows = solving.decode(), plain.decode(), rows_of(solving)
+    assert solving._decoding.solution is first  # one frame since: the same solution, on the rows it solved
+    assert torch.equal(got.sh, with_colour_offsets(base, first.at(rows)).sh)
+    new = ~np.isin(rows, first.rows)
+    assert new.sum() > 100 and torch.equal(got.sh[torch.from_numpy(new)], base.sh[torch.from_numpy(new)])
+    solving.fold(small[3])  # two frames since: solved again, from the last solution
+    plain.fold(small[3])
+    got, base, rows = solving.decode(), plain.decode(), rows_of(solving)
+    second = solving._decoding.solution
+    assert second.frames == 4 and np.array_equal(second.rows, rows)
+    expected = colour_offsets(base, solving._keyframes.frames(), first.at(rows), iterations=REFRESH_ITERATIONS)
+    assert torch.equal(second.offsets, expected) and torch.equal(got.sh, with_colour_offsets(base, expected).sh)
+
+
+@pytest.mark.realdata
+def test_a_partial_decode_leaves_the_solution_alone(small):
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=1))
+    scene.fold(small[0])
+    scene.decode()
+    solution = scene._decoding.solution
+    scene.fold(small[1])  # a solve is due, but a level of detail or a support floor does not replace it
+    assert len(scene.decode(max_gaussians=200)) == 200 and len(scene.decode(min_support=1.0)) > 0
+    assert scene._decoding.solution is solution
+    scene.decode()
+    assert scene._decoding.solution.frames == 2
+
+
+@pytest.mark.realdata
+def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(small, tmp_path):
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=4),
+                  undo_depth=2)
+    for f in small[:2]:
+        scene.fold(f)
+    digest = scene.digest()
+    scene.decode()
+    assert scene.digest() == digest
+    scene.fold(small[2])  # the stored solution is a frame old: a restored scene must reuse it, not solve afresh
+    scene.save(tmp_path / "scene.cgs")
+    loaded = Scene.load(tmp_path / "scene.cgs")
+    assert loaded._decoding.solution.frames == 2 and np.array_equal(loaded._decoding.solution.rows, scene._decoding.solution.rows)
+    assert torch.equal(loaded.decode().sh, scene.decode().sh)
+    plain = Scene(SceneConfig(voxel_size=0.008))
+    for f in small[:3]:
+        plain.fold(f)
+    assert not torch.equal(loaded.decode().sh, solve_colours(plain.decode(), loaded._keyframes.frames()).sh)
+    scene.rollback(2)  # the state the solution was made of is gone (rows may be renumbered): so is the solution
+    assert scene._decoding.solution is None
