@@ -65,6 +65,10 @@ log = logging.getLogger("canonical.store")
 # the frame log's appends (digest, write, fsync) run here while their frames fold: one writer per job
 # that can fold at a time is enough (a session's appends are ordered by its lock)
 LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
+# colour re-solves of sessions that keep views (`SceneConfig.colour_solve_refresh`) run here, not in the
+# render that found one due: that render shows the last solution. One at a time: each is seconds of
+# work on every core, and folds and renders share those cores
+COLOUR_SOLVES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="colour-solve")
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
@@ -585,11 +589,12 @@ class Session:
 
     # -- reading --------------------------------------------------------------------------------
     def gaussians(self, max_gaussians: int | None = None) -> tuple[Gaussians, int]:
-        """Decoded Gaussians (`Scene.gaussians`: decoded once per change) and their label_dim."""
+        """Decoded Gaussians (`Scene.gaussians`: decoded once per change; colour re-solves run on
+        `COLOUR_SOLVES`) and their label_dim."""
         with self.lock:
             self._check_alive()
             scene = self.scene
-        g = scene.gaussians(max_gaussians)
+        g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
 
     @property

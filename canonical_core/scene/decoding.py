@@ -18,7 +18,8 @@ Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one sc
 from __future__ import annotations
 
 import threading
-from typing import NamedTuple
+from concurrent.futures import Executor, Future
+from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
@@ -181,6 +182,8 @@ class SceneDecoding:
         self._rows: DecodedRows | None = None
         self._gaussians: dict = {}  # (level of detail, decoder key) -> Gaussians of the current state
         self.solution: ColourSolution | None = None  # the colour solve's last answer (snapshots keep it)
+        self.pending: Future | None = None  # a re-solve running on a caller's executor (`decode_locked`)
+        self._epoch = 0  # bumped by `reset`: a re-solve started on the replaced state is not kept
 
     def key(self) -> tuple:
         """What a row's decode depends on besides its sums: the decoder's parameters and clamps."""
@@ -207,6 +210,7 @@ class SceneDecoding:
         self._rows = None
         self._gaussians.clear()
         self.solution = None
+        self._epoch += 1
 
     # -- decoding -----------------------------------------------------------------------------
     def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
@@ -215,9 +219,11 @@ class SceneDecoding:
         with self.lock:  # decodes of one scene take turns: they share the decoded rows
             return self.decode_locked(inputs, max_gaussians, min_support)
 
-    def decode_locked(self, inputs: DecodeInputs, max_gaussians: int | None = None,
-                      min_support: float = 0.0) -> Gaussians:
-        """`decode`, for a caller that holds `lock`."""
+    def decode_locked(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
+                      solver: tuple[Executor, Callable[[], None]] | None = None) -> Gaussians:
+        """`decode`, for a caller that holds `lock`. With ``solver`` (an executor, and what to call once
+        a re-solve has landed there), a colour re-solve that falls due runs on the executor: this
+        decode, and those until it lands, show the last solution (`_colour_offsets`)."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
@@ -235,23 +241,44 @@ class SceneDecoding:
         gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep))
         if not inputs.views:
             return gaussians
-        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, keep, inputs, whole))
+        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, keep, inputs, whole, solver))
 
-    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, inputs: DecodeInputs, whole: bool) -> torch.Tensor:
+    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, inputs: DecodeInputs, whole: bool,
+                        solver: tuple[Executor, Callable[[], None]] | None) -> torch.Tensor:
         """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
         is fresh (fewer than `SceneConfig.colour_solve_refresh` frames folded since) and for a decode
         of part of the scene (a level of detail or a support floor, which never replaces the whole
-        scene's solution); else solved, from the last solution where there is one, and kept."""
+        scene's solution); else solved, from the last solution where there is one, and kept. With a
+        ``solver``, that re-solve runs there and this decode shows the last solution; the first solve
+        of a scene runs here, so a scene is never shown unsolved."""
         solution = self.solution
         if solution is not None and (not whole or inputs.frames - solution.frames < self.config.colour_solve_refresh):
             return solution.at(rows)
         if solution is None:
             offsets = colour_offsets(gaussians, inputs.views)
+        elif solver is not None:
+            if self.pending is None or self.pending.done():
+                executor, landed = solver
+                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(inputs.views),
+                                               solution.at(rows), inputs.frames, self._epoch, landed)
+            return solution.at(rows)
         else:
             offsets = colour_offsets(gaussians, inputs.views, solution.at(rows), iterations=REFRESH_ITERATIONS)
         if whole:
             self.solution = ColourSolution(rows.copy(), offsets, inputs.frames)
         return offsets
+
+    def _resolve(self, gaussians: Gaussians, rows: np.ndarray, views: list[Frame], initial: torch.Tensor,
+                 frames: int, epoch: int, landed: Callable[[], None]) -> None:
+        """A re-solve on an executor: kept unless the state was replaced meanwhile (`reset`) or a newer
+        solution is there; then ``landed`` (the scene drops its decoded Gaussians, so the next
+        request decodes again with it)."""
+        offsets = colour_offsets(gaussians, views, initial, iterations=REFRESH_ITERATIONS)
+        with self.lock:
+            if epoch != self._epoch or (self.solution is not None and self.solution.frames >= frames):
+                return
+            self.solution = ColourSolution(rows, offsets, frames)
+        landed()
 
     def _shapes_and_colours(self, inputs: DecodeInputs, rows: np.ndarray) -> dict[str, torch.Tensor | None]:
         """`GaussianDecoder.shapes_and_colours` of ``rows``: reused from an earlier decode for the rows

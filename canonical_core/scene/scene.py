@@ -18,6 +18,7 @@ import json
 import os
 import threading
 import time
+from concurrent.futures import Executor, Future
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -435,11 +436,17 @@ class Scene:
         """
         return self._decoding.decode(inputs, max_gaussians, min_support)
 
-    def gaussians(self, max_gaussians: int | None = None) -> Gaussians:
+    def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None) -> Gaussians:
         """`decode(max_gaussians)` of the scene as it is now, decoded once per change: until the next
         fold, later calls (from any thread) return the same Gaussians. Concurrent calls on an
         unchanged scene decode once; the decode holds the scene's lock only to copy its sums, so
-        folds go on meanwhile, and a decode that a fold overtook answers its caller but is not kept."""
+        folds go on meanwhile, and a decode that a fold overtook answers its caller but is not kept.
+
+        With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve_refresh`)
+        runs on that executor (on another thread: it takes the decode lock this call holds) instead of
+        in this call, which shows the last solution meanwhile; once it lands, the next call decodes
+        with it (`colour_solve_pending` is its future). A service does so, so that a render never
+        waits for a re-solve."""
         with self._lock:
             hit = self._decoding.cached(self._lod(max_gaussians))
         if hit is not None:
@@ -451,11 +458,21 @@ class Scene:
                 if hit is not None:
                     return hit
                 inputs, generation = self._decode_inputs(), self._generation
-            gaussians = self._decoding.decode_locked(inputs, lod)
+            solver = (colour_solver, self._forget_decoded) if colour_solver is not None else None
+            gaussians = self._decoding.decode_locked(inputs, lod, solver=solver)
             with self._lock:
                 if self._generation == generation:
                     self._decoding.keep(lod, gaussians)
             return gaussians
+
+    def _forget_decoded(self) -> None:
+        """A colour re-solve landed: the decoded Gaussians kept for this state show the last one."""
+        with self._lock:
+            self._decoding.forget()
+
+    def colour_solve_pending(self) -> Future | None:
+        """The future of the last colour re-solve that `gaussians` started on its ``colour_solver``."""
+        return self._decoding.pending
 
     def _lod(self, max_gaussians: int | None) -> int | None:
         """The level of detail ``max_gaussians`` means now: None when it leaves out nothing."""

@@ -15,7 +15,8 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.datasets import load_tsdf_fusion
-from canonical_core.decode import solve_colours
+from canonical_core.decode import solve_colours, with_colour_offsets
+from canonical_core.scene.decoding import decoded_rows
 from client.cli import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
@@ -67,6 +68,27 @@ def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
     assert session.stats()["gaussians"] == len(g)
     fewer, _ = session.gaussians(max_gaussians=len(g) // 2)
     assert len(fewer) == len(g) // 2 and same(fewer, session.scene.decode(len(g) // 2))
+
+
+@pytest.mark.realdata
+def test_a_colour_re_solve_runs_off_the_render_and_the_next_render_shows_it(store, shelf_frames):
+    session = store.create(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_refresh=1))
+    for frame in shelf_frames[:2]:
+        fold(session, frame)
+    session.gaussians()  # the first solve, in the call
+    first = session.scene._decoding.solution
+    fold(session, shelf_frames[2])
+    shown, _ = session.gaussians()  # a re-solve is due: it goes to the colour-solve thread
+    pending = session.scene.colour_solve_pending()
+    assert pending is not None
+    inputs = session.scene.decode_inputs()
+    fused = session.scene.decode_from(inputs._replace(views=[]))
+    rows = decoded_rows(inputs.sums, 0.0, session.config).rows
+    assert same(shown, with_colour_offsets(fused, first.at(rows)))  # the render showed the last solution
+    pending.result(timeout=300)
+    assert session.scene._decoding.solution.frames == 3
+    landed, _ = session.gaussians()
+    assert not same(landed, shown) and same(landed, session.scene.decode())
 
 
 @pytest.mark.realdata
