@@ -65,10 +65,29 @@ log = logging.getLogger("canonical.store")
 # the frame log's appends (digest, write, fsync) run here while their frames fold: one writer per job
 # that can fold at a time is enough (a session's appends are ordered by its lock)
 LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
-# colour re-solves of sessions that keep views (`SceneConfig.colour_solve_refresh`) run here, not in the
-# render that found one due: that render shows the last solution. One at a time: each is seconds of
-# work on every core, and folds and renders share those cores
-COLOUR_SOLVES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="colour-solve")
+
+
+class ColourSolves(ThreadPoolExecutor):
+    """The colour re-solves of sessions that keep views (`SceneConfig.colour_solve_refresh`): they run
+    here, not in the render that found one due, which shows the last solution. One at a time: each
+    is seconds of work on every core, and folds and renders share those cores. A re-solve that
+    fails is logged (the next render that finds one due starts another)."""
+
+    def __init__(self):
+        super().__init__(max_workers=1, thread_name_prefix="colour-solve")
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = super().submit(fn, *args, **kwargs)
+        future.add_done_callback(_log_failure)
+        return future
+
+
+def _log_failure(future) -> None:
+    if future.exception() is not None:
+        log.error("colour re-solve failed", exc_info=future.exception())
+
+
+COLOUR_SOLVES = ColourSolves()
 
 META, LOG, SNAPSHOT, QUARANTINE, LOCK = "meta.json", "frames.log", "scene.snap", "quarantine", ".lock"
 BASE, BASE_META = "base.snap", "base.json"  # a corrected stream's state at a frame count before its end
