@@ -304,7 +304,7 @@ def blend_weight_rows(
     ``"normalised"`` render shows the pixel, and rows whose alpha is below it are left empty.
 
     The fast path writes the rows straight from the compositing kernel's per-tile slots (two
-    passes over them, tiles in parallel); the reference sorts `blend_weights` of its backend.
+    passes over them, tiles in parallel); the reference sorts the reference `blend_weights` by pixel.
 
     Example (one Gaussian of opacity 0.8 straight ahead, its centre on pixel (8, 8)):
         >>> from canonical_core.camera import Camera
