@@ -5,7 +5,10 @@
  * where q <= support and alpha >= 1/255, front to back, with a stop before the splat that would
  * take the transmittance below 1e-4. Besides the sums, when asked (a non-NULL out_median_depth),
  * each pixel records its median depth: the depth of the splat at which its transmittance first
- * falls below 1/2. The transmittance is a float32 product (the reference's is a
+ * falls below 1/2. In the weights mode (canonical_tile_weights) nothing is summed: each pixel's
+ * weight alpha T of each splat, at least min_weight, is written out instead, in blend order (the
+ * rows of a least-squares fit to an image: rendering/weights.py). The transmittance is a float32
+ * product (the reference's is a
  * float64 cumprod; over the tens of layers a pixel blends they differ by about 1e-7, and float64
  * here cost two conversions and a split into 4-lane halves per 8-pixel step).
  *
@@ -113,6 +116,12 @@ typedef struct {
     int64_t max_tile_splats;
     int64_t next_tile; /* shared work counter: tiles differ a lot in cost, so hand them out one at a time */
     int failed;
+    /* the weights mode (out_ids non-NULL): each tile's entries go to its slots from slot_starts[tile] */
+    float min_weight;
+    const int64_t *slot_starts;
+    int32_t *out_pixels, *out_ids;
+    float *out_weights;
+    int64_t *out_counts;
 } Job;
 
 /* Per-thread scratch, sized for the largest tile. */
@@ -120,7 +129,7 @@ typedef struct {
     uint32_t *keys, *keys_out;
     int32_t *order, *order_out;
     float *records, *values, *accum;
-    int32_t *boxes;
+    int32_t *boxes, *splat_of; /* splat_of: each depth-ordered record's splat index */
 } Scratch;
 
 static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
@@ -134,7 +143,8 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
         int64_t i = ids[order[k]];
         memcpy(s->records + k * RECORD, job->splats + i * RECORD, RECORD * sizeof(float));
         memcpy(s->boxes + k * 4, job->boxes + i * 4, 4 * sizeof(int32_t));
-        memcpy(s->values + k * channels, job->values + i * channels, channels * sizeof(float));
+        if (channels) memcpy(s->values + k * channels, job->values + i * channels, channels * sizeof(float));
+        s->splat_of[k] = (int32_t)i;
     }
     const int64_t u0 = (tile % job->tiles_x) * TILE, v0 = (tile / job->tiles_x) * TILE;
     const int64_t u1 = u0 + TILE < job->width ? u0 + TILE : job->width;
@@ -156,6 +166,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     if (track_median) memset(median_depth, 0, sizeof median_depth);
     memset(accum, 0, channels * TILE_PIXELS * sizeof(float));
     int64_t active = (u1 - u0) * (v1 - v0);
+    int64_t slot = job->out_ids ? job->slot_starts[tile] : 0;
     const v8f lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
 
@@ -221,6 +232,18 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 const v8f weight = (v8f)(mask & (v8i)(alpha * t));
                 t = select8(mask, next, t);
                 memcpy(transmittance + p, &t, sizeof t);
+                if (job->out_ids) {
+                    for (int bits = lanes8(mask); bits; bits &= bits - 1) {
+                        const int l = __builtin_ctz(bits);
+                        if (weight[l] >= job->min_weight) {
+                            job->out_pixels[slot] = (int32_t)((v0 + row) * job->width + u0 + block * LANES + l);
+                            job->out_ids[slot] = s->splat_of[k];
+                            job->out_weights[slot] = weight[l];
+                            slot++;
+                        }
+                    }
+                    continue;
+                }
                 if (channels <= PLANAR_MAX) {
                     for (int64_t ch = 0; ch < channels; ch++) {
                         float *sum = accum + ch * TILE_PIXELS + p;
@@ -247,6 +270,10 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             }
         }
     }
+    if (job->out_ids) {
+        job->out_counts[tile] = slot - job->slot_starts[tile];
+        return;
+    }
     for (int64_t v = v0; v < v1; v++) {
         for (int64_t u = u0; u < u1; u++) {
             const int64_t p = (v - v0) * TILE + (u - u0), pixel = v * job->width + u;
@@ -270,8 +297,9 @@ static void *worker(void *arg) {
         malloc(m * sizeof(uint32_t)), malloc(m * sizeof(uint32_t)), malloc(m * sizeof(int32_t)),
         malloc(m * sizeof(int32_t)), malloc(m * RECORD * sizeof(float)), malloc((m * job->channels + 1) * sizeof(float)),
         aligned_alloc(32, (job->channels * TILE_PIXELS + LANES) * sizeof(float)), malloc(m * 4 * sizeof(int32_t)),
+        malloc(m * sizeof(int32_t)),
     };
-    if (s.keys && s.keys_out && s.order && s.order_out && s.records && s.values && s.accum && s.boxes) {
+    if (s.keys && s.keys_out && s.order && s.order_out && s.records && s.values && s.accum && s.boxes && s.splat_of) {
         int64_t tile;
         while ((tile = __atomic_fetch_add(&job->next_tile, 1, __ATOMIC_RELAXED)) < job->num_tiles)
             blend_tile(job, tile, &s);
@@ -279,8 +307,24 @@ static void *worker(void *arg) {
         __atomic_store_n(&job->failed, 1, __ATOMIC_RELAXED);
     }
     free(s.keys); free(s.keys_out); free(s.order); free(s.order_out);
-    free(s.records); free(s.values); free(s.accum); free(s.boxes);
+    free(s.records); free(s.values); free(s.accum); free(s.boxes); free(s.splat_of);
     return NULL;
+}
+
+/* Run `job` on `num_threads` threads (the calling one among them). Returns 0, or -1 if memory ran out. */
+static int run_job(Job *job, int64_t num_threads) {
+    for (int64_t t = 0; t < job->num_tiles; t++) {
+        int64_t count = job->tile_starts[t + 1] - job->tile_starts[t];
+        if (count > job->max_tile_splats) job->max_tile_splats = count;
+    }
+    if (num_threads < 1) num_threads = 1;
+    pthread_t threads[num_threads];
+    int64_t started = 0;
+    for (; started < num_threads - 1; started++)
+        if (pthread_create(&threads[started], NULL, worker, job) != 0) break;
+    worker(job);
+    for (int64_t t = 0; t < started; t++) pthread_join(threads[t], NULL);
+    return job->failed ? -1 : 0;
 }
 
 /* Composite every tile on `num_threads` threads. Returns 0, or -1 if memory ran out. */
@@ -291,18 +335,20 @@ int canonical_composite_tiles(const int64_t *tile_starts, int64_t num_tiles, con
                               float *out_median_depth, int64_t num_threads) {
     Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, channels, tiles_x, width, height,
                out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth, 0, 0, 0};
-    for (int64_t t = 0; t < num_tiles; t++) {
-        int64_t count = tile_starts[t + 1] - tile_starts[t];
-        if (count > job.max_tile_splats) job.max_tile_splats = count;
-    }
-    if (num_threads < 1) num_threads = 1;
-    pthread_t threads[num_threads];
-    int64_t started = 0;
-    for (; started < num_threads - 1; started++)
-        if (pthread_create(&threads[started], NULL, worker, &job) != 0) break;
-    worker(&job); /* the calling thread works too */
-    for (int64_t t = 0; t < started; t++) pthread_join(threads[t], NULL);
-    return job.failed ? -1 : 0;
+    return run_job(&job, num_threads);
+}
+
+/* The weights mode: per tile, the entries (pixel v * width + u, splat index, weight >= min_weight) in
+ * blend order into the slots from slot_starts[tile] (room for one per pixel of each splat's box in
+ * the tile), and their number into out_counts[tile]. Returns 0, or -1 if memory ran out. */
+int canonical_tile_weights(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
+                           const float *splats, const int32_t *boxes, int64_t tiles_x, int64_t width,
+                           int64_t height, float min_weight, const int64_t *slot_starts, int32_t *out_pixels,
+                           int32_t *out_ids, float *out_weights, int64_t *out_counts, int64_t num_threads) {
+    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, NULL, 0, tiles_x, width, height,
+               NULL, NULL, NULL, NULL, NULL, 0, 0, 0, min_weight, slot_starts, out_pixels, out_ids, out_weights,
+               out_counts};
+    return run_job(&job, num_threads);
 }
 
 /* The stable depth order of n positive depths into out_order (for tests). Returns 0, or -1 if

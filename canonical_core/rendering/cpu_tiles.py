@@ -90,6 +90,9 @@ def load_compositor(name: str) -> ctypes.CDLL:
         size, size, size, pointer, pointer, pointer, pointer, pointer, size
     ]
     library.canonical_composite_tiles.restype = ctypes.c_int
+    library.canonical_tile_weights.argtypes = [pointer, size, pointer, pointer, pointer, size, size, size,
+                                               ctypes.c_float, pointer, pointer, pointer, pointer, pointer, size]
+    library.canonical_tile_weights.restype = ctypes.c_int
     library.canonical_stable_depth_order.argtypes = [pointer, size, pointer]
     library.canonical_stable_depth_order.restype = ctypes.c_int
     library.canonical_cpu_has_x86_64_v3.argtypes = []
@@ -163,6 +166,39 @@ def composite_tiles(
     )  # fmt: skip
     if status:
         raise MemoryError("composite_tiles: out of memory for the per-thread tile buffers")
+
+
+def composite_weights(
+    tile_starts: np.ndarray,  # [T + 1] int64
+    splat_ids: np.ndarray,  # [K] int32, per tile in input order
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba
+    boxes: np.ndarray,  # [N, 4] int32
+    tiles_x: int,
+    width: int,
+    height: int,
+    min_weight: float,
+    slot_starts: np.ndarray,  # [T] int64 where each tile's entries go (room for each splat's box pixels in it)
+    out_pixels: np.ndarray,  # [B] int32 written: v * width + u
+    out_ids: np.ndarray,  # [B] int32 written: the splat (record) index
+    out_weights: np.ndarray,  # [B] float32 written: alpha T, at least min_weight
+    out_counts: np.ndarray,  # [T] int64 written: entries of each tile
+    num_threads: int,
+) -> None:
+    """The compositor's weights mode: each tile blended as `composite_tiles` blends it, but instead
+    of sums, every (pixel, splat) weight alpha T >= ``min_weight`` written out in blend order (a
+    splat's pixels row by row, splats front to back)."""
+    if splats.shape[1] != SPLAT_RECORD:
+        raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
+    status = _compositor.canonical_tile_weights(
+        _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
+        _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
+        _address(boxes, np.int32, "boxes"), tiles_x, width, height, min_weight,
+        _address(slot_starts, np.int64, "slot_starts"), _address(out_pixels, np.int32, "out_pixels"),
+        _address(out_ids, np.int32, "out_ids"), _address(out_weights, np.float32, "out_weights"),
+        _address(out_counts, np.int64, "out_counts"), num_threads,
+    )  # fmt: skip
+    if status:
+        raise MemoryError("composite_weights: out of memory for the per-thread tile buffers")
 
 
 def _float32(t: Tensor) -> np.ndarray:

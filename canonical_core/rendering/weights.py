@@ -4,8 +4,8 @@
 A render is linear in the per-Gaussian values given these weights (colour(p) = sum_i w_i(p) c_i),
 so they are the matrix of any least-squares fit of Gaussian values to images
 (`canonical_core.decode.solve_colours`). The reference takes them from the PyTorch compositor's
-tiles; the fast path is a numba kernel over the cpu backend's projection and tile bins, with the
-same image model (`splat_geometry`): both agree to float rounding.
+tiles; the fast path is the C compositor's weights mode over the cpu backend's projection and tile
+bins (the render's own arithmetic): both agree to float rounding.
 """
 
 from __future__ import annotations
@@ -19,12 +19,10 @@ from torch import Tensor
 
 from ..camera import Camera
 from ..gaussians import Gaussians
-from .cpu_tiles import bin_splats_by_tile, project_records, stable_depth_order
+from .cpu_tiles import bin_splats_by_tile, composite_weights, project_records
 from .projection import project_splats
 from .reference import tiles, tile_weights
-from .splat_geometry import (
-    CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, OPACITY, SUPPORT, TILE_SIZE, U, V,
-)  # fmt: skip
+from .splat_geometry import TILE_SIZE
 
 WeightsBackend = Literal["reference", "cpu"]
 
@@ -73,64 +71,6 @@ def _tile_bounds(
             total += max(du, 0) * max(dv, 0)
         bounds[tile] = total
     return bounds
-
-
-@numba.njit(parallel=True, cache=True)
-def _tile_weights_numba(
-    tile_starts: np.ndarray,  # [T + 1] int64
-    splat_ids: np.ndarray,  # [K] int32 per tile, front to back
-    splats: np.ndarray,  # [N, SPLAT_RECORD] float32, in depth order
-    boxes: np.ndarray,  # [N, 4] int32
-    gaussian_ids: np.ndarray,  # [N] int32 the Gaussian of each splat record
-    tiles_x: int,
-    width: int,
-    height: int,
-    min_weight: float,
-    starts: np.ndarray,  # [T] int64 where each tile's entries may start (`_tile_bounds` apart)
-    out_pixels: np.ndarray,  # [E] int32
-    out_ids: np.ndarray,  # [E] int32
-    out_weights: np.ndarray,  # [E] float32
-    counts: np.ndarray,  # [T] int64 entries written per tile
-) -> None:
-    """Per tile, the splats front to back as the C compositor blends them (float32 alpha, float64
-    transmittance, a pixel stops before T < 1e-4); writes the weights >= min_weight. Splat-outer,
-    as the compositor: each splat visits only its box's pixels in the tile (a pixel-outer loop
-    would test every splat of the tile at every pixel)."""
-    for tile in numba.prange(tile_starts.shape[0] - 1):
-        u0, v0 = (tile % tiles_x) * TILE_SIZE, (tile // tiles_x) * TILE_SIZE
-        u1, v1 = min(u0 + TILE_SIZE, width) - 1, min(v0 + TILE_SIZE, height) - 1
-        transmittance = np.ones(TILE_SIZE * TILE_SIZE)  # -1 once a pixel has stopped
-        running = (u1 - u0 + 1) * (v1 - v0 + 1)
-        k = starts[tile]
-        for j in range(tile_starts[tile], tile_starts[tile + 1]):
-            if running == 0:
-                break
-            s = splat_ids[j]
-            r = splats[s]
-            for v in range(max(v0, boxes[s, 2]), min(v1, boxes[s, 3]) + 1):
-                for u in range(max(u0, boxes[s, 0]), min(u1, boxes[s, 1]) + 1):
-                    p = (v - v0) * TILE_SIZE + (u - u0)
-                    t = transmittance[p]
-                    if t < 0.0:
-                        continue
-                    dx, dy = r[U] - np.float32(u), r[V] - np.float32(v)
-                    q = r[CONIC_A] * dx * dx + (r[CONIC_B] + r[CONIC_B]) * dx * dy + r[CONIC_C] * dy * dy
-                    if q > r[SUPPORT]:
-                        continue
-                    alpha = min(r[OPACITY] * np.float32(np.exp(np.float32(-0.5) * q)), np.float32(MAX_ALPHA))
-                    if alpha < np.float32(MIN_ALPHA):
-                        continue
-                    after = t * (1.0 - alpha)
-                    if after < MIN_TRANSMITTANCE:
-                        transmittance[p] = -1.0
-                        running -= 1
-                        continue
-                    weight = alpha * np.float32(t)
-                    transmittance[p] = after
-                    if weight >= min_weight:
-                        out_pixels[k], out_ids[k], out_weights[k] = v * width + u, gaussian_ids[s], weight
-                        k += 1
-        counts[tile] = k - starts[tile]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -195,22 +135,19 @@ def _tile_entries(gaussians: Gaussians, camera: Camera, near_plane: float, min_w
     None when no splat reaches the image."""
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
-    records, boxes = project_records(gaussians, camera, near_plane)
-    # Binning in global stable depth order leaves every tile's list front to back, the order the
-    # compositor sorts each tile into; culled splats (empty boxes) are never binned.
-    order = stable_depth_order(np.ascontiguousarray(np.where(boxes[:, 0] <= boxes[:, 1], records[:, DEPTH], np.float32(np.inf))))
-    records, boxes = np.ascontiguousarray(records[order]), np.ascontiguousarray(boxes[order])
+    records, boxes = project_records(gaussians, camera, near_plane)  # one per Gaussian, in input order
     tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
     if len(splat_ids) == 0:
         return None
-    # One pass into per-tile slots as large as the tile's box pixels (32-bit: half the memory traffic)
+    # One pass of the compositor into per-tile slots as large as the tile's box pixels (32-bit: half the
+    # memory traffic of 64-bit pixels and ids); it sorts each tile front to back as a render does
     bounds = _tile_bounds(tile_starts, splat_ids, boxes, tiles_x)
     starts = np.concatenate([[0], np.cumsum(bounds)[:-1]]).astype(np.int64)
     size = int(bounds.sum())
     pixels, ids, weights = np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.float32)
     counts = np.zeros(len(bounds), np.int64)
-    _tile_weights_numba(tile_starts, splat_ids, records, boxes, order.astype(np.int32), tiles_x, width, height,
-                        min_weight, starts, pixels, ids, weights, counts)
+    composite_weights(tile_starts, splat_ids, records, boxes, tiles_x, width, height, min_weight, starts, pixels,
+                      ids, weights, counts, numba.get_num_threads())
     return starts, counts, pixels, ids, weights
 
 
