@@ -411,6 +411,7 @@ class Session:
                 raise CorrectionRefused("session_id", "a frame or another correction reached the session while this "
                                                       "correction was computed; send it again")
             self._commit_correction(archive, entries, changed, removed | dropped, first)
+            scene.carry_colour_solution(self.scene)
             self.scene = scene
             self._persist_correction()
             self._keep_base(checkpoints)
@@ -467,6 +468,7 @@ class Session:
 
     def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive) -> None:
         """The background re-fold's scene becomes the served one (the caller holds the lock)."""
+        scene.carry_colour_solution(self.scene)
         self.scene, self.version = scene, self.version + 1
         self.frame_ids = archived_frame_ids(archive, self.frame_ids)
         self.background = None

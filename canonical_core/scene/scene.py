@@ -227,6 +227,7 @@ class Scene:
         if not undone:
             return
         target = undone[-1]
+        carried = self._solution_by_key()
         restore_voxels(self._voxels, undone)
         for record in undone:  # newest first: each push's slot back as it was
             for slot in reversed(record.history):
@@ -240,6 +241,7 @@ class Scene:
         self._checkpoints = {c: b for c, b in self._checkpoints.items() if c <= frames}
         self._generation += 1
         self._decoding.reset()
+        self._carry_solution(carried)  # on the voxels that are still there, due for a re-solve
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:
         index, points = self.frames, self._voxels.representative_points
@@ -322,9 +324,15 @@ class Scene:
         first = min(set(poses) | removed)
         frames = list(corrected_stream(self._kept, poses, removed))
         arrivals = [a for k, a in enumerate(self._arrivals) if k not in removed]
+        carried = self._solution_by_key()
         if first >= self._undo.floor(self.frames):
             self._refold_in_place(first, frames, arrivals)
-            return
+        else:
+            self._refold_from_checkpoint(first, frames, arrivals)
+        self._carry_solution(carried)
+
+    def _refold_from_checkpoint(self, first: int, frames: list[Frame], arrivals: list[int]) -> None:
+        """`_refold` past the undo records: from the last checkpoint before ``first``, adopted."""
         start = max((c for c in self._checkpoints if c <= first), default=0)
         base = Scene.from_bytes(self._checkpoints[start]) if start else None
         checkpoints = {c: b for c, b in self._checkpoints.items() if c <= start}
@@ -376,6 +384,37 @@ class Scene:
             raise ValueError("other: a scene with another config")
         with self._decoding.lock, self._lock:
             self._adopt(other)
+
+    def carry_colour_solution(self, other: "Scene") -> None:
+        """Start this scene's colour solve from ``other``'s last solution, where ``other`` is the same
+        stream before a correction: its offsets go to the voxels with the same keys here, and the next
+        decode re-solves from them (`SceneConfig.colour_solve_refresh`) instead of solving from zero.
+        Nothing happens where ``other`` has no solution or this scene keeps no views. A rollback and a
+        correction of this scene (`update_poses`, `remove_frames`) carry its own solution so."""
+        with other._lock:
+            carried = other._solution_by_key()
+        with self._decoding.lock, self._lock:
+            self._carry_solution(carried)
+
+    def _solution_by_key(self) -> tuple[np.ndarray, torch.Tensor] | None:
+        """The colour solution as (voxel keys, offsets), which outlive a re-fold's rows; the caller holds
+        the scene's lock."""
+        solution = self._decoding.solution
+        if solution is None:
+            return None
+        return self._voxels.state["keys"][solution.rows].copy(), solution.offsets
+
+    def _carry_solution(self, carried: tuple[np.ndarray, torch.Tensor] | None) -> None:
+        """`_solution_by_key` of a scene before a correction as this scene's solution, due for a re-solve
+        at the next decode; the caller holds the decode lock and the scene's lock."""
+        if carried is None or not self.config.colour_solve_views:
+            return
+        keys, offsets = carried
+        rows = self._voxels.find(keys).astype(np.int64)
+        found = np.flatnonzero(rows >= 0)
+        order = found[np.argsort(rows[found], kind="stable")]
+        self._decoding.solution = ColourSolution(rows[order], offsets[torch.from_numpy(order)],
+                                                 self.frames - self.config.colour_solve_refresh)
 
     def _adopt(self, other: "Scene") -> None:
         self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front

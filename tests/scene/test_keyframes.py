@@ -197,8 +197,12 @@ def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(smal
     for f in small[:3]:
         plain.fold(f)
     assert not torch.equal(loaded.decode().sh, solve_colours(plain.decode(), loaded._keyframes.frames()).sh)
-    scene.rollback(2)  # the state the solution was made of is gone (rows may be renumbered): so is the solution
-    assert scene._decoding.solution is None
+    solved = scene._decoding.solution
+    scene.rollback(2)  # the solution stays on the voxels that are still there, due for a re-solve
+    carried = scene._decoding.solution
+    assert carried.frames == 2 - scene.config.colour_solve_refresh
+    assert np.array_equal(carried.rows, solved.rows[solved.rows < len(scene)])
+    assert torch.equal(carried.offsets, solved.offsets[torch.from_numpy(solved.rows < len(scene))])
 
 
 class Deferred(Executor):
@@ -255,6 +259,32 @@ def test_a_re_solve_of_a_replaced_state_is_not_kept(small):
     scene.fold(small[1])
     scene.gaussians(colour_solver=solver)
     assert len(solver.jobs) == 1
-    scene.rollback(1)  # rows may be renumbered: the solution and the re-solve in flight are of the old state
+    first = scene._decoding.solution
+    scene.rollback(1)  # the re-solve in flight is of the rolled-back state: it is not kept
     solver.run()
-    assert scene._decoding.solution is None
+    assert scene._decoding.solution.frames == 1 - scene.config.colour_solve_refresh
+    assert torch.equal(scene._decoding.solution.offsets, first.offsets[torch.from_numpy(first.rows < len(scene))])
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("undo_depth", [0, 4])  # re-folded from the start (no undo records), or rolled back in place
+def test_a_correction_carries_the_solution_by_voxel_key_and_the_next_decode_re_solves(small, undo_depth):
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0), keep_frames=True,
+                  undo_depth=undo_depth)
+    for f in small:
+        scene.fold(f)
+    scene.decode()
+    before = scene._decoding.solution
+    offsets_of = dict(zip(scene._voxels.state["keys"][before.rows].tolist(), before.offsets))
+    pose = small[3].camera.c2w64().copy()
+    pose[0, 3] += 0.01
+    scene.update_poses({small[3].frame_id: pose})
+    carried = scene._decoding.solution  # on the re-folded map's rows: each voxel key keeps its offsets
+    assert carried.frames == scene.frames - scene.config.colour_solve_refresh
+    keys = scene._voxels.state["keys"][carried.rows]
+    assert np.array_equal(carried.rows, np.sort(carried.rows)) and len(carried.rows) > 0.8 * len(before.rows)
+    assert all(torch.equal(offset, offsets_of[key]) for key, offset in zip(keys.tolist(), carried.offsets))
+    base, rows = scene.decode_from(scene.decode_inputs()._replace(views=[])), rows_of(scene)
+    expected = colour_offsets(base, scene._keyframes.frames(), carried.at(rows), iterations=REFRESH_ITERATIONS)
+    scene.decode()  # due: re-solved from the carried offsets, not from zero
+    assert scene._decoding.solution.frames == scene.frames and torch.equal(scene._decoding.solution.offsets, expected)

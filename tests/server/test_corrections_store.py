@@ -225,3 +225,27 @@ def test_the_services_undo_setting_reaches_its_sessions_and_their_memory(tmp_pat
             store.close()
     assert undo[0] == 0 and undo[7] > 0
     assert memory[7] == memory[0] + undo[7]  # the records count in the session's memory
+
+
+@pytest.mark.parametrize("undo_depth", [0, store_module.UNDO_DEPTH])  # a new scene re-folded, or rolled back in place
+def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_path, shelf, monkeypatch, undo_depth):
+    monkeypatch.setattr(store_module, "UNDO_DEPTH", undo_depth)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    try:
+        session = store.create(SceneConfig(voxel_size=0.01, colour_solve_views=3, colour_solve_scale=1.0))
+        for kwargs in shelf[:5]:
+            session.add_frame(*payload(kwargs), 1000, 3600)
+        session.gaussians()  # the first solve
+        solved = session.scene._decoding.solution
+        offsets_of = dict(zip(session.scene._voxels.state["keys"][solved.rows].tolist(), solved.offsets))
+        shift = np.zeros((4, 4))
+        shift[:3, 3] = 0.01
+        session.correct({shelf[4]["frame_id"]: shelf[4]["c2w"] + shift})
+        carried = session.scene._decoding.solution  # the served scene starts from it, not from zero
+        assert carried is not None and session.scene.frames - carried.frames >= session.config.colour_solve_refresh  # due
+        keys = session.scene._voxels.state["keys"][carried.rows].tolist()
+        assert len(keys) > 0.8 * len(solved.rows)
+        assert all(np.array_equal(offset, offsets_of[key]) for key, offset in zip(keys, carried.offsets))
+    finally:
+        store.close()
