@@ -330,7 +330,4 @@ def solve_colours(
             positive, a non-positive iteration count, a degree other than 0 or 1, an unknown colour
             mode or weights backend.
     """
-    _check(views, ridge, prior, iterations, degree, colour)
-    if len(gaussians) == 0:
-        return gaussians
     return with_colour_offsets(gaussians, colour_offsets(gaussians, views, None, ridge, prior, iterations, degree, backend, colour))

@@ -252,18 +252,19 @@ class SceneDecoding:
         ``solver``, that re-solve runs there and this decode shows the last solution; the first solve
         of a scene runs here, so a scene is never shown unsolved."""
         solution = self.solution
+        last = solution.at(rows) if solution is not None else None
         if solution is not None and (not whole or inputs.frames - solution.frames < self.config.colour_solve_refresh):
-            return solution.at(rows)
+            return last
         if solution is None:
             offsets = colour_offsets(gaussians, inputs.views)
         elif solver is not None:
             if self.pending is None or self.pending.done():
                 executor, landed = solver
-                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(inputs.views),
-                                               solution.at(rows), inputs.frames, self._epoch, landed)
-            return solution.at(rows)
+                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(inputs.views), last,
+                                               inputs.frames, self._epoch, landed)
+            return last
         else:
-            offsets = colour_offsets(gaussians, inputs.views, solution.at(rows), iterations=REFRESH_ITERATIONS)
+            offsets = colour_offsets(gaussians, inputs.views, last, iterations=REFRESH_ITERATIONS)
         if whole:
             self.solution = ColourSolution(rows.copy(), offsets, inputs.frames)
         return offsets
