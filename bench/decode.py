@@ -3,10 +3,12 @@
     python bench/decode.py [--data ../shared/data/realsense_shelf] [--voxel 0.004] [--frames 10,25,50]
 
 For the first F frames of the capture folded at the voxel size, medians of --repeats runs of:
-`Scene.decode_inputs` (the copy a service takes under the session lock), `Scene.decode_from`
+`Scene.decode_inputs` (a copy of every sum), `Scene.decode_from`
 from scratch (fields of the decoded voxels, the per-voxel SH solve, the decoder), and
-`decode_from` right after each of the last --repeats folds, as a viewer rendering while a stream
-folds pays it (only the voxels the fold touched are decoded again; `scene.decoded`); and, on the decoded
+`decode_from` right after each of the last --repeats folds (only the voxels the fold touched are
+decoded again; `scene.decoded`); `Scene.gaussians` after each of those folds, as a viewer rendering
+while a stream folds pays it, and the part of it that holds the scene's lock (which folds wait
+for: the rows that decode, and a copy of what the decode reads of them); and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
 ratio, and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +43,17 @@ def median_ms(fn, repeats: int) -> float:
     return statistics.median(time_each(lambda _: fn(), range(repeats)))
 
 
+def timed(fn, ms: list[float]):
+    """``fn``, appending the milliseconds of each call to ``ms``."""
+    def clocked(*args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            ms.append((time.perf_counter() - t0) * 1000)
+    return clocked
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="dataset folder (default: the shelf capture)")
@@ -59,20 +73,29 @@ def main(argv=None) -> None:
     print(f"data: {args.data.name}, {len(sequence)} frames; voxel {args.voxel * 1000:g} mm; medians of {args.repeats}\n")
 
     decode_rows, eigen_rows, sh_rows = [], [], []
-    scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
+    # `viewed` folds the same frames and is decoded the way a service's render does it
+    # (`Scene.gaussians`): the part of its decode that holds the scene's lock is timed on its own
+    scene, viewed, folded = Scene(SceneConfig(voxel_size=args.voxel)), Scene(SceneConfig(voxel_size=args.voxel)), 0
+    held: list[float] = []
+    viewed._decoding.take = timed(viewed._decoding.take, held)
     for n in counts:
         # the last `repeats` frames before n are folded one at a time, each followed by a decode as a
         # viewer's render would ask for it (reusing the voxels the fold left alone)
         last = max(folded, n - args.repeats)
         for position in range(folded, last):
             scene.fold(sequence[position])
+            viewed.fold(sequence[position])
         scene.decode()
-        after_fold, touched = [], []
+        viewed.gaussians()
+        after_fold, touched, rendered = [], [], []
+        held.clear()
         for position in range(last, n):
             report = scene.fold(sequence[position])
             touched.append(report.new_voxels + report.updated_voxels)
             inputs = scene.decode_inputs()
             after_fold += time_each(scene.decode_from, [inputs])
+            viewed.fold(sequence[position])
+            rendered += time_each(lambda _: viewed.gaussians(), [0])
         folded = n
         inputs = scene.decode_inputs()
         gaussians = scene.decode_from(inputs)
@@ -85,6 +108,8 @@ def main(argv=None) -> None:
             "decode_from, from scratch ms": f"{from_scratch:.1f}",
             "decode_from after a fold ms": f"{after:.1f}",
             "ratio": f"{from_scratch / after:.1f}x",
+            "gaussians() after a fold ms": f"{statistics.median(rendered):.1f}" if rendered else "-",
+            "of which under the lock ms": f"{statistics.median(held):.1f}" if held else "-",
         })
         cov = fields_from_sums(inputs.sums, scene.config, sort=False)["position_cov"] / args.voxel**2
         fast = median_ms(lambda: symmetric_eigh3(cov), args.repeats)
@@ -99,7 +124,8 @@ def main(argv=None) -> None:
         sh_rows.append({"frames": n, "systems": len(sums["r_sum"]), "K": sums["sh_b"].shape[1] // 3 + 1,
                         "numba Cholesky ms": f"{fast:.1f}", "torch.linalg.solve ms": f"{batched:.1f}",
                         "ratio": f"{batched / fast:.1f}x"})
-    print_table("Decode of the fused scene (a render after a fold pays decode_inputs + decode_from)", decode_rows)
+    print_table("Decode of the fused scene (decode_inputs + decode_from: the library's copy, then its decode; "
+                "gaussians(): what a service's render pays, of it the part under the scene's lock)", decode_rows)
     print_table("Eigen-decomposition of the voxels' covariances, both paths (every voxel)", eigen_rows)
     print_table("SH colour fit, both paths (every voxel's K x K normal equations)", sh_rows)
 

@@ -133,7 +133,8 @@ def scene_features(
 
 
 class DecodeInputs(NamedTuple):
-    """A scene's state as `Scene.decode_from` reads it (`Scene.decode_inputs`: copies)."""
+    """A scene's state as a decode reads it: copies (`Scene.decode_inputs`), or views of the live
+    state that `SceneDecoding.take` reads under the scene's lock (`Scene.gaussians`)."""
 
     sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state
     observations_per_view: float  # `Scene.observations_per_view`
@@ -141,6 +142,23 @@ class DecodeInputs(NamedTuple):
     # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
     frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve_refresh`)
+    # the sums of some rows ([N] int64), copied; None: column by column (`Scene` gathers whole records)
+    gather: Callable[[np.ndarray], dict[str, np.ndarray]] | None = None
+
+
+class DecodeWork(NamedTuple):
+    """One decode's share of a scene's state (`SceneDecoding.take`): the rows that decode and a copy of
+    what the decode reads of them, so that it runs while later folds change the scene."""
+
+    chosen: DecodedRowSet  # the rows that decode, their support and free-space evidence
+    todo: np.ndarray  # [T] int64 rows of them decoded afresh (the decoded rows lack them)
+    todo_sums: dict[str, np.ndarray]  # every sum of those rows, [T, ...]
+    todo_stamps: np.ndarray | None  # [T] their change stamps; None: a decode from scratch, not kept
+    features: torch.Tensor | None  # [K, L] F_scene of every row that decodes, when some are reused
+    observations_per_view: float
+    views: list[Frame]  # the colour solve's kept input views
+    frames: int
+    whole: bool  # every voxel that decodes (no level of detail, no support floor)
 
 
 class ColourSolution(NamedTuple):
@@ -182,7 +200,7 @@ class SceneDecoding:
         self._rows: DecodedRows | None = None
         self._gaussians: dict = {}  # (level of detail, decoder key) -> Gaussians of the current state
         self.solution: ColourSolution | None = None  # the colour solve's last answer (snapshots keep it)
-        self.pending: Future | None = None  # a re-solve running on a caller's executor (`decode_locked`)
+        self.pending: Future | None = None  # a re-solve running on a caller's executor (`finish`)
         self._epoch = 0  # bumped by `reset`: a re-solve started on the replaced state is not kept
 
     def key(self) -> tuple:
@@ -217,33 +235,56 @@ class SceneDecoding:
         """Gaussians of every voxel of ``inputs`` with R_scene > ``min_support``; with
         ``max_gaussians``, the best-supported ones; with kept views, colours solved against them."""
         with self.lock:  # decodes of one scene take turns: they share the decoded rows
-            return self.decode_locked(inputs, max_gaussians, min_support)
+            return self.finish(self.take(inputs, max_gaussians, min_support))
 
-    def decode_locked(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
-                      solver: tuple[Executor, Callable[[], None]] | None = None) -> Gaussians:
-        """`decode`, for a caller that holds `lock`. With ``solver`` (an executor, and what to call once
-        a re-solve has landed there), a colour re-solve that falls due runs on the executor: this
-        decode, and those until it lands, show the last solution (`_colour_offsets`)."""
+    def take(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> DecodeWork:
+        """The first half of a decode, for a caller that holds `lock`: which rows decode, and a copy of
+        what the decode reads of their sums (all sums of the rows the decoded rows lack, F_scene of the
+        others). ``inputs`` may view the scene's live state (`Scene.gaussians`, under the scene's lock):
+        the work holds nothing of it, so `finish` runs while later folds change it."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
             raise ValueError(f"min_support: expected >= 0, got {min_support}")
         # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
         # per-voxel SH solve among them, are then computed for those rows alone
-        keep, support, free, unit = decoded_rows(inputs.sums, min_support, self.config)
+        chosen = decoded_rows(inputs.sums, min_support, self.config)
         whole = min_support == 0  # every voxel that decodes: the scene's colours may be solved and kept
-        if max_gaussians is not None and len(keep) > max_gaussians:
+        if max_gaussians is not None and len(chosen.rows) > max_gaussians:
             whole = False
-            top = torch.sort(torch.argsort(support, descending=True, stable=True)[:max_gaussians]).values
-            keep, support, free = keep[top.numpy()], support[top], free[top]
-        with torch.no_grad():
-            opacities = self.decoder.opacities(support, free, unit * inputs.observations_per_view)
-        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(inputs, keep))
-        if not inputs.views:
-            return gaussians
-        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, keep, inputs, whole, solver))
+            top = torch.sort(torch.argsort(chosen.support, descending=True, stable=True)[:max_gaussians]).values
+            chosen = chosen._replace(rows=chosen.rows[top.numpy()], support=chosen.support[top], free=chosen.free[top])
+        rows = chosen.rows
+        key = (inputs.sums["label_sum"].shape[1], *self.key())  # label channels change a row's decode too
+        if self._rows is None or self._rows.key != key:
+            self._rows = DecodedRows(key)
+        todo, stamps = rows, None
+        if inputs.changed_at is not None:
+            stamps = inputs.changed_at[rows]
+            fresh = ~self._rows.current(rows, stamps)
+            todo, stamps = rows[fresh], stamps[fresh]
+        todo_sums = (inputs.gather(todo) if inputs.gather is not None
+                     else {k: gather_rows(v, todo).numpy() for k, v in inputs.sums.items()})
+        return DecodeWork(
+            chosen, todo, todo_sums, stamps,
+            scene_features(inputs.sums, rows, self.config.research.eps) if len(todo) < len(rows) else None,
+            inputs.observations_per_view, list(inputs.views), inputs.frames, whole,
+        )  # fmt: skip
 
-    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, inputs: DecodeInputs, whole: bool,
+    def finish(self, work: DecodeWork, solver: tuple[Executor, Callable[[], None]] | None = None) -> Gaussians:
+        """The second half of a decode (`take`), for a caller that holds `lock`. With ``solver`` (an
+        executor, and what to call once a re-solve has landed there), a colour re-solve that falls due
+        runs on the executor: this decode, and those until it lands, show the last solution
+        (`_colour_offsets`)."""
+        chosen = work.chosen
+        with torch.no_grad():
+            opacities = self.decoder.opacities(chosen.support, chosen.free, chosen.unit * work.observations_per_view)
+        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(work))
+        if not work.views:
+            return gaussians
+        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, chosen.rows, work, solver))
+
+    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, work: DecodeWork,
                         solver: tuple[Executor, Callable[[], None]] | None) -> torch.Tensor:
         """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
         is fresh (fewer than `SceneConfig.colour_solve_refresh` frames folded since) and for a decode
@@ -253,20 +294,20 @@ class SceneDecoding:
         of a scene runs here, so a scene is never shown unsolved."""
         solution = self.solution
         last = solution.at(rows) if solution is not None else None
-        if solution is not None and (not whole or inputs.frames - solution.frames < self.config.colour_solve_refresh):
+        if solution is not None and (not work.whole or work.frames - solution.frames < self.config.colour_solve_refresh):
             return last
         if solution is None:
-            offsets = colour_offsets(gaussians, inputs.views)
+            offsets = colour_offsets(gaussians, work.views)
         elif solver is not None:
             if self.pending is None or self.pending.done():
                 executor, landed = solver
-                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(inputs.views), last,
-                                               inputs.frames, self._epoch, landed)
+                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(work.views), last,
+                                               work.frames, self._epoch, landed)
             return last
         else:
-            offsets = colour_offsets(gaussians, inputs.views, last, iterations=REFRESH_ITERATIONS)
-        if whole:
-            self.solution = ColourSolution(rows.copy(), offsets, inputs.frames)
+            offsets = colour_offsets(gaussians, work.views, last, iterations=REFRESH_ITERATIONS)
+        if work.whole:
+            self.solution = ColourSolution(rows.copy(), offsets, work.frames)
         return offsets
 
     def _resolve(self, gaussians: Gaussians, rows: np.ndarray, views: list[Frame], initial: torch.Tensor,
@@ -281,27 +322,21 @@ class SceneDecoding:
             self.solution = ColourSolution(rows, offsets, frames)
         landed()
 
-    def _shapes_and_colours(self, inputs: DecodeInputs, rows: np.ndarray) -> dict[str, torch.Tensor | None]:
-        """`GaussianDecoder.shapes_and_colours` of ``rows``: reused from an earlier decode for the rows
-        whose sums are unchanged since (`DecodedRows`), decoded from ``inputs`` for the rest."""
-        key = (inputs.sums["label_sum"].shape[1], *self.key())  # label channels change a row's decode too
-        cache = self._rows
-        if cache is None or cache.key != key:
-            cache = self._rows = DecodedRows(key)
-        stamps = inputs.changed_at[rows] if inputs.changed_at is not None else None
-        todo = rows if stamps is None else rows[~cache.current(rows, stamps)]
-        # the shapes come from the position sums in place (one pass); the other fields from a gather
-        f = fields_from_sums({k: gather_rows(v, todo) for k, v in inputs.sums.items() if k not in POSITION_SUMS},
-                             self.config, sort=False, positions=False)
-        base = voxel_shapes(inputs.sums, todo, self.config.voxel_size, self.config.research.eps, self.decoder)
+    def _shapes_and_colours(self, work: DecodeWork) -> dict[str, torch.Tensor | None]:
+        """`GaussianDecoder.shapes_and_colours` of the rows that decode: decoded from the work's sums
+        for the rows the decoded rows lack (then kept there), reused for the rest."""
+        todo, sums = work.todo, work.todo_sums
+        f = fields_from_sums({k: v for k, v in sums.items() if k not in POSITION_SUMS}, self.config, sort=False,
+                             positions=False)
+        base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
             fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
-        if stamps is None:
+        if work.todo_stamps is None:
             return fresh
-        cache.store(todo, inputs.changed_at[todo], {k: v for k, v in fresh.items() if k in PARTS})
-        if len(todo) == len(rows):
+        self._rows.store(todo, work.todo_stamps, {k: v for k, v in fresh.items() if k in PARTS})
+        if work.features is None:
             return fresh
-        return cache.gather(rows) | {"features": scene_features(inputs.sums, rows, self.config.research.eps)}
+        return self._rows.gather(work.chosen.rows) | {"features": work.features}
 
     def nbytes(self) -> int:
         """Bytes of the decoded rows and the colour solution (the cached Gaussians are shared with

@@ -180,8 +180,9 @@ def solve_sh(
     k = _check_sh_sums(r, color_sum, sh_a, sh_b)
     out = np.empty((r.shape[0], k, 3), np.float32)
     if r.shape[0]:
-        # float32 or float64 sums as they come (the kernel accumulates in float64)
-        sums = [np.ascontiguousarray(t.detach().cpu().numpy()) for t in (r, color_sum, sh_a, sh_b)]
+        # float32 or float64 sums as they come, strided or not (the kernel accumulates in float64 and
+        # reads each voxel's sums once: a contiguous copy would cost more than it saves)
+        sums = [t.detach().cpu().numpy() for t in (r, color_sum, sh_a, sh_b)]
         _solve_sh_kernel(*sums, float(regularization), out)
     return torch.from_numpy(out)
 

@@ -12,6 +12,7 @@ and `Scene.decode` / `Scene.gaussians` read the map through the decoder side (`d
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -38,7 +39,7 @@ from .free_space import SeeThroughHistory
 from .integrate import Scratch, integrate, integrate_free_space
 from .keyframes import Keyframes
 from .undo import FoldUndo, UndoRing, history_slot, restore_history, restore_voxels
-from .voxel_map import CapacityError, VoxelMap
+from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
@@ -447,15 +448,19 @@ class Scene:
         return self._density_sum / self._density_frames if self._density_frames else 1.0
 
     def decode_inputs(self) -> DecodeInputs:
-        """What `decode_from` needs of the scene, copied: later folds do not change it. Cheap next to
-        the decode itself (a copy of the sums), so it is all that a decode does under the scene's lock."""
+        """What `decode_from` needs of the scene, copied: later folds do not change it. A copy of every
+        sum; `gaussians` copies under the scene's lock only what its decode reads."""
         with self._lock:
             return self._decode_inputs()
 
-    def _decode_inputs(self) -> DecodeInputs:
+    def _decode_inputs(self, live: bool = False) -> DecodeInputs:
+        """`decode_inputs`; with ``live``, views of the state itself, for a decode's `take` under the lock."""
         v = self._voxels
-        return DecodeInputs(v.copied_sums(), self.observations_per_view(), self._keyframes.frames(),
-                            v.changed_at[: len(v)].copy(), self.frames)
+        state = v.state if live else v.copied_state()
+        changed_at = v.changed_at[: len(v)]
+        return DecodeInputs(v.sums_of(state), self.observations_per_view(), self._keyframes.frames(),
+                            changed_at if live else changed_at.copy(), self.frames,
+                            functools.partial(gathered_sums, state, v.layout))
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
@@ -478,8 +483,10 @@ class Scene:
     def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None) -> Gaussians:
         """`decode(max_gaussians)` of the scene as it is now, decoded once per change: until the next
         fold, later calls (from any thread) return the same Gaussians. Concurrent calls on an
-        unchanged scene decode once; the decode holds the scene's lock only to copy its sums, so
-        folds go on meanwhile, and a decode that a fold overtook answers its caller but is not kept.
+        unchanged scene decode once. The decode holds the scene's lock only to pick the rows that
+        decode and copy what it reads of them (the sums of the rows it decodes afresh, F_scene of
+        the others: a fold's worth, not the scene), so folds go on meanwhile, and a decode that a
+        fold overtook answers its caller but is not kept.
 
         With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve_refresh`)
         runs on that executor (on another thread: it takes the decode lock this call holds) instead of
@@ -496,9 +503,9 @@ class Scene:
                 hit = self._decoding.cached(lod)
                 if hit is not None:
                     return hit
-                inputs, generation = self._decode_inputs(), self._generation
+                work, generation = self._decoding.take(self._decode_inputs(live=True), lod), self._generation
             solver = (colour_solver, self._forget_decoded) if colour_solver is not None else None
-            gaussians = self._decoding.decode_locked(inputs, lod, solver=solver)
+            gaussians = self._decoding.finish(work, solver)
             with self._lock:
                 if self._generation == generation:
                     self._decoding.keep(lod, gaussians)

@@ -30,6 +30,7 @@ import itertools
 
 import numpy as np
 
+from .decoded import gather_rows
 from .fields import sh_sum_widths
 from .free_space import CHUNK, update_chunk_boxes_kernel
 from .kernels import VoxelRows, insert_range_kernel, lookup_kernel
@@ -52,6 +53,30 @@ ARRAYS = {
 
 # change stamps, unique in the process: inputs of one map can never match another map's decoded rows
 _STAMPS = itertools.count(1)
+
+
+def sums_view(
+    state: dict[str, np.ndarray],  # a map's arrays (`VoxelMap.state`) or a copy of some of their rows
+    layout: VoxelRows,  # the layout of its records
+    n: int,  # rows to view
+) -> dict[str, np.ndarray]:
+    """The sums of the first ``n`` rows of ``state``, as views: each field of the records a column."""
+    rows = state["rows"][:n]
+    out = {k: v[:n] for k, v in state.items() if k != "rows"}
+    out |= {name: layout.field(rows, name) for name in layout.columns}
+    if not layout.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
+        out["label_sum"] = np.zeros((n, 0), np.float32)
+    return out
+
+
+def gathered_sums(
+    state: dict[str, np.ndarray],  # as `sums_view`'s
+    layout: VoxelRows,
+    rows: np.ndarray,  # [N] int64 rows of it
+) -> dict[str, np.ndarray]:  # name -> [N, ...]
+    """The sums of ``rows`` of ``state``, copied: a gather of whole records (on the numba threads),
+    where a gather per column would read each record once per field."""
+    return sums_view({k: gather_rows(v, rows).numpy() for k, v in state.items()}, layout, len(rows))
 
 
 class CapacityError(ValueError):
@@ -240,20 +265,13 @@ class VoxelMap:
         """The raw per-voxel sums (contiguous copies, insertion order, spare rows excluded)."""
         return {name: array.copy() for name, array in self.sums_of(self.state).items()}
 
-    def copied_sums(self) -> dict[str, np.ndarray]:
-        """`sums`, as views into one copy of the state: one block copy of the rows instead of a
-        strided copy per column (cheaper, and it is what a reader does under the scene's lock)."""
-        return self.sums_of({k: v[: self.n].copy() for k, v in self.state.items()})
+    def copied_state(self) -> dict[str, np.ndarray]:
+        """A copy of the `len(self)` rows of `state`: one block copy per array (for `sums_of`)."""
+        return {k: v[: self.n].copy() for k, v in self.state.items()}
 
     def sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The sums as views into ``state`` (the map's arrays or a copy of them), its first `len(self)` rows."""
-        n = self.n
-        rows = state["rows"][:n]
-        out = {k: v[:n] for k, v in state.items() if k != "rows"}
-        out |= {name: self.layout.field(rows, name) for name in self.layout.columns}
-        if not self.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
-            out["label_sum"] = np.zeros((n, 0), np.float32)
-        return out
+        return sums_view(state, self.layout, self.n)
 
     def load_sums(self, sums: dict[str, np.ndarray]) -> None:
         """Inverse of `sums` on an empty map (snapshot loading): rows, hash table and chunk boxes."""

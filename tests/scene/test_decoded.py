@@ -80,6 +80,25 @@ def test_decode_inputs_taken_before_later_folds_still_decode_their_own_state(she
 
 
 @pytest.mark.realdata
+def test_a_decode_taken_from_the_live_state_keeps_that_state_while_later_folds_change_it(shelf):
+    """`Scene.gaussians` reads the state itself under the scene's lock (`SceneDecoding.take`) and
+    decodes after releasing it: folds that overwrite the rows it read must not reach its result."""
+    scene = folded_scene(shelf[:3])
+    scene.gaussians()  # decoded rows to reuse: the work copies sums of the fold's rows, F_scene of the rest
+    scene.fold(shelf[3])
+    expected = from_scratch(scene)
+    with scene._decoding.lock:
+        with scene._lock:
+            work = scene._decoding.take(scene._decode_inputs(live=True))
+        assert 0 < len(work.todo) < len(work.chosen.rows) and work.features is not None
+        scene.fold(shelf[4])
+        scene.fold(shelf[1])  # seen before: it updates rows the work reuses
+        got = scene._decoding.finish(work)
+    assert_same_gaussians(got, expected)
+    assert_same_gaussians(scene.gaussians(), from_scratch(scene))
+
+
+@pytest.mark.realdata
 def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
     scene = folded_scene(shelf[:1])
     before = scene.decode()
@@ -200,13 +219,13 @@ def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
 
 def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
     scene = folded_scene(shelf[:3])
-    decodes, decode = [], scene._decoding.decode_locked
+    decodes, decode = [], scene._decoding.finish
 
     def counting(*args, **kwargs):
         decodes.append(1)
         return decode(*args, **kwargs)
 
-    scene._decoding.decode_locked = counting
+    scene._decoding.finish = counting
     start, answers = threading.Barrier(4), []
 
     def request():
