@@ -81,6 +81,10 @@ def run_serve(args) -> int:
         from server.cluster.settings import ClusterSettings
 
         return serve_forever(ClusterSettings(), args.address)
+    # The service's threads (requests, folds, decodes, log and archive writers, colour solves) each
+    # start OpenMP teams on a few cores: idle OpenMP threads sleep instead of spinning against the
+    # others (set OMP_WAIT_POLICY to choose otherwise; it must be set before torch or numba loads).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import uvicorn
 
     # threads reach the service as CANONICAL_THREADS (numba.set_num_threads per worker thread):

@@ -56,7 +56,7 @@ from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
 
 from . import wire
-from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive, archive_failure, payload_digest
+from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive, archive_failure, names_payload, payload_digest
 from .framelog import (FrameLog, LogWedged, RepairAction, StorageError, encode, fsync_dir, repaired, scan,
                        write_atomic)
 
@@ -224,7 +224,7 @@ class Session:
             self._check_alive()
             known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
             if known is not None:
-                if known.digest != payload_digest(payload):
+                if not names_payload(known.digest, payload):
                     raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
                 report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
                                           "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}

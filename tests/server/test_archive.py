@@ -3,6 +3,8 @@ a torn tail cut, damage refused, and the start-up reconciliation with the scene'
 
 from __future__ import annotations
 
+import hashlib
+import re
 import zlib
 
 import numpy as np
@@ -10,7 +12,8 @@ import pytest
 import torch
 
 from canonical_wire import encode_array, pack
-from server.archive import ARCHIVE, DamagedFrame, SessionArchive, compress_message, decompress_message, payload_digest
+from server.archive import (ARCHIVE, DamagedFrame, SessionArchive, compress_message, decompress_message, names_payload,
+                            payload_digest)
 from server.wire import encode_png, frame_from_message
 
 
@@ -102,6 +105,15 @@ def test_keyframes_retention_keeps_one_frame_in_five(tmp_path):
     assert [f is None for f in archive.frames(archive.entries)] == [False, True, True, True, True, False, True]
     with pytest.raises(ValueError, match=r"^archive_retention: "):
         SessionArchive(tmp_path / "other.log", "some")
+
+
+def test_a_payload_digest_names_its_payload_and_so_does_an_older_blake2b_digest():
+    a, b = pack(message(1, "f1")), pack(message(2, "f2"))
+    digest = payload_digest(a)
+    assert re.fullmatch(r"xxh3:[0-9a-f]{32}", digest) and digest == payload_digest(bytes(a))
+    assert names_payload(digest, a) and not names_payload(digest, b)
+    older = hashlib.blake2b(a, digest_size=16).hexdigest()  # what sessions written before XXH3 hold
+    assert names_payload(older, a) and not names_payload(older, b)
 
 
 def test_deferred_frames_are_archived_in_order_by_the_writer(tmp_path):

@@ -4,7 +4,9 @@ the frame log written while its frame folds: acknowledged after the fsync, undon
 
 from __future__ import annotations
 
+import dataclasses
 import errno
+import hashlib
 import os
 import re
 import threading
@@ -20,7 +22,8 @@ from canonical_core.scene.decoding import decoded_rows
 from client.cli import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
-from server.store import SessionStore, SessionUnavailable
+from server.archive import payload_digest
+from server.store import FrameIdConflict, SessionStore, SessionUnavailable
 
 from .harness import msgpack_frame
 
@@ -179,3 +182,20 @@ def test_a_frame_is_acknowledged_only_after_its_record_is_fsynced(store, shelf_f
     fold(session, shelf_frames[0])
     acknowledged = time.monotonic()
     assert len(synced) == 1 and synced[0] <= acknowledged
+
+
+@pytest.mark.realdata
+def test_a_retry_matches_a_frame_logged_under_the_older_digest(store, shelf_frames):
+    """Sessions written before XXH3 hold BLAKE2b digests of their frames: a retry still matches them."""
+    session = store.create(SceneConfig(voxel_size=0.008))
+    payloads = [wire.pack(msgpack_frame({**frame_arrays(f), "frame_id": f"cam0/{k}"})) for k, f in enumerate(shelf_frames[:2])]
+    report, replay = session.add_frame(payloads[0], wire.frame_from_message(wire.unpack(payloads[0])), 10**6, 1e9)
+    known = session.frame_ids["cam0/0"]
+    assert not replay and known.digest == payload_digest(payloads[0]) and known.digest.startswith("xxh3:")
+    session.frame_ids["cam0/0"] = dataclasses.replace(known, digest=hashlib.blake2b(payloads[0], digest_size=16).hexdigest())
+    again, replay = session.add_frame(payloads[0], wire.frame_from_message(wire.unpack(payloads[0])), 10**6, 1e9)
+    assert replay and again == report and session.scene.frames == 1
+    other = wire.pack(msgpack_frame({**frame_arrays(shelf_frames[1]), "frame_id": "cam0/0"}))
+    with pytest.raises(FrameIdConflict, match="frame_id"):
+        session.add_frame(other, wire.frame_from_message(wire.unpack(other)), 10**6, 1e9)
+    assert session.scene.frames == 1
