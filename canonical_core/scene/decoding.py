@@ -136,7 +136,7 @@ class DecodeInputs(NamedTuple):
     """A scene's state as a decode reads it: copies (`Scene.decode_inputs`), or views of the live
     state that `SceneDecoding.take` reads under the scene's lock (`Scene.gaussians`)."""
 
-    sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state
+    sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state (or into the state, live)
     observations_per_view: float  # `Scene.observations_per_view`
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)
     # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
