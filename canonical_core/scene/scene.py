@@ -466,8 +466,12 @@ class Scene:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
         best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
         solved against the kept input views (`decode.solve_colours`). The same as
-        ``decode_from(decode_inputs(), ...)``."""
-        return self.decode_from(self.decode_inputs(), max_gaussians, min_support)
+        ``decode_from(decode_inputs(), ...)``, without the copy of every sum: as `gaussians`, it holds
+        the scene's lock only to take what its decode reads, so folds go on meanwhile."""
+        with self._decoding.lock:
+            with self._lock:
+                work = self._decoding.take(self._decode_inputs(live=True), max_gaussians, min_support)
+            return self._decoding.finish(work)
 
     def decode_from(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """`decode` of the scene as it was when ``inputs`` were taken (`decode_inputs` of this scene).
