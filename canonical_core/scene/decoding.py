@@ -29,7 +29,7 @@ from ..decode import GaussianDecoder, colour_offsets, with_colour_offsets
 from ..frame import Frame
 from ..gaussians import Gaussians
 from .config import SceneConfig
-from .decoded import PARTS, DecodedRows, gather_rows
+from .decoded import PARTS, DecodedRows
 from .fields import fields_from_sums
 from .shapes import voxel_shapes
 
@@ -137,13 +137,13 @@ class DecodeInputs(NamedTuple):
     state that `SceneDecoding.take` reads under the scene's lock (`Scene.gaussians`)."""
 
     sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state (or into the state, live)
+    # the sums of some rows ([N] int64) copied, whole records at a time (`voxel_map.gathered_sums`)
+    gather: Callable[[np.ndarray], dict[str, np.ndarray]]
     observations_per_view: float  # `Scene.observations_per_view`
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)
     # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
     frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve_refresh`)
-    # the sums of some rows ([N] int64), copied; None: column by column (`Scene` gathers whole records)
-    gather: Callable[[np.ndarray], dict[str, np.ndarray]] | None = None
 
 
 class DecodeWork(NamedTuple):
@@ -263,10 +263,8 @@ class SceneDecoding:
             stamps = inputs.changed_at[rows]
             fresh = ~self._rows.current(rows, stamps)
             todo, stamps = rows[fresh], stamps[fresh]
-        todo_sums = (inputs.gather(todo) if inputs.gather is not None
-                     else {k: gather_rows(v, todo).numpy() for k, v in inputs.sums.items()})
         return DecodeWork(
-            chosen, todo, todo_sums, stamps,
+            chosen, todo, inputs.gather(todo), stamps,
             scene_features(inputs.sums, rows, self.config.research.eps) if len(todo) < len(rows) else None,
             inputs.observations_per_view, list(inputs.views), inputs.frames, whole,
         )  # fmt: skip

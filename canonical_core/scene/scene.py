@@ -458,9 +458,9 @@ class Scene:
         v = self._voxels
         state = v.state if live else v.copied_state()
         changed_at = v.changed_at[: len(v)]
-        return DecodeInputs(v.sums_of(state), self.observations_per_view(), self._keyframes.frames(),
-                            changed_at if live else changed_at.copy(), self.frames,
-                            functools.partial(gathered_sums, state, v.layout))
+        return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.layout),
+                            self.observations_per_view(), self._keyframes.frames(),
+                            changed_at if live else changed_at.copy(), self.frames)
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the

@@ -11,8 +11,8 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
-from canonical_core.scene.decoded import PARTS
-from canonical_core.scene.decoding import decoded_rows, gather_rows, scene_features
+from canonical_core.scene.decoded import PARTS, gather_rows
+from canonical_core.scene.decoding import decoded_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
 from ..conftest import folded_scene, make_frame
 
