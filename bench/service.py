@@ -116,12 +116,13 @@ def main(argv=None) -> None:
         p.error("--solve-views: expected a non-negative number of kept views")
 
     frames = list(load_dataset(args.data, max_frames=args.frames))
-    payloads = [frame_arrays(f, args.scale) for f in frames]
+    # depth travels in the sensor's 16-bit units, as a depth camera's client sends it
+    payloads = [frame_arrays(f, args.scale, sensor_units=True) for f in frames]
     if args.scale != 1.0:  # fold the same resized frames in-process that travel over HTTP
         from canonical_core import Camera, Frame
 
         frames = [Frame(rgb=p_["rgb"], camera=Camera(p_["K"], p_["c2w"], p_["rgb"].shape[1], p_["rgb"].shape[0]),
-                        depth=p_["depth"]) for p_ in payloads]
+                        depth=p_["depth"]) for p_ in (frame_arrays(f, args.scale) for f in frames)]
     print(machine_summary())
     print(f"data: {args.data.name}, {len(frames)} frames at {frames[0].width}x{frames[0].height}, voxel {args.voxel * 1000:g} mm\n")
     in_process(frames[:2], args.voxel)  # compile / load kernels outside the measurement

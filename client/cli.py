@@ -31,7 +31,7 @@ from typing import Callable
 import httpx
 import numpy as np
 
-from .sdk import CanonicalError, Client
+from .sdk import CanonicalError, Client, exact_sensor_depth
 
 
 @dataclass(frozen=True)
@@ -162,8 +162,12 @@ def session_setting(text: str) -> tuple[str, object]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def frame_arrays(frame, scale: float = 1.0) -> dict:
-    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized."""
+def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
+    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized.
+
+    With ``sensor_units``, depth that 16-bit sensor units hold exactly (depth read from a 16-bit depth
+    image) travels as those units and their ``depth_scale``: half the bytes, and the service folds
+    the same float32 metres."""
     camera = frame.camera
     rgb = frame.rgb.numpy()
     depth = None if frame.depth is None else frame.depth.numpy()
@@ -176,6 +180,9 @@ def frame_arrays(frame, scale: float = 1.0) -> dict:
         if depth is not None:  # nearest: averaging depth across edges invents surfaces
             depth = np.array(Image.fromarray(np.ascontiguousarray(depth, np.float32)).resize(size, Image.NEAREST))
     out = {"rgb": rgb, "K": camera.K64(), "c2w": camera.c2w64(), "depth": depth, "frame_id": frame.frame_id}
+    sensor = exact_sensor_depth(depth) if sensor_units and depth is not None else None
+    if sensor is not None:
+        out["depth"], out["depth_scale"] = sensor
     if scale == 1.0:
         for name in ("depth_std", "features", "labels"):
             value = getattr(frame, name)
@@ -194,7 +201,7 @@ def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[
     with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar:
         try:
             for i in range(start, len(frames)):
-                report = session.add_frame(**frame_arrays(frames[i], scale))
+                report = session.add_frame(**frame_arrays(frames[i], scale, sensor_units=True))
                 sent += 1
                 new += report["new_voxels"]
                 bar.set_postfix(voxels=new, refresh=False)

@@ -55,6 +55,41 @@ def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background
     return body
 
 
+def sensor_depth(depth, depth_scale) -> np.ndarray:  # [H, W] integers -> [H, W] uint16
+    """A sensor's integer depth as the 16-bit array it travels as; ValueError (naming the field) for a
+    missing or non-positive ``depth_scale`` or values outside 0..65535."""
+    if isinstance(depth_scale, bool) or not isinstance(depth_scale, (int, float)) or not depth_scale > 0 \
+            or not math.isfinite(depth_scale):
+        raise ValueError(f"depth_scale: integer depth needs its units per metre (e.g. 1000 for millimetres), got {depth_scale!r}")
+    depth = np.asarray(depth)
+    if depth.size and (depth.min() < 0 or depth.max() > 65535):
+        raise ValueError(f"depth: integer depth must fit 16 bits (0..65535), got values {depth.min()}..{depth.max()}")
+    return depth.astype(np.uint16, copy=False)
+
+
+def exact_sensor_depth(depth, scales=(1000.0, 5000.0, 10000.0, 4000.0)) -> tuple[np.ndarray, float] | None:
+    """``depth`` (float metres, 0 = missing) as (16-bit sensor units, units per metre) when that is
+    lossless: the service's conversion of those units gives back exactly these float32 metres (as
+    with depth read from a 16-bit depth image). None when no scale of ``scales`` does.
+
+    Example:
+        >>> raw, scale = exact_sensor_depth(np.array([[0.0, 0.5]], np.float32))
+        >>> raw.tolist(), scale
+        ([[0, 500]], 1000.0)
+    """
+    metres = np.asarray(depth, dtype=np.float32)
+    if metres.size == 0 or not np.isfinite(metres).all() or metres.min() < 0:
+        return None
+    for scale in scales:
+        units = np.rint(metres.astype(np.float64) * scale)
+        if units.max() >= 65535:  # 65535 is a missing-depth code on the service's side
+            continue
+        units = units.astype(np.uint16)
+        if np.array_equal((units / scale).astype(np.float32), metres):
+            return units, scale
+    return None
+
+
 class Session:
     """One session of a `Client`; get it from `Client.create_session` or `Client.session`."""
 
@@ -65,12 +100,20 @@ class Session:
     def _path(self) -> str:
         return f"/v1/sessions/{self.id}"
 
-    def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None) -> dict:
+    def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
+                  depth_scale=None) -> dict:
         """Fold one frame. ``rgb`` uint8 [H,W,3] array or PNG/JPEG bytes; ``K`` 3x3; ``c2w`` 4x4 OpenCV
-        camera-to-world; ``depth`` float [H,W] metres; ``depth_std`` float [H,W]; ``features`` /
-        ``labels`` float [H',W',C]. Returns the fold report (frame_index, new_voxels, ...)."""
+        camera-to-world; ``depth`` float [H,W] metres, or a sensor's integer [H,W] depth (0 = missing)
+        with ``depth_scale`` its units per metre (1000 for millimetres), which travels as 16-bit;
+        ``depth_std`` float [H,W]; ``features`` / ``labels`` float [H',W',C]. Returns the fold report
+        (frame_index, new_voxels, ...)."""
         msg: dict = {"rgb": bytes(rgb) if isinstance(rgb, (bytes, bytearray)) else encode_array(rgb),
                      "K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4))}
+        if depth is not None and np.issubdtype(np.asarray(depth).dtype, np.integer):
+            msg["depth"], msg["depth_scale"] = encode_array(sensor_depth(depth, depth_scale)), float(depth_scale)
+            depth = None
+        elif depth_scale is not None:  # a float depth is in metres already: a scale would be applied twice or ignored
+            raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
         for name, value in (("depth", depth), ("depth_std", depth_std), ("features", features), ("labels", labels)):
             if value is not None:
                 value = np.asarray(value)

@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from canonical_core import load_ply, load_splat
-from client.sdk import CanonicalError, Client, Session, decode_array, encode_array
+from canonical_core.datasets.files import depth_from_uint16
+from client.sdk import CanonicalError, Client, Session, decode_array, encode_array, exact_sensor_depth
 
 VOXEL = 0.008
 
@@ -62,6 +63,45 @@ def test_session_roundtrip(server, frames, tmp_path):
         with pytest.raises(CanonicalError) as err:
             client.session(session.id)
         assert err.value.status == 404 and err.value.field == "session_id"
+
+
+@pytest.mark.realdata
+def test_sensor_depth_units_fold_as_the_same_metres(server, frames):
+    """Depth sent as 16-bit sensor units (what a depth camera gives) folds exactly as the float32
+    metres the service converts them to; `exact_sensor_depth` finds such units only where lossless."""
+    metres = frames[0]["depth"]
+    units, scale = exact_sensor_depth(metres)
+    assert units.dtype == np.uint16 and scale == 1000.0 and (units > 0).any()
+    assert np.array_equal(depth_from_uint16(units, scale).view(np.uint32), metres.view(np.uint32))  # the service's conversion
+    assert exact_sensor_depth(np.where(metres > 0, metres + np.float32(1e-5), 0)) is None  # not whole units
+    assert exact_sensor_depth(np.where(metres > 0, np.nan, metres)) is None
+    assert exact_sensor_depth(np.full((2, 2), 70.0, np.float32)) is None  # past 16 bits at every scale
+    with Client(server.url) as client:
+        digests = []
+        for as_units in (False, True):
+            session = client.create_session(voxel_size=VOXEL)
+            for kwargs in frames[:2]:
+                if as_units:
+                    kwargs = {**kwargs, **dict(zip(("depth", "depth_scale"), exact_sensor_depth(kwargs["depth"])))}
+                session.add_frame(**kwargs)
+            digests.append({k: v for k, v in session.digest().items() if k != "id"})
+            session.delete()
+    assert digests[0] == digests[1]
+
+
+@pytest.mark.parametrize("depth, depth_scale, field", [
+    (np.ones((4, 4), np.uint16), None, "depth_scale"),  # units without what they measure
+    (np.ones((4, 4), np.uint16), 0, "depth_scale"),
+    (np.ones((4, 4), np.int32), float("nan"), "depth_scale"),
+    (np.full((4, 4), 70000, np.int32), 1000, "depth"),  # past 16 bits
+    (np.full((4, 4), -1, np.int16), 1000, "depth"),
+    (np.ones((4, 4), np.float32), 1000, "depth_scale"),  # metres already
+])
+def test_sensor_depth_errors_name_the_field_before_anything_is_sent(depth, depth_scale, field):
+    session = Session(Client("http://127.0.0.1:9"), "unused")  # nothing listens: a request would fail otherwise
+    rgb, K, c2w = np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4)
+    with pytest.raises(ValueError, match=rf"^{field}:"):
+        session.add_frame(rgb, K, c2w, depth=depth, depth_scale=depth_scale)
 
 
 @pytest.mark.realdata
