@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import numba
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
@@ -128,10 +129,20 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:  # [H, W] fl
 
 
 def depth_from_uint16(raw: np.ndarray, depth_scale: float) -> np.ndarray:  # [H, W] uint16 -> float32 metres
-    """Metres = value / depth_scale; 0 and 65535 (the 7-Scenes invalid code) become 0 = missing."""
-    metres = raw.astype(np.float64) / depth_scale
-    metres[(raw == 0) | (raw == DEPTH_INVALID_CODE)] = 0.0
-    return metres.astype(np.float32)
+    """Metres = value / depth_scale (divided in float64, then rounded to float32); 0 and 65535 (the
+    7-Scenes invalid code) become 0 = missing. One pass: the service converts every 16-bit frame it
+    is sent."""
+    raw = np.ascontiguousarray(raw, dtype=np.uint16)
+    metres = np.empty(raw.shape, np.float32)
+    _metres_kernel(raw.reshape(-1), float(depth_scale), metres.reshape(-1))
+    return metres
+
+
+@numba.njit(cache=True)
+def _metres_kernel(raw, depth_scale, out):
+    for i in range(raw.shape[0]):
+        value = raw[i]
+        out[i] = 0.0 if value == 0 or value == DEPTH_INVALID_CODE else np.float32(np.float64(value) / depth_scale)
 
 
 def write_rgb(path: str | Path, rgb: np.ndarray) -> None:

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from canonical_core.datasets import FrameSequence, load_dataset, synthetic_rgbd, write_tsdf_fusion
-from canonical_core.datasets.files import read_depth, read_pgm
+from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16, read_depth, read_pgm
 
 
 def test_sequence_indexing(tiny_tsdf):
@@ -79,6 +79,19 @@ def test_pgm_keeps_raw_values(tmp_path):
     assert np.allclose(read_depth(tmp_path / "d.pgm", 1000.0), values / 1000.0)
     _pgm(tmp_path / "b.pgm", np.array([[7, 255]]), 255)
     assert read_pgm(tmp_path / "b.pgm").tolist() == [[7, 255]]
+
+
+@pytest.mark.parametrize("depth_scale", [1000.0, 5000.0, 10000.0, 4000.0, 1.0, 3.7, 1e-3])
+def test_depth_from_uint16_is_the_float64_division_rounded_to_float32(depth_scale):
+    """The one-pass kernel against its definition, on every 16-bit value (a strided view too)."""
+    raw = np.arange(65536, dtype=np.uint16).reshape(256, 256)
+    expected = raw.astype(np.float64) / depth_scale
+    expected[(raw == 0) | (raw == DEPTH_INVALID_CODE)] = 0.0
+    expected = expected.astype(np.float32)
+    got = depth_from_uint16(raw, depth_scale)
+    assert got.dtype == np.float32 and got.shape == raw.shape
+    assert np.array_equal(got.view(np.uint32), expected.view(np.uint32))
+    assert np.array_equal(depth_from_uint16(raw[:, ::3], depth_scale).view(np.uint32), expected[:, ::3].view(np.uint32))
 
 
 def test_pgm_and_depth_errors(tmp_path):
