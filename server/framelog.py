@@ -27,7 +27,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import BinaryIO, Callable, Literal
 
 FRAME_MAGIC, CHECKPOINT_MAGIC = b"CGF1", b"CGK1"
 MAGICS = (FRAME_MAGIC, CHECKPOINT_MAGIC)
@@ -217,17 +217,17 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def write_atomic(path: Path, data: bytes) -> None:
+def write_atomic(path: Path, data: bytes | Callable[[BinaryIO], object]) -> None:
     """Write temp, fsync, rename, fsync the folder; on failure the temp file is removed and the old
-    file is left as it was."""
+    file is left as it was. ``data``: the bytes, or a function that writes them to the open file."""
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "wb") as f:
-            f.write(data)
+            f.write(data) if isinstance(data, (bytes, bytearray, memoryview)) else data(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except OSError:
+    except Exception:  # noqa: BLE001 - re-raised: a writer function may fail otherwise than on the disk
         try:
             os.unlink(tmp)
         except OSError:

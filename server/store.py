@@ -12,9 +12,14 @@ session under ``<data_dir>/sessions/<id>/``:
   that is not yet acknowledged; it never loses one that is. On start a torn tail (a crash
   mid-append: never acknowledged) is cut off; damage anywhere else is never cut: the log is copied to
   ``quarantine/`` and the session is not served until ``canonical repair`` decides.
-- ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Written every
-  ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and on shutdown; after it the log
-  is replaced by one checkpoint record (the frames the snapshot holds and the frame-id table).
+- ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Due every
+  ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and written on shutdown; after it
+  the log is replaced by one checkpoint record (the frames the snapshot holds and the frame-id
+  table) and the records of the frames after them. A due snapshot is written off the acknowledged
+  path: the frame that makes it due copies the state (`Scene.snapshot_parts`) and is answered; a
+  writer thread encodes it into ``scene.snap.<n>.next`` (fsynced) and then, under the session's
+  lock, renames it to ``scene.snap`` and restarts the log. A crash before that rename leaves the
+  previous snapshot and the whole log (the ``.next`` file is removed on start).
   Restart = load snapshot, replay records whose index >= the snapshot's frame count. Folding is
   deterministic, so the replayed scene equals the uninterrupted one bit for bit. A snapshot that
   cannot be written is not an error of the request that triggered it: that frame is already durable
@@ -45,7 +50,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import msgpack
 import numba
@@ -96,6 +101,7 @@ UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll ba
 BACKGROUND_FRAMES = 64  # default: a correction that would re-fold more frames re-folds in the background
 TOMBSTONE = ".deleted-"
 SNAPSHOT_RETRY_SECONDS = 30.0  # after a failed snapshot, folds do not try again sooner (each try writes it all)
+PENDING_SNAPSHOT = "scene.snap.{}.next"  # a snapshot written off the acknowledged path, not yet committed
 
 
 class SessionNotFound(KeyError):
@@ -178,6 +184,19 @@ class Restored(NamedTuple):
 
 
 @dataclass(eq=False)
+class PendingSnapshot:
+    """A snapshot of a session's first ``frames`` frames, being written off the acknowledged path."""
+
+    number: int  # names its file (`PENDING_SNAPSHOT`): one writer per file
+    frames: int
+    log_offset: int  # where the log's records of the frames after it begin
+    checkpoint: bytes  # the payload of the log's checkpoint record once it is committed
+    captured: float  # monotonic time of the capture
+    cancelled: bool = False  # the session's files changed otherwise meanwhile: never commit it
+    writer: threading.Thread | None = None
+
+
+@dataclass(eq=False)
 class Session:
     id: str
     path: Path
@@ -200,6 +219,9 @@ class Session:
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     jobs: dict[str, CorrectionJob] = field(default_factory=dict)  # background corrections since the start
+    pending_snapshot: PendingSnapshot | None = None  # the snapshot being written off the acknowledged path
+    snapshots_started: int = 0  # numbers the pending snapshots' files
+    background_snapshots: ClassVar[bool] = True  # due snapshots are written off the acknowledged path
 
     def __post_init__(self):
         self._keep_undo()
@@ -251,7 +273,7 @@ class Session:
             self.dirty_since = self.dirty_since or now
             if now >= self.snapshot_retry_at and (self.scene.frames - self.snapshot_frames >= snapshot_every_frames
                                                   or now - self.dirty_since >= snapshot_every_seconds):
-                self._snapshot()
+                self._snapshot_soon()
             return report, False
 
     def _fold_failed(self, logged, exc: Exception) -> None:
@@ -307,10 +329,12 @@ class Session:
         except Exception as exc:  # noqa: BLE001 - the frame is folded and in the log; a restart archives it
             archive.problem = archive_failure(exc)
 
-    def snapshot(self) -> None:
+    def snapshot(self, background: bool = False) -> None:
+        """Snapshot the session if it has frames its snapshot lacks: now, or with ``background`` off the
+        caller's path (`_snapshot_soon`)."""
         with self.lock:
             if not self.deleted and self.scene.frames != self.snapshot_frames:
-                self._snapshot()
+                self._snapshot_soon() if background else self._snapshot()
 
     def _snapshot(self) -> None:
         """Snapshot, then start the log afresh with a checkpoint. A failure is recorded, not raised: every
@@ -319,26 +343,102 @@ class Session:
         stay as they are, and a restart before it re-folds from the archive)."""
         if self.background is not None:
             return
+        self._cancel_pending_snapshot()
         if self.archive is not None:
             self.archive.flush()  # the log is restarted below: the archive must hold its frames first
         try:
             write_atomic(self.path / SNAPSHOT, self.scene.to_bytes())
         except OSError as exc:
-            self.snapshot_error = f"{SNAPSHOT}: {exc.strerror or exc}"
-            self.snapshot_failures += 1
-            self.snapshot_retry_at = time.monotonic() + SNAPSHOT_RETRY_SECONDS
-            log.error("session %s: snapshot failed (%s); its frames stay in the log", self.id, self.snapshot_error)
+            self._snapshot_failed(exc)
             return
         self.snapshot_frames, self.dirty_since, self.snapshot_error = self.scene.frames, None, None
-        if self.archive is not None and self.archive.problem is not None:
-            return  # the log keeps the frames the archive may lack: a restart archives them from it
+        self._restart_log(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()), b"")
+
+    def _snapshot_failed(self, exc: Exception) -> None:
+        self.snapshot_error = f"{SNAPSHOT}: {getattr(exc, 'strerror', None) or exc}"
+        self.snapshot_failures += 1
+        self.snapshot_retry_at = time.monotonic() + SNAPSHOT_RETRY_SECONDS
+        log.error("session %s: snapshot failed (%s); its frames stay in the log", self.id, self.snapshot_error)
+
+    def _restart_log(self, frames: int, checkpoint: bytes, tail: bytes) -> None:
+        """The log replaced by a checkpoint of the snapshot's ``frames`` and ``tail`` (the records of
+        the frames after them), once the archive holds every frame."""
+        if self.archive is not None:
+            self.archive.flush()
+            if self.archive.problem is not None:
+                return  # the log keeps the frames the archive may lack: a restart archives them from it
         try:
-            self.log.reset([encode(self.snapshot_frames, checkpoint_payload(self.frame_ids, self._corrections()),
-                                   checkpoint=True)])
+            self.log.reset([encode(frames, checkpoint, checkpoint=True), tail])
         except OSError as exc:  # the old records stay; a restart skips those the snapshot holds
             log.error("session %s: the log could not be restarted after a snapshot (%s)", self.id, exc.strerror or exc)
 
+    def _snapshot_soon(self) -> None:
+        """A due snapshot, off the acknowledged path (the caller holds the lock). Here the state is
+        copied (`Scene.snapshot_parts`: the sums, a memory copy); a writer thread encodes it and writes
+        it to its own file (fsynced), then, under the lock, commits it: the file becomes the snapshot
+        and the log keeps only the records after it. The frames folded meanwhile stay in the log; a
+        crash before the commit restarts from the previous snapshot and the whole log. One at a time."""
+        if not self.background_snapshots:
+            self._snapshot()
+            return
+        if self.pending_snapshot is not None or self.background is not None:
+            return
+        parts = self.scene.snapshot_parts()
+        self.snapshots_started += 1
+        pending = PendingSnapshot(self.snapshots_started, self.scene.frames, self.log.size(),
+                                  checkpoint_payload(self.frame_ids, self._corrections()), time.monotonic())
+        self.pending_snapshot = pending
+        pending.writer = threading.Thread(target=self._write_pending_snapshot, args=(pending, parts), daemon=True,
+                                          name=f"snapshot-{self.id[:8]}")
+        pending.writer.start()
+
+    def wait_for_snapshot(self, timeout: float | None = None) -> None:
+        """Wait until the snapshot being written, if any, is committed or dropped (not with the lock held:
+        its writer takes it to commit)."""
+        pending = self.pending_snapshot
+        if pending is not None and pending.writer is not None:
+            pending.writer.join(timeout)
+
+    def _write_pending_snapshot(self, pending: PendingSnapshot, parts: tuple[dict, dict]) -> None:
+        path = self.path / PENDING_SNAPSHOT.format(pending.number)
+        try:  # encoded straight into the file: no second copy of the state in memory
+            write_atomic(path, lambda f: Scene.encode_snapshot(*parts, out=f))
+            error = None
+        except Exception as exc:  # noqa: BLE001 - recorded like a failed snapshot; the frames stay in the log
+            error = exc
+        del parts
+        with self.lock:
+            if self.pending_snapshot is pending:
+                self.pending_snapshot = None
+            if pending.cancelled or self.deleted or error is not None:
+                _remove_quietly(path)
+                if error is not None and not pending.cancelled and not self.deleted:
+                    self._snapshot_failed(error)
+                return
+            try:
+                os.replace(path, self.path / SNAPSHOT)
+                fsync_dir(self.path)
+            except OSError as exc:
+                _remove_quietly(path)
+                self._snapshot_failed(exc)
+                return
+            self.snapshot_frames, self.snapshot_error = pending.frames, None
+            self.dirty_since = None if self.scene.frames == pending.frames else pending.captured
+            self.version += 1  # a correction computed from the snapshot before this one is refused
+            with open(self.log.path, "rb") as f:  # the records of the frames folded meanwhile
+                f.seek(pending.log_offset)
+                tail = f.read()
+            self._restart_log(pending.frames, pending.checkpoint, tail)
+
+    def _cancel_pending_snapshot(self) -> None:
+        """The session's files are about to change otherwise (a snapshot now, a correction, a reload):
+        the snapshot being written is never committed (its writer removes its file)."""
+        if self.pending_snapshot is not None:
+            self.pending_snapshot.cancelled = True
+            self.pending_snapshot = None
+
     def _reload(self) -> None:
+        self._cancel_pending_snapshot()
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
         self._keep_undo()
@@ -379,6 +479,7 @@ class Session:
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
             self._check_no_background()
+            self._cancel_pending_snapshot()  # the correction rewrites the files: a snapshot of before must not land after
             refs, entries, version = archive.refs(), list(archive.entries), self.version
             changed = check_poses(poses, refs) if poses else {}
             removed = set(resolve_frames(remove or [], refs, "frames"))
@@ -672,6 +773,13 @@ class LatestStates(dict):
             del self[min(self)]
 
 
+def _remove_quietly(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
 def checkpoint_payload(frame_ids: dict[str, FoldedFrame], corrections: int = 0) -> bytes:
     """The checkpoint's payload: the frame-id table and how many archived corrections the snapshot holds."""
     return msgpack.packb({"frame_ids": {k: [v.index, v.digest, v.report] for k, v in frame_ids.items()},
@@ -746,6 +854,8 @@ def restore_scene(path: Path, config: SceneConfig) -> Restored:
     """Load the snapshot (if any) and replay the log after it. Raises `Unrestorable` when the files do
     not add up: a damaged log (quarantined first), a missing log, a snapshot missing or older than the
     log says."""
+    for stale in path.glob(PENDING_SNAPSHOT.format("*") + "*"):  # written off the acknowledged path, never committed
+        _remove_quietly(stale)
     if not (path / LOG).is_file():
         raise Unrestorable(f"{LOG} is missing: frames after the last snapshot may be lost "
                            "(`canonical repair` starts an empty log)")
@@ -932,6 +1042,7 @@ class SessionStore:
         try:
             for session in self.list():
                 try:
+                    session.wait_for_snapshot()  # one being written lands first: then nothing, or little, is left
                     session.snapshot()
                 finally:
                     session.log.close()
@@ -1022,7 +1133,7 @@ class SessionStore:
         for session in self.list():
             since = session.dirty_since
             if since is not None and now - since >= every_seconds:
-                session.snapshot()
+                session.snapshot(background=True)
                 done += 1
         return done
 

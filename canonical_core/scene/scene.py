@@ -22,6 +22,7 @@ import time
 from concurrent.futures import Executor, Future
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import torch
@@ -530,10 +531,10 @@ class Scene:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         return None if max_gaussians is not None and max_gaussians >= len(self) else max_gaussians
 
-    def _snapshot_arrays(self) -> dict[str, np.ndarray]:
-        """Every array of the fused state: sums, free-space history, source window, waiting frames,
-        the colour solve's kept views."""
-        arrays = {f"state.{k}": v for k, v in self.sums().items()}
+    def _snapshot_arrays(self, sums: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """Every array of the fused state: sums (``sums``, else copies of them), free-space history,
+        source window, waiting frames, the colour solve's kept views."""
+        arrays = {f"state.{k}": v for k, v in (self.sums() if sums is None else sums).items()}
         arrays |= {f"history.{k}": v for k, v in self._history.to_arrays().items()}
         arrays |= self._front.to_arrays()
         if self._keyframes.capacity:  # scenes without the colour solve keep their earlier digests
@@ -576,28 +577,49 @@ class Scene:
             header, arrays = self._snapshot_parts()
         return self._encode(header, arrays)
 
+    def snapshot_parts(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """What `to_bytes` writes, as (header, arrays) copied under the scene's lock: later folds do
+        not change them, so `encode_snapshot` of them, run while the scene folds on, gives the bytes
+        `to_bytes` gave now (a snapshot written off the fold path)."""
+        with self._lock:
+            # the sums as views into one block copy of the records (a copy per field would read every
+            # record once per field); the encoding makes them contiguous off the lock, to the same bytes
+            header, arrays = self._snapshot_parts(self._voxels.sums_of(self._voxels.copied_state()))
+            # the rest (history, source window, kept views) are views of the live state: copied
+            arrays = {k: v if k.startswith("state.") else np.array(v, copy=True) for k, v in arrays.items()}
+            return header, arrays | self._model_arrays()
+
+    @staticmethod
+    def encode_snapshot(header: dict, arrays: dict[str, np.ndarray], out: BinaryIO | None = None) -> bytes | None:
+        """The snapshot's bytes (an .npz with a JSON header) of `snapshot_parts`; with ``out`` (a
+        binary file) written there instead of returned, with no copy of the whole in memory."""
+        buf = io.BytesIO() if out is None else out
+        np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+        return buf.getvalue() if out is None else None
+
     def _to_bytes(self) -> bytes:
         """`to_bytes`, for a caller that holds the scene's lock."""
         return self._encode(*self._snapshot_parts())
 
-    def _snapshot_parts(self) -> tuple[dict, dict[str, np.ndarray]]:
+    def _snapshot_parts(self, sums: dict[str, np.ndarray] | None = None) -> tuple[dict, dict[str, np.ndarray]]:
         header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": self.config.to_dict(),
                   "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
                   "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames],
                   "model": {"setting": self.config.model, "sha256": self.model_sha256}}
-        arrays = self._snapshot_arrays()
+        arrays = self._snapshot_arrays(sums)
         solution = self._decoding.solution
         if solution is not None:  # not in the digest: decodes made it of the state, and they may differ in when
             arrays |= {f"colour_solution.{k}": v for k, v in solution.to_arrays().items()}
         return header, arrays
 
     def _encode(self, header: dict, arrays: dict[str, np.ndarray]) -> bytes:
-        for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance)):
-            for k, v in module.state_dict().items():
-                arrays[f"{prefix}.{k}"] = v.detach().cpu().numpy()
-        buf = io.BytesIO()
-        np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
-        return buf.getvalue()
+        return self.encode_snapshot(header, arrays | self._model_arrays())
+
+    def _model_arrays(self) -> dict[str, np.ndarray]:
+        """The decoder's and the appearance module's parameters, as snapshot arrays (copies)."""
+        return {f"{prefix}.{k}": v.detach().cpu().numpy().copy()
+                for prefix, module in (("decoder", self.decoder), ("appearance", self.appearance))
+                for k, v in module.state_dict().items()}
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the snapshot atomically (temp file, fsync, rename, fsync of the folder)."""

@@ -68,6 +68,8 @@ class OwnedSession(Session):
     it again from disk on the next request)."""
 
     stale = False
+    # a snapshot and the log's restart hold the lease as one step: they stay on the caller's path here
+    background_snapshots = False
 
     def add_frame(self, *args, **kwargs):
         try:

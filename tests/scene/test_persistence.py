@@ -31,6 +31,23 @@ def test_save_load_is_bit_identical_and_decodes_identically(folded, tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+def test_snapshot_parts_encode_to_the_bytes_of_their_moment_while_later_folds_change_the_scene(shelf_frames, tmp_path):
+    """`snapshot_parts` copies under the scene's lock: encoded after more folds (as the service writes a
+    snapshot off the fold path), they give the bytes `to_bytes` gave then, into a file as into memory."""
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=2))  # kept views and history arrays too
+    for f in shelf_frames[:3]:
+        scene.fold(f)
+    scene.decode()
+    parts, then = scene.snapshot_parts(), scene.to_bytes()
+    for f in shelf_frames[3:5]:
+        scene.fold(f)
+    assert scene.to_bytes() != then
+    assert Scene.encode_snapshot(*parts) == then
+    with open(tmp_path / "scene.snap", "wb") as out:
+        assert Scene.encode_snapshot(*parts, out=out) is None
+    assert (tmp_path / "scene.snap").read_bytes() == then
+
+
 def test_save_load_keeps_the_opacity_line_settings(shelf_frames, tmp_path):
     scene = Scene(SceneConfig(voxel_size=0.004, decoder={"opacity_slope": 12.0, "opacity_bias": 0.5}))
     scene.fold(shelf_frames[0])

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 
@@ -88,3 +89,14 @@ def msgpack_frame(kwargs: dict) -> dict:
     if kwargs.get("frame_id") is not None:
         msg["frame_id"] = kwargs["frame_id"]
     return msg
+
+
+def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
+    """Poll ``condition()`` until it is true (True) or ``timeout`` seconds pass (False): for what the
+    service does off the request's path, such as a due snapshot."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(interval)
+    return True

@@ -35,6 +35,7 @@ def streamed(store: SessionStore, frames: list[dict], poses: dict | None = None,
     session = store.create(CONFIG)
     for k, kwargs in enumerate(frames):
         session.add_frame(*payload(kwargs, (poses or {}).get(k)), snapshot_every, 3600)
+        session.wait_for_snapshot()  # a due snapshot is written off the fold's path: as a stream's pause would
     return session
 
 

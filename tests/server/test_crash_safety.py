@@ -11,7 +11,7 @@ import pytest
 from client.sdk import Client
 from server import framelog
 
-from .harness import VOXEL, ServerProcess
+from .harness import VOXEL, ServerProcess, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
@@ -45,6 +45,7 @@ def test_kill9_restart_keeps_every_acknowledged_frame(tmp_path, frames, referenc
         session = client.session(sid)
         for kwargs in frames[3:7]:  # a snapshot at 4 frames, then 5..7 in the log
             session.add_frame(**kwargs)
+        assert wait_for(lambda: session.stats()["snapshot_frames"] == 4)  # written off the acknowledged path
         proc.kill9()
         assert (data / "sessions" / sid / "scene.snap").exists()
 

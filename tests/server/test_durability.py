@@ -18,7 +18,7 @@ import pytest
 from client.sdk import Client
 from server import framelog
 
-from .harness import REPO, VOXEL, ServerProcess, msgpack_frame
+from .harness import REPO, VOXEL, ServerProcess, msgpack_frame, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 MSGPACK = {"content-type": "application/msgpack"}
@@ -165,15 +165,23 @@ def test_a_snapshot_that_cannot_be_written_is_no_error_of_the_frame(tmp_path, fr
     data = tmp_path / "data"
     with serving(server(tmp_path, data, snapshot_every_frames=1)) as proc:
         sid = new_session(proc, frames[:1])
-        blocker = data / "sessions" / sid / "scene.snap.tmp"
-        blocker.mkdir()  # the snapshot's temp file cannot be created (as root too, unlike chmod)
+        session = Client(proc.url).session(sid)
+        assert wait_for(lambda: session.stats()["snapshot_frames"] == 1)  # written off the acknowledged path
+        # the snapshots' temp files cannot be created (as root too, unlike chmod): the one written now and
+        # those written off the acknowledged path, numbered per session
+        blockers = [data / "sessions" / sid / name for name in ("scene.snap.tmp", "scene.snap.2.next.tmp",
+                                                                "scene.snap.3.next.tmp")]
+        for blocker in blockers:
+            blocker.mkdir()
         for kwargs in frames[1:3]:
             assert post(proc, sid, kwargs).status_code == 200  # the truth: folded and durable in the log
-        stats = Client(proc.url).session(sid).stats()
+        assert wait_for(lambda: session.stats()["snapshot_error"] is not None)
+        stats = session.stats()
         assert stats["frames"] == 3 and stats["snapshot_frames"] == 1 and "scene.snap" in stats["snapshot_error"]
         assert "canonical_snapshot_failures 1" in httpx.get(f"{proc.url}/metrics").text
         proc.kill9()
-        blocker.rmdir()
+        for blocker in blockers:
+            blocker.rmdir()
         proc.start()
         digest = Client(proc.url).session(sid).digest()
         assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]
@@ -183,6 +191,7 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
     data = tmp_path / "data"
     with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
         ids = [new_session(proc, frames[:3]) for _ in range(3)]  # a snapshot at 2 frames, one frame in the log after it
+        assert all(wait_for(lambda: Client(proc.url).session(sid).stats()["snapshot_frames"] == 2) for sid in ids)
 
         second = server(tmp_path / "second", data)
         (tmp_path / "second").mkdir()

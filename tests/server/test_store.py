@@ -9,6 +9,7 @@ import errno
 import hashlib
 import os
 import re
+import shutil
 import threading
 import time
 
@@ -20,10 +21,10 @@ from canonical_core.datasets import load_tsdf_fusion
 from canonical_core.decode import solve_colours, with_colour_offsets
 from canonical_core.scene.decoding import decoded_rows
 from client.cli import frame_arrays
-from server import framelog, wire
+from server import framelog, store as store_module, wire
 from server.framelog import StorageError
 from server.archive import payload_digest
-from server.store import FrameIdConflict, SessionStore, SessionUnavailable
+from server.store import FrameIdConflict, SessionStore, SessionUnavailable, restore_scene
 
 from .harness import msgpack_frame
 
@@ -199,3 +200,42 @@ def test_a_retry_matches_a_frame_logged_under_the_older_digest(store, shelf_fram
     with pytest.raises(FrameIdConflict, match="frame_id"):
         session.add_frame(other, wire.frame_from_message(wire.unpack(other)), 10**6, 1e9)
     assert session.scene.frames == 1
+
+
+@pytest.mark.realdata
+def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_its_commit_loses_nothing(
+        store, shelf_frames, monkeypatch, tmp_path):
+    """The frame that makes a snapshot due is answered before the snapshot is written, and frames fold
+    on meanwhile. The files as a crash before the commit leaves them (the snapshot's own file written,
+    not yet the snapshot) restore every frame; after the commit the log holds only the frames after it."""
+    written, release = threading.Event(), threading.Event()
+    write_atomic = store_module.write_atomic
+
+    def held(path, data):
+        write_atomic(path, data)
+        if path.name.endswith(".next"):  # the pending snapshot is on disk; hold its commit
+            written.set()
+            assert release.wait(60)
+
+    monkeypatch.setattr(store_module, "write_atomic", held)
+    session = store.create(SceneConfig(voxel_size=0.01))
+    payloads = [wire.pack(msgpack_frame(frame_arrays(f))) for f in shelf_frames[:3]]
+    for payload in payloads[:2]:  # the second frame makes a snapshot due (every 2 frames)
+        session.add_frame(payload, wire.frame_from_message(wire.unpack(payload)), 2, 1e9)
+    assert written.wait(60)
+    session.add_frame(payloads[2], wire.frame_from_message(wire.unpack(payloads[2])), 2, 1e9)  # folds meanwhile
+    assert session.snapshot_frames == 0 and session.scene.frames == 3
+    crashed = tmp_path / "crashed" / session.id
+    shutil.copytree(session.path, crashed)  # the files as a kill -9 now would leave them
+    release.set()
+    session.wait_for_snapshot()
+    assert session.snapshot_frames == 2 and session.snapshot_error is None
+    records = framelog.scan((session.path / "frames.log").read_bytes()).records
+    assert [(r.checkpoint, r.index) for r in records] == [(True, 2), (False, 2)]
+    assert not list(session.path.glob("scene.snap.*"))  # the pending file became the snapshot
+    digest = session.scene.digest()
+    for path in (session.path, crashed):
+        restored = restore_scene(path, session.config)
+        restored.log.close()
+        assert restored.scene.frames == 3 and restored.scene.digest() == digest
+    assert restored.snapshot_frames == 0 and not list(crashed.glob("scene.snap.*.next*"))  # dropped on start
