@@ -344,8 +344,6 @@ class Session:
         if self.background is not None:
             return
         self._cancel_pending_snapshot()
-        if self.archive is not None:
-            self.archive.flush()  # the log is restarted below: the archive must hold its frames first
         try:
             write_atomic(self.path / SNAPSHOT, self.scene.to_bytes())
         except OSError as exc:
@@ -364,7 +362,7 @@ class Session:
         """The log replaced by a checkpoint of the snapshot's ``frames`` and ``tail`` (the records of
         the frames after them), once the archive holds every frame."""
         if self.archive is not None:
-            self.archive.flush()
+            self.archive.flush()  # the log is restarted below: the archive must hold its frames first
             if self.archive.problem is not None:
                 return  # the log keeps the frames the archive may lack: a restart archives them from it
         try:
@@ -425,9 +423,13 @@ class Session:
             self.snapshot_frames, self.snapshot_error = pending.frames, None
             self.dirty_since = None if self.scene.frames == pending.frames else pending.captured
             self.version += 1  # a correction computed from the snapshot before this one is refused
-            with open(self.log.path, "rb") as f:  # the records of the frames folded meanwhile
-                f.seek(pending.log_offset)
-                tail = f.read()
+            try:
+                with open(self.log.path, "rb") as f:  # the records of the frames folded meanwhile
+                    f.seek(pending.log_offset)
+                    tail = f.read()
+            except OSError as exc:  # the old records stay; a restart skips those the snapshot holds
+                log.error("session %s: the log could not be read after a snapshot (%s)", self.id, exc.strerror or exc)
+                return
             self._restart_log(pending.frames, pending.checkpoint, tail)
 
     def _cancel_pending_snapshot(self) -> None:
