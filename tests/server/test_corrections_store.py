@@ -3,6 +3,8 @@ scene back in place, or starts from the state a previous correction kept, and eq
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -250,3 +252,39 @@ def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_pat
         assert all(np.array_equal(offset, offsets_of[key]) for key, offset in zip(keys, carried.offsets))
     finally:
         store.close()
+
+
+def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, shelf, monkeypatch):
+    """A snapshot written off the acknowledged path holds frames that a correction then changes: it
+    is never committed (its file is removed), and the files restore the corrected scene."""
+    written, release = threading.Event(), threading.Event()
+    write_atomic = store_module.write_atomic
+
+    def held(path, data):
+        write_atomic(path, data)
+        if path.name.endswith(".next"):  # the pending snapshot is on disk; hold its commit
+            written.set()
+            assert release.wait(60)
+
+    monkeypatch.setattr(store_module, "write_atomic", held)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session = store.create(CONFIG)
+    for kw in shelf:  # a snapshot due at 6 frames, held while the seventh folds
+        session.add_frame(*payload(kw, shift @ kw["c2w"]), 6, 3600)
+    assert written.wait(60) and session.snapshot_frames == 0
+    pending = session.pending_snapshot
+    session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[4:]})  # frames 4 and 5 are in that snapshot
+    release.set()
+    pending.writer.join(60)
+    assert session.snapshot_frames == 0 and not list(session.path.glob("scene.snap*"))
+    expected = [kw if k >= 4 else {**kw, "c2w": shift @ kw["c2w"]} for k, kw in enumerate(shelf)]
+    digest = streamed(store, expected).digest()["sha256"]
+    assert session.digest()["sha256"] == digest
+    again = reopened(store, tmp_path)  # the files as a kill -9 now leaves them
+    try:
+        assert again.get(session.id).digest()["sha256"] == digest
+    finally:
+        again.close()
