@@ -2,15 +2,19 @@
 fold latency while a viewer renders (a plain session and one with the colour solve).
 
     python bench/service.py [--data ../shared/data/realsense_shelf] [--frames 30] [--renders 40] [--solve-views 16]
+                            [--snapshot-every 10]
 
 Starts the real service (`canonical serve`, uvicorn) on a free loopback port with a temporary data
 directory, streams the same frames through the Python client that it folds in-process, and prints
-tables with medians and the machine. Never asserts timings.
+tables with medians and the machine. The service snapshots a session every ``--snapshot-every``
+frames (its `snapshot_every_frames`), and the first table splits out the round trips of the frames
+that made a snapshot due. Never asserts timings.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -48,6 +52,14 @@ def over_http(url: str, payloads: list[dict], voxel: float) -> tuple[list[float]
             total.append((time.perf_counter() - t0) * 1000)
             server.append(report["ms"])
         return total, server, session.id
+
+
+def snapshot_split(round_trips: list[float], every: int) -> list[tuple[str, list[float]]]:
+    """The round trips of the frames that made a snapshot due (the scene then held a multiple of
+    ``every`` frames) and of the others."""
+    due = [ms for k, ms in enumerate(round_trips) if (k + 1) % every == 0]
+    other = [ms for k, ms in enumerate(round_trips) if (k + 1) % every]
+    return [(f"made a snapshot due (every {every})", due), ("did not", other)]
 
 
 def render_latency(url: str, session_id: str, cameras, clients: int, per_client: int) -> list[float]:
@@ -111,7 +123,10 @@ def main(argv=None) -> None:
     p.add_argument("--renders", type=int, default=40, help="renders in total across the 4 clients")
     p.add_argument("--scale", type=float, default=1.0, help="also resize frames (e.g. 0.5 for 320x240)")
     p.add_argument("--solve-views", type=int, default=16, help="colour_solve_views of the viewed session (0: skip that table)")
+    p.add_argument("--snapshot-every", type=int, default=10, help="the service's snapshot_every_frames")
     args = p.parse_args(argv)
+    if args.snapshot_every < 1:
+        p.error("--snapshot-every: expected a positive number of frames")
     if args.solve_views < 0:
         p.error("--solve-views: expected a non-negative number of kept views")
 
@@ -130,6 +145,7 @@ def main(argv=None) -> None:
 
     with tempfile.TemporaryDirectory() as data_dir:
         port = free_port()
+        os.environ["CANONICAL_SNAPSHOT_EVERY_FRAMES"] = str(args.snapshot_every)  # the service's setting
         service = start_service(port, Path(data_dir))
         try:
             url = f"http://127.0.0.1:{port}"
@@ -154,6 +170,8 @@ def main(argv=None) -> None:
         {"path": "  of which server fold", "ms/frame (med/min/max)": stats_ms(server), "frames/s (median)": ""},
         {"path": "overhead ratio HTTP / in-process", "ms/frame (med/min/max)": f"{statistics.median(total) / statistics.median(local):.2f}",
          "frames/s (median)": ""},
+        *({"path": f"  round trips of the frames that {label}", "ms/frame (med/min/max)": stats_ms(ms), "frames/s (median)": ""}
+          for label, ms in snapshot_split(total, args.snapshot_every) if ms),
     ])
     lat = np.asarray(lat)
     print_table(f"Render latency, 4 concurrent clients, {frames[0].width}x{frames[0].height}, {len(lat)} renders", [
