@@ -13,13 +13,12 @@ import pytest
 ray = pytest.importorskip("ray")
 pytest.importorskip("ray.serve")
 
-from client.cli import free_port  # noqa: E402
 from client.sdk import Client  # noqa: E402
 from server.cluster import serve as cluster  # noqa: E402
 from server.cluster.owner import shard_of  # noqa: E402
 
 from ..server.harness import VOXEL, ServerProcess  # noqa: E402
-from .conftest import settings  # noqa: E402
+from .conftest import settings, unclaimed_port  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -28,7 +27,7 @@ pytestmark = pytest.mark.slow
 def cluster_url(tmp_path_factory):
     root = tmp_path_factory.mktemp("cluster")
     config = settings(root / "data", owners=2, owner_cpus=0.5, ingress_cpus=0.25, ingress_min_replicas=2,
-                      ingress_max_replicas=2, host="127.0.0.1", port=free_port())
+                      ingress_max_replicas=2, host="127.0.0.1", port=unclaimed_port())
     cluster.connect(num_cpus=2)
     try:
         cluster.start(config)
