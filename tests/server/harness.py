@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -100,3 +101,21 @@ def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
             return False
         time.sleep(interval)
     return True
+
+
+def hold_snapshot_commits(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """Hold each snapshot written off the acknowledged path once its file is on disk, before its
+    commit: returns (written: set then, release: set it to let the commit go on)."""
+    from server import store as store_module
+
+    written, release = threading.Event(), threading.Event()
+    write_atomic = store_module.write_atomic
+
+    def held(path, data):
+        write_atomic(path, data)
+        if path.name.endswith(".next"):  # the pending snapshot's file
+            written.set()
+            assert release.wait(60)
+
+    monkeypatch.setattr(store_module, "write_atomic", held)
+    return written, release

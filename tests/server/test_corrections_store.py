@@ -3,8 +3,6 @@ scene back in place, or starts from the state a previous correction kept, and eq
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 
@@ -15,6 +13,8 @@ from server import store as store_module
 from server import wire
 from server.archive import ARCHIVE, DamagedFrame
 from server.store import BASE, SessionStore
+
+from .harness import hold_snapshot_commits
 
 pytestmark = pytest.mark.realdata
 CONFIG = SceneConfig(voxel_size=0.01)
@@ -257,16 +257,7 @@ def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_pat
 def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, shelf, monkeypatch):
     """A snapshot written off the acknowledged path holds frames that a correction then changes: it
     is never committed (its file is removed), and the files restore the corrected scene."""
-    written, release = threading.Event(), threading.Event()
-    write_atomic = store_module.write_atomic
-
-    def held(path, data):
-        write_atomic(path, data)
-        if path.name.endswith(".next"):  # the pending snapshot is on disk; hold its commit
-            written.set()
-            assert release.wait(60)
-
-    monkeypatch.setattr(store_module, "write_atomic", held)
+    written, release = hold_snapshot_commits(monkeypatch)
     store = SessionStore(tmp_path, 8)
     store.open()
     shift = np.eye(4)

@@ -21,12 +21,12 @@ from canonical_core.datasets import load_tsdf_fusion
 from canonical_core.decode import solve_colours, with_colour_offsets
 from canonical_core.scene.decoding import decoded_rows
 from client.cli import frame_arrays
-from server import framelog, store as store_module, wire
+from server import framelog, wire
 from server.framelog import StorageError
 from server.archive import payload_digest
 from server.store import FrameIdConflict, SessionStore, SessionUnavailable, restore_scene
 
-from .harness import msgpack_frame
+from .harness import hold_snapshot_commits, msgpack_frame
 
 
 def fold(session, frame) -> None:
@@ -208,16 +208,7 @@ def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_
     """The frame that makes a snapshot due is answered before the snapshot is written, and frames fold
     on meanwhile. The files as a crash before the commit leaves them (the snapshot's own file written,
     not yet the snapshot) restore every frame; after the commit the log holds only the frames after it."""
-    written, release = threading.Event(), threading.Event()
-    write_atomic = store_module.write_atomic
-
-    def held(path, data):
-        write_atomic(path, data)
-        if path.name.endswith(".next"):  # the pending snapshot is on disk; hold its commit
-            written.set()
-            assert release.wait(60)
-
-    monkeypatch.setattr(store_module, "write_atomic", held)
+    written, release = hold_snapshot_commits(monkeypatch)
     session = store.create(SceneConfig(voxel_size=0.01))
     payloads = [wire.pack(msgpack_frame(frame_arrays(f))) for f in shelf_frames[:3]]
     for payload in payloads[:2]:  # the second frame makes a snapshot due (every 2 frames)
