@@ -166,8 +166,8 @@ def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
     """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized.
 
     With ``sensor_units``, depth that 16-bit sensor units hold exactly (depth read from a 16-bit depth
-    image) travels as those units and their ``depth_scale``: half the bytes, and the service folds
-    the same float32 metres."""
+    image) travels as those units and their ``depth_scale``: half the depth's bytes, and the service
+    folds the same float32 metres."""
     camera = frame.camera
     rgb = frame.rgb.numpy()
     depth = None if frame.depth is None else frame.depth.numpy()

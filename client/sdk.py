@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import math
+import numbers
 import os
 import time
 from pathlib import Path
@@ -58,7 +59,7 @@ def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background
 def sensor_depth(depth, depth_scale) -> np.ndarray:  # [H, W] integers -> [H, W] uint16
     """A sensor's integer depth as the 16-bit array it travels as; ValueError (naming the field) for a
     missing or non-positive ``depth_scale`` or values outside 0..65535."""
-    if isinstance(depth_scale, bool) or not isinstance(depth_scale, (int, float)) or not depth_scale > 0 \
+    if isinstance(depth_scale, bool) or not isinstance(depth_scale, numbers.Real) or not depth_scale > 0 \
             or not math.isfinite(depth_scale):
         raise ValueError(f"depth_scale: integer depth needs its units per metre (e.g. 1000 for millimetres), got {depth_scale!r}")
     depth = np.asarray(depth)
