@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import itertools
 
+import numba
 import numpy as np
 
 from .decoded import gather_rows
@@ -77,6 +78,14 @@ def gathered_sums(
     """The sums of ``rows`` of ``state``, copied: a gather of whole records (on the numba threads),
     where a gather per column would read each record once per field."""
     return sums_view({k: gather_rows(v, rows).numpy() for k, v in state.items()}, layout, len(rows))
+
+
+@numba.njit(parallel=True, cache=True)
+def _copy_bytes(source, out):  # out[:] = source, [B] uint8, in 64 parts on the numba threads
+    n = source.shape[0]
+    for part in numba.prange(64):
+        lo, hi = part * n // 64, (part + 1) * n // 64
+        out[lo:hi] = source[lo:hi]
 
 
 class CapacityError(ValueError):
@@ -266,8 +275,14 @@ class VoxelMap:
         return {name: array.copy() for name, array in self.sums_of(self.state).items()}
 
     def copied_state(self) -> dict[str, np.ndarray]:
-        """A copy of the `len(self)` rows of `state`: one block copy per array (for `sums_of`)."""
-        return {k: v[: self.n].copy() for k, v in self.state.items()}
+        """A copy of the `len(self)` rows of `state`: one block copy per array, split between the
+        numba threads (for `sums_of`; a snapshot's capture copies the whole state under the lock)."""
+        out = {}
+        for name, array in self.state.items():
+            rows = array[: self.n]
+            out[name] = np.empty_like(rows)
+            _copy_bytes(rows.reshape(-1).view(np.uint8), out[name].reshape(-1).view(np.uint8))
+        return out
 
     def sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The sums as views into ``state`` (the map's arrays or a copy of them), its first `len(self)` rows."""
