@@ -45,7 +45,7 @@ from common import machine_summary, print_table  # noqa: E402
 
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli import frame_arrays, free_port, start_service, unclaimed_port  # noqa: E402
 from client.sdk import Client, encode_array, pack  # noqa: E402
 from server.store import configure_thread  # noqa: E402
 
@@ -122,7 +122,7 @@ def bench_streaming(payloads, counts, renders, voxel, threads) -> list[dict]:
             print("(cluster rows skipped: install the [cluster] extra)\n")
             return rows
         cluster.connect(num_cpus=2)
-        port = free_port()  # Serve's proxy keeps the port it started on
+        port = unclaimed_port()  # Serve's proxy keeps the port it started on; Ray's processes take ephemeral ones
         try:
             for owners in (1, 2):
                 settings = ClusterSettings(data_dir=Path(tmp) / f"cluster{owners}", owners=owners, owner_cpus=0.75,

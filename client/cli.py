@@ -439,6 +439,29 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def unclaimed_port() -> int:
+    """A free loopback port below the kernel's ephemeral range, for a server that binds it later while
+    other processes start (a Ray cluster's GCS, raylets and workers take ephemeral ports as they
+    start, so a free ephemeral port picked before them may be taken by then)."""
+    import random
+    import socket
+
+    low = 32768
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            low = int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        pass
+    for port in random.Random().sample(range(max(1024, low - 12000), low), 200):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port below {low}")
+
+
 def wait_until_healthy(url: str, proc, timeout: float) -> None:
     """Poll ``url``/healthz until it answers 200; RuntimeError if ``proc`` exits or ``timeout`` s pass."""
     import httpx

@@ -4,8 +4,6 @@ called directly, the ingress app through httpx's ASGI transport); `test_serve.py
 from __future__ import annotations
 
 import asyncio
-import random
-import socket
 
 import httpx
 import pytest
@@ -32,26 +30,6 @@ def settings(data_dir, **overrides):
 
     return ClusterSettings(data_dir=data_dir, warm_up=False, threads=1, snapshot_every_seconds=3600,
                            snapshot_every_frames=1000, **overrides)
-
-
-def unclaimed_port() -> int:
-    """A free loopback port below the kernel's ephemeral range: a cluster's processes (Ray's GCS,
-    raylets, workers) take ephemeral ports as they start, so a free ephemeral port picked before them
-    may be taken by the time the HTTP proxy binds it."""
-    low = 32768
-    try:
-        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
-            low = int(f.read().split()[0])
-    except (OSError, ValueError, IndexError):
-        pass
-    for port in random.Random().sample(range(max(1024, low - 12000), low), 200):
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError(f"no free port below {low}")
 
 
 def run(coro):

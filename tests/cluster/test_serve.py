@@ -13,12 +13,13 @@ import pytest
 ray = pytest.importorskip("ray")
 pytest.importorskip("ray.serve")
 
+from client.cli import unclaimed_port  # noqa: E402
 from client.sdk import Client  # noqa: E402
 from server.cluster import serve as cluster  # noqa: E402
 from server.cluster.owner import shard_of  # noqa: E402
 
 from ..server.harness import VOXEL, ServerProcess  # noqa: E402
-from .conftest import settings, unclaimed_port  # noqa: E402
+from .conftest import settings  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
