@@ -10,7 +10,7 @@ from setuptools import Extension, setup
 
 SOURCE_DIR = "canonical_core/rendering"
 # -ffp-contract=fast: fused multiply-adds in the blend (GCC's default outside ISO mode, made explicit).
-FLAGS = ["-O3", "-ffp-contract=fast", "-pthread", "-Wno-psabi"]
+FLAGS = ["-O3", "-ffp-contract=fast", "-Wno-psabi"]
 
 
 def compositor(name: str, extra_flags: list[str]) -> Extension:
@@ -19,7 +19,6 @@ def compositor(name: str, extra_flags: list[str]) -> Extension:
         [f"{SOURCE_DIR}/{name}.c"],
         depends=[f"{SOURCE_DIR}/_composite.c"],
         extra_compile_args=FLAGS + extra_flags,
-        extra_link_args=["-pthread"],
     )
 
 

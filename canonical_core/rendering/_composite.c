@@ -26,7 +26,6 @@
  * (faster than planar at that width).
  */
 #include <math.h>
-#include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -311,44 +310,52 @@ static void *worker(void *arg) {
     return NULL;
 }
 
-/* Run `job` on `num_threads` threads (the calling one among them). Returns 0, or -1 if memory ran out. */
-static int run_job(Job *job, int64_t num_threads) {
-    for (int64_t t = 0; t < job->num_tiles; t++) {
-        int64_t count = job->tile_starts[t + 1] - job->tile_starts[t];
-        if (count > job->max_tile_splats) job->max_tile_splats = count;
+/* A job on the heap, its largest tile counted (for the scratch), for canonical_job_work. */
+static int64_t new_job(Job init) {
+    for (int64_t t = 0; t < init.num_tiles; t++) {
+        int64_t count = init.tile_starts[t + 1] - init.tile_starts[t];
+        if (count > init.max_tile_splats) init.max_tile_splats = count;
     }
-    if (num_threads < 1) num_threads = 1;
-    pthread_t threads[num_threads];
-    int64_t started = 0;
-    for (; started < num_threads - 1; started++)
-        if (pthread_create(&threads[started], NULL, worker, job) != 0) break;
-    worker(job);
-    for (int64_t t = 0; t < started; t++) pthread_join(threads[t], NULL);
-    return job->failed ? -1 : 0;
+    Job *job = malloc(sizeof *job);
+    if (job) *job = init;
+    return (int64_t)(intptr_t)job;
 }
 
-/* Composite every tile on `num_threads` threads. Returns 0, or -1 if memory ran out. */
-int canonical_composite_tiles(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
-                              const float *splats, const int32_t *boxes, const float *values, int64_t channels,
-                              int64_t tiles_x, int64_t width, int64_t height, float *out_values,
-                              float *out_depth_sums, float *out_weight_sums, float *out_transmittance,
-                              float *out_median_depth, int64_t num_threads) {
+/* A compositing job over every tile (0 if memory ran out), to be worked by canonical_job_work. */
+int64_t canonical_composite_job(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
+                                const float *splats, const int32_t *boxes, const float *values, int64_t channels,
+                                int64_t tiles_x, int64_t width, int64_t height, float *out_values,
+                                float *out_depth_sums, float *out_weight_sums, float *out_transmittance,
+                                float *out_median_depth) {
     Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, channels, tiles_x, width, height,
                out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth, 0, 0, 0};
-    return run_job(&job, num_threads);
+    return new_job(job);
 }
 
-/* The weights mode: per tile, the entries (pixel v * width + u, splat index, weight >= min_weight) in
- * blend order into the slots from slot_starts[tile] (room for one per pixel of each splat's box in
- * the tile), and their number into out_counts[tile]. Returns 0, or -1 if memory ran out. */
-int canonical_tile_weights(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
-                           const float *splats, const int32_t *boxes, int64_t tiles_x, int64_t width,
-                           int64_t height, float min_weight, const int64_t *slot_starts, int32_t *out_pixels,
-                           int32_t *out_ids, float *out_weights, int64_t *out_counts, int64_t num_threads) {
+/* The weights mode's job (0 if memory ran out): per tile, the entries (pixel v * width + u, splat
+ * index, weight >= min_weight) in blend order into the slots from slot_starts[tile] (room for one per
+ * pixel of each splat's box in the tile), and their number into out_counts[tile]. */
+int64_t canonical_weights_job(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
+                              const float *splats, const int32_t *boxes, int64_t tiles_x, int64_t width,
+                              int64_t height, float min_weight, const int64_t *slot_starts, int32_t *out_pixels,
+                              int32_t *out_ids, float *out_weights, int64_t *out_counts) {
     Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, NULL, 0, tiles_x, width, height,
                NULL, NULL, NULL, NULL, NULL, 0, 0, 0, min_weight, slot_starts, out_pixels, out_ids, out_weights,
                out_counts};
-    return run_job(&job, num_threads);
+    return new_job(job);
+}
+
+/* Blend tiles of `job` until none is left. Every thread of a team calls it once: the threads are
+ * the caller's (cpu_tiles runs it on numba's OpenMP threads, which would otherwise spin idle
+ * against threads of our own on the same cores). */
+void canonical_job_work(int64_t job) { worker((Job *)(intptr_t)job); }
+
+/* Free `job`. Returns 0, or -1 if a thread ran out of memory for its tile buffers. */
+int canonical_job_finish(int64_t job) {
+    Job *j = (Job *)(intptr_t)job;
+    const int failed = j->failed;
+    free(j);
+    return failed ? -1 : 0;
 }
 
 /* The stable depth order of n positive depths into out_order (for tests). Returns 0, or -1 if

@@ -86,18 +86,47 @@ def load_compositor(name: str) -> ctypes.CDLL:
     """Load one build of the compositor (a name from ``compositor_builds()``), its functions typed."""
     library = ctypes.CDLL(compositor_builds()[name])
     pointer, size = ctypes.c_void_p, ctypes.c_int64
-    library.canonical_composite_tiles.argtypes = [pointer, size, pointer, pointer, pointer, pointer, size] + [
-        size, size, size, pointer, pointer, pointer, pointer, pointer, size
+    library.canonical_composite_job.argtypes = [pointer, size, pointer, pointer, pointer, pointer, size] + [
+        size, size, size, pointer, pointer, pointer, pointer, pointer
     ]
-    library.canonical_composite_tiles.restype = ctypes.c_int
-    library.canonical_tile_weights.argtypes = [pointer, size, pointer, pointer, pointer, size, size, size,
-                                               ctypes.c_float, pointer, pointer, pointer, pointer, pointer, size]
-    library.canonical_tile_weights.restype = ctypes.c_int
+    library.canonical_composite_job.restype = size
+    library.canonical_weights_job.argtypes = [pointer, size, pointer, pointer, pointer, size, size, size,
+                                              ctypes.c_float, pointer, pointer, pointer, pointer, pointer]
+    library.canonical_weights_job.restype = size
+    library.canonical_job_work.argtypes = [size]  # a job's address, as numba passes it
+    library.canonical_job_work.restype = None
+    library.canonical_job_finish.argtypes = [size]
+    library.canonical_job_finish.restype = ctypes.c_int
     library.canonical_stable_depth_order.argtypes = [pointer, size, pointer]
     library.canonical_stable_depth_order.restype = ctypes.c_int
     library.canonical_cpu_has_x86_64_v3.argtypes = []
     library.canonical_cpu_has_x86_64_v3.restype = ctypes.c_int
     return library
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _work_on_numba_threads(work, job, num_threads):  # work: the library's canonical_job_work
+    for _ in numba.prange(num_threads):
+        work(job)
+
+
+def _run_job(library: ctypes.CDLL, job: int, num_threads: int, name: str) -> None:
+    """Work ``job`` on ``num_threads`` of numba's threads, then free it.
+
+    The compositor starts no threads of its own: numba's OpenMP threads, which have just run the
+    projection and the binning, would spin idle for a while after those (OpenMP's wait policy)
+    against any other thread on the same cores, so they take the tiles instead."""
+    if not job:
+        raise MemoryError(f"{name}: out of memory for the job")
+    previous_threads = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(num_threads, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        _work_on_numba_threads(library.canonical_job_work, job, numba.get_num_threads())
+    finally:
+        numba.set_num_threads(previous_threads)
+        status = library.canonical_job_finish(job)
+    if status:
+        raise MemoryError(f"{name}: out of memory for the per-thread tile buffers")
 
 
 def _default_build() -> str:
@@ -154,7 +183,8 @@ def composite_tiles(
     height, width, num_channels = out_values.shape
     if splats.shape[1] != SPLAT_RECORD:
         raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
-    status = (compositor or _compositor).canonical_composite_tiles(
+    library = compositor or _compositor
+    job = library.canonical_composite_job(
         _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
         _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
         _address(boxes, np.int32, "boxes"), _address(values, np.float32, "values"), num_channels,
@@ -162,10 +192,9 @@ def composite_tiles(
         _address(out_depth_sums, np.float32, "out_depth_sums"),
         _address(out_weight_sums, np.float32, "out_weight_sums"),
         _address(out_transmittance, np.float32, "out_transmittance"),
-        None if out_median_depth is None else _address(out_median_depth, np.float32, "out_median_depth"), num_threads,
+        None if out_median_depth is None else _address(out_median_depth, np.float32, "out_median_depth"),
     )  # fmt: skip
-    if status:
-        raise MemoryError("composite_tiles: out of memory for the per-thread tile buffers")
+    _run_job(library, job, num_threads, "composite_tiles")
 
 
 def composite_weights(
@@ -189,16 +218,15 @@ def composite_weights(
     splat's pixels row by row, splats front to back)."""
     if splats.shape[1] != SPLAT_RECORD:
         raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
-    status = _compositor.canonical_tile_weights(
+    job = _compositor.canonical_weights_job(
         _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
         _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
         _address(boxes, np.int32, "boxes"), tiles_x, width, height, min_weight,
         _address(slot_starts, np.int64, "slot_starts"), _address(out_pixels, np.int32, "out_pixels"),
         _address(out_ids, np.int32, "out_ids"), _address(out_weights, np.float32, "out_weights"),
-        _address(out_counts, np.int64, "out_counts"), num_threads,
+        _address(out_counts, np.int64, "out_counts"),
     )  # fmt: skip
-    if status:
-        raise MemoryError("composite_weights: out of memory for the per-thread tile buffers")
+    _run_job(_compositor, job, num_threads, "composite_weights")
 
 
 def _float32(t: Tensor) -> np.ndarray:
