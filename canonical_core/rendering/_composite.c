@@ -110,6 +110,7 @@ typedef struct {
     const float *splats;
     const int32_t *boxes;
     const float *values;
+    int64_t splat_stride, box_stride, value_stride; /* elements from one splat's row to the next */
     int64_t channels, tiles_x, width, height;
     float *out_values, *out_depth_sums, *out_weight_sums, *out_transmittance, *out_median_depth;
     int64_t max_tile_splats;
@@ -136,13 +137,13 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     const int32_t *ids = job->splat_ids + first;
     /* Sort, then gather the tile's records, boxes and values in depth order: scattered reads
      * once, in a tight loop, rather than inside the blend. */
-    for (int64_t k = 0; k < n; k++) memcpy(&s->keys[k], &job->splats[(int64_t)ids[k] * RECORD + DEPTH], sizeof(uint32_t));
+    for (int64_t k = 0; k < n; k++) memcpy(&s->keys[k], &job->splats[(int64_t)ids[k] * job->splat_stride + DEPTH], sizeof(uint32_t));
     const int32_t *order = depth_order(s->keys, s->keys_out, s->order, s->order_out, n);
     for (int64_t k = 0; k < n; k++) {
         int64_t i = ids[order[k]];
-        memcpy(s->records + k * RECORD, job->splats + i * RECORD, RECORD * sizeof(float));
-        memcpy(s->boxes + k * 4, job->boxes + i * 4, 4 * sizeof(int32_t));
-        if (channels) memcpy(s->values + k * channels, job->values + i * channels, channels * sizeof(float));
+        memcpy(s->records + k * RECORD, job->splats + i * job->splat_stride, RECORD * sizeof(float));
+        memcpy(s->boxes + k * 4, job->boxes + i * job->box_stride, 4 * sizeof(int32_t));
+        if (channels) memcpy(s->values + k * channels, job->values + i * job->value_stride, channels * sizeof(float));
         s->splat_of[k] = (int32_t)i;
     }
     const int64_t u0 = (tile % job->tiles_x) * TILE, v0 = (tile / job->tiles_x) * TILE;
@@ -323,12 +324,13 @@ static int64_t new_job(Job init) {
 
 /* A compositing job over every tile (0 if memory ran out), to be worked by canonical_job_work. */
 int64_t canonical_composite_job(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
-                                const float *splats, const int32_t *boxes, const float *values, int64_t channels,
-                                int64_t tiles_x, int64_t width, int64_t height, float *out_values,
-                                float *out_depth_sums, float *out_weight_sums, float *out_transmittance,
-                                float *out_median_depth) {
-    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, channels, tiles_x, width, height,
-               out_values, out_depth_sums, out_weight_sums, out_transmittance, out_median_depth, 0, 0, 0};
+                                const float *splats, int64_t splat_stride, const int32_t *boxes, int64_t box_stride,
+                                const float *values, int64_t value_stride, int64_t channels, int64_t tiles_x,
+                                int64_t width, int64_t height, float *out_values, float *out_depth_sums,
+                                float *out_weight_sums, float *out_transmittance, float *out_median_depth) {
+    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, splat_stride, box_stride, value_stride,
+               channels, tiles_x, width, height, out_values, out_depth_sums, out_weight_sums, out_transmittance,
+               out_median_depth, 0, 0, 0};
     return new_job(job);
 }
 
@@ -336,10 +338,12 @@ int64_t canonical_composite_job(const int64_t *tile_starts, int64_t num_tiles, c
  * index, weight >= min_weight) in blend order into the slots from slot_starts[tile] (room for one per
  * pixel of each splat's box in the tile), and their number into out_counts[tile]. */
 int64_t canonical_weights_job(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
-                              const float *splats, const int32_t *boxes, int64_t tiles_x, int64_t width,
-                              int64_t height, float min_weight, const int64_t *slot_starts, int32_t *out_pixels,
-                              int32_t *out_ids, float *out_weights, int64_t *out_counts) {
-    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, NULL, 0, tiles_x, width, height,
+                              const float *splats, int64_t splat_stride, const int32_t *boxes, int64_t box_stride,
+                              int64_t tiles_x, int64_t width, int64_t height, float min_weight,
+                              const int64_t *slot_starts, int32_t *out_pixels, int32_t *out_ids, float *out_weights,
+                              int64_t *out_counts) {
+    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, NULL, splat_stride, box_stride, 0, 0, tiles_x,
+               width, height,
                NULL, NULL, NULL, NULL, NULL, 0, 0, 0, min_weight, slot_starts, out_pixels, out_ids, out_weights,
                out_counts};
     return new_job(job);

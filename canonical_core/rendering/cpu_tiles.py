@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import importlib.util
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -86,11 +86,11 @@ def load_compositor(name: str) -> ctypes.CDLL:
     """Load one build of the compositor (a name from ``compositor_builds()``), its functions typed."""
     library = ctypes.CDLL(compositor_builds()[name])
     pointer, size = ctypes.c_void_p, ctypes.c_int64
-    library.canonical_composite_job.argtypes = [pointer, size, pointer, pointer, pointer, pointer, size] + [
-        size, size, size, pointer, pointer, pointer, pointer, pointer
+    library.canonical_composite_job.argtypes = [pointer, size, pointer, pointer, size, pointer, size, pointer, size] + [
+        size, size, size, size, pointer, pointer, pointer, pointer, pointer
     ]
     library.canonical_composite_job.restype = size
-    library.canonical_weights_job.argtypes = [pointer, size, pointer, pointer, pointer, size, size, size,
+    library.canonical_weights_job.argtypes = [pointer, size, pointer, pointer, size, pointer, size, size, size, size,
                                               ctypes.c_float, pointer, pointer, pointer, pointer, pointer]
     library.canonical_weights_job.restype = size
     library.canonical_job_work.argtypes = [size]  # a job's address, as numba passes it
@@ -151,6 +151,18 @@ def _address(array: np.ndarray, dtype: type, name: str) -> int:
     return array.ctypes.data
 
 
+def _rows(array: np.ndarray, dtype: type, name: str) -> tuple[int, int]:
+    """Address and row stride (in elements) of a 2-D array of contiguous rows, such as a view of
+    some columns of a wider array."""
+    item = np.dtype(dtype).itemsize
+    if array.dtype == dtype and array.ndim == 2 and array.size == 0:
+        return array.ctypes.data, 0
+    if array.dtype != dtype or array.ndim != 2 or array.strides[0] % item or (array.shape[1] > 1 and array.strides[1] != item):
+        raise ValueError(f"{name}: expected 2-D {np.dtype(dtype)} rows of contiguous elements, got {array.dtype} "
+                         f"{list(array.shape)} with strides {list(array.strides)}")
+    return array.ctypes.data, array.strides[0] // item
+
+
 def stable_depth_order(depths: np.ndarray) -> np.ndarray:  # [n] float32 > 0 -> [n] int32 permutation
     """Stable ascending order of positive depths, as the compositor sorts each tile's splats:
     equal depths keep input order."""
@@ -164,9 +176,9 @@ def stable_depth_order(depths: np.ndarray) -> np.ndarray:  # [n] float32 > 0 -> 
 def composite_tiles(
     tile_starts: np.ndarray,  # [T + 1] int64
     splat_ids: np.ndarray,  # [K] int32, per tile in input order
-    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba
-    boxes: np.ndarray,  # [N, 4] int32
-    values: np.ndarray,  # [N, D] float32
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba (rows may be strided)
+    boxes: np.ndarray,  # [N, 4] int32 (rows may be strided)
+    values: np.ndarray,  # [N, D] float32 (rows may be strided)
     tiles_x: int,
     out_values: np.ndarray,  # [H, W, D] float32
     out_depth_sums: np.ndarray,  # [H, W] float32
@@ -186,8 +198,8 @@ def composite_tiles(
     library = compositor or _compositor
     job = library.canonical_composite_job(
         _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
-        _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
-        _address(boxes, np.int32, "boxes"), _address(values, np.float32, "values"), num_channels,
+        _address(splat_ids, np.int32, "splat_ids"), *_rows(splats, np.float32, "splats"),
+        *_rows(boxes, np.int32, "boxes"), *_rows(values, np.float32, "values"), num_channels,
         tiles_x, width, height, _address(out_values, np.float32, "out_values"),
         _address(out_depth_sums, np.float32, "out_depth_sums"),
         _address(out_weight_sums, np.float32, "out_weight_sums"),
@@ -200,8 +212,8 @@ def composite_tiles(
 def composite_weights(
     tile_starts: np.ndarray,  # [T + 1] int64
     splat_ids: np.ndarray,  # [K] int32, per tile in input order
-    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba
-    boxes: np.ndarray,  # [N, 4] int32
+    splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records from project_numba (rows may be strided)
+    boxes: np.ndarray,  # [N, 4] int32 (rows may be strided)
     tiles_x: int,
     width: int,
     height: int,
@@ -220,8 +232,8 @@ def composite_weights(
         raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
     job = _compositor.canonical_weights_job(
         _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
-        _address(splat_ids, np.int32, "splat_ids"), _address(splats, np.float32, "splats"),
-        _address(boxes, np.int32, "boxes"), tiles_x, width, height, min_weight,
+        _address(splat_ids, np.int32, "splat_ids"), *_rows(splats, np.float32, "splats"),
+        *_rows(boxes, np.int32, "boxes"), tiles_x, width, height, min_weight,
         _address(slot_starts, np.int64, "slot_starts"), _address(out_pixels, np.int32, "out_pixels"),
         _address(out_ids, np.int32, "out_ids"), _address(out_weights, np.float32, "out_weights"),
         _address(out_counts, np.int64, "out_counts"),
@@ -233,24 +245,42 @@ def _float32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32)
 
 
+# A splat's line: its record, its pixel box (int32) and room for up to LINE_VALUES channel values,
+# 16 float32 columns, 64 bytes on a 64-byte boundary: a tile's gather of a splat reads one cache
+# line, where three arrays cost a cache miss each (the scene's order is random in screen space).
+LINE = 16
+LINE_VALUES = LINE - SPLAT_RECORD - 4
+
+
+class SplatLines(NamedTuple):
+    """Views of one line per Gaussian (`LINE`), in input order."""
+
+    records: np.ndarray  # [N, SPLAT_RECORD] float32 splat records (zero where culled)
+    boxes: np.ndarray  # [N, 4] int32 pixel boxes, empty (lo > hi) where culled
+    spare: np.ndarray  # [N, LINE_VALUES] float32, zeros: room for the channel values
+
+
 def project_records(
     gaussians: Gaussians,
     camera: Camera,
     near_plane: float,
-) -> tuple[np.ndarray, np.ndarray]:  # records [N, SPLAT_RECORD] float32, pixel boxes [N, 4] int32
+) -> SplatLines:
     """`project_numba` on float32 CPU copies of ``gaussians``: every Gaussian's splat record and
-    pixel box (empty, lo > hi, where it is culled), in input order."""
+    pixel box (empty, lo > hi, where it is culled), in input order, in one line per splat."""
     f32, n = np.float32, len(gaussians)
     width, height = camera.width, camera.height
     view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
-    records, boxes = np.zeros((n, SPLAT_RECORD), f32), np.zeros((n, 4), np.int32)
+    block = np.zeros(n * LINE + LINE, f32)
+    first = (-block.ctypes.data % 64) // block.itemsize
+    lines = block[first: first + n * LINE].reshape(n, LINE)
+    records, boxes = lines[:, :SPLAT_RECORD], lines.view(np.int32)[:, SPLAT_RECORD: SPLAT_RECORD + 4]
     project_numba(
         _float32(gaussians.means), _float32(gaussians.quats), _float32(gaussians.scales), _float32(gaussians.opacities),
         view, (f32(camera.fx), f32(camera.fy), f32(camera.cx), f32(camera.cy)),
         tuple(f32(s) for s in slope_bounds(camera.fx, camera.fy, camera.cx, camera.cy, width, height)),
         f32(near_plane), width, height, records, boxes,
     )  # fmt: skip
-    return records, boxes
+    return SplatLines(records, boxes, lines[:, SPLAT_RECORD + 4:])
 
 
 def render_cpu(
@@ -278,7 +308,10 @@ def render_cpu(
     try:
         values = _float32(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
         out_values = np.zeros((height, width, values.shape[1]), f32)
-        splats, boxes = project_records(gaussians, camera, near_plane)
+        splats, boxes, spare = project_records(gaussians, camera, near_plane)
+        if values.shape[1] <= LINE_VALUES:  # RGB: into the splats' lines
+            spare[:, : values.shape[1]] = values
+            values = spare[:, : values.shape[1]]
         tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
         composite_tiles(
             tile_starts, splat_ids, splats, boxes, values, tiles_x,

@@ -135,7 +135,7 @@ def _tile_entries(gaussians: Gaussians, camera: Camera, near_plane: float, min_w
     None when no splat reaches the image."""
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
-    records, boxes = project_records(gaussians, camera, near_plane)  # one per Gaussian, in input order
+    records, boxes, _ = project_records(gaussians, camera, near_plane)  # one per Gaussian, in input order
     tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
     if len(splat_ids) == 0:
         return None
