@@ -55,11 +55,19 @@ static inline __attribute__((always_inline)) int lanes8(v8i mask) {
 #endif
 }
 
-/* exp(x) for x <= 0 in float32 (Cephes expf: Cody-Waite reduction, degree-5 minimax polynomial),
- * within 2 ulp of libm's expf. Lanes below -87 are clamped there: the caller uses only exponents
- * >= -4.5 and masks the others. */
+/* The lane-wise minimum of lanes that are not NaN. */
+static inline __attribute__((always_inline)) v8f min8(v8f a, v8f b) {
+#ifdef __AVX__
+    return __builtin_ia32_minps256(a, b);
+#else
+    return select8((v8i)(a < b), a, b);
+#endif
+}
+
+/* exp(x) for -87 <= x <= 0 in float32 (Cephes expf: Cody-Waite reduction, degree-5 minimax
+ * polynomial), within 2 ulp of libm's expf. Below -87 the exponent field wraps and a lane holds
+ * garbage: the caller uses only exponents >= -4.5 and masks the other lanes, so no clamp is paid. */
 static inline __attribute__((always_inline)) v8f exp8(v8f x) {
-    x = select8(x < splat8(-87.0f), splat8(-87.0f), x);
     v8f t = x * splat8(1.44269504088896341f) + splat8(0.5f);
     v8i n = __builtin_convertvector(t, v8i);
     n += (v8i)(__builtin_convertvector(n, v8f) > t); /* truncation -> floor for negative t */
@@ -179,12 +187,13 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
         const v8f min_exponent = splat8(-0.5f * r[SUPPORT]); /* exponent -q/2 below it: alpha < 1/255 */
         const int64_t col_lo = (box[0] > u0 ? box[0] : u0) - u0, col_hi = (box[1] + 1 < u1 ? box[1] + 1 : u1) - u0;
         const int64_t row_lo = (box[2] > v0 ? box[2] : v0) - v0, row_hi = (box[3] + 1 < v1 ? box[3] + 1 : v1) - v0;
-        /* Per 8-pixel block the splat spans: its columns, and the exponent -q/2 split into
-         * dx-only terms and a coefficient of dy, so that a row adds only its dy terms. */
+        /* Per 8-pixel block of a tile row: the columns the splat's box covers (none outside it), and
+         * the exponent -q/2 split into dx-only terms and a coefficient of dy, so that a row adds
+         * only its dy terms. */
         const int64_t first_block = col_lo / LANES, last_block = (col_hi - 1) / LANES;
         v8i columns[TILE / LANES];
         v8f x_terms[TILE / LANES], xy_terms[TILE / LANES];
-        for (int64_t block = first_block; block <= last_block; block++) {
+        for (int64_t block = 0; block < TILE / LANES; block++) {
             const int32_t start = (int32_t)(block * LANES);
             columns[block] = (lane_i + start >= (int32_t)col_lo) & (lane_i + start < (int32_t)col_hi);
             const v8f dx = splat8(r[U]) - (lane + splat8((float)(u0 + start)));
@@ -194,7 +203,11 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
         for (int64_t row = row_lo; row < row_hi; row++) {
             const float dy = r[V] - (float)(v0 + row);
             const v8f dy8 = splat8(dy), y_term = splat8(half_c * dy * dy);
-            for (int64_t block = first_block; block <= last_block; block++) {
+            /* Both blocks of the row, unrolled, those outside the box skipped: the terms above stay
+             * in registers and there is no loop whose length changes from splat to splat. */
+#pragma GCC unroll 2
+            for (int64_t block = 0; block < TILE / LANES; block++) {
+                if (block < first_block || block > last_block) continue;
                 const int64_t p = row * TILE + block * LANES;
                 v8i done_now;
                 memcpy(&done_now, done + p, sizeof done_now);
@@ -202,7 +215,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 v8i mask = columns[block] & ~done_now & (v8i)(exponent >= min_exponent);
                 if (!lanes8(mask)) continue;
                 v8f alpha = opacity * exp8(exponent);
-                alpha = select8((v8i)(alpha < splat8(MAX_ALPHA)), alpha, splat8(MAX_ALPHA));
+                alpha = min8(alpha, splat8(MAX_ALPHA));
                 mask &= (v8i)(alpha >= splat8(MIN_ALPHA));
                 if (!lanes8(mask)) continue;
                 v8f t;
