@@ -257,7 +257,7 @@ class SplatLines(NamedTuple):
 
     records: np.ndarray  # [N, SPLAT_RECORD] float32 splat records (zero where culled)
     boxes: np.ndarray  # [N, 4] int32 pixel boxes, empty (lo > hi) where culled
-    spare: np.ndarray  # [N, LINE_VALUES] float32, zeros: room for the channel values
+    spare: np.ndarray  # [N, LINE_VALUES] float32, unwritten: room for the channel values
 
 
 def project_records(
@@ -270,7 +270,7 @@ def project_records(
     f32, n = np.float32, len(gaussians)
     width, height = camera.width, camera.height
     view = tuple(f32(v) for v in world_to_camera(camera, torch.float32, torch.device("cpu"))[:3].reshape(-1).tolist())
-    block = np.zeros(n * LINE + LINE, f32)
+    block = np.empty(n * LINE + LINE, f32)  # project_numba writes every record and box
     first = (-block.ctypes.data % 64) // block.itemsize
     lines = block[first: first + n * LINE].reshape(n, LINE)
     records, boxes = lines[:, :SPLAT_RECORD], lines.view(np.int32)[:, SPLAT_RECORD: SPLAT_RECORD + 4]
@@ -306,12 +306,16 @@ def render_cpu(
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(num_threads)
     try:
-        values = _float32(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
-        out_values = np.zeros((height, width, values.shape[1]), f32)
         splats, boxes, spare = project_records(gaussians, camera, near_plane)
-        if values.shape[1] <= LINE_VALUES:  # RGB: into the splats' lines
-            spare[:, : values.shape[1]] = values
-            values = spare[:, : values.shape[1]]
+        if tuple(channels) == ("rgb",):  # the colours straight into the splats' lines
+            values = spare[:, :3]
+            sh_to_rgb_fast(gaussians.sh, gaussians.means, camera.c2w64()[:3, 3].astype(f32), out=values)
+        else:
+            values = _float32(channel_values(gaussians, camera, channels, colour=sh_to_rgb_fast))
+            if values.shape[1] <= LINE_VALUES:
+                spare[:, : values.shape[1]] = values
+                values = spare[:, : values.shape[1]]
+        out_values = np.zeros((height, width, values.shape[1]), f32)
         tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
         composite_tiles(
             tile_starts, splat_ids, splats, boxes, values, tiles_x,

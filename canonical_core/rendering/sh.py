@@ -128,13 +128,20 @@ def _sh_contract_kernel(basis, sh, out):
 
 def sh_to_rgb_fast(
     sh: Tensor,  # [N, K, 3] coefficients, K = (degree + 1)^2, DC first
-    dirs: Tensor,  # [N, 3] view directions (need not be unit length)
-) -> Tensor:  # [N, 3] float32 on the CPU
+    dirs: Tensor,  # [N, 3] view directions (need not be unit length), or points seen from ``centre``
+    centre: np.ndarray | None = None,  # [3] viewpoint: the directions are dirs - centre (None: dirs as given)
+    out: np.ndarray | None = None,  # [N, 3] float32 to write into (rows may be strided); None: a new array
+) -> Tensor:  # [N, 3] float32 on the CPU (a view of ``out`` when given)
     """Fast path of ``sh_to_rgb`` (numba, float32, no autograd): one pass over the
-    Gaussians instead of about twenty tensor operations, each a pass of its own."""
+    Gaussians instead of about twenty tensor operations, each a pass of its own. With ``centre``
+    the direction of each point from it is taken inside the kernel (no [N, 3] temporary)."""
     degree = sh_degree_from_bases(sh.shape[1])
     sh = np.ascontiguousarray(sh.detach().cpu().numpy(), np.float32)
-    basis = sh_basis_at_points(dirs.detach().cpu().numpy(), np.zeros(3, np.float32), degree)
-    out = np.empty((sh.shape[0], 3), np.float32)
+    centre = np.zeros(3, np.float32) if centre is None else centre
+    basis = sh_basis_at_points(dirs.detach().cpu().numpy(), centre, degree)
+    if out is None:
+        out = np.empty((sh.shape[0], 3), np.float32)
+    elif out.shape != (sh.shape[0], 3) or out.dtype != np.float32:
+        raise ValueError(f"out: expected [{sh.shape[0]}, 3] float32, got {out.dtype} {list(out.shape)}")
     _sh_contract_kernel(basis, sh, out)
     return torch.from_numpy(out)

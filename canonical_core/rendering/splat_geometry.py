@@ -122,13 +122,14 @@ def project_numba(
     near_plane: float,
     width: int,
     height: int,
-    out_splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records (columns above)
+    out_splats: np.ndarray,  # [N, SPLAT_RECORD] float32 records (columns above), zero where culled
     out_boxes: np.ndarray,  # [N, 4] int32 pixel box u_lo, u_hi, v_lo, v_hi; empty (lo > hi) if culled
 ) -> None:
     fx, fy, cx, cy = intrinsics
     low_pass = np.float32(LOW_PASS)
     for i in numba.prange(means.shape[0]):
         out_boxes[i, 0], out_boxes[i, 1], out_boxes[i, 2], out_boxes[i, 3] = 0, -1, 0, -1
+        out_splats[i, :] = 0  # culled: a zero record (the caller's arrays need not be zeroed)
         x, y, z = _camera_point(means[i, 0], means[i, 1], means[i, 2], view)
         opacity = opacities[i]
         if not (z >= near_plane and opacity >= np.float32(MIN_ALPHA)):
