@@ -31,6 +31,10 @@ from .splat_geometry import SPLAT_RECORD, TILE_SIZE, project_numba, slope_bounds
 _BUILDS = ("_composite", "_composite_x86_64_v3")
 
 
+TILE_SHIFT = TILE_SIZE.bit_length() - 1  # a pixel's tile is pixel >> TILE_SHIFT (floor division, cheaper)
+assert TILE_SIZE == 1 << TILE_SHIFT
+
+
 @numba.njit(parallel=True, cache=True)
 def bin_splats_by_tile(
     boxes: np.ndarray,  # [N, 4] int32 pixel boxes (u_lo, u_hi, v_lo, v_hi); empty where lo > hi
@@ -47,11 +51,13 @@ def bin_splats_by_tile(
     chunk = -(-n // num_chunks)
     cursors = np.zeros((num_chunks, num_tiles), np.int64)
     for k in numba.prange(num_chunks):
+        cursor = cursors[k]
         for i in range(k * chunk, min(n, (k + 1) * chunk)):
             if boxes[i, 0] <= boxes[i, 1]:
-                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
-                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
-                        cursors[k, ty * tiles_x + tx] += 1
+                x0, x1 = boxes[i, 0] >> TILE_SHIFT, boxes[i, 1] >> TILE_SHIFT
+                for ty in range(boxes[i, 2] >> TILE_SHIFT, (boxes[i, 3] >> TILE_SHIFT) + 1):
+                    for tile in range(ty * tiles_x + x0, ty * tiles_x + x1 + 1):
+                        cursor[tile] += 1
     tile_starts = np.empty(num_tiles + 1, np.int64)
     total = 0
     for tile in range(num_tiles):
@@ -63,12 +69,14 @@ def bin_splats_by_tile(
     tile_starts[num_tiles] = total
     splat_ids = np.empty(total, np.int32)
     for k in numba.prange(num_chunks):
+        cursor = cursors[k]
         for i in range(k * chunk, min(n, (k + 1) * chunk)):
             if boxes[i, 0] <= boxes[i, 1]:
-                for ty in range(boxes[i, 2] // TILE_SIZE, boxes[i, 3] // TILE_SIZE + 1):
-                    for tx in range(boxes[i, 0] // TILE_SIZE, boxes[i, 1] // TILE_SIZE + 1):
-                        splat_ids[cursors[k, ty * tiles_x + tx]] = i
-                        cursors[k, ty * tiles_x + tx] += 1
+                x0, x1 = boxes[i, 0] >> TILE_SHIFT, boxes[i, 1] >> TILE_SHIFT
+                for ty in range(boxes[i, 2] >> TILE_SHIFT, (boxes[i, 3] >> TILE_SHIFT) + 1):
+                    for tile in range(ty * tiles_x + x0, ty * tiles_x + x1 + 1):
+                        splat_ids[cursor[tile]] = i
+                        cursor[tile] += 1
     return tile_starts, splat_ids
 
 
