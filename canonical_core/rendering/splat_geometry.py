@@ -100,8 +100,10 @@ def slope_bounds(fx: float, fy: float, cx: float, cy: float, width: int, height:
     )
 
 
-_camera_point = numba.njit(camera_point)
-_screen_geometry = numba.njit(screen_geometry)
+# Inlined into the projection's loop, and IEEE division without Python's zero check, so that the
+# loop compiles to vector code; Gaussians that divide by zero are culled by the caller.
+_camera_point = numba.njit(camera_point, error_model="numpy", inline="always")
+_screen_geometry = numba.njit(screen_geometry, error_model="numpy", inline="always")
 
 
 # Columns of the fast path's packed splat records (one or two cache lines per splat in the
@@ -110,11 +112,19 @@ U, V, CONIC_A, CONIC_B, CONIC_C, DEPTH, OPACITY, SUPPORT = range(8)
 SPLAT_RECORD = 8
 
 
-@numba.njit(parallel=True, cache=True)
+PROJECTION_CHUNK = 512  # Gaussians per parallel task of `project_numba` (its scratch stays in cache)
+# That scratch: a row of PROJECTION_CHUNK floats per quantity, starting at these offsets: the splat
+# (u, v, conic a, b, c, depth, var_u, var_v), whether it is drawn (1 or 0), and its box for a
+# support of 9 (u_lo, u_hi, v_lo, v_hi); constants, so the compiler knows the rows do not overlap.
+_U, _V, _A, _B, _C, _Z, _VAR_U, _VAR_V, _DRAWN, _U_LO, _U_HI, _V_LO, _V_HI, _SCRATCH = (
+    k * PROJECTION_CHUNK for k in range(14))
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def project_numba(
-    means: np.ndarray,  # [N, 3] float32
-    quats: np.ndarray,  # [N, 4] float32
-    scales: np.ndarray,  # [N, 3] float32
+    means: np.ndarray,  # [N, 3] float32, C-contiguous
+    quats: np.ndarray,  # [N, 4] float32, C-contiguous
+    scales: np.ndarray,  # [N, 3] float32, C-contiguous
     opacities: np.ndarray,  # [N] float32
     view: tuple,  # 12 float32: w2c[:3] row by row
     intrinsics: tuple,  # float32 fx, fy, cx, cy
@@ -126,42 +136,78 @@ def project_numba(
     out_boxes: np.ndarray,  # [N, 4] int32 pixel box u_lo, u_hi, v_lo, v_hi; empty (lo > hi) if culled
 ) -> None:
     fx, fy, cx, cy = intrinsics
-    low_pass = np.float32(LOW_PASS)
-    for i in numba.prange(means.shape[0]):
-        out_boxes[i, 0], out_boxes[i, 1], out_boxes[i, 2], out_boxes[i, 3] = 0, -1, 0, -1
-        out_splats[i, :] = 0  # culled: a zero record (the caller's arrays need not be zeroed)
-        x, y, z = _camera_point(means[i, 0], means[i, 1], means[i, 2], view)
-        opacity = opacities[i]
-        if not (z >= near_plane and opacity >= np.float32(MIN_ALPHA)):
-            continue
-        qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-        quat_norm2 = max(qw * qw + qx * qx + qy * qy + qz * qz, np.float32(MIN_QUAT_NORM2))
-        u_slope = min(max(x / z, slopes[0]), slopes[1])
-        v_slope = min(max(y / z, slopes[2]), slopes[3])
-        u, v, a, b, c, var_u, var_v = _screen_geometry(
-            x, y, z, u_slope, v_slope, qw, qx, qy, qz, quat_norm2,
-            scales[i, 0], scales[i, 1], scales[i, 2], view, fx, fy, cx, cy, low_pass,
-        )  # fmt: skip
-        # Overflow (enormous scales) shows up as inf/NaN: such a splat cannot be drawn.
-        finite = math.isfinite(u) and math.isfinite(v) and math.isfinite(var_u) and math.isfinite(var_v)
-        if not (finite and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
-            continue
-        # The same box rule as projection.pixel_boxes, so both backends bin into the same tiles.
-        # Above 255 opacity = 90.02 (> e^4.5 by more than the log's rounding) the support is 9
-        # whatever the log gives, so the log (a sixth of this kernel's time) is skipped there.
-        scaled = 255.0 * opacity
-        support_q = SUPPORT_SIGMAS**2 if scaled >= 90.02 else min(SUPPORT_SIGMAS**2, max(0.0, 2.0 * math.log(scaled)))
-        half_u = math.sqrt(support_q * var_u) + BOX_PADDING
-        half_v = math.sqrt(support_q * var_v) + BOX_PADDING
-        u_lo, u_hi = max(math.ceil(u - half_u), 0.0), min(math.floor(u + half_u), width - 1.0)
-        v_lo, v_hi = max(math.ceil(v - half_v), 0.0), min(math.floor(v + half_v), height - 1.0)
-        if u_lo > u_hi or v_lo > v_hi:
-            continue
+    low_pass, nine, zero, one = np.float32(LOW_PASS), SUPPORT_SIGMAS**2, np.float32(0.0), np.float32(1.0)
+    # Flat views indexed 3 i + k, and the scratch rows at constant offsets: strides and offsets the
+    # compiler knows, so that the first loop below compiles to vector code.
+    m, q, s = means.reshape(-1), quats.reshape(-1), scales.reshape(-1)
+    n = opacities.shape[0]
+    for chunk in numba.prange((n + PROJECTION_CHUNK - 1) // PROJECTION_CHUNK):
+        first, count = chunk * PROJECTION_CHUNK, min(PROJECTION_CHUNK, n - chunk * PROJECTION_CHUNK)
+        f = np.empty(_SCRATCH, np.float32)
+        # 1) Every Gaussian's splat, and its box for the support of opacities above 0.35, with no
+        # branch: the culled are computed too, and flagged. Culled: behind the near plane, too
+        # transparent, or overflowing (enormous scales show up as inf/NaN; x * 0 is 0 only for a
+        # finite x).
+        for j in range(count):
+            i = first + j
+            x, y, z = _camera_point(m[3 * i], m[3 * i + 1], m[3 * i + 2], view)
+            qw, qx, qy, qz = q[4 * i], q[4 * i + 1], q[4 * i + 2], q[4 * i + 3]
+            quat_norm2 = max(qw * qw + qx * qx + qy * qy + qz * qz, np.float32(MIN_QUAT_NORM2))
+            u_slope = min(max(x / z, slopes[0]), slopes[1])
+            v_slope = min(max(y / z, slopes[2]), slopes[3])
+            u, v, a, b, c, var_u, var_v = _screen_geometry(
+                x, y, z, u_slope, v_slope, qw, qx, qy, qz, quat_norm2,
+                s[3 * i], s[3 * i + 1], s[3 * i + 2], view, fx, fy, cx, cy, low_pass,
+            )  # fmt: skip
+            finite = (u * zero + v * zero + var_u * zero + var_v * zero + a * zero + b * zero + c * zero) == zero
+            drawn = (z >= near_plane) & (opacities[i] >= np.float32(MIN_ALPHA)) & finite
+            u_lo, u_hi, v_lo, v_hi = _pixel_box(u, v, var_u, var_v, nine, width, height)
+            f[_U + j], f[_V + j], f[_Z + j] = u, v, z
+            f[_A + j], f[_B + j], f[_C + j] = a, b, c
+            f[_VAR_U + j], f[_VAR_V + j], f[_DRAWN + j] = var_u, var_v, one if drawn else zero
+            # bounds within the image are integers below 2^24: exact in float32
+            f[_U_LO + j], f[_U_HI + j], f[_V_LO + j], f[_V_HI + j] = u_lo, u_hi, v_lo, v_hi
+        # 2) Into the records, one Gaussian at a time (a function of its own: in this loop's body it
+        # kept the first loop from being vectorised).
+        _write_records(f, first, count, opacities, width, height, out_splats, out_boxes)
+
+
+@numba.njit(cache=True)
+def _write_records(f, first, count, opacities, width, height, out_splats, out_boxes):
+    """Step 2 of `project_numba`: Gaussians [first, first + count) from the chunk's scratch ``f``
+    into the records and boxes. Those whose opacity gives a support below 9 get their box again:
+    the same box rule as projection.pixel_boxes, so both backends bin into the same tiles. Above
+    255 opacity = 90.02 (> e^4.5 by more than the log's rounding) the support is 9 whatever the
+    log gives."""
+    nine, zero = SUPPORT_SIGMAS**2, np.float32(0.0)
+    for j in range(count):
+        i = first + j
+        drawn = f[_DRAWN + j] != zero
+        support_q, scaled = nine, 255.0 * opacities[i]
+        u_lo, u_hi, v_lo, v_hi = f[_U_LO + j], f[_U_HI + j], f[_V_LO + j], f[_V_HI + j]
+        if drawn and scaled < 90.02:
+            support_q = min(nine, max(0.0, 2.0 * math.log(scaled)))
+            u_lo, u_hi, v_lo, v_hi = _pixel_box(f[_U + j], f[_V + j], f[_VAR_U + j],
+                                                f[_VAR_V + j], support_q, width, height)  # fmt: skip
         record = out_splats[i]
-        record[U], record[V], record[DEPTH], record[OPACITY] = u, v, z, opacity
-        record[CONIC_A], record[CONIC_B], record[CONIC_C] = a, b, c
-        # With a margin for rounding, so that skipping q > support leaves the image unchanged; it
-        # is 9 exactly for opacities above 0.35, where the q <= 9 test itself decides.
-        record[SUPPORT] = min(np.float32(SUPPORT_SIGMAS**2), np.float32(support_q + 1e-4))
+        if not drawn or u_lo > u_hi or v_lo > v_hi:
+            record[:] = zero
+            out_boxes[i, 0], out_boxes[i, 1], out_boxes[i, 2], out_boxes[i, 3] = 0, -1, 0, -1
+            continue
+        record[U], record[V], record[DEPTH], record[OPACITY] = f[_U + j], f[_V + j], f[_Z + j], opacities[i]
+        record[CONIC_A], record[CONIC_B], record[CONIC_C] = f[_A + j], f[_B + j], f[_C + j]
+        # With a margin for rounding, so that skipping q > support leaves the image unchanged;
+        # it is 9 exactly for opacities above 0.35, where the q <= 9 test itself decides.
+        record[SUPPORT] = min(np.float32(nine), np.float32(support_q + 1e-4))
         out_boxes[i, 0], out_boxes[i, 1] = int(u_lo), int(u_hi)
         out_boxes[i, 2], out_boxes[i, 3] = int(v_lo), int(v_hi)
+
+
+@numba.njit(inline="always")
+def _pixel_box(u, v, var_u, var_v, support_q, width, height):
+    """Pixel centres that can receive a splat (float64 bounds, lo > hi where none): q <= support_q, padded."""
+    half_u = math.sqrt(support_q * var_u) + BOX_PADDING
+    half_v = math.sqrt(support_q * var_v) + BOX_PADDING
+    u_lo, u_hi = max(np.ceil(u - half_u), 0.0), min(np.floor(u + half_u), width - 1.0)
+    v_lo, v_hi = max(np.ceil(v - half_v), 0.0), min(np.floor(v + half_v), height - 1.0)
+    return u_lo, u_hi, v_lo, v_hi

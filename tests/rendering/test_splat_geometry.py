@@ -16,6 +16,13 @@ from .scenes import look_at_camera, random_scene
 def test_torch_and_numba_projections_are_bitwise_identical():
     gaussians = random_scene(2000, 11, scale_range=(0.001, 0.8), opacity_range=(0.0, 1.0), spread=2.0)
     camera = look_at_camera(64, 48, 50.0, [0.3, -0.2, -2.5], [0.0, 0.1, 0.0], roll=0.3)
+    # The fast path computes every Gaussian's splat without branches and drops the culled ones
+    # after: Gaussians it must cull or keep exactly as the reference does.
+    centre = torch.as_tensor(camera.c2w64()[:3, 3], dtype=torch.float32)
+    gaussians.means[:4] = centre  # on the camera centre: z = 0
+    gaussians.scales[4:8] = 1e20  # overflows float32 once squared
+    gaussians.quats[8:12] = 0.0  # a zero rotation
+    gaussians.opacities[12:16] = torch.tensor([0.0, 0.003, 0.0040, 0.2])  # below 1/255, just above, support < 9
     with torch.no_grad():
         splats = project_splats(gaussians, camera, (), near_plane=0.01)
     n, f32 = len(gaussians), np.float32
