@@ -126,6 +126,44 @@ def _sh_contract_kernel(basis, sh, out):
             out[i, c] = max(np.float32(0.0), total + np.float32(0.5))
 
 
+_SH1_CHUNK = 512  # Gaussians per parallel task of `_sh1_colour_kernel`
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _sh1_colour_kernel(points, centre, sh, c0, c1, out):
+    # Degree 1 (the default): `_sh_basis_kernel` and `_sh_contract_kernel` in one pass, the same
+    # operations in the same order, so the same bits. Per chunk, a branch-free first loop (flat
+    # inputs at 3 i + k and 12 i + k, scratch rows at constant offsets, IEEE division: a zero
+    # direction divides by 1 and stays zero) compiles to vector code; `out` may be strided, so a
+    # second function copies into it.
+    p, h = points.reshape(-1), sh.reshape(-1)
+    cx, cy, cz = centre
+    n = points.shape[0]
+    for chunk in numba.prange((n + _SH1_CHUNK - 1) // _SH1_CHUNK):
+        first, count = chunk * _SH1_CHUNK, min(_SH1_CHUNK, n - chunk * _SH1_CHUNK)
+        rgb = np.empty(3 * _SH1_CHUNK, np.float32)
+        for j in range(count):
+            i = first + j
+            x, y, z = p[3 * i] - cx, p[3 * i + 1] - cy, p[3 * i + 2] - cz
+            norm = np.sqrt(x * x + y * y + z * z)
+            d = norm if norm > 0 else np.float32(1.0)
+            x, y, z = x / d, y / d, z / d
+            b1, b2, b3 = -c1 * y, c1 * z, -c1 * x
+            for c in range(3):
+                total = np.float32(0.0) + c0 * h[12 * i + c]
+                total += b1 * h[12 * i + 3 + c]
+                total += b2 * h[12 * i + 6 + c]
+                total += b3 * h[12 * i + 9 + c]
+                rgb[c * _SH1_CHUNK + j] = max(np.float32(0.0), total + np.float32(0.5))
+        _copy_rgb(rgb, first, count, out)
+
+
+@numba.njit(cache=True)
+def _copy_rgb(rgb, first, count, out):
+    for j in range(count):
+        out[first + j, 0], out[first + j, 1], out[first + j, 2] = rgb[j], rgb[_SH1_CHUNK + j], rgb[2 * _SH1_CHUNK + j]
+
+
 def sh_to_rgb_fast(
     sh: Tensor,  # [N, K, 3] coefficients, K = (degree + 1)^2, DC first
     dirs: Tensor,  # [N, 3] view directions (need not be unit length), or points seen from ``centre``
@@ -138,10 +176,13 @@ def sh_to_rgb_fast(
     degree = sh_degree_from_bases(sh.shape[1])
     sh = np.ascontiguousarray(sh.detach().cpu().numpy(), np.float32)
     centre = np.zeros(3, np.float32) if centre is None else centre
-    basis = sh_basis_at_points(dirs.detach().cpu().numpy(), centre, degree)
     if out is None:
         out = np.empty((sh.shape[0], 3), np.float32)
     elif out.shape != (sh.shape[0], 3) or out.dtype != np.float32:
         raise ValueError(f"out: expected [{sh.shape[0]}, 3] float32, got {out.dtype} {list(out.shape)}")
-    _sh_contract_kernel(basis, sh, out)
+    if degree == 1:
+        points = np.ascontiguousarray(dirs.detach().cpu().numpy(), np.float32)
+        _sh1_colour_kernel(points, tuple(np.float32(c) for c in centre), sh, np.float32(SH_C0), np.float32(SH_C1), out)
+    else:
+        _sh_contract_kernel(sh_basis_at_points(dirs.detach().cpu().numpy(), centre, degree), sh, out)
     return torch.from_numpy(out)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from canonical_core.gaussians import SH_C0
-from canonical_core.rendering.sh import sh_basis, sh_basis_at_points, sh_to_rgb, sh_to_rgb_fast
+from canonical_core.rendering.sh import _sh_contract_kernel, sh_basis, sh_basis_at_points, sh_to_rgb, sh_to_rgb_fast
 
 
 def fibonacci_sphere(n: int) -> torch.Tensor:  # [n, 3] near-uniform unit vectors
@@ -60,6 +60,20 @@ def test_fast_path_equals_the_pytorch_definition(degree):
     basis = sh_basis_at_points(dirs.numpy() + centre, centre, degree)
     assert np.allclose(basis[1:], sh_basis(unit, degree)[1:].numpy(), atol=2e-6)
     assert np.allclose(basis[0, 1:], 0) and basis[0, 0] == np.float32(SH_C0)
+
+
+def test_fused_degree_one_path_equals_the_general_kernels_bit_for_bit():
+    rng = np.random.default_rng(5)
+    sh = rng.normal(0, 0.8, (3000, 4, 3)).astype(np.float32)
+    points = rng.normal(0, 3, (3000, 3)).astype(np.float32)
+    centre = np.array([0.5, -1.0, 2.0], np.float32)
+    points[:3] = centre  # means on the viewpoint: DC only
+    general = np.empty((3000, 3), np.float32)
+    _sh_contract_kernel(sh_basis_at_points(points, centre, 1), sh, general)
+    lines = np.zeros((3000, 16), np.float32)  # a strided output, as the renderer's splat lines
+    fused = sh_to_rgb_fast(torch.from_numpy(sh), torch.from_numpy(points), centre, out=lines[:, 4:7])
+    assert np.array_equal(fused.numpy(), general) and np.array_equal(lines[:, 4:7], general)
+    assert not lines[:, :4].any() and not lines[:, 7:].any()
 
 
 def test_fast_path_rejects_an_unknown_degree():

@@ -17,7 +17,7 @@ import canonical_core.rendering.cpu_tiles as tiles
 import canonical_core.rendering.splat_geometry as geometry
 import canonical_core.rendering.sh as sh
 kernels = [fold.fold_kernel, fold.resolve_kernel, tiles.bin_splats_by_tile,
-           geometry.project_numba, sh._sh_basis_kernel, sh._sh_contract_kernel]
+           geometry.project_numba, sh._sh_basis_kernel, sh._sh1_colour_kernel]
 kernels += [free_space._coarse_map_kernel, free_space.frame_free_space_kernel, free_space.history_free_space_kernel,
             free_space.update_chunk_boxes_kernel]
 def loaded():
