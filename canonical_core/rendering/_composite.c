@@ -303,8 +303,8 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     }
 }
 
-static void *worker(void *arg) {
-    Job *job = arg;
+/* Take tiles of `job` and blend them until none is left, with scratch of this thread's own. */
+static void worker(Job *job) {
     const int64_t m = job->max_tile_splats > 0 ? job->max_tile_splats : 1;
     Scratch s = {
         malloc(m * sizeof(uint32_t)), malloc(m * sizeof(uint32_t)), malloc(m * sizeof(int32_t)),
@@ -321,7 +321,6 @@ static void *worker(void *arg) {
     }
     free(s.keys); free(s.keys_out); free(s.order); free(s.order_out);
     free(s.records); free(s.values); free(s.accum); free(s.boxes); free(s.splat_of);
-    return NULL;
 }
 
 /* A job on the heap, its largest tile counted (for the scratch), for canonical_job_work. */
