@@ -49,8 +49,6 @@ class Scratch:
                 setattr(self, name, np.empty(self.size, np.int64))
             for name in ("touched", "best", "head", "tail", "next_obs"):
                 setattr(self, name, np.empty(self.size, np.int32))
-            self.feat_inv_norm = np.empty(self.size, np.float32)
-            self.rep_inv_norm = np.empty(self.size, np.float32)
             self.local_table = np.empty(next_pow2(2 * self.size), np.int32)
 
 
@@ -88,7 +86,6 @@ def integrate(
         config.uses_reliability, config.uses_similarity, inv_voxel,
         n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
         ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
-        t.feat_inv_norm[:m], t.rep_inv_norm[:m],
     )
     voxels.commit(t.touched[:n_touched], n_new)
     return Integrated(int(n_obs), int(n_new), int(n_touched), int(switches))

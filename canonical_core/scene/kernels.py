@@ -201,12 +201,10 @@ def fold_kernel(
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
     rel, feat, rgb, points, sh_basis, labels, has_labels,
-    # scratch [M]
-    feat_inv_norm, rep_inv_norm,
 ):
-    """Phase B: insert the new voxels, replace representatives that the frame-best observation
-    beats (rescaling the old sums by max(0, cos(old rep, new rep))), then accumulate
-    W = R * max(0, cos(F, F_rep)) weighted sums into each voxel's row (`VoxelRows`). Returns the
+    """Phase B: insert the new voxels; then, per touched voxel, replace its representative if the
+    frame-best observation beats it (rescaling the old sums by max(0, cos(old rep, new rep))) and
+    accumulate W = R * max(0, cos(F, F_rep)) weighted sums into its row (`VoxelRows`). Returns the
     representative switches.
 
     Besides F, colour and position moments, W accumulates the normal equations of the per-voxel
@@ -215,7 +213,9 @@ def fold_kernel(
     observation's SH basis of its view direction.
 
     Voxels are summed in parallel, each over its own observations in frame order (phase A's
-    chains): the result is bit-identical for any thread count."""
+    chains): the result is bit-identical for any thread count. A voxel's representative and its
+    sums are done in one visit, so that its row comes into the cache once (on a room-scale map most
+    rows are far out of cache)."""
     REP_F, REP_POS, R_SUM, F_SUM, RGB_SUM, POS_SUM, POS_SQ, SH_A, SH_B, LABEL_W, LABEL_SUM = offsets
     L = feat.shape[1]
     S = labels.shape[1]
@@ -227,24 +227,21 @@ def fold_kernel(
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
         rows[vi, 0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
     K = sh_basis.shape[1]
-    M = feat.shape[0]
     for t in range(n_touched):
         if touched[t] < 0:
             touched[t] = n_voxels + (-2 - touched[t])
-    for i in numba.prange(M):
-        feat_inv_norm[i] = _inv_norm(feat[i])
-    # 1) representatives: a strictly more reliable observation replaces the running one
     switches = 0
     for t in numba.prange(n_touched):
         vi = touched[t]
         row = rows[vi]
+        # 1) its representative: a strictly more reliable observation replaces the running one
         b = best[t]
         rb = rel[b] if uses_rel else np.float32(1.0)
         if rb > row[0]:
             if n_obs[vi] > 0:
                 switches += 1
                 if uses_sim:
-                    s = max(np.float32(0.0), _dot(row[REP_F: REP_F + L], feat[b]) * _inv_norm(row[REP_F: REP_F + L]) * feat_inv_norm[b])
+                    s = max(np.float32(0.0), _dot(row[REP_F: REP_F + L], feat[b]) * _inv_norm(row[REP_F: REP_F + L]) * _inv_norm(feat[b]))
                     if s != np.float32(1.0):
                         for c in range(R_SUM, D):
                             row[c] *= s
@@ -254,12 +251,9 @@ def fold_kernel(
             for c in range(3):  # colours are u8 / 255, so this round trip is exact
                 row[REP_POS + c] = points[b, c]
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
-        rep_inv_norm[t] = _inv_norm(row[REP_F: REP_F + L])
-    # 2) weighted sums, voxels in parallel, each voxel's observations in frame order (phase A's
-    # chains); the fixed-size sums go through registers and are added to the row once per voxel
-    for t in numba.prange(n_touched):
-        vi = touched[t]
-        row = rows[vi]
+        rep_inv_norm = _inv_norm(row[REP_F: REP_F + L])
+        # 2) its weighted sums over its observations in frame order (phase A's chain); the
+        # fixed-size sums go through registers and are added to the row once
         rep_f, f_sum = row[REP_F: REP_F + L], row[F_SUM: F_SUM + L]
         r_acc = c0 = c1 = c2 = px = py = pz = qxx = qxy = qxz = qyy = qyz = qzz = np.float32(0.0)
         a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = np.float32(0.0)
@@ -271,7 +265,7 @@ def fold_kernel(
             f = feat[i]
             w = rel[i] if uses_rel else np.float32(1.0)
             if uses_sim:
-                w = w * max(np.float32(0.0), _dot(f, rep_f) * feat_inv_norm[i] * rep_inv_norm[t])
+                w = w * max(np.float32(0.0), _dot(f, rep_f) * _inv_norm(f) * rep_inv_norm)
             r_acc += w
             for c in range(L):
                 f_sum[c] += w * f[c]
