@@ -15,11 +15,37 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import binding as llvm_binding
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from .config import KEY_BITS, KEY_OFFSET
 
 _KEY_LIMIT = 1 << KEY_BITS
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
+# LLVM's prefetch intrinsic takes an opaque pointer from LLVM 15 on, an i8* before
+_PREFETCH = "llvm.prefetch.p0" if llvm_binding.llvm_version_info[0] >= 15 else "llvm.prefetch.p0i8"
+
+
+@intrinsic
+def _prefetch(typingctx, array, row, column):
+    """Ask for the cache line holding ``array[row, column]`` (a 2-D array) ahead of its use; a hint
+    with no effect on any result. numba has no prefetch of its own."""
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        view = context.make_array(array_type)(context, builder, args[0])
+        at = [context.cast(builder, v, t, types.intp) for v, t in zip(args[1:], signature.args[1:])]
+        pointer = builder.bitcast(cgutils.get_item_pointer(context, builder, array_type, view, at), ir.IntType(8).as_pointer())
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, ir.IntType(32), ir.IntType(32), ir.IntType(32)]), _PREFETCH)
+        # read, keep in all cache levels, data cache
+        builder.call(fn, [pointer, ir.Constant(ir.IntType(32), 0), ir.Constant(ir.IntType(32), 3), ir.Constant(ir.IntType(32), 1)])
+        return context.get_dummy_value()
+
+    return types.void(array, row, column), codegen
 
 
 @numba.njit(inline="always")
@@ -193,6 +219,9 @@ def _dot(a, b):
     return d
 
 
+PREFETCH_AHEAD = 8  # voxels ahead whose rows `fold_kernel` asks for
+
+
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
     # scene state (rows >= n_voxels are zero)
@@ -232,6 +261,13 @@ def fold_kernel(
             touched[t] = n_voxels + (-2 - touched[t])
     switches = 0
     for t in numba.prange(n_touched):
+        # the row of the voxel PREFETCH_AHEAD on, asked for now: on a room-scale map the rows a frame
+        # touches lie scattered over far more memory than the caches hold
+        if t + PREFETCH_AHEAD < n_touched:
+            ahead = touched[t + PREFETCH_AHEAD]
+            for c in range(0, D, 16):
+                _prefetch(rows, ahead, c)
+            _prefetch(rows, ahead, D - 1)
         vi = touched[t]
         row = rows[vi]
         # 1) its representative: a strictly more reliable observation replaces the running one
