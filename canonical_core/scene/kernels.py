@@ -254,7 +254,6 @@ def fold_kernel(
         vi = n_voxels + j
         keys[vi] = new_keys[j]
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
-        rows[vi, 0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
     K = sh_basis.shape[1]
     for t in range(n_touched):
         if touched[t] < 0:
@@ -270,6 +269,8 @@ def fold_kernel(
             _prefetch(rows, ahead, D - 1)
         vi = touched[t]
         row = rows[vi]
+        if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
+            row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
         # 1) its representative: a strictly more reliable observation replaces the running one
         b = best[t]
         rb = rel[b] if uses_rel else np.float32(1.0)
