@@ -86,8 +86,9 @@ def main(argv=None) -> None:
 
     rows = []
     have_o3d = open3d_available()
-    for label, factor in (("640x480", 1), ("320x240", 2)):
+    for factor in (1, 2):  # full size, then half
         fs = [resize_frame(f, 1.0 / factor) for f in frames]
+        label = f"{fs[0].camera.width}x{fs[0].camera.height}"
         fold_ms, ev_ms, o3d_ms, agg_ms, completion_ms, scene = [], [], [], [], [], None
         for _ in range(args.repeats):
             ms, scene = time_folds(fs, config)
@@ -110,7 +111,7 @@ def main(argv=None) -> None:
     print_table("Fold per frame (evidence + aggregation)", rows)
     if not have_o3d:
         print("Open3D not installed: install the `bench` extra for the peer column.\n")
-    print_table(f"Depth denoising, 640x480, radius {config.depth.denoise_radius} (part of the fold above)",
+    print_table(f"Depth denoising, {frames[0].camera.width}x{frames[0].camera.height}, radius {config.depth.denoise_radius} (part of the fold above)",
                 time_denoise(frames, config, args.repeats))
 
     if args.long_passes == 0 or not args.long_data.is_dir():
