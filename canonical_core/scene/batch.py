@@ -42,7 +42,11 @@ def see_through_reference(
 ) -> Tensor:  # [V] see-through evidence of one frame
     """Evidence a frame's see-through map gives each voxel centre (0 where it is not seen through)."""
     P = torch.from_numpy(m.w2c)
-    pc = centres @ P[:, :3].T + P[:, 3]
+    # each camera coordinate in the kernel's order of operations, not as a matrix product (whose
+    # summation order depends on the BLAS build): a centre on a cell's edge or at the threshold
+    # then lands on the same side in both
+    pc = torch.stack([P[r, 0] * centres[:, 0] + P[r, 1] * centres[:, 1] + P[r, 2] * centres[:, 2] + P[r, 3]
+                      for r in range(3)], 1)
     z = pc[:, 2]
     safe = torch.where(z > near, z, torch.ones_like(z))
     fx, fy, cx, cy = torch.from_numpy(m.intrinsics)
