@@ -169,16 +169,40 @@ def _box_outside_frustum(lo, hi, voxel, P, intr, h, w, near):
 
 
 @numba.njit(parallel=True, cache=True)
-def frame_free_space_kernel(keys, free, chunk_lo, chunk_hi, n_voxels, voxel, P, intr, thr, wcell, area_scale, near):
-    """Add one frame's see-through evidence to every voxel of the chunks its frustum meets."""
+def frustum_chunks_kernel(chunk_lo, chunk_hi, n_voxels, voxel, P, intr, h, w, near, out):
+    """The chunks of voxels [0, n_voxels) whose boxes the frustum (camera P, coarse ``intr``, an
+    [h, w] map) meets, ascending, into ``out``; returns how many."""
     n_chunks = (n_voxels + CHUNK - 1) // CHUNK
+    meets = np.empty(n_chunks, np.bool_)
+    for ch in numba.prange(n_chunks):
+        meets[ch] = not _box_outside_frustum(chunk_lo[ch], chunk_hi[ch], voxel, P, intr, h, w, near)
+    count = 0
+    for ch in range(n_chunks):
+        if meets[ch]:
+            out[count] = ch
+            count += 1
+    return count
+
+
+def frustum_chunks(voxels, m: SeeThroughMap, config: SceneConfig) -> np.ndarray:  # voxels: a VoxelMap
+    """[C] int32: the chunks of ``voxels`` that the frustum of map ``m`` meets (the free-space pass
+    tests their voxels and no others)."""
+    n = len(voxels)
+    out = np.empty((n + CHUNK - 1) // CHUNK, np.int32)
+    h, w = m.threshold.shape
+    count = frustum_chunks_kernel(voxels.chunk_lo, voxels.chunk_hi, n, np.float32(config.voxel_size), m.w2c,
+                                  m.intrinsics, h, w, np.float32(config.near), out)
+    return out[:count]
+
+
+@numba.njit(parallel=True, cache=True)
+def frame_free_space_kernel(keys, free, chunks, n_voxels, voxel, P, intr, thr, wcell, area_scale, near):
+    """Add one frame's see-through evidence to every voxel of ``chunks`` (those its frustum meets)."""
     h, w = thr.shape
     # the frame's map as map 0 of a stack of one
     P1, intr1, thr1, wcell1 = P.reshape(1, 3, 4), intr.reshape(1, 4), thr.reshape(1, h, w), wcell.reshape(1, h, w)
-    for ch in numba.prange(n_chunks):
-        if _box_outside_frustum(chunk_lo[ch], chunk_hi[ch], voxel, P, intr, h, w, near):
-            continue
-        start = ch * CHUNK
+    for c in numba.prange(chunks.shape[0]):
+        start = chunks[c] * CHUNK
         n = min(CHUNK, n_voxels - start)
         iu, iv, zc = np.empty(CHUNK, np.int32), np.empty(CHUNK, np.int32), np.empty(CHUNK, np.float32)
         _project_block(keys, start, n, voxel, P1, intr1, 0, h, w, near, iu, iv, zc)

@@ -21,9 +21,9 @@ import numpy as np
 from ..evidence import FrameEvidence
 from ..frame import Frame
 from .config import SceneConfig
-from .free_space import SeeThroughHistory, frame_free_space_kernel, history_free_space_kernel, see_through_map
+from .free_space import SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel, see_through_map
 from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
-from .undo import rows_before
+from .undo import RowsBefore
 from .voxel_map import VoxelMap, next_pow2
 
 
@@ -47,7 +47,7 @@ class Scratch:
             self.size = max(m, 1024)
             for name in ("obs_keys", "frame_keys", "new_keys"):
                 setattr(self, name, np.empty(self.size, np.int64))
-            for name in ("touched", "best", "head", "tail", "next_obs"):
+            for name in ("touched", "best", "head", "tail", "next_obs", "before_slot"):
                 setattr(self, name, np.empty(self.size, np.int32))
             self.local_table = np.empty(next_pow2(2 * self.size), np.int32)
 
@@ -77,8 +77,9 @@ def integrate(
     if ev.labels is not None and not voxels.label_dim:
         voxels.set_label_dim(ev.labels.shape[1])
     voxels.reserve(len(voxels) + n_new)
-    if voxels.journal is not None:
-        voxels.journal.append(rows_before(voxels, t.touched[:n_touched]))
+    # the rows it overwrites, for an undo record: the kernel copies each as it reads it
+    journal, width = voxels.journal, voxels.layout.width
+    before = journal.rows_before(n_touched - n_new, width) if journal is not None else RowsBefore.room(0, width)
     s = voxels.state
     labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
     switches = fold_kernel(
@@ -86,6 +87,7 @@ def integrate(
         config.uses_reliability, config.uses_similarity, inv_voxel,
         n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
         ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
+        journal is not None, t.before_slot, before.index, before.rows, before.rep_rgb, before.n_obs,
     )
     voxels.commit(t.touched[:n_touched], n_new)
     return Integrated(int(n_obs), int(n_new), int(n_touched), int(switches))
@@ -99,8 +101,11 @@ def integrate_free_space(voxels: VoxelMap, frame: Frame, config: SceneConfig, hi
     m = see_through_map(frame, config)
     s, n = voxels.state, len(voxels)
     voxel, near = np.float32(config.voxel_size), np.float32(config.near)
-    frame_free_space_kernel(s["keys"], s["free"], voxels.chunk_lo, voxels.chunk_hi, n, voxel, m.w2c,
-                            m.intrinsics, m.threshold, m.weight, np.float32(m.area_scale), near)
+    chunks = frustum_chunks(voxels, m, config)
+    if voxels.journal is not None:  # what it overwrites, for an undo record
+        voxels.journal.free_before(s["free"], chunks, first_new)
+    frame_free_space_kernel(s["keys"], s["free"], chunks, n, voxel, m.w2c, m.intrinsics, m.threshold, m.weight,
+                            np.float32(m.area_scale), near)
     h = history
     if h.count and n > first_new:
         history_free_space_kernel(s["keys"], s["free"], first_new, n, voxel, h.order(), h.w2c, h.intrinsics,

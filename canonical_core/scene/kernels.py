@@ -230,11 +230,15 @@ def fold_kernel(
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
     rel, feat, rgb, points, sh_basis, labels, has_labels,
+    # with keep_before: the existing rows touched, copied before they change (slot: scratch [>= n_touched])
+    keep_before, before_slot, before_index, before_rows, before_rgb, before_n_obs,
 ):
     """Phase B: insert the new voxels; then, per touched voxel, replace its representative if the
     frame-best observation beats it (rescaling the old sums by max(0, cos(old rep, new rep))) and
     accumulate W = R * max(0, cos(F, F_rep)) weighted sums into its row (`VoxelRows`). Returns the
-    representative switches.
+    representative switches. With ``keep_before`` it first copies each existing voxel's row, colour
+    and count into the ``before_*`` arrays (one entry per existing touched voxel, in slot order),
+    for an undo record: the copy reads the row the visit reads anyway.
 
     Besides F, colour and position moments, W accumulates the normal equations of the per-voxel
     SH colour fit: sh_a = upper triangle of sum W b b^T without its (0, 0) entry (= C0^2 R_scene),
@@ -255,9 +259,13 @@ def fold_kernel(
         keys[vi] = new_keys[j]
         table[-1 - _find(table, keys, new_keys[j], mask)] = vi
     K = sh_basis.shape[1]
+    kept = 0
     for t in range(n_touched):
         if touched[t] < 0:
             touched[t] = n_voxels + (-2 - touched[t])
+        elif keep_before:
+            before_slot[t] = kept
+            kept += 1
     switches = 0
     for t in numba.prange(n_touched):
         # the row of the voxel PREFETCH_AHEAD on, asked for now: on a room-scale map the rows a frame
@@ -271,6 +279,14 @@ def fold_kernel(
         row = rows[vi]
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
+        elif keep_before:
+            k = before_slot[t]
+            before_index[k] = vi
+            for c in range(D):
+                before_rows[k, c] = row[c]
+            for c in range(3):
+                before_rgb[k, c] = rep_rgb[vi, c]
+            before_n_obs[k] = n_obs[vi]
         # 1) its representative: a strictly more reliable observation replaces the running one
         b = best[t]
         rb = rel[b] if uses_rel else np.float32(1.0)

@@ -173,7 +173,7 @@ class Scene:
         """`fold` for a caller that holds the scene's lock: the fold with its undo record, then the
         frame kept (with ``keep_frames``) and a checkpoint where one is due."""
         record = self._recording = self._undo_record() if self._undo.depth else None
-        self._voxels.journal = record.rows if record is not None else None
+        self._voxels.journal = record
         try:
             report = self._fold(frame, t0)
         finally:
@@ -193,11 +193,10 @@ class Scene:
         return report
 
     def _undo_record(self) -> FoldUndo:
-        """What the next fold may overwrite, but for the rows it touches (see `undo`)."""
-        n = len(self._voxels)
-        return FoldUndo(self.frames, n, self.label_dim, self._voxels.state["free"][:n].copy(),
-                        list(self._front.window.views), list(self._front.pending),
-                        (list(self._keyframes.indices), self._keyframes.frames()),
+        """What the next fold may overwrite, but for the voxels' rows and see-through evidence, which
+        its integrations add as they go (see `undo`)."""
+        return FoldUndo(self.frames, len(self._voxels), self.label_dim, list(self._front.window.views),
+                        list(self._front.pending), (list(self._keyframes.indices), self._keyframes.frames()),
                         (self._density_sum, self._density_frames))
 
     def keep_undo(self, depth: int) -> None:

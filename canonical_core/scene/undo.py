@@ -8,15 +8,18 @@ k roll-backs, k folds and a rebuild of the hash table, not a snapshot load and t
 What a fold overwrites, and what its record keeps of it:
 
 - the rows of the existing voxels it touches (representative, sums, colour, count): their values
-  before each integration (`VoxelMap.journal` collects them);
-- the see-through evidence ``free`` of every voxel in its frustum: the whole column before the fold
-  (4 bytes a voxel);
+  before each integration, copied by the fold kernel as it reads them (`RowsBefore`);
+- the see-through evidence ``free`` of the existing voxels in the chunks its frustum meets, before
+  each free-space pass (`FreeBefore`), not the whole column: on a room-scale map most chunks lie
+  outside one frame's view;
 - the voxels it creates: only how many voxels there were (rolled back by truncation);
 - the free-space history's slot each integration writes, the depth front end's source window and waiting frames,
   the colour solve's kept views, the frame count and the observation density (small).
 
-Rolling back restores every array of the fused state bit for bit (`restore`), so the re-fold that
-follows gives the same digest as a fold of the corrected stream afresh.
+The integration enters the first two in the record (`VoxelMap.journal`) as it goes, in the order it
+overwrites them; the roll-back applies them newest first. Rolling back restores every array of the
+fused state bit for bit (`restore`), so the re-fold that follows gives the same digest as a fold of
+the corrected stream afresh.
 
 Example:
     >>> ring = UndoRing(depth=2)
@@ -29,13 +32,13 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
-from .decoded import gather_rows
-from .free_space import SeeThroughHistory, update_chunk_boxes_kernel
+from .free_space import CHUNK, SeeThroughHistory, update_chunk_boxes_kernel
 from .voxel_map import VoxelMap
 
-__all__ = ["FoldUndo", "RowsBefore", "UndoRing"]
+__all__ = ["FoldUndo", "FreeBefore", "RowsBefore", "UndoRing"]
 
 
 @dataclass(frozen=True)
@@ -47,13 +50,56 @@ class RowsBefore:
     rep_rgb: np.ndarray  # [T, 3] uint8
     n_obs: np.ndarray  # [T] int32
 
+    @classmethod
+    def room(cls, count: int, width: int) -> "RowsBefore":
+        """Room for ``count`` rows of ``width`` columns, for the fold kernel to fill."""
+        return cls(np.empty(count, np.int64), np.empty((count, width), np.float32), np.empty((count, 3), np.uint8),
+                   np.empty(count, np.int32))
 
-def rows_before(voxels: VoxelMap, touched: np.ndarray) -> RowsBefore:  # touched: [T] int32, -1 = a new voxel
-    """What the rows ``touched`` hold now (new voxels, -1, are left out: truncation removes them)."""
-    index = touched[touched >= 0].astype(np.int64)
-    s = voxels.state
-    # on the numba threads: numpy's fancy indexing copies a record at a time on one (a sixth of a fold)
-    return RowsBefore(index, *(gather_rows(s[name], index).numpy() for name in ("rows", "rep_rgb", "n_obs")))
+    def restore(self, voxels: VoxelMap) -> None:
+        s = voxels.state
+        s["rows"][self.index], s["rep_rgb"][self.index], s["n_obs"][self.index] = self.rows, self.rep_rgb, self.n_obs
+
+    def nbytes(self) -> int:
+        return self.index.nbytes + self.rows.nbytes + self.rep_rgb.nbytes + self.n_obs.nbytes
+
+
+@dataclass(frozen=True)
+class FreeBefore:
+    """The see-through evidence of voxels [0, ``limit``) in ``chunks`` before one free-space pass
+    (voxels from ``limit`` on are new in that fold: the roll-back truncates them)."""
+
+    chunks: np.ndarray  # [C] int32, ascending
+    limit: int
+    values: np.ndarray  # [C * CHUNK, less the part of the last chunk past limit] float32
+
+    @classmethod
+    def of(cls, free: np.ndarray, chunks: np.ndarray, limit: int) -> "FreeBefore":  # free: [V] float32
+        """The values of ``free`` that a pass over ``chunks`` will change."""
+        chunks = chunks[chunks * CHUNK < limit]  # ascending, so only the last one can reach past limit
+        size = 0 if not len(chunks) else (len(chunks) - 1) * CHUNK + min(CHUNK, limit - int(chunks[-1]) * CHUNK)
+        values = np.empty(size, np.float32)
+        _copy_chunks_kernel(free, chunks, limit, values, True)
+        return cls(chunks.copy(), limit, values)
+
+    def restore(self, voxels: VoxelMap) -> None:
+        _copy_chunks_kernel(voxels.state["free"], self.chunks, self.limit, self.values, False)
+
+    def nbytes(self) -> int:
+        return self.chunks.nbytes + self.values.nbytes
+
+
+@numba.njit(cache=True, parallel=True)
+def _copy_chunks_kernel(free, chunks, limit, values, save):
+    """values[c * CHUNK + t] <-> free[chunks[c] * CHUNK + t] for the voxels below ``limit`` (to
+    ``values`` when ``save``, back to ``free`` otherwise)."""
+    for c in numba.prange(chunks.shape[0]):
+        start = chunks[c] * CHUNK
+        for t in range(min(CHUNK, limit - start)):
+            if save:
+                values[c * CHUNK + t] = free[start + t]
+            else:
+                free[start + t] = values[c * CHUNK + t]
 
 
 @dataclass
@@ -63,18 +109,27 @@ class FoldUndo:
     frames: int
     voxels: int
     label_dim: int
-    free: np.ndarray  # [voxels] float32
     window: list
     pending: list
     keyframes: tuple[list, list]
     density: tuple[float, int]
-    rows: list[RowsBefore] = field(default_factory=list)  # per integration, in order
+    before: list[RowsBefore | FreeBefore] = field(default_factory=list)  # in the order the fold overwrote them
     history: list[tuple] = field(default_factory=list)  # per history push, in order (`history_slot`)
 
+    def rows_before(self, count: int, width: int) -> RowsBefore:
+        """Room for the ``count`` rows that an integration is about to overwrite (`RowsBefore.room`),
+        entered in the record."""
+        before = RowsBefore.room(count, width)
+        self.before.append(before)
+        return before
+
+    def free_before(self, free: np.ndarray, chunks: np.ndarray, limit: int) -> None:
+        """Enter the values of ``free`` that a free-space pass over ``chunks`` will change (`FreeBefore.of`)."""
+        self.before.append(FreeBefore.of(free, chunks, limit))
+
     def nbytes(self) -> int:
-        rows = sum(r.index.nbytes + r.rows.nbytes + r.rep_rgb.nbytes + r.n_obs.nbytes for r in self.rows)
         history = sum(a.nbytes for *_, slot in self.history for a in slot.values())
-        return int(self.free.nbytes + rows + history)
+        return int(sum(b.nbytes() for b in self.before) + history)
 
 
 def history_slot(history: SeeThroughHistory) -> tuple:
@@ -97,14 +152,12 @@ def restore_history(history: SeeThroughHistory, saved: tuple) -> None:
 def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
     """Roll ``voxels`` back through ``undone`` (newest first) to the state before the last one's fold."""
     for record in undone:
-        for r in reversed(record.rows):
-            s = voxels.state
-            s["rows"][r.index], s["rep_rgb"][r.index], s["n_obs"][r.index] = r.rows, r.rep_rgb, r.n_obs
+        for before in reversed(record.before):
+            before.restore(voxels)
     target = undone[-1]
     n, end = target.voxels, len(voxels)
     for array in voxels.state.values():  # rows past the end are zero, as in a map that never held them
         array[n:end] = 0
-    voxels.state["free"][:n] = target.free
     voxels.n = n
     voxels.rebuild_table()
     voxels.chunk_lo[:], voxels.chunk_hi[:] = 0, 0

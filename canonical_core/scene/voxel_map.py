@@ -131,8 +131,8 @@ class VoxelMap:
         self._next_cleared = self._next_filled = 0  # then voxels [0, _next_filled) entered
         self.chunk_lo = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
-        # when a list: `integrate` appends the rows it is about to overwrite (`undo.rows_before`)
-        self.journal: list | None = None
+        # an `undo.FoldUndo` while a fold keeps one: the integration enters what it is about to overwrite
+        self.journal = None
 
     def __len__(self) -> int:
         return self.n

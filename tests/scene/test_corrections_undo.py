@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from canonical_core import Frame, Scene, SceneConfig
-from canonical_core.scene.undo import FoldUndo, UndoRing
+from canonical_core.datasets import load_dataset
+from canonical_core.scene.free_space import CHUNK
+from canonical_core.scene.undo import FoldUndo, FreeBefore, UndoRing
+from tests.conftest import DATA
 from tests.scene.test_corrections import CONFIG, drifted, fold, pose, stream
 
 
@@ -42,6 +45,45 @@ def test_rollback_restores_every_array_and_folding_on_gives_the_same_scene(back_
     for frame in frames[back_to:]:
         scene.fold(frame)
     assert scene.digest() == digests[-1]
+
+
+@pytest.mark.realdata
+def test_a_room_scale_walk_rolls_back_exactly_and_its_records_keep_the_frustums_chunks_only():
+    """Many chunks, most outside each frame's view, the last one partly filled: what the small
+    stream above never reaches."""
+    if not (DATA / "hololens_office").is_dir():
+        pytest.skip("real capture not found")
+    frames = list(load_dataset(DATA / "hololens_office", stride=8, max_frames=12))
+    scene = Scene(SceneConfig(voxel_size=0.02), undo_depth=4)
+    for frame in frames[:8]:
+        scene.fold(frame)
+    digest, expected = scene.digest(), state(scene)
+    for frame in frames[8:]:
+        scene.fold(frame)
+    chunks = -(-len(scene._voxels) // CHUNK)
+    kept = [len(b.chunks) for r in scene._undo.records for b in r.before if isinstance(b, FreeBefore)]
+    assert len(kept) == 4 and 0 < max(kept) < chunks
+    scene.rollback(8)
+    assert scene.digest() == digest
+    after = state(scene)
+    for name, array in expected.items():
+        np.testing.assert_array_equal(after[name], array, err_msg=name)
+
+
+def test_free_before_keeps_the_chunks_below_the_limit_and_puts_them_back():
+    rng = np.random.default_rng(0)
+    free = rng.random(5 * CHUNK + 300, dtype=np.float32)
+    original, limit = free.copy(), 4 * CHUNK + 100  # chunk 4 holds 100 voxels older than the pass
+    before = FreeBefore.of(free, np.array([0, 2, 4, 5], np.int32), limit)
+    assert before.chunks.tolist() == [0, 2, 4] and before.values.shape == (2 * CHUNK + 100,)
+    free += 1.0
+    before.restore(type("Voxels", (), {"state": {"free": free}})())
+    kept = np.zeros(free.shape, bool)
+    for c in (0, 2):
+        kept[c * CHUNK: (c + 1) * CHUNK] = True
+    kept[4 * CHUNK: limit] = True
+    np.testing.assert_array_equal(free[kept], original[kept])
+    np.testing.assert_array_equal(free[~kept], original[~kept] + 1.0)
 
 
 def test_rollback_reaches_back_undo_depth_folds_only():
@@ -112,6 +154,6 @@ def test_the_ring_keeps_the_last_records_only():
     with pytest.raises(ValueError, match=r"^frames: the undo records reach back to 7 frames, not 3"):
         ring.take(3, 7)
     for frames in (7, 8, 9):
-        ring.push(FoldUndo(frames, 0, 0, np.zeros(0, np.float32), [], [], ([], []), (0.0, 0)))
+        ring.push(FoldUndo(frames, 0, 0, [], [], ([], []), (0.0, 0)))
     assert len(ring) == 2 and ring.floor(10) == 8
     assert [r.frames for r in ring.take(9, 10)] == [9] and ring.floor(9) == 8
