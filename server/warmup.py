@@ -18,7 +18,8 @@ from canonical_core import Camera, Frame, Scene, SceneConfig, render
 
 def warm_up(num_threads: int | None = None) -> float:
     """Fold two small synthetic RGB-D frames of a plane (the second one moved, so free space runs
-    against the first), decode the scene and render every map once. Returns the seconds it took.
+    against the first) into a scene that keeps undo records (as a session with a frame archive
+    does), decode the scene and render every map once. Returns the seconds it took.
 
     Example:
         >>> warm_up() > 0
@@ -29,7 +30,7 @@ def warm_up(num_threads: int | None = None) -> float:
     K = [[30.0, 0.0, (width - 1) / 2], [0.0, 30.0, (height - 1) / 2], [0.0, 0.0, 1.0]]
     cameras = [Camera(K=K, c2w=np.array([[1, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], float),
                       width=width, height=height) for x in (0.0, 0.05)]
-    scene = Scene(SceneConfig(voxel_size=0.05))
+    scene = Scene(SceneConfig(voxel_size=0.05), undo_depth=1)
     for camera in cameras:
         rgb = torch.full((height, width, 3), 128, dtype=torch.uint8)
         scene.fold(Frame(rgb=rgb, camera=camera, depth=torch.full((height, width), 1.0)))
