@@ -21,7 +21,8 @@ import numpy as np
 from ..evidence import FrameEvidence
 from ..frame import Frame
 from .config import SceneConfig
-from .free_space import SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel, see_through_map
+from .free_space import (SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel,
+                         see_through_map)
 from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
 from .undo import RowsBefore
 from .voxel_map import VoxelMap, next_pow2
