@@ -19,7 +19,8 @@ from canonical_core import Camera, Frame, Scene, SceneConfig, render
 def warm_up(num_threads: int | None = None) -> float:
     """Fold two small synthetic RGB-D frames of a plane (the second one moved, so free space runs
     against the first) into a scene that keeps undo records (as a session with a frame archive
-    does), decode the scene and render every map once. Returns the seconds it took.
+    does), decode the scene, render every map once and roll the second fold back (a correction's
+    first step). Returns the seconds it took.
 
     Example:
         >>> warm_up() > 0
@@ -35,4 +36,5 @@ def warm_up(num_threads: int | None = None) -> float:
         rgb = torch.full((height, width, 3), 128, dtype=torch.uint8)
         scene.fold(Frame(rgb=rgb, camera=camera, depth=torch.full((height, width), 1.0)))
     render(scene.decode(), cameras[-1], outputs=("rgb", "depth", "alpha", "features"), num_threads=num_threads)
+    scene.rollback(1)
     return time.perf_counter() - start

@@ -97,6 +97,30 @@ def insert_range_kernel(table, keys, start, stop):
 
 
 @numba.njit(cache=True)
+def remove_range_kernel(table, keys, start, stop):
+    """Take voxels ``stop - 1`` down to ``start`` out of ``table`` (each present), the last entered
+    first, by backward-shift deletion: an entry after the hole moves into it when its home slot lies
+    outside (hole, entry], so no probe chain is cut. Removing the last entered first leaves the table
+    exactly as entering voxels [0, start) alone would (slot for slot)."""
+    mask = table.shape[0] - 1
+    for idx in range(stop - 1, start - 1, -1):
+        hole = _slot(keys[idx], mask)
+        while table[hole] != idx:  # its slot (`_find` gives the entry, not where it is)
+            hole = (hole + 1) & mask
+        j = hole
+        while True:
+            j = (j + 1) & mask
+            e = table[j]
+            if e < 0:
+                break
+            home = _slot(keys[e], mask)
+            if (home <= hole or home > j) if hole < j else (home <= hole and home > j):
+                table[hole] = e
+                hole = j
+        table[hole] = -1
+
+
+@numba.njit(cache=True)
 def lookup_kernel(table, keys, query, out):
     """out[i] = the voxel index of ``query[i]``, -1 where it is absent. Probes at most the whole
     table, so a lookup in a full table (never made by the map, whose load stays below 1) ends too."""

@@ -3,7 +3,7 @@
 A correction re-folds the corrected stream from an exact state before the first frame it touches.
 For frames near the scene's end that state is rebuilt from undo records rather than a checkpoint:
 each fold keeps what it is about to overwrite, so a correction of the k most recent frames costs
-k roll-backs, k folds and a rebuild of the hash table, not a snapshot load and the folds since it.
+k roll-backs and k folds, not a snapshot load and the folds since it.
 
 What a fold overwrites, and what its record keeps of it:
 
@@ -12,7 +12,7 @@ What a fold overwrites, and what its record keeps of it:
 - the see-through evidence ``free`` of the existing voxels in the chunks its frustum meets, before
   each free-space pass (`FreeBefore`), not the whole column: on a room-scale map most chunks lie
   outside one frame's view;
-- the voxels it creates: only how many voxels there were (rolled back by truncation);
+- the voxels it creates: only how many voxels there were (rolled back by `VoxelMap.truncate`);
 - the free-space history's slot each integration writes, the depth front end's source window and waiting frames,
   the colour solve's kept views, the frame count and the observation density (small).
 
@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from .free_space import CHUNK, SeeThroughHistory, update_chunk_boxes_kernel
+from .free_space import CHUNK, SeeThroughHistory
 from .voxel_map import VoxelMap
 
 __all__ = ["FoldUndo", "FreeBefore", "RowsBefore", "UndoRing"]
@@ -154,14 +154,7 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
     for record in undone:
         for before in reversed(record.before):
             before.restore(voxels)
-    target = undone[-1]
-    n, end = target.voxels, len(voxels)
-    for array in voxels.state.values():  # rows past the end are zero, as in a map that never held them
-        array[n:end] = 0
-    voxels.n = n
-    voxels.rebuild_table()
-    voxels.chunk_lo[:], voxels.chunk_hi[:] = 0, 0
-    update_chunk_boxes_kernel(voxels.state["keys"], 0, n, voxels.chunk_lo, voxels.chunk_hi)
+    voxels.truncate(undone[-1].voxels)  # the voxels the folds created
     voxels.touch_all()
 
 

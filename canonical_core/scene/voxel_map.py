@@ -34,7 +34,7 @@ import numpy as np
 from .decoded import gather_rows
 from .fields import sh_sum_widths
 from .free_space import CHUNK, update_chunk_boxes_kernel
-from .kernels import VoxelRows, insert_range_kernel, lookup_kernel
+from .kernels import VoxelRows, insert_range_kernel, lookup_kernel, remove_range_kernel
 
 MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
 # rows reserved per array up front (about 5 GB of address space with the default layout, none of
@@ -229,6 +229,25 @@ class VoxelMap:
         self._next_table = None
         self.table.fill(-1)
         insert_range_kernel(self.table, self.state["keys"], 0, self.n)
+
+    def truncate(self, n: int) -> None:
+        """Drop the voxels from ``n`` on (the last ones folds created, for a roll-back): out of the
+        table, the last entered first, which leaves it as entering the first ``n`` alone would (what
+        `rebuild_table` gives, at the cost of the dropped voxels instead of the map's); their rows
+        zeroed, as in a map that never held them; the boxes of the chunks from ``n``'s on rebuilt."""
+        end = self.n
+        if not 0 <= n <= end:
+            raise ValueError(f"n: expected a voxel count in [0, {end}], got {n}")
+        if n == end:
+            return
+        self._next_table = None  # its slices may hold dropped voxels: it starts again when due
+        remove_range_kernel(self.table, self.state["keys"], n, end)
+        for array in self.state.values():
+            array[n:end] = 0
+        self.n = n
+        first = n // CHUNK
+        self.chunk_lo[first:], self.chunk_hi[first:] = 0, 0
+        update_chunk_boxes_kernel(self.state["keys"], first * CHUNK, n, self.chunk_lo, self.chunk_hi)
 
     def set_label_dim(self, label_dim: int) -> None:
         """Widen every row by the label columns (zero so far) once the first frame with labels arrives."""

@@ -68,6 +68,9 @@ def test_a_room_scale_walk_rolls_back_exactly_and_its_records_keep_the_frustums_
     after = state(scene)
     for name, array in expected.items():
         np.testing.assert_array_equal(after[name], array, err_msg=name)
+    table = scene._voxels.table.copy()  # the created voxels left the table: as a rebuild would leave it
+    scene._voxels.rebuild_table()
+    np.testing.assert_array_equal(table, scene._voxels.table)
 
 
 def test_free_before_keeps_the_chunks_below_the_limit_and_puts_them_back():

@@ -9,7 +9,8 @@ import pytest
 from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
-from canonical_core.scene.kernels import insert_range_kernel, voxel_keys_kernel
+from canonical_core.scene.free_space import CHUNK
+from canonical_core.scene.kernels import insert_range_kernel, lookup_kernel, remove_range_kernel, voxel_keys_kernel
 from canonical_core.scene.voxel_map import (ARRAYS, MAX_TABLE_LOAD, NEXT_TABLE_LOAD, CapacityError, VoxelMap,
                                             table_size)
 
@@ -147,6 +148,59 @@ def test_keys_that_share_a_home_slot_probe_to_the_next_free_ones():
     assert voxels.table.shape[0] == slots
     np.testing.assert_array_equal(voxels.find(keys), [0, 1, 2])
     np.testing.assert_array_equal(voxels.table[(target + np.arange(3)) % slots], [0, 1, 2])  # linear probing, in order
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_removing_the_last_entered_leaves_the_table_as_the_first_alone_would(seed):
+    """Crowded tables (load 0.75: long clusters, some wrapping past the last slot), every cut."""
+    keys = distinct_keys(12, seed=seed)
+    for n in range(len(keys) + 1):
+        table = np.full(16, -1, np.int32)
+        insert_range_kernel(table, keys, 0, len(keys))
+        remove_range_kernel(table, keys, n, len(keys))
+        alone = np.full(16, -1, np.int32)
+        insert_range_kernel(alone, keys, 0, n)
+        np.testing.assert_array_equal(table, alone, err_msg=f"n={n}")
+        found = np.empty(len(keys), np.int32)
+        lookup_kernel(table, keys, keys, found)
+        np.testing.assert_array_equal(found, np.where(np.arange(len(keys)) < n, np.arange(len(keys)), -1))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_removing_voxels_entered_before_others_keeps_every_other_voxel_found(seed):
+    """Not the last entered (the roll-back never does this): the backward shift moves later entries
+    into the holes, so every chain stays whole."""
+    keys = distinct_keys(12, seed=seed)
+    table = np.full(16, -1, np.int32)
+    insert_range_kernel(table, keys, 0, len(keys))
+    remove_range_kernel(table, keys, 2, 7)
+    found = np.empty(len(keys), np.int32)
+    lookup_kernel(table, keys, keys, found)
+    kept = np.r_[0:2, 7:12]
+    np.testing.assert_array_equal(found, np.where(np.isin(np.arange(len(keys)), kept), np.arange(len(keys)), -1))
+    np.testing.assert_array_equal(np.sort(table[table >= 0]), kept)
+
+
+def test_truncate_drops_the_last_voxels_as_if_never_entered():
+    keys = distinct_keys(3 * CHUNK + 100)
+    voxels, sums = load(keys)
+    n = CHUNK + 300  # inside the second chunk
+    voxels.truncate(n)
+    fresh, _ = load(keys[:n])
+    fresh.load_sums({name: value[:n] for name, value in sums.items()})
+    assert len(voxels) == n
+    assert_sums_equal(voxels.sums(), fresh.sums())
+    rebuilt = voxels.table.copy()
+    voxels.rebuild_table()
+    np.testing.assert_array_equal(rebuilt, voxels.table)
+    chunks = -(-n // CHUNK)
+    np.testing.assert_array_equal(voxels.chunk_lo[:chunks], fresh.chunk_lo[:chunks])
+    np.testing.assert_array_equal(voxels.chunk_hi[:chunks], fresh.chunk_hi[:chunks])
+    assert not voxels.chunk_lo[chunks:].any() and not voxels.chunk_hi[chunks:].any()
+    assert not voxels.state["rows"][n: len(keys)].any() and not voxels.state["keys"][n: len(keys)].any()
+    np.testing.assert_array_equal(voxels.find(keys[n:]), -1)
+    with pytest.raises(ValueError, match=r"^n: expected a voxel count in \[0, 1324\]"):
+        voxels.truncate(n + 1)
 
 
 def test_the_cap_is_checked_before_anything_changes():
