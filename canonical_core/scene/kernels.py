@@ -100,8 +100,9 @@ def insert_range_kernel(table, keys, start, stop):
 def remove_range_kernel(table, keys, start, stop):
     """Take voxels ``stop - 1`` down to ``start`` out of ``table`` (each present), the last entered
     first, by backward-shift deletion: an entry after the hole moves into it when its home slot lies
-    outside (hole, entry], so no probe chain is cut. Removing the last entered first leaves the table
-    exactly as entering voxels [0, start) alone would (slot for slot)."""
+    outside (hole, entry], so no probe chain is cut. In a table filled in index order (as the map fills
+    it), removing the last entered first leaves it exactly as entering voxels [0, start) alone would,
+    slot for slot: no entry after a hole has its home before it, so nothing moves."""
     mask = table.shape[0] - 1
     for idx in range(stop - 1, start - 1, -1):
         hole = _slot(keys[idx], mask)
