@@ -222,10 +222,13 @@ class SceneDecoding:
         """The scene changed: its decoded Gaussians are stale."""
         self._gaussians.clear()
 
-    def reset(self) -> None:
+    def reset(self, keep_rows: bool = False) -> None:
         """The scene's state was replaced by a re-fold: its decoded rows are stale too (their stamps
-        belong to the old voxel map). Callers hold `lock` and the scene's lock."""
-        self._rows = None
+        belong to the old voxel map), unless ``keep_rows``: the state was rolled back in place, and
+        the map restamped the rows it restored, so the stamps still tell which decoded rows hold.
+        Callers hold `lock` and the scene's lock."""
+        if not keep_rows:
+            self._rows = None
         self._gaussians.clear()
         self.solution = None
         self._epoch += 1

@@ -241,7 +241,7 @@ class Scene:
             del self._kept[frames:], self._arrivals[frames:]
         self._checkpoints = {c: b for c, b in self._checkpoints.items() if c <= frames}
         self._generation += 1
-        self._decoding.reset()
+        self._decoding.reset(keep_rows=True)  # in place: what the folds did not touch decodes as before
         self._carry_solution(carried)  # on the voxels that are still there, due for a re-solve
 
     def _fold(self, frame: Frame, t0: float) -> FoldReport:

@@ -154,8 +154,10 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
     for record in undone:
         for before in reversed(record.before):
             before.restore(voxels)
-    voxels.truncate(undone[-1].voxels)  # the voxels the folds created
-    voxels.touch_all()
+    n = undone[-1].voxels
+    voxels.truncate(n)  # the voxels the folds created
+    restored = [b.index[b.index < n] for record in undone for b in record.before if isinstance(b, RowsBefore)]
+    voxels.touch(np.concatenate(restored) if restored else np.zeros(0, np.int64))
 
 
 class UndoRing:

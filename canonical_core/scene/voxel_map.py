@@ -270,9 +270,10 @@ class VoxelMap:
         self._written = max(self._written, self.n)
         self._fill_next_table()
 
-    def touch_all(self) -> None:
-        """Stamp every voxel as changed (after its rows were restored from elsewhere)."""
-        self.changed_at[: self.n] = next(_STAMPS)
+    def touch(self, rows: np.ndarray) -> None:  # rows: [M] int64 voxel indices below len(self)
+        """Stamp voxels ``rows`` as changed (their rows were restored from elsewhere), so that a
+        decode redoes them."""
+        self.changed_at[rows] = next(_STAMPS)
 
     # -- reading ------------------------------------------------------------------------------
     def find(self, keys: np.ndarray) -> np.ndarray:  # [M] int64 keys -> [M] int32 voxel indices, -1 absent
