@@ -141,7 +141,6 @@ class Scene:
         self.checkpoint_every = checkpoint_every if keep_frames else 0
         self._checkpoints: dict[int, bytes] = {}
         self._undo = UndoRing(undo_depth)
-        self._recording: FoldUndo | None = None  # the undo record of the fold in progress
 
     @property
     def decoder(self):
@@ -172,12 +171,12 @@ class Scene:
     def _fold_kept(self, frame: Frame, arrival: int, t0: float) -> FoldReport:
         """`fold` for a caller that holds the scene's lock: the fold with its undo record, then the
         frame kept (with ``keep_frames``) and a checkpoint where one is due."""
-        record = self._recording = self._undo_record() if self._undo.depth else None
-        self._voxels.journal = record
+        # the fold in progress enters what it overwrites in its undo record, the map's journal
+        record = self._voxels.journal = self._undo_record() if self._undo.depth else None
         try:
             report = self._fold(frame, t0)
         finally:
-            self._voxels.journal, self._recording = None, None
+            self._voxels.journal = None
             self._generation += 1
             self._decoding.forget()
         if record is not None:
@@ -270,8 +269,8 @@ class Scene:
         done = integrate(self._voxels, ev, observation_sh_basis(ev, frame.camera, self.config.sh_degree), self.config,
                          self._scratch)
         if self.config.free_space.enabled:
-            if self._recording is not None:
-                self._recording.history.append(history_slot(self._history))
+            if self._voxels.journal is not None:
+                self._voxels.journal.history.append(history_slot(self._history))
             integrate_free_space(self._voxels, frame, self.config, self._history, first_new)
         if done.touched_voxels:
             self._density_sum += done.observations / done.touched_voxels
