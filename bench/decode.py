@@ -7,8 +7,9 @@ For the first F frames of the capture folded at the voxel size, medians of --rep
 from scratch (fields of the decoded voxels, the per-voxel SH solve, the decoder), and
 `decode_from` right after each of the last --repeats folds (only the voxels the fold touched are
 decoded again; `scene.decoded`); `Scene.gaussians` after each of those folds, as a viewer rendering
-while a stream folds pays it, and the part of it that holds the scene's lock (which folds wait
-for: the rows that decode, and a copy of what the decode reads of them); and, on the decoded
+while a stream folds pays it (without F_scene for a colour render, with it for a feature map), and
+the part of it that holds the scene's lock (which folds wait for: the rows that decode, and a copy
+of what the decode reads of them); and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
 ratio, and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
@@ -73,29 +74,35 @@ def main(argv=None) -> None:
     print(f"data: {args.data.name}, {len(sequence)} frames; voxel {args.voxel * 1000:g} mm; medians of {args.repeats}\n")
 
     decode_rows, eigen_rows, sh_rows = [], [], []
-    # `viewed` folds the same frames and is decoded the way a service's render does it
-    # (`Scene.gaussians`): the part of its decode that holds the scene's lock is timed on its own
-    scene, viewed, folded = Scene(SceneConfig(voxel_size=args.voxel)), Scene(SceneConfig(voxel_size=args.voxel)), 0
-    held: list[float] = []
-    viewed._decoding.take = timed(viewed._decoding.take, held)
+    # the viewed scenes fold the same frames and are decoded the way a service does it
+    # (`Scene.gaussians`): for a colour render (no F_scene) and for a feature map (with it); the part
+    # of each decode that holds the scene's lock is timed on its own
+    scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
+    viewed = {features: Scene(SceneConfig(voxel_size=args.voxel)) for features in (False, True)}
+    held: dict[bool, list[float]] = {features: [] for features in viewed}
+    for features, v in viewed.items():
+        v._decoding.take = timed(v._decoding.take, held[features])
     for n in counts:
         # the last `repeats` frames before n are folded one at a time, each followed by a decode as a
         # viewer's render would ask for it (reusing the voxels the fold left alone)
         last = max(folded, n - args.repeats)
         for position in range(folded, last):
-            scene.fold(sequence[position])
-            viewed.fold(sequence[position])
+            for s in (scene, *viewed.values()):
+                s.fold(sequence[position])
         scene.decode()
-        viewed.gaussians()
-        after_fold, touched, rendered = [], [], []
-        held.clear()
+        for features, v in viewed.items():
+            v.gaussians(features=features)
+            held[features].clear()
+        after_fold, touched = [], []
+        rendered: dict[bool, list[float]] = {features: [] for features in viewed}
         for position in range(last, n):
             report = scene.fold(sequence[position])
             touched.append(report.new_voxels + report.updated_voxels)
             inputs = scene.decode_inputs()
             after_fold += time_each(scene.decode_from, [inputs])
-            viewed.fold(sequence[position])
-            rendered += time_each(lambda _: viewed.gaussians(), [0])
+            for features, v in viewed.items():
+                v.fold(sequence[position])
+                rendered[features] += time_each(lambda _: v.gaussians(features=features), [0])
         folded = n
         inputs = scene.decode_inputs()
         gaussians = scene.decode_from(inputs)
@@ -108,8 +115,9 @@ def main(argv=None) -> None:
             "decode_from, from scratch ms": f"{from_scratch:.1f}",
             "decode_from after a fold ms": f"{after:.1f}",
             "ratio": f"{from_scratch / after:.1f}x",
-            "gaussians() after a fold ms": f"{statistics.median(rendered):.1f}" if rendered else "-",
-            "of which under the lock ms": f"{statistics.median(held):.1f}" if held else "-",
+            **{f"gaussians({'' if features else 'features=False'}) after a fold ms, under the lock":
+               f"{statistics.median(rendered[features]):.1f}, {statistics.median(held[features]):.1f}"
+               if rendered[features] else "-" for features in (False, True)},
         })
         cov = fields_from_sums(inputs.sums, scene.config, sort=False)["position_cov"] / args.voxel**2
         fast = median_ms(lambda: symmetric_eigh3(cov), args.repeats)
@@ -125,7 +133,8 @@ def main(argv=None) -> None:
                         "numba Cholesky ms": f"{fast:.1f}", "torch.linalg.solve ms": f"{batched:.1f}",
                         "ratio": f"{batched / fast:.1f}x"})
     print_table("Decode of the fused scene (decode_inputs + decode_from: the library's copy, then its decode; "
-                "gaussians(): what a service's render pays, of it the part under the scene's lock)", decode_rows)
+                "gaussians(features=False): what a service's colour render pays, gaussians(): a feature map's; "
+                "each with the part under the scene's lock)", decode_rows)
     print_table("Eigen-decomposition of the voxels' covariances, both paths (every voxel)", eigen_rows)
     print_table("SH colour fit, both paths (every voxel's K x K normal equations)", sh_rows)
 

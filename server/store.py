@@ -712,13 +712,13 @@ class Session:
             raise SessionNotFound(self.id)
 
     # -- reading --------------------------------------------------------------------------------
-    def gaussians(self, max_gaussians: int | None = None) -> tuple[Gaussians, int]:
+    def gaussians(self, max_gaussians: int | None = None, features: bool = True) -> tuple[Gaussians, int]:
         """Decoded Gaussians (`Scene.gaussians`: decoded once per change; colour re-solves run on
-        `COLOUR_SOLVES`) and their label_dim."""
+        `COLOUR_SOLVES`; without ``features``, F_scene may be left out) and their label_dim."""
         with self.lock:
             self._check_alive()
             scene = self.scene
-        g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES)
+        g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES, features=features)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
 
     @property
@@ -730,7 +730,7 @@ class Session:
                 "archive_retention": self.retention, "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
 
     def stats(self) -> dict:
-        gaussians = len(self.gaussians()[0])  # a decode if none is cached, outside the scene's lock
+        gaussians = len(self.gaussians(features=False)[0])  # a decode if none is cached, outside the scene's lock
         with self.lock:
             self._check_alive()
             stats = self.scene.stats()

@@ -154,7 +154,8 @@ class DecodeWork(NamedTuple):
     todo: np.ndarray  # [T] int64 rows of them decoded afresh (the decoded rows lack them)
     todo_sums: dict[str, np.ndarray]  # every sum of those rows, [T, ...]
     todo_stamps: np.ndarray | None  # [T] their change stamps; None: a decode from scratch, not kept
-    features: torch.Tensor | None  # [K, L] F_scene of every row that decodes, when some are reused
+    features: torch.Tensor | None  # [K, L] F_scene of every row that decodes, when some are reused and it is wanted
+    wants_features: bool  # the Gaussians carry F_scene (False: features None, and F_scene of reused rows is not read)
     observations_per_view: float
     views: list[Frame]  # the colour solve's kept input views
     frames: int
@@ -209,11 +210,13 @@ class SceneDecoding:
         return tuple((id(p), p._version) for p in d.parameters()), (d.min_thickness, d.min_extent, d.max_extent)
 
     # -- the decoded Gaussians of the current state (callers hold the scene's lock) ---------------
-    def cached(self, lod: int | None) -> Gaussians | None:
-        return self._gaussians.get((lod, self.key()))
+    def cached(self, lod: int | None, features: bool = True) -> Gaussians | None:
+        """The kept Gaussians of ``lod``; without ``features``, those with features serve too."""
+        hit = self._gaussians.get((lod, True, self.key()))
+        return hit if hit is not None or features else self._gaussians.get((lod, False, self.key()))
 
     def keep(self, lod: int | None, gaussians: Gaussians) -> None:
-        key = (lod, self.key())
+        key = (lod, gaussians.features is not None, self.key())
         if key not in self._gaussians and len(self._gaussians) >= DECODE_CACHE_ENTRIES:
             self._gaussians.pop(next(k for k in self._gaussians if k[0] is not None))
         self._gaussians[key] = gaussians
@@ -234,17 +237,24 @@ class SceneDecoding:
         self._epoch += 1
 
     # -- decoding -----------------------------------------------------------------------------
-    def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+    def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
+               features: bool = True) -> Gaussians:
         """Gaussians of every voxel of ``inputs`` with R_scene > ``min_support``; with
-        ``max_gaussians``, the best-supported ones; with kept views, colours solved against them."""
+        ``max_gaussians``, the best-supported ones; with kept views, colours solved against them;
+        without ``features``, no F_scene channels (`take`)."""
         with self.lock:  # decodes of one scene take turns: they share the decoded rows
-            return self.finish(self.take(inputs, max_gaussians, min_support))
+            return self.finish(self.take(inputs, max_gaussians, min_support, features))
 
-    def take(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> DecodeWork:
+    def take(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
+             features: bool = True) -> DecodeWork:
         """The first half of a decode, for a caller that holds `lock`: which rows decode, and a copy of
         what the decode reads of their sums (all sums of the rows the decoded rows lack, F_scene of the
         others). ``inputs`` may view the scene's live state (`Scene.gaussians`, under the scene's lock):
-        the work holds nothing of it, so `finish` runs while later folds change it."""
+        the work holds nothing of it, so `finish` runs while later folds change it.
+
+        Without ``features`` the Gaussians carry no F_scene (features None), for callers that draw
+        colour, depth or labels only: F_scene of the reused rows is then not read, which is most of
+        what a decode after a fold reads of the scene (16 floats of every decoded row)."""
         if max_gaussians is not None and max_gaussians < 0:
             raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
         if min_support < 0:
@@ -266,9 +276,10 @@ class SceneDecoding:
             stamps = inputs.changed_at[rows]
             fresh = ~self._rows.current(rows, stamps)
             todo, stamps = rows[fresh], stamps[fresh]
+        reused_features = features and len(todo) < len(rows)
         return DecodeWork(
             chosen, todo, inputs.gather(todo), stamps,
-            scene_features(inputs.sums, rows, self.config.research.eps) if len(todo) < len(rows) else None,
+            scene_features(inputs.sums, rows, self.config.research.eps) if reused_features else None, features,
             inputs.observations_per_view, list(inputs.views), inputs.frames, whole,
         )  # fmt: skip
 
@@ -332,10 +343,12 @@ class SceneDecoding:
         base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
             fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
+        if not work.wants_features:
+            fresh["features"] = None
         if work.todo_stamps is None:
             return fresh
         self._rows.store(todo, work.todo_stamps, {k: v for k, v in fresh.items() if k in PARTS})
-        if work.features is None:
+        if len(todo) == len(work.chosen.rows):
             return fresh
         return self._rows.gather(work.chosen.rows) | {"features": work.features}
 

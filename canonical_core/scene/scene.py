@@ -461,18 +461,20 @@ class Scene:
                             self.observations_per_view(), self._keyframes.frames(),
                             changed_at if live else changed_at.copy(), self.frames)
 
-    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+    def decode(self, max_gaussians: int | None = None, min_support: float = 0.0, features: bool = True) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
         best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
-        solved against the kept input views (`decode.solve_colours`). The same as
-        ``decode_from(decode_inputs(), ...)``, without the copy of every sum: as `gaussians`, it holds
-        the scene's lock only to take what its decode reads, so folds go on meanwhile."""
+        solved against the kept input views (`decode.solve_colours`); without ``features``, they carry
+        no F_scene (see `gaussians`). The same as ``decode_from(decode_inputs(), ...)``, without the
+        copy of every sum: as `gaussians`, it holds the scene's lock only to take what its decode
+        reads, so folds go on meanwhile."""
         with self._decoding.lock:
             with self._lock:
-                work = self._decoding.take(self._decode_inputs(live=True), max_gaussians, min_support)
+                work = self._decoding.take(self._decode_inputs(live=True), max_gaussians, min_support, features)
             return self._decoding.finish(work)
 
-    def decode_from(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0) -> Gaussians:
+    def decode_from(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
+                    features: bool = True) -> Gaussians:
         """`decode` of the scene as it was when ``inputs`` were taken (`decode_inputs` of this scene).
 
         Each decode keeps what it made of every voxel (`decoded.DecodedRows`), and the next one
@@ -481,9 +483,10 @@ class Scene:
         decode from scratch (``inputs._replace(changed_at=None)``). Decodes of one scene take turns
         (they share those rows); folds do not wait for them.
         """
-        return self._decoding.decode(inputs, max_gaussians, min_support)
+        return self._decoding.decode(inputs, max_gaussians, min_support, features)
 
-    def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None) -> Gaussians:
+    def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None,
+                  features: bool = True) -> Gaussians:
         """`decode(max_gaussians)` of the scene as it is now, decoded once per change: until the next
         fold, later calls (from any thread) return the same Gaussians. Concurrent calls on an
         unchanged scene decode once. The decode holds the scene's lock only to pick the rows that
@@ -495,18 +498,24 @@ class Scene:
         runs on that executor (on another thread: it takes the decode lock this call holds) instead of
         in this call, which shows the last solution meanwhile; once it lands, the next call decodes
         with it (`colour_solve_pending` is its future). A service does so, so that a render never
-        waits for a re-solve."""
+        waits for a re-solve.
+
+        Without ``features`` the Gaussians may carry no F_scene (``features`` None; kept Gaussians
+        that carry it are returned as they are): for renders of colour, depth or labels, whose decode
+        after a fold then reads only the voxels the fold touched and the columns that pick the
+        decoded voxels, not F_scene of every decoded voxel."""
         with self._lock:
-            hit = self._decoding.cached(self._lod(max_gaussians))
+            hit = self._decoding.cached(self._lod(max_gaussians), features)
         if hit is not None:
             return hit
         with self._decoding.lock:  # one decode at a time: a second caller waits, then finds it kept
             with self._lock:
                 lod = self._lod(max_gaussians)  # the scene may have grown while we waited
-                hit = self._decoding.cached(lod)
+                hit = self._decoding.cached(lod, features)
                 if hit is not None:
                     return hit
-                work, generation = self._decoding.take(self._decode_inputs(live=True), lod), self._generation
+                work = self._decoding.take(self._decode_inputs(live=True), lod, features=features)
+                generation = self._generation
             solver = (colour_solver, self._forget_decoded) if colour_solver is not None else None
             gaussians = self._decoding.finish(work, solver)
             with self._lock:

@@ -18,9 +18,9 @@ router = APIRouter(prefix="/v1/sessions", tags=["exports"],
 MaxGaussians = Annotated[int | None, Query(ge=0, description="level of detail: the best-supported N Gaussians")]
 
 
-async def _export(session, jobs, max_gaussians, encode, suffix: str) -> Response:
+async def _export(session, jobs, max_gaussians, encode, suffix: str, features: bool) -> Response:
     def job():
-        gaussians, _ = session.gaussians(max_gaussians)
+        gaussians, _ = session.gaussians(max_gaussians, features=features)
         return encode(gaussians), len(gaussians)
 
     data, n = await jobs.run(job)
@@ -32,11 +32,11 @@ async def _export(session, jobs, max_gaussians, encode, suffix: str) -> Response
             responses={200: {"content": {"application/octet-stream": {}}}})
 async def export_ply(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> Response:
     """The 3DGS PLY layout (binary little-endian float32), with feat_* / label_* extra properties."""
-    return await _export(session, jobs, max_gaussians, ply_bytes, ".ply")
+    return await _export(session, jobs, max_gaussians, ply_bytes, ".ply", features=True)
 
 
 @router.get("/{session_id}/gaussians.splat", response_class=Response,
             responses={200: {"content": {"application/octet-stream": {}}}})
 async def export_splat(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> Response:
     """antimatter15 .splat: 32 bytes per Gaussian, most important first."""
-    return await _export(session, jobs, max_gaussians, splat_bytes, ".splat")
+    return await _export(session, jobs, max_gaussians, splat_bytes, ".splat", features=False)  # colour only

@@ -109,7 +109,7 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
                      settings.max_response_bytes)
 
     def job():
-        gaussians, label_dim = session.gaussians(view.max_gaussians)
+        gaussians, label_dim = session.gaussians(view.max_gaussians, features=kind == "features")
         if kind == "segmentation" and label_dim == 0:
             raise _no_labels()
         result = render(gaussians, camera, outputs, background=view.background, colour=view.colour, depth_mode=view.depth,

@@ -217,6 +217,40 @@ def test_gaussians_are_decoded_once_per_change_and_per_level_of_detail(shelf):
     assert_same_gaussians(after, from_scratch(scene))
 
 
+def without_features(g):
+    return dataclasses.replace(g, features=None)
+
+
+def test_gaussians_without_features_leave_out_only_f_scene_and_read_none_of_it_for_reused_rows(shelf, monkeypatch):
+    scene = folded_scene(shelf[:3])
+    plain = scene.gaussians(features=False)  # from scratch: every row decoded afresh
+    assert plain.features is None
+    assert_same_gaussians(plain, without_features(from_scratch(scene)))
+    assert scene.gaussians(features=False) is plain  # kept for this state
+    full = scene.gaussians()  # F_scene wanted: a decode again, which reuses every decoded row
+    assert full.features is not None
+    assert_same_gaussians(full, from_scratch(scene))
+    assert scene.gaussians(features=False) is full  # Gaussians with F_scene serve a caller that does not need it
+
+    read = []
+    monkeypatch.setattr("canonical_core.scene.decoding.scene_features", lambda *a: read.append(1) or scene_features(*a))
+    for frame in shelf[3:5]:  # after a fold: the reused rows' F_scene is read only when wanted
+        scene.fold(frame)
+        after = scene.gaussians(features=False)
+        assert after.features is None and not read
+        assert_same_gaussians(after, without_features(from_scratch(scene)))
+        assert_same_gaussians(scene.gaussians(), from_scratch(scene))
+        assert len(read) == 1
+        read.clear()
+    fewer = scene.gaussians(len(scene) // 3, features=False)  # a level of detail too
+    assert fewer.features is None
+    assert_same_gaussians(fewer, without_features(scene.decode(len(scene) // 3)))
+    scene.fold(shelf[5])  # the library's decodes take the same option
+    inputs = scene.decode_inputs()
+    assert_same_gaussians(scene.decode_from(inputs, features=False), without_features(from_scratch(scene, inputs)))
+    assert_same_gaussians(scene.decode(features=False), without_features(scene.decode()))
+
+
 def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
     scene = folded_scene(shelf[:3])
     decodes, decode = [], scene._decoding.finish
