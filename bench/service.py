@@ -6,7 +6,8 @@ fold latency while a viewer renders (a plain session and one with the colour sol
 
 Starts the real service (`canonical serve`, uvicorn) on a free loopback port with a temporary data
 directory, streams the same frames through the Python client that it folds in-process, and prints
-tables with medians and the machine. The service snapshots a session every ``--snapshot-every``
+tables with medians and the machine. Beside them, the HTTP floor: the same request bodies POSTed to a
+bare FastAPI route that only reads them (`ECHO_SERVER`), what any fold over HTTP pays on this machine. The service snapshots a session every ``--snapshot-every``
 frames (its `snapshot_every_frames`), and the first table splits out the round trips of the frames
 that made a snapshot due. Never asserts timings.
 """
@@ -16,12 +17,14 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -32,7 +35,7 @@ from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
 from client.cli import frame_arrays, free_port, start_service  # noqa: E402
-from client.sdk import Client  # noqa: E402
+from client.sdk import Client, frame_body  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -52,6 +55,45 @@ def over_http(url: str, payloads: list[dict], voxel: float) -> tuple[list[float]
             total.append((time.perf_counter() - t0) * 1000)
             server.append(report["ms"])
         return total, server, session.id
+
+
+# The HTTP floor: a bare FastAPI route under uvicorn (h11, as the service) that reads the body and answers
+# with its length, in a child process. What a POST of a frame's body costs on this machine before any work.
+ECHO_SERVER = """
+import sys, uvicorn
+from fastapi import FastAPI, Request
+app = FastAPI()
+@app.post("/echo")
+async def echo(request: Request):
+    return {"bytes": len(await request.body())}
+uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), log_level="warning", http="h11")
+"""
+
+
+def echo_round_trips(bodies: list[bytes]) -> list[float]:
+    """ms to POST each body (the SDK's client, httpx) to `ECHO_SERVER` and read its answer."""
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", ECHO_SERVER, str(port)])
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as client:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    client.post("/echo", content=b"")
+                    break
+                except httpx.TransportError:
+                    if time.monotonic() > deadline or proc.poll() is not None:
+                        raise SystemExit("the echo server did not start") from None
+                    time.sleep(0.1)
+            out = []
+            for body in bodies:
+                t0 = time.perf_counter()
+                client.post("/echo", content=body, headers={"Content-Type": "application/msgpack"}).json()
+                out.append((time.perf_counter() - t0) * 1000)
+            return out
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
 
 
 def snapshot_split(round_trips: list[float], every: int) -> list[tuple[str, list[float]]]:
@@ -142,6 +184,8 @@ def main(argv=None) -> None:
     print(f"data: {args.data.name}, {len(frames)} frames at {frames[0].width}x{frames[0].height}, voxel {args.voxel * 1000:g} mm\n")
     in_process(frames[:2], args.voxel)  # compile / load kernels outside the measurement
     local = in_process(frames, args.voxel)
+    bodies = [frame_body(**p_) for p_ in payloads]
+    echo = echo_round_trips(bodies[:2] + bodies)[2:]  # the first two warm the connection
 
     with tempfile.TemporaryDirectory() as data_dir:
         port = free_port()
@@ -170,6 +214,10 @@ def main(argv=None) -> None:
         {"path": "  of which server fold", "ms/frame (med/min/max)": stats_ms(server), "frames/s (median)": ""},
         {"path": "overhead ratio HTTP / in-process", "ms/frame (med/min/max)": f"{statistics.median(total) / statistics.median(local):.2f}",
          "frames/s (median)": ""},
+        {"path": f"the HTTP floor: the same {statistics.median(map(len, bodies)) / 1e6:.2f} MB bodies to a bare FastAPI echo route",
+         "ms/frame (med/min/max)": stats_ms(echo), "frames/s (median)": ""},
+        {"path": "  floor + in-process fold, over in-process", "ms/frame (med/min/max)":
+         f"{(statistics.median(echo) + statistics.median(local)) / statistics.median(local):.2f}", "frames/s (median)": ""},
         *({"path": f"  round trips of the frames that {label}", "ms/frame (med/min/max)": stats_ms(ms), "frames/s (median)": ""}
           for label, ms in snapshot_split(total, args.snapshot_every) if ms),
     ])

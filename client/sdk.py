@@ -91,6 +91,25 @@ def exact_sensor_depth(depth, scales=(1000.0, 5000.0, 10000.0, 4000.0)) -> tuple
     return None
 
 
+def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
+               depth_scale=None) -> bytes:
+    """The msgpack body of one frame as `Session.add_frame` sends it (its arguments, the same checks)."""
+    msg: dict = {"rgb": bytes(rgb) if isinstance(rgb, (bytes, bytearray)) else encode_array(rgb),
+                 "K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4))}
+    if depth is not None and np.issubdtype(np.asarray(depth).dtype, np.integer):
+        msg["depth"], msg["depth_scale"] = encode_array(sensor_depth(depth, depth_scale)), float(depth_scale)
+        depth = None
+    elif depth_scale is not None:  # a float depth is in metres already: a scale would be applied twice or ignored
+        raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
+    for name, value in (("depth", depth), ("depth_std", depth_std), ("features", features), ("labels", labels)):
+        if value is not None:
+            value = np.asarray(value)
+            msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
+    if frame_id is not None:
+        msg["frame_id"] = str(frame_id)
+    return pack(msg)
+
+
 class Session:
     """One session of a `Client`; get it from `Client.create_session` or `Client.session`."""
 
@@ -108,20 +127,7 @@ class Session:
         with ``depth_scale`` its units per metre (1000 for millimetres), which travels as 16-bit;
         ``depth_std`` float [H,W]; ``features`` / ``labels`` float [H',W',C]. Returns the fold report
         (frame_index, new_voxels, ...)."""
-        msg: dict = {"rgb": bytes(rgb) if isinstance(rgb, (bytes, bytearray)) else encode_array(rgb),
-                     "K": _matrix(K, (3, 3)), "c2w": _matrix(c2w, (4, 4))}
-        if depth is not None and np.issubdtype(np.asarray(depth).dtype, np.integer):
-            msg["depth"], msg["depth_scale"] = encode_array(sensor_depth(depth, depth_scale)), float(depth_scale)
-            depth = None
-        elif depth_scale is not None:  # a float depth is in metres already: a scale would be applied twice or ignored
-            raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
-        for name, value in (("depth", depth), ("depth_std", depth_std), ("features", features), ("labels", labels)):
-            if value is not None:
-                value = np.asarray(value)
-                msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
-        if frame_id is not None:
-            msg["frame_id"] = str(frame_id)
-        body = pack(msg)
+        body = frame_body(rgb, K, c2w, depth, depth_std, features, labels, frame_id, depth_scale)
         return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:

@@ -41,19 +41,22 @@ class JobQueue:
         return fn(*args, **kwargs)
 
 
-def get_settings(request: Request) -> Settings:
+# The dependencies are coroutines: FastAPI runs a plain function dependency on its threadpool (a
+# thread hop per dependency and request: milliseconds each while folds keep the cores busy), and these
+# only read the app's state.
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_store(request: Request) -> SessionStore:
+async def get_store(request: Request) -> SessionStore:
     return request.app.state.store
 
 
-def get_jobs(request: Request) -> JobQueue:
+async def get_jobs(request: Request) -> JobQueue:
     return request.app.state.jobs
 
 
-def get_metrics(request: Request) -> Metrics:
+async def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
@@ -63,7 +66,7 @@ JobsDep = Annotated[JobQueue, Depends(get_jobs)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
-def get_session(session_id: str, store: StoreDep) -> Session:
+async def get_session(session_id: str, store: StoreDep) -> Session:
     return store.get(session_id)  # SessionNotFound -> 404
 
 

@@ -50,7 +50,7 @@ def _numbers(text: str, field: str, count: int) -> list[float]:
     return values
 
 
-def view_from_query(
+async def view_from_query(
     pose: Annotated[str, Query(description="c2w as 16 comma-separated numbers, row-major (OpenCV axes)")],
     K: Annotated[str, Query(description="fx,fy,cx,cy in pixels")],
     width: Annotated[int, Query(gt=0)],

@@ -1,8 +1,10 @@
 """Test harness: a real service in a subprocess (``python -m client.cli serve``) on a free loopback port,
-and the shelf frames downscaled to 320x240 as `Session.add_frame` keyword arguments."""
+or in this process (`in_process_server`, for tests that patch its parts), and the shelf frames
+downscaled to 320x240 as `Session.add_frame` keyword arguments."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -11,6 +13,7 @@ import threading
 import time
 from pathlib import Path
 
+import uvicorn
 
 from client.cli import frame_arrays, free_port, wait_until_healthy
 
@@ -90,6 +93,31 @@ def msgpack_frame(kwargs: dict) -> dict:
     if kwargs.get("frame_id") is not None:
         msg["frame_id"] = kwargs["frame_id"]
     return msg
+
+
+@contextlib.contextmanager
+def in_process_server(data_dir: Path):
+    """The real app (warm-up off) under uvicorn on a free loopback port, in a thread of this process,
+    so that a test's patches reach it; yields its URL."""
+    from server.app import create_app
+    from server.protocol import HeadTimeoutH11Protocol
+    from server.settings import Settings
+
+    port = free_port()
+    config = uvicorn.Config(create_app(Settings(data_dir=data_dir, warm_up=False)), host="127.0.0.1", port=port,
+                            log_level="critical", http=HeadTimeoutH11Protocol)
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the in-process server did not start"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
 
 
 def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:

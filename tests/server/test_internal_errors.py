@@ -2,17 +2,10 @@
 
 from __future__ import annotations
 
-import threading
-import time
-
 import httpx
 import pytest
-import uvicorn
 
-from client.cli import free_port
-from server.app import create_app
-from server.protocol import HeadTimeoutH11Protocol
-from server.settings import Settings
+from .harness import in_process_server
 
 
 @pytest.fixture
@@ -24,19 +17,8 @@ def served(tmp_path, monkeypatch):
         raise RuntimeError("renderer exploded")
 
     monkeypatch.setattr(views, "render", broken_render)
-    port = free_port()
-    config = uvicorn.Config(create_app(Settings(data_dir=tmp_path / "data", warm_up=False)), host="127.0.0.1", port=port,
-                            log_level="critical", http=HeadTimeoutH11Protocol)
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the in-process server did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(30)
+    with in_process_server(tmp_path / "data") as url:
+        yield url
 
 
 def _count(metrics: str, status: int) -> int:
