@@ -7,9 +7,9 @@ Each payload is a msgpack map of one of two kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
   frame_id, the digest of its wire payload (to recognise a retry), and its wire message, losslessly
-  compressed (`compress_message`: zstandard over the packed map; archives written before read back
-  too: an 8-bit colour array as PNG, zlib over the map), or None where the retention setting did not
-  keep it;
+  compressed (`compress_payload`: zstandard over the payload as it arrived, the packed map; archives
+  written before read back too: an 8-bit colour array as PNG, zlib over the map), or None where the
+  retention setting did not keep it;
 - a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
   "first": the stream position of the first frame it touches, "id": the id of a background
   correction or None}``.
@@ -87,10 +87,11 @@ ZSTD_LEVEL = -1
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
-def compress_message(msg: dict) -> bytes:
-    """A frame message, losslessly smaller: zstandard over the packed map."""
+def compress_payload(payload: bytes) -> bytes:
+    """A frame's wire payload (its packed message), losslessly smaller: zstandard over it as it is, so
+    the writer neither unpacks nor packs it again."""
     # with the frame's checksum, so a damaged record is detected when it is read back
-    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(wire.pack(msg))
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(payload)
 
 
 class DamagedFrame(Exception):
@@ -98,7 +99,7 @@ class DamagedFrame(Exception):
 
 
 def decompress_message(data: bytes) -> dict:
-    """The inverse of `compress_message`, and of the PNG + zlib form of earlier archives. Raises
+    """The message of `compress_payload`'s bytes, and of the PNG + zlib form of earlier archives. Raises
     `DamagedFrame` when the bytes are not what either wrote."""
     try:
         if data[:4] == _ZSTD_MAGIC:
@@ -195,11 +196,11 @@ class SessionArchive:
     def keeps(self, arrival: int) -> bool:
         return self.retention == "all" or (self.retention == "keyframes" and arrival % KEYFRAME_EVERY == 0)
 
-    def append_frame(self, frame_id: str | None, digest: str, message: dict) -> None:
-        """Archive the next frame (fsynced); `cut` takes it back if it is not folded."""
+    def append_frame(self, frame_id: str | None, digest: str, payload: bytes) -> None:
+        """Archive the next frame, its wire payload (fsynced); `cut` takes it back if it is not folded."""
         arrival = self.next_arrival
         body = {"arrival": arrival, "frame_id": frame_id, "digest": digest,
-                "message": compress_message(message) if self.keeps(arrival) else None}
+                "message": compress_payload(payload) if self.keeps(arrival) else None}
         self._append(msgpack.packb(body))
 
     def defer_frame(self, frame_id: str | None, digest: str, payload: bytes) -> None:
@@ -224,7 +225,7 @@ class SessionArchive:
                 if self.problem is None:
                     frame_id, digest, payload = item
                     try:
-                        self.append_frame(frame_id, digest, wire.unpack(payload))
+                        self.append_frame(frame_id, digest, payload)
                     except Exception as exc:  # noqa: BLE001 - the frame stays in the frame log; a restart archives it
                         self.problem = archive_failure(exc)
             finally:
@@ -270,8 +271,7 @@ class SessionArchive:
         logged = logged or {}
         while len(self.entries) < frames and len(self.entries) in logged:
             payload = logged[len(self.entries)]
-            message = wire.unpack(payload)
-            self.append_frame(message.get("frame_id"), payload_digest(payload), message)
+            self.append_frame(wire.unpack(payload).get("frame_id"), payload_digest(payload), payload)
         if len(self.entries) == frames + 1 and self._records and self._records[-1][1]:
             self.cut()
         if len(self.entries) != frames:

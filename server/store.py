@@ -325,7 +325,7 @@ class Session:
             return
         archive.flush()
         try:
-            archive.append_frame(frame_id, digest, wire.unpack(payload))
+            archive.append_frame(frame_id, digest, payload)
         except Exception as exc:  # noqa: BLE001 - the frame is folded and in the log; a restart archives it
             archive.problem = archive_failure(exc)
 

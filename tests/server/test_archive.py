@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from canonical_wire import encode_array, pack
-from server.archive import (ARCHIVE, DamagedFrame, SessionArchive, compress_message, decompress_message, names_payload,
+from server.archive import (ARCHIVE, DamagedFrame, SessionArchive, compress_payload, decompress_message, names_payload,
                             payload_digest)
 from server.wire import encode_png, frame_from_message
 
@@ -30,19 +30,19 @@ def message(k: int, frame_id: str | None = None) -> dict:
 def archive_of(tmp_path, n: int, retention="all") -> SessionArchive:
     archive = SessionArchive(tmp_path / ARCHIVE, retention)
     for k in range(n):
-        archive.append_frame(f"f{k}", f"digest{k}", message(k, f"f{k}"))
+        archive.append_frame(f"f{k}", f"digest{k}", pack(message(k, f"f{k}")))
     return archive
 
 
 def test_compression_is_lossless_and_smaller():
     msg = message(3, "a")
-    data = compress_message(msg)
+    data = compress_payload(pack(msg))
     a, b = frame_from_message(msg), frame_from_message(decompress_message(data))
     assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth) and b.frame_id == "a"
     assert np.array_equal(a.camera.c2w64(), b.camera.c2w64())
     smooth = {**msg, "rgb": encode_array(np.broadcast_to(np.arange(16, dtype=np.uint8)[None, :, None] * 8, (12, 16, 3)).copy()),
               "depth": encode_array(np.full((12, 16), 1.5, np.float32))}
-    assert len(compress_message(smooth)) < len(pack(smooth)) / 3  # real images are smooth, noise is not
+    assert len(compress_payload(pack(smooth))) < len(pack(smooth)) / 3  # real images are smooth, noise is not
 
 
 def test_frames_archived_as_png_and_zlib_read_back():
@@ -66,7 +66,7 @@ def test_reopening_replays_frames_and_corrections(tmp_path):
     assert np.array_equal(frames[1].camera.c2w64(), np.diag([1.0, -1.0, -1.0, 1.0]))  # the corrected pose
     assert np.array_equal(frames[2].camera.c2w64(), frame_from_message(message(3)).camera.c2w64())
     assert torch.equal(frames[0].rgb, frame_from_message(message(0)).rgb)
-    again.append_frame(None, "digest4", message(4))  # arrival indices go on after the removed frame
+    again.append_frame(None, "digest4", pack(message(4)))  # arrival indices go on after the removed frame
     assert again.entries[-1].arrival == 4
 
 
@@ -155,7 +155,7 @@ def test_cut_to_archives_the_frames_it_lacks_from_the_log(tmp_path):
 
 
 def test_a_damaged_frame_record_is_named():
-    data = bytearray(compress_message(message(5, "c")))
+    data = bytearray(compress_payload(pack(message(5, "c"))))
     data[len(data) // 2] ^= 0xFF
     with pytest.raises(DamagedFrame, match=r"^archive\.log: an archived frame does not decompress"):
         decompress_message(bytes(data))
