@@ -216,9 +216,14 @@ class SceneDecoding:
         return hit if hit is not None or features else self._gaussians.get((lod, False, self.key()))
 
     def keep(self, lod: int | None, gaussians: Gaussians) -> None:
-        key = (lod, gaussians.features is not None, self.key())
+        """Keep ``gaussians`` for ``lod``: Gaussians of an earlier decoder go (no request finds them
+        again), then, past `DECODE_CACHE_ENTRIES`, a level of detail before a full decode, the oldest first."""
+        decoder = self.key()
+        for stale in [k for k in self._gaussians if k[2] != decoder]:
+            del self._gaussians[stale]
+        key = (lod, gaussians.features is not None, decoder)
         if key not in self._gaussians and len(self._gaussians) >= DECODE_CACHE_ENTRIES:
-            self._gaussians.pop(next(k for k in self._gaussians if k[0] is not None))
+            self._gaussians.pop(min(self._gaussians, key=lambda k: k[0] is None))  # the first level of detail, else the oldest
         self._gaussians[key] = gaussians
 
     def forget(self) -> None:

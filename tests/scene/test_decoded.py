@@ -12,7 +12,7 @@ from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS, gather_rows
-from canonical_core.scene.decoding import decoded_rows, scene_features
+from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES, decoded_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
 from ..conftest import folded_scene, make_frame
 
@@ -249,6 +249,21 @@ def test_gaussians_without_features_leave_out_only_f_scene_and_read_none_of_it_f
     inputs = scene.decode_inputs()
     assert_same_gaussians(scene.decode_from(inputs, features=False), without_features(from_scratch(scene, inputs)))
     assert_same_gaussians(scene.decode(features=False), without_features(scene.decode()))
+
+
+def test_the_decode_cache_stays_bounded_across_decoder_changes_and_levels_of_detail(shelf):
+    scene = folded_scene(shelf[:3])
+    for _ in range(3):  # a changed decoder (a loaded model, a training step): its earlier Gaussians never serve again
+        with torch.no_grad():
+            scene.decoder.opacity.a.add_(0.0)  # a new parameter version, the same values
+        plain, full = scene.gaussians(features=False), scene.gaussians()
+        assert plain.features is None and full.features is not None
+        assert scene.gaussians(features=False) is full and scene.gaussians() is full
+    for k in range(2, 8):  # more levels of detail than the cache holds
+        assert len(scene.gaussians(len(scene) // k)) == len(scene) // k
+    assert len(scene._decoding._gaussians) <= DECODE_CACHE_ENTRIES
+    assert scene.gaussians() is full  # the full decode outlasts the levels of detail
+    assert_same_gaussians(full, from_scratch(scene))
 
 
 def test_concurrent_requests_of_an_unchanged_scene_decode_once(shelf):
