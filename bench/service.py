@@ -7,9 +7,10 @@ fold latency while a viewer renders (a plain session and one with the colour sol
 Starts the real service (`canonical serve`, uvicorn) on a free loopback port with a temporary data
 directory, streams the same frames through the Python client that it folds in-process, and prints
 tables with medians and the machine. Beside them, the HTTP floor: the same request bodies POSTed to a
-bare FastAPI route that only reads them (`ECHO_SERVER`), what any fold over HTTP pays on this machine. The service snapshots a session every ``--snapshot-every``
-frames (its `snapshot_every_frames`), and the first table splits out the round trips of the frames
-that made a snapshot due. Never asserts timings.
+bare FastAPI route that only reads them (`ECHO_SERVER`), what any fold over HTTP pays on this
+machine. The service snapshots a session every ``--snapshot-every`` frames (its
+`snapshot_every_frames`), and the first table splits out the round trips of the frames that made a
+snapshot due. Never asserts timings.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from common import machine_summary, print_table, stats_ms, time_each  # noqa: E4
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli import frame_arrays, free_port, start_service, wait_until_healthy  # noqa: E402
 from client.sdk import Client, frame_body  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
@@ -63,6 +64,9 @@ ECHO_SERVER = """
 import sys, uvicorn
 from fastapi import FastAPI, Request
 app = FastAPI()
+@app.get("/healthz")
+async def healthz():
+    return {}
 @app.post("/echo")
 async def echo(request: Request):
     return {"bytes": len(await request.body())}
@@ -75,16 +79,8 @@ def echo_round_trips(bodies: list[bytes]) -> list[float]:
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-c", ECHO_SERVER, str(port)])
     try:
+        wait_until_healthy(f"http://127.0.0.1:{port}", proc, timeout=60.0)
         with httpx.Client(base_url=f"http://127.0.0.1:{port}") as client:
-            deadline = time.monotonic() + 60
-            while True:
-                try:
-                    client.post("/echo", content=b"")
-                    break
-                except httpx.TransportError:
-                    if time.monotonic() > deadline or proc.poll() is not None:
-                        raise SystemExit("the echo server did not start") from None
-                    time.sleep(0.1)
             out = []
             for body in bodies:
                 t0 = time.perf_counter()
