@@ -26,6 +26,7 @@ from .reliability import sensor_depth_std
 # median's cost is in bench/fold.py's denoising table.
 ROUGHNESS_LIMIT = 4.0
 MIN_SAMPLES = 5
+ROUGHNESS_STRIDE = 4  # the check reads one pixel in every 4 x 4 block: a median needs no more
 _MEDIAN_STD = 1.2533  # std of the median of n Gaussian samples / (std / sqrt(n)), large n
 _MAD_STD = 1.4826  # Gaussian std / median absolute deviation
 
@@ -44,7 +45,8 @@ def _window(depth, v, u, radius, buf):
 
 
 @numba.njit(parallel=True, cache=True)
-def _roughness_kernel(depth, sigma, stride, out):  # out [H // stride, W // stride]: one pixel per stride^2 block
+def _roughness_kernel(depth, sigma, stride, out):
+    # out and sigma [ceil(H / stride), ceil(W / stride)]: one pixel per stride^2 block, the block's first
     for i in numba.prange(out.shape[0]):
         buf = np.empty(9, np.float32)
         for j in range(out.shape[1]):
@@ -59,7 +61,7 @@ def _roughness_kernel(depth, sigma, stride, out):  # out [H // stride, W // stri
                         b -= 1
                     buf[b + 1] = x
                 med = buf[n // 2] if n % 2 else np.float32(0.5) * (buf[n // 2 - 1] + buf[n // 2])
-                out[i, j] = abs(depth[v, u] - med) / max(sigma[v, u], np.float32(1e-9))
+                out[i, j] = abs(depth[v, u] - med) / max(sigma[i, j], np.float32(1e-9))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -85,7 +87,7 @@ def _median_kernel(depth, radius, min_samples, out_depth, out_std):
 def depth_roughness(
     depth: np.ndarray,  # [H, W] float32 metres, 0 = missing
     sigma: np.ndarray,  # [H, W] float32 metres, the noise the depth claims (> 0 where depth > 0)
-    stride: int = 4,
+    stride: int = ROUGHNESS_STRIDE,
 ) -> float:
     """Median over valid pixels of |z - median of its valid 3x3 neighbourhood| / sigma (module
     docstring), over every ``stride``-th pixel of every ``stride``-th row (a median needs no more,
@@ -100,7 +102,17 @@ def depth_roughness(
         raise ValueError(f"sigma: expected the depth's shape {tuple(depth.shape)}, got {tuple(sigma.shape)}")
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
         raise ValueError(f"stride: expected a positive integer, got {stride!r}")
-    out = np.empty(((depth.shape[0] + stride - 1) // stride, (depth.shape[1] + stride - 1) // stride), np.float32)
+    return _roughness(depth, sigma[::stride, ::stride], stride)
+
+
+def _roughness(
+    depth: np.ndarray,  # [H, W] float32 metres, 0 = missing
+    sigma: np.ndarray,  # [ceil(H / stride), ceil(W / stride)]: the noise at the pixels the check reads
+    stride: int,
+) -> float:
+    """`depth_roughness` with sigma given only where it is read (every ``stride``-th pixel of every
+    ``stride``-th row), so that a frame without a per-pixel std evaluates its noise model there alone."""
+    out = np.empty(sigma.shape, np.float32)
     _roughness_kernel(np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(sigma, np.float32), stride, out)
     valid = out[np.isfinite(out)]
     return float(np.median(valid)) if valid.size else 0.0
@@ -134,8 +146,9 @@ def denoise_rough_depth(
     ``radius`` is 0), else `median_depth` of it."""
     if radius == 0:
         return depth, depth_std
-    sigma = sensor_depth_std(depth, sigma0, sigma2, z_ref) if depth_std is None else depth_std
-    if depth_roughness(depth, sigma) <= ROUGHNESS_LIMIT:
+    read = (slice(None, None, ROUGHNESS_STRIDE),) * 2  # the pixels the check reads
+    sigma = sensor_depth_std(depth[read], sigma0, sigma2, z_ref) if depth_std is None else depth_std[read]
+    if _roughness(depth, sigma, ROUGHNESS_STRIDE) <= ROUGHNESS_LIMIT:
         return depth, depth_std
     return median_depth(depth, radius)
 
