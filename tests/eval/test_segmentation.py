@@ -200,6 +200,29 @@ def test_evaluate_needs_labels_on_every_frame(tmp_path, labelled_frames):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_evaluate_probes_client_features_and_means_over_captures(tmp_path, labelled_frames):
+    """Two captures whose every frame carries client features: each Scene method's run has the client
+    probe's columns (methods that cannot fuse client features have none), and the report's mean over
+    the captures is their per-metric mean (None where a capture lacks the metric)."""
+    from canonical_core.eval.segmentation import evaluate_segmentation
+
+    frames = [replace(f, features=client_features(f)) for f in labelled_frames]
+    sequences = [FrameSequence(name, [Held(str(k), f) for k, f in enumerate(order)])
+                 for name, order in (("one", frames), ("two", frames[::-1]))]  # other inputs, other scores
+    results = evaluate_segmentation(sequences, views=[2], methods=["canonical", "pixel_aligned"], out_dir=tmp_path,
+                                    progress=False, voxel_size=VOXEL)
+    runs = {(b["dataset"], r["method"]): r for b in results["bins"] for r in b["runs"]}
+    canonical, aligned = runs[("one", "canonical")], runs[("one", "pixel_aligned")]
+    assert all(b["client_features"] for b in results["bins"])
+    assert 0.8 < canonical["client_probe_accuracy_covered"] <= 1  # box vs ground from colour, height and depth
+    assert not any(k.startswith("client_probe") for k in aligned)
+    mean, other = {r["method"]: r for r in results["mean"]}, runs[("two", "canonical")]
+    for key in ("fusion_miou", "probe_miou", "client_probe_miou", "coverage"):
+        assert mean["canonical"][key] == pytest.approx((canonical[key] + other[key]) / 2), key
+    assert canonical["coverage"] != other["coverage"]
+    assert mean["pixel_aligned"]["client_probe_miou"] is None and mean["pixel_aligned"]["probe_miou"] is not None
+
+
 @dataclass(frozen=True)
 class Held:
     """A frame source that holds its frame."""
