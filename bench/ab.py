@@ -243,8 +243,8 @@ def main() -> None:
     for _ in range(args.rounds):
         for target in targets:
             for name, tree in trees.items():
-                results[(target, name)].append(run_child(target, tree))
-                print(f"  {target} on {name} done (load {results[(target, name)][-1]['load']:.2f})", file=sys.stderr, flush=True)
+                results[(target, name)].append(figures := run_child(target, tree))
+                print(f"  {target} on {name} done (load {figures['load']:.2f})", file=sys.stderr, flush=True)
     for target in targets:
         base, this = results[(target, "base")], results[(target, "this tree")]
         rows = []

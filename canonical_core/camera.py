@@ -274,13 +274,6 @@ class Camera:
         )
         return torch.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, torch.ones_like(u)], -1)
 
-    def to_dict(self) -> dict:
-        return {"K": self._K64.tolist(), "c2w": self._c2w64.tolist(), "width": self.width, "height": self.height}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "Camera":
-        return cls(d["K"], d["c2w"], d["width"], d["height"])
-
     def __repr__(self) -> str:
         return (
             f"Camera({self.width}x{self.height}, fx={self.fx:.2f}, fy={self.fy:.2f}, "

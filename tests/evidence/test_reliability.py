@@ -3,7 +3,7 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.evidence import (AppearanceUncertainty, extract_evidence, positional_uncertainty,
-                                     positional_uncertainty_reference, sensor_depth_std)
+                                     positional_uncertainty_reference, reliability, sensor_depth_std)
 
 from ..conftest import make_frame
 
@@ -60,6 +60,22 @@ def test_appearance_uncertainty_starts_at_zero_and_can_lower_reliability():
     assert not app.is_zero
     lowered = extract_evidence(frame, SceneConfig(voxel_size=0.01), app).reliability
     assert np.allclose(lowered, base * np.exp(-0.7), rtol=1e-5)
+
+
+def test_evidence_reliability_is_the_definition_exp_minus_u_pos_times_exp_minus_u_app():
+    torch.manual_seed(0)
+    app = AppearanceUncertainty(16)
+    with torch.no_grad():  # an appearance module whose U_app differs from pixel to pixel
+        app.mlp[2].weight.normal_(0.0, 2.0)
+        app.mlp[2].bias.fill_(0.3)
+    rng = np.random.default_rng(1)
+    frame = make_frame(rng.uniform(0.5, 1.5, (9, 12)), rgb=rng.integers(0, 256, (9, 12, 3)), fx=6.0)
+    ev = extract_evidence(frame, SceneConfig(voxel_size=0.01), app)
+    with torch.no_grad():
+        u_app = app(torch.from_numpy(ev.features))
+    assert u_app.std() > 0.1  # the check below would not see the MLP's term otherwise
+    expected = reliability(torch.from_numpy(ev.u_pos), u_app)
+    assert np.allclose(ev.reliability, expected.numpy(), rtol=1e-5, atol=1e-12)
 
 
 def test_observation_sh_basis_equals_the_renderers_definition():

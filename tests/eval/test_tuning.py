@@ -1,0 +1,64 @@
+"""Defaults chosen across captures: the objective and the per-group changes against hand values, a
+capture scored for real, and the recorded tuning rounds decided again by today's rule (the defaults
+in the code are what the recorded numbers choose)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from canonical_core.eval.tuning import (DEFAULT, Capture, Variant, agreement, default_of, group_changes, main, objective,
+                                        score_capture)
+from tests.datasets.conftest import apc_bins_path  # noqa: F401 (the real bins, skipped when absent)
+
+RECORDED = Path(__file__).resolve().parents[2] / "docs" / "eval"
+
+
+def per_n(psnr: float, covered: float, agree: float) -> dict:
+    return {2: {"psnr": psnr, "psnr_covered": covered, "depth_agreement": agree},
+            4: {"psnr": psnr + 2, "psnr_covered": covered + 2, "depth_agreement": agree + 0.2}}
+
+
+def test_objective_agreement_and_group_changes_by_hand():
+    assert objective(per_n(10, 14, 0.5)) == pytest.approx(13.0)  # ((10 + 14) / 2 + (12 + 16) / 2) / 2
+    assert agreement(per_n(10, 14, 0.5)) == pytest.approx(0.6)
+    captures = [  # two captures of group a, one of group b; x gains 1 dB all-pixel on the first, 2 covered on the second
+        {"group": "a", "variants": {"default": per_n(10, 14, 0.5), "x": per_n(11, 14, 0.5)}},
+        {"group": "a", "variants": {"default": per_n(8, 12, 0.5), "x": per_n(8, 14, 0.4)}},
+        {"group": "b", "variants": {"default": per_n(9, 13, 0.5), "x": per_n(9, 12, 0.5)}},
+    ]
+    changes = group_changes(captures)
+    assert changes["a"] == pytest.approx({"default": 0.0, "x": (0.5 + 1.0) / 2})
+    assert changes["b"] == pytest.approx({"default": 0.0, "x": -0.5})
+    assert group_changes(captures, agreement)["a"]["x"] == pytest.approx(-0.05)
+
+
+def test_score_capture_runs_the_protocol_for_every_variant(apc_bins_path):
+    variants = [DEFAULT, Variant("sh_degree=0", {"sh_degree": 0})]
+    result = score_capture(Capture(str(apc_bins_path / "bin_labels"), "apc_bins"), variants, scale=0.25)
+    assert result["group"] == "apc_bins" and result["views"] == [2, 4] and result["voxel_size"] > 0
+    assert set(result["variants"]) == {"default", "sh_degree=0"}
+    for rows in result["variants"].values():
+        assert set(rows) == {2, 4}
+        for m in rows.values():
+            assert all(math.isfinite(m[k]) for k in ("psnr", "psnr_covered", "coverage", "depth_agreement", "ssim"))
+            assert 0 < m["coverage"] <= 1 and 5 < m["psnr"] < 40
+    assert result["variants"]["default"][4]["psnr"] != result["variants"]["sh_degree=0"][4]["psnr"]
+
+
+@pytest.mark.parametrize("recorded, decisions", [
+    ("tuning_rounds/b", {"free_space.margin": "free_space.margin=0", "decoder.opacity_slope": "decoder.opacity_slope=3"}),
+    # today's defaults against the old values put back: neither is chosen back
+    ("tuning", {"free_space.margin": "default kept", "decoder.opacity_slope": "default kept"}),
+])
+def test_the_recorded_rounds_decide_the_defaults_in_the_code(tmp_path, capsys, recorded, decisions):
+    assert main(["--out", str(tmp_path), "--decide-from", str(RECORDED / recorded / "results.json")]) == 0
+    report = (tmp_path / "results.md").read_text()
+    for knob, decision in decisions.items():
+        assert f"| {knob} | {decision} |" in report
+    assert (default_of("free_space.margin"), default_of("decoder.opacity_slope")) == (0.0, 3.0)
+    assert json.loads((tmp_path / "results.json").read_text())["decided_by"].endswith(f"{recorded}/results.json")
+    assert (tmp_path / "objectives.png").stat().st_size > 0 and "Leave-one-capture-out" in capsys.readouterr().out
