@@ -36,6 +36,8 @@ def test_session_roundtrip(server, frames, tmp_path):
             assert report["frame_index"] == i and report["new_voxels"] > 0
         assert client.session(session.id).id == session.id
         assert session.id in [s["id"] for s in client.sessions()]
+        health = client.health()
+        assert health["status"] == "ok" and health["sessions"] >= 1
 
         kwargs = frames[0]
         h, w = kwargs["rgb"].shape[:2]
