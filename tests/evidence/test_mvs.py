@@ -335,6 +335,12 @@ def test_source_window_snapshot_round_trip(tmp_path, synth):
     del broken["features"]
     with pytest.raises(ValueError, match="features"):
         SourceWindow.from_arrays(broken)
+    for change, message in (({"version": np.array(2)}, "^version: unsupported source-window format 2"),
+                            ({"features": arrays["features"][:-1]}, "^features: expected .* int8 values"),
+                            ({"features": arrays["features"].astype(np.int16)}, "^features: expected .* int8 values"),
+                            ({"capacity": np.array(1)}, "^capacity: 2 views exceed the capacity 1")):
+        with pytest.raises(ValueError, match=message):
+            SourceWindow.from_arrays(arrays | change)
 
 
 def test_stream_folds_every_frame_and_the_first_after_its_partner(synth):
