@@ -95,3 +95,21 @@ def test_rotation_tolerance_is_1e_3():
 def test_accepts_3x4_and_torch_inputs():
     cam = Camera(torch.tensor(K), torch.eye(4)[:3], 640, 480)
     assert cam.c2w.shape == (4, 4) and cam.K.dtype == torch.float32
+
+
+@pytest.mark.parametrize(
+    "call, field, message",
+    [
+        (lambda cam: Camera.from_tum(K, [0, 0, 0, 0, 0, 1], 640, 480), "pose", "expected 7 values"),
+        (lambda cam: Camera.from_tum(K, [0, 0, 0, 0, 0, 0, 0], 640, 480), "pose", "non-zero quaternion"),
+        (lambda cam: Camera.from_tum(K, [0, 0, np.inf, 0, 0, 0, 1], 640, 480), "pose", "finite values"),
+        (lambda cam: cam.scaled(0), "factor", "positive"),
+        (lambda cam: cam.lift(torch.zeros(4, 3), torch.ones(4)), "uv", "[N, 2]"),
+        (lambda cam: cam.lift(torch.zeros(4, 2), torch.ones(3)), "depth", "[4]"),
+        (lambda cam: cam.project(torch.zeros(4, 2)), "points", "[N, 3]"),
+    ],
+)
+def test_constructors_and_geometry_name_the_bad_argument(call, field, message):
+    with pytest.raises(ValueError) as err:
+        call(Camera(K, np.eye(4), 640, 480))
+    assert str(err.value).startswith(field) and message in str(err.value)
