@@ -109,3 +109,19 @@ def test_good_depth_has_no_warning():
     scene = Scene(SceneConfig(voxel_size=0.05))
     assert scene.fold(_frame(depth=np.ones((H, W), np.float32))).warnings == []
     assert depth_warnings(torch.ones(2, 2), 0.1, 10.0) == []
+
+
+def test_scene_calls_name_the_bad_argument():
+    with pytest.raises(ValueError, match="^config: expected a SceneConfig, got dict"):
+        Scene({"voxel_size": 0.01})
+    scene = Scene(SceneConfig(voxel_size=0.01))
+    with pytest.raises(ValueError, match="^frame: expected a Frame, got str"):
+        scene.fold("frame.png")
+    for depth in (-1, 2.0, True):
+        with pytest.raises(ValueError, match="^undo_depth: expected a non-negative integer"):
+            scene.keep_undo(depth)
+    with pytest.raises(ValueError, match="^min_support: expected >= 0"):
+        scene.decode(min_support=-0.5)
+    with pytest.raises(ValueError, match="^max_gaussians: expected a non-negative integer"):
+        scene.decode(max_gaussians=-1)
+    assert scene.frames == 0 and len(scene) == 0
