@@ -146,6 +146,7 @@ def measure_render() -> dict:
     out = {}
     for width, height in ((640, 480), (256, 256)):
         camera = make_camera(width, height)
+
         def draw() -> None:
             render(gaussians, camera, ("rgb",), num_threads=2)
 
