@@ -20,6 +20,10 @@ in the coefficients, so the default fit divides each pixel's weights by its alph
 the pixels the scene covers (alpha >= 1/2, the evaluation's covered): with composited rows a partly
 covered pixel asks for brighter colours to make up for the black behind it, which a normalised
 render then shows too bright.
+The system keeps the weights of at least `ROW_MIN_WEIGHT` (the tails behind a surface and at the
+rims of splats are most of the weights and little of any pixel's colour), each row scaled to keep
+its pixel's whole weight, while b is taken against the whole render: a scene that already shows its
+views is left as it is.
 ``ridge`` shrinks every offset relative to its own evidence e_ik; ``prior`` keeps the fused colour
 of Gaussians the views barely see (hidden, or at the edge of the images), which the fit cannot
 determine; peak_k, the largest |Y_k| (SH_C0, SH_C1), counts it in colour units. A Gaussian seen
@@ -44,13 +48,17 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..gaussians.container import SH_C0
 from ..rendering import Colour
-from ..rendering.projection import channel_values
+from ..rendering.renderer import blend_rgb
 from ..rendering.sh import SH_C1, sh_basis_at_points
-from ..rendering.weights import WeightsBackend, blend_weight_rows
+from ..rendering.weights import WeightsBackend, weight_rows_and_blend
 
 # accumulated alpha at or above which a pixel counts as covered: the pixels the solve fits in normalised
 # colour, and the evaluation's "covered" pixels (`eval.metrics`), so the two agree
 COVERED_ALPHA = 0.5
+# the least compositing weight the system keeps: a splat that adds less than 1 % to a pixel carries
+# little of its colour, but such tails (splats far behind the surface, the rims of splats) are more
+# than half of all weights, and the solve's time is a pass over the weights per step
+ROW_MIN_WEIGHT = 0.01
 
 
 def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int, colour: str) -> None:
@@ -72,27 +80,6 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, 
         raise ValueError(f"degree: expected 0 (DC only) or 1, got {degree!r}")
     if colour not in get_args(Colour):
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
-
-
-@numba.njit(parallel=True, cache=True)
-def _csr_matmul(
-    starts: np.ndarray,  # [R + 1] int32
-    columns: np.ndarray,  # [E] int32
-    values: np.ndarray,  # [E] float32
-    x: np.ndarray,  # [C, 3] float32
-) -> np.ndarray:  # [R, 3] float32
-    """A x for a CSR matrix A and three right-hand columns (a view's render from its weights), rows
-    in parallel, a sum in float64 per row."""
-    out = np.empty((starts.shape[0] - 1, 3), np.float32)
-    for r in numba.prange(starts.shape[0] - 1):
-        s0 = s1 = s2 = 0.0
-        for k in range(starts[r], starts[r + 1]):
-            c, w = columns[k], np.float64(values[k])
-            s0 += w * x[c, 0]
-            s1 += w * x[c, 1]
-            s2 += w * x[c, 2]
-        out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2
-    return out
 
 
 # The transposed product scatters into Gaussians that many rows share: each view of a group sums
@@ -196,6 +183,21 @@ def _sh_normal(
     return out
 
 
+def _row_scale(
+    starts: np.ndarray,  # [R + 1] int32 CSR row starts
+    values: np.ndarray,  # [E] float32
+    alpha: np.ndarray,  # [R] float32 each row's whole alpha
+) -> np.ndarray:  # [E] float32: each entry's row's alpha over the row's sum
+    """The factor that makes each row of kept weights sum to the pixel's whole alpha: the weight of
+    the dropped tail, shared in proportion, so that a change of colour the views show in full is
+    asked of the kept Gaussians in full."""
+    counts = np.diff(starts)
+    rows = np.repeat(np.arange(len(counts)), counts)
+    sums = np.bincount(rows, weights=values, minlength=len(counts))
+    factor = np.divide(alpha, sums, out=np.ones(len(counts)), where=sums > 0)
+    return factor[rows].astype(np.float32)
+
+
 def _arrays(A: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # CSR row starts, columns, values
     return A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy()
 
@@ -207,15 +209,21 @@ def colour_system(
     colour: Colour = "normalised",
 ) -> tuple[Tensor, Tensor]:  # A: sparse CSR [P, N] (int32 indices), residual b [P, 3]
     """The linear system of the fit: A's rows are the views' pixels (view-major), its columns the
-    Gaussians, its entries the compositing weights (``"normalised"``: divided by the pixel's alpha,
-    and none for a pixel covered less than `COVERED_ALPHA`); b is each pixel's colour minus its
-    render in that mode (0 for a pixel without weights)."""
+    Gaussians, its entries the compositing weights of at least `ROW_MIN_WEIGHT`, each row scaled to
+    its pixel's whole weight (``"normalised"``: to 1, over the kept weights' sum, and no row for a
+    pixel they cover less than `COVERED_ALPHA`; ``"composited"``: to the render's alpha, the dropped
+    tail's weight shared in proportion); b is each pixel's colour minus its render in that mode
+    (`rendering.render`, every weight in), 0 for a pixel without a row."""
     starts, columns, weights, residuals = [np.zeros(1, np.int64)], [], [], []
     for view in views:
         camera = view.camera
-        s, c, v, scale = blend_weight_rows(gaussians, camera, COVERED_ALPHA if colour == "normalised" else None, backend)
-        render = _csr_matmul(s, c, v, channel_values(gaussians, camera, ("rgb",)).float().numpy())
-        residual = view.rgb.reshape(-1, 3).float() / 255.0 - torch.from_numpy(render)
+        # the residual against the render itself, every weight in, from the rows' own compositor
+        # pass: a scene that already shows its views is left as it is, whatever the rows leave out
+        (s, c, v, scale), blend = weight_rows_and_blend(
+            gaussians, camera, COVERED_ALPHA if colour == "normalised" else None, backend, min_weight=ROW_MIN_WEIGHT)
+        residual = view.rgb.reshape(-1, 3).float() / 255.0 - blend_rgb(blend, colour).reshape(-1, 3).float()
+        if colour == "composited":  # each row scaled to the render's alpha, as a normalised row sums to 1
+            v = v * _row_scale(s, v, (1.0 - blend.transmittance).reshape(-1).numpy())
         if colour == "normalised":
             residual[torch.from_numpy(scale == 0)] = 0.0
         residuals.append(residual)

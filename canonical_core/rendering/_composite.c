@@ -265,7 +265,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                             slot++;
                         }
                     }
-                    continue;
+                    if (!job->out_values) continue; /* the sums too, when asked: the render of every weight */
                 }
                 if (channels <= PLANAR_MAX) {
                     for (int64_t ch = 0; ch < channels; ch++) {
@@ -295,7 +295,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     }
     if (job->out_ids) {
         job->out_counts[tile] = slot - job->slot_starts[tile];
-        return;
+        if (!job->out_values) return;
     }
     for (int64_t v = v0; v < v1; v++) {
         for (int64_t u = u0; u < u1; u++) {
@@ -305,7 +305,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             } else {
                 memcpy(job->out_values + pixel * channels, accum + p * channels, channels * sizeof(float));
             }
-            job->out_depth_sums[pixel] = depth_sum[p];
+            if (job->out_depth_sums) job->out_depth_sums[pixel] = depth_sum[p];
             job->out_weight_sums[pixel] = weight_sum[p];
             job->out_transmittance[pixel] = transmittance[p];
             if (track_median) job->out_median_depth[pixel] = median_depth[p];
@@ -358,16 +358,19 @@ int64_t canonical_composite_job(const int64_t *tile_starts, int64_t num_tiles, c
 
 /* The weights mode's job (0 if memory ran out): per tile, the entries (pixel v * width + u, splat
  * index, weight >= min_weight) in blend order into the slots from slot_starts[tile] (room for one per
- * pixel of each splat's box in the tile), and their number into out_counts[tile]. */
+ * pixel of each splat's box in the tile), and their number into out_counts[tile]. With values (NULL:
+ * none), the same pass also blends them as canonical_composite_job does, every weight in, into
+ * out_values, out_weight_sums and out_transmittance (no depth sums, no median depth). */
 int64_t canonical_weights_job(const int64_t *tile_starts, int64_t num_tiles, const int32_t *splat_ids,
                               const float *splats, int64_t splat_stride, const int32_t *boxes, int64_t box_stride,
                               int64_t tiles_x, int64_t width, int64_t height, float min_weight,
                               const int64_t *slot_starts, int32_t *out_pixels, int32_t *out_ids, float *out_weights,
-                              int64_t *out_counts) {
-    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, NULL, splat_stride, box_stride, 0, 0, tiles_x,
-               width, height,
-               NULL, NULL, NULL, NULL, NULL, 0, 0, 0, min_weight, slot_starts, out_pixels, out_ids, out_weights,
-               out_counts};
+                              int64_t *out_counts, const float *values, int64_t value_stride, int64_t channels,
+                              float *out_values, float *out_weight_sums, float *out_transmittance) {
+    if (!values) channels = 0;
+    Job job = {tile_starts, num_tiles, splat_ids, splats, boxes, values, splat_stride, box_stride, value_stride,
+               channels, tiles_x, width, height, values ? out_values : NULL, NULL, out_weight_sums, out_transmittance,
+               NULL, 0, 0, 0, min_weight, slot_starts, out_pixels, out_ids, out_weights, out_counts};
     return new_job(job);
 }
 

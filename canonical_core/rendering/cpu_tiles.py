@@ -99,7 +99,8 @@ def load_compositor(name: str) -> ctypes.CDLL:
     ]
     library.canonical_composite_job.restype = size
     library.canonical_weights_job.argtypes = [pointer, size, pointer, pointer, size, pointer, size, size, size, size,
-                                              ctypes.c_float, pointer, pointer, pointer, pointer, pointer]
+                                              ctypes.c_float, pointer, pointer, pointer, pointer, pointer,
+                                              pointer, size, size, pointer, pointer, pointer]
     library.canonical_weights_job.restype = size
     library.canonical_job_work.argtypes = [size]  # a job's address, as numba passes it
     library.canonical_job_work.restype = None
@@ -232,19 +233,27 @@ def composite_weights(
     out_weights: np.ndarray,  # [B] float32 written: alpha T, at least min_weight
     out_counts: np.ndarray,  # [T] int64 written: entries of each tile
     num_threads: int,
+    blend: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    # with ``blend``: (values [N, D] float32, rows may be strided; out_values [H, W, D], out_weight_sums [H, W],
+    # out_transmittance [H, W] float32, written as `composite_tiles` writes them)
 ) -> None:
     """The compositor's weights mode: each tile blended as `composite_tiles` blends it, but instead
     of sums, every (pixel, splat) weight alpha T >= ``min_weight`` written out in blend order (a
-    splat's pixels row by row, splats front to back)."""
+    splat's pixels row by row, splats front to back). With ``blend``, the same pass also writes the
+    sums of ``values`` as `composite_tiles` does, every weight in (the same numbers, bit for bit)."""
     if splats.shape[1] != SPLAT_RECORD:
         raise ValueError(f"splats: expected [N, {SPLAT_RECORD}] records, got {list(splats.shape)}")
+    values, out_values, out_weight_sums, out_transmittance = blend if blend is not None else (None,) * 4
+    sums = (None, 0, 0, None, None, None) if blend is None else (
+        *_rows(values, np.float32, "values"), values.shape[1], _address(out_values, np.float32, "out_values"),
+        _address(out_weight_sums, np.float32, "out_weight_sums"), _address(out_transmittance, np.float32, "out_transmittance"))
     job = _compositor.canonical_weights_job(
         _address(tile_starts, np.int64, "tile_starts"), tile_starts.shape[0] - 1,
         _address(splat_ids, np.int32, "splat_ids"), *_rows(splats, np.float32, "splats"),
         *_rows(boxes, np.int32, "boxes"), tiles_x, width, height, min_weight,
         _address(slot_starts, np.int64, "slot_starts"), _address(out_pixels, np.int32, "out_pixels"),
         _address(out_ids, np.int32, "out_ids"), _address(out_weights, np.float32, "out_weights"),
-        _address(out_counts, np.int64, "out_counts"),
+        _address(out_counts, np.int64, "out_counts"), *sums,
     )  # fmt: skip
     _run_job(_compositor, job, num_threads, "composite_weights")
 

@@ -82,6 +82,24 @@ def _resolve_backend(backend: str, device: torch.device, median_depth: bool) -> 
     return backend
 
 
+def blend_rgb(
+    blend: Blend,  # values [H, W, 3]: the RGB sums
+    colour: Colour = "composited",
+    background: Tensor | Sequence[float] | None = None,  # [3] rgb, default black
+) -> Tensor:  # [H, W, 3] in [0, 1]
+    """The image `render` shows from an RGB blend: in ``"normalised"`` colour the sums over their
+    weight (the background where nothing was drawn), in ``"composited"`` colour the sums over the
+    background; clamped to [0, 1]."""
+    background = _background(background).to(blend.values)
+    if colour == "normalised":
+        covered = blend.weight_sums > 0
+        safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
+        rgb = torch.where(covered[..., None], blend.values / safe_weights[..., None], background)
+    else:
+        rgb = blend.values + blend.transmittance[..., None] * background
+    return rgb.clamp(0.0, 1.0)
+
+
 def render(
     gaussians: Gaussians,
     camera: Camera,
@@ -168,12 +186,7 @@ def render(
     widths = [_channel_width(gaussians, c) for c in channels]
     split = dict(zip(channels, blend.values.split(widths, -1))) if channels else {}
     if "rgb" in outputs:
-        background = background.to(blend.values)
-        if colour == "normalised":
-            rgb = torch.where(covered[..., None], split["rgb"] / safe_weights[..., None], background)
-        else:
-            rgb = split["rgb"] + blend.transmittance[..., None] * background
-        result.rgb = rgb.clamp(0.0, 1.0)
+        result.rgb = blend_rgb(blend._replace(values=split["rgb"]), colour, background)
     if "depth" in outputs:
         depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
         if median_depth:  # depths are beyond the near plane, so 0 means "never below 1/2"

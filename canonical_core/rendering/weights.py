@@ -20,8 +20,9 @@ from torch import Tensor
 from ..camera import Camera
 from ..gaussians import Gaussians
 from .cpu_tiles import bin_splats_by_tile, composite_weights, project_records
-from .projection import project_splats
-from .reference import tiles, tile_weights
+from .projection import Blend, project_splats
+from .reference import composite_reference, tiles, tile_weights
+from .sh import sh_to_rgb_fast
 from .splat_geometry import TILE_SIZE
 
 WeightsBackend = Literal["reference", "cpu"]
@@ -130,12 +131,13 @@ def _fill_rows(
                 cursor[p] = at + 1
 
 
-def _tile_entries(gaussians: Gaussians, camera: Camera, near_plane: float, min_weight: float):
-    """The fast path's weights in per-tile slots: (slot starts [T], counts [T], pixels, ids, weights), or
-    None when no splat reaches the image."""
+def _tile_entries(gaussians: Gaussians, camera: Camera, near_plane: float, min_weight: float, rgb: bool = False):
+    """The fast path's weights in per-tile slots: (slot starts [T], counts [T], pixels, ids, weights),
+    or None when no splat reaches the image; with ``rgb``, also the view's RGB blend from the same
+    pass (a `Blend` without depth sums, as `render_cpu` would composite it; None with no entries)."""
     width, height = camera.width, camera.height
     tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
-    records, boxes, _ = project_records(gaussians, camera, near_plane)  # one per Gaussian, in input order
+    records, boxes, spare = project_records(gaussians, camera, near_plane)  # one per Gaussian, in input order
     tile_starts, splat_ids = bin_splats_by_tile(boxes, tiles_x, tiles_x * tiles_y, numba.get_num_threads())
     if len(splat_ids) == 0:
         return None
@@ -146,9 +148,21 @@ def _tile_entries(gaussians: Gaussians, camera: Camera, near_plane: float, min_w
     size = int(bounds.sum())
     pixels, ids, weights = np.empty(size, np.int32), np.empty(size, np.int32), np.empty(size, np.float32)
     counts = np.zeros(len(bounds), np.int64)
+    sums = None
+    if rgb:  # the colours into the splats' lines, as a render puts them
+        values = spare[:, :3]
+        sh_to_rgb_fast(gaussians.sh.detach().float(), gaussians.means.detach().float(),
+                       camera.c2w64()[:3, 3].astype(np.float32), out=values)
+        sums = (values, np.zeros((height, width, 3), np.float32), np.zeros((height, width), np.float32),
+                np.ones((height, width), np.float32))
     composite_weights(tile_starts, splat_ids, records, boxes, tiles_x, width, height, min_weight, starts, pixels,
-                      ids, weights, counts, numba.get_num_threads())
-    return starts, counts, pixels, ids, weights
+                      ids, weights, counts, numba.get_num_threads(), sums)
+    entries = starts, counts, pixels, ids, weights
+    if not rgb:
+        return entries
+    _, out_values, out_weight_sums, out_transmittance = sums
+    return entries, Blend(torch.from_numpy(out_values), None, torch.from_numpy(out_weight_sums),
+                          torch.from_numpy(out_transmittance))
 
 
 def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_weight: float) -> BlendWeights:
@@ -228,6 +242,30 @@ def _rows_reference(w: BlendWeights, num_pixels: int, normalised_from: float | N
                       (weights[kept].double() * scale[pixels[kept]]).float().numpy(), scale.numpy())
 
 
+def _check_rows(normalised_from: float | None, backend: str, min_weight: float) -> None:
+    if normalised_from is not None and (isinstance(normalised_from, bool) or not isinstance(normalised_from, (int, float))
+                                        or not normalised_from > 0):
+        raise ValueError(f"normalised_from: expected a positive alpha or None, got {normalised_from!r}")
+    _check(backend, min_weight)
+
+
+def _rows(entries, num_pixels: int, normalised_from: float | None) -> WeightRows:
+    """`WeightRows` of the fast path's per-tile entries (`_tile_entries`; None: no entries)."""
+    if entries is None:
+        return WeightRows(np.zeros(num_pixels + 1, np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32),
+                          _scales(np.zeros(num_pixels), normalised_from))
+    starts, counts, pixels, ids, weights = entries
+    row_counts, alpha = np.zeros(num_pixels, np.int32), np.zeros(num_pixels)
+    _row_sums(starts, counts, pixels, weights, row_counts, alpha)
+    scale = _scales(alpha, normalised_from)
+    row_counts[scale == 0] = 0
+    row_starts = np.zeros(num_pixels + 1, np.int64)
+    np.cumsum(row_counts, out=row_starts[1:])
+    out_ids, out_weights = np.empty(row_starts[-1], np.int32), np.empty(row_starts[-1], np.float32)
+    _fill_rows(starts, counts, pixels, ids, weights, scale, row_starts[:-1].copy(), out_ids, out_weights)
+    return WeightRows(row_starts.astype(np.int32), out_ids, out_weights, scale)
+
+
 def blend_weight_rows(
     gaussians: Gaussians,
     camera: Camera,
@@ -257,24 +295,38 @@ def blend_weight_rows(
         ValueError: an unknown backend, a negative ``min_weight``, or a ``normalised_from`` that
             is not a positive number.
     """
-    if normalised_from is not None and (isinstance(normalised_from, bool) or not isinstance(normalised_from, (int, float))
-                                        or not normalised_from > 0):
-        raise ValueError(f"normalised_from: expected a positive alpha or None, got {normalised_from!r}")
-    _check(backend, min_weight)
+    _check_rows(normalised_from, backend, min_weight)
     num_pixels = camera.height * camera.width
     if backend == "reference":
         return _rows_reference(_weights_reference(gaussians, camera, near_plane, min_weight), num_pixels, normalised_from)
-    entries = _tile_entries(gaussians, camera, near_plane, min_weight)
-    if entries is None:
-        return WeightRows(np.zeros(num_pixels + 1, np.int32), np.zeros(0, np.int32), np.zeros(0, np.float32),
-                          _scales(np.zeros(num_pixels), normalised_from))
-    starts, counts, pixels, ids, weights = entries
-    row_counts, alpha = np.zeros(num_pixels, np.int32), np.zeros(num_pixels)
-    _row_sums(starts, counts, pixels, weights, row_counts, alpha)
-    scale = _scales(alpha, normalised_from)
-    row_counts[scale == 0] = 0
-    row_starts = np.zeros(num_pixels + 1, np.int64)
-    np.cumsum(row_counts, out=row_starts[1:])
-    out_ids, out_weights = np.empty(row_starts[-1], np.int32), np.empty(row_starts[-1], np.float32)
-    _fill_rows(starts, counts, pixels, ids, weights, scale, row_starts[:-1].copy(), out_ids, out_weights)
-    return WeightRows(row_starts.astype(np.int32), out_ids, out_weights, scale)
+    return _rows(_tile_entries(gaussians, camera, near_plane, min_weight), num_pixels, normalised_from)
+
+
+def weight_rows_and_blend(
+    gaussians: Gaussians,
+    camera: Camera,
+    normalised_from: float | None = None,
+    backend: WeightsBackend = "cpu",
+    near_plane: float = 0.01,
+    min_weight: float = 1e-4,
+) -> tuple[WeightRows, Blend]:
+    """`blend_weight_rows`, and the view's RGB blend with every weight in (a `Blend` without depth
+    sums: what `render` composites, and `blend_rgb` turns into its image), from one pass of the
+    compositor on the fast path. A fit over rows that leave small weights out still measures its
+    residual against the whole render so.
+
+    Raises:
+        ValueError: as `blend_weight_rows`.
+    """
+    _check_rows(normalised_from, backend, min_weight)
+    num_pixels, shape = camera.height * camera.width, (camera.height, camera.width)
+    if backend == "reference":
+        rows = _rows_reference(_weights_reference(gaussians, camera, near_plane, min_weight), num_pixels, normalised_from)
+        with torch.no_grad():
+            blend = composite_reference(project_splats(gaussians, camera, ("rgb",), near_plane), camera.width, camera.height)
+        return rows, blend._replace(depth_sums=None)
+    found = _tile_entries(gaussians, camera, near_plane, min_weight, rgb=True)
+    if found is None:
+        return _rows(None, num_pixels, normalised_from), Blend(torch.zeros(*shape, 3), None, torch.zeros(shape), torch.ones(shape))
+    entries, blend = found
+    return _rows(entries, num_pixels, normalised_from), blend

@@ -8,7 +8,8 @@ import torch
 
 from canonical_core.rendering import render
 from canonical_core.rendering.projection import channel_values
-from canonical_core.rendering.weights import blend_weight_rows, blend_weights
+from canonical_core.rendering.renderer import blend_rgb
+from canonical_core.rendering.weights import blend_weight_rows, blend_weights, weight_rows_and_blend
 
 from .scenes import gaussians_at, look_at_camera, pinhole, random_scene
 
@@ -115,9 +116,38 @@ def test_fast_rows_equal_the_reference_rows(scene, normalised_from):
 
 def test_rows_of_a_scene_behind_the_camera_are_empty():
     g = gaussians_at([[0, 0, -2]], [[0.1] * 3], [0.9], [[1, 1, 1]])
+    camera = pinhole(16, 16, 10.0, 7.5, 7.5)
     for backend in ("cpu", "reference"):
-        rows = blend_weight_rows(g, pinhole(16, 16, 10.0, 7.5, 7.5), 0.5, backend=backend)
-        assert len(rows.ids) == 0 and not rows.starts.any() and not rows.scale.any()
+        for rows in (blend_weight_rows(g, camera, 0.5, backend=backend), weight_rows_and_blend(g, camera, 0.5, backend)[0]):
+            assert len(rows.ids) == 0 and not rows.starts.any() and not rows.scale.any()
+        blend = weight_rows_and_blend(g, camera, 0.5, backend)[1]
+        assert not blend.values.any() and not blend.weight_sums.any() and (blend.transmittance == 1).all()
+
+
+@pytest.mark.parametrize("normalised_from", [None, 0.5])
+@pytest.mark.parametrize("min_weight", [1e-4, 0.02])
+def test_rows_and_blend_are_the_rows_and_the_render_from_one_pass(scene, normalised_from, min_weight):
+    g, camera = scene
+    rows, blend = weight_rows_and_blend(g, camera, normalised_from, min_weight=min_weight)
+    for got, expected in zip(rows, blend_weight_rows(g, camera, normalised_from, min_weight=min_weight)):
+        assert np.array_equal(got, expected)
+    # the blend keeps every weight, whatever the rows leave out: the render's own image, bit for bit
+    assert blend.depth_sums is None
+    for colour in ("composited", "normalised"):
+        out = render(g, camera, outputs=("rgb", "alpha"), colour=colour, backend="cpu")
+        assert torch.equal(blend_rgb(blend, colour), out.rgb)
+        assert torch.equal(1 - blend.transmittance, out.alpha)
+    if min_weight > 1e-4:  # the rows did leave weights out
+        assert len(rows.weights) < len(blend_weight_rows(g, camera, normalised_from).weights)
+
+
+def test_the_reference_rows_and_blend_agree_with_the_fast_ones(scene):
+    g, camera = scene
+    (fast_rows, fast), (reference_rows, reference) = (weight_rows_and_blend(g, camera, 0.5, backend) for backend in ("cpu", "reference"))
+    assert np.allclose(fast_rows.scale, reference_rows.scale, rtol=1e-5)
+    for colour in ("composited", "normalised"):
+        assert (blend_rgb(fast, colour) - blend_rgb(reference, colour)).abs().max() < 1e-4
+    assert (fast.transmittance - reference.transmittance).abs().max() < 1e-5
 
 
 def test_rows_name_a_bad_normalisation(scene):
@@ -127,3 +157,8 @@ def test_rows_name_a_bad_normalisation(scene):
             blend_weight_rows(g, camera, bad)
     with pytest.raises(ValueError, match="backend"):
         blend_weight_rows(g, camera, backend="gpu")
+    for bad in (0.0, "0.5"):
+        with pytest.raises(ValueError, match="^normalised_from: expected a positive alpha or None"):
+            weight_rows_and_blend(g, camera, bad)
+    with pytest.raises(ValueError, match="min_weight"):
+        weight_rows_and_blend(g, camera, min_weight=-1.0)
