@@ -1,5 +1,6 @@
 """``blend_weights``: each Gaussian's compositing weight w_i(p) = alpha_i(p) T_i(p) at each pixel;
-``blend_weight_rows``: the same as one sparse row per pixel.
+``blend_weight_rows``: the same as one sparse row per pixel; ``weight_rows_and_blend``: the rows and
+the view's RGB render (every weight in) from one pass.
 
 A render is linear in the per-Gaussian values given these weights (colour(p) = sum_i w_i(p) c_i),
 so they are the matrix of any least-squares fit of Gaussian values to images
