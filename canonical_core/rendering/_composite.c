@@ -145,7 +145,11 @@ typedef struct {
     int32_t *boxes, *splat_of; /* splat_of: each depth-ordered record's splat index */
 } Scratch;
 
-static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
+/* What a job writes; blend_tile is compiled once per mode, so that a render's blend carries no test
+ * of the weights mode in its inner loop. */
+enum { SUMS = 1, WEIGHTS = 2, WEIGHTS_AND_SUMS = SUMS | WEIGHTS };
+
+static inline __attribute__((always_inline)) void blend_tile(const Job *job, int64_t tile, Scratch *s, const int mode) {
     const int64_t first = job->tile_starts[tile], n = job->tile_starts[tile + 1] - first, channels = job->channels;
     const int32_t *ids = job->splat_ids + first;
     /* Sort, then gather the tile's records, boxes and values in depth order: scattered reads
@@ -184,7 +188,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
     if (track_median) memset(median_depth, 0, sizeof median_depth);
     memset(accum, 0, channels * TILE_PIXELS * sizeof(float));
     int64_t active = (u1 - u0) * (v1 - v0);
-    int64_t slot = job->out_ids ? job->slot_starts[tile] : 0;
+    int64_t slot = (mode & WEIGHTS) ? job->slot_starts[tile] : 0;
     const v8f lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const v8i lane_i = {0, 1, 2, 3, 4, 5, 6, 7};
 
@@ -255,7 +259,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                 const v8f weight = (v8f)(mask & (v8i)(alpha * t));
                 t = select8(mask, next, t);
                 memcpy(transmittance + p, &t, sizeof t);
-                if (job->out_ids) {
+                if (mode & WEIGHTS) {
                     for (int bits = lanes8(mask); bits; bits &= bits - 1) {
                         const int l = __builtin_ctz(bits);
                         if (weight[l] >= job->min_weight) {
@@ -265,7 +269,7 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
                             slot++;
                         }
                     }
-                    if (!job->out_values) continue; /* the sums too, when asked: the render of every weight */
+                    if (!(mode & SUMS)) continue; /* the sums too, when asked: the render of every weight */
                 }
                 if (channels <= PLANAR_MAX) {
                     for (int64_t ch = 0; ch < channels; ch++) {
@@ -293,9 +297,9 @@ static void blend_tile(const Job *job, int64_t tile, Scratch *s) {
             }
         }
     }
-    if (job->out_ids) {
+    if (mode & WEIGHTS) {
         job->out_counts[tile] = slot - job->slot_starts[tile];
-        if (!job->out_values) return;
+        if (!(mode & SUMS)) return;
     }
     for (int64_t v = v0; v < v1; v++) {
         for (int64_t u = u0; u < u1; u++) {
@@ -324,8 +328,13 @@ static void worker(Job *job) {
     };
     if (s.keys && s.keys_out && s.order && s.order_out && s.records && s.values && s.accum && s.boxes && s.splat_of) {
         int64_t tile;
-        while ((tile = __atomic_fetch_add(&job->next_tile, 1, __ATOMIC_RELAXED)) < job->num_tiles)
-            blend_tile(job, tile, &s);
+        /* a compositing job sums; a weights job writes its weights, and sums too when given values */
+        const int mode = !job->out_ids ? SUMS : job->out_values ? WEIGHTS_AND_SUMS : WEIGHTS;
+        while ((tile = __atomic_fetch_add(&job->next_tile, 1, __ATOMIC_RELAXED)) < job->num_tiles) {
+            if (mode == SUMS) blend_tile(job, tile, &s, SUMS);
+            else if (mode == WEIGHTS) blend_tile(job, tile, &s, WEIGHTS);
+            else blend_tile(job, tile, &s, WEIGHTS_AND_SUMS);
+        }
     } else {
         __atomic_store_n(&job->failed, 1, __ATOMIC_RELAXED);
     }
