@@ -5,9 +5,9 @@
  * where q <= support and alpha >= 1/255, front to back, with a stop before the splat that would
  * take the transmittance below 1e-4. Besides the sums, when asked (a non-NULL out_median_depth),
  * each pixel records its median depth: the depth of the splat at which its transmittance first
- * falls below 1/2. In the weights mode (canonical_tile_weights) nothing is summed: each pixel's
- * weight alpha T of each splat, at least min_weight, is written out instead, in blend order (the
- * rows of a least-squares fit to an image: rendering/weights.py). The transmittance is a float32
+ * falls below 1/2. In the weights mode (canonical_weights_job) each pixel's weight alpha T of each
+ * splat, at least min_weight, is written out, in blend order (the rows of a least-squares fit to an
+ * image: rendering/weights.py), and the sums only when values are given. The transmittance is a float32
  * product (the reference's is a
  * float64 cumprod; over the tens of layers a pixel blends they differ by about 1e-7, and float64
  * here cost two conversions and a split into 4-lane halves per 8-pixel step).
