@@ -181,13 +181,13 @@ def render(
 
     alpha = 1 - blend.transmittance
     covered = blend.weight_sums > 0
-    safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
     result = RenderResult()
     widths = [_channel_width(gaussians, c) for c in channels]
     split = dict(zip(channels, blend.values.split(widths, -1))) if channels else {}
     if "rgb" in outputs:
         result.rgb = blend_rgb(blend._replace(values=split["rgb"]), colour, background)
     if "depth" in outputs:
+        safe_weights = torch.where(covered, blend.weight_sums, torch.ones_like(blend.weight_sums))
         depth = torch.where(covered, blend.depth_sums / safe_weights, torch.zeros_like(blend.depth_sums))
         if median_depth:  # depths are beyond the near plane, so 0 means "never below 1/2"
             depth = torch.where(blend.median_depth > 0, blend.median_depth.to(depth), depth)
