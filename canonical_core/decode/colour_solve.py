@@ -82,16 +82,16 @@ def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, 
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
 
 
-# The transposed product scatters into Gaussians that many rows share: each view of a group sums
+# The transposed products scatter into Gaussians that many rows share: each view of a group sums
 # into its own buffer, then the group is contracted with the basis. A fixed group size bounds the
-# buffers (GROUP x N x 3) and keeps the result independent of the machine's thread count.
+# buffers (GROUP x N x channels) and keeps the result independent of the machine's thread count.
 VIEW_GROUP = 8
 
 
 @numba.njit(parallel=True, cache=True)
 def _contract_group(
-    out: np.ndarray,  # [N, K, 3] float32, added to
-    partial: np.ndarray,  # [GROUP, N, 3] float32: each view's colour-space sums
+    out: np.ndarray,  # [N, K, C] float32, added to
+    partial: np.ndarray,  # [GROUP, N, C] float32: each view's sums in colour space
     bases: np.ndarray,  # [V, N, K] float32
     first: int,  # the group's first view
     group: int,  # views in the group
@@ -104,83 +104,71 @@ def _contract_group(
             for k in range(out.shape[1]):
                 bk = bases[first + g, i, k]
                 bk = bk * bk if squared else bk
-                out[i, k, 0] += bk * partial[g, i, 0]
-                out[i, k, 1] += bk * partial[g, i, 1]
-                out[i, k, 2] += bk * partial[g, i, 2]
+                for c in range(out.shape[2]):
+                    out[i, k, c] += bk * partial[g, i, c]
 
 
 @numba.njit(parallel=True, cache=True)
-def _sh_rmatmul(
-    starts: np.ndarray,  # [R + 1] int32
-    columns: np.ndarray,  # [E] int32
-    values: np.ndarray,  # [E] float32
-    view_rows: np.ndarray,  # [V + 1] int64
-    bases: np.ndarray,  # [V, N, K] float32
-    y: np.ndarray,  # [R, 3] float32
-    squared: bool,  # values and basis squared (the evidence e_ik, with y = 1)
-) -> np.ndarray:  # [N, K, 3] float32: A^T y in coefficient space
-    n, num_bases = bases.shape[1], bases.shape[2]
-    out = np.zeros((n, num_bases, 3), np.float32)
-    partial = np.empty((VIEW_GROUP, n, 3), np.float32)
-    for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
-        group = min(VIEW_GROUP, view_rows.shape[0] - 1 - first)
-        for g in numba.prange(group):
-            partial[g] = 0.0
-            for r in range(view_rows[first + g], view_rows[first + g + 1]):
-                y0, y1, y2 = y[r, 0], y[r, 1], y[r, 2]
-                for e in range(starts[r], starts[r + 1]):
-                    i, w = columns[e], values[e]
-                    w = w * w if squared else w
-                    partial[g, i, 0] += w * y0
-                    partial[g, i, 1] += w * y1
-                    partial[g, i, 2] += w * y2
-        _contract_group(out, partial, bases, first, group, squared)
-    return out
-
-
-@numba.njit(parallel=True, cache=True)
-def _sh_normal(
+def _sh_products(
     starts: np.ndarray,  # [R + 1] int32 CSR row starts (rows view-major)
     columns: np.ndarray,  # [E] int32
     values: np.ndarray,  # [E] float32
     view_rows: np.ndarray,  # [V + 1] int64 where each view's rows start
     bases: np.ndarray,  # [V, N, K] float32 Y_k of each Gaussian seen from each view, K = 1 or 4
-    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets
-) -> np.ndarray:  # [N, K, 3] float32: A^T A x
-    """A^T (A x) in one pass over the weights: each pixel's colour change (a float64 sum, as a render)
-    is scattered back through the same row while it is in cache, instead of streaming the 10-20 M
-    weights once for A x and again for A^T y (a conjugate-gradient step is one such product).
-    Grouped by views as `_sh_rmatmul`, so the result does not depend on the thread count."""
+    x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, or [0, K, 3]: none (zero)
+    y: np.ndarray,  # [R, 3] float32 per-pixel colours, or [0, 3]: none (zero)
+    evidence: bool,  # also sum e_ik = sum_v Y_k(d_vi)^2 sum_p w_i(p)^2
+) -> tuple[np.ndarray, np.ndarray]:  # A^T (A x - y) [N, K, 3] float32; e [N, K, 1] ([0, K, 1] unless asked)
+    """A^T (A x - y) in one pass over the weights: each pixel's colour change (a float64 sum, as a
+    render) is scattered back through the same row while it is in cache, instead of streaming the
+    weights once for A x and again for A^T (a conjugate-gradient step is one such product, with
+    no y). The solve's first pass asks for its right-hand side, the warm start's residual and the
+    evidence together. Grouped by views, so the result does not depend on the thread count."""
     n, num_bases = bases.shape[1], bases.shape[2]
+    with_x, with_y = x.shape[0] > 0, y.shape[0] > 0
     out = np.zeros((n, num_bases, 3), np.float32)
+    squares = np.zeros((n if evidence else 0, num_bases, 1), np.float32)
     partial = np.empty((VIEW_GROUP, n, 3), np.float32)
-    seen = np.empty((VIEW_GROUP, n, 3), np.float32)
+    partial_squares = np.empty((VIEW_GROUP, n if evidence else 0, 1), np.float32)
+    seen = np.empty((VIEW_GROUP, n if with_x else 0, 3), np.float32)
     for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
         group = min(VIEW_GROUP, view_rows.shape[0] - 1 - first)
         for g in numba.prange(group):
             v = first + g
-            for i in range(n):  # the colour offsets as view v sees them, sum_k Y_k x_k
-                for c in range(3):
-                    s = np.float32(0.0)
-                    for k in range(num_bases):
-                        s += bases[v, i, k] * x[i, k, c]
-                    seen[g, i, c] = s
-                    partial[g, i, c] = 0.0
+            partial[g] = 0.0
+            if evidence:
+                partial_squares[g] = 0.0
+            if with_x:
+                for i in range(n):  # the colour offsets as view v sees them, sum_k Y_k x_k
+                    for c in range(3):
+                        s = np.float32(0.0)
+                        for k in range(num_bases):
+                            s += bases[v, i, k] * x[i, k, c]
+                        seen[g, i, c] = s
             for r in range(view_rows[v], view_rows[v + 1]):
                 s0 = s1 = s2 = 0.0
-                for e in range(starts[r], starts[r + 1]):
-                    i, w = columns[e], np.float64(values[e])
-                    s0 += w * seen[g, i, 0]
-                    s1 += w * seen[g, i, 1]
-                    s2 += w * seen[g, i, 2]
+                if with_x:
+                    for e in range(starts[r], starts[r + 1]):
+                        i, w = columns[e], np.float64(values[e])
+                        s0 += w * seen[g, i, 0]
+                        s1 += w * seen[g, i, 1]
+                        s2 += w * seen[g, i, 2]
+                if with_y:
+                    s0 -= y[r, 0]
+                    s1 -= y[r, 1]
+                    s2 -= y[r, 2]
                 y0, y1, y2 = np.float32(s0), np.float32(s1), np.float32(s2)
                 for e in range(starts[r], starts[r + 1]):
                     i, w = columns[e], values[e]
                     partial[g, i, 0] += w * y0
                     partial[g, i, 1] += w * y1
                     partial[g, i, 2] += w * y2
+                    if evidence:
+                        partial_squares[g, i, 0] += w * w
         _contract_group(out, partial, bases, first, group, False)
-    return out
+        if evidence:
+            _contract_group(squares, partial_squares, bases, first, group, True)
+    return out, squares
 
 
 def _row_scale(
@@ -270,22 +258,22 @@ def colour_offsets(
     means = gaussians.means.detach().numpy()
     bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])
     system = (*_arrays(A), view_rows, bases)  # the basis once per view, not once per product
+    no_x, no_y = np.zeros((0, num_bases, 3), np.float32), np.zeros((0, 3), np.float32)
 
-    def transposed(y: np.ndarray, squared: bool = False) -> Tensor:  # [R, 3] -> [N, K, 3]
-        return torch.from_numpy(_sh_rmatmul(*system, y, squared))
-
-    evidence = transposed(np.ones((A.shape[0], 3), np.float32), squared=True)  # e_ik
+    # one pass gives the evidence e_ik and A^T (A x0 - b), x0 the warm start
+    gradient, evidence = _sh_products(*system, offsets.numpy() if initial is not None else no_x, b.numpy(), True)
+    evidence = torch.from_numpy(evidence)  # [N, K, 1]: the same for every channel
     peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
     damping = ridge * evidence + prior * peak**2
     diagonal = evidence + damping
 
     def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
-        return torch.from_numpy(_sh_normal(*system, x.numpy())) + damping * x
+        return torch.from_numpy(_sh_products(*system, x.numpy(), no_y, False)[0]) + damping * x
 
     # conjugate gradients, one step length per colour channel
-    residual = transposed(b.numpy())
+    residual = -torch.from_numpy(gradient)
     if initial is not None:
-        residual -= normal(offsets)
+        residual -= damping * offsets
     z = residual / diagonal
     direction, rz = z.clone(), (residual * z).sum((0, 1))
     for _ in range(iterations):

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from canonical_core.decode import colour_offsets, colour_system, solve_colours, with_colour_offsets
-from canonical_core.decode.colour_solve import ROW_MIN_WEIGHT, _sh_normal, _sh_rmatmul
+from canonical_core.decode.colour_solve import ROW_MIN_WEIGHT, _sh_products
 from canonical_core.gaussians.container import SH_C0
 from canonical_core.rendering.sh import SH_C1, sh_basis, sh_basis_at_points
 from canonical_core.frame import Frame
@@ -134,19 +134,23 @@ def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
     rng = np.random.default_rng(1)
     x = rng.standard_normal((len(g), 4, 3)).astype(np.float32)
     y = rng.standard_normal((A.shape[0], 3)).astype(np.float32)
-    normal = _sh_normal(*system, x)  # A^T A x in one pass
-    dense = M.T @ (M @ torch.from_numpy(x).double().reshape(-1, 3))
-    assert np.allclose(normal.reshape(-1, 3), dense.numpy(), rtol=1e-4, atol=1e-4)
-    assert dense.abs().max() > 1.0  # not a comparison of zeros
-    transposed = _sh_rmatmul(*system, y, False)
-    assert np.allclose(transposed.reshape(-1, 3), (M.T @ torch.from_numpy(y).double()).numpy(), atol=1e-4)
-    squared = _sh_rmatmul(*system, np.ones_like(y), True)
-    assert np.allclose(squared[..., 0].reshape(-1), (M**2).sum(0).numpy(), atol=1e-4)
+    no_x, no_y = np.zeros((0, 4, 3), np.float32), np.zeros((0, 3), np.float32)
+    Mx, My = M @ torch.from_numpy(x).double().reshape(-1, 3), torch.from_numpy(y).double()
+    normal, none = _sh_products(*system, x, no_y, False)  # A^T A x in one pass
+    assert none.shape == (0, 4, 1)
+    assert np.allclose(normal.reshape(-1, 3), (M.T @ Mx).numpy(), rtol=1e-4, atol=1e-4)
+    assert (M.T @ Mx).abs().max() > 1.0  # not a comparison of zeros
+    transposed, squared = _sh_products(*system, no_x, y, True)  # -A^T y and the evidence
+    assert np.allclose(-transposed.reshape(-1, 3), (M.T @ My).numpy(), atol=1e-4)
+    assert np.allclose(squared.reshape(-1), (M**2).sum(0).numpy(), atol=1e-4)
+    both, squared_too = _sh_products(*system, x, y, True)  # A^T (A x - y)
+    assert np.allclose(both.reshape(-1, 3), (M.T @ (Mx - My)).numpy(), rtol=1e-4, atol=1e-4)
+    assert np.array_equal(squared_too, squared)
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        assert np.array_equal(_sh_rmatmul(*system, y, False), transposed)  # fixed view groups: bit-identical
-        assert np.array_equal(_sh_normal(*system, x), normal)
+        for args, expected in (((x, no_y, False), normal), ((no_x, y, True), transposed), ((x, y, True), both)):
+            assert np.array_equal(_sh_products(*system, *args)[0], expected)  # fixed view groups: bit-identical
     finally:
         numba.set_num_threads(threads)
 
