@@ -120,6 +120,13 @@ def test_degree_1_is_the_dense_regularised_least_squares_over_sh_offsets(scene):
     offsets = (solved.sh[:, :4] - g.sh[:, :4]).double().reshape(-1, 3)
     assert expected[len(g):].abs().max() > 0.01  # linear terms take part
     assert torch.allclose(offsets, expected, atol=5e-4)
+    # a warm start from anywhere reaches the same minimum; from the minimum itself, a step stays there
+    start = torch.from_numpy(np.random.default_rng(3).normal(0.0, 0.2, (len(g), 4, 3)).astype(np.float32))
+    warm = colour_offsets(g, views, start, ridge=ridge, prior=prior, iterations=400).double().reshape(-1, 3)
+    assert torch.allclose(warm, expected, atol=5e-4)
+    at_minimum = expected.float().reshape(len(g), 4, 3)
+    stay = colour_offsets(g, views, at_minimum, ridge=ridge, prior=prior, iterations=1)
+    assert torch.allclose(stay, at_minimum, atol=1e-4)
 
 
 def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
