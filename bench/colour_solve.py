@@ -7,7 +7,7 @@ For N input views of the evaluation protocol (640x480, its voxel size), kept at 
 scale (`SceneConfig.colour_solve_scale`; 0.5 is the default): ms for one kept view's part of the
 solve's system (`weight_rows_and_blend`: its rows of compositing weights and its render, one pass
 of the C compositor; the PyTorch reference on the first view once, for the ratio), ms
-for the whole solve (weights of every view, the sparse system, 10 CG iterations), ms for a
+for the whole solve (weights of every view, the sparse system, the library's default CG iterations), ms for a
 streaming scene's re-solve of the same system from its solution (`REFRESH_ITERATIONS` steps), its
 nonzeros, and held-out all-pixel / covered PSNR before and after. Prints medians / min / max and the
 machine. Never asserts timings.

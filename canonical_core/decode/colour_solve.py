@@ -13,7 +13,8 @@ that changes across the views from one that does not):
     min_x  sum_v sum_p |sum_i w_i(p) sum_k Y_k(d_vi) x_ik - (I_v(p) - render_v(p))|^2
            + sum_ik (ridge * e_ik + prior * peak_k^2) |x_ik|^2,   e_ik = sum_v Y_k(d_vi)^2 sum_p w_i(p)^2
 
-by Jacobi-preconditioned conjugate gradients (the clamp max(0, .) of the SH colour is left out).
+by conjugate gradients, preconditioned with each Gaussian's own K x K block of the system (the clamp
+max(0, .) of the SH colour is left out).
 That is the fit for ``colour="composited"`` renders. Views are shown in ``"normalised"`` colour by
 default (`rendering.render`: the blend over its weight alpha(p) = sum_i w_i(p)), which is as linear
 in the coefficients, so the default fit divides each pixel's weights by its alpha and fits only
@@ -90,12 +91,11 @@ VIEW_GROUP = 8
 
 @numba.njit(parallel=True, cache=True)
 def _contract_group(
-    out: np.ndarray,  # [N, K, C] float32, added to
-    partial: np.ndarray,  # [GROUP, N, C] float32: each view's sums in colour space
+    out: np.ndarray,  # [N, K, 3] float32, added to
+    partial: np.ndarray,  # [GROUP, N, 3] float32: each view's sums in colour space
     bases: np.ndarray,  # [V, N, K] float32
     first: int,  # the group's first view
     group: int,  # views in the group
-    squared: bool,  # the basis squared
 ) -> None:
     """out_ik += sum over the group's views g of Y_k(d_gi) partial_gi (colour space to coefficients),
     in a fixed view order, so the sum does not depend on the thread count."""
@@ -103,9 +103,27 @@ def _contract_group(
         for g in range(group):
             for k in range(out.shape[1]):
                 bk = bases[first + g, i, k]
-                bk = bk * bk if squared else bk
-                for c in range(out.shape[2]):
-                    out[i, k, c] += bk * partial[g, i, c]
+                out[i, k, 0] += bk * partial[g, i, 0]
+                out[i, k, 1] += bk * partial[g, i, 1]
+                out[i, k, 2] += bk * partial[g, i, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def _contract_blocks(
+    out: np.ndarray,  # [N, K, K] float32, added to
+    partial: np.ndarray,  # [GROUP, N] float32: each view's sum of squared weights of each Gaussian
+    bases: np.ndarray,  # [V, N, K] float32
+    first: int,  # the group's first view
+    group: int,  # views in the group
+) -> None:
+    """out_ikl += sum over the group's views g of Y_k(d_gi) Y_l(d_gi) partial_gi: each Gaussian's own
+    block of A^T A, in a fixed view order."""
+    for i in numba.prange(out.shape[0]):
+        for g in range(group):
+            for k in range(out.shape[1]):
+                bk = bases[first + g, i, k] * partial[g, i]
+                for m in range(out.shape[2]):
+                    out[i, k, m] += bk * bases[first + g, i, m]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -117,26 +135,27 @@ def _sh_products(
     bases: np.ndarray,  # [V, N, K] float32 Y_k of each Gaussian seen from each view, K = 1 or 4
     x: np.ndarray,  # [N, K, 3] float32 coefficient offsets, or [0, K, 3]: none (zero)
     y: np.ndarray,  # [R, 3] float32 per-pixel colours, or [0, 3]: none (zero)
-    evidence: bool,  # also sum e_ik = sum_v Y_k(d_vi)^2 sum_p w_i(p)^2
-) -> tuple[np.ndarray, np.ndarray]:  # A^T (A x - y) [N, K, 3] float32; e [N, K, 1] ([0, K, 1] unless asked)
+    blocks: bool,  # also sum each Gaussian's block of A^T A, sum_v Y_k(d_vi) Y_l(d_vi) sum_p w_i(p)^2
+) -> tuple[np.ndarray, np.ndarray]:  # A^T (A x - y) [N, K, 3] float32; blocks [N, K, K] ([0, K, K] unless asked)
     """A^T (A x - y) in one pass over the weights: each pixel's colour change (a float64 sum, as a
     render) is scattered back through the same row while it is in cache, instead of streaming the
     weights once for A x and again for A^T (a conjugate-gradient step is one such product, with
     no y). The solve's first pass asks for its right-hand side, the warm start's residual and the
-    evidence together. Grouped by views, so the result does not depend on the thread count."""
+    blocks (their diagonal is the evidence e_ik) together. Grouped by views, so the result does not
+    depend on the thread count."""
     n, num_bases = bases.shape[1], bases.shape[2]
     with_x, with_y = x.shape[0] > 0, y.shape[0] > 0
     out = np.zeros((n, num_bases, 3), np.float32)
-    squares = np.zeros((n if evidence else 0, num_bases, 1), np.float32)
+    own = np.zeros((n if blocks else 0, num_bases, num_bases), np.float32)
     partial = np.empty((VIEW_GROUP, n, 3), np.float32)
-    partial_squares = np.empty((VIEW_GROUP, n if evidence else 0, 1), np.float32)
+    partial_squares = np.empty((VIEW_GROUP, n if blocks else 0), np.float32)
     seen = np.empty((VIEW_GROUP, n if with_x else 0, 3), np.float32)
     for first in range(0, view_rows.shape[0] - 1, VIEW_GROUP):
         group = min(VIEW_GROUP, view_rows.shape[0] - 1 - first)
         for g in numba.prange(group):
             v = first + g
             partial[g] = 0.0
-            if evidence:
+            if blocks:
                 partial_squares[g] = 0.0
             if with_x:
                 for i in range(n):  # the colour offsets as view v sees them, sum_k Y_k x_k
@@ -163,12 +182,12 @@ def _sh_products(
                     partial[g, i, 0] += w * y0
                     partial[g, i, 1] += w * y1
                     partial[g, i, 2] += w * y2
-                    if evidence:
-                        partial_squares[g, i, 0] += w * w
-        _contract_group(out, partial, bases, first, group, False)
-        if evidence:
-            _contract_group(squares, partial_squares, bases, first, group, True)
-    return out, squares
+                    if blocks:
+                        partial_squares[g, i] += w * w
+        _contract_group(out, partial, bases, first, group)
+        if blocks:
+            _contract_blocks(own, partial_squares, bases, first, group)
+    return out, own
 
 
 def _row_scale(
@@ -234,7 +253,7 @@ def colour_offsets(
     initial: Tensor | None = None,  # [N, K, 3] float32 offsets to start from (a warm start); None: zeros
     ridge: float = 0.3,
     prior: float = 1.0,
-    iterations: int = 10,
+    iterations: int = 4,
     degree: int = 1,
     backend: WeightsBackend = "cpu",
     colour: Colour = "normalised",
@@ -260,12 +279,20 @@ def colour_offsets(
     system = (*_arrays(A), view_rows, bases)  # the basis once per view, not once per product
     no_x, no_y = np.zeros((0, num_bases, 3), np.float32), np.zeros((0, 3), np.float32)
 
-    # one pass gives the evidence e_ik and A^T (A x0 - b), x0 the warm start
-    gradient, evidence = _sh_products(*system, offsets.numpy() if initial is not None else no_x, b.numpy(), True)
-    evidence = torch.from_numpy(evidence)  # [N, K, 1]: the same for every channel
+    # one pass gives each Gaussian's block of A^T A (its diagonal: the evidence e_ik) and
+    # A^T (A x0 - b), x0 the warm start
+    gradient, blocks = _sh_products(*system, offsets.numpy() if initial is not None else no_x, b.numpy(), True)
+    blocks = torch.from_numpy(blocks)  # [N, K, K]
+    evidence = torch.diagonal(blocks, dim1=1, dim2=2)[..., None]  # [N, K, 1]: the same for every channel
     peak = torch.tensor([SH_C0, SH_C1, SH_C1, SH_C1][:num_bases])[None, :, None]
     damping = ridge * evidence + prior * peak**2
-    diagonal = evidence + damping
+    # the preconditioner: each Gaussian's own block of the system, inverted (positive definite: a sum
+    # of outer products plus the damping). A Gaussian seen from a narrow range of directions can hardly
+    # tell its DC term from its linear ones; a diagonal preconditioner leaves that coupling to many steps
+    inverse = torch.linalg.inv((blocks + torch.diag_embed(damping[..., 0])).double()).float()
+
+    def precondition(r: Tensor) -> Tensor:  # [N, K, 3]
+        return torch.einsum("nkl,nlc->nkc", inverse, r)
 
     def normal(x: Tensor) -> Tensor:  # (A^T A + diag(ridge e + prior peak^2)) x
         return torch.from_numpy(_sh_products(*system, x.numpy(), no_y, False)[0]) + damping * x
@@ -274,14 +301,14 @@ def colour_offsets(
     residual = -torch.from_numpy(gradient)
     if initial is not None:
         residual -= damping * offsets
-    z = residual / diagonal
+    z = precondition(residual)
     direction, rz = z.clone(), (residual * z).sum((0, 1))
     for _ in range(iterations):
         product = normal(direction)
         step = rz / (direction * product).sum((0, 1)).clamp_min(1e-30)
         offsets += step * direction
         residual -= step * product
-        z = residual / diagonal
+        z = precondition(residual)
         rz_next = (residual * z).sum((0, 1))
         direction = z + (rz_next / rz.clamp_min(1e-30)) * direction
         rz = rz_next
@@ -300,7 +327,7 @@ def solve_colours(
     views: Sequence[Frame],  # the frames the scene was fused from: rgb and camera are used
     ridge: float = 0.3,
     prior: float = 1.0,
-    iterations: int = 10,
+    iterations: int = 4,
     degree: int = 1,
     backend: WeightsBackend = "cpu",
     colour: Colour = "normalised",

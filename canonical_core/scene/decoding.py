@@ -35,8 +35,8 @@ from .shapes import voxel_shapes
 
 POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
 # conjugate-gradient steps of a colour solve that starts from the last solution (one from zero takes the
-# library's default, 10): a few steps from a solution a handful of frames old reach about what 10 do
-REFRESH_ITERATIONS = 3
+# library's default, 4): from a solution a handful of frames old, two reach about what a solve from zero does
+REFRESH_ITERATIONS = 2
 DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
 
 

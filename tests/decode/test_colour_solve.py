@@ -144,20 +144,23 @@ def test_the_sparse_products_equal_the_dense_ones_for_any_thread_count(scene):
     no_x, no_y = np.zeros((0, 4, 3), np.float32), np.zeros((0, 3), np.float32)
     Mx, My = M @ torch.from_numpy(x).double().reshape(-1, 3), torch.from_numpy(y).double()
     normal, none = _sh_products(*system, x, no_y, False)  # A^T A x in one pass
-    assert none.shape == (0, 4, 1)
+    assert none.shape == (0, 4, 4)
     assert np.allclose(normal.reshape(-1, 3), (M.T @ Mx).numpy(), rtol=1e-4, atol=1e-4)
     assert (M.T @ Mx).abs().max() > 1.0  # not a comparison of zeros
-    transposed, squared = _sh_products(*system, no_x, y, True)  # -A^T y and the evidence
+    transposed, blocks = _sh_products(*system, no_x, y, True)  # -A^T y and each Gaussian's block of A^T A
     assert np.allclose(-transposed.reshape(-1, 3), (M.T @ My).numpy(), atol=1e-4)
-    assert np.allclose(squared.reshape(-1), (M**2).sum(0).numpy(), atol=1e-4)
-    both, squared_too = _sh_products(*system, x, y, True)  # A^T (A x - y)
+    own = torch.stack([(M.T @ M)[4 * i: 4 * i + 4, 4 * i: 4 * i + 4] for i in range(len(g))])
+    assert np.allclose(blocks, own.numpy(), atol=1e-4)
+    assert own[:, 0, 1:].abs().max() > 0.01  # the DC and linear terms are coupled: not only a diagonal
+    both, blocks_too = _sh_products(*system, x, y, True)  # A^T (A x - y)
     assert np.allclose(both.reshape(-1, 3), (M.T @ (Mx - My)).numpy(), rtol=1e-4, atol=1e-4)
-    assert np.array_equal(squared_too, squared)
+    assert np.array_equal(blocks_too, blocks)
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         for args, expected in (((x, no_y, False), normal), ((no_x, y, True), transposed), ((x, y, True), both)):
             assert np.array_equal(_sh_products(*system, *args)[0], expected)  # fixed view groups: bit-identical
+        assert np.array_equal(_sh_products(*system, no_x, y, True)[1], blocks)
     finally:
         numba.set_num_threads(threads)
 
@@ -213,7 +216,9 @@ def test_an_offset_the_views_show_is_recovered(scene, degree, colour):
     for camera, change in zip(cameras, colour_changes(solved, g, cameras)):
         seen = colour_system(g, views_of(g, [camera]), colour="composited")[0].to_dense().pow(2).sum(0) > 0.5  # well seen from it
         assert int(seen.sum()) > 15
-        assert torch.allclose(change[seen], torch.full_like(change[seen], 0.15), atol=0.01)
+        # the system's minimum itself is up to about 0.01 off the shift: the views are 8-bit, and the
+        # rows keep the weights of at least ROW_MIN_WEIGHT, scaled to the pixel's whole weight
+        assert torch.allclose(change[seen], torch.full_like(change[seen], 0.15), atol=0.015)
 
 
 @pytest.mark.parametrize("colour", ["composited", "normalised"])
