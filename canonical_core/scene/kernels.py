@@ -245,6 +245,7 @@ def _dot(a, b):
 
 
 PREFETCH_AHEAD = 8  # voxels ahead whose rows `fold_kernel` asks for
+OBS_PREFETCH_AHEAD = 2  # voxels ahead whose observations' evidence it asks for
 
 
 @numba.njit(cache=True, parallel=True)
@@ -300,6 +301,16 @@ def fold_kernel(
             for c in range(0, D, 16):
                 _prefetch(rows, ahead, c)
             _prefetch(rows, ahead, D - 1)
+        # and the evidence of the voxel OBS_PREFETCH_AHEAD on: its observations' lines lie a few image
+        # rows apart, and the sums below are too long a loop for the CPU to reach the next ones itself
+        if t + OBS_PREFETCH_AHEAD < n_touched:
+            j = head[t + OBS_PREFETCH_AHEAD]
+            while j >= 0:
+                _prefetch(feat, j, 0)
+                _prefetch(sh_basis, j, 0)
+                _prefetch(points, j, 0)
+                _prefetch(rgb, j, 0)
+                j = next_obs[j]
         vi = touched[t]
         row = rows[vi]
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
