@@ -210,6 +210,28 @@ def frame_free_space_kernel(keys, free, chunks, n_voxels, voxel, P, intr, thr, w
             free[start + t] += _see_through(thr1, wcell1, 0, iu[t], iv[t], zc[t], area_scale)
 
 
+@numba.njit(inline="always")
+def _voxel_index(key):
+    """The voxel index (i, j, k) a key packs."""
+    return (((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET, ((key >> KEY_BITS) & _MASK) - KEY_OFFSET,
+            (key & _MASK) - KEY_OFFSET)
+
+
+@numba.njit(inline="always")
+def _block_box(keys, start, n):
+    """Voxel-index box (lo, hi: [3] int64, both inclusive) of the voxels keys[start:start + n], n >= 1."""
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for t in range(n):
+        ijk = _voxel_index(keys[start + t])
+        for a in range(3):
+            if t == 0 or ijk[a] < lo[a]:
+                lo[a] = ijk[a]
+            if t == 0 or ijk[a] > hi[a]:
+                hi[a] = ijk[a]
+    return lo, hi
+
+
 @numba.njit(parallel=True, cache=True)
 def history_free_space_kernel(keys, free, first, last, voxel, order, P, intr, thr, wcell, dims, area, near):
     """Add the evidence of earlier frames (history entries ``order``, oldest first) to voxels [first, last)."""
@@ -218,7 +240,10 @@ def history_free_space_kernel(keys, free, first, last, voxel, order, P, intr, th
         n = min(_BLOCK, last - start)
         iu, iv, zc = np.empty(_BLOCK, np.int32), np.empty(_BLOCK, np.int32), np.empty(_BLOCK, np.float32)
         acc = free[start:start + n].copy()
+        lo, hi = _block_box(keys, start, n)
         for e in order:  # oldest first, so each voxel sums in the same order as a per-voxel loop
+            if _box_outside_frustum(lo, hi, voxel, P[e], intr[e], dims[e, 0], dims[e, 1], near):
+                continue  # no centre of the block projects into map e: it would add 0 to each
             _project_block(keys, start, n, voxel, P, intr, e, dims[e, 0], dims[e, 1], near, iu, iv, zc)
             for t in range(n):
                 acc[t] += _see_through(thr, wcell, e, iu[t], iv[t], zc[t], area[e])
@@ -230,9 +255,7 @@ def update_chunk_boxes_kernel(keys, first, last, chunk_lo, chunk_hi):
     """Grow the voxel-index AABBs of the chunks holding voxels [first, last)."""
     for vi in range(first, last):
         ch = vi // CHUNK
-        key = keys[vi]
-        ijk = (((key >> (2 * KEY_BITS)) & _MASK) - KEY_OFFSET, ((key >> KEY_BITS) & _MASK) - KEY_OFFSET,
-               (key & _MASK) - KEY_OFFSET)
+        ijk = _voxel_index(keys[vi])
         for a in range(3):
             if vi % CHUNK == 0 or ijk[a] < chunk_lo[ch, a]:
                 chunk_lo[ch, a] = ijk[a]

@@ -167,3 +167,53 @@ def test_voxel_centres_on_the_camera_plane_get_no_evidence_and_no_error():
                               np.array([[10, 10, 2, 2]], np.float32), np.ones((1, 4, 4), np.float32),
                               np.ones((1, 4, 4), np.float32), np.array([[4, 4]]), np.ones(1, np.float32), np.float32(0.1))
     assert not free.any()
+
+
+def _history_reference(keys, voxel, P, intr, thr, wcell, dims, area, near):
+    """Each voxel centre tested against every map, in float32 as the kernel does: [V] evidence."""
+    mask = (1 << KEY_BITS) - 1
+    ijk = np.stack([(keys >> (2 * KEY_BITS)) & mask, (keys >> KEY_BITS) & mask, keys & mask], 1) - KEY_OFFSET
+    centre = ((ijk.astype(np.int32).astype(np.float32) + np.float32(0.5)) * voxel).astype(np.float32)
+    out = np.zeros(len(keys), np.float32)
+    for e in range(P.shape[0]):
+        xc, yc, zt = (P[e, r, 0] * centre[:, 0] + P[e, r, 1] * centre[:, 1] + P[e, r, 2] * centre[:, 2] + P[e, r, 3]
+                      for r in range(3))
+        zs = np.where(zt > near, zt, np.float32(1.0))
+        u = intr[e, 0] * xc / zs + intr[e, 2] + np.float32(0.5)
+        v = intr[e, 1] * yc / zs + intr[e, 3] + np.float32(0.5)
+        h, w = dims[e]
+        inside = (zt > near) & (u >= 0) & (v >= 0) & (u < w) & (v < h)
+        iu, iv = np.where(inside, np.floor(u), 0).astype(int), np.where(inside, np.floor(v), 0).astype(int)
+        t = thr[e, iv, iu]
+        seen = inside & (t > 0) & (zt < t)
+        out += np.where(seen, wcell[e, iv, iu] * area[e] / np.where(seen, zt * zt, np.float32(1.0)), np.float32(0.0))
+    return out
+
+
+def test_history_evidence_skips_only_maps_that_cannot_see_a_block():
+    # three clusters of voxels: in front of both cameras, across the edge of both frusta, behind both;
+    # the kernel skips a block of voxels for a map whose frustum its box misses, which must change nothing
+    rng = np.random.default_rng(0)
+
+    def cluster(centre, n=300):
+        ijk = np.round(np.asarray(centre) / VOXEL).astype(np.int64) + rng.integers(-4, 5, (n, 3))
+        return ((ijk[:, 0] + KEY_OFFSET) << (2 * KEY_BITS)) | ((ijk[:, 1] + KEY_OFFSET) << KEY_BITS) | (ijk[:, 2] + KEY_OFFSET)
+
+    keys = np.concatenate([cluster((0.0, 0.0, 1.5)), cluster((1.0, 0.0, 1.5)), cluster((0.0, 0.0, -1.5))])
+    h, w = 12, 16
+    P = np.zeros((2, 3, 4), np.float32)
+    P[:, :, :3] = np.eye(3)
+    P[1, 0, 3] = -0.3  # the second camera 0.3 m to the right of the first
+    intr = np.array([[12.0, 12.0, 7.5, 5.5]] * 2, np.float32)  # a 16 x 12 map, 67 degrees wide
+    thr = rng.uniform(1.0, 2.5, (2, h, w)).astype(np.float32)
+    thr[:, :, :3] = 0.0  # cells without data
+    wcell = rng.uniform(0.2, 1.0, (2, h, w)).astype(np.float32)
+    dims, area = np.array([[h, w]] * 2), np.array([3e-3, 2e-3], np.float32)
+    free = np.zeros(len(keys), np.float32)
+    history_free_space_kernel(keys, free, 0, len(keys), np.float32(VOXEL), np.array([0, 1]), P, intr, thr, wcell,
+                              dims, area, np.float32(0.1))
+    expected = _history_reference(keys, np.float32(VOXEL), P, intr, thr, wcell, dims, area, np.float32(0.1))
+    np.testing.assert_allclose(free, expected, rtol=1e-6, atol=0)
+    assert (free[:300] > 0).mean() > 0.3  # in front of both: seen through where the maps say so
+    assert 0 < (free[300:600] > 0).sum() < 300  # across the edges: some seen through, not all
+    assert not free[600:].any()  # behind both cameras
