@@ -244,3 +244,51 @@ def test_a_reservation_the_system_refuses_falls_back_to_smaller_blocks(monkeypat
     rows = voxels._backing["rows"].shape[0]
     assert 3000 <= rows < 1 << 46
     np.testing.assert_array_equal(voxels.find(sums["keys"]), np.arange(3000))
+
+
+def test_a_preallocated_scene_folds_the_same_and_never_grows_below_its_reservation(shelf_frames):
+    frames = shelf_frames[:6]
+    config = SceneConfig(voxel_size=0.004)
+    plain, reserved = Scene(config), Scene(config)
+    reserved.preallocate(200_000)
+    voxels = reserved._voxels
+    table, rows = voxels.table, voxels.state["rows"]
+    assert reserved.memory_bytes() >= 200_000 * rows.strides[0] and len(reserved) == 0
+    plain.fold(frames[0])
+    reserved.fold(frames[0])
+    with_one = reserved.memory_bytes()
+    for frame in frames[1:]:
+        plain.fold(frame)
+        reserved.fold(frame)
+    assert 0 < len(reserved) <= 200_000 and reserved.digest() == plain.digest()
+    # no growth: the same rows' view, the same table, no successor started, no new memory counted
+    assert voxels.table is table and voxels.state["rows"] is rows and voxels._next_table is None
+    assert reserved.memory_bytes() == with_one
+
+
+def test_preallocating_a_scene_that_holds_voxels_keeps_them():
+    frames = synthetic_rgbd(num_frames=4, width=64, height=48)
+    config = SceneConfig(voxel_size=0.02)
+    plain, reserved = Scene(config, initial_capacity=16), Scene(config, initial_capacity=16)
+    for frame in frames[:2]:
+        plain.fold(frame)
+        reserved.fold(frame)
+    reserved.preallocate(50_000)
+    assert reserved.digest() == plain.digest() and reserved.capacity >= 50_000
+    keys = reserved.sums()["keys"]
+    np.testing.assert_array_equal(reserved._voxels.find(keys), np.arange(len(keys)))
+    for frame in frames[2:]:
+        plain.fold(frame)
+        reserved.fold(frame)
+    assert reserved.digest() == plain.digest()
+
+
+@pytest.mark.parametrize("bad, message", [(-1, "non-negative integer"), (2.5, "non-negative integer"),
+                                          (True, "non-negative integer"), ("7", "non-negative integer"),
+                                          (101, "above max_voxels")])
+def test_a_bad_preallocation_is_refused_and_changes_nothing(bad, message):
+    scene = Scene(SceneConfig(voxel_size=0.02, max_voxels=100), initial_capacity=16)
+    capacity, memory = scene.capacity, scene.memory_bytes()
+    with pytest.raises(ValueError, match=f"voxels: .*{message}"):
+        scene.preallocate(bad)
+    assert scene.capacity == capacity and scene.memory_bytes() == memory
