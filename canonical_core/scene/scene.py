@@ -209,8 +209,8 @@ class Scene:
     def preallocate(self, voxels: int) -> None:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block
         count: folds that grow the scene up to that size then never wait for the system to fault in
-        and zero fresh pages, which on a virtual machine can be a fifth of a room-scale fold. The
-        memory counts in `memory_bytes` from now on; a snapshot does not keep it (call this again
+        and zero fresh pages (dear on a virtual machine, where a page's first touch goes through the
+        hypervisor). The memory counts in `memory_bytes` from now on; a snapshot does not keep it (call this again
         after `load`). Raises ValueError for a negative count or one above ``max_voxels``; the scene
         and its results are unchanged.
 
