@@ -165,6 +165,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads, settings.archive_retention)
     store.background_frames = settings.correction_background_frames
     store.undo_depth = settings.correction_undo_frames
+    store.preallocate_voxels = settings.preallocate_voxels
     metrics = Metrics()
 
     @contextlib.asynccontextmanager

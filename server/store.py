@@ -218,19 +218,27 @@ class Session:
     background: CorrectionJob | None = None  # the correction re-folding in the background, if one is
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
+    preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
     jobs: dict[str, CorrectionJob] = field(default_factory=dict)  # background corrections since the start
     pending_snapshot: PendingSnapshot | None = None  # the snapshot being written off the acknowledged path
     snapshots_started: int = 0  # numbers the pending snapshots' files
     background_snapshots: ClassVar[bool] = True  # due snapshots are written off the acknowledged path
 
     def __post_init__(self):
-        self._keep_undo()
+        self._prepare_scene()
 
-    def _keep_undo(self) -> None:
-        """Sessions that can be corrected keep undo records of their last folds: a correction of
-        recent frames then rolls the served scene back and re-folds only them (`correct`)."""
+    def _prepare_scene(self) -> None:
+        """The served scene's settings that its snapshot does not keep. Sessions that can be
+        corrected keep undo records of their last folds: a correction of recent frames then rolls the
+        served scene back and re-folds only them (`correct`). And the scene commits the memory of
+        `preallocate_voxels` voxels up front."""
         if self.archive is not None:
             self.scene.keep_undo(self.undo_depth)
+        self._preallocate(self.scene)
+
+    def _preallocate(self, scene: Scene) -> None:
+        """`Scene.preallocate` of `preallocate_voxels` voxels, at most the session's ``max_voxels``."""
+        scene.preallocate(min(self.preallocate_voxels, self.config.max_voxels or self.preallocate_voxels))
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
@@ -443,7 +451,7 @@ class Session:
         self._cancel_pending_snapshot()
         self.log.close()
         self.scene, self.log, self.snapshot_frames, self.frame_ids = restore_scene(self.path, self.config)
-        self._keep_undo()
+        self._prepare_scene()
 
     def _corrections(self) -> int:
         """Archived corrections the served scene holds (not one still re-folding in the background)."""
@@ -673,7 +681,10 @@ class Session:
             stream = counted(stream, job)
         if base is not None:
             base.keep_undo(self.undo_depth)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
-        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints, self.undo_depth), checkpoints
+        else:
+            base = Scene(self.config, undo_depth=self.undo_depth)
+        self._preallocate(base)  # the re-fold and the scene it becomes grow into committed memory
+        return Scene.refolded(self.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
         """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),
@@ -944,6 +955,7 @@ class SessionStore:
         self.retention = retention  # the frame archive's retention of sessions created without one
         self.background_frames = BACKGROUND_FRAMES  # corrections that re-fold more run in the background
         self.undo_depth: int | None = None  # folds a session's scene can roll back in place (None: UNDO_DEPTH)
+        self.preallocate_voxels = 0  # voxels whose memory a session's scene commits up front
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -1085,7 +1097,7 @@ class SessionStore:
     def _session_options(self) -> dict:
         """The store's settings that its sessions carry."""
         undo = {} if self.undo_depth is None else {"undo_depth": self.undo_depth}
-        return {"background_frames": self.background_frames, **undo}
+        return {"background_frames": self.background_frames, "preallocate_voxels": self.preallocate_voxels, **undo}
 
     def new_session_id(self) -> str:
         return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag

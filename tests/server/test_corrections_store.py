@@ -3,6 +3,8 @@ scene back in place, or starts from the state a previous correction kept, and eq
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -279,3 +281,36 @@ def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, 
         assert again.get(session.id).digest()["sha256"] == digest
     finally:
         again.close()
+
+
+def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restored(tmp_path, shelf, monkeypatch):
+    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: a correction re-folds a new scene
+    rows, row_bytes = 50_000, 200  # a row of the state is about 300 bytes
+    store = SessionStore(tmp_path, 8)
+    store.preallocate_voxels = rows
+    store.open()
+    plain = SessionStore(tmp_path / "plain", 8)
+    plain.open()
+    try:
+        session, twin = streamed(store, shelf[:3]), streamed(plain, shelf[:3])
+        assert len(session.scene) < rows and session.scene.digest() == twin.scene.digest()  # the same scene
+        assert session.scene.memory_bytes() >= twin.scene.memory_bytes() + (rows - len(twin.scene)) * row_bytes
+        served = session.scene
+        session.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})  # frame 0: a full re-fold into a new scene
+        assert session.scene is not served and session.scene.memory_bytes() >= rows * row_bytes
+        capped = store.create(SceneConfig(voxel_size=0.01, max_voxels=1_000))  # at most its own cap, no error
+        assert capped.scene.memory_bytes() < rows * row_bytes
+        os.close(store._dir_lock)  # a restart after kill -9, with the same setting
+        store._dir_lock = None
+        again = SessionStore(tmp_path, 8)
+        again.preallocate_voxels = rows
+        again.open()
+        try:
+            restored = again.get(session.id)
+            assert restored.scene.digest() == session.scene.digest()
+            assert restored.scene.memory_bytes() >= rows * row_bytes
+        finally:
+            again.close()
+    finally:
+        plain.close()
+        store.close()
