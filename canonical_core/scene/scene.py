@@ -210,9 +210,10 @@ class Scene:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block
         count: folds that grow the scene up to that size then never wait for the system to fault in
         and zero fresh pages (dear on a virtual machine, where a page's first touch goes through the
-        hypervisor). The memory counts in `memory_bytes` from now on; a snapshot does not keep it (call this again
-        after `load`). Raises ValueError for a negative count or one above ``max_voxels``; the scene
-        and its results are unchanged.
+        hypervisor). The memory counts in `memory_bytes` from now on. A snapshot does not keep it, nor
+        does the state a re-fold brings (`update_poses` and `remove_frames` past the undo records,
+        `adopt`): call this again after `load` or those. Raises ValueError for a negative count or
+        one above ``max_voxels``; the scene and its results are unchanged.
 
         Example:
             >>> scene = Scene(SceneConfig(voxel_size=0.01))
