@@ -97,13 +97,14 @@ def test_the_snapshot_a_correction_started_from_is_kept_for_the_next(tmp_path, s
         store.close()
 
 
-def reopened(store: SessionStore, tmp_path) -> SessionStore:
-    """The data directory opened afresh as a restart after a kill -9 would: no snapshot on the way out."""
-    import os
-
+def reopened(store: SessionStore, tmp_path, **options) -> SessionStore:
+    """The data directory opened afresh as a restart after a kill -9 would: no snapshot on the way out.
+    ``options``: the new store's settings (its attributes, as the app sets them)."""
     os.close(store._dir_lock)
     store._dir_lock = None
     again = SessionStore(tmp_path, 8)
+    for name, value in options.items():
+        setattr(again, name, value)
     again.open()
     return again
 
@@ -300,11 +301,7 @@ def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restore
         assert session.scene is not served and session.scene.memory_bytes() >= rows * row_bytes
         capped = store.create(SceneConfig(voxel_size=0.01, max_voxels=1_000))  # at most its own cap, no error
         assert capped.scene.memory_bytes() < rows * row_bytes
-        os.close(store._dir_lock)  # a restart after kill -9, with the same setting
-        store._dir_lock = None
-        again = SessionStore(tmp_path, 8)
-        again.preallocate_voxels = rows
-        again.open()
+        again = reopened(store, tmp_path, preallocate_voxels=rows)  # a restart after kill -9, the same setting
         try:
             restored = again.get(session.id)
             assert restored.scene.digest() == session.scene.digest()
