@@ -81,6 +81,7 @@ KNOBS = {
     "free_space.margin": (0.0, 0.25, 0.5, 1.0, 2.0, 4.0),
     "free_space.dominance": (1.0, 2.0, 4.0),
     "free_space.sigmas": (3.0, 5.0, 8.0),
+    "free_space.cell": (2, 4, 8),
     # from 3 up: a fully supported surface must stay at least 95 % opaque (sigmoid(3)); flatter lines
     # score higher in normalised colour only by letting renders blend through surfaces
     "decoder.opacity_slope": (3.0, 5.0, 10.0, 30.0, 90.0),
