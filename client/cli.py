@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -192,18 +193,25 @@ def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
 
 
 def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[int, float]:
-    """Post frames ``start`` .. end with a progress bar; returns (frames sent, elapsed seconds).
+    """Post frames ``start`` .. end with a progress bar; returns (frames sent, elapsed seconds). The
+    fold reports' warnings go to stderr, each kind once.
 
     Ctrl-C stops after the frame in flight; the count says how many were acknowledged."""
     from tqdm import tqdm
 
     t0, new, sent = time.perf_counter(), 0, 0
+    shown: set[str] = set()
     with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar:
         try:
             for i in range(start, len(frames)):
                 report = session.add_frame(**frame_arrays(frames[i], scale, sensor_units=True))
                 sent += 1
                 new += report["new_voxels"]
+                for warning in report.get("warnings", []):
+                    kind = re.sub(r"[0-9.,%]+", "#", warning)  # each kind of warning once, whatever its figures
+                    if kind not in shown:
+                        shown.add(kind)
+                        bar.write(f"frame {i}: {warning}", file=sys.stderr)
                 bar.set_postfix(voxels=new, refresh=False)
                 bar.update()
         except KeyboardInterrupt:

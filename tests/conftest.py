@@ -31,6 +31,15 @@ def shelf_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def apc_bins_path() -> Path:
+    """The two labelled shelf bins (``bin_labels``, ``bin_mask``: 15 RealSense frames each)."""
+    path = DATA / "apc_bins"
+    if not path.is_dir():
+        pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
+    return path
+
+
+@pytest.fixture(scope="session")
 def shelf_frames(shelf_dir) -> list[Frame]:
     """All 50 shelf frames (640x480, sensor depth), loaded once."""
     from canonical_core.datasets import load_tsdf_fusion

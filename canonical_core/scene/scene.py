@@ -27,7 +27,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
-from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
+from ..evidence import AppearanceUncertainty, DepthConsistency, extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
@@ -130,6 +130,7 @@ class Scene:
         checkpoint = _load_model(self._decoding.decoder, config.model) if load_model else None
         self.model_sha256: str | None = checkpoint.sha256 if checkpoint is not None else None
         self._density_sum, self._density_frames = 0.0, 0  # observations per touched voxel, summed over folds
+        self._consistency = DepthConsistency()  # consecutive frames' depth compared by depth band (advice only)
         self._lock = threading.Lock()  # the state's lock; `SceneDecoding.lock` is taken before it, never after
         self._generation = 0  # bumped by every fold, so a decode knows whether the state it read is current
         # with keep_frames, the folded frames in order and their arrival indices, for update_poses / remove_frames
@@ -253,6 +254,7 @@ class Scene:
         self._front.window.views, self._front.pending = list(target.window), list(target.pending)
         self._keyframes.indices, self._keyframes._frames = list(target.keyframes[0]), list(target.keyframes[1])
         self._density_sum, self._density_frames = target.density
+        self._consistency.forget_previous()  # its counts describe the sensor, which the rollback does not undo
         self.frames = target.frames
         if self._kept is not None:
             del self._kept[frames:], self._arrivals[frames:]
@@ -275,6 +277,8 @@ class Scene:
                 also += 1
         gave_nothing = frame.depth is not None and counts[0] == 0
         warnings = depth_warnings(frame.depth, self.config.near, self.config.far) if gave_nothing else []
+        if frame.depth is not None:  # the sensor's depth (as folded: denoised or completed), not a sweep's
+            warnings += self._consistency.observe(prepared.frame)
         return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
                           also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
                           warnings=warnings)
@@ -438,6 +442,7 @@ class Scene:
         self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front
         self._history, self._keyframes = other._history, other._keyframes
         self._density_sum, self._density_frames = other._density_sum, other._density_frames
+        self._consistency = other._consistency
         self._undo = other._undo if other._undo.depth == self._undo.depth else UndoRing(self._undo.depth)
         self._generation += 1
         self._decoding.reset()

@@ -18,6 +18,15 @@ def test_commands_are_a_registry():
 
 
 @pytest.mark.realdata
+def test_stream_shows_each_kind_of_fold_warning_once(server, apc_bins_path, capsys):
+    # the labels bin's depth under about 0.14 m disagrees from frame to frame: several frames are warned
+    assert cli.main(["stream", str(apc_bins_path / "bin_labels"), "--url", server.url, "--voxel-size", "0.01"]) == 0
+    err = capsys.readouterr().err
+    shown = [line for line in err.splitlines() if "working range" in line]
+    assert len(shown) == 1 and shown[0].startswith("frame ") and "near=0.1" in shown[0]
+
+
+@pytest.mark.realdata
 def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
     url = ["--url", server.url]
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.008", "--stride", "10", "--max-frames", "3",

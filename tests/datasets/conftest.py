@@ -15,7 +15,6 @@ SHELF = DATA / "realsense_shelf"
 SLAMBOOK = DATA / "slambook_rgbd5"
 HOLOLENS = DATA / "hololens_office"
 LIVINGROOM = DATA / "livingroom_synthetic"
-APC_BINS = DATA / "apc_bins"
 SLAMBOOK_K = (518.0, 519.0, 325.5, 253.5)  # from the data README; not stored in the capture
 
 
@@ -44,10 +43,6 @@ def hololens_path() -> Path:
 def livingroom_path() -> Path:
     return _require(LIVINGROOM)
 
-
-@pytest.fixture(scope="session")
-def apc_bins_path() -> Path:
-    return _require(APC_BINS)
 
 
 @pytest.fixture(scope="session")
