@@ -22,21 +22,22 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.realdata)
 
 
-@pytest.fixture(scope="session")
-def shelf_dir() -> Path:
-    path = DATA / "realsense_shelf"
+def require_capture(path: Path) -> Path:
+    """``path`` (a capture in ../shared/data), or the test skipped where the data is not there."""
     if not path.is_dir():
         pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
     return path
+
+
+@pytest.fixture(scope="session")
+def shelf_dir() -> Path:
+    return require_capture(DATA / "realsense_shelf")
 
 
 @pytest.fixture(scope="session")
 def apc_bins_path() -> Path:
     """The two labelled shelf bins (``bin_labels``, ``bin_mask``: 15 RealSense frames each)."""
-    path = DATA / "apc_bins"
-    if not path.is_dir():
-        pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
-    return path
+    return require_capture(DATA / "apc_bins")
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,8 @@ import torch
 from canonical_core import Frame
 from canonical_core.datasets import load_tsdf_fusion, load_tum, synthetic_rgbd, write_tsdf_fusion
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+from ..conftest import DATA, require_capture
+
 SHELF = DATA / "realsense_shelf"
 SLAMBOOK = DATA / "slambook_rgbd5"
 HOLOLENS = DATA / "hololens_office"
@@ -18,31 +19,24 @@ LIVINGROOM = DATA / "livingroom_synthetic"
 SLAMBOOK_K = (518.0, 519.0, 325.5, 253.5)  # from the data README; not stored in the capture
 
 
-def _require(path: Path) -> Path:
-    if not path.is_dir():
-        pytest.skip(f"real capture not found at {path} (../shared/data is optional)")
-    return path
-
-
 @pytest.fixture(scope="session")
 def shelf_path() -> Path:
-    return _require(SHELF)
+    return require_capture(SHELF)
 
 
 @pytest.fixture(scope="session")
 def slambook_path() -> Path:
-    return _require(SLAMBOOK)
+    return require_capture(SLAMBOOK)
 
 
 @pytest.fixture(scope="session")
 def hololens_path() -> Path:
-    return _require(HOLOLENS)
+    return require_capture(HOLOLENS)
 
 
 @pytest.fixture(scope="session")
 def livingroom_path() -> Path:
-    return _require(LIVINGROOM)
-
+    return require_capture(LIVINGROOM)
 
 
 @pytest.fixture(scope="session")

@@ -22,7 +22,6 @@ from canonical_core.eval.cli import main
 from canonical_core.eval.methods import configured
 from canonical_core.eval.segmentation import (fit_probe, find_bins, label_confusion, label_map, parse_label_method, probe_confusion,
                                               render_labels, scores, segmentation_split)
-from tests.datasets.conftest import apc_bins_path  # noqa: F401 (the real bins, skipped when absent)
 
 VOXEL = 0.03
 

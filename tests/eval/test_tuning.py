@@ -12,7 +12,6 @@ import pytest
 
 from canonical_core.eval.tuning import (DEFAULT, Capture, Variant, agreement, default_of, group_changes, main, objective,
                                         score_capture)
-from tests.datasets.conftest import apc_bins_path  # noqa: F401 (the real bins, skipped when absent)
 
 RECORDED = Path(__file__).resolve().parents[2] / "docs" / "eval"
 
