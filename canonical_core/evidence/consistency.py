@@ -9,8 +9,8 @@ frame's depth where it measured one: the two agree within max(`AGREE_M`, `AGREE_
 The comparisons are counted per band of the new frame's depth (`band_of`: bands from `BAND_START`
 metres, each 2^(1/4) times as deep as the last). `inconsistent_below` reads the depth under which
 every band with enough comparisons disagrees while every such band beyond it agrees: the sensor's
-readings there are not of this scene, and the session's `near` setting can drop them. The check only advises (a fold
-warning); it changes nothing in the scene.
+readings there are not of this scene, and the session's `near` setting can drop them. The check
+only advises (a fold warning); it changes nothing in the scene.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import math
 import numba
 import numpy as np
 
+from ..camera import Camera
 from ..frame import Frame
 
 STRIDE = 4  # every 4th pixel of every 4th row: the statistic needs hundreds of pixels a band, not all
@@ -99,12 +100,14 @@ def compare_depth(
     ``previous``, and those that agree with it (module docstring)."""
     if frame.depth is None or previous.depth is None:
         raise ValueError("depth: comparing frames needs depth in both")
-    cam, prev = frame.camera, previous.camera
+    return _compare(frame.depth.numpy(), frame.camera, previous.depth.numpy(), previous.camera, stride)
+
+
+def _compare(depth: np.ndarray, cam: Camera, previous: np.ndarray, prev: Camera, stride: int = STRIDE):
     to_previous = np.linalg.inv(prev.c2w64()) @ cam.c2w64()
     counts = [np.zeros(BANDS, np.int64) for _ in range(3)]
-    _compare_kernel(frame.depth.numpy(), cam.fx, cam.fy, cam.cx, cam.cy, np.ascontiguousarray(to_previous[:3]),
-                    previous.depth.numpy(), prev.fx, prev.fy, prev.cx, prev.cy, stride, BAND_START,
-                    AGREE_M, AGREE_REL, *counts)
+    _compare_kernel(depth, cam.fx, cam.fy, cam.cx, cam.cy, np.ascontiguousarray(to_previous[:3]),
+                    previous, prev.fx, prev.fy, prev.cx, prev.cy, stride, BAND_START, AGREE_M, AGREE_REL, *counts)
     return counts[0], counts[1], counts[2]
 
 
@@ -138,7 +141,7 @@ class DepthConsistency:
     def __init__(self):
         self.compared = np.zeros(BANDS, np.int64)
         self.agreed = np.zeros(BANDS, np.int64)
-        self._previous: Frame | None = None
+        self._previous: tuple[np.ndarray, Camera] | None = None  # the last frame's depth and camera, nothing more
 
     def forget_previous(self) -> None:
         """Compare the next frame with none (the last one was rolled back); the counts stay."""
@@ -146,10 +149,13 @@ class DepthConsistency:
 
     def observe(self, frame: Frame) -> list[str]:
         """Compare ``frame`` (with depth) with the previous one and return the warnings for it."""
-        previous, self._previous = self._previous, frame
+        if frame.depth is None:
+            raise ValueError("depth: the consistency check needs a frame with depth")
+        current = (frame.depth.numpy(), frame.camera)
+        previous, self._previous = self._previous, current
         if previous is None:
             return []
-        sampled, compared, agreed = compare_depth(frame, previous)
+        sampled, compared, agreed = _compare(*current, *previous)
         self.compared += compared
         self.agreed += agreed
         top = inconsistent_below(self.compared, self.agreed)
