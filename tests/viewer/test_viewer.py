@@ -199,6 +199,24 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
     assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
 
 
+def test_a_fold_warning_shows_on_the_open_page(page, server, client, apc_bins_path, shots):
+    from canonical_core.datasets import load_dataset
+    from client.cli import frame_arrays
+
+    # the labels bin's depth under about 0.14 m disagrees from frame to frame (`evidence.consistency`)
+    frames = [frame_arrays(f) for f in load_dataset(apc_bins_path / "bin_labels")]
+    session = client.create_session(voxel_size=0.01)
+    session.add_frame(**frames[0])
+    open_viewer(page, server, session.id)
+    assert page.locator("#warning").is_hidden()
+    for kwargs in frames[1:]:
+        session.add_frame(**kwargs)
+    page.wait_for_function("!document.getElementById('warning').hidden", timeout=WAIT_MS)
+    text = page.locator("#warning").inner_text()
+    assert text.startswith("frame ") and "working range" in text and "near=0.1" in text
+    page.screenshot(path=shots / "warning.png")
+
+
 # -- modes on a synthetic scene: two walls at known depths, with known labels (walls.py) ----------
 def lut_index(colour: np.ndarray, lut: np.ndarray) -> int:
     return int(np.argmin(np.abs(lut.astype(int) - colour.astype(int)).sum(axis=1)))

@@ -233,6 +233,11 @@ function onEvent(name, data) {
   }
   if (name === "deleted") { showError("this session was deleted"); return; }
   if (name !== "fold") return;
+  const warnings = data.report.warnings || [];
+  if (warnings.length) {  // the stream's latest advice stays up until newer advice replaces it
+    $("warning").textContent = `frame ${data.report.frame_index}: ${warnings.join(" · ")}`;
+    $("warning").hidden = false;
+  }
   setFrames(data.frames);
   $("voxels").textContent = data.voxels;
   state.lastFold = data.time;
