@@ -75,6 +75,9 @@ class SessionStats(SessionSummary):
                                            "recent frames cheap (part of memory_bytes)")
     disk_bytes: int
     label_dim: int
+    inconsistent_depth_below: float | None = Field(
+        None, description="metres: the depth under which this session's consecutive frames disagree, likely under "
+                          "the sensor's working range (the setting near can ignore it); None while they agree")
     snapshot_frames: int
     snapshot_error: str | None = Field(None, description="why the last snapshot failed (its frames stay durable in the log)")
     config: dict[str, Any]

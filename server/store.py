@@ -757,6 +757,7 @@ class Session:
                 "undo_bytes": self.scene.undo_bytes(),
                 "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
+                "inconsistent_depth_below": stats["inconsistent_depth_below"],
                 "snapshot_frames": self.snapshot_frames,
                 "snapshot_error": self.snapshot_error,
                 "config": self.config.to_dict(),

@@ -10,7 +10,8 @@ The comparisons are counted per band of the new frame's depth (`band_of`: bands 
 metres, each 2^(1/4) times as deep as the last). `inconsistent_below` reads the depth under which
 every band with enough comparisons disagrees while every such band beyond it agrees: the sensor's
 readings there are not of this scene, and the session's `near` setting can drop them. The check
-only advises (a fold warning); it changes nothing in the scene.
+only advises (a fold warning, and the limit in the session's stats); it changes nothing in the
+scene. Its counts describe the sensor, so a snapshot keeps them and a rollback leaves them.
 """
 
 from __future__ import annotations
@@ -142,6 +143,32 @@ class DepthConsistency:
         self.compared = np.zeros(BANDS, np.int64)
         self.agreed = np.zeros(BANDS, np.int64)
         self._previous: tuple[np.ndarray, Camera] | None = None  # the last frame's depth and camera, nothing more
+
+    def limit(self) -> float | None:
+        """Metres: the depth under which this stream's consecutive frames disagree (`inconsistent_below`'s
+        band's upper edge), or None while they agree or too few were compared."""
+        top = inconsistent_below(self.compared, self.agreed)
+        return None if top is None else band_edge(top + 1)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The counts, for a snapshot (the previous frame is not kept: a restored stream compares its
+        next frame with none)."""
+        return {"compared": self.compared.copy(), "agreed": self.agreed.copy()}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "DepthConsistency":
+        """`to_arrays`' counts back (none: a fresh tracker, as for a snapshot written before they were
+        kept); raises ValueError for counts of another shape or that do not add up."""
+        tracker = cls()
+        if not arrays:
+            return tracker
+        compared, agreed = (np.asarray(arrays.get(k, ())) for k in ("compared", "agreed"))
+        if (compared.shape != (BANDS,) or agreed.shape != (BANDS,) or not np.issubdtype(compared.dtype, np.integer)
+                or not np.issubdtype(agreed.dtype, np.integer) or not ((0 <= agreed) & (agreed <= compared)).all()):
+            raise ValueError(f"consistency: expected integer counts [{BANDS}] with 0 <= agreed <= compared, got "
+                             f"compared {compared.dtype} {list(compared.shape)}, agreed {agreed.dtype} {list(agreed.shape)}")
+        tracker.compared[:], tracker.agreed[:] = compared, agreed
+        return tracker
 
     def forget_previous(self) -> None:
         """Compare the next frame with none (the last one was rolled back); the counts stay."""

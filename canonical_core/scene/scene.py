@@ -598,7 +598,8 @@ class Scene:
 
     def stats(self) -> dict:
         return {"frames": self.frames, "voxels": len(self), "memory_bytes": self.memory_bytes(),
-                "capacity": self.capacity, "label_dim": self.label_dim}
+                "capacity": self.capacity, "label_dim": self.label_dim,
+                "inconsistent_depth_below": self._consistency.limit()}
 
     # -- persistence --------------------------------------------------------------------------
     def to_bytes(self) -> bytes:
@@ -636,7 +637,7 @@ class Scene:
                   "frames": self.frames, "label_dim": self.label_dim, "voxels": len(self),
                   "pending": len(self._front.pending), "density": [self._density_sum, self._density_frames],
                   "model": {"setting": self.config.model, "sha256": self.model_sha256}}
-        arrays = self._snapshot_arrays(sums)
+        arrays = self._snapshot_arrays(sums) | {f"consistency.{k}": v for k, v in self._consistency.to_arrays().items()}
         solution = self._decoding.solution
         if solution is not None:  # not in the digest: decodes made it of the state, and they may differ in when
             arrays |= {f"colour_solution.{k}": v for k, v in solution.to_arrays().items()}
@@ -690,6 +691,8 @@ class Scene:
         scene._history = SeeThroughHistory.from_arrays(
             scene.config.free_space.history, {k[len("history."):]: npz[k] for k in npz.files if k.startswith("history.")})
         scene._front.load_arrays(npz, int(header.get("pending", 0)))
+        scene._consistency = DepthConsistency.from_arrays(
+            {k[len("consistency."):]: npz[k] for k in npz.files if k.startswith("consistency.")})
         scene._keyframes = Keyframes.from_arrays(scene.config.colour_solve_views, scene.config.colour_solve_scale,
                                                  {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):

@@ -167,3 +167,30 @@ def test_the_bins_near_range_depth(apc_bins_path, capture, flagged):
 def test_the_shelf_is_not_flagged(shelf_frames):
     tracker = DepthConsistency()
     assert not any(tracker.observe(f) for f in shelf_frames)
+
+
+def test_the_limit_is_in_the_stats_and_a_snapshot_keeps_the_counts():
+    frames = stream("image")
+    scene = Scene(SceneConfig(voxel_size=0.01))
+    for f in frames[:4]:
+        scene.fold(f)
+    limit = scene.stats()["inconsistent_depth_below"]
+    assert limit == pytest.approx(band_edge(band_of(PLATE + 0.03) + 1))
+    restored = Scene.from_bytes(scene.to_bytes())
+    assert restored.stats()["inconsistent_depth_below"] == limit and restored.digest() == scene.digest()
+    assert np.array_equal(restored._consistency.compared, scene._consistency.compared)
+    # the restored stream compares its next frame with none, then goes on counting
+    assert restored.fold(frames[4]).warnings == [] and restored.fold(frames[5]).warnings
+    assert Scene(SceneConfig(voxel_size=0.01)).stats()["inconsistent_depth_below"] is None
+
+
+def test_counts_that_do_not_add_up_are_refused():
+    tracker = DepthConsistency.from_arrays({})
+    assert tracker.limit() is None and not tracker.compared.any()
+    good = {"compared": np.full(BANDS, 5, np.int64), "agreed": np.full(BANDS, 2, np.int64)}
+    assert np.array_equal(DepthConsistency.from_arrays(good).agreed, good["agreed"])
+    for bad in ({**good, "agreed": np.full(BANDS, 6, np.int64)}, {**good, "agreed": -good["agreed"]},
+                {**good, "compared": good["compared"][:-1]}, {**good, "compared": good["compared"] * 1.0},
+                {"compared": good["compared"]}):
+        with pytest.raises(ValueError, match="^consistency: "):
+            DepthConsistency.from_arrays(bad)

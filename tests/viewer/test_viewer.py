@@ -214,6 +214,10 @@ def test_a_fold_warning_shows_on_the_open_page(page, server, client, apc_bins_pa
     page.wait_for_function("!document.getElementById('warning').hidden", timeout=WAIT_MS)
     text = page.locator("#warning").inner_text()
     assert text.startswith("frame ") and "working range" in text and "near=0.1" in text
+    # the limit stays in the session's figures (the warning goes once later frames bring none)
+    page.wait_for_function("document.getElementById('near-limit').textContent.endsWith(' m')", timeout=WAIT_MS)
+    limit = session.stats()["inconsistent_depth_below"]
+    assert 0.1 < limit <= 0.2 and page.locator("#near-limit").inner_text() == f"{limit:.2f} m"
     page.screenshot(path=shots / "warning.png")
 
 

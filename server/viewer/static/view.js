@@ -209,6 +209,8 @@ function refreshStats() {
       $("voxels").textContent = s.voxels;
       $("gaussians").textContent = s.gaussians;
       $("memory").textContent = formatBytes(s.memory_bytes);
+      const limit = s.inconsistent_depth_below;
+      $("near-limit").textContent = limit == null ? "–" : `${limit.toFixed(2)} m`;
       setLabels(s.label_dim);
     } catch (error) { showError(error); }
   }, 150);
