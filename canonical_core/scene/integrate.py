@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from ..evidence import FrameEvidence
@@ -25,7 +26,7 @@ from .free_space import (SeeThroughHistory, frame_free_space_kernel, frustum_chu
                          see_through_map)
 from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
 from .undo import RowsBefore
-from .voxel_map import VoxelMap, next_pow2
+from .voxel_map import VoxelMap
 
 
 class Integrated(NamedTuple):
@@ -50,7 +51,6 @@ class Scratch:
                 setattr(self, name, np.empty(self.size, np.int64))
             for name in ("touched", "best", "head", "tail", "next_obs", "before_slot"):
                 setattr(self, name, np.empty(self.size, np.int32))
-            self.local_table = np.empty(next_pow2(2 * self.size), np.int32)
 
 
 def integrate(
@@ -71,8 +71,8 @@ def integrate(
     inv_voxel = np.float32(1.0 / config.voxel_size)
     voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
     n_touched, n_new, n_obs = resolve_kernel(
-        obs_keys, ev.reliability, config.uses_reliability, voxels.table, voxels.state["keys"],
-        t.local_table[: next_pow2(2 * m)], t.frame_keys, t.touched, new_keys, t.best, t.head, t.tail, t.next_obs)
+        obs_keys, ev.reliability, config.uses_reliability, voxels.table, voxels.state["keys"], numba.get_num_threads(),
+        t.frame_keys, t.touched, new_keys, t.best, t.head, t.tail, t.next_obs)
     voxels.check_room(n_new)
     # nothing has changed up to here; from here on the fold cannot fail on input
     if ev.labels is not None and not voxels.label_dim:

@@ -175,34 +175,24 @@ class VoxelRows:
         return tuple(self.columns[n][0] if n in self.columns else -1 for n in names)
 
 
-@numba.njit(cache=True, parallel=True)
-def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
-                   frame_keys, touched, new_keys, best, head, tail, next_obs):
-    """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
-
-    Each distinct key of the frame gets a slot t (first-occurrence order; keys < 0, outside the
-    lattice, get none): touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
-    scene (new_keys[j]); best[t] = the slot's most reliable observation (first maximum wins, as in
-    the batch rule). The slot's observations form a chain in frame order: head[t], next_obs[i]
-    (-1 ends it; tail is scratch). Dedupe happens in a frame-local table first, so the scene's
-    (large, cache-cold) table is probed once per voxel, not per pixel.
-    Returns (slots, new keys, observations inside the lattice).
-    """
+@numba.njit(inline="always")
+def _group_range(obs_keys, rel, uses_rel, lo, hi, table, frame_keys, head, tail, best, next_obs):
+    """Group observations [lo, hi) by key, as if they were the whole frame (`resolve_kernel`): slots
+    in first-occurrence order (frame_keys, head, tail, best: views whose slot 0 is this range's
+    first), chains through next_obs, deduped in ``table`` (all -1). Returns (slots, observations
+    inside the lattice)."""
     mask = table.shape[0] - 1
-    local_mask = local_table.shape[0] - 1
-    local_table[:] = -1
-    n_touched = 0
-    n_new = 0
+    n_slots = 0
     n_obs = 0
     last_key, last_t = np.int64(-1), -1
-    for i in range(obs_keys.shape[0]):
+    for i in range(lo, hi):
         key = obs_keys[i]
         if key < 0:
             continue
         n_obs += 1
         next_obs[i] = -1
         # neighbouring pixels of a row mostly fall in one voxel: skip the probe for a repeat
-        t = last_t if key == last_key else _find(local_table, frame_keys, key, local_mask)
+        t = last_t if key == last_key else _find(table, frame_keys, key, mask)
         last_key = key
         if t >= 0:
             last_t = t
@@ -211,21 +201,87 @@ def resolve_kernel(obs_keys, rel, uses_rel, table, keys, local_table,
             if uses_rel and rel[i] > rel[best[t]]:
                 best[t] = i
             continue
-        t = n_touched
+        t = n_slots
         last_t = t
-        n_touched += 1
-        local_table[-1 - _find(local_table, frame_keys, key, local_mask)] = t
+        n_slots += 1
+        table[-1 - _find(table, frame_keys, key, mask)] = t
         frame_keys[t] = key
         head[t] = tail[t] = best[t] = i
+    return n_slots, n_obs
+
+
+@numba.njit(cache=True, parallel=True)
+def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts,
+                   frame_keys, touched, new_keys, best, head, tail, next_obs):
+    """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
+
+    Each distinct key of the frame gets a slot t (first-occurrence order; keys < 0, outside the
+    lattice, get none): touched[t] = the voxel's index, or -2 - j for the j-th key not yet in the
+    scene (new_keys[j]); best[t] = the slot's most reliable observation (first maximum wins, as in
+    the batch rule). The slot's observations form a chain in frame order: head[t], next_obs[i]
+    (-1 ends it; tail is scratch).
+
+    The observations are grouped in ``parts`` contiguous ranges at once, each in a hash table of its
+    own (so the scene's large, cache-cold table is probed once per voxel, not per pixel), and the
+    ranges' slots are then merged in order: a key seen in an earlier range keeps that slot, its chain
+    continues with this range's, and its best changes only for a strictly more reliable observation.
+    That is what one pass over the frame gives, for any number of parts.
+    Returns (slots, new keys, observations inside the lattice).
+    """
+    m = obs_keys.shape[0]
+    parts = max(1, min(parts, m))
+    bounds = np.empty(parts + 1, np.int64)
+    for p in range(parts + 1):
+        bounds[p] = p * m // parts
+    slots = np.zeros(parts, np.int64)
+    counted = np.zeros(parts, np.int64)
+    for p in numba.prange(parts):
+        lo, hi = bounds[p], bounds[p + 1]
+        local = np.full(_table_size(hi - lo), -1, np.int32)
+        slots[p], counted[p] = _group_range(obs_keys, rel, uses_rel, lo, hi, local, frame_keys[lo:], head[lo:],
+                                            tail[lo:], best[lo:], next_obs)
+    # merge the parts' slots (part p's slot s sits at bounds[p] + s) into one numbering, in order
+    n_touched = slots[0]
+    merged = np.full(_table_size(slots.sum()), -1, np.int32)
+    merged_mask = merged.shape[0] - 1
+    for t in range(n_touched):
+        merged[-1 - _find(merged, frame_keys, frame_keys[t], merged_mask)] = t
+    for p in range(1, parts):
+        for s in range(slots[p]):
+            j = bounds[p] + s
+            key = frame_keys[j]
+            t = _find(merged, frame_keys, key, merged_mask)
+            if t >= 0:  # seen earlier in the frame: this part's chain goes on from that slot's
+                next_obs[tail[t]] = head[j]
+                tail[t] = tail[j]
+                if uses_rel and rel[best[j]] > rel[best[t]]:
+                    best[t] = best[j]
+                continue
+            free = -1 - t
+            t = n_touched  # <= j: the slot written is one this loop has read already, or this one
+            n_touched += 1
+            frame_keys[t], head[t], tail[t], best[t] = key, head[j], tail[j], best[j]
+            merged[free] = t
     # the scene's table is probed once per distinct key, in parallel (the probes are cache misses)
+    mask = table.shape[0] - 1
     for t in numba.prange(n_touched):
         touched[t] = _find(table, keys, frame_keys[t], mask)
+    n_new = 0
     for t in range(n_touched):  # new voxels are numbered in first-occurrence order
         if touched[t] < 0:
             new_keys[n_new] = frame_keys[t]
             touched[t] = -2 - n_new
             n_new += 1
-    return n_touched, n_new, n_obs
+    return n_touched, n_new, counted.sum()
+
+
+@numba.njit(inline="always")
+def _table_size(n):
+    """A power of two at least twice ``n`` (a hash table of n keys stays at most half full)."""
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    return size
 
 
 @numba.njit(inline="always")

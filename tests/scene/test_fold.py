@@ -10,6 +10,7 @@ import torch
 
 from canonical_core import Frame, SceneConfig
 from canonical_core.scene import CapacityError, Scene, aggregate_batch
+from canonical_core.scene.kernels import insert_range_kernel, resolve_kernel
 
 from ..conftest import make_frame
 
@@ -116,6 +117,48 @@ def test_fold_is_deterministic_across_runs_and_thread_counts(shelf_frames):
     finally:
         numba.set_num_threads(threads)
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def group_reference(obs_keys, rel, uses_rel):
+    """The frame's observations grouped by key in plain Python: keys in first-occurrence order, each
+    with its observations in frame order and its first most reliable one."""
+    groups: dict[int, list[int]] = {}
+    for i, key in enumerate(obs_keys.tolist()):
+        if key >= 0:
+            groups.setdefault(key, []).append(i)
+    best = [max(obs, key=lambda i: (rel[i], -i)) if uses_rel else obs[0] for obs in groups.values()]
+    return list(groups), list(groups.values()), best
+
+
+@pytest.mark.parametrize("uses_rel", [True, False])
+def test_grouping_in_parts_is_grouping_in_one_pass(uses_rel):
+    # keys that recur across the parts' boundaries, runs of one key, keys outside the lattice, and
+    # reliabilities with ties (the first maximum in frame order must win, whichever part holds it)
+    rng = np.random.default_rng(5)
+    m = 3001
+    obs_keys = rng.integers(0, 400, m).astype(np.int64)
+    obs_keys[100:160] = 7
+    obs_keys[rng.random(m) < 0.05] = -1
+    rel = rng.choice([0.25, 0.5, 1.0], m).astype(np.float32)
+    scene_keys = np.arange(0, 400, 3, dtype=np.int64)  # a third of the keys are in the scene already
+    table = np.full(1024, -1, np.int32)
+    insert_range_kernel(table, scene_keys, 0, len(scene_keys))
+    keys, chains, best = group_reference(obs_keys, rel, uses_rel)
+    for parts in (1, 2, 3, 7, 64):
+        fk, nk = np.empty(m, np.int64), np.empty(m, np.int64)
+        touched, b, head, tail, nxt = (np.empty(m, np.int32) for _ in range(5))
+        n, n_new, n_obs = resolve_kernel(obs_keys, rel, uses_rel, table, scene_keys, parts, fk, touched, nk, b, head,
+                                         tail, nxt)
+        assert (n, n_obs) == (len(keys), int((obs_keys >= 0).sum())) and fk[:n].tolist() == keys
+        for t in range(n):
+            chain, i = [], head[t]
+            while i >= 0:
+                chain.append(int(i))
+                i = nxt[i]
+            assert chain == chains[t] and b[t] == best[t], (parts, t)
+        new = [k for k in keys if k % 3]  # not in the scene: numbered in first-occurrence order
+        assert nk[:n_new].tolist() == new
+        assert [int(touched[t]) for t in range(n)] == [k // 3 if k % 3 == 0 else -2 - new.index(k) for k in keys]
 
 
 @pytest.mark.realdata
