@@ -24,7 +24,7 @@ from ..frame import Frame
 from .config import SceneConfig
 from .free_space import (SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel,
                          see_through_map)
-from .kernels import fold_kernel, resolve_kernel, voxel_keys_kernel
+from .kernels import fold_kernel, resolve_kernel, resolve_tables_size, voxel_keys_kernel
 from .undo import RowsBefore
 from .voxel_map import VoxelMap
 
@@ -44,13 +44,15 @@ class Scratch:
     def __init__(self):
         self.size = 0
 
-    def reserve(self, m: int) -> None:
+    def reserve(self, m: int, parts: int) -> None:
         if m > self.size or not self.size:  # allocated on first use, even for a frame with no evidence
             self.size = max(m, 1024)
             for name in ("obs_keys", "frame_keys", "new_keys"):
                 setattr(self, name, np.empty(self.size, np.int64))
             for name in ("touched", "best", "head", "tail", "next_obs", "before_slot"):
                 setattr(self, name, np.empty(self.size, np.int32))
+        if resolve_tables_size(m, parts) > getattr(self, "tables", np.empty(0, np.int32)).shape[0]:
+            self.tables = np.empty(resolve_tables_size(self.size, parts), np.int32)
 
 
 def integrate(
@@ -64,14 +66,14 @@ def integrate(
     ``config.max_voxels``, or label channels unlike earlier frames') before changing anything."""
     if ev.labels is not None and voxels.label_dim and ev.labels.shape[1] != voxels.label_dim:
         raise ValueError(f"labels: expected {voxels.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
-    m = len(ev)
-    scratch.reserve(m)
+    m, parts = len(ev), numba.get_num_threads()
+    scratch.reserve(m, parts)
     t = scratch
     obs_keys, new_keys = t.obs_keys[:m], t.new_keys[:m]
     inv_voxel = np.float32(1.0 / config.voxel_size)
     voxel_keys_kernel(ev.points, inv_voxel, obs_keys)
     n_touched, n_new, n_obs = resolve_kernel(
-        obs_keys, ev.reliability, config.uses_reliability, voxels.table, voxels.state["keys"], numba.get_num_threads(),
+        obs_keys, ev.reliability, config.uses_reliability, voxels.table, voxels.state["keys"], parts, t.tables,
         t.frame_keys, t.touched, new_keys, t.best, t.head, t.tail, t.next_obs)
     voxels.check_room(n_new)
     # nothing has changed up to here; from here on the fold cannot fail on input

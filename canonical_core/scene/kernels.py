@@ -211,7 +211,7 @@ def _group_range(obs_keys, rel, uses_rel, lo, hi, table, frame_keys, head, tail,
 
 
 @numba.njit(cache=True, parallel=True)
-def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts,
+def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts, tables,
                    frame_keys, touched, new_keys, best, head, tail, next_obs):
     """Phase A (reads the scene, writes only scratch): group the frame's observations by voxel.
 
@@ -222,7 +222,9 @@ def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts,
     (-1 ends it; tail is scratch).
 
     The observations are grouped in ``parts`` contiguous ranges at once, each in a hash table of its
-    own (so the scene's large, cache-cold table is probed once per voxel, not per pixel), and the
+    own (so the scene's large, cache-cold table is probed once per voxel, not per pixel; ``tables``
+    holds them and the merge's, at least `resolve_tables_size` entries, reused from frame to frame
+    so that no fold faults in fresh pages for them), and the
     ranges' slots are then merged in order: a key seen in an earlier range keeps that slot, its chain
     continues with this range's, and its best changes only for a strictly more reliable observation.
     That is what one pass over the frame gives, for any number of parts.
@@ -235,14 +237,17 @@ def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts,
         bounds[p] = p * m // parts
     slots = np.zeros(parts, np.int64)
     counted = np.zeros(parts, np.int64)
+    size = _table_size((m + parts - 1) // parts)  # no range holds more observations than this
     for p in numba.prange(parts):
         lo, hi = bounds[p], bounds[p + 1]
-        local = np.full(_table_size(hi - lo), -1, np.int32)
+        local = tables[p * size: p * size + _table_size(hi - lo)]
+        local[:] = -1
         slots[p], counted[p] = _group_range(obs_keys, rel, uses_rel, lo, hi, local, frame_keys[lo:], head[lo:],
                                             tail[lo:], best[lo:], next_obs)
     # merge the parts' slots (part p's slot s sits at bounds[p] + s) into one numbering, in order
     n_touched = slots[0]
-    merged = np.full(_table_size(slots.sum()), -1, np.int32)
+    merged = tables[parts * size: parts * size + _table_size(slots.sum())]
+    merged[:] = -1
     merged_mask = merged.shape[0] - 1
     for t in range(n_touched):
         merged[-1 - _find(merged, frame_keys, frame_keys[t], merged_mask)] = t
@@ -282,6 +287,13 @@ def _table_size(n):
     while size < 2 * n:
         size *= 2
     return size
+
+
+def resolve_tables_size(m: int, parts: int) -> int:
+    """Entries of `resolve_kernel`'s ``tables`` for ``m`` observations in ``parts`` ranges: each range's
+    table (a power of two under four times the largest range) and the merge's (under four times m)."""
+    parts = max(1, min(parts, m))
+    return parts * 4 * (-(-m // parts)) + 4 * m + 2
 
 
 @numba.njit(inline="always")

@@ -10,7 +10,7 @@ import torch
 
 from canonical_core import Frame, SceneConfig
 from canonical_core.scene import CapacityError, Scene, aggregate_batch
-from canonical_core.scene.kernels import insert_range_kernel, resolve_kernel
+from canonical_core.scene.kernels import insert_range_kernel, resolve_kernel, resolve_tables_size
 
 from ..conftest import make_frame
 
@@ -147,8 +147,9 @@ def test_grouping_in_parts_is_grouping_in_one_pass(uses_rel):
     for parts in (1, 2, 3, 7, 64):
         fk, nk = np.empty(m, np.int64), np.empty(m, np.int64)
         touched, b, head, tail, nxt = (np.empty(m, np.int32) for _ in range(5))
-        n, n_new, n_obs = resolve_kernel(obs_keys, rel, uses_rel, table, scene_keys, parts, fk, touched, nk, b, head,
-                                         tail, nxt)
+        tables = np.full(resolve_tables_size(m, parts), 99, np.int32)  # as the last frame left them
+        n, n_new, n_obs = resolve_kernel(obs_keys, rel, uses_rel, table, scene_keys, parts, tables, fk, touched, nk, b,
+                                         head, tail, nxt)
         assert (n, n_obs) == (len(keys), int((obs_keys >= 0).sum())) and fk[:n].tolist() == keys
         for t in range(n):
             chain, i = [], head[t]
