@@ -221,13 +221,13 @@ def resolve_kernel(obs_keys, rel, uses_rel, table, keys, parts, tables,
     the batch rule). The slot's observations form a chain in frame order: head[t], next_obs[i]
     (-1 ends it; tail is scratch).
 
-    The observations are grouped in ``parts`` contiguous ranges at once, each in a hash table of its
-    own (so the scene's large, cache-cold table is probed once per voxel, not per pixel; ``tables``
-    holds them and the merge's, at least `resolve_tables_size` entries, reused from frame to frame
-    so that no fold faults in fresh pages for them), and the
-    ranges' slots are then merged in order: a key seen in an earlier range keeps that slot, its chain
-    continues with this range's, and its best changes only for a strictly more reliable observation.
-    That is what one pass over the frame gives, for any number of parts.
+    The observations are grouped in ``parts`` contiguous ranges at once (one per thread), each in a
+    hash table of its own, so that the scene's large, cache-cold table is probed once per voxel, not
+    per pixel. The ranges' slots are then merged in order: a key seen in an earlier range keeps that
+    slot, its chain goes on with this range's, and its best changes only for a strictly more reliable
+    observation. That is what one pass over the frame gives, for any number of parts. ``tables``
+    holds the ranges' tables and the merge's (`resolve_tables_size` entries at least); it is scratch
+    reused from frame to frame, so that no fold faults in fresh pages for them.
     Returns (slots, new keys, observations inside the lattice).
     """
     m = obs_keys.shape[0]
