@@ -43,6 +43,7 @@ class Scratch:
 
     def __init__(self):
         self.size = 0
+        self.tables = np.empty(0, np.int32)  # `resolve_kernel`'s hash tables, grown with the frames and thread count
 
     def reserve(self, m: int, parts: int) -> None:
         if m > self.size or not self.size:  # allocated on first use, even for a frame with no evidence
@@ -51,7 +52,7 @@ class Scratch:
                 setattr(self, name, np.empty(self.size, np.int64))
             for name in ("touched", "best", "head", "tail", "next_obs", "before_slot"):
                 setattr(self, name, np.empty(self.size, np.int32))
-        if resolve_tables_size(m, parts) > getattr(self, "tables", np.empty(0, np.int32)).shape[0]:
+        if resolve_tables_size(m, parts) > self.tables.shape[0]:
             self.tables = np.empty(resolve_tables_size(self.size, parts), np.int32)
 
 
