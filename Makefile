@@ -24,11 +24,13 @@ demo: setup
 # The test command also installs what the tests need beyond the service: the [cluster] extra (Ray
 # Serve, for tests/cluster), and Debian's chromium, which the viewer's browser tests drive through
 # Playwright (CI runs as root; `playwright install` is not used: it downloads from outside the registries).
+# Two workers (pytest-xdist), each taking whole test files, so that a file's fixtures (a service, a
+# browser, the Ray cluster) are set up once, and in one process.
 test: setup
 	$(PY) -m pip install -q -e '.[cluster]'
 	@test -x /usr/bin/chromium || apt-get install -y chromium || (apt-get update && apt-get install -y chromium)
 	@$(PY) -c "import playwright" 2>/dev/null || $(PY) -m pip install -q playwright
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 bench: setup
 	$(PY) -m pip install -q -e '.[bench]'
