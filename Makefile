@@ -24,12 +24,16 @@ demo: setup
 # The test command also installs what the tests need beyond the service: the [cluster] extra (Ray
 # Serve, for tests/cluster), and Debian's chromium, which the viewer's browser tests drive through
 # Playwright (CI runs as root; `playwright install` is not used: it downloads from outside the registries).
-# Two workers (pytest-xdist), each taking whole test files, so that a file's fixtures (a service, a
-# browser, the Ray cluster) are set up once, and in one process.
+# Then the service's start-up kernels are compiled into numba's cache once (about two minutes on a
+# fresh machine), so that the services the tests start load them instead of each compiling them
+# within its start-up deadline while the other worker runs. Two workers (pytest-xdist), each taking
+# whole test files, so that a file's fixtures (a service, a browser, the Ray cluster) are set up once,
+# and in one process.
 test: setup
 	$(PY) -m pip install -q -e '.[cluster]'
 	@test -x /usr/bin/chromium || apt-get install -y chromium || (apt-get update && apt-get install -y chromium)
 	@$(PY) -c "import playwright" 2>/dev/null || $(PY) -m pip install -q playwright
+	$(PY) -c "from server.warmup import warm_up; warm_up()"
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 bench: setup
