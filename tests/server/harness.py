@@ -34,7 +34,10 @@ class ServerProcess:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout: float = 120.0) -> "ServerProcess":
+    def start(self, timeout: float = 300.0) -> "ServerProcess":
+        """Start the service and wait until it answers. The deadline is generous: on a cold numba cache
+        the service compiles its start-up kernels first (minutes on two cores shared with another
+        test worker); `make test` fills the cache beforehand, so there it starts in seconds."""
         self.port = free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
         env.update({f"CANONICAL_{k.upper()}": str(v) for k, v in self.settings.items()})
