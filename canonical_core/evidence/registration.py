@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .reliability import sensor_depth_std
+from .reliability import edge_jump, sensor_depth_std
 
 
 @numba.njit(parallel=True, cache=True)
@@ -41,12 +41,7 @@ def _edge_mask_kernel(depth, voxel, sigma0, sigma2, z_ref, out):
             out[v, u] = False
             if z <= 0:
                 continue
-            jump = np.float32(0.0)
-            for vv in range(max(v - 1, 0), min(v + 2, H)):
-                for uu in range(max(u - 1, 0), min(u + 2, W)):
-                    zn = depth[vv, uu]
-                    if zn > 0:
-                        jump = max(jump, abs(zn - z))
+            jump = edge_jump(depth, v, u)
             sigma = sigma0 + sigma2 * (z - z_ref) * (z - z_ref)
             out[v, u] = jump > 2 * voxel + 3 * sigma
 

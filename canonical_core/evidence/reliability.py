@@ -32,7 +32,9 @@ def sensor_depth_std(
 
 
 @numba.njit(inline="always")
-def _edge_jump(depth, v, u):
+def edge_jump(depth, v, u):
+    """The largest |z_neighbour - z| of pixel (v, u) over its valid 8-neighbours (0 if none): the
+    depth-edge measure of U_pos and of the registration's edge mask."""
     H, W = depth.shape
     z = depth[v, u]
     jump = np.float32(0.0)
@@ -60,7 +62,7 @@ def _positional_uncertainty_kernel(depth, depth_std, has_std, rows, cols, sigma0
             sigma = depth_std[v, u]
         else:
             sigma = sigma0 + sigma2 * (z - z_ref) * (z - z_ref)
-        out[i] = (sigma + edge_weight * _edge_jump(depth, v, u)) * inv_voxel
+        out[i] = (sigma + edge_weight * edge_jump(depth, v, u)) * inv_voxel
 
 
 def positional_uncertainty(
