@@ -4,7 +4,7 @@
     python bench/colour_solve.py --stream [--refresh 1,4,8,16] [--kept 16]
 
 For N input views of the evaluation protocol (640x480, its voxel size), kept at each keyframe
-scale (`SceneConfig.colour_solve_scale`; 0.5 is the default): ms for one kept view's part of the
+scale (`SceneConfig.colour_solve.scale`; 0.5 is the default): ms for one kept view's part of the
 solve's system (`weight_rows_and_blend`: its rows of compositing weights and its render, one pass
 of the C compositor; the PyTorch reference on the first view once, for the ratio), ms
 for the whole solve (weights of every view, the sparse system, the library's default CG iterations), ms for a
@@ -14,7 +14,7 @@ machine. Never asserts timings.
 
 ``--stream`` measures a streaming session instead: every frame of the capture that the protocol
 does not hold out is folded in order, and the scene decoded after each fold, as a viewer does, by a
-scene that solves colours (``--kept`` views, `SceneConfig.colour_solve_refresh` each of
+scene that solves colours (``--kept`` views, `SceneConfig.colour_solve.refresh` each of
 ``--refresh``) and by one that does not. Per refresh: the solves made, the decode's extra ms per
 fold (mean: the solve's cost amortised over the stream; median; largest), and held-out all-pixel /
 covered PSNR of the last decode, against the same scene solved from scratch over the same kept views.
@@ -52,7 +52,7 @@ def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> No
     frames = [sequence[p] for p in range(len(sequence)) if p not in split.heldout]
     rows = []
     for refresh in refreshes:
-        solving = Scene(SceneConfig(voxel_size=voxel, colour_solve_views=kept, colour_solve_refresh=refresh))
+        solving = Scene(SceneConfig(voxel_size=voxel, colour_solve={"views": kept, "refresh": refresh}))
         plain = Scene(SceneConfig(voxel_size=voxel))
         extra, solves = [], 0
         for frame in frames:
@@ -76,7 +76,7 @@ def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> No
         })  # fmt: skip
         print(f"refresh {refresh} done", file=sys.stderr, flush=True)
     print_table(f"Streaming colour solve: {len(frames)} frames folded, decoded after each, {kept} kept views at "
-                f"{SceneConfig(voxel_size=voxel).colour_solve_scale:g}, voxel {voxel:.4f} m", rows)
+                f"{SceneConfig(voxel_size=voxel).colour_solve.scale:g}, voxel {voxel:.4f} m", rows)
 
 
 def main() -> None:
@@ -86,8 +86,8 @@ def main() -> None:
     parser.add_argument("--scales", default="1,0.5", help="keyframe scales, each in (0, 1]")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--stream", action="store_true", help="a streaming session decoded after every fold")
-    parser.add_argument("--refresh", default="1,4,8,16", help="with --stream: colour_solve_refresh values")
-    parser.add_argument("--kept", type=int, default=16, help="with --stream: colour_solve_views")
+    parser.add_argument("--refresh", default="1,4,8,16", help="with --stream: colour_solve.refresh values")
+    parser.add_argument("--kept", type=int, default=16, help="with --stream: colour_solve.views")
     args = parser.parse_args()
     views = [int(v) for v in args.views.split(",")]
     scales = [float(s) for s in args.scales.split(",")]

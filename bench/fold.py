@@ -92,7 +92,7 @@ def main(argv=None) -> None:
     # without it compares evidence + aggregation alone, the work both do
     no_free_space = config.replace(free_space={"enabled": False})
     # opt-in: frames with depth are also swept against earlier views to fill their depth's large holes
-    completion = config.replace(depth_completion=True)
+    completion = config.replace(depth={"completion": True})
     time_folds(frames[:2], completion)  # compile / load the numba cache outside the measurement
 
     rows = []
@@ -114,7 +114,7 @@ def main(argv=None) -> None:
         row = {"size": label, "fold ms (med/min/max)": stats_ms(fold_ms),
                "CPU ms in the OS kernel a fold (mean per pass)": " / ".join(f"{v:.1f}" for v in os_ms),
                "of which evidence ms": stats_ms(ev_ms),
-               "fold without free space ms": stats_ms(agg_ms), "fold with depth_completion ms": stats_ms(completion_ms),
+               "fold without free space ms": stats_ms(agg_ms), "fold with depth.completion ms": stats_ms(completion_ms),
                "fold, memory preallocated ms": stats_ms(reserved_ms)}
         if have_o3d:
             row["Open3D integrate ms"] = stats_ms(o3d_ms)

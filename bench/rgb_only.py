@@ -21,7 +21,7 @@ split: RGB-only fusion, full against no_reliability, over every window of ``wind
 consecutive inputs (never inputs). It reports each window, the mean and median differences and
 how many windows reliability wins (``--window-views 0`` skips it).
 
-``--solve-views K`` runs every scene with `SceneConfig.colour_solve_views` K (colours solved against
+``--solve-views K`` runs every scene with `SceneConfig.colour_solve.views` K (colours solved against
 up to K kept inputs), so the comparisons can be made with the colour solve too.
 """
 
@@ -88,7 +88,7 @@ def views_list(text: str) -> list[int]:
 
 def fused_metrics(inputs, weighting: str, voxel: float, targets, solve_views: int = 0) -> tuple[dict, cc.Scene]:
     """The evaluation's metrics of ``targets`` rendered from a scene folded from ``inputs``, and the scene."""
-    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, research={"weighting": weighting}, colour_solve_views=solve_views))
+    scene = cc.Scene(cc.SceneConfig(voxel_size=voxel, research={"weighting": weighting}, colour_solve={"views": solve_views}))
     for frame in inputs:
         scene.fold(frame)
     return score(SplatModel(scene.decode()), targets, voxel).metrics, scene
@@ -128,7 +128,7 @@ def main(argv=None) -> None:
     p.add_argument("--voxel", type=float, default=0.008)
     p.add_argument("--window-views", type=int, default=8, help="inputs per shifted window (0: skip that table)")
     p.add_argument("--window-step", type=int, default=6, help="frames between a shifted window's inputs")
-    p.add_argument("--solve-views", type=int, default=0, help="colour_solve_views of every scene (0: no colour solve)")
+    p.add_argument("--solve-views", type=int, default=0, help="colour_solve.views of every scene (0: no colour solve)")
     args = p.parse_args(argv)
     view_counts = args.views
     if not 0 <= args.solve_views <= 64:

@@ -160,7 +160,7 @@ def main(argv=None) -> None:
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--renders", type=int, default=40, help="renders in total across the 4 clients")
     p.add_argument("--scale", type=float, default=1.0, help="also resize frames (e.g. 0.5 for 320x240)")
-    p.add_argument("--solve-views", type=int, default=16, help="colour_solve_views of the viewed session (0: skip that table)")
+    p.add_argument("--solve-views", type=int, default=16, help="colour_solve.views of the viewed session (0: skip that table)")
     p.add_argument("--snapshot-every", type=int, default=10, help="the service's snapshot_every_frames")
     args = p.parse_args(argv)
     if args.snapshot_every < 1:
@@ -196,7 +196,7 @@ def main(argv=None) -> None:
             lat = render_latency(url, sid, cams, clients=4, per_client=max(1, args.renders // 4))
             viewed = {"plain session": {}}
             if args.solve_views:
-                viewed[f"colour_solve_views {args.solve_views}"] = {"colour_solve_views": args.solve_views}
+                viewed[f"colour_solve.views {args.solve_views}"] = {"colour_solve": {"views": args.solve_views}}
             viewed = {name: fold_while_viewing(url, payloads, args.voxel, settings) for name, settings in viewed.items()}
         finally:
             service.terminate()

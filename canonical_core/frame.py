@@ -210,7 +210,7 @@ def depth_warnings(
     inside = ((valid > near) & (valid < far)).sum().item()
     if inside == 0:
         median = float(valid.median())
-        return [f"depth: no pixel lies within near={near:g} .. far={far:g} m (median {median:g}); "
+        return [f"depth: no pixel lies within the range {near:g} .. {far:g} m (median {median:g}); "
                 f"is the depth in metres (depth_scale)?"]
     return []
 

@@ -143,19 +143,19 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5)")
     p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
                    help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
-                        "the field's type), e.g. --set colour_solve_views=16 --set free_space.margin=3; repeatable")
+                        "the field's type), e.g. --set colour_solve.views=16 --set free_space.margin=3; repeatable")
 
 
 def session_setting(text: str) -> tuple[str, object]:
     """``PATH=VALUE`` -> (PATH, VALUE), checked and typed by the library's settings definition
-    (`canonical_core.scene.config.parse_setting`): an unknown or evaluation-only setting, or a value
+    (`canonical_core.config.parse_setting`): an unknown or evaluation-only setting, or a value
     of the wrong type or out of bounds, is a usage error naming the setting.
 
     Example:
-        >>> session_setting("colour_solve_views=16"), session_setting("depth.sources=3")
-        (('colour_solve_views', 16), ('depth.sources', 3))
+        >>> session_setting("colour_solve.views=16"), session_setting("depth.sources=3")
+        (('colour_solve.views', 16), ('depth.sources', 3))
     """
-    from canonical_core.scene.config import parse_setting
+    from canonical_core.config import parse_setting
 
     try:
         return parse_setting(text)
@@ -235,7 +235,7 @@ def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
 
 def run_stream(args) -> int:
     from canonical_core.datasets import load_dataset
-    from canonical_core.scene.config import settings_from_pairs
+    from canonical_core.config import settings_from_pairs
 
     if args.session and args.settings:
         print("--set: settings belong to a new session (--voxel-size), not to an existing one", file=sys.stderr)

@@ -275,7 +275,7 @@ class Client:
 
     def create_session(self, voxel_size: float, **settings) -> Session:
         """A new session; ``settings`` are the service's session settings (SceneConfig's public fields:
-        feature_dim, near, far, max_voxels, ..., groups as dicts, e.g. ``free_space={"margin": 3.0}``)."""
+        max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, free_space={"margin": 3.0}``)."""
         r = self._request("POST", "/v1/sessions", json={"voxel_size": voxel_size, **settings})
         return Session(self, r.json()["id"])
 

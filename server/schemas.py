@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from canonical_core.rendering import Colour, DepthMode
 from canonical_core.scene import FoldReport
-from canonical_core.scene.config import public_model
+from canonical_core.config import public_model
 
 
 def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:

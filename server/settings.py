@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from canonical_core.scene.config import MAX_VOXELS
+from canonical_core.config import MAX_VOXELS
 
 
 class Settings(BaseSettings):

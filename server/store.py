@@ -73,7 +73,7 @@ LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
 
 
 class ColourSolves(ThreadPoolExecutor):
-    """The colour re-solves of sessions that keep views (`SceneConfig.colour_solve_refresh`): they run
+    """The colour re-solves of sessions that keep views (`SceneConfig.colour_solve.refresh`): they run
     here, not in the render that found one due, which shows the last solution. One at a time: each
     is seconds of work on every core, and folds and renders share those cores. A re-solve that
     fails is logged (the next render that finds one due starts another)."""

@@ -16,7 +16,7 @@ from canonical_core.deprecation import RenamedKeys, get_renamed
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:
-    scene = Scene(SceneConfig(voxel_size=0.2, feature_dim=4))
+    scene = Scene(SceneConfig(voxel_size=0.2, features={"dim": 4}))
     for frame in synthetic_rgbd(num_frames=1, width=32, height=24):
         scene.fold(frame)
     return scene

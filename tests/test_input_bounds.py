@@ -95,7 +95,7 @@ def test_scene_refuses_a_large_rgb_only_frame_unchanged():
 @pytest.mark.parametrize("depth, message", [
     (np.zeros((H, W), np.float32), "no valid pixel"),
     (np.full((H, W), np.nan, np.float32), "no valid pixel"),
-    (np.full((H, W), 1500.0, np.float32), "no pixel lies within near="),  # millimetres sent as metres
+    (np.full((H, W), 1500.0, np.float32), "no pixel lies within the range 0.05 .. 20 m"),  # millimetres sent as metres
 ])
 def test_depth_that_gives_nothing_is_reported(depth, message):
     scene = Scene(SceneConfig(voxel_size=0.05))

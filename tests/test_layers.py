@@ -2,7 +2,7 @@
 
 The graph is built from the source (every ``import`` of every module under canonical_core, read
 with ast, including imports made only for type checking), one node per package. The settings
-module (``canonical_core.scene.config``) is its own node, below every other: any layer may read
+module (``canonical_core.config``) is its own node, below every other: any layer may read
 the settings. A second check imports each package first in a fresh interpreter, so no package
 relies on another having been imported before it.
 """
@@ -19,9 +19,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 ROOT = REPO / "canonical_core"
 
-# the layer order, lowest first: each layer may import the ones before it (deprecation: the shims that
-# keep renamed public names working for a release, a leaf every layer may use)
-LAYERS = ["deprecation", "settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
+# the layer order, lowest first: each layer may import the ones before it
+LAYERS = ["settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
           "train"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
 ALLOWED["datasets"] = {"camera", "frame"}  # loaders need cameras and frames, nothing of the method
@@ -40,7 +39,7 @@ def node_of(module: str) -> str | None:
     parts = module.split(".")
     if parts[0] != "canonical_core":
         return None
-    if parts[1:3] == ["scene", "config"]:
+    if parts[1:2] == ["config"]:
         return "settings"
     return parts[1] if len(parts) > 1 else "canonical_core"
 
@@ -115,8 +114,8 @@ def test_the_graph_reads_relative_and_absolute_imports(tmp_path):
     (pkg / "scene").mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "evidence" / "__init__.py").write_text("from ..scene import batch\n")
-    (pkg / "scene" / "__init__.py").write_text("import canonical_core.evidence\nfrom .config import X\n")
-    (pkg / "scene" / "config.py").write_text("")
+    (pkg / "scene" / "__init__.py").write_text("import canonical_core.evidence\nfrom ..config import X\n")
+    (pkg / "config.py").write_text("")
     graph = package_graph(pkg)
     assert graph == {"canonical_core": set(), "evidence": {"scene"}, "scene": {"evidence", "settings"}, "settings": set()}
     assert find_cycle(graph) == ["evidence", "scene", "evidence"]
@@ -130,7 +129,7 @@ def test_the_library_is_acyclic_and_layered():
 
 
 @pytest.mark.parametrize("package", sorted({node_of(module_name(p)) for p in ROOT.glob("*/__init__.py")}
-                                           | {"camera", "frame"}) + ["scene.config"])
+                                           | {"camera", "frame"}) + ["config"])
 def test_each_package_imports_first_on_its_own(package):
     name = "canonical_core" if package == "canonical_core" else f"canonical_core.{package}"
     subprocess.run([sys.executable, "-c", f"import {name}"], cwd=REPO, check=True, capture_output=True)

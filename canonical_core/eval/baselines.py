@@ -68,11 +68,11 @@ def _covariances(scales: Tensor, rotations: Tensor) -> Tensor:  # [N, 3], [N, 3,
 
 
 def pixel_gaussians(frame: Frame, config: SceneConfig, opacity: float, features: bool = True) -> Gaussians:
-    """One camera-facing disc per pixel whose depth lies in (config.near, config.far)."""
+    """One camera-facing disc per pixel whose depth lies in (config.range.near, config.range.far)."""
     if frame.depth is None:
         raise ValueError("depth: pixel-aligned Gaussians need depth")
     depth = frame.depth
-    valid = (depth > config.near) & (depth < config.far)  # [H, W]
+    valid = (depth > config.range.near) & (depth < config.range.far)  # [H, W]
     density = F.avg_pool2d(valid[None, None].float(), DENSITY_WINDOW, stride=1, padding=DENSITY_WINDOW // 2,
                            count_include_pad=False)[0, 0]  # [H, W], > 0 wherever valid
     rows, cols = (t.numpy() for t in torch.nonzero(valid, as_tuple=True))
@@ -101,7 +101,7 @@ def pixel_aligned(frames: Sequence[Frame], voxel_size: float, features: bool = T
     if not frames:
         raise ValueError("frames: expected at least one frame")
     config = SceneConfig(voxel_size=voxel_size)
-    opacity = full_support_opacity(GaussianDecoder(config.feature_dim))
+    opacity = full_support_opacity(GaussianDecoder(config.features.dim))
     return _cat([pixel_gaussians(f, config, opacity, features) for f in frames])
 
 

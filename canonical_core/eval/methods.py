@@ -7,9 +7,9 @@
 - ``plain_decoding``: the same fused voxels as ``canonical``, but every Gaussian gets one opacity,
   the analytic head's value at full support (no reliability-conditioned opacity);
 - ``no_free_space``, ``no_view_dependence``: without free-space evidence / with SH degree 0;
-- ``depth_completion``: ``canonical`` with `SceneConfig.depth_completion` (large sensor-depth holes
+- ``depth_completion``: ``canonical`` with `SceneConfig.depth.completion` (large sensor-depth holes
   filled by the plane sweep against the session's earlier views);
-- ``colour_solve``: ``canonical`` with `SceneConfig.colour_solve_views` 16 (every input of the
+- ``colour_solve``: ``canonical`` with `SceneConfig.colour_solve.views` 16 (every input of the
   protocol kept): decoded colours solved so that renders reproduce the input views (least squares);
 - ``completion_solve``: both of the above, the setting for sessions captured first and viewed after;
 - ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
@@ -39,7 +39,7 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..rendering import Colour, render
 from ..scene import Scene, SceneConfig
-from ..scene.config import Weighting, parse_setting
+from ..config import Weighting, parse_setting
 from .baselines import full_support_opacity, gaussian_merge, pixel_aligned
 from .open3d_tsdf import Open3DTSDF, open3d_import_error
 
@@ -160,9 +160,9 @@ METHODS: dict[str, Method] = {
     "plain_decoding": Method(_scene("full", uniform_opacity=True), features=True),
     "no_free_space": Method(_scene("full", free_space={"enabled": False}), features=True),
     "no_view_dependence": Method(_scene("full", sh_degree=0), features=True),
-    "depth_completion": Method(_scene("full", depth_completion=True), features=True),
-    "colour_solve": Method(_scene("full", colour_solve_views=16), features=True),
-    "completion_solve": Method(_scene("full", depth_completion=True, colour_solve_views=16), features=True),
+    "depth_completion": Method(_scene("full", depth={"completion": True}), features=True),
+    "colour_solve": Method(_scene("full", colour_solve={"views": 16}), features=True),
+    "completion_solve": Method(_scene("full", depth={"completion": True}, colour_solve={"views": 16}), features=True),
     "pixel_aligned": Method(_splats(pixel_aligned), features=True),
     "gaussian_merge": Method(_splats(gaussian_merge), features=True),
     "open3d_tsdf": Method(_tsdf, features=False, unavailable=_open3d_missing),

@@ -11,9 +11,9 @@ with one channel per label id found in the capture), method and number of input 
   opacity) is rendered at the input cameras; a multinomial logistic regression (`fit_probe`) is
   trained on the covered pixels there against the input frames' labels, then predicts the label
   of every covered pixel of the feature splats at the held-out cameras. Features: the scene's own
-  (``SceneConfig.feature_backend`` default), and, when every frame of the capture carries client
+  (``SceneConfig.features.backend`` default), and, when every frame of the capture carries client
   features (`Frame.features`), the same probe on a scene that fuses those
-  (``feature_backend="client"``; Scene methods only, pixel-aligned Gaussians use the default).
+  (``features.backend="client"``; Scene methods only, pixel-aligned Gaussians use the default).
 
 Split: a bin holds few frames (15 in ``apc_bins``), too few for the main protocol's ten held-out
 frames besides eight inputs, so every ``heldout_every``-th frame is held out starting at position 1
@@ -341,7 +341,7 @@ def run_bin(sequence: FrameSequence, views: Sequence[int], specs: Sequence[Metho
                 row |= _row("probe", *probe_confusion(model, inputs, targets, S), label_ids)
                 if client and isinstance(spec.method().build, SceneBuilder):
                     C = int(inputs[0].features.shape[-1])
-                    client_model = spec.method({"feature_backend": "client", "feature_dim": C}).build(inputs, voxel_size, True)
+                    client_model = spec.method({"features.backend": "client", "features.dim": C}).build(inputs, voxel_size, True)
                     row |= _row("client_probe", *probe_confusion(client_model, inputs, targets, S), label_ids)
             runs.append(row)
             bar.set_postfix_str(f"{sequence.name} {spec.label} N={n}: mIoU {_num(row['fusion_miou'], 3)}")

@@ -87,7 +87,7 @@ KNOBS = {
     "decoder.opacity_slope": (3.0, 5.0, 10.0, 30.0, 90.0),
     "sh_degree": (0, 1),
     # metres: depth sensors of the RealSense class return no depth, or wrong depth, below about 0.2 m
-    "near": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3),
+    "range.near": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3),
 }
 VARIANTS = (DEFAULT, *(v for path, values in KNOBS.items() for v in knob_variants(path, values)))
 

@@ -199,4 +199,4 @@ class DepthConsistency:
         return [f"depth: {share:.0%} of this frame's depth lies under {limit:.2f} m, where this session's consecutive "
                 f"frames disagree ({below[1]} of {below[0]} sampled pixels agree; {agree:.0%} from "
                 f"{band_edge(int(beyond[0])):.2f} m on): likely under the sensor's working range; the setting "
-                f"near={limit:.2f} ignores it"]
+                f"range.near={limit:.2f} ignores it"]

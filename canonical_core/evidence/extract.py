@@ -16,7 +16,7 @@ from .registration import registration_weight
 from .reliability import AppearanceUncertainty, positional_uncertainty
 
 if TYPE_CHECKING:  # the settings are read, never constructed, here; importing the scene package would run it
-    from ..scene.config import SceneConfig
+    from ..config import SceneConfig
 
 
 @dataclass
@@ -95,15 +95,15 @@ def lift_pixels(frame: Frame, rows: np.ndarray, cols: np.ndarray) -> tuple[np.nd
 
 
 def frame_features(frame: Frame, rows: np.ndarray, cols: np.ndarray, config: SceneConfig) -> np.ndarray:  # [M, L]
-    """F_view at the given pixels from the configured backend, with ``config.feature_dim`` channels."""
-    if config.feature_backend == "client":
+    """F_view at the given pixels from the configured backend, with ``config.features.dim`` channels."""
+    if config.features.backend == "client":
         if frame.features is None:
             raise ValueError("features: this session uses client-supplied features, but the frame carries none")
         feats = sample_client_features(frame.features.numpy(), rows, cols, (frame.height, frame.width))
     else:
         feats = default_features_at(frame.rgb.numpy(), rows, cols)
-    if feats.shape[1] != config.feature_dim:
-        feats = feats @ projection_matrix(feats.shape[1], config.feature_dim)
+    if feats.shape[1] != config.features.dim:
+        feats = feats @ projection_matrix(feats.shape[1], config.features.dim)
     return np.ascontiguousarray(feats, dtype=np.float32)
 
 
@@ -120,7 +120,7 @@ def extract_evidence(
     if frame.depth is None:
         raise ValueError("depth: this frame has no depth; RGB-only frames need the multi-view depth stage")
     depth = frame.depth.numpy()
-    rows, cols = valid_depth_pixels(depth, np.float32(config.near), np.float32(config.far))
+    rows, cols = valid_depth_pixels(depth, np.float32(config.range.near), np.float32(config.range.far))
     features = frame_features(frame, rows, cols, config)
     points, colors = lift_pixels(frame, rows, cols)
     u_pos = positional_uncertainty(

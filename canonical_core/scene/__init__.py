@@ -3,7 +3,7 @@ voxel map (`voxel_map`), integration (`integrate`, `free_space`) and the decoder
 `aggregate_batch` is the batch reference of the aggregation rule."""
 
 from .batch import aggregate_batch
-from .config import SceneConfig
+from ..config import SceneConfig
 from .scene import CapacityError, DecodeInputs, FoldReport, Scene
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene", "SceneConfig", "aggregate_batch"]

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..frame import Frame
-from .config import KEY_BITS, KEY_OFFSET, SceneConfig
+from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 from .fields import fields_from_sums, unpack_keys
 from .free_space import SeeThroughMap, see_through_map
 
@@ -70,7 +70,7 @@ def aggregate_batch(
     evidence = [extract_evidence(f, config, appearance) for f in frames]
     if not evidence:
         raise ValueError("frames: expected at least one frame")
-    L = config.feature_dim
+    L = config.features.dim
     points = torch.from_numpy(np.concatenate([e.points for e in evidence]))
     rel = torch.from_numpy(np.concatenate([e.reliability for e in evidence]))
     feat = torch.from_numpy(np.concatenate([e.features for e in evidence]))
@@ -119,7 +119,7 @@ def aggregate_batch(
     if config.free_space.enabled:
         centres = (unpack_keys(uniq).float() + 0.5) * torch.tensor(config.voxel_size, dtype=torch.float32)
         for f in frames:
-            free += see_through_reference(centres, see_through_map(f, config), config.near)
+            free += see_through_reference(centres, see_through_map(f, config), config.range.near)
     sums = {
         "keys": uniq,
         "rep_r": r_sel[rep],

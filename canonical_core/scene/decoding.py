@@ -4,7 +4,7 @@ Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one sc
 
 - the decoder (`decode.GaussianDecoder`) and the colour solve against the kept input views
   (`decode.colour_offsets`) with its last solution (`ColourSolution`), which decodes reuse until
-  `SceneConfig.colour_solve_refresh` frames were folded since, and which starts the next solve;
+  `SceneConfig.colour_solve.refresh` frames were folded since, and which starts the next solve;
 - the decoded rows (`decoded.DecodedRows`): what the last decode made of each voxel, with the
   change stamp of the sums it came from, so that a decode after a fold decodes again only the
   voxels whose sums changed; opacities, which depend on the scene-wide support unit and on free
@@ -28,7 +28,7 @@ import torch
 from ..decode import GaussianDecoder, colour_offsets, with_colour_offsets
 from ..frame import Frame
 from ..gaussians import Gaussians
-from .config import SceneConfig
+from ..config import SceneConfig
 from .decoded import PARTS, DecodedRows
 from .fields import fields_from_sums
 from .shapes import voxel_shapes
@@ -143,7 +143,7 @@ class DecodeInputs(NamedTuple):
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)
     # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
-    frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve_refresh`)
+    frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve.refresh`)
 
 
 class DecodeWork(NamedTuple):
@@ -195,7 +195,7 @@ class SceneDecoding:
 
     def __init__(self, config: SceneConfig):
         self.config = config
-        self.decoder = GaussianDecoder(config.feature_dim, opacity_slope=config.decoder.opacity_slope,
+        self.decoder = GaussianDecoder(config.features.dim, opacity_slope=config.decoder.opacity_slope,
                                        opacity_bias=config.opacity_bias)
         self.lock = threading.Lock()  # taken before the scene's lock, never after
         self._rows: DecodedRows | None = None
@@ -304,14 +304,14 @@ class SceneDecoding:
     def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, work: DecodeWork,
                         solver: tuple[Executor, Callable[[], None]] | None) -> torch.Tensor:
         """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
-        is fresh (fewer than `SceneConfig.colour_solve_refresh` frames folded since) and for a decode
+        is fresh (fewer than `SceneConfig.colour_solve.refresh` frames folded since) and for a decode
         of part of the scene (a level of detail or a support floor, which never replaces the whole
         scene's solution); else solved, from the last solution where there is one, and kept. With a
         ``solver``, that re-solve runs there and this decode shows the last solution; the first solve
         of a scene runs here, so a scene is never shown unsolved."""
         solution = self.solution
         last = solution.at(rows) if solution is not None else None
-        if solution is not None and (not work.whole or work.frames - solution.frames < self.config.colour_solve_refresh):
+        if solution is not None and (not work.whole or work.frames - solution.frames < self.config.colour_solve.refresh):
             return last
         if solution is None:
             offsets = colour_offsets(gaussians, work.views)

@@ -2,7 +2,7 @@
 depth std, before its evidence is extracted and integrated.
 
 - Sensor depth far rougher than its noise model is replaced by its local median (`evidence.denoise`).
-- With ``depth_completion``, the large holes of sensor depth are filled by a plane sweep against
+- With ``depth.completion``, the large holes of sensor depth are filled by a plane sweep against
   recent views (`evidence.complete_depth`; only the holes are swept).
 - A frame without depth gets it from a plane sweep against recent views, its U_pos becoming its
   depth std. While no earlier view overlaps it, it waits (pending) and is swept once a later frame
@@ -26,7 +26,7 @@ from ..camera import Camera
 from ..evidence import (SourceView, SourceWindow, complete_depth, denoise_rough_depth, depth_range_from_points,
                         estimate_depth, sensor_depth_std, sensor_holes)
 from ..frame import Frame, check_rgb_only
-from .config import SceneConfig
+from ..config import SceneConfig
 from .keyframes import view_from_arrays, view_to_arrays
 
 Points = Callable[[], "np.ndarray | None"]  # the scene's points ([N, 3]), None while it holds none
@@ -67,7 +67,7 @@ class DepthFrontEnd:
             return self._without_depth(frame, check, points)
         frame, denoised = self._denoised(frame)
         view, completed = None, 0
-        if self.config.depth_completion:
+        if self.config.depth.completion:
             check(frame)  # before the sweep's cost
             view = self.window.view_of(frame)
             sources = self._sources_for(frame.camera)

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from ..deprecation import RenamedKeys
 from ..gaussians.container import SH_C0
-from .config import KEY_BITS, KEY_OFFSET, SceneConfig
+from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 
 _SQ_INDEX = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # xx xy xz yy yz zz -> symmetric 3x3
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .config import KEY_BITS, KEY_OFFSET, SceneConfig
+from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 
 CHUNK = 1024  # voxels per chunk of the insertion-ordered state; each chunk keeps its voxel AABB
 _BLOCK = 256  # voxels a history-kernel task tests against every kept map
@@ -97,8 +97,8 @@ def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
     thr = np.empty((h, w), np.float32)
     wcell = np.empty((h, w), np.float32)
     std = frame.depth_std.numpy() if frame.depth_std is not None else np.zeros((1, 1), np.float32)
-    _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.near),
-                       np.float32(config.far), np.float32(config.sensor.sigma0), np.float32(config.sensor.sigma2),
+    _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.range.near),
+                       np.float32(config.range.far), np.float32(config.sensor.sigma0), np.float32(config.sensor.sigma2),
                        np.float32(config.sensor.sigma_ref), np.float32(config.voxel_size),
                        np.float32(config.free_space.margin), np.float32(config.free_space.sigmas),
                        config.uses_reliability, thr, wcell)
@@ -191,7 +191,7 @@ def frustum_chunks(voxels, m: SeeThroughMap, config: SceneConfig) -> np.ndarray:
     out = np.empty((n + CHUNK - 1) // CHUNK, np.int32)
     h, w = m.threshold.shape
     count = frustum_chunks_kernel(voxels.chunk_lo, voxels.chunk_hi, n, np.float32(config.voxel_size), m.w2c,
-                                  m.intrinsics, h, w, np.float32(config.near), out)
+                                  m.intrinsics, h, w, np.float32(config.range.near), out)
     return out[:count]
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..evidence import FrameEvidence
 from ..frame import Frame
-from .config import SceneConfig
+from ..config import SceneConfig
 from .free_space import (SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel,
                          see_through_map)
 from .kernels import fold_kernel, resolve_kernel, resolve_tables_size, voxel_keys_kernel
@@ -104,7 +104,7 @@ def integrate_free_space(voxels: VoxelMap, frame: Frame, config: SceneConfig, hi
     frame created; the frame's map then joins the history (see `free_space`)."""
     m = see_through_map(frame, config)
     s, n = voxels.state, len(voxels)
-    voxel, near = np.float32(config.voxel_size), np.float32(config.near)
+    voxel, near = np.float32(config.voxel_size), np.float32(config.range.near)
     chunks = frustum_chunks(voxels, m, config)
     if voxels.journal is not None:  # what it overwrites, for an undo record
         voxels.journal.free_before(s["free"], chunks, first_new)

@@ -21,7 +21,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .config import KEY_BITS, KEY_OFFSET
+from ..config import KEY_BITS, KEY_OFFSET
 
 _KEY_LIMIT = 1 << KEY_BITS
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)

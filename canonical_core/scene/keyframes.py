@@ -1,8 +1,8 @@
-"""The views a scene keeps for the colour solve (`SceneConfig.colour_solve_views`).
+"""The views a scene keeps for the colour solve (`SceneConfig.colour_solve.views`).
 
 `decode.solve_colours` fits the decoded colours to input views, so a streaming scene keeps some:
 colour and camera only, resized by ``scale`` (half size fits nearly as well as full size at a
-quarter of the solve's time and memory: `SceneConfig.colour_solve_scale`), at most ``capacity``,
+quarter of the solve's time and memory: `SceneConfig.colour_solve.scale`), at most ``capacity``,
 spread evenly over the stream. When one too many
 arrive, the interior keyframe whose neighbours are closest in stream order goes (the first and
 the newest always stay), so the kept frames approach an even spacing as the stream grows, as

@@ -31,7 +31,7 @@ from ..evidence import AppearanceUncertainty, DepthConsistency, extract_evidence
 from ..frame import Frame, depth_warnings
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
-from .config import SceneConfig
+from ..config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, corrected_stream, resolve_frames
 from .decoding import ColourSolution, DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
@@ -72,7 +72,7 @@ class FoldReport:
     pending: bool = field(default=False, metadata={"description": "a frame without depth waiting for a partner view (folded later)"})
     also_folded: int = field(default=0, metadata={"description": "earlier waiting frames this call folded"})
     completed_pixels: int = field(default=0, metadata={
-        "description": "pixels whose missing depth the plane sweep filled (depth_completion)"})
+        "description": "pixels whose missing depth the plane sweep filled (depth.completion)"})
     denoised: bool = field(default=False, metadata={
         "description": "the frame's depth was far rougher than its noise model and was replaced by a local median"})
     warnings: list[str] = field(default_factory=list, metadata={
@@ -118,13 +118,13 @@ class Scene:
         if isinstance(undo_depth, bool) or not isinstance(undo_depth, int) or undo_depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {undo_depth!r}")
         self.config = config
-        self.appearance = AppearanceUncertainty(config.feature_dim)
+        self.appearance = AppearanceUncertainty(config.features.dim)
         self.frames = 0
-        self._voxels = VoxelMap(config.feature_dim, config.sh_degree, initial_capacity, config.max_voxels)
+        self._voxels = VoxelMap(config.features.dim, config.sh_degree, initial_capacity, config.max_voxels)
         self._scratch = Scratch()
         self._front = DepthFrontEnd(config)
         self._history = SeeThroughHistory(config.free_space.history)
-        self._keyframes = Keyframes(config.colour_solve_views, config.colour_solve_scale)  # the colour solve's views
+        self._keyframes = Keyframes(config.colour_solve.views, config.colour_solve.scale)  # the colour solve's views
         self._decoding = SceneDecoding(config)
         # the trained checkpoint `config.model` names (`decode.checkpoint`); a snapshot brings its own parameters
         checkpoint = _load_model(self._decoding.decoder, config.model) if load_model else None
@@ -276,7 +276,7 @@ class Scene:
                 self._integrate(waiting)
                 also += 1
         gave_nothing = frame.depth is not None and counts[0] == 0
-        warnings = depth_warnings(frame.depth, self.config.near, self.config.far) if gave_nothing else []
+        warnings = depth_warnings(frame.depth, self.config.range.near, self.config.range.far) if gave_nothing else []
         if frame.depth is not None:  # the sensor's depth (as folded: denoised or completed), not a sweep's
             warnings += self._consistency.observe(prepared.frame)
         return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
@@ -301,7 +301,7 @@ class Scene:
 
     def _check_foldable(self, frame: Frame) -> None:
         """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
-        if self.config.feature_backend == "client" and frame.features is None:
+        if self.config.features.backend == "client" and frame.features is None:
             raise ValueError("features: this session uses client-supplied features, but the frame carries none")
         if frame.labels is not None and self.label_dim and frame.labels.shape[-1] != self.label_dim:
             raise ValueError(f"labels: expected {self.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
@@ -410,7 +410,7 @@ class Scene:
     def carry_colour_solution(self, other: "Scene") -> None:
         """Start this scene's colour solve from ``other``'s last solution, where ``other`` is the same
         stream before a correction: its offsets go to the voxels with the same keys here, and the next
-        decode re-solves from them (`SceneConfig.colour_solve_refresh`) instead of solving from zero.
+        decode re-solves from them (`SceneConfig.colour_solve.refresh`) instead of solving from zero.
         Nothing happens where ``other`` has no solution or this scene keeps no views. A rollback and a
         correction of this scene (`update_poses`, `remove_frames`) carry its own solution so."""
         with other._lock:
@@ -429,14 +429,14 @@ class Scene:
     def _carry_solution(self, carried: tuple[np.ndarray, torch.Tensor] | None) -> None:
         """`_solution_by_key` of a scene before a correction as this scene's solution, due for a re-solve
         at the next decode; the caller holds the decode lock and the scene's lock."""
-        if carried is None or not self.config.colour_solve_views:
+        if carried is None or not self.config.colour_solve.views:
             return
         keys, offsets = carried
         rows = self._voxels.find(keys).astype(np.int64)
         found = np.flatnonzero(rows >= 0)
         order = found[np.argsort(rows[found], kind="stable")]
         self._decoding.solution = ColourSolution(rows[order], offsets[torch.from_numpy(order)],
-                                                 self.frames - self.config.colour_solve_refresh)
+                                                 self.frames - self.config.colour_solve.refresh)
 
     def _adopt(self, other: "Scene") -> None:
         self.frames, self._voxels, self._scratch, self._front = other.frames, other._voxels, other._scratch, other._front
@@ -486,7 +486,7 @@ class Scene:
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0, features: bool = True) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the
-        best-supported ones (level of detail). With ``colour_solve_views``, their colours are then
+        best-supported ones (level of detail). With ``colour_solve.views``, their colours are then
         solved against the kept input views (`decode.solve_colours`); without ``features``, they carry
         no F_scene (see `gaussians`). The same as ``decode_from(decode_inputs(), ...)``, without the
         copy of every sum: as `gaussians`, it holds the scene's lock only to take what its decode
@@ -517,7 +517,7 @@ class Scene:
         the others: a fold's worth, not the scene), so folds go on meanwhile, and a decode that a
         fold overtook answers its caller but is not kept.
 
-        With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve_refresh`)
+        With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve.refresh`)
         runs on that executor (on another thread: it takes the decode lock this call holds) instead of
         in this call, which shows the last solution meanwhile; once it lands, the next call decodes
         with it (`colour_solve_pending` is its future). A service does so, so that a render never
@@ -693,7 +693,7 @@ class Scene:
         scene._front.load_arrays(npz, int(header.get("pending", 0)))
         scene._consistency = DepthConsistency.from_arrays(
             {k[len("consistency."):]: npz[k] for k in npz.files if k.startswith("consistency.")})
-        scene._keyframes = Keyframes.from_arrays(scene.config.colour_solve_views, scene.config.colour_solve_scale,
+        scene._keyframes = Keyframes.from_arrays(scene.config.colour_solve.views, scene.config.colour_solve.scale,
                                                  {k[len("keyframes."):]: npz[k] for k in npz.files if k.startswith("keyframes.")})
         for prefix, module in (("decoder", scene.decoder), ("appearance", scene.appearance)):
             module.load_state_dict({k: torch.from_numpy(npz[f"{prefix}.{k}"].copy()) for k in module.state_dict()})

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..decode.decoder import FOOTPRINT_GAIN, GaussianDecoder
 from ..decode.eigen import jacobi3
-from .config import KEY_BITS, KEY_OFFSET
+from ..config import KEY_BITS, KEY_OFFSET
 
 _CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
 # pos_sq's columns (xx xy xz yy yz zz) at (row, column) of the symmetric 3x3 (as fields._SQ_INDEX)

@@ -65,10 +65,10 @@ def frame_limits(settings) -> wire.FrameLimits:
 
 def check_session_accepts(frame, config) -> None:
     """Client features sent to a session that computes its own would be dropped unseen: 422."""
-    if frame.features is not None and config.feature_backend != "client":
-        raise wire.WireError("features", f"this session computes its own features (feature_backend="
-                                         f"{config.feature_backend!r}); send features only to a session created "
-                                         f"with feature_backend='client'")
+    if frame.features is not None and config.features.backend != "client":
+        raise wire.WireError("features", f"this session computes its own features (features.backend="
+                                         f"{config.features.backend!r}); send features only to a session created "
+                                         f"with features.backend='client'")
 
 
 @router.post("/{session_id}/frames", response_model=FoldReportOut,

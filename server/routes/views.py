@@ -105,7 +105,7 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
     outputs, encode = encoder
     if kind == "segmentation" and session.scene.label_dim == 0:
         raise _no_labels()
-    check_view_bytes(view, view_channels(kind, session.scene.config.feature_dim, session.scene.label_dim),
+    check_view_bytes(view, view_channels(kind, session.scene.config.features.dim, session.scene.label_dim),
                      settings.max_response_bytes)
 
     def job():

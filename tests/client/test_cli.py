@@ -75,11 +75,11 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
 def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     url = ["--url", server.url]
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "20", "--max-frames", "2",
-                     "--scale", "0.25", "--set", "colour_solve_views=2", "--set", "free_space.margin=3",
-                     "--set", "depth_completion=true", "--set", "depth.sources=1"]) == 0
+                     "--scale", "0.25", "--set", "colour_solve.views=2", "--set", "free_space.margin=3",
+                     "--set", "depth.completion=true", "--set", "depth.sources=1"]) == 0
     session_id = next(line.split()[1] for line in capsys.readouterr().err.splitlines() if line.startswith("session "))
     config = Client(server.url).session(session_id).stats()["config"]
-    assert (config["colour_solve_views"], config["free_space"]["margin"], config["depth_completion"]) == (2, 3.0, True)
+    assert (config["colour_solve"]["views"], config["free_space"]["margin"], config["depth"]["completion"]) == (2, 3.0, True)
     assert (config["depth"]["sources"], config["free_space"]["enabled"]) == (1, True)  # the rest of the group kept
 
     before = len(Client(server.url).sessions())
@@ -98,8 +98,8 @@ def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     ("free_space=false", "free_space: a group"),
     ("free_space.margin=-1", "free_space.margin: input should be greater than or equal to 0"),
     ("sh_degree=1.5", "sh_degree: input should be a valid integer"),
-    ("depth_completion=maybe", "depth_completion: input should be a valid boolean"),
-    ("feature_backend=cuda", "feature_backend: input should be 'default' or 'client'"),
+    ("depth.completion=maybe", "depth.completion: input should be a valid boolean"),
+    ("features.backend=cuda", "features.backend: input should be 'default' or 'client'"),
 ])
 def test_set_refuses_what_the_settings_definition_refuses(setting, message, capsys):
     with pytest.raises(SystemExit):
@@ -113,7 +113,7 @@ def test_set_refuses_what_the_settings_definition_refuses(setting, message, caps
     ("max_voxels=null", ("max_voxels", None)),
     ("max_voxels=100000", ("max_voxels", 100000)),
     ("decoder.opacity_bias=-3", ("decoder.opacity_bias", -3.0)),
-    ("feature_backend=client", ("feature_backend", "client")),
+    ("features.backend=client", ("features.backend", "client")),
     (" sh_degree = 0", ("sh_degree", 0)),
 ])
 def test_set_reads_values_as_the_fields_type(setting, parsed):

@@ -30,7 +30,7 @@ def test_array_codec_roundtrip():
 @pytest.mark.realdata
 def test_session_roundtrip(server, frames, tmp_path):
     with Client(server.url) as client:
-        session = client.create_session(voxel_size=VOXEL, feature_dim=8)
+        session = client.create_session(voxel_size=VOXEL, features={"dim": 8})
         for i, kwargs in enumerate(frames[:2]):
             report = session.add_frame(**kwargs)
             assert report["frame_index"] == i and report["new_voxels"] > 0
@@ -50,7 +50,7 @@ def test_session_roundtrip(server, frames, tmp_path):
         assert feats["features"].dtype == np.float16 and feats["features"].shape == (h // 2, w // 2, 8)
 
         stats = session.stats()
-        assert stats["frames"] == 2 and stats["config"]["feature_dim"] == 8
+        assert stats["frames"] == 2 and stats["config"]["features"]["dim"] == 8
         ply = load_ply(session.export_ply(tmp_path / "s.ply"))
         splat = load_splat(session.export_splat(tmp_path / "s.splat"))
         assert len(ply) == len(splat) == stats["gaussians"]

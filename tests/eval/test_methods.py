@@ -97,7 +97,7 @@ def test_depth_completion_fills_what_the_sensor_missed():
 def test_colour_solve_is_canonical_with_colours_solved_against_its_inputs(frames):
     canonical, _ = build("canonical", frames[:2], 0.02)
     solved, _ = build("colour_solve", frames[:2], 0.02)
-    expected = solve_colours(canonical.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve_scale) for f in frames[:2]])
+    expected = solve_colours(canonical.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(solved.splats, name)), name
     assert not torch.equal(canonical.splats.sh, solved.splats.sh)
@@ -108,7 +108,7 @@ def test_completion_solve_is_depth_completion_with_colours_solved():
     completed, _ = build("depth_completion", holed, 0.02)
     both, _ = build("completion_solve", holed, 0.02)
     assert both.gaussians == completed.gaussians > build("canonical", holed, 0.02)[0].gaussians
-    expected = solve_colours(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve_scale) for f in holed])
+    expected = solve_colours(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(both.splats, name)), name
 

@@ -123,7 +123,7 @@ def test_pixel_aligned_gaussians_carry_their_pixels_label_scores_and_merging_ave
     frame = labelled_frames[0]
     splats = pixel_aligned([frame], VOXEL)
     config = SceneConfig(voxel_size=VOXEL)
-    valid = (frame.depth > config.near) & (frame.depth < config.far)
+    valid = (frame.depth > config.range.near) & (frame.depth < config.range.far)
     assert splats.labels.shape == (int(valid.sum()), 2)
     assert torch.equal(splats.labels, frame.labels[valid])
     merged = gaussian_merge([frame], VOXEL)
@@ -164,7 +164,7 @@ def client_features(frame) -> np.ndarray:  # [H, W, 8]: a fixed random projectio
 def test_probe_runs_on_client_features_fused_by_the_scene(labelled_frames):
     frames = [replace(f, features=client_features(f)) for f in labelled_frames]
     inputs, targets = [frames[p] for p in (0, 2, 3, 5)], [frames[1], frames[4]]
-    method = parse_label_method("canonical").method({"feature_backend": "client", "feature_dim": 8})
+    method = parse_label_method("canonical").method({"features.backend": "client", "features.dim": 8})
     model = method.build(inputs, VOXEL, True)
     assert model.splats.features.shape[1] == 8
     all_pixels, on_covered = probe_confusion(model, inputs, targets, 2)

@@ -123,7 +123,7 @@ def test_a_stream_is_warned_about_readings_that_change_and_not_about_a_near_surf
     tracker = DepthConsistency()
     warnings = [tracker.observe(f) for f in stream("image")]
     assert warnings[0] == [] and all(warnings[1:])  # the first frame has nothing to compare with
-    assert f"near={band_edge(band_of(PLATE + 0.03) + 1):.2f}" in warnings[-1][0]
+    assert f"range.near={band_edge(band_of(PLATE + 0.03) + 1):.2f}" in warnings[-1][0]
     assert warnings[-1][0].startswith("depth: 50% ") and "under the sensor's working range" in warnings[-1][0]
     for plate in ("world", "none"):
         tracker = DepthConsistency()

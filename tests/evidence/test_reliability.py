@@ -34,7 +34,7 @@ def test_a_std_map_from_the_sensor_model_equals_no_std_map():
 def test_u_pos_is_in_voxel_units_so_reliability_ignores_the_unit():
     depth = np.full((6, 6), 2.0, np.float32)
     ev_m = extract_evidence(make_frame(depth, depth_std=np.full((6, 6), 0.01)), SceneConfig(voxel_size=0.02))
-    ev_cm = extract_evidence(make_frame(depth * 100, depth_std=np.full((6, 6), 1.0)), SceneConfig(voxel_size=2.0, far=1e4))
+    ev_cm = extract_evidence(make_frame(depth * 100, depth_std=np.full((6, 6), 1.0)), SceneConfig(voxel_size=2.0, range={"far": 1e4}))
     assert np.allclose(ev_m.u_pos, 0.5) and np.allclose(ev_m.reliability, ev_cm.reliability)
     assert np.allclose(ev_m.reliability, np.exp(-0.5))
 

@@ -21,7 +21,7 @@ def tiny_frame():
 
 
 def config(mode="full"):
-    return SceneConfig(voxel_size=1.0, feature_dim=2, feature_backend="client", research={"weighting": mode}, sensor={"edge_weight": 0.0}, near=0.01)
+    return SceneConfig(voxel_size=1.0, features={"dim": 2, "backend": "client"}, research={"weighting": mode}, sensor={"edge_weight": 0.0}, range={"near": 0.01})
 
 
 def cos(a, b):

@@ -9,7 +9,7 @@ import re
 import pytest
 from pydantic import BaseModel
 
-from canonical_core.scene.config import (
+from canonical_core.config import (
     BIAS_WITH_DENOISING,
     BIAS_WITHOUT_DENOISING,
     FLAT_NAMES,
@@ -27,12 +27,12 @@ BOUNDS = {
     "voxel_size": (float, 1e-5, 100.0, False),
     "max_voxels": (int, 1, 2**31 - 1, False),
     "sh_degree": (int, 0, 3, False),
-    "near": (float, 0.0, INF, False),
-    "far": (float, 0.0, 1e5, True),
-    "feature_dim": (int, 1, 512, False),
-    "colour_solve_views": (int, 0, 64, False),
-    "colour_solve_scale": (float, 0.0, 1.0, True),
-    "colour_solve_refresh": (int, 1, 1_000_000, False),
+    "range.near": (float, 0.0, INF, False),
+    "range.far": (float, 0.0, 1e5, True),
+    "features.dim": (int, 1, 512, False),
+    "colour_solve.views": (int, 0, 64, False),
+    "colour_solve.scale": (float, 0.0, 1.0, True),
+    "colour_solve.refresh": (int, 1, 1_000_000, False),
     "sensor.sigma0": (float, 0.0, 10.0, False),
     "sensor.sigma2": (float, 0.0, 10.0, False),
     "sensor.sigma_ref": (float, 0.0, 1e5, False),
@@ -54,11 +54,11 @@ BOUNDS = {
     "research.eps": (float, 0.0, INF, True),
 }
 CHOICES = {
-    "feature_backend": ("default", "client"),
+    "features.backend": ("default", "client"),
     "research.weighting": ("full", "no_reliability", "no_similarity", "average"),
     "model": ("default", "none", "checkpoint.safetensors"),  # names or a checkpoint's path (read when a scene starts)
 }
-SWITCHES = ("depth_completion", "free_space.enabled")
+SWITCHES = ("depth.completion", "free_space.enabled")
 
 
 def leaf_paths(model=SceneConfig, prefix="") -> list[str]:
@@ -70,11 +70,11 @@ def leaf_paths(model=SceneConfig, prefix="") -> list[str]:
 
 
 def make(path: str, value, **others) -> SceneConfig:
-    settings = {"voxel_size": 0.1, "far": 1e5, **others}  # far: room for near's edges, on the lattice
-    if path == "far":
-        settings["near"] = 0.0
+    settings = {"voxel_size": 0.1, "range": {"far": 1e5}, **others}  # far: room for near's edges, on the lattice
+    if path == "range.far":
+        settings["range"]["near"] = 0.0
     if path == "voxel_size":  # the finest voxels keep only 2^20 of them between the origin and far
-        settings.update(near=0.0, far=10.0)
+        settings["range"] = {"near": 0.0, "far": 10.0}
     *groups, name = path.split(".")
     target = settings
     for g in groups:
@@ -153,15 +153,15 @@ def test_optional_settings_take_none():
 
 
 def test_far_must_stay_on_the_lattice():
-    assert SceneConfig(voxel_size=0.01, far=0.01 * 2**20).far == 0.01 * 2**20
-    with pytest.raises(ValueError, match=r"^far: .* beyond the lattice's 1048576 voxels"):
-        SceneConfig(voxel_size=0.01, far=0.01 * 2**20 * 1.001)
+    assert SceneConfig(voxel_size=0.01, range={"far": 0.01 * 2**20}).range.far == 0.01 * 2**20
+    with pytest.raises(ValueError, match=r"^range\.far: .* beyond the lattice's 1048576 voxels"):
+        SceneConfig(voxel_size=0.01, range={"far": 0.01 * 2**20 * 1.001})
 
 
 def test_near_must_be_below_far():
-    assert SceneConfig(voxel_size=0.01, near=1.0, far=1.0 + 1e-9).near == 1.0
-    with pytest.raises(ValueError, match="^near: must be below far"):
-        SceneConfig(voxel_size=0.01, near=2.0, far=2.0)
+    assert SceneConfig(voxel_size=0.01, range={"near": 1.0, "far": 1.0 + 1e-9}).range.near == 1.0
+    with pytest.raises(ValueError, match=r"^range\.near: must be below range\.far"):
+        SceneConfig(voxel_size=0.01, range={"near": 2.0, "far": 2.0})
 
 
 def test_voxel_size_is_required():
@@ -174,6 +174,8 @@ def test_voxel_size_is_required():
     ({"free_space": {"margn": 1.0}}, r"^free_space\.margn: unknown setting$"),
     ({"free_space_margin": 3.0}, r"^free_space_margin: unknown setting \(it is free_space\.margin now\)$"),
     ({"weighting": "average"}, r"^weighting: unknown setting \(it is research\.weighting now\)$"),
+    ({"near": 0.1}, r"^near: unknown setting \(it is range\.near now\)$"),
+    ({"colour_solve_views": 4}, r"^colour_solve_views: unknown setting \(it is colour_solve\.views now\)$"),
     ({"free_space": False}, "^free_space: "),
 ])
 def test_unknown_settings_are_named(settings, message):
@@ -259,6 +261,20 @@ def test_parsed_settings_build_the_nested_config():
 def test_parse_setting_refuses_naming_the_setting(text, message):
     with pytest.raises(ValueError, match=message):
         parse_setting(text)
+
+
+def test_the_top_level_is_short():
+    assert len(SceneConfig.model_fields) <= 12
+
+
+def test_the_previous_layout_loads_its_top_level_names_into_their_groups():
+    d = {"voxel_size": 0.01, "near": 0.1, "feature_dim": 8, "depth_completion": True, "depth": {"sources": 3},
+         "colour_solve_views": 4, "colour_solve_scale": 1.0}
+    assert SceneConfig.from_dict(d) == SceneConfig(voxel_size=0.01, range={"near": 0.1}, features={"dim": 8},
+                                                   depth={"sources": 3, "completion": True},
+                                                   colour_solve={"views": 4, "scale": 1.0})
+    with pytest.raises(ValueError, match=r"^depth: given both as a group and as flat settings \(\['completion'\]\)"):
+        SceneConfig.from_dict({"voxel_size": 0.01, "depth": {"completion": False}, "depth_completion": True})
 
 
 def test_flat_names_map_onto_existing_fields():

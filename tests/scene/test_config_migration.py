@@ -13,7 +13,7 @@ import torch
 
 from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
-from canonical_core.scene.config import FLAT_NAMES, migrate_flat
+from canonical_core.config import FLAT_NAMES, migrate_flat
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
@@ -25,12 +25,12 @@ def loaded() -> Scene:
 
 def test_flat_snapshot_settings_land_in_their_groups(loaded):
     c = loaded.config
-    assert (c.voxel_size, c.feature_dim) == (0.15, 4)
+    assert (c.voxel_size, c.features.dim) == (0.15, 4)
     assert (c.free_space.enabled, c.free_space.margin, c.depth.hypotheses, c.sensor.edge_weight) == (True, 2.5, 32, 0.4)
     assert (c.decoder.opacity_slope, c.decoder.opacity_bias, c.decoder.sh_regularization) == (25.0, -1.0, 0.004)
     assert (c.research.weighting, c.research.eps) == ("full", 1e-8)
     # and every other setting is its default
-    assert c == SceneConfig(voxel_size=0.15, feature_dim=4, free_space={"margin": 2.5}, depth={"hypotheses": 32},
+    assert c == SceneConfig(voxel_size=0.15, features={"dim": 4}, free_space={"margin": 2.5}, depth={"hypotheses": 32},
                             sensor={"edge_weight": 0.4},
                             decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
 
@@ -61,7 +61,7 @@ def test_flat_session_meta_migrates():
     meta = json.loads((FIXTURES / "session_meta_v1.json").read_text())
     assert "free_space_margin" in meta["config"]  # the fixture is in the flat layout
     config = SceneConfig.from_dict(meta["config"])
-    assert (config.voxel_size, config.colour_solve_views, config.depth_completion) == (0.004, 4, True)
+    assert (config.voxel_size, config.colour_solve.views, config.depth.completion) == (0.004, 4, True)
     assert (config.free_space.enabled, config.depth.denoise_radius) == (False, 0)
     assert config.decoder.opacity_bias == config.opacity_bias == -3.0
     assert SceneConfig.from_dict(config.to_dict()) == config
@@ -70,14 +70,15 @@ def test_flat_session_meta_migrates():
 def test_migration_moves_every_flat_name_and_only_those():
     flat = {old: None for old in FLAT_NAMES} | {"voxel_size": 1.0, "free_space": True}
     out = migrate_flat(flat)
-    assert set(out) == {"voxel_size", "sensor", "free_space", "depth", "decoder", "research"}
+    assert set(out) == {"voxel_size", "sensor", "free_space", "depth", "decoder", "research", "range", "features",
+                        "colour_solve"}
     assert sum(len(group) for name, group in out.items() if name != "voxel_size") == len(FLAT_NAMES) + 1
     grouped = SceneConfig(voxel_size=1.0).to_dict()
     assert migrate_flat(grouped) == grouped
 
 
-def test_migration_refuses_a_group_given_twice():
-    with pytest.raises(ValueError, match="^free_space: given both"):
-        SceneConfig.from_dict({"voxel_size": 1.0, "free_space": {"margin": 1.0}, "free_space_cell": 4})
+def test_migration_refuses_a_setting_given_twice():
+    with pytest.raises(ValueError, match=r"^free_space: given both as a group and as flat settings \(\['margin'\]\)"):
+        SceneConfig.from_dict({"voxel_size": 1.0, "free_space": {"margin": 1.0}, "free_space_margin": 2.0})
     with pytest.raises(ValueError, match="^config: expected a mapping"):
         SceneConfig.from_dict([("voxel_size", 1.0)])

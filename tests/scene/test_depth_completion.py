@@ -1,4 +1,4 @@
-"""Frames with depth and large holes: `SceneConfig.depth_completion` fills the holes from the sweep."""
+"""Frames with depth and large holes: `SceneConfig.depth.completion` fills the holes from the sweep."""
 
 import dataclasses
 
@@ -33,7 +33,7 @@ def fold_all(config: SceneConfig, frames) -> tuple[Scene, list]:
 def test_completion_fills_a_withheld_band_from_earlier_views(shelf_small):
     truth = shelf_small[2]
     frames = shelf_small[:2] + [withheld_band(truth)]
-    completed, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), frames)
+    completed, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth={"completion": True}), frames)
     plain, _ = fold_all(SceneConfig(voxel_size=VOXEL), frames)
     assert reports[0].completed_pixels == 0  # the first frame has no earlier view to sweep against
     band_pixels = truth.height * (BAND.stop - BAND.start)
@@ -59,7 +59,7 @@ def test_completion_fills_a_withheld_band_from_earlier_views(shelf_small):
 def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small):
     # a radius larger than any hole: nothing is filled, and the sensor's std map the completed frame
     # carries must equal the noise model the plain fold applies
-    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, depth={"completion_radius": 256}), shelf_small)
+    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth={"completion": True, "completion_radius": 256}), shelf_small)
     off, _ = fold_all(SceneConfig(voxel_size=VOXEL), shelf_small)
     assert [r.completed_pixels for r in reports] == [0, 0, 0]
     a, b = on.sums(), off.sums()  # (the digests differ: only `on` keeps the frames' views for the sweep)
@@ -68,7 +68,7 @@ def test_completion_without_large_holes_folds_exactly_as_without_it(shelf_small)
 
 @pytest.mark.realdata
 def test_a_frame_that_fails_to_fold_changes_nothing(shelf_small):
-    scene, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True, max_voxels=11_000), shelf_small[:2])
+    scene, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth={"completion": True}, max_voxels=11_000), shelf_small[:2])
     before = (scene.digest(), scene.frames, len(scene._front.window))
     with pytest.raises(CapacityError, match="max_voxels"):
         scene.fold(shelf_small[2])
@@ -77,18 +77,18 @@ def test_a_frame_that_fails_to_fold_changes_nothing(shelf_small):
 
 @pytest.mark.realdata
 def test_snapshot_resumes_completion_identically(shelf_small, tmp_path):
-    straight, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), shelf_small[:2])
+    straight, _ = fold_all(SceneConfig(voxel_size=VOXEL, depth={"completion": True}), shelf_small[:2])
     straight.save(tmp_path / "s.cgs")
     resumed = Scene.load(tmp_path / "s.cgs")
-    assert resumed.config.depth_completion and len(resumed._front.window) == 2
+    assert resumed.config.depth.completion and len(resumed._front.window) == 2
     last = withheld_band(shelf_small[2])
     assert straight.fold(last).completed_pixels == resumed.fold(last).completed_pixels > 0
     assert straight.digest() == resumed.digest()
 
 
 @pytest.mark.parametrize("settings, field", [
-    ({"depth_completion": 1}, "depth_completion"),
-    ({"depth_completion": "yes"}, "depth_completion"),
+    ({"depth": {"completion": 1}}, "depth.completion"),
+    ({"depth": {"completion": "yes"}}, "depth.completion"),
     ({"depth": {"completion_radius": 0}}, r"depth\.completion_radius"),
     ({"depth": {"completion_radius": 2.5}}, r"depth\.completion_radius"),
 ])
@@ -100,7 +100,7 @@ def test_bad_completion_settings_name_the_field(settings, field):
 @pytest.mark.realdata
 def test_frames_without_depth_are_unaffected_by_the_setting(shelf_small):
     rgb_only = [Frame(rgb=f.rgb, camera=f.camera) for f in shelf_small]
-    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth_completion=True), rgb_only)
+    on, reports = fold_all(SceneConfig(voxel_size=VOXEL, depth={"completion": True}), rgb_only)
     off, _ = fold_all(SceneConfig(voxel_size=VOXEL), rgb_only)
     assert reports[0].pending and all(r.completed_pixels == 0 for r in reports)
     assert on.digest() == off.digest()

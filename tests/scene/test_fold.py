@@ -185,7 +185,7 @@ def test_capacity_error_leaves_scene_unchanged(shelf_frames):
 
 
 def test_bad_frame_leaves_scene_unchanged():
-    scene = Scene(SceneConfig(voxel_size=0.1, feature_backend="client", feature_dim=2))
+    scene = Scene(SceneConfig(voxel_size=0.1, features={"backend": "client", "dim": 2}))
     good = make_frame(np.full((2, 2), 1.0), features=np.ones((2, 2, 2)))
     scene.fold(good)
     before = scene.sums()

@@ -7,7 +7,7 @@ import torch
 from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.decode import GaussianDecoder
 from canonical_core.scene import Scene, aggregate_batch
-from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
+from canonical_core.config import KEY_BITS, KEY_OFFSET
 from canonical_core.scene.free_space import history_free_space_kernel, see_through_map
 
 from ..conftest import make_frame
@@ -103,7 +103,7 @@ def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
         for cx in range(7):
             d = depth[cy * 4:cy * 4 + 4, cx * 4:cx * 4 + 4].ravel()
             s = std[cy * 4:cy * 4 + 4, cx * 4:cx * 4 + 4].ravel()
-            valid = (d > config.near) & (d < config.far)
+            valid = (d > config.range.near) & (d < config.range.far)
             if not valid.any():
                 assert m.threshold[cy, cx] == 0 and m.weight[cy, cx] == 0
                 continue

@@ -51,12 +51,11 @@ def test_bad_capacity_names_the_field(capacity):
         Keyframes(capacity)
 
 
-@pytest.mark.parametrize("setting, value", [("colour_solve_views", -1), ("colour_solve_views", 65),
-                                            ("colour_solve_views", 1.5), ("colour_solve_scale", 0.0),
-                                            ("colour_solve_scale", 1.5), ("colour_solve_scale", True)])
+@pytest.mark.parametrize("setting, value", [("views", -1), ("views", 65), ("views", 1.5), ("scale", 0.0),
+                                            ("scale", 1.5), ("scale", True)])
 def test_scene_config_checks_the_colour_solve_settings(setting, value):
-    with pytest.raises(ValueError, match=setting):
-        SceneConfig(voxel_size=0.01, **{setting: value})
+    with pytest.raises(ValueError, match=rf"^colour_solve\.{setting}: "):
+        SceneConfig(voxel_size=0.01, colour_solve={setting: value})
 
 
 @pytest.mark.realdata
@@ -77,7 +76,7 @@ def small(shelf_frames):
 
 @pytest.mark.realdata
 def test_decode_solves_colours_against_the_kept_views(small):
-    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0))
+    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0}))
     plain = Scene(SceneConfig(voxel_size=0.008))
     for f in small:
         solving.fold(f)
@@ -95,7 +94,7 @@ def test_decode_solves_colours_against_the_kept_views(small):
 
 @pytest.mark.realdata
 def test_decode_inputs_are_a_copy_that_later_folds_leave_alone(small):
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=2, colour_solve_scale=1.0))
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 2, "scale": 1.0}))
     for f in small[:3]:
         scene.fold(f)
     inputs, before = scene.decode_inputs(), scene.decode()
@@ -111,7 +110,7 @@ def test_decode_inputs_are_a_copy_that_later_folds_leave_alone(small):
 
 @pytest.mark.realdata
 def test_keyframes_travel_with_the_snapshot(small, tmp_path):
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8))
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 8}))
     for f in small[:2]:
         scene.fold(f)
     scene.save(tmp_path / "scene.cgs")
@@ -129,7 +128,7 @@ def test_keyframes_travel_with_the_snapshot(small, tmp_path):
 def test_a_frame_that_fails_to_fold_is_not_kept(small):
     probe = Scene(SceneConfig(voxel_size=0.008))
     probe.fold(small[0])
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=8, max_voxels=len(probe) + 10))
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 8}, max_voxels=len(probe) + 10))
     scene.fold(small[0])
     with pytest.raises(ValueError, match="max_voxels"):  # the second frame would need more voxels
         scene.fold(small[3])
@@ -142,7 +141,7 @@ def rows_of(scene: Scene) -> np.ndarray:  # the voxel rows a full decode of the 
 
 @pytest.mark.realdata
 def test_decodes_reuse_the_solution_until_refresh_frames_were_folded(small):
-    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=2))
+    solving = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 2}))
     plain = Scene(SceneConfig(voxel_size=0.008))
     for f in small[:2]:
         solving.fold(f)
@@ -168,7 +167,7 @@ def test_decodes_reuse_the_solution_until_refresh_frames_were_folded(small):
 
 @pytest.mark.realdata
 def test_a_partial_decode_leaves_the_solution_alone(small):
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=1))
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 1}))
     scene.fold(small[0])
     scene.decode()
     solution = scene._decoding.solution
@@ -181,7 +180,7 @@ def test_a_partial_decode_leaves_the_solution_alone(small):
 
 @pytest.mark.realdata
 def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(small, tmp_path):
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=4),
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 4}),
                   undo_depth=2)
     for f in small[:2]:
         scene.fold(f)
@@ -200,7 +199,7 @@ def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(smal
     solved = scene._decoding.solution
     scene.rollback(2)  # the solution stays on the voxels that are still there, due for a re-solve
     carried = scene._decoding.solution
-    assert carried.frames == 2 - scene.config.colour_solve_refresh
+    assert carried.frames == 2 - scene.config.colour_solve.refresh
     assert np.array_equal(carried.rows, solved.rows[solved.rows < len(scene)])
     assert torch.equal(carried.offsets, solved.offsets[torch.from_numpy(solved.rows < len(scene))])
 
@@ -225,7 +224,7 @@ class Deferred(Executor):
 @pytest.mark.realdata
 def test_a_colour_solver_re_solves_off_the_decode_and_the_next_decode_shows_it(small):
     solver = Deferred()
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=1))
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 1}))
     plain = Scene(SceneConfig(voxel_size=0.008))
     for f in small[:2]:
         scene.fold(f)
@@ -252,7 +251,7 @@ def test_a_colour_solver_re_solves_off_the_decode_and_the_next_decode_shows_it(s
 @pytest.mark.realdata
 def test_a_re_solve_of_a_replaced_state_is_not_kept(small):
     solver = Deferred()
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0, colour_solve_refresh=1),
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 1}),
                   undo_depth=2)
     scene.fold(small[0])
     scene.gaussians(colour_solver=solver)
@@ -262,14 +261,14 @@ def test_a_re_solve_of_a_replaced_state_is_not_kept(small):
     first = scene._decoding.solution
     scene.rollback(1)  # the re-solve in flight is of the rolled-back state: it is not kept
     solver.run()
-    assert scene._decoding.solution.frames == 1 - scene.config.colour_solve_refresh
+    assert scene._decoding.solution.frames == 1 - scene.config.colour_solve.refresh
     assert torch.equal(scene._decoding.solution.offsets, first.offsets[torch.from_numpy(first.rows < len(scene))])
 
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("undo_depth", [0, 4])  # re-folded from the start (no undo records), or rolled back in place
 def test_a_correction_carries_the_solution_by_voxel_key_and_the_next_decode_re_solves(small, undo_depth):
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_scale=1.0), keep_frames=True,
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0}), keep_frames=True,
                   undo_depth=undo_depth)
     for f in small:
         scene.fold(f)
@@ -280,7 +279,7 @@ def test_a_correction_carries_the_solution_by_voxel_key_and_the_next_decode_re_s
     pose[0, 3] += 0.01
     scene.update_poses({small[3].frame_id: pose})
     carried = scene._decoding.solution  # on the re-folded map's rows: each voxel key keeps its offsets
-    assert carried.frames == scene.frames - scene.config.colour_solve_refresh
+    assert carried.frames == scene.frames - scene.config.colour_solve.refresh
     keys = scene._voxels.state["keys"][carried.rows]
     assert np.array_equal(carried.rows, np.sort(carried.rows)) and len(carried.rows) > 0.8 * len(before.rows)
     assert all(torch.equal(offset, offsets_of[key]) for key, offset in zip(keys.tolist(), carried.offsets))

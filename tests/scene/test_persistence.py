@@ -35,7 +35,7 @@ def test_save_load_is_bit_identical_and_decodes_identically(folded, tmp_path):
 def test_snapshot_parts_encode_to_the_bytes_of_their_moment_while_later_folds_change_the_scene(shelf_frames, tmp_path):
     """`snapshot_parts` copies under the scene's lock: encoded after more folds (as the service writes a
     snapshot off the fold path), they give the bytes `to_bytes` gave then, into a file as into memory."""
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve_views=2))  # kept views and history arrays too
+    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 2}))  # kept views and history arrays too
     for f in shelf_frames[:3]:
         scene.fold(f)
     scene.decode()

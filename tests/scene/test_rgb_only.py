@@ -60,7 +60,7 @@ def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_pat
 
 
 def test_a_waiting_frame_is_checked_on_arrival():
-    scene = Scene(SceneConfig(voxel_size=VOXEL, feature_backend="client", feature_dim=4))
+    scene = Scene(SceneConfig(voxel_size=VOXEL, features={"backend": "client", "dim": 4}))
     from canonical_core import Camera
 
     cam = Camera([[100.0, 0, 16], [0, 100.0, 12], [0, 0, 1]], np.eye(4), 32, 24)

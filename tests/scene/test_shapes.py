@@ -55,7 +55,7 @@ def scene():
 def test_the_fast_path_equals_the_reference_on_a_folded_scene(scene):
     sums = scene.sums()
     rows = np.arange(len(sums["keys"]), dtype=np.int64)
-    fast, ref = assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.feature_dim))
+    fast, ref = assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.features.dim))
     same = (fast[2] - ref[2]).abs().amax(1) < 1e-5
     assert same.float().mean() > 0.99  # bit-near quaternions almost everywhere
 
@@ -63,7 +63,7 @@ def test_the_fast_path_equals_the_reference_on_a_folded_scene(scene):
 def test_a_subset_of_rows_in_any_order(scene):
     sums = scene.sums()
     rows = np.random.default_rng(0).permutation(len(sums["keys"]))[:50].astype(np.int64)
-    assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.feature_dim, min_thickness=0.1, max_extent=0.8))
+    assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.features.dim, min_thickness=0.1, max_extent=0.8))
 
 
 def test_awkward_voxels(scene):
@@ -81,7 +81,7 @@ def test_awkward_voxels(scene):
     sq[5] += r * np.array([0.01, -0.004, 0.002, 0.02, 0.003, 0.03], np.float32)
     sums["pos_sq"][:] = sq
     rows = np.arange(6, dtype=np.int64)
-    assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.feature_dim))
+    assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.features.dim))
 
 
 def test_no_rows():

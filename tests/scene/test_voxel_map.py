@@ -8,7 +8,7 @@ import pytest
 
 from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
-from canonical_core.scene.config import KEY_BITS, KEY_OFFSET
+from canonical_core.config import KEY_BITS, KEY_OFFSET
 from canonical_core.scene.free_space import CHUNK
 from canonical_core.scene.kernels import insert_range_kernel, lookup_kernel, remove_range_kernel, voxel_keys_kernel
 from canonical_core.scene.voxel_map import (ARRAYS, MAX_TABLE_LOAD, NEXT_TABLE_LOAD, CapacityError, VoxelMap,

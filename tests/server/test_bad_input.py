@@ -168,9 +168,9 @@ CASES = [
     ("create unknown setting", lambda c: c.create({"voxel_size": 0.01, "voxle_size": 0.02}), 422, "voxle_size"),
     ("create voxel_size zero", lambda c: c.create({"voxel_size": 0}), 422, "voxel_size"),
     ("create voxel_size negative", lambda c: c.create({"voxel_size": -0.01}), 422, "voxel_size"),
-    ("create missing voxel_size", lambda c: c.create({"feature_dim": 8}), 422, "voxel_size"),
+    ("create missing voxel_size", lambda c: c.create({"features": {"dim": 8}}), 422, "voxel_size"),
     ("create bad weighting", lambda c: c.create({"voxel_size": 0.01, "weighting": "median"}), 422, "weighting"),
-    ("create near above far", lambda c: c.create({"voxel_size": 0.01, "near": 5, "far": 1}), 422, "near"),
+    ("create near above far", lambda c: c.create({"voxel_size": 0.01, "range": {"near": 5, "far": 1}}), 422, "range.near"),
     ("create completion radius zero", lambda c: c.create({"voxel_size": 0.01, "depth": {"completion_radius": 0}}), 422,
      "depth.completion_radius"),
     ("create opacity_bias not a number", lambda c: c.create({"voxel_size": 0.01, "decoder": {"opacity_bias": "high"}}), 422,
@@ -238,7 +238,7 @@ def test_unknown_route_and_method(server):
 def test_fold_time_error_leaves_log_unchanged(client, frames):
     """A frame that passes decoding but fails inside the fold (here: a client-features session sent a
     frame without features) is logged first, then cut off again: the session and its files are as before."""
-    session = client.create_session(voxel_size=VOXEL, feature_backend="client", feature_dim=8)
+    session = client.create_session(voxel_size=VOXEL, features={"backend": "client", "dim": 8})
     kwargs = frames[0]
     h, w = kwargs["rgb"].shape[:2]
     feats = np.random.default_rng(0).standard_normal((h // 4, w // 4, 12)).astype(np.float16)

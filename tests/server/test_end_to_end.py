@@ -85,7 +85,7 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
     feats = session.features(K, c2w, w, h)
     stats = session.stats()
     assert feats["features"].dtype == np.float16
-    assert feats["features"].shape == (h, w, stats["config"]["feature_dim"])
+    assert feats["features"].shape == (h, w, stats["config"]["features"]["dim"])
     assert feats["alpha"].shape == (h, w) and np.allclose(feats["alpha"], view["alpha"], atol=1e-6)
     assert np.isfinite(feats["features"].astype(np.float32)).all()
     preview = Image.open(io.BytesIO(session.features_preview_png(K, c2w, w, h)))
@@ -194,9 +194,9 @@ def test_health_and_metrics(client, server):
 
 @pytest.mark.realdata
 def test_depth_completion_session_reports_filled_pixels(client, frames):
-    """A session with depth_completion sweeps frames with depth against the earlier ones and fills
+    """A session with depth.completion sweeps frames with depth against the earlier ones and fills
     the large holes of their depth (the shelf's depth misses its image's left band and dark surfaces)."""
-    session = client.create_session(voxel_size=VOXEL, depth_completion=True)
+    session = client.create_session(voxel_size=VOXEL, depth={"completion": True})
     plain = client.create_session(voxel_size=VOXEL)
     reports = [session.add_frame(**f) for f in frames[:3]]
     for f in frames[:3]:
@@ -237,9 +237,9 @@ def test_rgb_only_session_end_to_end(client, frames):
 
 @pytest.mark.realdata
 def test_colour_solve_session_renders_its_inputs_closer(client, frames):
-    """A session with colour_solve_views keeps input views and solves the Gaussians' colours against
+    """A session with colour_solve.views keeps input views and solves the Gaussians' colours against
     them: its renders at an input pose are closer to that frame than a plain session's."""
-    solving = client.create_session(voxel_size=VOXEL, colour_solve_views=4)
+    solving = client.create_session(voxel_size=VOXEL, colour_solve={"views": 4})
     plain = client.create_session(voxel_size=VOXEL)
     for f in frames[:4]:
         solving.add_frame(**f)

@@ -133,7 +133,7 @@ def test_label_channels_are_capped(hard, sid, frames):
 
 
 def test_channel_values_are_capped(hard, frames):
-    r = httpx.post(f"{hard.url}/v1/sessions", json={"voxel_size": VOXEL, "feature_backend": "client"}, headers=AUTH)
+    r = httpx.post(f"{hard.url}/v1/sessions", json={"voxel_size": VOXEL, "features": {"backend": "client"}}, headers=AUTH)
     client_sid = r.json()["id"]
     features = encode_array(np.zeros((2, 2, 512), np.float16))  # 512 x 320 x 240 values at the image's pixels
     assert_error(post_frame(hard, client_sid, {**msgpack_frame(frames[1]), "features": features}), 413, "features")
@@ -143,7 +143,7 @@ def test_features_a_session_would_ignore_are_refused(hard, sid, frames):
     before = digest(hard, sid)
     features = encode_array(np.zeros((4, 4, 3), np.float32))
     error = assert_error(post_frame(hard, sid, {**msgpack_frame(frames[1]), "features": features}), 422, "features")
-    assert "feature_backend" in error["message"]
+    assert "features.backend" in error["message"]
     assert digest(hard, sid) == before
 
 

@@ -32,13 +32,13 @@ def create(server, body):
     ({"voxel_size": "0.01"}, "voxel_size"),
     ({"voxel_size": True}, "voxel_size"),
     ({"voxel_size": 0.01, "sh_degree": 1.0}, "sh_degree"),
-    ({"voxel_size": 0.01, "depth_completion": 1}, "depth_completion"),
+    ({"voxel_size": 0.01, "depth": {"completion": 1}}, "depth.completion"),
     ({"voxel_size": 0.01, "free_space": False}, "free_space"),
     ({"voxel_size": 0.01, "free_space": {"margin": -1}}, "free_space.margin"),
     ({"voxel_size": 0.01, "free_space": {"margn": 1}}, "free_space.margn"),
     ({"voxel_size": 0.01, "depth": {"hypotheses": 513}}, "depth.hypotheses"),
     ({"voxel_size": 0.01, "decoder": {"opacity_slope": "steep"}}, "decoder.opacity_slope"),
-    ({"voxel_size": 0.01, "near": 2.0, "far": 1.0}, "near"),
+    ({"voxel_size": 0.01, "range": {"near": 2.0, "far": 1.0}}, "range.near"),
     ({"voxel_size": 0.01, "model": "/etc/passwd"}, "model"),
     ({"voxel_size": 0.01, "model": "/tmp/trained.safetensors"}, "model"),  # the service reads no file a client names
 ])
@@ -85,7 +85,7 @@ def test_a_session_stored_with_flat_settings_opens(tmp_path):
     try:
         session = store.get(session_id)
         assert session.config == SceneConfig.from_dict(flat)
-        assert (session.config.free_space.enabled, session.config.colour_solve_views) == (False, 4)
+        assert (session.config.free_space.enabled, session.config.colour_solve.views) == (False, 4)
         assert session.scene.config == session.config and session.scene.frames == 0
     finally:
         store.close()

@@ -59,7 +59,7 @@ def test_session_ids_are_hex_so_a_command_line_never_reads_one_as_a_flag(store):
 
 @pytest.mark.realdata
 def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
-    session = store.create(SceneConfig(voxel_size=0.008, colour_solve_views=2))
+    session = store.create(SceneConfig(voxel_size=0.008, colour_solve={"views": 2}))
     for frame in shelf_frames[:3]:
         fold(session, frame)
     g, label_dim = session.gaussians()
@@ -76,7 +76,7 @@ def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
 
 @pytest.mark.realdata
 def test_a_colour_re_solve_runs_off_the_render_and_the_next_render_shows_it(store, shelf_frames):
-    session = store.create(SceneConfig(voxel_size=0.008, colour_solve_views=3, colour_solve_refresh=1))
+    session = store.create(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "refresh": 1}))
     for frame in shelf_frames[:2]:
         fold(session, frame)
     session.gaussians()  # the first solve, in the call
@@ -97,7 +97,7 @@ def test_a_colour_re_solve_runs_off_the_render_and_the_next_render_shows_it(stor
 
 @pytest.mark.realdata
 def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_served(store, shelf_frames):
-    session = store.create(SceneConfig(voxel_size=0.004, colour_solve_views=4, colour_solve_scale=1.0))
+    session = store.create(SceneConfig(voxel_size=0.004, colour_solve={"views": 4, "scale": 1.0}))
     for frame in shelf_frames[:4]:
         fold(session, frame)
     before = len(session.scene.decode_from(session.scene.decode_inputs()._replace(views=[])))

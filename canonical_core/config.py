@@ -6,11 +6,11 @@ the library's validation (`SceneConfig(...)` raises a ValueError whose message s
 setting's path, e.g. ``free_space.margin: ...``), the service's session-create schema
 (`public_model`) and the CLI's ``--set NAME=VALUE`` (`parse_setting`).
 
-Layout: the settings a user chooses sit at the top level (voxel size, capacity, SH degree, depth
-range, features, depth completion, the colour solve), with the sensor noise model in ``sensor``;
-expert tuning lives in groups with defaults (``free_space``, ``depth``, ``decoder``); the aggregation
-ablations live in ``research``, which the evaluation's method definitions set and the public schema
-leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
+Layout: a few settings sit at the top level (voxel size, capacity, SH degree, the decoder's
+model); everything else lives in groups with defaults: the depth ``range``, the ``features``, the
+``colour_solve``, the ``sensor`` noise model, and expert tuning (``free_space``, ``depth``,
+``decoder``). The aggregation ablations live in ``research``, which the evaluation's method
+definitions set and the public schema leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
 
 Example:
     >>> config = SceneConfig(voxel_size=0.01, free_space={"margin": 3.0})
@@ -87,6 +87,57 @@ MIN_VOXEL, MAX_VOXEL, MAX_DEPTH = 1e-5, 100.0, 1e5
 MAX_VOXELS = 2**31 - 1
 
 
+class DepthRange(_Settings):
+    """The depths accepted from frames, metres; pixels outside are ignored."""
+
+    _path: ClassVar[str] = "range"
+
+    near: NonNegative = 0.05
+    """Nearest depth accepted from frames, metres; nearer pixels are ignored."""
+    far: Annotated[float, Field(gt=0, le=MAX_DEPTH)] = 20.0
+    """Farthest depth accepted from frames, metres; farther pixels are ignored. It must stay on the
+    voxel lattice: at most 2^20 voxels from the origin (checked by `SceneConfig`)."""
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "DepthRange":
+        if self.near >= self.far:
+            raise ValueError(f"range.near: must be below range.far ({self.near} >= {self.far})")
+        return self
+
+
+class FeatureSettings(_Settings):
+    """The per-pixel features that are fused (F_view, F_scene)."""
+
+    _path: ClassVar[str] = "features"
+
+    backend: FeatureBackend = "default"
+    """``default`` (the training-free extractor) or ``client`` (``Frame.features``, resized to the
+    image and projected to ``dim`` channels)."""
+    dim: Annotated[int, Field(ge=1, le=512)] = 16
+    """L, channels of the fused features."""
+
+
+class ColourSolve(_Settings):
+    """The render-consistent colour solve: kept input views, and Gaussian colours solved so that
+    renders reproduce them."""
+
+    _path: ClassVar[str] = "colour_solve"
+
+    views: Annotated[int, Field(ge=0, le=64)] = 0
+    """Keep this many input views (colour and camera, spread over the stream: `scene.keyframes`) and
+    solve the decoded Gaussians' colours (SH up to degree 1) so that renders reproduce them
+    (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode that solves
+    takes seconds instead of milliseconds (``refresh`` says which decodes do)."""
+    refresh: Annotated[int, Field(ge=1, le=1_000_000)] = 4
+    """Frames folded between two colour solves of a streaming scene. The first decode solves from
+    scratch; later decodes reuse the last solution (its offsets, on the voxels it solved: voxels
+    decoded since keep their fused colours) until this many frames were folded since, and then
+    solve again in a few steps, starting from it (`decode.colour_offsets`)."""
+    scale: Annotated[float, Field(gt=0, le=1)] = 0.5
+    """Size of the kept views relative to the input (0.5: a quarter of the pixels, of the solve's
+    time and of the views' memory)."""
+
+
 class SensorNoise(_Settings):
     """Noise model of supplied depth that carries no per-pixel std (structured-light and
     time-of-flight sensors): sigma(z) = sigma0 + sigma2 (z - sigma_ref)^2 metres, plus
@@ -148,8 +199,13 @@ class DepthEstimation(_Settings):
     source_window: Annotated[int, Field(ge=1, le=64)] = 4
     """Recent views kept as sweep sources (and frames without depth that may wait for a partner at
     once)."""
+    completion: bool = False
+    """Also sweep frames that carry depth, and fill the large holes of their depth (beyond
+    ``completion_radius`` pixels from any measured pixel: beyond the sensor's range or field of
+    view, dark or specular surfaces) with the swept depth. Measured pixels are never changed; a frame
+    without holes is not swept. Buys coverage at some cost in accuracy on the covered pixels."""
     completion_radius: Annotated[int, Field(ge=1, le=256)] = 6
-    """Pixels; with ``depth_completion``, holes closer than this to a measured pixel stay unfilled."""
+    """Pixels; with ``completion``, holes closer than this to a measured pixel stay unfilled."""
     denoise_radius: Annotated[int, Field(ge=0, le=32)] = 7
     """Pixels; a frame whose depth is far rougher than its noise model gets the median of a
     (2 radius + 1)^2 window instead, with that median's std (`evidence.denoise`). Clean sensor depth
@@ -200,40 +256,19 @@ class SceneConfig(_Settings):
     """
 
     voxel_size: Annotated[float, Field(ge=MIN_VOXEL, le=MAX_VOXEL)]
-    """Edge length of the sparse lattice's voxels, in the scene's unit (metres). ``far`` must stay
-    on the lattice: at most 2^20 voxels from the origin."""
+    """Edge length of the sparse lattice's voxels, in the scene's unit (metres). ``range.far`` must
+    stay on the lattice: at most 2^20 voxels from the origin."""
     max_voxels: Annotated[int, Field(gt=0, le=MAX_VOXELS)] | None = None
     """Cap on the number of voxels (None = unbounded); a fold that would exceed it raises instead of
     folding part of a frame."""
     sh_degree: Annotated[int, Field(ge=0, le=3)] = 1
     """Degree of the per-voxel spherical-harmonics colour fit (0 = view-independent colour)."""
-    near: NonNegative = 0.05
-    """Nearest depth accepted from frames, metres; nearer pixels are ignored."""
-    far: Annotated[float, Field(gt=0, le=MAX_DEPTH)] = 20.0
-    """Farthest depth accepted from frames, metres; farther pixels are ignored."""
-    feature_backend: FeatureBackend = "default"
-    """``default`` (the training-free extractor) or ``client`` (``Frame.features``, resized to the
-    image and projected to ``feature_dim`` channels)."""
-    feature_dim: Annotated[int, Field(ge=1, le=512)] = 16
-    """L, channels of the fused features."""
-    depth_completion: bool = False
-    """Also sweep frames that carry depth, and fill the large holes of their depth (beyond
-    ``depth.completion_radius`` pixels from any measured pixel: beyond the sensor's range or field of
-    view, dark or specular surfaces) with the swept depth. Measured pixels are never changed; a frame
-    without holes is not swept. Buys coverage at some cost in accuracy on the covered pixels."""
-    colour_solve_views: Annotated[int, Field(ge=0, le=64)] = 0
-    """Keep this many input views (colour and camera, spread over the stream: `scene.keyframes`) and
-    solve the decoded Gaussians' colours (SH up to degree 1) so that renders reproduce them
-    (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode that solves
-    takes seconds instead of milliseconds (``colour_solve_refresh`` says which decodes do)."""
-    colour_solve_refresh: Annotated[int, Field(ge=1, le=1_000_000)] = 4
-    """Frames folded between two colour solves of a streaming scene. The first decode solves from
-    scratch; later decodes reuse the last solution (its offsets, on the voxels it solved: voxels
-    decoded since keep their fused colours) until this many frames were folded since, and then
-    solve again in a few steps, starting from it (`decode.colour_offsets`)."""
-    colour_solve_scale: Annotated[float, Field(gt=0, le=1)] = 0.5
-    """Size of the kept views relative to the input (0.5: a quarter of the pixels, of the solve's
-    time and of the views' memory)."""
+    range: DepthRange = DepthRange()
+    """The depths accepted from frames."""
+    features: FeatureSettings = FeatureSettings()
+    """The fused features: where they come from and how many channels."""
+    colour_solve: ColourSolve = ColourSolve()
+    """The render-consistent colour solve (off by default)."""
     model: Annotated[str, Field(min_length=1, max_length=4096)] = "default"
     """The decoder's parameters: ``default`` (the checkpoint shipped with the library when one ships,
     else the training-free decoder), ``none`` (the training-free, analytic decoder) or the path of a
@@ -258,11 +293,10 @@ class SceneConfig(_Settings):
         return value
 
     @model_validator(mode="after")
-    def _depth_range(self) -> "SceneConfig":
-        if self.near >= self.far:
-            raise ValueError(f"near: must be below far ({self.near} >= {self.far})")
-        if self.far > self.voxel_size * KEY_OFFSET:
-            raise ValueError(f"far: {self.far} is {self.far / self.voxel_size:.3g} voxels of {self.voxel_size}, beyond the "
+    def _far_on_lattice(self) -> "SceneConfig":
+        far = self.range.far
+        if far > self.voxel_size * KEY_OFFSET:
+            raise ValueError(f"range.far: {far} is {far / self.voxel_size:.3g} voxels of {self.voxel_size}, beyond the "
                              f"lattice's {KEY_OFFSET} voxels from the origin; use larger voxels or a nearer far")
         return self
 
@@ -302,7 +336,8 @@ class SceneConfig(_Settings):
         return cls(**migrate_flat(d))
 
 
-# The flat layout's names -> their path now. Snapshots and session files written with it still load.
+# Top-level names of earlier layouts -> their path now. Snapshots and session files written with them
+# still load.
 FLAT_NAMES: dict[str, str] = {
     "depth_sigma0": "sensor.sigma0",
     "depth_sigma2": "sensor.sigma2",
@@ -323,6 +358,14 @@ FLAT_NAMES: dict[str, str] = {
     "sh_regularization": "decoder.sh_regularization",
     "weighting": "research.weighting",
     "eps": "research.eps",
+    "near": "range.near",
+    "far": "range.far",
+    "feature_backend": "features.backend",
+    "feature_dim": "features.dim",
+    "depth_completion": "depth.completion",
+    "colour_solve_views": "colour_solve.views",
+    "colour_solve_refresh": "colour_solve.refresh",
+    "colour_solve_scale": "colour_solve.scale",
 }
 
 
@@ -339,8 +382,11 @@ def migrate_flat(d: dict) -> dict:
             group, name = new.split(".")
             groups.setdefault(group, {})[name] = d[old]
     for group, values in groups.items():
-        if isinstance(out.get(group), dict):
-            raise ValueError(f"{group}: given both as a group and as flat settings ({sorted(values)})")
+        given = out.get(group)
+        if isinstance(given, dict):  # a group of the current layout beside one of its flat names
+            if both := sorted(set(given) & set(values)):
+                raise ValueError(f"{group}: given both as a group and as flat settings ({both})")
+            values = {**given, **values}
         out[group] = values
     return out
 
@@ -368,8 +414,8 @@ def parse_setting(text: str) -> tuple[str, Any]:
     bounds. Raises ValueError naming PATH for an unknown, private or invalid setting.
 
     Example:
-        >>> parse_setting("free_space.margin=3"), parse_setting("colour_solve_views=16")
-        (('free_space.margin', 3.0), ('colour_solve_views', 16))
+        >>> parse_setting("free_space.margin=3"), parse_setting("colour_solve.views=16")
+        (('free_space.margin', 3.0), ('colour_solve.views', 16))
     """
     path, sep, value = text.partition("=")
     path = path.strip()
