@@ -30,6 +30,8 @@ MAX_RGB_ONLY_PIXELS = 2048 * 2048
 MAX_FEATURE_CHANNELS = 512
 MAX_LABEL_CHANNELS = 256
 MIN_RGB_ONLY_SIDE = 8  # the plane sweep matches at half resolution and needs a few pixels a side
+# A frame's id is kept in memory, in the log and in every snapshot: a name, not a payload.
+MAX_FRAME_ID_BYTES = 256
 
 
 def _tensor(value, field: str) -> Tensor:
@@ -160,8 +162,12 @@ class Frame:
         if self.labels is not None:
             labels = _channel_map(self.labels, "labels", MAX_LABEL_CHANNELS)
             object.__setattr__(self, "labels", labels)
-        if self.frame_id is not None and not isinstance(self.frame_id, str):
-            raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")
+        if self.frame_id is not None:
+            if not isinstance(self.frame_id, str):
+                raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")
+            if len(self.frame_id.encode("utf-8", "surrogatepass")) > MAX_FRAME_ID_BYTES:
+                raise ValueError(f"frame_id: at most {MAX_FRAME_ID_BYTES} bytes (UTF-8), got "
+                                 f"{len(self.frame_id.encode('utf-8', 'surrogatepass'))}")
 
     @property
     def height(self) -> int:

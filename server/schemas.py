@@ -112,7 +112,7 @@ class ViewRequest(BaseModel):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     max_gaussians: int | None = Field(None, ge=0, description="level of detail: the best-supported N Gaussians")
-    background: Annotated[list[float], Field(min_length=3, max_length=3)] | None = Field(
+    background: Annotated[list[Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]], Field(min_length=3, max_length=3)] | None = Field(
         None, description="rgb in [0, 1] behind the Gaussians (default black)")
     colour: Colour = Field("normalised", description=(
         "render only: 'normalised' (default: each drawn pixel the blend over its accumulated weight, the "

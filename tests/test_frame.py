@@ -51,6 +51,8 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(features=np.full((4, 5, 2), np.inf, np.float32)), "features", "NaN"),
         (dict(labels=np.zeros((4, 5, 2), np.int64)), "labels", "float"),
         (dict(frame_id=5), "frame_id", "string"),
+        (dict(frame_id="x" * 257), "frame_id", "at most 256 bytes"),
+        (dict(frame_id="é" * 129), "frame_id", "got 258"),  # bytes of UTF-8, not characters
     ],
 )
 def test_validation_names_field_and_problem(kwargs, field, message):
@@ -58,6 +60,10 @@ def test_validation_names_field_and_problem(kwargs, field, message):
     with pytest.raises(ValueError) as err:
         Frame(**args)
     assert str(err.value).startswith(field) and message in str(err.value)
+
+
+def test_a_frame_id_of_256_bytes_is_taken():
+    assert Frame(rgb=RGB, camera=CAM, frame_id="x" * 256).frame_id == "x" * 256
 
 
 def test_image_too_large_is_rejected():

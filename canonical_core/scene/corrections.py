@@ -29,6 +29,10 @@ import numpy as np
 from ..camera import quaternion_to_matrix, validate_pose
 from ..frame import Frame
 
+# An arrival index is an int64; a longer run of digits names no frame (and int() of thousands of
+# digits is refused by CPython itself).
+MAX_ARRIVAL_DIGITS = 19
+
 __all__ = ["FieldError", "FrameKey", "FrameRef", "check_poses", "corrected_stream", "drift_walk", "drifted", "resolve_frames"]
 
 FrameKey = int | str
@@ -61,7 +65,7 @@ def resolve_frames(keys: Iterable[FrameKey], refs: Sequence[FrameRef], field: st
             raise ValueError(f"{field}: frame keys are frame_id strings or arrival indices, got {type(key).__name__}")
         if isinstance(key, str) and key in by_id:
             position = by_id[key]
-        elif isinstance(key, int) or (key.isascii() and key.isdigit()):
+        elif isinstance(key, int) or (key.isascii() and key.isdigit() and len(key) <= MAX_ARRIVAL_DIGITS):
             position = by_arrival.get(int(key))
         else:
             position = None

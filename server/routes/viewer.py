@@ -19,6 +19,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response, StreamingResponse
 from PIL import Image
 
+from canonical_core.config import MAX_DEPTH
 from canonical_core.rendering.preview import feature_preview
 
 from .. import viewer, wire
@@ -37,6 +38,7 @@ ImageFormat = Literal["png", "jpeg", "webp"]
 MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
 KEEPALIVE_S = 15.0  # an SSE comment this often keeps proxies from closing an idle stream
 PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"}
+MIN_DEPTH_SPAN = 1e-6  # metres: the narrowest depth_range a depth picture is coloured over
 
 
 # -- pages -----------------------------------------------------------------------------------------
@@ -191,9 +193,10 @@ def _render_picture(mode: Mode, maps: dict, fixed_range, headers: dict) -> tuple
 def _range(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
-    near, far = views._numbers(text, "depth_range", 2)
-    if not far > near:
-        raise ApiError(422, "invalid_value", f"depth_range: far must exceed near, got {near}, {far}", "depth_range")
+    near, far = views._numbers(text, "depth_range", 2, 0.0, MAX_DEPTH)
+    if not far - near >= MIN_DEPTH_SPAN:  # a narrower span has no float32 depth inside it to colour
+        raise ApiError(422, "invalid_value", f"depth_range: far must exceed near by at least {MIN_DEPTH_SPAN:g} m, "
+                                             f"got {near:g}, {far:g}", "depth_range")
     return near, far
 
 

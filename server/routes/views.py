@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Annotated, Callable, NamedTuple
 
@@ -40,13 +41,18 @@ def wants_msgpack(request: Request) -> bool:
     return False
 
 
-def _numbers(text: str, field: str, count: int) -> list[float]:
+def _numbers(text: str, field: str, count: int, lo: float = -math.inf, hi: float = math.inf) -> list[float]:
+    """``count`` comma-separated finite numbers in [lo, hi] from a query value; a 422 naming ``field``
+    otherwise (NaN, infinities and numbers that overflow a float are never a camera or a colour)."""
     try:
         values = [float(x) for x in text.replace(" ", "").split(",")]
     except ValueError:
-        raise ApiError(422, "invalid_value", f"{field}: expected {count} comma-separated numbers, got {text!r}", field) from None
+        raise ApiError(422, "invalid_value", f"{field}: expected {count} comma-separated numbers, got {text[:200]!r}", field) from None
     if len(values) != count:
         raise ApiError(422, "invalid_value", f"{field}: expected {count} comma-separated numbers, got {len(values)}", field)
+    if not all(math.isfinite(v) and lo <= v <= hi for v in values):
+        bounds = "finite numbers" if (lo, hi) == (-math.inf, math.inf) else f"numbers in [{lo:g}, {hi:g}]"
+        raise ApiError(422, "invalid_value", f"{field}: expected {bounds}, got {text[:200]!r}", field)
     return values
 
 
@@ -64,7 +70,7 @@ async def view_from_query(
     fx, fy, cx, cy = _numbers(K, "K", 4)
     return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=[p[0:4], p[4:8], p[8:12], p[12:16]],
                        width=width, height=height, max_gaussians=max_gaussians,
-                       background=None if background is None else _numbers(background, "background", 3), colour=colour,
+                       background=None if background is None else _numbers(background, "background", 3, 0.0, 1.0), colour=colour,
                        depth=depth)
 
 

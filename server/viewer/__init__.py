@@ -64,9 +64,11 @@ def depth_picture(
 ) -> np.ndarray:  # [H, W, 3] uint8
     """Depth through `DEPTH_LUT`, ``near`` -> index 0, ``far`` -> index 255 (clamped beyond)."""
     near, far = near_far
-    if not far > near:
-        raise ValueError(f"depth_range: far must exceed near, got {near}, {far}")
-    index = np.clip(np.round((depth - near) / (far - near) * 255.0), 0, 255).astype(np.intp)
+    if not (np.isfinite(near) and np.isfinite(far) and far > near):
+        raise ValueError(f"depth_range: far must exceed near (both finite), got {near}, {far}")
+    # float64: a float32 difference of two nearby ranges can be 0 (0 / 0 is no index)
+    scaled = (depth.astype(np.float64) - near) * (255.0 / (far - near))
+    index = np.clip(np.round(np.nan_to_num(scaled, nan=0.0)), 0, 255).astype(np.intp)
     out = DEPTH_LUT[index]
     out[(alpha <= COVERED) | (depth <= 0)] = UNCOVERED
     return out

@@ -161,6 +161,16 @@ def test_keys_prefer_a_frame_id_over_an_arrival_index():
         resolve_frames([1.0], refs, "frames")
 
 
+def test_a_key_of_thousands_of_digits_names_no_frame():
+    """Such a key once reached int() and CPython's digit limit: an error that named no field."""
+    refs = [FrameRef(0, None)]
+    key = "0" * 4301 + "1"
+    with pytest.raises(ValueError, match=r"^frames\.0{4301}1: no kept frame") as err:
+        resolve_frames([key], refs, "frames")
+    assert err.value.field == f"frames.{key}"
+    assert resolve_frames(["0" * 19], refs, "frames") == [0]  # leading zeros within an int64's digits still count
+
+
 @pytest.mark.parametrize("undo_depth", [0, 3])  # 3: the last frames roll back in place, earlier ones use checkpoints
 @pytest.mark.parametrize("touch", [0, 4, 5, 9, 11])  # before, at and after the checkpoints (every 5 frames)
 def test_refolding_from_a_checkpoint_equals_refolding_all(touch, undo_depth):

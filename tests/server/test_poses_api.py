@@ -111,6 +111,8 @@ def test_frames_without_ids_are_named_by_arrival_index(api, few):
     ({"poses": {"odd key: ü": np.eye(4).tolist()}}, "poses.odd key: ü"),  # keys the message alone cannot delimit
     ({"remove": ["a: b"]}, "frames.a: b"),
     ({"remove": [""]}, "frames."),
+    ({"remove": ["9" * 4301]}, "frames." + "9" * 4301),  # once CPython's digit limit, with no field
+    ({"poses": {"9" * 4301: np.eye(4).tolist()}}, "poses." + "9" * 4301),
     ({}, "poses"),
     ({"poses": {}, "extra": 1}, "extra"),
 ])

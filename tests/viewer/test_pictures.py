@@ -29,6 +29,17 @@ def test_depth_picture_maps_near_to_far_along_the_lut_and_blanks_uncovered():
     np.testing.assert_array_equal(out[0], np.array(expected, np.uint8))
     with pytest.raises(ValueError, match="^depth_range:"):
         depth_picture(depth, alpha, (2.0, 2.0))
+    for bad in ((float("nan"), 1.0), (0.0, float("inf"))):
+        with pytest.raises(ValueError, match="^depth_range:"):
+            depth_picture(depth, alpha, bad)
+
+
+@pytest.mark.parametrize("near_far", [(1e-300, 2e-300), (-1e300, 0.0), (-1e308, 1e308)])
+def test_depth_picture_of_extreme_finite_ranges_is_a_picture(near_far):
+    """Ranges whose float32 span is 0 or whose scale overflows still index the LUT (they once did not)."""
+    depth = np.array([[0.0, 1e-300, 1.0, 3.0]], np.float32)
+    out = depth_picture(depth, np.ones_like(depth), near_far)
+    assert out.shape == (1, 4, 3) and out.dtype == np.uint8
 
 
 def test_depth_range_is_the_percentiles_of_drawn_depths():

@@ -85,6 +85,9 @@ def test_depth_alpha_and_labels_pictures_say_how_to_read_them(server, walls):
     depth = png_to_array(r.content)
     index = lambda c: int(np.argmin(np.abs(DEPTH_LUT.astype(int) - c).sum(1)))  # noqa: E731
     assert index(depth[48, 20]) < 10 and index(depth[48, 108]) > 245  # the walls at the ends of the scale
+    for bad in ("1e-300,2e-300", "-1e300,0", "-1e308,1e308", "nan,1", "1,1", "0,1e400"):
+        r = get_image(server, session.id, image_query(frames[-1], mode="depth", depth_range=bad))
+        assert r.status_code == 422 and r.json()["error"]["field"] == "depth_range", (bad, r.text)
     fixed = get_image(server, session.id, image_query(frames[-1], mode="depth", depth_range="0,4"))
     assert fixed.headers["x-canonical-depth-range"] == "0,4"
     assert abs(index(png_to_array(fixed.content)[48, 20]) - 64) <= 3  # 1 m of 0..4 m
