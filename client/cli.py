@@ -110,7 +110,8 @@ def add_repair(p: argparse.ArgumentParser) -> None:
 
 def run_repair(args) -> int:
     # Works on the data directory itself, not over HTTP: the one place the CLI imports the service's code.
-    from server.store import DataDirLocked, SessionStore, Unrestorable
+    from server.session_errors import DataDirLocked, Unrestorable
+    from server.store import SessionStore
 
     data_dir = args.data_dir or os.environ.get("CANONICAL_DATA_DIR", "./data")
     store = SessionStore(data_dir, max_sessions=1 << 30)

@@ -22,8 +22,9 @@ from .errors import error_response, install_error_handlers
 from .events import FoldEvents
 from .metrics import Metrics
 from .routes import exports, frames, health, poses, sessions, viewer, views
+from .session_errors import DataDirLocked
 from .settings import Settings
-from .store import DataDirLocked, SessionStore
+from .store import SessionStore
 
 log = logging.getLogger("canonical.server")
 

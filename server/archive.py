@@ -22,7 +22,7 @@ Frames are archived off the acknowledged path. A folded frame is durable in the 
 (fsynced before the answer); compressing and appending it (a second fsync) need not delay the answer,
 so `defer_frame` queues it and a writer thread of the archive compresses and appends it. The frame log is not restarted
 while the archive lacks frames (`flush` comes first), so after a crash the frames the archive lacks
-are all in the log, and the restart archives them from there (`store.restore_session`). Whatever
+are all in the log, and the restart archives them from there (`durability.restore_session`). Whatever
 reads the archive's frames (a correction) flushes it first.
 
 Retention (`Retention`): ``all`` keeps every frame; ``keyframes`` keeps one frame in
@@ -212,6 +212,22 @@ class SessionArchive:
             self._writer.start()
         self._queue.put((frame_id, digest, payload))
 
+    def keep_folded(self, frame_id: str | None, digest: str, payload: bytes, at_once: bool) -> None:
+        """Archive a folded frame: off the acknowledged path (`defer_frame`: the session's frame log
+        holds it durably until the archive does), but ``at_once`` while a background correction
+        re-folds, which catches up on the archive's frames. A failure leaves the frame in the log and
+        corrections refused (`problem`) until a restart archives it from there."""
+        if self.problem is not None:
+            return
+        if not at_once:
+            self.defer_frame(frame_id, digest, payload)
+            return
+        self.flush()
+        try:
+            self.append_frame(frame_id, digest, payload)
+        except Exception as exc:  # noqa: BLE001 - the frame is folded and in the log; a restart archives it
+            self.problem = archive_failure(exc)
+
     def flush(self) -> None:
         """Wait until every deferred frame is archived (or the archive has a `problem`)."""
         self._queue.join()
@@ -233,7 +249,7 @@ class SessionArchive:
 
     def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0,
                           correction_id: str | None = None) -> None:
-        """Archive a correction (fsynced): the commit point of `Session.correct`. ``first``: the stream
+        """Archive a correction (fsynced): the commit point of `Corrections.correct`. ``first``: the stream
         position of the first frame it touches (the states of the frames before it stay valid);
         ``correction_id``: a background correction's id, by which a restart knows it done."""
         body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},

@@ -9,8 +9,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from .errors import ApiError
 from .metrics import Metrics
+from .session import Session
 from .settings import Settings
-from .store import Session, SessionStore, configure_thread
+from .store import SessionStore, configure_thread
 
 T = TypeVar("T")
 

@@ -17,7 +17,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from canonical_core.scene import CapacityError
 from canonical_core.scene.corrections import FieldError
 
-from .store import FrameIdConflict, SessionNotFound, SessionUnavailable, StorageError, TooManySessions
+from .framelog import StorageError
+from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable, TooManySessions
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")

@@ -32,9 +32,13 @@ from canonical_core import SceneConfig
 
 from ..app import create_app
 from ..archive import Retention
+from ..durability import restore_session
 from ..framelog import Fenced
 from ..metrics import Histogram
-from ..store import META, Session, SessionNotFound, SessionStore, SessionUnavailable, Unrestorable, configure_thread, restore_session
+from ..session import Session
+from ..session_errors import SessionNotFound, SessionUnavailable, Unrestorable
+from ..snapshots import Snapshots
+from ..store import META, SessionStore, configure_thread
 from ..warmup import warm_up
 from .asgi import call_app
 from .lease import Lease
@@ -62,14 +66,32 @@ def _log_failure(task: asyncio.Task) -> None:
         log.error("eviction failed: %r", task.exception())
 
 
+class FencedSnapshots(Snapshots):
+    """The snapshots of an `OwnedSession`: a snapshot holds the lease over both its files, and a fenced
+    one marks the session ``stale``."""
+
+    # a snapshot and the log's restart hold the lease as one step: they stay on the caller's path here
+    write_off_path = False
+
+    def take(self) -> None:
+        session = self.session
+        if session.archive is not None:  # before the lease is held: the archive's writer takes it for each append
+            session.archive.flush()
+        try:
+            with session.log.fenced():  # the snapshot and the log's restart are one step for other owners
+                super().take()
+        except Fenced as exc:
+            session.stale = True
+            log.warning("session %s: not snapshotted: %s", session.id, exc)
+
+
 class OwnedSession(Session):
     """A `Session` whose log writes are fenced by its lease (``log.lease``): a snapshot holds the lease
     over both its files, and a fenced write marks the session ``stale`` (its owner drops it and reads
     it again from disk on the next request)."""
 
     stale = False
-    # a snapshot and the log's restart hold the lease as one step: they stay on the caller's path here
-    background_snapshots = False
+    snapshots_class = FencedSnapshots
 
     def add_frame(self, *args, **kwargs):
         try:
@@ -77,16 +99,6 @@ class OwnedSession(Session):
         except Fenced:
             self.stale = True
             raise
-
-    def _snapshot(self) -> None:
-        if self.archive is not None:  # before the lease is held: the archive's writer takes it for each append
-            self.archive.flush()
-        try:
-            with self.log.fenced():  # the snapshot and the log's restart are one step for other owners
-                super()._snapshot()
-        except Fenced as exc:
-            self.stale = True
-            log.warning("session %s: not snapshotted: %s", self.id, exc)
 
     def _reload(self) -> None:
         lease = self.log.lease

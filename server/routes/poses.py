@@ -8,7 +8,8 @@ from fastapi.responses import JSONResponse
 from ..deps import JobsDep, SessionDep
 from ..errors import ApiError
 from ..schemas import Correction, CorrectionStatus, ErrorBody, PosesRequest
-from ..store import CorrectionRefused, Session
+from ..session import Session
+from ..session_errors import CorrectionRefused
 
 router = APIRouter(prefix="/v1/sessions", tags=["poses"],
                    responses={c: {"model": ErrorBody} for c in (401, 404, 409, 422, 429, 503, 507)})
@@ -16,12 +17,12 @@ router = APIRouter(prefix="/v1/sessions", tags=["poses"],
 
 async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list, wait: bool = True):
     try:
-        done = await jobs.run(session.correct, poses, remove, wait)
+        done = await jobs.run(session.corrections.correct, poses, remove, wait)
     except CorrectionRefused as exc:
         raise ApiError(409, "correction_refused", str(exc), exc.field) from None
     if done["state"] == "done":
         return Correction(**done)
-    status = CorrectionStatus(**session.correction_status(done["correction_id"]))
+    status = CorrectionStatus(**session.corrections.status(done["correction_id"]))
     return JSONResponse(status.model_dump(), status_code=202)
 
 
@@ -54,7 +55,7 @@ async def correction_status(correction_id: str, session: SessionDep) -> Correcti
     """A background correction's state (pending, running, done, failed) and progress (frames
     re-folded of the total); once done, what it did. 404 naming ``correction_id`` for an unknown id."""
     try:
-        return CorrectionStatus(**session.correction_status(correction_id))
+        return CorrectionStatus(**session.corrections.status(correction_id))
     except KeyError:
         raise ApiError(404, "not_found", f"correction_id: no correction {correction_id!r} in this session",
                        "correction_id") from None

@@ -26,7 +26,7 @@ from .. import viewer, wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..schemas import ErrorBody
-from ..store import SessionNotFound
+from ..session_errors import SessionNotFound
 from . import views
 
 pages = APIRouter(include_in_schema=False)

@@ -13,7 +13,7 @@ from server import wire
 from server.cluster.lease import EPOCH, Lease
 from server.cluster.owner import SessionOwner
 from server.framelog import Fenced, scan
-from server.store import LOG, SNAPSHOT, restore_scene
+from server.durability import LOG, SNAPSHOT, restore_scene
 
 from .conftest import MSGPACK, VOXEL, frame_body, request, run, settings
 

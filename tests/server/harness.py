@@ -137,10 +137,10 @@ def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
 def hold_snapshot_commits(monkeypatch) -> tuple[threading.Event, threading.Event]:
     """Hold each snapshot written off the acknowledged path once its file is on disk, before its
     commit: returns (written: set then, release: set it to let the commit go on)."""
-    from server import store as store_module
+    from server import snapshots
 
     written, release = threading.Event(), threading.Event()
-    write_atomic = store_module.write_atomic
+    write_atomic = snapshots.write_atomic
 
     def held(path, data):
         write_atomic(path, data)
@@ -148,5 +148,5 @@ def hold_snapshot_commits(monkeypatch) -> tuple[threading.Event, threading.Event
             written.set()
             assert release.wait(60)
 
-    monkeypatch.setattr(store_module, "write_atomic", held)
+    monkeypatch.setattr(snapshots, "write_atomic", held)
     return written, release

@@ -11,10 +11,12 @@ import pytest
 from canonical_core import SceneConfig
 from canonical_wire import encode_array, pack
 from client.cli import frame_arrays
-from server import store as store_module
-from server import wire
+from server import corrections, wire
+from server import session as session_module
 from server.archive import ARCHIVE, DamagedFrame
-from server.store import BASE, SessionStore
+from server.corrections import BASE
+from server.session_errors import CorrectionRefused
+from server.store import SessionStore
 
 from .harness import hold_snapshot_commits
 
@@ -39,7 +41,7 @@ def streamed(store: SessionStore, frames: list[dict], poses: dict | None = None,
     session = store.create(CONFIG)
     for k, kwargs in enumerate(frames):
         session.add_frame(*payload(kwargs, (poses or {}).get(k)), snapshot_every, 3600)
-        session.wait_for_snapshot()  # a due snapshot is written off the fold's path: as a stream's pause would
+        session.snapshots.wait()  # a due snapshot is written off the fold's path: as a stream's pause would
     return session
 
 
@@ -54,8 +56,8 @@ def damage_first_frame(session) -> None:
 
 
 def test_a_correction_of_recent_frames_starts_from_the_kept_state(tmp_path, shelf, monkeypatch):
-    monkeypatch.setattr(store_module, "BASE_EVERY", 2)
-    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
+    monkeypatch.setattr(corrections, "BASE_EVERY", 2)
+    monkeypatch.setattr(session_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
     store = SessionStore(tmp_path, 8)
     store.open()
     try:
@@ -63,35 +65,35 @@ def test_a_correction_of_recent_frames_starts_from_the_kept_state(tmp_path, shel
         shift[:3, 3] = 0.01
         moved = {k: kw["c2w"] + shift for k, kw in enumerate(shelf)}  # every frame 1.7 cm off
         session = streamed(store, shelf, moved)
-        session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:2]})  # touches frame 0: a full re-fold
-        assert (session.path / BASE).is_file() and session.snapshot_frames == len(shelf)
+        session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:2]})  # touches frame 0: a full re-fold
+        assert (session.path / BASE).is_file() and session.snapshots.frames == len(shelf)
         damage_first_frame(session)
-        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # starts from the kept state after 6 frames
-        session.correct({shelf[6]["frame_id"]: moved[6]})  # and again: that state is kept on
-        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})
+        session.corrections.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # starts from the kept state after 6 frames
+        session.corrections.correct({shelf[6]["frame_id"]: moved[6]})  # and again: that state is kept on
+        session.corrections.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})
         expected = streamed(store, shelf, {k: moved[k] for k in (2, 3, 4, 5)})
         assert session.digest()["sha256"] == expected.digest()["sha256"]
         with pytest.raises(DamagedFrame):  # frame 5 lies before every kept state: frame 0 is read, and it is damaged
-            session.correct({shelf[5]["frame_id"]: shelf[5]["c2w"]})
+            session.corrections.correct({shelf[5]["frame_id"]: shelf[5]["c2w"]})
         assert session.digest()["sha256"] == expected.digest()["sha256"]  # and nothing changed
     finally:
         store.close()
 
 
 def test_the_snapshot_a_correction_started_from_is_kept_for_the_next(tmp_path, shelf, monkeypatch):
-    monkeypatch.setattr(store_module, "BASE_EVERY", 4)
-    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
+    monkeypatch.setattr(corrections, "BASE_EVERY", 4)
+    monkeypatch.setattr(session_module, "UNDO_DEPTH", 0)  # no roll-back in place: the re-fold from saved states
     store = SessionStore(tmp_path, 8)
     store.open()
     try:
         session = streamed(store, shelf, snapshot_every=3)
-        assert session.snapshot_frames == 6
+        assert session.snapshots.frames == 6
         damage_first_frame(session)
         other = np.eye(4)
         other[:3, 3] = [0.01, 0.0, 0.0]
-        session.correct({shelf[6]["frame_id"]: other @ shelf[6]["c2w"]})  # from the snapshot of 6 frames
-        assert session.snapshot_frames == 7  # the snapshot now holds the corrected scene
-        session.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # from the state after 6 frames, kept
+        session.corrections.correct({shelf[6]["frame_id"]: other @ shelf[6]["c2w"]})  # from the snapshot of 6 frames
+        assert session.snapshots.frames == 7  # the snapshot now holds the corrected scene
+        session.corrections.correct({shelf[6]["frame_id"]: shelf[6]["c2w"]})  # from the state after 6 frames, kept
         assert session.digest()["sha256"] == streamed(store, shelf).digest()["sha256"]
     finally:
         store.close()
@@ -118,14 +120,14 @@ def test_a_correction_of_recent_frames_rolls_back_in_place_and_survives_a_restar
     shift = np.eye(4)
     shift[:3, 3] = [0.01, 0.0, 0.0]
     session = streamed(store, shelf, {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)}, snapshot_every)
-    snapshot_frames = session.snapshot_frames
+    snapshot_frames = session.snapshots.frames
     damage_first_frame(session)  # a correction that re-read frame 0 would fail
-    done = session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[touch:]}, [shelf[touch]["frame_id"]])
+    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[touch:]}, [shelf[touch]["frame_id"]])
     assert (done["frames"], done["corrected"], done["removed"]) == (len(shelf) - 1, len(shelf) - touch - 1, 1)
     expected = [kw if k > touch else {**kw, "c2w": shift @ kw["c2w"]} for k, kw in enumerate(shelf) if k != touch]
     digest = streamed(store, expected).digest()["sha256"]
     assert session.digest()["sha256"] == digest
-    assert session.snapshot_frames == (snapshot_frames if touch >= snapshot_frames else len(shelf) - 1)
+    assert session.snapshots.frames == (snapshot_frames if touch >= snapshot_frames else len(shelf) - 1)
     again = reopened(store, tmp_path)
     try:
         restored = again.get(session.id)
@@ -146,23 +148,21 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
     import threading
     import time
 
-    from server.store import CorrectionRefused
-
     started, gate = threading.Event(), threading.Event()
-    real = store_module.counted
+    real = corrections.counted
 
     def gated(frames, job):  # the background re-fold waits here until the frames below have arrived
         started.set()
         gate.wait(120)
         yield from real(frames, job)
 
-    monkeypatch.setattr(store_module, "counted", gated)
+    monkeypatch.setattr(corrections, "counted", gated)
     store = SessionStore(tmp_path, 8)
     store.open()
     shift = np.eye(4)
     shift[:3, 3] = [0.01, 0.0, 0.0]
     session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
-    done = session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, [shelf[1]["frame_id"]], wait=False)
+    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, [shelf[1]["frame_id"]], wait=False)
     assert done["state"] == "pending" and done["frames"] == 5
     assert started.wait(120)
     for kwargs in shelf[5:]:  # folded into the old scene meanwhile, not refused
@@ -170,11 +170,11 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
     old = streamed(store, [{**kw, "c2w": shift @ kw["c2w"]} for kw in shelf[:5]] + shelf[5:]).digest()["sha256"]
     assert session.digest()["sha256"] == old
     with pytest.raises(CorrectionRefused, match=done["correction_id"]):
-        session.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})
-    assert session.correction_status(done["correction_id"])["state"] == "running"
+        session.corrections.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})
+    assert session.corrections.status(done["correction_id"])["state"] == "running"
     gate.set()
     for _ in range(600):
-        status = session.correction_status(done["correction_id"])
+        status = session.corrections.status(done["correction_id"])
         if status["state"] != "running":
             break
         time.sleep(0.2)
@@ -185,9 +185,9 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
     again = reopened(store, tmp_path)
     try:
         assert again.get(session.id).digest()["sha256"] == expected
-        assert again.get(session.id).correction_status(done["correction_id"])["state"] == "done"
+        assert again.get(session.id).corrections.status(done["correction_id"])["state"] == "done"
         with pytest.raises(KeyError):
-            again.get(session.id).correction_status("nope")
+            again.get(session.id).corrections.status("nope")
     finally:
         again.close()
 
@@ -208,7 +208,7 @@ def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restar
         assert restored.archive.problem is None and len(restored.archive.entries) == 5
         shift = np.eye(4)
         shift[:3, 3] = [0.01, 0.0, 0.0]
-        restored.correct({shelf[3]["frame_id"]: shift @ shelf[3]["c2w"]})
+        restored.corrections.correct({shelf[3]["frame_id"]: shift @ shelf[3]["c2w"]})
         expected = streamed(again, shelf[:5], {3: shift @ shelf[3]["c2w"]})
         assert restored.digest()["sha256"] == expected.digest()["sha256"]
     finally:
@@ -233,9 +233,9 @@ def test_the_services_undo_setting_reaches_its_sessions_and_their_memory(tmp_pat
     assert memory[7] == memory[0] + undo[7]  # the records count in the session's memory
 
 
-@pytest.mark.parametrize("undo_depth", [0, store_module.UNDO_DEPTH])  # a new scene re-folded, or rolled back in place
+@pytest.mark.parametrize("undo_depth", [0, session_module.UNDO_DEPTH])  # a new scene re-folded, or rolled back in place
 def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_path, shelf, monkeypatch, undo_depth):
-    monkeypatch.setattr(store_module, "UNDO_DEPTH", undo_depth)
+    monkeypatch.setattr(session_module, "UNDO_DEPTH", undo_depth)
     store = SessionStore(tmp_path, 8)
     store.open()
     try:
@@ -247,7 +247,7 @@ def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_pat
         offsets_of = dict(zip(session.scene._voxels.state["keys"][solved.rows].tolist(), solved.offsets))
         shift = np.zeros((4, 4))
         shift[:3, 3] = 0.01
-        session.correct({shelf[4]["frame_id"]: shelf[4]["c2w"] + shift})
+        session.corrections.correct({shelf[4]["frame_id"]: shelf[4]["c2w"] + shift})
         carried = session.scene._decoding.solution  # the served scene starts from it, not from zero
         assert carried is not None and session.scene.frames - carried.frames >= session.config.colour_solve.refresh  # due
         keys = session.scene._voxels.state["keys"][carried.rows].tolist()
@@ -268,12 +268,12 @@ def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, 
     session = store.create(CONFIG)
     for kw in shelf:  # a snapshot due at 6 frames, held while the seventh folds
         session.add_frame(*payload(kw, shift @ kw["c2w"]), 6, 3600)
-    assert written.wait(60) and session.snapshot_frames == 0
-    pending = session.pending_snapshot
-    session.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[4:]})  # frames 4 and 5 are in that snapshot
+    assert written.wait(60) and session.snapshots.frames == 0
+    pending = session.snapshots.pending
+    session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[4:]})  # frames 4 and 5 are in that snapshot
     release.set()
     pending.writer.join(60)
-    assert session.snapshot_frames == 0 and not list(session.path.glob("scene.snap*"))
+    assert session.snapshots.frames == 0 and not list(session.path.glob("scene.snap*"))
     expected = [kw if k >= 4 else {**kw, "c2w": shift @ kw["c2w"]} for k, kw in enumerate(shelf)]
     digest = streamed(store, expected).digest()["sha256"]
     assert session.digest()["sha256"] == digest
@@ -285,7 +285,7 @@ def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, 
 
 
 def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restored(tmp_path, shelf, monkeypatch):
-    monkeypatch.setattr(store_module, "UNDO_DEPTH", 0)  # no roll-back in place: a correction re-folds a new scene
+    monkeypatch.setattr(session_module, "UNDO_DEPTH", 0)  # no roll-back in place: a correction re-folds a new scene
     rows, row_bytes = 50_000, 200  # a row of the state is about 300 bytes
     store = SessionStore(tmp_path, 8)
     store.preallocate_voxels = rows
@@ -297,7 +297,7 @@ def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restore
         assert len(session.scene) < rows and session.scene.digest() == twin.scene.digest()  # the same scene
         assert session.scene.memory_bytes() >= twin.scene.memory_bytes() + (rows - len(twin.scene)) * row_bytes
         served = session.scene
-        session.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})  # frame 0: a full re-fold into a new scene
+        session.corrections.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})  # frame 0: a full re-fold into a new scene
         assert session.scene is not served and session.scene.memory_bytes() >= rows * row_bytes
         capped = store.create(SceneConfig(voxel_size=0.01, max_voxels=1_000))  # at most its own cap, no error
         assert capped.scene.memory_bytes() < rows * row_bytes

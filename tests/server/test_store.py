@@ -24,7 +24,9 @@ from client.cli import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
 from server.archive import payload_digest
-from server.store import FrameIdConflict, SessionStore, SessionUnavailable, restore_scene
+from server.durability import restore_scene
+from server.session_errors import FrameIdConflict, SessionUnavailable
+from server.store import SessionStore
 
 from .harness import hold_snapshot_commits, msgpack_frame
 
@@ -215,12 +217,12 @@ def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_
         session.add_frame(payload, wire.frame_from_message(wire.unpack(payload)), 2, 1e9)
     assert written.wait(60)
     session.add_frame(payloads[2], wire.frame_from_message(wire.unpack(payloads[2])), 2, 1e9)  # folds meanwhile
-    assert session.snapshot_frames == 0 and session.scene.frames == 3
+    assert session.snapshots.frames == 0 and session.scene.frames == 3
     crashed = tmp_path / "crashed" / session.id
     shutil.copytree(session.path, crashed)  # the files as a kill -9 now would leave them
     release.set()
-    session.wait_for_snapshot()
-    assert session.snapshot_frames == 2 and session.snapshot_error is None
+    session.snapshots.wait()
+    assert session.snapshots.frames == 2 and session.snapshots.error is None
     records = framelog.scan((session.path / "frames.log").read_bytes()).records
     assert [(r.checkpoint, r.index) for r in records] == [(True, 2), (False, 2)]
     assert not list(session.path.glob("scene.snap.*"))  # the pending file became the snapshot

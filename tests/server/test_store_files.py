@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from canonical_core import SceneConfig
-from server.store import DataDirLocked, SessionStore
+from server.session_errors import DataDirLocked
+from server.store import SessionStore
 
 
 def opened(root) -> SessionStore:

@@ -1,0 +1,256 @@
+"""A session: one scene, its frame log and its lock, and what a request does to them. No HTTP here.
+
+A frame (`Session.add_frame`) is folded under the session's lock: a retry of a frame_id it folded
+already gets its first report back; otherwise its record is appended to the frame log and fsynced on
+a writer thread (`LOG_WRITERS`) while the frame folds, and the acknowledgement waits for both. A fold
+whose record is not durable is undone, a record whose fold fails is cut off again. The folded frame
+then goes to the frame archive (`server.archive`), and a due snapshot starts (`server.snapshots`).
+The session's files and their restore: `server.durability`; its corrections: `server.corrections`.
+
+Locks: ``Session.lock`` serialises what reads or writes one session's scene and files (fold,
+snapshot, digest); rendering works on decoded Gaussians outside it, so a render never sees a
+half-folded scene and never blocks another session. Decoded Gaussians come from `Scene.gaussians`,
+which decodes once per change and holds the scene's own lock only to copy its sums, so folds go on
+while a decode (and its colour solve) runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import InitVar, dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+from canonical_core import Frame, Gaussians, SceneConfig
+from canonical_core.scene import FoldReport, Scene
+from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
+
+from .archive import SessionArchive, names_payload, payload_digest
+from .corrections import BACKGROUND_FRAMES, Corrections
+from .durability import FoldedFrame, checkpoint_payload, restore_scene
+from .framelog import FrameLog, LogWedged, StorageError
+from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable
+from .snapshots import Snapshots
+
+log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
+
+# the frame log's appends (digest, write, fsync) run here while their frames fold: one writer per job
+# that can fold at a time is enough (a session's appends are ordered by its lock)
+LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
+UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll back in place (`Scene.rollback`)
+
+
+class ColourSolves(ThreadPoolExecutor):
+    """The colour re-solves of sessions that keep views (`SceneConfig.colour_solve.refresh`): they run
+    here, not in the render that found one due, which shows the last solution. One at a time: each
+    is seconds of work on every core, and folds and renders share those cores. A re-solve that
+    fails is logged (the next render that finds one due starts another)."""
+
+    def __init__(self):
+        super().__init__(max_workers=1, thread_name_prefix="colour-solve")
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = super().submit(fn, *args, **kwargs)
+        future.add_done_callback(_log_failure)
+        return future
+
+
+def _log_failure(future) -> None:
+    if future.exception() is not None:
+        log.error("colour re-solve failed", exc_info=future.exception())
+
+
+COLOUR_SOLVES = ColourSolves()
+
+
+@dataclass(eq=False)
+class Session:
+    """One session: its scene, frame log and frame-id table (what answers a retry), and the lock that
+    serialises them. Its snapshots (`Snapshots`) and corrections (`Corrections`) work on it."""
+
+    id: str
+    path: Path
+    config: SceneConfig
+    created: float
+    scene: Scene
+    log: FrameLog
+    snapshot_frames: InitVar[int]  # the frames its snapshot holds (kept by `snapshots`)
+    frame_ids: dict[str, FoldedFrame] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    deleted: bool = False
+    wedged: str | None = None  # why the log cannot take appends until a restart (its tail is unknown)
+    archive: SessionArchive | None = None  # the kept frames (None: retention "none")
+    version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
+    background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
+    undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
+    preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
+    snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
+    corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
+    snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
+
+    def __post_init__(self, snapshot_frames: int):
+        self.snapshots = self.snapshots_class(self, snapshot_frames)
+        self.corrections = Corrections(self)
+        self._prepare_scene()
+
+    def _prepare_scene(self) -> None:
+        """The served scene's settings that its snapshot does not keep. Sessions that can be
+        corrected keep undo records of their last folds: a correction of recent frames then rolls the
+        served scene back and re-folds only them (`Corrections.correct`). And the scene commits the
+        memory of `preallocate_voxels` voxels up front."""
+        if self.archive is not None:
+            self.scene.keep_undo(self.undo_depth)
+        self.preallocate(self.scene)
+
+    def preallocate(self, scene: Scene) -> None:
+        """`Scene.preallocate` of `preallocate_voxels` voxels, at most the session's ``max_voxels``."""
+        scene.preallocate(min(self.preallocate_voxels, self.config.max_voxels or self.preallocate_voxels))
+
+    # -- writing (callers hold no lock; these take it) ------------------------------------------
+    def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
+                  snapshot_every_seconds: float) -> tuple[FoldReport, bool]:
+        """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
+
+        A frame whose ``frame_id`` the session already folded is not folded again: its first report
+        comes back (replay = True), or `FrameIdConflict` if its content differs. The record is logged
+        on a writer thread while the frame folds, and the report is returned once both are done. A
+        frame that cannot be made durable raises `StorageError`, its fold undone. On a ValueError the
+        log record is cut off again and the scene is unchanged (the library validates before it mutates)."""
+        with self.lock:
+            self.check_alive()
+            known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
+            if known is not None:
+                if not names_payload(known.digest, payload):
+                    raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
+                report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
+                                          "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
+                return FoldReport(**report), True
+            if self.wedged:
+                raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+            frames = self.scene.frames
+            logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
+            try:
+                report = self.scene.fold(frame)
+            except Exception as exc:
+                self._fold_failed(logged, exc)
+                raise
+            try:
+                digest, _ = logged.result()
+            except StorageError as exc:
+                self._append_failed(exc, frames)
+                raise
+            if self.archive is not None:
+                refolding = self.corrections.background is not None  # the re-fold catches up on the archive
+                self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
+            if frame.frame_id is not None:
+                self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
+            self.version += 1
+            self.snapshots.after_fold(snapshot_every_frames, snapshot_every_seconds)
+            return report, False
+
+    def _fold_failed(self, logged, exc: Exception) -> None:
+        """A fold raised while its record was being logged: the record is cut off again once written.
+        A ValueError left the scene unchanged (the library validates before it mutates); anything else
+        may have left it half-folded, so it is rebuilt from disk (without this frame)."""
+        try:
+            _, offset = logged.result()
+        except StorageError as storage:
+            self._note_wedged(storage)
+        else:
+            self.log.truncate(offset)
+        if not isinstance(exc, ValueError):
+            self._recover(None, "a failed fold")
+
+    def _append_failed(self, exc: StorageError, frames: int) -> None:
+        """The frame folded but its record is not durable (cut off, the log wedged, or the session
+        fenced by another owner): the fold is undone."""
+        self._note_wedged(exc)
+        self._recover(frames, "a fold whose frame was not logged")
+
+    def _recover(self, frames: int | None, after: str) -> None:
+        """The scene back to its first ``frames`` frames by its undo records where they reach back
+        (None: not by them), else rebuilt from disk; a session that cannot be is no longer served."""
+        try:
+            if frames is not None and self.scene.undo_floor <= frames:
+                self.scene.rollback(frames)
+            else:
+                self._reload()
+        except Exception:
+            log.exception("session %s: cannot be rebuilt after %s; no longer serving it", self.id, after)
+            self.deleted = True
+
+    def _note_wedged(self, exc: StorageError) -> None:
+        if isinstance(exc, LogWedged):
+            self.wedged = f"{exc.strerror}; restart the service once the storage is fixed"
+            log.error("session %s: %s", self.id, self.wedged)
+
+    def _reload(self) -> None:
+        self.snapshots.cancel()
+        self.log.close()
+        self.scene, self.log, self.snapshots.frames, self.frame_ids = restore_scene(self.path, self.config)
+        self._prepare_scene()
+
+    def snapshot(self, background: bool = False) -> None:
+        """Snapshot the session if it has frames its snapshot lacks: now, or with ``background`` off the
+        caller's path (`Snapshots.soon`)."""
+        with self.lock:
+            if not self.deleted and self.scene.frames != self.snapshots.frames:
+                self.snapshots.soon() if background else self.snapshots.take()
+
+    def checkpoint(self) -> bytes:
+        """The payload of the log's checkpoint for the served scene: its frame-id table and the archived
+        corrections it holds."""
+        return checkpoint_payload(self.frame_ids, self.corrections.held())
+
+    def check_alive(self) -> None:
+        if self.deleted:
+            raise SessionNotFound(self.id)
+
+    # -- reading --------------------------------------------------------------------------------
+    def gaussians(self, max_gaussians: int | None = None, features: bool = True) -> tuple[Gaussians, int]:
+        """Decoded Gaussians (`Scene.gaussians`: decoded once per change; colour re-solves run on
+        `COLOUR_SOLVES`; without ``features``, F_scene may be left out) and their label_dim."""
+        with self.lock:
+            self.check_alive()
+            scene = self.scene
+        g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES, features=features)
+        return g, 0 if g.labels is None else int(g.labels.shape[1])
+
+    @property
+    def retention(self) -> str:
+        return self.archive.retention if self.archive is not None else "none"
+
+    def summary(self) -> dict:
+        return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
+                "archive_retention": self.retention, "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
+
+    def stats(self) -> dict:
+        gaussians = len(self.gaussians(features=False)[0])  # a decode if none is cached, outside the scene's lock
+        with self.lock:
+            self.check_alive()
+            stats = self.scene.stats()
+            archive = self.archive
+            return {
+                "archive_retention": self.retention,
+                "archive_bytes": archive.nbytes() if archive is not None else 0,
+                "archive_frames": sum(e.kept for e in archive.entries) if archive is not None else 0,
+                "archive_problem": archive.problem if archive is not None else None,
+                **self.summary(),
+                "gaussians": gaussians,
+                "memory_bytes": stats["memory_bytes"],
+                "undo_bytes": self.scene.undo_bytes(),
+                "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
+                "label_dim": stats["label_dim"],
+                "inconsistent_depth_below": stats["inconsistent_depth_below"],
+                "snapshot_frames": self.snapshots.frames,
+                "snapshot_error": self.snapshots.error,
+                "config": self.config.to_dict(),
+            }
+
+    def digest(self) -> dict:
+        """The library's digest of the fused state: equal iff the sessions fused the same frames."""
+        with self.lock:
+            self.check_alive()
+            return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "sha256": self.scene.digest()}

@@ -1,0 +1,43 @@
+"""What the sessions raise to their callers, in one module below every session module, so that the
+routes and the CLI import the errors without the code that raises them. `server.errors` maps them to
+HTTP answers."""
+
+from __future__ import annotations
+
+
+class SessionNotFound(KeyError):
+    def __init__(self, session_id: str):
+        super().__init__(session_id)
+        self.session_id = session_id
+
+
+class TooManySessions(RuntimeError):
+    pass
+
+
+class SessionUnavailable(RuntimeError):
+    """A session whose files do not add up (or whose log cannot be written): not served, with the reason."""
+
+    def __init__(self, session_id: str, reason: str, retry_later: bool = False):
+        super().__init__(f"session {session_id}: {reason}")
+        self.session_id, self.reason, self.retry_later = session_id, reason, retry_later
+
+
+class FrameIdConflict(ValueError):
+    """A frame_id that the session already folded, sent again with other content."""
+
+
+class CorrectionRefused(ValueError):
+    """A correction the session cannot take (no archive, or one that cannot serve it): 409 naming ``field``."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+
+class DataDirLocked(RuntimeError):
+    """Another process serves the data directory."""
+
+
+class Unrestorable(RuntimeError):
+    """The files of a session do not add up; the message says how, and what ``canonical repair`` can do."""
