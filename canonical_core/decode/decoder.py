@@ -30,7 +30,6 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ..deprecation import get_renamed
 from ..gaussians import SH_C0, Gaussians, rgb_to_sh_dc
 from .eigen import symmetric_eigh3, symmetric_eigh3_reference
 
@@ -183,7 +182,7 @@ class GaussianDecoder(nn.Module):
         centroid, std, quats = self.base_shapes(fields, voxel_size) if base is None else base
         means = centroid + voxel_size * self.offset(feats)
         scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
-        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(get_renamed(fields, "colour", "color"))[:, None, :]
+        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["colour"])[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
         return {"means": means, "scales": scales, "quats": quats, "sh": sh, "features": feats,
                 "labels": fields.get("labels")}

@@ -7,8 +7,6 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
-from ..deprecation import warn_renamed
-
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 
 
@@ -77,12 +75,6 @@ class Gaussians:
     def colours(self) -> Tensor:  # [N, 3]
         """View-independent colour (the DC term), clamped to [0, 1]."""
         return sh_dc_to_rgb(self.sh[:, 0]).clamp(0.0, 1.0)
-
-    @property
-    def colors(self) -> Tensor:  # [N, 3]
-        """Deprecated spelling of `colours`."""
-        warn_renamed("Gaussians.colors", "Gaussians.colours")
-        return self.colours
 
     @classmethod
     def empty(cls, sh_degree: int = 0, feature_dim: int | None = None, label_dim: int | None = None) -> "Gaussians":

@@ -11,7 +11,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..deprecation import RenamedKeys
 from ..gaussians.container import SH_C0
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 
@@ -187,10 +186,6 @@ def solve_sh(
     return torch.from_numpy(out)
 
 
-# field names spelt the old way -> their name now (still answered, with a DeprecationWarning)
-FIELD_RENAMES = {"color": "colour", "representative_color": "representative_colour"}
-
-
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True,
                      positions: bool = True) -> dict[str, Tensor]:
     """Scene fields from raw sums (rows are voxels; local positions in voxel units). Without
@@ -243,4 +238,4 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
                 "position_cov": (cov_local * voxel_size * voxel_size).float()}
     if t["label_sum"].shape[1] > 0:
         out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]
-    return RenamedKeys(out, FIELD_RENAMES)
+    return out

@@ -1,0 +1,141 @@
+"""One frame's fold into a scene's state, and the `FoldReport` of what it did.
+
+One frame's route through `Scene.fold` goes one way:
+
+    depth front end (`depth_frontend`: denoise, hole completion, plane sweep, pending frames)
+      -> evidence (`evidence.extract_evidence`)
+      -> integration into the voxel map (`integrate.integrate`, `voxel_map.VoxelMap`)
+      -> free space (`integrate.integrate_free_space`)
+
+Around it, the bookkeeping that makes a fold undoable and re-foldable: its undo record (`undo`),
+the frame kept for corrections (`refold`) and a checkpoint where one is due (`snapshot`). The
+functions here expect the caller to hold the scene's lock (`Scene` takes it).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
+
+from ..evidence import extract_evidence, observation_sh_basis
+from ..frame import Frame, depth_warnings
+from . import snapshot
+from .integrate import integrate, integrate_free_space
+from .undo import FoldUndo, history_slot
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+__all__ = ["FoldReport", "fold_kept"]
+
+
+@dataclass(frozen=True)
+class FoldReport:
+    """What one `Scene.fold` call did.
+
+    ``frame_index`` is the frame's arrival index. A frame without depth and without a usable source
+    view yet is ``pending``: accepted and kept, and folded (its depth estimated) by the call whose
+    frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
+    was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
+    ``warnings``: problems with the input that did not stop the fold, each ``"field: problem"``
+    (e.g. depth that gave no observation). The ``description`` metadata reaches the HTTP schema.
+    """
+
+    frame_index: int = field(metadata={"description": "the frame's arrival index in the session"})
+    observations: int = field(metadata={"description": "pixels folded"})
+    new_voxels: int = field(metadata={"description": "voxels the frame created"})
+    updated_voxels: int = field(metadata={"description": "existing voxels the frame touched"})
+    representative_switches: int = field(metadata={"description": "voxels whose representative this frame replaced"})
+    ms: float = field(metadata={"description": "the library's fold time, milliseconds"})
+    pending: bool = field(default=False, metadata={"description": "a frame without depth waiting for a partner view (folded later)"})
+    also_folded: int = field(default=0, metadata={"description": "earlier waiting frames this call folded"})
+    completed_pixels: int = field(default=0, metadata={
+        "description": "pixels whose missing depth the plane sweep filled (depth_completion)"})
+    denoised: bool = field(default=False, metadata={
+        "description": "the frame's depth was far rougher than its noise model and was replaced by a local median"})
+    warnings: list[str] = field(default_factory=list, metadata={
+        "description": "problems with the input that did not stop the fold, each 'field: problem'"})
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport:
+    """`Scene.fold` of ``frame`` (arrival index ``arrival``, started at ``t0``) for a caller that holds
+    the scene's lock: the fold with its undo record, then the frame kept (with ``keep_frames``) and
+    a checkpoint where one is due."""
+    # the fold in progress enters what it overwrites in its undo record, the map's journal
+    record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth else None
+    try:
+        report = _fold(scene, frame, t0)
+    finally:
+        scene._voxels.journal = None
+        scene._generation += 1
+        scene._decoding.forget()
+    if record is not None:
+        if scene.label_dim != record.label_dim:  # rows were widened: earlier records no longer fit
+            scene._undo.clear()
+        else:
+            scene._undo.push(record)
+    if scene._kept is not None:
+        scene._arrivals.append(arrival)
+        scene._kept.append(frame)
+        if scene.checkpoint_every and scene.frames % scene.checkpoint_every == 0:
+            scene._checkpoints[scene.frames] = snapshot.encode(scene, *snapshot.snapshot_parts(scene))
+    return report
+
+
+def _undo_record(scene: Scene) -> FoldUndo:
+    """What the next fold may overwrite, but for the voxels' rows and see-through evidence, which
+    its integrations add as they go (see `undo`)."""
+    return FoldUndo(scene.frames, len(scene._voxels), scene.label_dim, list(scene._front.window.views),
+                    list(scene._front.pending), (list(scene._keyframes.indices), scene._keyframes.frames()),
+                    (scene._density_sum, scene._density_frames))
+
+
+def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
+    index, points = scene.frames, scene._voxels.representative_points
+    prepared = scene._front.prepare(frame, functools.partial(_check_foldable, scene), points)
+    counts = (0, 0, 0, 0) if prepared.pending else _integrate(scene, prepared.frame)
+    scene._front.commit(prepared)
+    scene._keyframes.add(index, frame)  # a waiting frame's colours join the scene once a partner arrives
+    scene.frames += 1
+    also = 0
+    if frame.depth is None and not prepared.pending:  # frames that waited for a partner: fold them now, in order
+        for waiting in scene._front.ready(points):
+            _integrate(scene, waiting)
+            also += 1
+    gave_nothing = frame.depth is not None and counts[0] == 0
+    warnings = depth_warnings(frame.depth, scene.config.range.near, scene.config.range.far) if gave_nothing else []
+    if frame.depth is not None:  # the sensor's depth (as folded: denoised or completed), not a sweep's
+        warnings += scene._consistency.observe(prepared.frame)
+    return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
+                      also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
+                      warnings=warnings)
+
+
+def _integrate(scene: Scene, frame: Frame) -> tuple[int, int, int, int]:
+    """Evidence, integration and free space of a frame with depth: (observations, new voxels,
+    updated voxels, representative switches)."""
+    ev = extract_evidence(frame, scene.config, scene.appearance)
+    first_new = len(scene._voxels)
+    done = integrate(scene._voxels, ev, observation_sh_basis(ev, frame.camera, scene.config.sh_degree), scene.config,
+                     scene._scratch)
+    if scene.config.free_space.enabled:
+        if scene._voxels.journal is not None:
+            scene._voxels.journal.history.append(history_slot(scene._history))
+        integrate_free_space(scene._voxels, frame, scene.config, scene._history, first_new)
+    if done.touched_voxels:
+        scene._density_sum += done.observations / done.touched_voxels
+        scene._density_frames += 1
+    return done.observations, done.new_voxels, done.touched_voxels - done.new_voxels, done.representative_switches
+
+
+def _check_foldable(scene: Scene, frame: Frame) -> None:
+    """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
+    if scene.config.features.backend == "client" and frame.features is None:
+        raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+    if frame.labels is not None and scene.label_dim and frame.labels.shape[-1] != scene.label_dim:
+        raise ValueError(f"labels: expected {scene.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
