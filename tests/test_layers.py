@@ -1,4 +1,5 @@
 """The library's packages form layers: each imports only the layers below it, and nothing imports in a cycle.
+The service's modules import one way too, and none of them, nor `Scene`'s module, outgrows one sitting.
 
 The graph is built from the source (every ``import`` of every module under canonical_core, read
 with ast, including imports made only for type checking), one node per package. The settings
@@ -44,8 +45,8 @@ def node_of(module: str) -> str | None:
     return parts[1] if len(parts) > 1 else "canonical_core"
 
 
-def imported_modules(path: Path, repo: Path = REPO) -> set[str]:
-    """Absolute names of the canonical_core modules that ``path`` imports (anywhere in it)."""
+def imported_modules(path: Path, repo: Path = REPO, top: str = "canonical_core") -> set[str]:
+    """Absolute names of the modules of package ``top`` that ``path`` imports (anywhere in it)."""
     name = module_name(path, repo)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
@@ -61,7 +62,7 @@ def imported_modules(path: Path, repo: Path = REPO) -> set[str]:
             out.add(target)
             if not node.module:  # `from . import x`: x is a submodule
                 out |= {f"{target}.{alias.name}" for alias in node.names}
-    return {m for m in out if m.split(".")[0] == "canonical_core"}
+    return {m for m in out if m.split(".")[0] == top}
 
 
 def package_graph(root: Path = ROOT) -> dict[str, set[str]]:
@@ -133,3 +134,70 @@ def test_the_library_is_acyclic_and_layered():
 def test_each_package_imports_first_on_its_own(package):
     name = "canonical_core" if package == "canonical_core" else f"canonical_core.{package}"
     subprocess.run([sys.executable, "-c", f"import {name}"], cwd=REPO, check=True, capture_output=True)
+
+
+# -- the service ----------------------------------------------------------------------------------
+SERVER = REPO / "server"
+MAX_LINES = 400  # a module a reader can hold in one sitting
+
+
+def server_node(module: str) -> str | None:
+    """The graph node of a server module: its module, or its subpackage (routes, cluster, viewer)."""
+    parts = module.split(".")
+    return None if parts[0] != "server" else parts[1] if len(parts) > 1 else "server"
+
+
+def server_graph(root: Path = SERVER) -> dict[str, set[str]]:
+    """node -> the other server nodes its modules import (type-checking imports too)."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted(root.rglob("*.py")):
+        src = server_node(module_name(path, root.parent))
+        # "server" itself: `from .. import wire` names the package only to reach its module
+        targets = {server_node(m) for m in imported_modules(path, root.parent, "server")} - {src, None, "server"}
+        graph.setdefault(src, set()).update(targets)
+    return graph
+
+
+def levels(graph: dict[str, set[str]]) -> dict[str, int]:
+    """Each node's level in an acyclic graph: 0 imports nothing, others one above the highest they import."""
+    level: dict[str, int] = {}
+
+    def of(node: str) -> int:
+        if node not in level:
+            level[node] = 1 + max((of(n) for n in graph.get(node, ())), default=-1)
+        return level[node]
+
+    for node in graph:
+        of(node)
+    return level
+
+
+def drawing(graph: dict[str, set[str]]) -> str:
+    """The graph as text, top level first: ``level  node -> what it imports``."""
+    level = levels(graph)
+    rows = sorted(graph, key=lambda n: (-level[n], n))
+    width = max(map(len, rows))
+    return "\n".join(f"{level[n]:>2}  {n:<{width}} -> {', '.join(sorted(graph[n], key=lambda m: (-level[m], m))) or '-'}"
+                     for n in rows)
+
+
+def test_the_service_imports_one_way():
+    graph = server_graph()
+    assert find_cycle(graph) is None
+    assert not graph["session_errors"] and "routes" not in set().union(*(graph[n] for n in graph if n != "app"))
+
+
+def test_levels_and_drawing_of_a_small_graph():
+    graph = {"a": {"b", "c"}, "b": {"c"}, "c": set()}
+    assert levels(graph) == {"a": 2, "b": 1, "c": 0}
+    assert drawing(graph).splitlines() == [" 2  a -> b, c", " 1  b -> c", " 0  c -> -"]
+
+
+@pytest.mark.parametrize("path", sorted(SERVER.rglob("*.py")) + [ROOT / "scene" / "scene.py"],
+                         ids=lambda p: str(p.relative_to(REPO)))
+def test_a_module_fits_one_sitting(path):
+    assert len(path.read_text().splitlines()) <= MAX_LINES
+
+
+if __name__ == "__main__":  # the drawings in docs/architecture.md: python -m tests.test_layers
+    print("canonical_core (packages):\n" + drawing(package_graph()) + "\n\nserver (modules):\n" + drawing(server_graph()))
