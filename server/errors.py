@@ -102,6 +102,9 @@ def install_error_handlers(app: FastAPI) -> None:
             msg = "unknown field"
         elif first.get("type") == "missing":
             msg = "required field is missing"
+        elif first.get("type") == "value_error" and field_of(own := msg.removeprefix("Value error, ")):
+            # a settings group's own check names the full path of its field (``range.near: ...``)
+            return error_response(422, "invalid_value", own, field_of(own))
         status, code = 422, "invalid_value"
         if first.get("type") == "json_invalid":
             status, code, field = 400, "malformed_body", "body"
