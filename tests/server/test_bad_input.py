@@ -60,6 +60,11 @@ class Ctx:
         body = {"K": self.frame["K"].tolist(), "c2w": self.frame["c2w"].tolist(), "width": w, "height": h, **changes}
         return {k: v for k, v in body.items() if v is not None}
 
+    def get_view(self, **params):
+        """GET .../render with an identity pose, a 32x24 view and ``params`` over them."""
+        params = {"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120", "width": 32, "height": 24, **params}
+        return httpx.get(f"{self.url}/v1/sessions/{self.sid}/render", params=params, headers=AUTH, timeout=60)
+
     def view(self, route: str = "render", **changes):
         body = json.dumps(self.view_body(**changes))  # NaN passes as the (non-standard) NaN token
         return httpx.post(f"{self.url}/v1/sessions/{self.sid}/{route}", content=body,
@@ -151,34 +156,17 @@ CASES = [
     ("render missing K", lambda c: c.view(K=None), 422, "K"),
     ("render background above 1", lambda c: c.view(background=[2, 2, 2]), 422, "background.0"),
     ("render background NaN", lambda c: c.view(background=[float("nan"), 0, 0]), 422, "background.0"),
-    ("render GET background NaN", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                      params={"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120",
-                                                              "width": 32, "height": 24, "background": "nan,0,0"},
-                                                      headers=AUTH), 422, "background"),
-    ("render GET background above 1", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                          params={"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120",
-                                                                  "width": 32, "height": 24, "background": "2,2,2"},
-                                                          headers=AUTH), 422, "background"),
-    ("render GET pose of infinities", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                          params={"pose": ",".join(["1e400", "0", "0", "0"] * 4), "K": "300,300,160,120",
-                                                                  "width": 32, "height": 24},
-                                                          headers=AUTH), 422, "pose"),
+    ("render GET background NaN", lambda c: c.get_view(background="nan,0,0"), 422, "background"),
+    ("render GET background above 1", lambda c: c.get_view(background="2,2,2"), 422, "background"),
+    ("render GET pose of infinities", lambda c: c.get_view(pose=",".join(["1e400", "0", "0", "0"] * 4)), 422, "pose"),
     ("render background shape", lambda c: c.view(background=[1, 1]), 422, "background"),
     ("render unknown colour mode", lambda c: c.view(colour="premultiplied"), 422, "colour"),
     ("render unknown depth mode", lambda c: c.view(depth="mean"), 422, "depth"),
-    ("render GET unknown depth mode", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                          params={"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120",
-                                                                  "width": 32, "height": 24, "depth": "mean"},
-                                                          headers=AUTH), 422, "depth"),
-    ("render GET unknown colour mode", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                           params={"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120",
-                                                                   "width": 32, "height": 24, "colour": "bright"},
-                                                           headers=AUTH), 422, "colour"),
+    ("render GET unknown depth mode", lambda c: c.get_view(depth="mean"), 422, "depth"),
+    ("render GET unknown colour mode", lambda c: c.get_view(colour="bright"), 422, "colour"),
     ("features bad preview", lambda c: httpx.post(f"{c.url}/v1/sessions/{c.sid}/features?preview=jpg",
                                                   json=c.view_body(), headers=AUTH), 422, "preview"),
-    ("render GET bad pose", lambda c: httpx.get(f"{c.url}/v1/sessions/{c.sid}/render",
-                                                params={"pose": "1,0,0", "K": "300,300,160,120", "width": 32, "height": 24},
-                                                headers=AUTH), 422, "pose"),
+    ("render GET bad pose", lambda c: c.get_view(pose="1,0,0"), 422, "pose"),
     ("segmentation without labels", lambda c: c.view("segmentation"), 409, "labels"),
     ("create unknown setting", lambda c: c.create({"voxel_size": 0.01, "voxle_size": 0.02}), 422, "voxle_size"),
     ("create voxel_size zero", lambda c: c.create({"voxel_size": 0}), 422, "voxel_size"),
