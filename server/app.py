@@ -20,6 +20,7 @@ from .warmup import warm_up
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .events import FoldEvents
+from .memory import MemoryBudget
 from .metrics import Metrics
 from .routes import exports, frames, health, poses, sessions, viewer, views
 from .session_errors import DataDirLocked
@@ -167,6 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     store.background_frames = settings.correction_background_frames
     store.undo_depth = settings.correction_undo_frames
     store.preallocate_voxels = settings.preallocate_voxels
+    store.budget = MemoryBudget(settings.memory_budget_bytes, store.memory_in_use)
     metrics = Metrics()
 
     @contextlib.asynccontextmanager

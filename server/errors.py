@@ -18,7 +18,7 @@ from canonical_core.scene import CapacityError
 from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
-from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable, TooManySessions
+from .session_errors import FrameIdConflict, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")
@@ -87,6 +87,10 @@ def install_error_handlers(app: FastAPI) -> None:
         status, code = (507, "insufficient_storage") if exc.full else (503, "storage_unavailable")
         return error_response(status, code, f"data_dir: {exc.strerror}; the request was not applied", "data_dir",
                               {"Retry-After": "30"})
+
+    @app.exception_handler(MemoryBudgetExceeded)
+    async def _over_budget(request: Request, exc: MemoryBudgetExceeded):
+        return error_response(413, "too_large", str(exc), "frame")
 
     @app.exception_handler(TooManySessions)
     async def _too_many(request: Request, exc: TooManySessions):

@@ -19,18 +19,21 @@ from __future__ import annotations
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import InitVar, dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.scene import FoldReport, Scene
+from canonical_core.scene.folding import fold_cost
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 
 from .archive import SessionArchive, names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene
 from .framelog import FrameLog, LogWedged, StorageError
+from .memory import MemoryBudget
 from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
 
@@ -86,6 +89,7 @@ class Session:
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
+    budget: MemoryBudget | None = None  # the service's memory, which each fold reserves its worst case from
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
     corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
@@ -130,12 +134,13 @@ class Session:
             if self.wedged:
                 raise SessionUnavailable(self.id, self.wedged, retry_later=True)
             frames = self.scene.frames
-            logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
-            try:
-                report = self.scene.fold(frame)
-            except Exception as exc:
-                self._fold_failed(logged, exc)
-                raise
+            with self.budget.reserve(fold_cost(self.scene, frame)) if self.budget is not None else nullcontext():
+                logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
+                try:
+                    report = self.scene.fold(frame)
+                except Exception as exc:
+                    self._fold_failed(logged, exc)
+                    raise
             try:
                 digest, _ = logged.result()
             except StorageError as exc:

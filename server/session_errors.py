@@ -23,6 +23,10 @@ class SessionUnavailable(RuntimeError):
         self.session_id, self.reason, self.retry_later = session_id, reason, retry_later
 
 
+class MemoryBudgetExceeded(RuntimeError):
+    """A frame whose fold could pass the service's memory budget (`server.memory`): 413."""
+
+
 class FrameIdConflict(ValueError):
     """A frame_id that the session already folded, sent again with other content."""
 

@@ -7,6 +7,7 @@ Example:
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -14,6 +15,15 @@ from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from canonical_core.config import MAX_VOXELS
+
+
+def default_memory_budget() -> int:
+    """Half the machine's RAM (8 GiB where the system does not say): the rest is the process itself,
+    decoded Gaussians, renders, request bodies and the page cache that the log and archive lean on."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30
 
 
 class Settings(BaseSettings):
@@ -33,6 +43,12 @@ class Settings(BaseSettings):
     read_timeout_s: float = Field(15.0, gt=0, description="a request body that stalls this long between reads gets 408")
     body_timeout_s: float = Field(120.0, gt=0, description="a request body not complete in this time gets 408")
     max_sessions: int = Field(64, gt=0, description="creating one more session gets 409")
+    max_session_voxels: int = Field(8_000_000, gt=0, le=MAX_VOXELS, description=(
+        "the voxels a session may hold: its max_voxels when it sets none, and the most it may set (422 above); "
+        "about 400 bytes of memory a voxel"))
+    memory_budget_bytes: int = Field(default_factory=default_memory_budget, gt=0, description=(
+        "the sessions' scenes and the folds under way together; a frame whose fold could pass it (one new voxel "
+        "per pixel it lifts, at worst) gets 413 naming this budget (default: half the machine's RAM)"))
     archive_retention: Literal["all", "keyframes", "none"] = Field("all", description=(
         "the frames new sessions keep for pose corrections and frame removal: all, keyframes (one in five; a "
         "correction then re-folds those alone) or none (corrections get 409)"))

@@ -35,6 +35,7 @@ from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .corrections import BACKGROUND_FRAMES
 from .durability import LOG, repair, restore_scene, restore_session
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
+from .memory import MemoryBudget, release_memory
 from .session import Session
 from .session_errors import DataDirLocked, SessionNotFound, SessionUnavailable, TooManySessions, Unrestorable
 
@@ -62,6 +63,7 @@ class SessionStore:
         self.background_frames = BACKGROUND_FRAMES  # corrections that re-fold more run in the background
         self.undo_depth: int | None = None  # folds a session's scene can roll back in place (None: UNDO_DEPTH)
         self.preallocate_voxels = 0  # voxels whose memory a session's scene commits up front
+        self.budget: MemoryBudget | None = None  # the memory its sessions' folds reserve from (None: unbounded)
         self.root = self.data_dir / "sessions"
         self.max_sessions = max_sessions
         self.threads = threads
@@ -203,7 +205,13 @@ class SessionStore:
     def _session_options(self) -> dict:
         """The store's settings that its sessions carry."""
         undo = {} if self.undo_depth is None else {"undo_depth": self.undo_depth}
-        return {"background_frames": self.background_frames, "preallocate_voxels": self.preallocate_voxels, **undo}
+        return {"background_frames": self.background_frames, "preallocate_voxels": self.preallocate_voxels,
+                "budget": self.budget, **undo}
+
+    def memory_in_use(self) -> int:
+        """Bytes the held sessions' scenes hold (`Scene.memory_bytes`). Takes no lock: it is read
+        under the budget's lock, and a session created or dropped meanwhile moves it by one scene."""
+        return sum(s.scene.memory_bytes() for s in list(self._sessions.values()))
 
     def new_session_id(self) -> str:
         return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
@@ -240,6 +248,8 @@ class SessionStore:
             with self._lock:
                 self._sessions.pop(session_id, None)
             self._bury(session.path)
+        del session
+        release_memory()
 
     def _bury(self, path: Path) -> None:
         tomb = self.root / f"{TOMBSTONE}{path.name}"

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import functools
 import time
+
+import torch
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
@@ -28,7 +30,7 @@ from .undo import FoldUndo, history_slot
 if TYPE_CHECKING:
     from .scene import Scene
 
-__all__ = ["FoldReport", "fold_kept"]
+__all__ = ["FoldReport", "fold_cost", "fold_kept"]
 
 
 @dataclass(frozen=True)
@@ -139,3 +141,29 @@ def _check_foldable(scene: Scene, frame: Frame) -> None:
         raise ValueError("features: this session uses client-supplied features, but the frame carries none")
     if frame.labels is not None and scene.label_dim and frame.labels.shape[-1] != scene.label_dim:
         raise ValueError(f"labels: expected {scene.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
+
+
+def fold_cost(scene: "Scene", frame: Frame) -> int:
+    """Bytes that folding ``frame`` can add to ``scene`` at most, before it folds (no lock needed): a
+    fold adds at most one voxel per pixel it lifts (a pixel whose depth lies in the scene's range, or
+    any pixel of a frame without depth, whose depth the sweep estimates), each at most
+    `VoxelMap.new_voxel_bytes`, and once more in the fold's undo record where the scene keeps them.
+
+    Example:
+        >>> from canonical_core import Scene, SceneConfig
+        >>> from canonical_core.datasets.synthetic import synthetic_rgbd
+        >>> frame = synthetic_rgbd(num_frames=1, width=32, height=24)[0]
+        >>> scene = Scene(SceneConfig(voxel_size=0.01))
+        >>> before, cost = scene.memory_bytes(), fold_cost(scene, frame)
+        >>> _ = scene.fold(frame)
+        >>> 0 < scene.memory_bytes() - before <= cost
+        True
+    """
+    if frame.depth is None:
+        pixels = frame.width * frame.height
+    else:
+        near, far = scene.config.range.near, scene.config.range.far
+        pixels = int(torch.count_nonzero((frame.depth > near) & (frame.depth < far)))
+    per_voxel = scene._voxels.new_voxel_bytes()
+    return pixels * (per_voxel * 2 if scene._undo.depth else per_voxel)
+

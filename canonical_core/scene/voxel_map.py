@@ -41,6 +41,8 @@ MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short bel
 # it memory until written): a map copies its records only if it outgrows this
 RESERVED_ROWS = 1 << 24
 NEXT_TABLE_LOAD = 0.5  # the load at which the next table starts filling
+# hash slots a voxel can take at most: 1 / (MAX_TABLE_LOAD / 2) in the table, twice that in its successor
+TABLE_SLOTS_PER_NEW_VOXEL = 9
 NEXT_TABLE_CLEAR = 1 / 8  # slots of it marked empty per fold (its pages are first touched then)
 NEXT_TABLE_SLICE = 1 / 32  # voxels entered into it per fold once it is clear, as a share of its slots
 
@@ -351,6 +353,12 @@ class VoxelMap:
 
     def _row_bytes(self) -> int:
         return sum(a.itemsize * int(np.prod(a.shape[1:])) for a in self.state.values())
+
+    def new_voxel_bytes(self) -> int:
+        """Bytes one voxel added to the map can cost at most: its row of every per-voxel array, its
+        change stamp, and `TABLE_SLOTS_PER_NEW_VOXEL` hash slots (a table just grown sits at half its
+        largest load, and its successor fills beside it at twice its size)."""
+        return self._row_bytes() + self.changed_at.itemsize + TABLE_SLOTS_PER_NEW_VOXEL * self.table.itemsize
 
     def bytes_per_voxel(self) -> float:
         """Bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes per

@@ -34,6 +34,7 @@ from ..app import create_app
 from ..archive import Retention
 from ..durability import restore_session
 from ..framelog import Fenced
+from ..memory import release_memory
 from ..metrics import Histogram
 from ..session import Session
 from ..session_errors import SessionNotFound, SessionUnavailable, Unrestorable
@@ -240,6 +241,8 @@ class OwnerStore(SessionStore):
             self.used.pop(session_id, None)
             self.evictions += 1
             done.append(session_id)
+        del session
+        release_memory()
         return done
 
     def delete(self, session_id: str) -> None:

@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from canonical_core import SceneConfig
 
-from ..deps import JobsDep, SessionDep, StoreDep
+from ..deps import JobsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..schemas import Deleted, Digest, ErrorBody, SessionCreate, SessionCreated, SessionList, SessionStats, SessionSummary
 
@@ -15,13 +15,21 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
 
 
 @router.post("", status_code=201, response_model=SessionCreated, responses={409: {"model": ErrorBody}})
-async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep) -> SessionCreated:  # type: ignore[valid-type]
+async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  # type: ignore[valid-type]
+                         service: SettingsDep) -> SessionCreated:
     """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required; nested
     groups as objects, e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``), and the frame
-    archive's ``archive_retention`` (all, keyframes or none; default: the service's setting)."""
+    archive's ``archive_retention`` (all, keyframes or none; default: the service's setting). A session
+    that sets no ``max_voxels`` gets the service's ``max_session_voxels``, and may set no more."""
     settings = body.model_dump(exclude_unset=True)
     retention = settings.pop("archive_retention", None)
     config = SceneConfig(**settings)  # ValueError naming the field -> 422
+    cap = service.max_session_voxels
+    if config.max_voxels is None:
+        config = config.replace(max_voxels=cap)
+    elif config.max_voxels > cap:
+        raise ApiError(422, "invalid_value", f"max_voxels: at most {cap} on this service (CANONICAL_MAX_SESSION_VOXELS), "
+                                               f"got {config.max_voxels}", "max_voxels")
     if config.model not in ("default", "none"):  # a client must not make the service read a file of its choosing
         raise ApiError(422, "invalid_value", "model: a checkpoint path cannot be chosen over HTTP; use 'default' "
                                                "or 'none'", "model")

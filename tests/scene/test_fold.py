@@ -10,6 +10,7 @@ import torch
 
 from canonical_core import Frame, SceneConfig
 from canonical_core.scene import CapacityError, Scene, aggregate_batch
+from canonical_core.scene.folding import fold_cost
 from canonical_core.scene.kernels import insert_range_kernel, resolve_kernel, resolve_tables_size
 
 from ..conftest import make_frame
@@ -221,3 +222,23 @@ def test_sparse_index_has_a_fixed_origin_and_is_unbounded():
     f = scene.fields()
     from canonical_core.scene.fields import unpack_keys
     assert unpack_keys(f["keys"]).tolist() == [[-500000, 300000, 100002]]
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("undo_depth", [0, 4])
+def test_fold_cost_bounds_what_a_fold_adds(shelf_frames, undo_depth):
+    """A frame is priced before it folds (the service's memory budget reserves the price): at least
+    what the fold then adds, however the scene's arrays, hash table and undo records grow."""
+    scene = Scene(SceneConfig(voxel_size=0.004), initial_capacity=16, undo_depth=undo_depth)
+    for frame in shelf_frames[:6]:
+        before, cost = scene.memory_bytes(), fold_cost(scene, frame)
+        scene.fold(frame)
+        assert scene.memory_bytes() - before <= cost
+
+
+def test_a_frame_without_depth_is_priced_at_every_pixel():
+    scene = Scene(SceneConfig(voxel_size=0.01))
+    frame = make_frame(np.ones((6, 8), np.float32))
+    no_depth = Frame(rgb=frame.rgb, camera=frame.camera)
+    assert fold_cost(scene, no_depth) == 48 * scene._voxels.new_voxel_bytes()
+    assert fold_cost(scene, frame) == fold_cost(scene, no_depth)  # every pixel of this frame lies in range

@@ -1,0 +1,103 @@
+"""The service's memory: a frame is priced before it folds and refused over the budget, a session's
+voxels are capped by default, and a deleted session's memory goes back to the system.
+
+The frames are what a hostile client sends: a few kilobytes of PNG (a black image over a smooth depth
+ramp) that fold into a million voxels at half-millimetre voxels. Before the budget, each such request
+added hundreds of megabytes, without bound; before the memory was released, none of it came back
+after DELETE.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from .harness import ServerProcess
+
+SIDE = 1024
+FINE = 0.0005  # metres: every pixel of the ramp its own voxel
+
+
+def png(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+RGB = png(np.zeros((SIDE, SIDE, 3), np.uint8))
+RAMP = png((np.linspace(500, 3000, SIDE)[None, :] + np.linspace(0, 500, SIDE)[:, None]).astype(np.uint16))
+CAMERA = json.dumps({"K": [[SIDE, 0, SIDE / 2], [0, SIDE, SIDE / 2], [0, 0, 1]], "c2w": np.eye(4).tolist(), "depth_scale": 1000})
+
+
+def post_ramp(url: str, session_id: str) -> httpx.Response:
+    return httpx.post(f"{url}/v1/sessions/{session_id}/frames", files={"rgb": ("c.png", RGB), "depth": ("d.png", RAMP)},
+                      data={"camera": CAMERA}, timeout=300)
+
+
+def create(url: str, **settings) -> httpx.Response:
+    return httpx.post(f"{url}/v1/sessions", json={"voxel_size": FINE, **settings}, timeout=60)
+
+
+def resident_mib(pid: int) -> float:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(status.split("VmRSS:")[1].split()[0]) / 1024
+
+
+@pytest.fixture(scope="module")
+def budgeted(tmp_path_factory):
+    """A service whose memory budget takes about two of the ramp frames, and whose sessions hold at most
+    3 million voxels."""
+    root = tmp_path_factory.mktemp("memory")
+    proc = ServerProcess(root / "data", root / "server.log", memory_budget_bytes=1_200_000_000,
+                         max_session_voxels=3_000_000).start()
+    yield proc
+    proc.stop()
+
+
+def test_a_frame_past_the_budget_is_refused_before_it_folds_and_a_delete_gives_room_back(budgeted):
+    url = budgeted.url
+    ids = [create(url).json()["id"] for _ in range(3)]
+    folded = [post_ramp(url, i) for i in ids]
+    assert [r.status_code for r in folded[:2]] == [200, 200]
+    refused = folded[2]
+    assert refused.status_code == 413, refused.text
+    error = refused.json()["error"]
+    assert error["field"] == "frame" and "CANONICAL_MEMORY_BUDGET_BYTES" in error["message"]
+    stats = httpx.get(f"{url}/v1/sessions/{ids[2]}", timeout=60).json()
+    assert (stats["frames"], stats["voxels"]) == (0, 0)  # nothing folded, nothing logged
+    httpx.delete(f"{url}/v1/sessions/{ids[0]}", timeout=60)
+    assert post_ramp(url, ids[2]).status_code == 200  # the deleted session's share is free again
+    for i in ids[1:]:
+        httpx.delete(f"{url}/v1/sessions/{i}", timeout=60)
+
+
+def test_sessions_hold_at_most_the_services_voxels(budgeted):
+    r = create(budgeted.url)
+    assert r.status_code == 201 and r.json()["config"]["max_voxels"] == 3_000_000
+    httpx.delete(f"{budgeted.url}/v1/sessions/{r.json()['id']}", timeout=60)
+    assert create(budgeted.url, max_voxels=1000).json()["config"]["max_voxels"] == 1000
+    r = create(budgeted.url, max_voxels=3_000_001)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "max_voxels"
+    assert "CANONICAL_MAX_SESSION_VOXELS" in r.json()["error"]["message"]
+
+
+def test_a_deleted_sessions_memory_goes_back_to_the_system(tmp_path):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", warm_up="false").start()
+    try:
+        ids = [create(proc.url).json()["id"] for _ in range(2)]
+        start = resident_mib(proc.proc.pid)
+        assert all(post_ramp(proc.url, i).status_code == 200 for i in ids)
+        peak = resident_mib(proc.proc.pid)
+        assert peak - start > 400  # two million voxels
+        for i in ids:
+            assert httpx.delete(f"{proc.url}/v1/sessions/{i}", timeout=60).status_code == 200
+        after = resident_mib(proc.proc.pid)
+        assert after - start < (peak - start) / 4, (start, peak, after)
+    finally:
+        proc.stop()
