@@ -1,10 +1,10 @@
 """The ``canonical`` command line.
 
     canonical serve [--host H] [--port P] [--data-dir D] [--threads N] [--cluster [--address A] [--owners N]]
-    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F]
-    canonical render --url URL --session ID (--frame-like DATASET:INDEX | --pose FILE --K fx,fy,cx,cy --width W --height H) -o out.png
+    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F] [--strict] [--json]
+    canonical render --url URL --session ID (--frame-like DATASET:INDEX ... | (--pose FILE | --trajectory FILE) (--K fx,fy,cx,cy --size WxH | --frame-like DATASET:INDEX)) -o out.png|'view_{i}.png'|DIR/
     canonical export --url URL --session ID -o scene.ply|scene.splat
-    canonical sessions --url URL
+    canonical sessions --url URL [--json]
     canonical view --url URL --session ID [--no-browser]   (print the web viewer's URL, open a browser)
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
@@ -16,15 +16,24 @@ write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, r
 The CLI talks to the service over HTTP (`client.sdk`); ``serve`` starts it through uvicorn by import
 string, and ``repair`` (which works on a stopped service's data directory) imports it where it runs, so
 the module itself imports nothing from ``server``. Datasets are read client-side with canonical_core.datasets.
+
+For scripts, the commands that talk to a service print their result alone on stdout: ``stream`` the
+session's id (``S=$(canonical stream ...)``), ``render`` and ``export`` the paths they wrote, one a
+line, ``view`` the page's URL, ``sessions`` its table; ``--json`` (stream, sessions, poses) prints a
+JSON result instead. Progress, warnings and summaries go to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
+import json
 import os
 import re
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -50,6 +59,20 @@ def _add_connection(p: argparse.ArgumentParser) -> None:
 
 def _client(args) -> Client:
     return Client(args.url, token=args.token)
+
+
+def _add_json(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--json", action="store_true", help=f"print {what} as JSON on stdout (for scripts)")
+
+
+@contextlib.contextmanager
+def warnings_on_stderr():
+    """Warnings raised inside (a loader's skipped frames, say) as one line each on stderr, after it."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        yield
+    for warning in caught:
+        print(f"warning: {warning.message}", file=sys.stderr)
 
 
 # -- serve --------------------------------------------------------------------------------------
@@ -141,7 +164,12 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     target.add_argument("--voxel-size", type=float, help="create a new session with this voxel size")
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5)")
+    p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
+                                                             "frames without depth over the service's limit for them "
+                                                             "are downscaled to it anyway")
+    p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
+                                                         "(default: skip them, with a warning that counts them)")
+    _add_json(p, "the session's stats when the stream ends, with the frames sent and the seconds taken")
     p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
                    help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
                         "the field's type), e.g. --set colour_solve.views=16 --set free_space.margin=3; repeatable")
@@ -193,22 +221,53 @@ def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
     return out
 
 
+class FirstFrameSession:
+    """A new session that exists once its first frame is in: the first `add_frame` creates it (with
+    ``settings``, as `Client.create_session`) and, if the service refuses that frame or the call is
+    interrupted, deletes it again, so a stream that fails at its start leaves no empty session
+    behind. ``created(session)`` is called once the first frame is in; ``session`` is None until then."""
+
+    def __init__(self, client: Client, settings: dict, created: Callable | None = None):
+        self.client, self.settings, self.created = client, settings, created
+        self.session = None
+
+    def add_frame(self, **frame) -> dict:
+        if self.session is not None:
+            return self.session.add_frame(**frame)
+        session = self.client.create_session(**self.settings)
+        try:
+            report = session.add_frame(**frame)
+        except BaseException:
+            with contextlib.suppress(Exception):  # the refusal is what the user needs to see, not this
+                session.delete()
+            raise
+        self.session = session
+        if self.created is not None:
+            self.created(session)
+        return report
+
+
 def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[int, float]:
-    """Post frames ``start`` .. end with a progress bar; returns (frames sent, elapsed seconds). The
-    fold reports' warnings go to stderr, each kind once.
+    """Post frames ``start`` .. end to ``session`` (a `Session` or a `FirstFrameSession`) with a progress
+    bar; returns (frames sent, elapsed seconds). The fold reports' warnings and those raised while a
+    frame is read and sent (a frame downscaled to the service's limit) go to stderr, each kind once.
 
     Ctrl-C stops after the frame in flight; the count says how many were acknowledged."""
     from tqdm import tqdm
 
     t0, new, sent = time.perf_counter(), 0, 0
     shown: set[str] = set()
-    with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar:
+    with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar, \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         try:
             for i in range(start, len(frames)):
                 report = session.add_frame(**frame_arrays(frames[i], scale, sensor_units=True))
                 sent += 1
                 new += report["new_voxels"]
-                for warning in report.get("warnings", []):
+                raised = [str(w.message) for w in caught]
+                caught.clear()
+                for warning in raised + report.get("warnings", []):
                     kind = re.sub(r"[0-9.,%]+", "#", warning)  # each kind of warning once, whatever its figures
                     if kind not in shown:
                         shown.add(kind)
@@ -244,68 +303,175 @@ def run_stream(args) -> int:
     if any(name == "voxel_size" for name, _ in args.settings):
         print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
         return 2
-    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
+    with warnings_on_stderr():
+        frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict)
+
+    def announce(session) -> None:  # the id on stdout as soon as the session holds a frame: S=$(canonical stream ...)
+        if not args.json:
+            from tqdm import tqdm
+
+            tqdm.write(session.id, file=sys.stdout)  # on a terminal, above the progress bar rather than through it
+            sys.stdout.flush()
+
     with _client(args) as client:
         start = 0
         if args.session:
-            session = client.session(args.session)
-            start = min(session.stats()["frames"], len(frames))  # resume after the frames it already has
-            print(f"session {session.id}: resuming after its {start} frames", file=sys.stderr)
+            target = client.session(args.session)
+            start = min(target.stats()["frames"], len(frames))  # resume after the frames it already has
+            print(f"session {target.id}: resuming after its {start} frames", file=sys.stderr)
+            announce(target)
         else:
-            session = client.create_session(voxel_size=args.voxel_size, **settings_from_pairs(args.settings))
-            print(f"session {session.id}", file=sys.stderr)
+            target = FirstFrameSession(client, {"voxel_size": args.voxel_size, **settings_from_pairs(args.settings)},
+                                       created=announce)
+        interrupted = False
         try:
-            sent, elapsed = stream_frames(session, frames, args.scale, start)
+            sent, elapsed = stream_frames(target, frames, args.scale, start)
         except StreamInterrupted as stop:
-            print("interrupted: " + _stream_summary(stop.sent, stop.elapsed, session, session.stats())
-                  + f"; continue with --session {session.id}")
-            return 130
-        print(_stream_summary(sent, elapsed, session, session.stats()))
-    return 0
+            sent, elapsed, interrupted = stop.sent, stop.elapsed, True
+        session = target.session if isinstance(target, FirstFrameSession) else target
+        if session is None:  # no frame went in: no session was made
+            print(("interrupted" if interrupted else f"{frames.name}: no frames to stream")
+                  + "; no session was created", file=sys.stderr)
+            return 130 if interrupted else 1
+        stats = session.stats()
+        summary = _stream_summary(sent, elapsed, session, stats)
+        if interrupted:
+            summary = f"interrupted: {summary}; continue with --session {session.id}"
+        print(summary, file=sys.stderr)
+        if args.json:
+            print(json.dumps({**stats, "sent": sent, "seconds": round(elapsed, 3), "interrupted": interrupted}))
+    return 130 if interrupted else 0
 
 
 # -- render -------------------------------------------------------------------------------------
 def add_render(p: argparse.ArgumentParser) -> None:
     _add_connection(p)
     p.add_argument("--session", required=True)
-    where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--frame-like", metavar="DATASET:INDEX", help="the camera of frame INDEX of DATASET")
-    where.add_argument("--pose", metavar="FILE", help="4x4 camera-to-world text file (OpenCV axes); needs --K, --width, --height")
-    p.add_argument("--K", help="fx,fy,cx,cy (with --pose)")
-    p.add_argument("--width", type=int)
-    p.add_argument("--height", type=int)
+    p.add_argument("--frame-like", metavar="DATASET:INDEX", action="append", default=[],
+                   help="a view at the camera of frame INDEX of DATASET; repeatable, one view each. With --pose or "
+                        "--trajectory, only its intrinsics and image size are taken")
+    poses = p.add_mutually_exclusive_group()
+    poses.add_argument("--pose", metavar="FILE", help="camera-to-world pose (OpenCV axes): a 4x4 matrix, or pose lines "
+                                                      "as --trajectory reads them; needs --K and --size, or --frame-like")
+    poses.add_argument("--trajectory", metavar="FILE",
+                       help="one view per line: TUM 'timestamp tx ty tz qx qy qz qw' (camera-to-world, quaternion "
+                            "scalar last; the timestamp optional) or the 16 numbers of a 4x4 matrix; '#' comments. "
+                            "Needs --K and --size, or --frame-like")
+    p.add_argument("--K", help="fx,fy,cx,cy in pixels (with --pose or --trajectory)")
+    p.add_argument("--size", type=image_size_arg, metavar="WxH", help="image size (with --K), e.g. 640x480")
+    p.add_argument("--width", type=int, help="image width (or --size)")
+    p.add_argument("--height", type=int, help="image height (or --size)")
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
     p.add_argument("--colour", choices=["normalised", "composited"], default=None,
                    help="normalised (the service's default: each drawn pixel the surface's expected colour, not darkened "
                         "where splats cover it only in part) or composited (the blend over the background)")
-    p.add_argument("-o", "--output", required=True, help="PNG file to write")
+    p.add_argument("-o", "--output", required=True,
+                   help="the PNG to write; for several views a pattern with {i}, the view's index (e.g. "
+                        "'views/{i:03d}.png'), or a folder (DIR/: view_0000.png, ...). The paths written are printed")
 
 
-def view_camera(args) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """K, c2w, width, height from --frame-like or --pose/--K/--width/--height."""
-    if args.frame_like:
-        path, sep, index = args.frame_like.rpartition(":")
-        if not sep or not index.lstrip("-").isdigit():
-            raise SystemExit(f"--frame-like: expected DATASET:INDEX, got {args.frame_like!r}")
-        from canonical_core.datasets import load_dataset
+def image_size_arg(text: str) -> tuple[int, int]:
+    """``WxH`` -> (W, H), both positive.
 
-        camera = load_dataset(path)[int(index)].camera
-        return camera.K64(), camera.c2w64(), camera.width, camera.height
-    if not (args.K and args.width and args.height):
-        raise SystemExit("--pose needs --K fx,fy,cx,cy, --width and --height")
-    fx, fy, cx, cy = (float(x) for x in args.K.split(","))
-    c2w = np.loadtxt(args.pose, dtype=np.float64)
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), c2w, args.width, args.height
+    Example:
+        >>> image_size_arg("640x480")
+        (640, 480)
+    """
+    width, sep, height = text.lower().partition("x")
+    if not (sep and width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise argparse.ArgumentTypeError(f"expected WxH in pixels (e.g. 640x480), got {text!r}")
+    return int(width), int(height)
+
+
+def frame_like_camera(frame_like: str):
+    """The `Camera` of frame INDEX of DATASET, from ``DATASET:INDEX``."""
+    path, sep, index = frame_like.rpartition(":")
+    if not sep or not index.lstrip("-").isdigit():
+        raise SystemExit(f"--frame-like: expected DATASET:INDEX, got {frame_like!r}")
+    return _capture(path)[int(index)].camera
+
+
+@functools.lru_cache(maxsize=None)
+def _capture(path: str):
+    """A capture read once however many --frame-like views name it."""
+    from canonical_core.datasets import load_dataset
+
+    return load_dataset(path)
+
+
+def view_poses(path: str) -> list[np.ndarray]:
+    """The camera-to-world poses of a --pose or --trajectory file, in file order: one 4x4 (or 3x4)
+    matrix written over its lines, else one pose a line (`read_pose_file`)."""
+    from canonical_core.camera import validate_pose
+
+    try:
+        matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError:  # not one block of numbers: pose lines with keys, or malformed (read_pose_file says where)
+        matrix = None
+    if matrix is not None and matrix.shape in ((4, 4), (3, 4)):
+        return [validate_pose(matrix, str(path))]
+    return list(read_pose_file(path).values())
+
+
+def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
+    """(K, c2w, width, height) of each view the arguments name, in order: each --frame-like's camera,
+    or each pose of --pose / --trajectory with --K and --size (else the --frame-like camera's)."""
+    cameras = [frame_like_camera(spec) for spec in args.frame_like]
+    pose_file = args.pose or args.trajectory
+    if pose_file is None:
+        if args.K or args.size or args.width or args.height:
+            raise SystemExit("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
+        return [(c.K64(), c.c2w64(), c.width, c.height) for c in cameras]
+    width, height = args.size or (args.width, args.height)
+    if args.K:
+        fx, fy, cx, cy = (float(x) for x in args.K.split(","))
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        if not (width and height):
+            if len(cameras) != 1:
+                raise SystemExit("--K needs --size WxH (or one --frame-like whose image size to take)")
+            width, height = cameras[0].width, cameras[0].height
+    elif len(cameras) == 1:
+        K, width, height = cameras[0].K64(), width or cameras[0].width, height or cameras[0].height
+    else:
+        raise SystemExit("--pose and --trajectory need --K fx,fy,cx,cy and --size WxH, or one --frame-like "
+                         "DATASET:INDEX whose intrinsics and image size to take")
+    return [(K, c2w, width, height) for c2w in view_poses(pose_file)]
+
+
+def output_paths(output: str, count: int) -> list[Path]:
+    """Where each of ``count`` views goes: ``output`` with its {i} filled in, or in the folder
+    ``output`` (view_0000.png, ...), or, for one view, ``output`` itself."""
+    if "{" in output:
+        try:
+            paths = [Path(output.format(i=i)) for i in range(count)]
+        except (KeyError, IndexError, ValueError) as exc:
+            raise SystemExit(f"-o: expected a pattern with {{i}} (e.g. view_{{i:03d}}.png), got {output!r} ({exc!r})") from None
+        if len(set(paths)) < count:
+            raise SystemExit(f"-o: {output!r} names one file for several views; put {{i}} in it")
+        return paths
+    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+        return [Path(output) / f"view_{i:04d}.png" for i in range(count)]
+    if count > 1:
+        raise SystemExit(f"-o: {count} views need a pattern with {{i}} (e.g. view_{{i:03d}}.png) or a folder, got {output!r}")
+    return [Path(output)]
 
 
 def run_render(args) -> int:
-    K, c2w, width, height = view_camera(args)
+    if not (args.frame_like or args.pose or args.trajectory):
+        print("render: give the view(s): --frame-like DATASET:INDEX, --pose FILE or --trajectory FILE", file=sys.stderr)
+        return 2
+    with warnings_on_stderr():
+        views = render_views(args)
+    paths = output_paths(args.output, len(views))
     background = None if args.background is None else [float(x) for x in args.background.split(",")]
-    with _client(args) as client:
-        png = client.session(args.session).render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
-    Path(args.output).write_bytes(png)
-    print(f"wrote {args.output} ({width}x{height})")
+    with _client(args) as client:  # one process and one connection for every view
+        session = client.session(args.session)
+        for (K, c2w, width, height), path in zip(views, paths):
+            png = session.render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(png)
+            print(path, flush=True)
     return 0
 
 
@@ -324,21 +490,57 @@ def run_export(args) -> int:
     with _client(args) as client:
         session = client.session(args.session)
         path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
-    print(f"wrote {path} ({path.stat().st_size} bytes)")
+    print(path)
     return 0
 
 
 # -- sessions -----------------------------------------------------------------------------------
 def add_sessions(p: argparse.ArgumentParser) -> None:
     _add_connection(p)
+    _add_json(p, "the sessions (the service's summaries, and each one's age_s in seconds)")
+
+
+def human_bytes(n: int | None) -> str:
+    """Bytes for people: ``human_bytes(3_500_000)`` is '3.3 MiB'."""
+    if n is None:
+        return "-"
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def human_age(seconds: float) -> str:
+    """A duration for people: ``human_age(5400)`` is '1.5 h'."""
+    seconds = max(0.0, seconds)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 36 * 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} d"
 
 
 def run_sessions(args) -> int:
     with _client(args) as client:
         sessions = client.sessions()
-    print(f"{'id':<24} {'frames':>7} {'voxels':>9}  created")
+    now = time.time()
+    if args.json:
+        print(json.dumps([{**s, "age_s": round(now - s["created"], 3) if s["created"] else None} for s in sessions]))
+        return 0
+    rows = [("id", "voxel", "frames", "memory", "disk", "age", "state")]
     for s in sessions:
-        print(f"{s['id']:<24} {s['frames']:>7} {s['voxels']:>9}  {time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(s['created']))}")
+        voxel = "-" if s.get("voxel_size") is None else f"{s['voxel_size'] * 1000:g} mm"
+        age = human_age(now - s["created"]) if s["created"] else "-"  # an unavailable session may not say
+        frames = "-" if s["frames"] is None else str(s["frames"])
+        rows.append((s["id"], voxel, frames, human_bytes(s.get("memory_bytes")), human_bytes(s.get("disk_bytes")), age,
+                     s["state"]))
+    widths = [max(len(row[k]) for row in rows) for k in range(len(rows[0]))]
+    for row in rows:  # the id and the state left-aligned, the figures right-aligned
+        cells = [cell.ljust(w) if k in (0, 6) else cell.rjust(w) for k, (cell, w) in enumerate(zip(row, widths))]
+        print("  ".join(cells).rstrip())
     return 0
 
 
@@ -365,7 +567,7 @@ def run_view(args) -> int:
     url = viewer_url(args.url, args.session)
     print(url)
     if args.token or os.environ.get("CANONICAL_API_TOKEN"):
-        print("the page asks for the API token once (kept in the browser tab, sent as a bearer header)")
+        print("the page asks for the API token once (kept in the browser tab, sent as a bearer header)", file=sys.stderr)
     if not args.no_browser and has_display():
         import webbrowser
 
@@ -383,6 +585,7 @@ def add_poses(p: argparse.ArgumentParser) -> None:
     p.add_argument("--session", required=True, help="the session whose frames get the poses")
     p.add_argument("--remove", action="append", default=[], metavar="KEY",
                    help="also remove this frame (frame_id or arrival index); repeatable")
+    _add_json(p, "what the correction did (the service's answer)")
 
 
 def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
@@ -424,7 +627,10 @@ def run_poses(args) -> int:
     with _client(args) as client:
         done = client.session(args.session).update_poses(poses, remove=args.remove, progress=progress)
     print(f"session {done['id']}: {done['corrected']} poses corrected, {done['removed']} frames removed"
-          + (f", {done['dropped']} not archived dropped" if done["dropped"] else "") + f"; it holds {done['frames']} frames")
+          + (f", {done['dropped']} not archived dropped" if done["dropped"] else "") + f"; it holds {done['frames']} frames",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps(done))
     return 0
 
 
@@ -523,8 +729,9 @@ def run_demo(args) -> int:
     service = start_service(port, out / "data")
     try:
         with Client(f"http://127.0.0.1:{port}") as client:
-            session = client.create_session(voxel_size=voxel)
-            sent, elapsed = stream_frames(session, frames)
+            new_session = FirstFrameSession(client, {"voxel_size": voxel})
+            sent, elapsed = stream_frames(new_session, frames)
+            session = new_session.session
             print(_stream_summary(sent, elapsed, session, session.stats()))
             view = frames[len(frames) // 2]
             cam = view.camera

@@ -16,6 +16,7 @@ import math
 import numbers
 import os
 import time
+import warnings
 from pathlib import Path
 from urllib.parse import quote
 
@@ -110,25 +111,142 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     return pack(msg)
 
 
-class Session:
-    """One session of a `Client`; get it from `Client.create_session` or `Client.session`."""
+class DownscaledFrame(UserWarning):
+    """A frame without depth was over the service's limit for such frames and was sent downscaled."""
 
-    def __init__(self, client: "Client", session_id: str):
-        self.client, self.id = client, session_id
+
+def scaled_intrinsics(K, sx: float, sy: float) -> np.ndarray:  # [3, 3] float64
+    """``K`` of the image resized by ``sx`` across and ``sy`` down. Pixel centres sit on integers (the
+    convention of `canonical_core.camera`: pixel u spans u - 0.5 .. u + 0.5), so the image's edges
+    stay its edges: c' + 0.5 = (c + 0.5) s, as `Camera.scaled` does with one factor.
+
+    Example:
+        >>> scaled_intrinsics([[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], 0.5, 0.5)[:2].tolist()
+        [[250.0, 0.0, 159.5], [0.0, 250.0, 119.5]]
+    """
+    K = np.array(_matrix(K, (3, 3)))
+    K[0] *= sx
+    K[1] *= sy
+    K[0, 2] += 0.5 * sx - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    return K
+
+
+def _rgb_size(rgb) -> tuple[int, int]:  # (width, height) of an array, or of PNG/JPEG bytes from their header
+    if isinstance(rgb, (bytes, bytearray)):
+        from PIL import Image
+
+        with Image.open(io.BytesIO(bytes(rgb))) as image:
+            return image.size
+    shape = np.shape(rgb)
+    return (shape[1], shape[0]) if len(shape) == 3 else (0, 0)  # not an image: the service names the problem
+
+
+def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
+    """``(rgb, K)`` of a frame without depth, fitted to ``max_pixels``: as they are when within it,
+    else the image area-averaged down to the largest size within it (aspect kept) and K scaled to
+    match (`scaled_intrinsics`), with a `DownscaledFrame` warning."""
+    width, height = _rgb_size(rgb)
+    if width * height <= max_pixels:
+        return rgb, K
+    from PIL import Image
+
+    factor = math.sqrt(max_pixels / (width * height))
+    size = (max(1, int(width * factor)), max(1, int(height * factor)))  # rounded down: within the limit
+    if isinstance(rgb, (bytes, bytearray)):
+        image = Image.open(io.BytesIO(bytes(rgb))).convert("RGB")
+    else:
+        image = Image.fromarray(np.ascontiguousarray(rgb, np.uint8))
+    warnings.warn(f"rgb: a frame without depth of {width}x{height} pixels is over the service's limit of {max_pixels} "
+                  f"pixels for such frames; sent downscaled to {size[0]}x{size[1]}, with K scaled to match (or send "
+                  f"depth)", DownscaledFrame, stacklevel=3)
+    return np.asarray(image.resize(size, Image.BOX)), scaled_intrinsics(K, size[0] / width, size[1] / height)
+
+
+def is_class_map(labels) -> bool:
+    """Whether ``labels`` is a class map (integer or boolean [H, W]: one class id a pixel), not scores."""
+    labels = np.asarray(labels)
+    return labels.ndim == 2 and (np.issubdtype(labels.dtype, np.integer) or labels.dtype == np.bool_)
+
+
+def label_scores(class_map, num_classes: int) -> np.ndarray:  # [H, W] ids -> [H, W, K] float16
+    """A class map as the per-pixel label scores the service fuses: one-hot over K = ``num_classes``
+    (a negative id: no class, every score 0). float16 holds 0 and 1 exactly in half the bytes.
+    ValueError naming K when an id does not fit.
+
+    Example:
+        >>> label_scores(np.array([[0, 2], [-1, 1]]), 3)[0].tolist()
+        [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    ids = np.asarray(class_map)
+    top = int(ids.max()) if ids.size else -1
+    if top >= num_classes:
+        raise ValueError(f"labels: class {top} does not fit K = {num_classes} label classes (ids 0..{num_classes - 1}); "
+                         "a session's K is fixed by its first labelled frame: pass num_classes= with that frame")
+    return (ids[..., None] == np.arange(num_classes)).astype(np.float16)
+
+
+class Session:
+    """One session of a `Client`; get it from `Client.create_session` or `Client.session`.
+
+    ``label_dim`` is the session's label channels (K; 0 before its first labelled frame) where the
+    client knows it, else None (read from the service when a class map needs it)."""
+
+    def __init__(self, client: "Client", session_id: str, label_dim: int | None = None):
+        self.client, self.id, self.label_dim = client, session_id, label_dim
 
     @property
     def _path(self) -> str:
         return f"/v1/sessions/{self.id}"
 
     def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
-                  depth_scale=None) -> dict:
+                  depth_scale=None, num_classes: int | None = None, downscale: bool = True) -> dict:
         """Fold one frame. ``rgb`` uint8 [H,W,3] array or PNG/JPEG bytes; ``K`` 3x3; ``c2w`` 4x4 OpenCV
         camera-to-world; ``depth`` float [H,W] metres, or a sensor's integer [H,W] depth (0 = missing)
         with ``depth_scale`` its units per metre (1000 for millimetres), which travels as 16-bit;
-        ``depth_std`` float [H,W]; ``features`` / ``labels`` float [H',W',C]. Returns the fold report
-        (frame_index, new_voxels, ...)."""
+        ``depth_std`` float [H,W]; ``features`` float [H',W',C]. Returns the fold report
+        (frame_index, new_voxels, ...).
+
+        ``labels``: per-pixel label scores, float [H',W',K], or a class map, integer [H',W'] (one
+        class id a pixel, negative for none), sent as one-hot scores over K = ``num_classes``, else
+        the session's label channels, else (its first labelled frame) the map's largest id + 1.
+
+        With ``downscale``, a frame without depth that is over the service's limit for such frames
+        (`Client.limits`) is sent downscaled to it, K scaled to match, with a `DownscaledFrame`
+        warning; without, the service refuses it (413)."""
+        if labels is not None:
+            labels = self._label_scores(labels, num_classes)
+        if depth is None and downscale:
+            limit = self.client.limits().get("max_rgb_only_pixels")
+            if limit is not None:
+                rgb, K = fit_rgb_only(rgb, K, limit)
         body = frame_body(rgb, K, c2w, depth, depth_std, features, labels, frame_id, depth_scale)
-        return self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
+        report = self.client._request("POST", f"{self._path}/frames", content=body, headers={"Content-Type": MSGPACK}).json()
+        if labels is not None:
+            self.label_dim = int(np.shape(labels)[-1])
+        return report
+
+    def _label_scores(self, labels, num_classes: int | None):
+        """``labels`` as scores [H',W',K] (a class map one-hot encoded); ValueError naming K when they
+        disagree with the session's K."""
+        known = self.label_dim
+        if is_class_map(labels):
+            if num_classes is None:
+                known = self.stats()["label_dim"] if known is None else known
+                num_classes = known or int(np.asarray(labels, np.int64).max(initial=-1)) + 1
+            if num_classes < 1:
+                raise ValueError("labels: the class map holds no class id (all negative) and K is not known yet: "
+                                 "pass num_classes=")
+            limit = self.client.limits().get("max_label_channels")
+            if limit is not None and num_classes > limit:  # before a one-hot of that many channels is built
+                raise ValueError(f"labels: K = {num_classes} label classes exceed the service's limit of {limit} "
+                                 "label channels")
+            labels = label_scores(labels, num_classes)
+        channels = np.shape(labels)[-1] if np.ndim(labels) == 3 else None
+        if known and channels is not None and channels != known:
+            raise ValueError(f"labels: {channels} label channels, but this session's labels have K = {known} "
+                             "(fixed by its first labelled frame)")
+        return labels
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
@@ -247,6 +365,7 @@ class Client:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
         self.max_retries, self.max_wait = max_retries, max_wait
+        self._limits: dict | None = None
 
     def _request(self, method: str, path: str, **kwargs) -> httpx.Response:
         for attempt in range(self.max_retries + 1):
@@ -277,12 +396,24 @@ class Client:
         """A new session; ``settings`` are the service's session settings (SceneConfig's public fields:
         max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, free_space={"margin": 3.0}``)."""
         r = self._request("POST", "/v1/sessions", json={"voxel_size": voxel_size, **settings})
-        return Session(self, r.json()["id"])
+        return Session(self, r.json()["id"], label_dim=0)
 
     def session(self, session_id: str) -> Session:
         """An existing session (checked: raises CanonicalError 404 when unknown)."""
-        self._request("GET", f"/v1/sessions/{session_id}")
-        return Session(self, session_id)
+        stats = self._request("GET", f"/v1/sessions/{session_id}").json()
+        return Session(self, session_id, label_dim=stats.get("label_dim"))
+
+    def limits(self) -> dict:
+        """The service's request limits (``GET /v1/limits``: ``max_rgb_only_pixels``, ``max_image_pixels``,
+        ...), read once per client; {} from a service that does not publish them."""
+        if self._limits is None:
+            try:
+                self._limits = self._request("GET", "/v1/limits").json()
+            except CanonicalError as exc:
+                if exc.status != 404:
+                    raise
+                self._limits = {}
+        return self._limits
 
     def sessions(self) -> list[dict]:
         return self._request("GET", "/v1/sessions").json()["sessions"]

@@ -52,7 +52,10 @@ class SessionSummary(BaseModel):
     id: str
     frames: int | None = Field(description="None while the session is unavailable")
     voxels: int | None
-    created: float
+    created: float = Field(description="unix time of its creation")
+    voxel_size: float | None = Field(None, description="metres (None while unavailable)")
+    memory_bytes: int | None = Field(None, description="bytes its scene holds in memory (None while unavailable)")
+    disk_bytes: int | None = Field(None, description="bytes of the files in its folder (None while unavailable)")
     archive_retention: Literal["all", "keyframes", "none"] | None = Field(
         None, description="which frames the session keeps for pose corrections (None while unavailable)")
     state: Literal["ok", "read_only", "unavailable"] = Field(
@@ -70,10 +73,8 @@ class SessionStats(SessionSummary):
     archive_frames: int = Field(0, description="frames whose content the archive keeps")
     archive_problem: str | None = Field(None, description="why the archive cannot serve corrections, if it cannot")
     gaussians: int
-    memory_bytes: int
     undo_bytes: int = Field(0, description="bytes of the undo records of the last folds, which make corrections of "
                                            "recent frames cheap (part of memory_bytes)")
-    disk_bytes: int
     label_dim: int
     inconsistent_depth_below: float | None = Field(
         None, description="metres: the depth under which this session's consecutive frames disagree, likely under "
@@ -138,6 +139,19 @@ class ErrorBody(BaseModel):
 class Health(BaseModel):
     status: str
     sessions: int
+
+
+class Limits(BaseModel):
+    """The service's limits on one request (its CANONICAL_* settings): larger requests get 413. A client
+    that reads them can fit its frames first (the SDK downscales frames without depth to
+    ``max_rgb_only_pixels``)."""
+
+    max_body_bytes: int
+    max_image_pixels: int = Field(description="pixels of a frame's images or of a requested view")
+    max_rgb_only_pixels: int = Field(description="pixels of a frame without depth")
+    max_label_channels: int
+    max_channel_values: int = Field(description="image pixels x channels of a frame's features or labels")
+    max_response_bytes: int
 
 
 class PosesRequest(BaseModel):

@@ -228,8 +228,27 @@ class Session:
         return self.archive.retention if self.archive is not None else "none"
 
     def summary(self) -> dict:
+        """What the session list shows of it: cheap (no decode, no lock), so listing many sessions is."""
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
-                "archive_retention": self.retention, "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
+                "voxel_size": self.config.voxel_size, "memory_bytes": self.scene.memory_bytes(),
+                "disk_bytes": self.disk_bytes(), "archive_retention": self.retention,
+                "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
+
+    def disk_bytes(self) -> int:
+        """Bytes of the files in the session's folder. Read without the lock: a file that a snapshot
+        commit or a delete removes meanwhile counts as gone."""
+        total = 0
+        try:
+            entries = list(self.path.iterdir())
+        except FileNotFoundError:  # the session was deleted
+            return 0
+        for entry in entries:
+            try:
+                if entry.is_file():
+                    total += entry.stat().st_size
+            except FileNotFoundError:
+                continue
+        return total
 
     def stats(self) -> dict:
         gaussians = len(self.gaussians(features=False)[0])  # a decode if none is cached, outside the scene's lock
@@ -244,9 +263,7 @@ class Session:
                 "archive_problem": archive.problem if archive is not None else None,
                 **self.summary(),
                 "gaussians": gaussians,
-                "memory_bytes": stats["memory_bytes"],
                 "undo_bytes": self.scene.undo_bytes(),
-                "disk_bytes": sum(p.stat().st_size for p in self.path.iterdir() if p.is_file()),
                 "label_dim": stats["label_dim"],
                 "inconsistent_depth_below": stats["inconsistent_depth_below"],
                 "snapshot_frames": self.snapshots.frames,

@@ -11,7 +11,8 @@
 
 All return a `FrameSequence`: frames read lazily on indexing, slicing without reading, and
 ``frame_ids`` without reading images. Poses come out camera-to-world in OpenCV axes, depth in
-metres (0 = missing), as DESIGN.md prescribes.
+metres (0 = missing), as DESIGN.md prescribes. A listed frame whose images are missing is left out
+with one `SkippedFrames` warning (``strict=True`` refuses the capture instead).
 
 Example:
     >>> from canonical_core.datasets import synthetic_rgbd
@@ -23,6 +24,7 @@ Example:
 
 from .deep_video_mvs import load_deep_video_mvs
 from .detect import load_dataset
+from .files import SkippedFrames
 from .label_fusion import load_label_fusion
 from .redwood import load_redwood
 from .sequence import FrameSequence
@@ -33,6 +35,7 @@ from .tum import load_tum
 
 __all__ = [
     "FrameSequence",
+    "SkippedFrames",
     "load_dataset",
     "load_deep_video_mvs",
     "load_label_fusion",

@@ -52,13 +52,24 @@ _LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusi
             "deep_video_mvs": load_deep_video_mvs, "redwood": load_redwood, "label_fusion": load_label_fusion}
 
 
-def load_dataset(path: str | Path, **kwargs) -> FrameSequence:
+# the layouts that list their frames (in a file, or as pose files) and so may list some whose images
+# are missing; the others' frames are the image folder's own files
+_LISTING = {"transforms_json", "tum", "tsdf_fusion", "label_fusion"}
+
+
+def load_dataset(path: str | Path, strict: bool = False, **kwargs) -> FrameSequence:
     """Load any supported capture: detects the layout (`detect_layout`) and passes ``kwargs`` on
     (e.g. ``K=`` for TUM, ``intrinsics=`` for 7-Scenes, ``stride=`` / ``max_frames=`` for all).
+
+    A frame the capture lists whose image files are missing is left out, with one `SkippedFrames`
+    warning that counts such frames; with ``strict`` it is a ValueError naming the file.
 
     Example:
         >>> seq = load_dataset("../shared/data/realsense_shelf", max_frames=4)  # doctest: +SKIP
         >>> len(seq)  # doctest: +SKIP
         4
     """
-    return _LOADERS[detect_layout(path)](path, **kwargs)
+    layout = detect_layout(path)
+    if layout in _LISTING:
+        kwargs["strict"] = strict
+    return _LOADERS[layout](path, **kwargs)

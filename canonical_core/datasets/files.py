@@ -14,9 +14,10 @@ Example:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Iterable, Sequence, TypeVar
 
 import numba
 import numpy as np
@@ -241,6 +242,44 @@ def find_one(folders: Sequence[Path], patterns: Sequence[str]) -> Path | None:
 def read_intrinsics_file(path: Path) -> np.ndarray:  # [3, 3] float64
     """Read and validate a 3x3 intrinsics text file."""
     return validate_intrinsics(read_matrix(path, 3, 3), str(path))
+
+
+class MissingFile(ValueError):
+    """A file that a capture lists is not there; the message names it and where it is listed."""
+
+
+class SkippedFrames(UserWarning):
+    """A capture lists frames whose files are missing, and its loader left them out (``strict=False``)."""
+
+
+Listed = TypeVar("Listed")
+Resolved = TypeVar("Resolved")
+
+
+def found_frames(listed: Iterable[Listed], resolve: Callable[[Listed], Resolved], listing: str | Path,
+                 strict: bool) -> list[Resolved]:
+    """``resolve`` of each frame a capture lists, without those whose files are missing (``resolve``
+    raises `MissingFile` for them). With ``strict`` the first such frame's error is raised; otherwise
+    they are skipped and one `SkippedFrames` warning counts them and names the first. ValueError when
+    no listed frame is left.
+
+    A capture copied in part (67 frames listed, 50 images there) then streams the frames it has, as
+    a reconstruction tool reads what it finds; ``strict`` is for pipelines that must not lose one."""
+    kept, missing, total = [], [], 0
+    for item in listed:
+        total += 1
+        try:
+            kept.append(resolve(item))
+        except MissingFile as exc:
+            if strict:
+                raise
+            missing.append(exc)
+    if missing and not kept:
+        raise ValueError(f"{listing}: none of its {total} listed frames has its files (the first: {missing[0]})")
+    if missing:
+        warnings.warn(f"{listing}: skipped {len(missing)} of {total} listed frames whose files are missing "
+                      f"(the first: {missing[0]}); strict=True refuses such a capture", SkippedFrames, stacklevel=3)
+    return kept
 
 
 def select(items: Sequence, stride: int, max_frames: int | None) -> list:

@@ -24,10 +24,10 @@ from PIL import Image
 
 from ..camera import Camera, validate_pose
 from ..frame import Frame
-from .files import (as_intrinsics, depth_from_uint16, find_one, read_depth, read_intrinsics_file, read_matrix, read_rgb,
-                    select)
+from .files import (as_intrinsics, depth_from_uint16, find_one, found_frames, read_depth, read_intrinsics_file,
+                    read_matrix, read_rgb, select)
 from .sequence import FrameSequence
-from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key
+from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
 
 LABEL_SUFFIXES = (".segm.png", ".mask.png")
 DEPTH_UNITS_PER_METRE = 10000.0
@@ -95,6 +95,7 @@ def load_label_fusion(
     intrinsics=None,
     stride: int = 1,
     max_frames: int | None = None,
+    strict: bool = False,
 ) -> LabelledSequence:
     """Load a label-fusion bin folder as a lazily-read sequence of frames with depth and labels.
 
@@ -102,6 +103,8 @@ def load_label_fusion(
         path: the capture folder (frames in it or in one subfolder; intrinsics file at its root).
         intrinsics: 3x3 K or (fx, fy, cx, cy) in pixels; overrides the intrinsics file.
         stride, max_frames: keep every stride-th frame, at most max_frames of them.
+        strict: refuse (ValueError) a pose file whose colour or depth image is missing; by default
+            such frames are left out, with one `SkippedFrames` warning that counts them.
 
     The label channels are the ids found in all of the capture's label maps (read once, here), so
     every frame of it has the same channels whatever ``stride`` keeps.
@@ -125,12 +128,7 @@ def load_label_fusion(
         label_files[stem] = next((folder / (stem + s) for s in LABEL_SUFFIXES if (folder / (stem + s)).is_file()), None)
     ids = sorted(set().union(*(np.unique(read_label_map(p)).tolist() for p in label_files.values() if p is not None)))
     sources = []
-    for pose in select(poses, stride, max_frames):
-        stem = pose.name[: -len(".pose.txt")]
-        color, depth = folder / f"{stem}.color.png", folder / f"{stem}.depth.png"
-        for needed in (color, depth):
-            if not needed.is_file():
-                raise ValueError(f"{needed}: file not found (for {pose.name})")
+    for stem, pose, color, depth in select(found_frames(poses, pose_frame_files, folder, strict), stride, max_frames):
         c2w = validate_pose(read_matrix(pose, 4, 4), str(pose))
         sources.append(LabelledFrameFile(stem, color, depth, label_files[stem], K, c2w, tuple(ids)))
     return LabelledSequence(root.name, sources, tuple(ids))

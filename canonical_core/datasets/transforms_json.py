@@ -15,6 +15,8 @@
 - ``camera_model`` other than OPENCV / PINHOLE / SIMPLE_PINHOLE (fisheye, equirectangular) is
   refused. instant-ngp's ``scale`` / ``offset`` / ``aabb_scale`` are its training-time
   normalisation, not part of the capture, and are ignored.
+- a frame whose image (or depth) file is missing is left out, with one warning that counts such
+  frames; ``strict=True`` refuses the capture instead.
 
 Example:
     >>> seq = load_transforms_json("my_capture/transforms.json")  # doctest: +SKIP
@@ -30,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import OPENGL_TO_OPENCV, validate_pose
-from .files import RGBDFile, as_intrinsics, image_size, read_text, select
+from .files import MissingFile, RGBDFile, as_intrinsics, found_frames, image_size, read_text, select
 from .sequence import FrameSequence
 
 DEFAULT_DEPTH_UNIT_SCALE_FACTOR = 1e-3
@@ -54,7 +56,7 @@ def _image_path(root: Path, value, where: str, key: str) -> Path:
     if not path.is_file() and not path.suffix:  # instant-ngp's NeRF-synthetic scenes omit ".png"
         path = next((path.with_suffix(s) for s in _IMAGE_SUFFIXES if path.with_suffix(s).is_file()), path)
     if not path.is_file():
-        raise ValueError(f"{path}: file not found ({where}.{key})")
+        raise MissingFile(f"{path}: file not found ({where}.{key})")
     return path
 
 
@@ -95,6 +97,7 @@ def load_transforms_json(
     depth_unit_scale_factor: float | None = None,
     stride: int = 1,
     max_frames: int | None = None,
+    strict: bool = False,
 ) -> FrameSequence:
     """Load a nerfstudio / instant-ngp capture as a lazily-read `FrameSequence`.
 
@@ -102,7 +105,10 @@ def load_transforms_json(
         path: the ``transforms.json`` file or the folder holding it (image paths are relative to it).
         depth_unit_scale_factor: metres per raw depth unit; None = the file's top-level
             ``depth_unit_scale_factor`` if present, else 1/1000 (millimetres).
-        stride, max_frames: keep every stride-th frame, at most max_frames of them.
+        stride, max_frames: keep every stride-th frame, at most max_frames of them (of the frames whose
+            files are there).
+        strict: refuse (ValueError) a file that lists a frame whose image or depth file is missing;
+            by default such frames are left out, with one `SkippedFrames` warning that counts them.
 
     Returns frames with ``frame_id`` = the colour file's stem, undistorted when the file gives
     distortion coefficients, with depth when frames have ``depth_file_path``.
@@ -125,13 +131,19 @@ def load_transforms_json(
         raise ValueError(f"depth_unit_scale_factor: expected a positive number, got {factor!r}")
     root = json_path.parent
     defaults = {k: meta[k] for k in CAMERA_KEYS if k in meta}
-    sources = []
-    for index, frame in select(list(enumerate(meta["frames"])), stride, max_frames):
+
+    def files(entry: tuple[int, object]) -> tuple[str, dict, Path, Path | None]:  # MissingFile if one is not there
+        index, frame = entry
         where = f"{json_path}: frames[{index}]"
         if not isinstance(frame, dict):
             raise ValueError(f"{where}: expected an object, got {type(frame).__name__}")
         color = _image_path(root, frame.get("file_path"), where, "file_path")
         depth = _image_path(root, frame["depth_file_path"], where, "depth_file_path") if "depth_file_path" in frame else None
+        return where, frame, color, depth
+
+    sources = []
+    listed = found_frames(enumerate(meta["frames"]), files, json_path, strict)
+    for where, frame, color, depth in select(listed, stride, max_frames):
         K, size, distortion = camera_from_params({**defaults, **{k: frame[k] for k in CAMERA_KEYS if k in frame}}, color, where)
         if "transform_matrix" not in frame:
             raise ValueError(f"{where}: no transform_matrix")

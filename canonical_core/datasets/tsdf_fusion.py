@@ -5,6 +5,8 @@
 - intrinsics: a 3x3 text file at the folder root (``camera-intrinsics.txt``, ``intrinsics.K.txt``
   or ``*.K.txt``). 7-Scenes has none (fx = fy = 585, cx = 320, cy = 240): pass ``intrinsics=``.
 - frames sit in the folder itself or in one subfolder (``frames/``, tsdf-fusion's ``rgbd-frames/``).
+- a pose file whose colour or depth image is missing is left out, with one warning that counts
+  such frames; ``strict=True`` refuses the capture instead.
 
 Note that 7-Scenes depth comes from a separate, uncalibrated depth camera, so its depth is only
 roughly registered to the colour image.
@@ -27,9 +29,11 @@ from pathlib import Path
 from ..camera import validate_pose
 from ..frame import Frame
 from .files import (
+    MissingFile,
     RGBDFile,
     as_intrinsics,
     find_one,
+    found_frames,
     read_intrinsics_file,
     read_matrix,
     select,
@@ -59,12 +63,26 @@ def find_frames_folder(root: Path) -> Path | None:
     return subfolders[0] if subfolders else None
 
 
+def pose_frame_files(pose_path: Path) -> tuple[str, Path, Path, Path]:
+    """(frame stem, pose file, colour image, depth image) of a ``frame-N.pose.txt``; `MissingFile`
+    when an image is not there."""
+    folder, stem = pose_path.parent, pose_path.name[: -len(".pose.txt")]
+    colors = [folder / (stem + s) for s in _COLOR_SUFFIXES if (folder / (stem + s)).is_file()]
+    if not colors:
+        raise MissingFile(f"{folder / (stem + _COLOR_SUFFIXES[0])}: file not found (colour image for {pose_path.name})")
+    depth = folder / f"{stem}.depth.png"
+    if not depth.is_file():
+        raise MissingFile(f"{depth}: file not found (depth image for {pose_path.name})")
+    return stem, pose_path, colors[0], depth
+
+
 def load_tsdf_fusion(
     path: str | Path,
     intrinsics=None,
     depth_scale: float = 1000.0,
     stride: int = 1,
     max_frames: int | None = None,
+    strict: bool = False,
 ) -> FrameSequence:
     """Load a tsdf-fusion / 7-Scenes folder as a lazily-read `FrameSequence`.
 
@@ -73,6 +91,8 @@ def load_tsdf_fusion(
         intrinsics: 3x3 K or (fx, fy, cx, cy) in pixels; overrides any intrinsics file.
         depth_scale: raw depth units per metre (1000 for millimetres).
         stride, max_frames: keep every stride-th frame, at most max_frames of them.
+        strict: refuse (ValueError) a pose file whose colour or depth image is missing; by default
+            such frames are left out, with one `SkippedFrames` warning that counts them.
 
     Returns frames with ``frame_id`` = file stem (``frame-000015``), in frame-number order.
 
@@ -100,16 +120,10 @@ def load_tsdf_fusion(
             )
         K = read_intrinsics_file(found)
     sources = []
-    for pose_path in select(sorted(folder.glob(POSE_PATTERN), key=natural_key), stride, max_frames):
-        stem = pose_path.name[: -len(".pose.txt")]
-        colors = [folder / (stem + s) for s in _COLOR_SUFFIXES if (folder / (stem + s)).is_file()]
-        if not colors:
-            raise ValueError(f"{folder / (stem + _COLOR_SUFFIXES[0])}: file not found (colour image for {pose_path.name})")
-        depth = folder / f"{stem}.depth.png"
-        if not depth.is_file():
-            raise ValueError(f"{depth}: file not found (depth image for {pose_path.name})")
+    listed = found_frames(sorted(folder.glob(POSE_PATTERN), key=natural_key), pose_frame_files, folder, strict)
+    for stem, pose_path, color, depth in select(listed, stride, max_frames):
         c2w = validate_pose(read_matrix(pose_path, 4, 4), str(pose_path))
-        sources.append(RGBDFile(stem, colors[0], depth, K, c2w, depth_scale))
+        sources.append(RGBDFile(stem, color, depth, K, c2w, depth_scale))
     return FrameSequence(root.name, sources)
 
 

@@ -10,6 +10,9 @@ Two layouts:
   if within ``max_dt`` seconds (0.02 by default); colour images without both are dropped. Default
   depth scale 5000 (TUM's 16-bit PNGs).
 
+In both, a listed frame whose colour or depth image is missing is left out, with one warning that
+counts such frames; ``strict=True`` refuses the capture instead.
+
 Neither layout stores the intrinsics: pass ``K`` (3x3 or (fx, fy, cx, cy)), or put a 3x3
 ``intrinsics.txt`` / ``camera.txt`` in the folder.
 
@@ -26,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import quaternion_to_matrix, validate_pose
-from .files import RGBDFile, as_intrinsics, find_one, parse_floats, read_intrinsics_file, read_text, select
+from .files import (MissingFile, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats, read_intrinsics_file,
+                    read_text, select)
 from .sequence import FrameSequence
 
 INTRINSICS_NAMES = ("intrinsics.txt", "camera.txt")
@@ -79,17 +83,18 @@ def _first_existing(folder: Path, stem: str, suffixes: tuple[str, ...], what: st
     for suffix in suffixes:
         if (folder / (stem + suffix)).is_file():
             return folder / (stem + suffix)
-    raise ValueError(f"{folder / (stem + suffixes[0])}: file not found ({what}; also tried {list(suffixes[1:])})")
+    raise MissingFile(f"{folder / (stem + suffixes[0])}: file not found ({what}; also tried {list(suffixes[1:])})")
 
 
-def _slambook_sources(root: Path, K: np.ndarray, depth_scale: float) -> list[RGBDFile]:
-    sources = []
-    for k, (location, words) in enumerate(read_table(root / "pose.txt", 7), start=1):
+def _slambook_sources(root: Path, K: np.ndarray, depth_scale: float, strict: bool) -> list[RGBDFile]:
+    def frame(line: tuple[int, tuple[str, list[str]]]) -> RGBDFile:
+        k, (location, words) = line
         c2w = tum_pose_to_matrix(parse_floats(words, location), location)
         color = _first_existing(root / "color", str(k), (".png", ".jpg"), f"colour image of pose line {k}")
         depth = _first_existing(root / "depth", str(k), (".pgm", ".png"), f"depth image of pose line {k}")
-        sources.append(RGBDFile(str(k), color, depth, K, c2w, depth_scale))
-    return sources
+        return RGBDFile(str(k), color, depth, K, c2w, depth_scale)
+
+    return found_frames(enumerate(read_table(root / "pose.txt", 7), start=1), frame, root / "pose.txt", strict)
 
 
 def _nearest(times: np.ndarray, queries: np.ndarray, max_dt: float) -> np.ndarray:  # [Q] index or -1
@@ -110,26 +115,26 @@ def _stamped(path: Path, columns: int) -> tuple[list[tuple[str, list[str]]], np.
     return [rows[i] for i in order], times[order]
 
 
-def _tum_sources(root: Path, K: np.ndarray, depth_scale: float, max_dt: float) -> list[RGBDFile]:
+def _tum_sources(root: Path, K: np.ndarray, depth_scale: float, max_dt: float, strict: bool) -> list[RGBDFile]:
     rgb, rgb_t = _stamped(root / "rgb.txt", 2)
     depth, depth_t = _stamped(root / "depth.txt", 2)
     poses, pose_t = _stamped(root / "groundtruth.txt", 8)
-    depth_index = _nearest(depth_t, rgb_t, max_dt)
-    pose_index = _nearest(pose_t, rgb_t, max_dt)
-    sources = []
-    for (location, (stamp, color)), d, p in zip(rgb, depth_index, pose_index):
-        if d < 0 or p < 0:
-            continue
+    associated = [(row, d, p) for row, d, p in zip(rgb, _nearest(depth_t, rgb_t, max_dt), _nearest(pose_t, rgb_t, max_dt))
+                  if d >= 0 and p >= 0]
+    if not associated:
+        raise ValueError(f"{root}: no colour image has both a depth image and a pose within {max_dt} s")
+
+    def frame(association) -> RGBDFile:
+        (location, (stamp, color)), d, p = association
         pose_location, pose_words = poses[p]
         c2w = tum_pose_to_matrix(parse_floats(pose_words[1:], pose_location), pose_location)
         color_path, depth_path = root / color, root / depth[d][1][1]
         for file, where in ((color_path, location), (depth_path, depth[d][0])):
             if not file.is_file():
-                raise ValueError(f"{file}: file not found (listed at {where})")
-        sources.append(RGBDFile(stamp, color_path, depth_path, K, c2w, depth_scale))
-    if not sources:
-        raise ValueError(f"{root}: no colour image has both a depth image and a pose within {max_dt} s")
-    return sources
+                raise MissingFile(f"{file}: file not found (listed at {where})")
+        return RGBDFile(stamp, color_path, depth_path, K, c2w, depth_scale)
+
+    return found_frames(associated, frame, root / "rgb.txt", strict)
 
 
 def load_tum(
@@ -139,6 +144,7 @@ def load_tum(
     stride: int = 1,
     max_frames: int | None = None,
     max_dt: float = 0.02,
+    strict: bool = False,
 ) -> FrameSequence:
     """Load a TUM RGB-D or slambook-style capture as a lazily-read `FrameSequence`.
 
@@ -148,6 +154,8 @@ def load_tum(
         depth_scale: raw depth units per metre; None = the layout's default (TUM 5000, slambook 1000).
         stride, max_frames: keep every stride-th frame, at most max_frames of them.
         max_dt: TUM layout only: the largest timestamp gap (s) for pairing colour, depth and pose.
+        strict: refuse (ValueError) a listed frame whose colour or depth image is missing; by
+            default such frames are left out, with one `SkippedFrames` warning that counts them.
 
     Returns frames with ``frame_id`` = the colour timestamp (TUM) or the 1-based line number
     (slambook).
@@ -164,9 +172,9 @@ def load_tum(
     if not max_dt >= 0:
         raise ValueError(f"max_dt: expected a non-negative number of seconds, got {max_dt!r}")
     if (root / "groundtruth.txt").is_file():
-        sources = _tum_sources(root, _resolve_K(root, K), depth_scale or TUM_DEPTH_SCALE, max_dt)
+        sources = _tum_sources(root, _resolve_K(root, K), depth_scale or TUM_DEPTH_SCALE, max_dt, strict)
     elif (root / "pose.txt").is_file():
-        sources = _slambook_sources(root, _resolve_K(root, K), depth_scale or SLAMBOOK_DEPTH_SCALE)
+        sources = _slambook_sources(root, _resolve_K(root, K), depth_scale or SLAMBOOK_DEPTH_SCALE, strict)
     else:
         raise ValueError(f"{root}: neither groundtruth.txt (TUM RGB-D) nor pose.txt (slambook layout) found")
     return FrameSequence(root.name, select(sources, stride, max_frames))

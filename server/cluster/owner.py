@@ -234,7 +234,7 @@ class OwnerStore(SessionStore):
                 del self._sessions[session_id]
             total -= session.scene.memory_bytes()
             session.snapshot()
-            self.evicted[session_id] = session.summary()
+            self.evicted[session_id] = {**session.summary(), "memory_bytes": 0}  # on disk alone until asked for
             with session.lock:
                 session.deleted = True
                 session.release()

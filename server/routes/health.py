@@ -1,13 +1,13 @@
-"""Liveness and Prometheus metrics."""
+"""Liveness, Prometheus metrics, and the limits a request must keep."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 
-from ..deps import JobsDep, MetricsDep, StoreDep
+from ..deps import JobsDep, MetricsDep, SettingsDep, StoreDep
 from ..metrics import CONTENT_TYPE
-from ..schemas import Health
+from ..schemas import ErrorBody, Health, Limits
 
 router = APIRouter(tags=["health"])
 
@@ -37,3 +37,9 @@ async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainT
                                      metrics.storage_errors),
     }
     return PlainTextResponse(metrics.exposition(gauges), media_type=CONTENT_TYPE)
+
+
+@router.get("/v1/limits", response_model=Limits, responses={401: {"model": ErrorBody}})
+async def limits(settings: SettingsDep) -> Limits:
+    """The sizes over which a request gets 413, so that a client can fit its frames before sending them."""
+    return Limits(**{name: getattr(settings, name) for name in Limits.model_fields})

@@ -32,14 +32,14 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.008", "--stride", "10", "--max-frames", "3",
                      "--scale", "0.5"]) == 0
     out, err = capsys.readouterr()
-    assert "3 frames in" in out and "frames/s" in out
-    session_id = next(line.split()[1] for line in err.splitlines() if line.startswith("session "))
+    assert "3 frames in" in err and "frames/s" in err
+    session_id = out.strip()  # the id alone on stdout
 
     # resumes after the session's 3 frames: sends only the 4th
     assert cli.main(["stream", str(shelf_dir), *url, "--session", session_id, "--stride", "10", "--max-frames", "4",
                      "--scale", "0.5"]) == 0
-    out = capsys.readouterr().out
-    assert out.startswith("1 frames in") and "4 frames" in out
+    out, err = capsys.readouterr()
+    assert out.strip() == session_id and "1 frames in" in err and "4 frames" in err
 
     assert cli.main(["sessions", *url]) == 0
     listing = capsys.readouterr().out
@@ -77,7 +77,7 @@ def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "20", "--max-frames", "2",
                      "--scale", "0.25", "--set", "colour_solve.views=2", "--set", "free_space.margin=3",
                      "--set", "depth.completion=true", "--set", "depth.sources=1"]) == 0
-    session_id = next(line.split()[1] for line in capsys.readouterr().err.splitlines() if line.startswith("session "))
+    session_id = capsys.readouterr().out.strip()
     config = Client(server.url).session(session_id).stats()["config"]
     assert (config["colour_solve"]["views"], config["free_space"]["margin"], config["depth"]["completion"]) == (2, 3.0, True)
     assert (config["depth"]["sources"], config["free_space"]["enabled"]) == (1, True)  # the rest of the group kept

@@ -69,10 +69,10 @@ def test_stream_resumes_after_the_frames_the_session_has(server, shelf_dir):
     common = [str(shelf_dir), "--url", server.url, "--stride", "10", "--scale", "0.25"]
     first = canonical("stream", *common, "--voxel-size", "0.02", "--max-frames", "2")
     assert first.returncode == 0, first.stderr
-    session_id = next(line.split()[1] for line in first.stderr.splitlines() if line.startswith("session "))
+    session_id = first.stdout.strip()
     again = canonical("stream", *common, "--session", session_id, "--max-frames", "4")
     assert again.returncode == 0, again.stderr
-    assert "resuming after its 2 frames" in again.stderr and again.stdout.startswith("2 frames in")
+    assert "resuming after its 2 frames" in again.stderr and "2 frames in" in again.stderr
     stats = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert stats["frames"] == 4  # frames 0-1 once, then 2-3: none sent twice
 
@@ -93,9 +93,7 @@ def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
-        line = proc.stderr.readline()
-        assert line.startswith("session "), line
-        session_id = line.split()[1]
+        session_id = proc.stdout.readline().strip()  # printed once the session holds its first frame
         deadline = time.monotonic() + 120
         while frames_of(server, session_id) < 1:
             assert time.monotonic() < deadline and proc.poll() is None
@@ -108,5 +106,5 @@ def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err
     frames = frames_of(server, session_id)
-    assert out.startswith("interrupted: ") and f"session {session_id}: {frames} frames" in out
-    assert f"--session {session_id}" in out and 1 <= frames < 50
+    assert out == "" and "interrupted: " in err and f"session {session_id}: {frames} frames" in err
+    assert f"--session {session_id}" in err and 1 <= frames < 50

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -65,8 +67,10 @@ def test_canonical_poses_corrects_a_drifted_session(server, frames, tmp_path, ca
         path = tmp_path / "true.txt"  # 4x4 per line, no keys: line k is the frame of arrival index k
         path.write_text("".join(" ".join(map(repr, kw["c2w"].reshape(16).tolist())) + "\n" for kw in frames))
         assert cli.main(["poses", str(path), "--session", session.id, "--url", server.url,
-                         "--remove", frames[0]["frame_id"]]) == 0
-        assert f"{len(frames) - 1} poses corrected, 1 frames removed" in capsys.readouterr().out  # not the removed one
+                         "--remove", frames[0]["frame_id"], "--json"]) == 0
+        out, err = capsys.readouterr()
+        assert f"{len(frames) - 1} poses corrected, 1 frames removed" in err  # not the removed one
+        assert json.loads(out) == {**json.loads(out), "corrected": len(frames) - 1, "removed": 1, "state": "done"}
         assert session.digest()["sha256"] == clean.digest()["sha256"]
         assert cli.main(["poses", "--session", session.id, "--url", server.url]) == 2
         path.write_text("nope " + " ".join(map(repr, np.eye(4).reshape(16).tolist())) + "\n")

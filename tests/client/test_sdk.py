@@ -12,7 +12,8 @@ from PIL import Image
 
 from canonical_core import load_ply, load_splat
 from canonical_core.datasets.files import depth_from_uint16
-from client.sdk import CanonicalError, Client, Session, decode_array, encode_array, exact_sensor_depth
+from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
+                        scaled_intrinsics)
 
 VOXEL = 0.008
 
@@ -156,3 +157,79 @@ def test_burst_gets_429_and_the_sdk_retries_through(server, frames):
     with Client(server.url) as client:
         assert 'canonical_http_responses_total{status="429"}' in client.metrics()
         client.session(session.id).delete()
+
+
+def test_scaled_intrinsics_keep_pixel_centres_on_integers():
+    """The SDK's K for a resized image agrees with the library's `Camera.scaled` (pixel u spans
+    u - 0.5 .. u + 0.5, so the image's edges stay its edges) and scales each axis by its own factor."""
+    from canonical_core import Camera
+
+    K = np.array([[600.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]])
+    np.testing.assert_allclose(scaled_intrinsics(K, 0.5, 0.5), Camera(K, np.eye(4), 640, 480).scaled(0.5).K64())
+    sx, sy = 858 / 1080, 1526 / 1920
+    small = scaled_intrinsics(K, sx, sy)
+    for u, v in ((-0.5, -0.5), (1079.5, 1919.5), (300.0, 700.0)):  # the corners' edges and a pixel centre
+        ray = np.linalg.solve(K, [u, v, 1.0])
+        projected = small @ ray
+        np.testing.assert_allclose(projected[:2] / projected[2], [(u + 0.5) * sx - 0.5, (v + 0.5) * sy - 0.5])
+
+
+@pytest.mark.realdata
+def test_frames_without_depth_over_the_limit_are_downscaled_to_it(server, frames):
+    """A phone's 1920x1080 frame without depth is over the service's 1.3 MP limit for such frames: the
+    SDK sends it downscaled to the limit the service publishes, with K scaled to match, and says so
+    once; ``downscale=False`` sends it as it is and gets the service's 413."""
+    from PIL import Image as PILImage
+
+    kwargs = frames[0]
+    h, w = kwargs["rgb"].shape[:2]
+    big = np.asarray(PILImage.fromarray(kwargs["rgb"]).resize((1920, 1080), PILImage.BILINEAR))
+    K = scaled_intrinsics(kwargs["K"], 1920 / w, 1080 / h)
+    with Client(server.url) as client:
+        limit = client.limits()["max_rgb_only_pixels"]
+        assert limit == 1280 * 1024  # the service's setting
+        session = client.create_session(voxel_size=VOXEL)
+        with pytest.raises(CanonicalError) as refused:
+            session.add_frame(big, K, kwargs["c2w"], downscale=False)
+        assert (refused.value.status, refused.value.field) == (413, "rgb")
+        with pytest.warns(DownscaledFrame, match=r"1920x1080 .* downscaled to 1526x858") as caught:
+            session.add_frame(big, K, kwargs["c2w"], frame_id="a")
+            session.add_frame(big, K, kwargs["c2w"], frame_id="b")
+        assert len({str(w.message) for w in caught}) == 1
+        camera = httpx.get(f"{server.url}/v1/sessions/{session.id}/cameras").json()["cameras"][0]
+        assert (camera["width"], camera["height"]) == (1526, 858) and 1526 * 858 <= limit
+        fx, fy, cx, cy = camera["K"]
+        np.testing.assert_allclose([fx, fy, cx, cy], scaled_intrinsics(K, 1526 / 1920, 858 / 1080)[[0, 1, 0, 1], [0, 1, 2, 2]])
+        session.delete()
+
+
+@pytest.mark.realdata
+def test_integer_class_maps_are_sent_as_one_hot_scores(server, frames):
+    """A segmentation network's [H, W] class map is the common form of labels: the SDK sends it as
+    one-hot scores over K classes (the session's, else the map's largest id + 1), and says what K
+    is when a map or a score array does not fit it."""
+    first, second = frames[0], frames[1]
+    h, w = first["rgb"].shape[:2]
+    classes = np.zeros((h, w), np.uint8)
+    classes[:, w // 2:] = 2  # ids 0 and 2: K = 3
+    classes[: h // 4] = 1
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        session.add_frame(**first, labels=classes)
+        assert session.stats()["label_dim"] == 3
+        with pytest.raises(ValueError, match=r"^labels: class 4 does not fit K = 3 label classes"):
+            session.add_frame(**second, labels=np.where(classes == 2, 4, classes))
+        with pytest.raises(ValueError, match=r"^labels: 4 label channels, but this session's labels have K = 3"):
+            session.add_frame(**second, labels=np.zeros((h, w, 4), np.float32))
+        again = client.session(session.id)  # another handle learns K from the service
+        again.add_frame(**second, labels=classes.astype(np.int32))
+        view = again.segmentation(first["K"], first["c2w"], w, h)
+        drawn = view["labels"][view["alpha"] > 0.5]
+        assert set(np.unique(drawn)) <= {0, 1, 2} and len(np.unique(drawn)) == 3
+        assert again.stats()["frames"] == 2
+        session.delete()
+
+        wide = client.create_session(voxel_size=VOXEL)  # K chosen up front for classes later frames bring
+        wide.add_frame(**first, labels=classes, num_classes=6)
+        assert wide.stats()["label_dim"] == 6
+        wide.delete()

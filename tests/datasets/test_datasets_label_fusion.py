@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from canonical_core.datasets import load_dataset, load_label_fusion
+from canonical_core.datasets import SkippedFrames, load_dataset, load_label_fusion
 from canonical_core.datasets.detect import detect_layout
 from canonical_core.datasets.label_fusion import unrotate_depth
 
@@ -51,7 +51,9 @@ def test_a_malformed_bin_names_the_file(apc_bins_path, tmp_path):
         load_label_fusion(bin_)[3]
     (bin_ / "frame-000004.depth.png").unlink()
     with pytest.raises(ValueError, match=r"frame-000004\.depth\.png: file not found"):
-        load_label_fusion(bin_)
+        load_label_fusion(bin_, strict=True)
+    with pytest.warns(SkippedFrames, match="skipped 1 of 15 listed frames"):
+        assert "frame-000004" not in load_label_fusion(bin_).frame_ids
     (bin_ / "camera-intrinsics.color.txt").unlink()
     with pytest.raises(ValueError, match="no intrinsics file"):
         load_label_fusion(bin_)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from canonical_core.camera import OPENGL_TO_OPENCV
-from canonical_core.datasets import load_transforms_json
+from canonical_core.datasets import SkippedFrames, load_transforms_json
 from canonical_core.datasets.distortion import distort_points, remap, undistort_image, undistort_points
 from canonical_core.datasets.files import read_depth, read_rgb
 
@@ -154,7 +154,31 @@ def _edit(capture, change):
 def test_errors(capture, change, message):
     _edit(capture, change)
     with pytest.raises(ValueError, match=message):
-        load_transforms_json(capture)
+        load_transforms_json(capture, strict=True)
+
+
+@pytest.mark.realdata
+def test_frames_whose_images_are_missing_are_skipped_with_one_warning(shelf, shelf_path, tmp_path):
+    """A capture copied in part: the file lists 6 frames, 2 of whose images (one colour, one depth) are
+    not there. The loader keeps the 4 others (stride and max_frames count those) and says once how
+    many it left out; strict refuses the capture at the first missing file."""
+    frames = _write_capture(shelf, shelf_path, tmp_path / "ns", count=6)
+    (tmp_path / "ns" / "images" / f"{frames[1].frame_id}.png").unlink()
+    (tmp_path / "ns" / "depth" / f"{frames[4].frame_id}.png").unlink()
+    kept = [f.frame_id for i, f in enumerate(frames) if i not in (1, 4)]
+    with pytest.warns(SkippedFrames) as caught:
+        seq = load_transforms_json(tmp_path / "ns")
+    assert seq.frame_ids == kept
+    assert len(caught) == 1 and "skipped 2 of 6 listed frames" in str(caught[0].message)
+    assert f"{frames[1].frame_id}.png: file not found" in str(caught[0].message)
+    with pytest.warns(SkippedFrames):
+        assert load_transforms_json(tmp_path / "ns", stride=2, max_frames=2).frame_ids == kept[::2]
+    with pytest.raises(ValueError, match=rf"{frames[1].frame_id}\.png: file not found \(.*frames\[1\]\.file_path\)"):
+        load_transforms_json(tmp_path / "ns", strict=True)
+    for f in frames:
+        (tmp_path / "ns" / "images" / f"{f.frame_id}.png").unlink(missing_ok=True)
+    with pytest.raises(ValueError, match="none of its 6 listed frames has its files"):
+        load_transforms_json(tmp_path / "ns")
 
 
 @pytest.mark.realdata

@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from canonical_core import Camera, Frame
-from canonical_core.datasets import FrameSequence, load_tsdf_fusion, synthetic_rgbd, write_tsdf_fusion
+from canonical_core.datasets import FrameSequence, SkippedFrames, load_tsdf_fusion, synthetic_rgbd, write_tsdf_fusion
 
 SHELF_K = [[615.1951904296875, 0, 298.44268798828125], [0, 615.19525146484375, 247.51919555664062], [0, 0, 1]]
 
@@ -111,11 +111,13 @@ def test_error_missing_intrinsics(capture):
 def test_error_missing_colour_and_depth(capture):
     (capture / "frame-000001.color.png").unlink()
     with pytest.raises(ValueError, match=r"frame-000001\.color\.png: file not found"):
-        load_tsdf_fusion(capture)
+        load_tsdf_fusion(capture, strict=True)
+    with pytest.warns(SkippedFrames, match=r"skipped 1 of 3 listed frames .*frame-000001\.color\.png: file not found"):
+        assert load_tsdf_fusion(capture).frame_ids == ["frame-000000", "frame-000002"]
     shutil.copy(capture / "frame-000000.color.png", capture / "frame-000001.color.png")
     (capture / "frame-000002.depth.png").unlink()
     with pytest.raises(ValueError, match=r"frame-000002\.depth\.png: file not found"):
-        load_tsdf_fusion(capture)
+        load_tsdf_fusion(capture, strict=True)
 
 
 @pytest.mark.parametrize(

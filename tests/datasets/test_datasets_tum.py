@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from canonical_core import Camera
-from canonical_core.datasets import load_tum
+from canonical_core.datasets import SkippedFrames, load_tum
 from canonical_core.datasets.files import read_pgm
 
 pytestmark = pytest.mark.realdata
@@ -118,7 +118,9 @@ def test_tum_errors(tum_layout, slambook_K):
     (tum_layout / "groundtruth.txt").write_text("\n".join(lines))
     next((tum_layout / "depth").iterdir()).unlink()
     with pytest.raises(ValueError, match=r"\.png: file not found \(listed at .*depth\.txt:\d+\)"):
-        load_tum(tum_layout, K=slambook_K)
+        load_tum(tum_layout, K=slambook_K, strict=True)
+    with pytest.warns(SkippedFrames, match=r"rgb\.txt: skipped 1 of 5 listed frames"):
+        assert len(load_tum(tum_layout, K=slambook_K)) == 4
     (tum_layout / "rgb.txt").unlink()
     with pytest.raises(ValueError, match=r"rgb\.txt: file not found"):
         load_tum(tum_layout, K=slambook_K)
@@ -133,7 +135,9 @@ def test_slambook_errors(slambook_path, slambook_K, tmp_path):
     (copy / "pose.txt").write_text("\n".join(lines))
     (copy / "color" / "4.png").unlink()
     with pytest.raises(ValueError, match=r"color/4\.png: file not found \(colour image of pose line 4"):
-        load_tum(copy, K=slambook_K)
+        load_tum(copy, K=slambook_K, strict=True)
+    with pytest.warns(SkippedFrames, match=r"pose\.txt: skipped 1 of 5 listed frames"):
+        assert load_tum(copy, K=slambook_K).frame_ids == ["1", "2", "3", "5"]
     shutil.copy(copy / "color" / "1.png", copy / "color" / "4.png")
     Image.new("RGB", (320, 240)).save(copy / "color" / "2.png")
     with pytest.raises(ValueError, match=r"depth/2\.pgm: depth size 640x480 does not match the colour image .*2\.png \(320x240\)"):

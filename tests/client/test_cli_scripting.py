@@ -1,0 +1,150 @@
+"""The ``canonical`` CLI in scripts, as a user runs it (a subprocess) against a real service: results
+alone on stdout (ids, paths, JSON), no session left behind by a stream that fails at its start, the
+session list, many views in one render call, captures with missing images, frames over the limit."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from canonical_core.datasets import load_tsdf_fusion
+from tests.client.test_cli_errors import canonical
+from tests.client.test_cli_poses import matrix_to_tum
+from tests.datasets.test_datasets_transforms_json import _write_capture
+
+SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
+SMALL = ["--stride", "20", "--max-frames", "2", "--scale", "0.25", "--voxel-size", "0.02"]
+
+
+def session_ids(server) -> set[str]:
+    return {s["id"] for s in httpx.get(f"{server.url}/v1/sessions").json()["sessions"]}
+
+
+def test_stream_prints_the_session_id_alone_on_stdout(server, shelf_dir, tmp_path):
+    streamed = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL)
+    assert streamed.returncode == 0, streamed.stderr
+    session_id = streamed.stdout.strip()  # what S=$(canonical stream ...) captures
+    assert SESSION_ID.match(session_id) and streamed.stdout == session_id + "\n"
+    assert "2 frames in" in streamed.stderr and f"session {session_id}: 2 frames" in streamed.stderr
+
+    resumed = canonical("stream", str(shelf_dir), "--url", server.url, "--session", session_id, "--stride", "20",
+                        "--max-frames", "3", "--scale", "0.25", "--json")
+    assert resumed.returncode == 0, resumed.stderr
+    stats = json.loads(resumed.stdout)  # the final stats, nothing else on stdout
+    assert (stats["id"], stats["frames"], stats["sent"], stats["interrupted"]) == (session_id, 3, 1, False)
+    assert stats["gaussians"] > 0 and stats["config"]["voxel_size"] == 0.02
+
+    exported = canonical("export", "--url", server.url, "--session", session_id, "-o", str(tmp_path / "scene.ply"))
+    assert exported.returncode == 0 and exported.stdout == f"{tmp_path / 'scene.ply'}\n", exported.stderr
+
+
+def test_a_stream_whose_first_frame_is_refused_leaves_no_session(server, shelf_dir):
+    before = session_ids(server)
+    # a scene of one voxel cannot take the first frame: the service refuses it (409 capacity)
+    refused = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL, "--set", "max_voxels=1")
+    assert refused.returncode == 1 and "409" in refused.stderr and refused.stdout == ""
+    assert session_ids(server) == before
+
+
+def test_sessions_lists_size_memory_disk_and_age(server, shelf_dir):
+    session_id = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL).stdout.strip()
+    table = canonical("sessions", "--url", server.url)
+    assert table.returncode == 0, table.stderr
+    header, *rows = table.stdout.splitlines()
+    assert header.split() == ["id", "voxel", "frames", "memory", "disk", "age", "state"]
+    row = next(r for r in rows if r.startswith(session_id))
+    assert re.fullmatch(rf"{session_id}\s+20 mm\s+2\s+[\d.]+ (KiB|MiB)\s+[\d.]+ (KiB|MiB)\s+\d+ s\s+ok", row), row
+
+    listed = canonical("sessions", "--url", server.url, "--json")
+    entry = next(s for s in json.loads(listed.stdout) if s["id"] == session_id)
+    stats = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()
+    assert entry["voxel_size"] == 0.02 and entry["frames"] == 2
+    assert entry["memory_bytes"] == stats["memory_bytes"] > 0 and entry["disk_bytes"] == stats["disk_bytes"] > 0
+    assert 0 <= entry["age_s"] < 600 and entry["created"] == stats["created"]
+
+
+def test_render_draws_many_views_in_one_call(server, shelf_dir, tmp_path):
+    session_id = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL).stdout.strip()
+    url = ["--url", server.url, "--session", session_id]
+
+    liked = canonical("render", *url, "--frame-like", f"{shelf_dir}:0", "--frame-like", f"{shelf_dir}:20",
+                      "-o", str(tmp_path / "like_{i}.png"))
+    assert liked.returncode == 0, liked.stderr
+    assert liked.stdout.splitlines() == [str(tmp_path / "like_0.png"), str(tmp_path / "like_1.png")]
+    assert all(Image.open(p).size == (640, 480) for p in liked.stdout.splitlines())
+
+    shelf = load_tsdf_fusion(shelf_dir)
+    poses = [shelf[k].camera.c2w64() for k in (0, 10, 20)]
+    trajectory = tmp_path / "trajectory.txt"  # TUM: timestamp tx ty tz qx qy qz qw
+    trajectory.write_text("# timestamp tx ty tz qx qy qz qw\n"
+                          + "".join(f"{t}.5 " + " ".join(repr(float(x)) for x in matrix_to_tum(T)) + "\n" for t, T in enumerate(poses)))
+    walked = canonical("render", *url, "--trajectory", str(trajectory), "--K", "150,150,79.5,59.5", "--size", "160x120",
+                       "-o", str(tmp_path / "walk") + "/")
+    assert walked.returncode == 0, walked.stderr
+    paths = walked.stdout.splitlines()
+    assert paths == [str(tmp_path / "walk" / f"view_{i:04d}.png") for i in range(3)]
+    assert all(Image.open(p).size == (160, 120) for p in paths)
+
+    # a TUM pose line in --pose, with the intrinsics and size of a --frame-like frame: the same view
+    # as that frame's own camera (the quaternion read as the loaders read it)
+    pose = tmp_path / "pose.txt"
+    pose.write_text(" ".join(repr(float(x)) for x in matrix_to_tum(poses[2])) + "\n")
+    posed = canonical("render", *url, "--pose", str(pose), "--frame-like", f"{shelf_dir}:0", "-o", str(tmp_path / "posed.png"))
+    assert posed.returncode == 0 and posed.stdout == str(tmp_path / "posed.png") + "\n", posed.stderr
+    a, b = (np.asarray(Image.open(p), np.int16) for p in (tmp_path / "posed.png", tmp_path / "like_1.png"))
+    assert np.abs(a - b).max() <= 2
+
+    several = canonical("render", *url, "--trajectory", str(trajectory), "--K", "150,150,79.5,59.5", "--size", "160x120",
+                        "-o", str(tmp_path / "one.png"))
+    assert several.returncode == 1 and "{i}" in several.stderr and not (tmp_path / "one.png").exists()
+
+
+@pytest.fixture
+def partial_capture(shelf_dir, tmp_path):
+    """A transforms.json that lists 4 frames, one of whose images was never copied."""
+    frames = _write_capture(load_tsdf_fusion(shelf_dir), shelf_dir, tmp_path / "ns", count=4)
+    (tmp_path / "ns" / "images" / f"{frames[2].frame_id}.png").unlink()
+    return tmp_path / "ns"
+
+
+def test_stream_skips_listed_frames_whose_images_are_missing(server, partial_capture):
+    streamed = canonical("stream", str(partial_capture), "--url", server.url, "--scale", "0.25", "--voxel-size", "0.02")
+    assert streamed.returncode == 0, streamed.stderr
+    warned = [line for line in streamed.stderr.splitlines() if line.startswith("warning: ")]
+    assert len(warned) == 1 and "skipped 1 of 4 listed frames" in warned[0] and "--strict" not in streamed.stdout
+    stats = httpx.get(f"{server.url}/v1/sessions/{streamed.stdout.strip()}").json()
+    assert stats["frames"] == 3
+
+    before = session_ids(server)
+    strict = canonical("stream", str(partial_capture), "--url", server.url, "--scale", "0.25", "--voxel-size", "0.02",
+                       "--strict")
+    assert strict.returncode == 1 and "file not found" in strict.stderr and strict.stdout == ""
+    assert session_ids(server) == before  # refused before any session was made
+
+
+def test_stream_downscales_frames_without_depth_to_the_services_limit(server, partial_capture):
+    """A phone capture: 1920x1080 colour, no depth, over the service's 1.3 MP limit for such frames.
+    The stream sends the frames downscaled to the limit and says so once."""
+    meta = json.loads((partial_capture / "transforms.json").read_text())
+    meta["frames"] = [f for f in meta["frames"] if (partial_capture / f["file_path"]).is_file()][:2]
+    for f in meta["frames"]:
+        del f["depth_file_path"]
+        image = partial_capture / f["file_path"]
+        Image.open(image).resize((1920, 1080), Image.BILINEAR).save(image)
+    sx, sy = 1920 / meta["w"], 1080 / meta["h"]
+    meta.update(w=1920, h=1080, fl_x=meta["fl_x"] * sx, fl_y=meta["fl_y"] * sy, cx=meta["cx"] * sx, cy=meta["cy"] * sy)
+    (partial_capture / "transforms.json").write_text(json.dumps(meta))
+    shutil.rmtree(partial_capture / "depth")
+
+    streamed = canonical("stream", str(partial_capture), "--url", server.url, "--voxel-size", "0.02")
+    assert streamed.returncode == 0, streamed.stderr
+    told = [line for line in streamed.stderr.splitlines() if "downscaled to 1526x858" in line]
+    assert len(told) == 1 and "1920x1080" in told[0]
+    cameras = httpx.get(f"{server.url}/v1/sessions/{streamed.stdout.strip()}/cameras").json()["cameras"]
+    assert [(c["width"], c["height"]) for c in cameras] == [(1526, 858)] * 2
