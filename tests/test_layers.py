@@ -199,5 +199,12 @@ def test_a_module_fits_one_sitting(path):
     assert len(path.read_text().splitlines()) <= MAX_LINES
 
 
-if __name__ == "__main__":  # the drawings in docs/architecture.md: python -m tests.test_layers
-    print("canonical_core (packages):\n" + drawing(package_graph()) + "\n\nserver (modules):\n" + drawing(server_graph()))
+def sizes(root: Path) -> str:
+    """Lines of each module under ``root``, largest first."""
+    counts = sorted(((len(p.read_text().splitlines()), str(p.relative_to(REPO))) for p in root.rglob("*.py")), reverse=True)
+    return "\n".join(f"{n:>5}  {name}" for n, name in counts)
+
+
+if __name__ == "__main__":  # the drawings and sizes in docs/architecture.md: python -m tests.test_layers
+    print("canonical_core (packages):\n" + drawing(package_graph()) + "\n\nserver (modules):\n" + drawing(server_graph())
+          + "\n\nserver (lines):\n" + sizes(SERVER) + "\n\ncanonical_core/scene (lines):\n" + sizes(ROOT / "scene"))
