@@ -2,7 +2,7 @@
 frames removed after the fact (`Scene.refolded` of the corrected stream).
 
 File ``archive.log`` in the session folder, in the frame log's record format (`server.framelog`:
-magic, length, index, CRC-32, payload; ``index`` is the record's number), appended and fsynced.
+magic, length, index, CRCs, payload; ``index`` is the record's number), appended and fsynced.
 Each payload is a msgpack map of one of two kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
@@ -50,7 +50,7 @@ from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
 
 from . import wire
-from .framelog import HEADER, FrameLog, LogWedged, scan
+from .framelog import FrameLog, LogWedged, Record, scan
 
 ARCHIVE = "archive.log"
 DIGEST_PREFIX = "xxh3:"
@@ -139,7 +139,7 @@ class SessionArchive:
         data = path.read_bytes() if path.is_file() else b""
         found = scan(data)
         for record in found.records:
-            self._apply(record.payload, record.offset)
+            self._apply(record)
         if found.damaged:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
         self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
@@ -150,13 +150,13 @@ class SessionArchive:
             self._log.truncate(found.end)
 
     # -- state ------------------------------------------------------------------------------------
-    def _apply(self, payload: bytes, record_offset: int) -> None:
-        body = msgpack.unpackb(payload, strict_map_key=False)
-        self._records.append((record_offset, "arrival" in body))
+    def _apply(self, record: Record) -> None:
+        body = msgpack.unpackb(record.payload, strict_map_key=False)
+        self._records.append((record.offset, "arrival" in body))
         if "arrival" in body:
             message = body["message"] or b""
             # the message is the map's last value, so its bytes end the payload: read back alone later
-            offset = record_offset + HEADER.size + len(payload) - len(message)
+            offset = record.end - len(message)
             self.entries.append(Entry(body["arrival"], body["frame_id"], body["digest"], offset, len(message),
                                       body["message"] is not None))
             self.next_arrival = max(self.next_arrival, body["arrival"] + 1)
@@ -262,7 +262,7 @@ class SessionArchive:
         except LogWedged:
             self.problem = f"{ARCHIVE}: a failed append could not be cut back; corrections are refused until a restart"
             raise
-        self._apply(payload, offset)
+        self._apply(Record(offset, len(self._records), payload, checkpoint=False))
 
     def fence(self, lease) -> None:
         """Fence this archive's appends and cuts by an owner's lease (`server.cluster.lease.Lease`)."""
