@@ -2,7 +2,7 @@
 frames removed after the fact (`Scene.refolded` of the corrected stream).
 
 File ``archive.log`` in the session folder, in the frame log's record format (`server.framelog`:
-magic, length, index, CRC-32, payload; ``index`` is the record's number), appended and fsynced.
+magic, length, index, CRCs, payload; ``index`` is the record's number), appended and fsynced.
 Each payload is a msgpack map of one of two kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
@@ -39,7 +39,7 @@ import threading
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Callable, Iterator, Literal
 
 import msgpack
 import numpy as np
@@ -50,7 +50,7 @@ from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
 
 from . import wire
-from .framelog import HEADER, FrameLog, LogWedged, scan
+from .framelog import FrameLog, LogWedged, Record, scan
 
 ARCHIVE = "archive.log"
 DIGEST_PREFIX = "xxh3:"
@@ -98,15 +98,21 @@ class DamagedFrame(Exception):
     """An archived frame's message does not decompress: the archive's file was damaged."""
 
 
+def decompress_payload(data: bytes) -> bytes:
+    """The wire payload of `compress_payload`'s bytes (of earlier archives: the packed map with its colour
+    as PNG, which the wire takes too). Raises `DamagedFrame` when the bytes are not what either wrote."""
+    try:
+        if data[:4] == _ZSTD_MAGIC:
+            return zstandard.ZstdDecompressor().decompress(data)
+        return zlib.decompress(data)
+    except (zstandard.ZstdError, zlib.error) as exc:
+        raise DamagedFrame(f"{ARCHIVE}: an archived frame does not decompress ({exc})") from None
+
+
 def decompress_message(data: bytes) -> dict:
     """The message of `compress_payload`'s bytes, and of the PNG + zlib form of earlier archives. Raises
     `DamagedFrame` when the bytes are not what either wrote."""
-    try:
-        if data[:4] == _ZSTD_MAGIC:
-            return wire.unpack(zstandard.ZstdDecompressor().decompress(data))
-        return wire.unpack(zlib.decompress(data))  # its colour as PNG bytes, which the wire takes as they are
-    except (zstandard.ZstdError, zlib.error) as exc:
-        raise DamagedFrame(f"{ARCHIVE}: an archived frame does not decompress ({exc})") from None
+    return wire.unpack(decompress_payload(data))
 
 
 @dataclass(frozen=True)
@@ -139,7 +145,7 @@ class SessionArchive:
         data = path.read_bytes() if path.is_file() else b""
         found = scan(data)
         for record in found.records:
-            self._apply(record.payload, record.offset)
+            self._apply(record)
         if found.damaged:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
         self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
@@ -150,13 +156,13 @@ class SessionArchive:
             self._log.truncate(found.end)
 
     # -- state ------------------------------------------------------------------------------------
-    def _apply(self, payload: bytes, record_offset: int) -> None:
-        body = msgpack.unpackb(payload, strict_map_key=False)
-        self._records.append((record_offset, "arrival" in body))
+    def _apply(self, record: Record) -> None:
+        body = msgpack.unpackb(record.payload, strict_map_key=False)
+        self._records.append((record.offset, "arrival" in body))
         if "arrival" in body:
             message = body["message"] or b""
             # the message is the map's last value, so its bytes end the payload: read back alone later
-            offset = record_offset + HEADER.size + len(payload) - len(message)
+            offset = record.end - len(message)
             self.entries.append(Entry(body["arrival"], body["frame_id"], body["digest"], offset, len(message),
                                       body["message"] is not None))
             self.next_arrival = max(self.next_arrival, body["arrival"] + 1)
@@ -184,13 +190,23 @@ class SessionArchive:
     def messages(self, entries: list[Entry]) -> Iterator[dict | None]:
         """The wire messages of ``entries`` in order, each with its current pose (None where not kept)."""
         for e in entries:
+            yield None if not e.kept else self._message(e, decompress_message(os.pread(self._fd, e.length, e.offset)))
+
+    def payloads(self, entries: list[Entry]) -> Iterator[bytes | None]:
+        """The wire payloads of ``entries`` in order (None where not kept), as the frame log holds them: as
+        they arrived, or, for a frame whose pose a correction changed, its message with that pose packed
+        again (what the correction logged)."""
+        for e in entries:
             if not e.kept:
                 yield None
                 continue
-            msg = decompress_message(os.pread(self._fd, e.length, e.offset))
-            if e.arrival in self.poses:
-                msg["c2w"] = np.asarray(self.poses[e.arrival], np.float64).reshape(4, 4).tolist()
-            yield msg
+            payload = decompress_payload(os.pread(self._fd, e.length, e.offset))
+            yield payload if e.arrival not in self.poses else wire.pack(self._message(e, wire.unpack(payload)))
+
+    def _message(self, e: Entry, msg: dict) -> dict:
+        if e.arrival in self.poses:
+            msg["c2w"] = np.asarray(self.poses[e.arrival], np.float64).reshape(4, 4).tolist()
+        return msg
 
     # -- writing ----------------------------------------------------------------------------------
     def keeps(self, arrival: int) -> bool:
@@ -262,27 +278,33 @@ class SessionArchive:
         except LogWedged:
             self.problem = f"{ARCHIVE}: a failed append could not be cut back; corrections are refused until a restart"
             raise
-        self._apply(payload, offset)
+        self._apply(Record(offset, len(self._records), payload, checkpoint=False))
 
     def fence(self, lease) -> None:
         """Fence this archive's appends and cuts by an owner's lease (`server.cluster.lease.Lease`)."""
         self._log.lease = lease
 
-    def cut(self) -> None:
-        """Remove the last record, a frame's: its frame was not folded."""
-        offset, is_frame = self._records[-1]
-        if not is_frame:
-            raise ValueError("archive: the last record is a correction, not a frame")
+    def cut(self, frames: int = 1, aside: Callable[[bytes], object] | None = None) -> None:
+        """Remove the last ``frames`` (at least one) records, frames' that the scene does not hold (not
+        folded, or dropped by a repair); ``aside`` gets their bytes first (to keep a copy)."""
+        records = self._records[-frames:]
+        if len(records) != frames or not all(is_frame for _, is_frame in records):
+            raise ValueError(f"archive: the last {frames} records are not all frames")
+        offset = records[0][0]
+        if aside is not None:
+            aside(os.pread(self._fd, self._log.size() - offset, offset))
         self._log.truncate(offset)
-        self._records.pop()
-        self.next_arrival = self.entries.pop().arrival
+        del self._records[-frames:]
+        self.next_arrival = self.entries[-frames].arrival
+        del self.entries[-frames:]
 
     def cut_to(self, frames: int, logged: dict[int, bytes] | None = None) -> None:
         """Make the archive hold ``frames`` frames, the scene's count after a restart. Frames it lacks
         (deferred, not yet written when the service stopped) are archived from ``logged`` (stream
         position -> wire payload: the frame log's records). One frame archived but never folded (an
         archive written before frames were deferred: a crash between archiving and logging it) is cut
-        off. Any other difference (a log repaired by hand, an archive that began after the session's
+        off; that is only left after a log of format 1 records, since `durability.restore_scene` gives
+        a format 2 log every frame the archive holds. Any other difference (a log repaired by hand, an archive that began after the session's
         first frames) leaves an archive that cannot serve corrections."""
         logged = logged or {}
         while len(self.entries) < frames and len(self.entries) in logged:

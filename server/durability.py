@@ -7,7 +7,10 @@ session is restored before it is served, and repaired while no server runs on it
   fails (a full disk) is cut off at once and the fold is undone (the scene rolled back, or rebuilt
   from disk); a record whose fold fails is cut off again. A render in that moment may show a frame
   that is not yet acknowledged; it never loses one that is. On start a torn tail (a crash
-  mid-append: never acknowledged) is cut off; damage anywhere else is never cut: the log is copied to
+  mid-append: never acknowledged) is cut off; damage anywhere else is never cut. The frame archive is
+  the log's second copy: it takes a frame only once its log record is fsynced, so every frame it holds
+  was acknowledged, and a log that lacks one of them (damaged, or cut short: a cut into the last
+  record looks like a torn tail to the log alone) gets them back from it. Otherwise the log is copied to
   ``quarantine/`` and the session is not served until ``canonical repair`` decides.
 - ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Due every
   ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and written on shutdown; after it
@@ -26,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -37,8 +41,8 @@ from canonical_core.scene import Scene
 from canonical_core.scene.corrections import corrected_stream
 
 from . import wire
-from .archive import ARCHIVE, Retention, SessionArchive, payload_digest
-from .framelog import FrameLog, RepairAction, encode, repaired, scan, write_atomic
+from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive, payload_digest
+from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
 from .session_errors import Unrestorable
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
@@ -102,7 +106,12 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tu
     re-folded from the archive and snapshotted, so a restart gives the corrected scene, never a mixture."""
     archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
     if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
-        restored = restore_scene(path, config)
+        try:
+            restored = restore_scene(path, config, archive)
+        except BaseException:
+            if archive is not None:
+                archive.close()
+            raise
         if archive is not None and archive.problem is None:
             archive.cut_to(restored.scene.frames, logged_frames(path))
         return restored, archive
@@ -132,39 +141,107 @@ def _frame_ids_of(checkpoint: bytes) -> dict[str, FoldedFrame]:
     return {k: FoldedFrame(index, digest, report) for k, (index, digest, report) in table.items()}
 
 
-def quarantine(path: Path, data: bytes) -> Path:
-    """A copy of a damaged log under ``quarantine/`` (one per distinct content), so nothing is lost."""
+def quarantine(path: Path, data: bytes, name: str = LOG) -> Path:
+    """A copy of a damaged log (or of what a repair cut from the archive) under ``quarantine/``, one per
+    distinct content, so nothing is lost."""
     folder = path / QUARANTINE
     folder.mkdir(exist_ok=True)
-    target = folder / f"{LOG}.{hashlib.blake2b(data, digest_size=8).hexdigest()}"
+    target = folder / f"{name}.{hashlib.blake2b(data, digest_size=8).hexdigest()}"
     if not target.exists():
         write_atomic(target, data)
     return target
 
 
-def restore_scene(path: Path, config: SceneConfig) -> Restored:
-    """Load the snapshot (if any) and replay the log after it. Raises `Unrestorable` when the files do
-    not add up: a damaged log (quarantined first), a missing log, a snapshot missing or older than the
-    log says."""
+def _quarantined(path: Path, data: bytes) -> str:
+    try:
+        return f"copied to {quarantine(path, data)}"
+    except OSError as exc:
+        return f"could not be copied aside ({exc.strerror or exc}); it is left as it is"
+
+
+def _acknowledged(found: Scan, archive: SessionArchive | None) -> int:
+    """The stream's first frames known to be acknowledged by the archive: it takes a frame only once its
+    log record is fsynced. Not the last one after a format 1 record: archives written before frames were
+    deferred took a frame before its record (`SessionArchive.cut_to` cuts that one)."""
+    if archive is None:
+        return 0
+    return max(0, len(archive.entries) - (found.version == 1))
+
+
+def _frames(first: int, end: int) -> str:
+    return f"frame {first} was" if end - first == 1 else f"frames {first}..{end - 1} were"
+
+
+def _from_archive(data: bytes, found: Scan, archive: SessionArchive | None, held: int, acknowledged: int) -> bytes | str:
+    """The log's bytes with what follows its intact records rebuilt: the frames from ``held`` (what the
+    snapshot and those records hold) to ``acknowledged`` taken from the archive, then the log's own
+    intact records after those. Or why that cannot be done without losing a frame ("" where the archive
+    holds no frame that the log lacks)."""
+    if archive is None or acknowledged <= held:
+        return ""
+    if not found.records and held:
+        return "its first record, the checkpoint of the snapshot's frames (their frame ids), is lost"
+    later = [r for r in found.later if r.checkpoint or r.index >= acknowledged]
+    if [(r.checkpoint, r.index) for r in later] != [(False, k) for k in range(acknowledged, acknowledged + len(later))]:
+        return f"the log's intact records after the damage do not follow on from the frames {ARCHIVE} holds"
+    records = []
+    try:
+        for k, payload in enumerate(archive.payloads(archive.entries[held:acknowledged]), held):
+            if payload is None:
+                return f"{ARCHIVE} does not keep frame {k}'s content (archive retention {archive.retention!r})"
+            records.append(encode(k, payload))
+    except DamagedFrame as exc:
+        return f"{exc} (frame {held + len(records)})"
+    # past the last record known intact, the bytes may hold no more than the frames restored after it (and
+    # a torn append): more may be a frame acknowledged but not archived yet
+    last = found.later[-1] if found.later else None
+    past = records[max(0, last.index + 1 - held):] if last else records
+    if not torn_at(data, (last.end if last else found.end) + sum(map(len, past))):
+        return f"the damaged bytes hold more than the frames that {ARCHIVE} holds"
+    return data[:found.end] + b"".join(records) + b"".join(data[r.offset:r.end] for r in later)
+
+
+def _restore_from_archive(path: Path, data: bytes, found: Scan, archive: SessionArchive | None, held: int,
+                          acknowledged: int) -> bytes:
+    """The log, damaged or lacking acknowledged frames, rebuilt by `_from_archive` (its old bytes copied
+    to ``quarantine/`` first); returns its new bytes. Raises `Unrestorable` where it cannot be rebuilt
+    without losing a frame."""
+    rebuilt = _from_archive(data, found, archive, held, acknowledged)
+    what = found.describe() if found.damaged else f"it ends {'inside' if found.torn else 'before'} frame {held}'s record"
+    if acknowledged > held:
+        what += f"; {_frames(held, acknowledged)} acknowledged ({ARCHIVE} holds {'it' if acknowledged - held == 1 else 'them'})"
+    if isinstance(rebuilt, str):
+        raise Unrestorable(f"{LOG}: {what}{'; ' + rebuilt if rebuilt else ''}; the log {_quarantined(path, data)}. "
+                           "`canonical repair --action truncate` keeps the frames before the damage, `--action skip` "
+                           f"every intact frame (and either drops those of {ARCHIVE} that the log then lacks)")
+    where = quarantine(path, data)
+    write_atomic(path / LOG, rebuilt)
+    log.error("%s: %s: %s; restored from %s (the log as it was is %s)", path, LOG, what, ARCHIVE, where)
+    return rebuilt
+
+
+def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | None = None) -> Restored:
+    """Load the snapshot (if any) and replay the log after it. With the session's frame ``archive``, the
+    acknowledged frames that the log lacks or holds damaged are restored from it first
+    (`_restore_from_archive`). Raises `Unrestorable` when the files do not add up: a damaged log, or one
+    that lacks acknowledged frames, that the archive cannot make whole (quarantined first), a missing
+    log, a snapshot missing or older than the log says."""
     for stale in path.glob(PENDING_SNAPSHOT.format("*") + "*"):  # written off the acknowledged path, never committed
         remove_quietly(stale)
     if not (path / LOG).is_file():
         raise Unrestorable(f"{LOG} is missing: frames after the last snapshot may be lost "
                            "(`canonical repair` starts an empty log)")
-    data = (path / LOG).read_bytes()
-    found = scan(data)
-    if found.damaged:
-        try:
-            where = f"copied to {quarantine(path, data)}"
-        except OSError as exc:
-            where = f"could not be copied aside ({exc.strerror or exc}); it is left as it is"
-        raise Unrestorable(f"{LOG}: {found.describe()}; the log {where}. `canonical repair --action truncate` "
-                           "keeps the frames before the damage, `--action skip` every intact frame")
     snap = path / SNAPSHOT
     try:
         scene = Scene.load(snap) if snap.exists() else Scene(config)
     except ValueError as exc:
         raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup") from None
+    data = (path / LOG).read_bytes()
+    found = scan(data)
+    acknowledged = _acknowledged(found, archive)
+    held = max([scene.frames] + [r.index + (not r.checkpoint) for r in found.records])
+    if found.damaged or held < acknowledged:
+        found = scan(_restore_from_archive(path, data, found, archive, held, acknowledged))
     snapshot_frames = scene.frames
     checkpoints = [r for r in found.records if r.checkpoint]
     records = [r for r in found.records if not r.checkpoint]
@@ -188,9 +265,9 @@ def restore_scene(path: Path, config: SceneConfig) -> Restored:
             # a record the snapshot holds already (a crash between snapshot and log restart) only adds its id
             report = scene.fold(wire.frame_from_message(msg)).to_dict() if record.index == scene.frames else None
         except ValueError as exc:
-            if k != len(records) - 1:
-                # Records after it exist, so this one was folded and acknowledged once: never drop it
-                # (e.g. a library that validates more strictly now). The session is not served.
+            if k != len(records) - 1 or record.index < acknowledged:
+                # Records after it exist (or the archive holds it), so this one was folded and acknowledged
+                # once: never drop it (e.g. a library that validates more strictly now). The session is not served.
                 frame_log.close()
                 raise Unrestorable(f"{LOG}: acknowledged frame {record.index} no longer folds: {exc}") from exc
             # the last record's fold failed: it was never acknowledged (the crash came before its truncation)
@@ -206,7 +283,8 @@ def restore_scene(path: Path, config: SceneConfig) -> Restored:
 
 def repair(path: Path, action: RepairAction) -> str:
     """Make an unrestorable session's files add up again, keeping every frame that can be kept (see
-    `server.framelog.repaired`); the log as it was stays under ``quarantine/``. Returns what it did."""
+    `server.framelog.repaired`); the log as it was stays under ``quarantine/``, and the frame archive is
+    made to match the log (`_archive_after_repair`). Returns what it did."""
     snap = path / SNAPSHOT
     try:
         snapshot_frames = Scene.load(snap).frames if snap.exists() else 0
@@ -219,5 +297,46 @@ def repair(path: Path, action: RepairAction) -> str:
     checkpoints = [r for r in found.records + found.later if r.checkpoint]
     records, kept, dropped = repaired(data, action, snapshot_frames, checkpoints[-1].payload if checkpoints else None)
     write_atomic(path / LOG, b"".join(records))
+    # the frames kept, by their index before the repair: in order unless a skip left one out
+    kept_frames = [r.index for r in found.records + (found.later if action == "skip" else [])
+                   if not r.checkpoint and r.index >= snapshot_frames]
+    archived = _archive_after_repair(path, kept_frames == list(range(snapshot_frames, snapshot_frames + kept)),
+                                     snapshot_frames + kept)
     return (f"the snapshot's {snapshot_frames} frames and {kept} logged frames after them kept; {dropped} intact "
-            f"frames after the damage dropped (the old log is under {QUARANTINE}/)")
+            f"frames after the damage dropped (the old log is under {QUARANTINE}/){archived}")
+
+
+def _archive_after_repair(path: Path, in_order: bool, frames: int) -> str:
+    """The frame archive made to match a repaired log of ``frames`` frames, so that a start does not take
+    the frames it holds beyond them for frames the log lost: those are cut off (copied to ``quarantine/``
+    first). Where the log's frames no longer follow the archive's (``in_order`` false: a repair skipped a
+    frame) or they cannot be cut (a correction follows them), the archive is moved to ``quarantine/``
+    whole: the session starts a new one, which cannot serve corrections of the frames before it."""
+    if not (path / ARCHIVE).is_file():
+        return ""
+    archive = SessionArchive(path / ARCHIVE, "all")
+    extra = len(archive.entries) - frames
+    try:
+        if in_order and extra <= 0:
+            return ""
+        if in_order:
+            archive.cut(extra, aside=lambda data: quarantine(path, data, ARCHIVE))
+            return f"; the {extra} frames of {ARCHIVE} after them dropped (copied to {QUARANTINE}/)"
+    except ValueError:
+        pass
+    finally:
+        archive.close()
+    (path / QUARANTINE).mkdir(exist_ok=True)
+    target = path / QUARANTINE / f"{ARCHIVE}.{int(time.time())}"
+    os.replace(path / ARCHIVE, target)
+    return f"; {ARCHIVE} no longer matches the log: moved to {target} (corrections need a new archive)"
+
+
+def restored_frames(path: Path, config: SceneConfig, retention: Retention) -> int:
+    """The frames a start would serve of the session at ``path`` (`restore_session`, its files closed
+    again); raises `Unrestorable` as it does."""
+    restored, archive = restore_session(path, config, retention)
+    restored.log.close()
+    if archive is not None:
+        archive.close()
+    return restored.scene.frames

@@ -1,21 +1,31 @@
 """The frame log of one session: append-only, CRC-checked, fsynced before a frame is acknowledged.
 
-A record is ``magic | u32 payload length | u64 index | u32 CRC-32 of (length, index, payload) | payload``
-(little-endian). Two kinds:
+A record (format 2) is ``magic | u32 payload length | u64 index | u32 CRC-32 of the payload |
+u32 CRC-32 of the 20 header bytes before it | payload`` (little-endian). Two kinds:
 
-- a frame record (magic ``CGF1``): ``index`` is the frame's arrival index and the payload its msgpack
+- a frame record (magic ``CGF2``): ``index`` is the frame's arrival index and the payload its msgpack
   message, as `server.wire.frame_from_message` reads it;
-- a checkpoint (magic ``CGK1``): written as the first record of a fresh log right after a snapshot;
+- a checkpoint (magic ``CGK2``): written as the first record of a fresh log right after a snapshot;
   ``index`` is the number of frames the snapshot holds, and the payload (msgpack) the session's
   frame-id table, so that a retried frame is recognised after a restart too. A log that starts with a
   checkpoint for N > 0 frames and finds no snapshot holding them says loudly that frames are missing.
 
+Logs written before format 2 hold format 1 records (magics ``CGF1``, ``CGK1``: ``magic | u32 length |
+u64 index | u32 CRC-32 of (length, index, payload) | payload``). They are read by their own rules, and
+a log of them goes on with format 2 records: every record names its format by its magic.
+
 Damage is told apart from a crash. A crash mid-append can only leave a *torn tail*: a prefix of one
-record after the last intact one (its header shorter than a header, or its length running past the
-end of the file). That record was never acknowledged (the acknowledgement follows the fsync), so it
-is cut off. Anything else (a record that fails its CRC while its bytes are all there, or intact records
-after a bad one) is *damage*: acknowledged frames may sit in it, so nothing is cut; the session is not
-served until an operator repairs it (`repair_log`).
+record after the last intact one, whose header is incomplete, or complete and intact (its CRC holds)
+with its payload running past the end of the file. That record was never acknowledged (the
+acknowledgement follows the fsync), so it is cut off. Anything else (a header that fails its CRC, a
+record that fails its CRC while its bytes are all there, intact records after a bad one) is *damage*:
+acknowledged frames may sit in it, so nothing is cut; the session is not served until it is restored
+from its frame archive (`server.durability`) or an operator repairs it (`repaired`). Format 1 has no
+CRC of its own header, so there a length made longer by damage reads as a torn tail.
+
+A torn tail is torn only as far as the log can tell: a file that lost the end of its last acknowledged
+record (truncated) holds the same bytes. The frame archive, written only after a frame's record is
+fsynced, tells them apart where it holds the frame (`server.durability.restore_scene`).
 """
 
 from __future__ import annotations
@@ -29,9 +39,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO, Callable, Literal
 
-FRAME_MAGIC, CHECKPOINT_MAGIC = b"CGF1", b"CGK1"
-MAGICS = (FRAME_MAGIC, CHECKPOINT_MAGIC)
-HEADER = struct.Struct("<4sIQI")
+FRAME_MAGIC, CHECKPOINT_MAGIC = b"CGF2", b"CGK2"
+# magic, payload length, index, a CRC: format 1's header (its CRC over length, index and payload), and
+# format 2's first 20 bytes (its CRC over the payload), which a CRC of these 20 bytes follows
+FIELDS = struct.Struct("<4sIQI")
+HEADER = struct.Struct("<4sIQII")
+MAGICS = {FRAME_MAGIC: 2, CHECKPOINT_MAGIC: 2, b"CGF1": 1, b"CGK1": 1}  # magic -> format
+CHECKPOINT_MAGICS = (CHECKPOINT_MAGIC, b"CGK1")
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 
@@ -68,10 +82,16 @@ class Record:
     index: int  # frame index; for a checkpoint, the frames its snapshot holds
     payload: bytes
     checkpoint: bool
+    version: int = 2  # its format
+
+    @property
+    def start(self) -> int:
+        """The offset of its payload."""
+        return self.offset + (HEADER if self.version == 2 else FIELDS).size
 
     @property
     def end(self) -> int:
-        return self.offset + HEADER.size + len(self.payload)
+        return self.start + len(self.payload)
 
 
 @dataclass(frozen=True)
@@ -81,8 +101,9 @@ class Scan:
     records: list[Record]  # the intact prefix
     end: int  # offset just past the intact prefix
     size: int  # file size
-    torn: bool  # bytes after ``end`` are a torn tail (never acknowledged)
+    torn: bool  # bytes after ``end`` are a torn tail (as far as the log can tell, never acknowledged)
     later: list[Record]  # intact records found after damage (empty when torn or clean)
+    version: int = 2  # the format of its last record (the torn one, if any): the rules its tail is read by
 
     @property
     def damaged(self) -> bool:
@@ -93,27 +114,44 @@ class Scan:
         return f"damaged record at byte {self.end} of {self.size}{after}"
 
 
-def _crc(length: int, index: int, payload: bytes) -> int:
+def _crc_v1(length: int, index: int, payload: bytes) -> int:
     return zlib.crc32(payload, zlib.crc32(struct.pack("<IQ", length, index)))
 
 
 def encode(index: int, payload: bytes, checkpoint: bool = False) -> bytes:
-    magic = CHECKPOINT_MAGIC if checkpoint else FRAME_MAGIC
-    return HEADER.pack(magic, len(payload), index, _crc(len(payload), index, payload)) + payload
+    """A format 2 record."""
+    fields = FIELDS.pack(CHECKPOINT_MAGIC if checkpoint else FRAME_MAGIC, len(payload), index, zlib.crc32(payload))
+    return fields + struct.pack("<I", zlib.crc32(fields)) + payload
+
+
+RECORD, SHORT, BAD = "record", "short", "bad"
+
+
+def _parse(data: bytes, pos: int) -> tuple[str, Record | None]:
+    """What starts at ``pos`` (before the end of ``data``): an intact record (RECORD, it), the prefix of
+    one that runs to the end of ``data`` (SHORT: what a crash mid-append leaves), or neither (BAD)."""
+    magic = bytes(data[pos:pos + 4])
+    version = MAGICS.get(magic)
+    if version is None:
+        return (SHORT if len(magic) < 4 and any(m.startswith(magic) for m in MAGICS) else BAD), None
+    header = (HEADER if version == 2 else FIELDS).size
+    if len(data) - pos < header:
+        return SHORT, None
+    _, length, index, crc = FIELDS.unpack_from(data, pos)
+    if version == 2 and zlib.crc32(data[pos:pos + FIELDS.size]) != int.from_bytes(data[pos + FIELDS.size:pos + header], "little"):
+        return BAD, None  # a damaged header: its length cannot be trusted, so it is never a torn tail
+    end = pos + header + length
+    if end > len(data):
+        return SHORT, None
+    payload = data[pos + header:end]
+    if (zlib.crc32(payload) if version == 2 else _crc_v1(length, index, payload)) != crc:
+        return BAD, None
+    return RECORD, Record(pos, index, payload, magic in CHECKPOINT_MAGICS, version)
 
 
 def _record_at(data: bytes, pos: int) -> Record | None:
     """The intact record starting at ``pos``, or None."""
-    if len(data) - pos < HEADER.size:
-        return None
-    magic, length, index, crc = HEADER.unpack_from(data, pos)
-    end = pos + HEADER.size + length
-    if magic not in MAGICS or end > len(data):
-        return None
-    payload = data[pos + HEADER.size : end]
-    if _crc(length, index, payload) != crc:
-        return None
-    return Record(pos, index, payload, magic == CHECKPOINT_MAGIC)
+    return _parse(data, pos)[1] if pos < len(data) else None
 
 
 def _next_record(data: bytes, start: int) -> Record | None:
@@ -129,14 +167,6 @@ def _next_record(data: bytes, start: int) -> Record | None:
         start = pos + 1
 
 
-def _is_torn(tail: bytes) -> bool:
-    """Whether ``tail`` (the bytes after the last intact record) is a prefix of one record."""
-    if len(tail) < HEADER.size:
-        return any(m.startswith(tail[:4]) for m in MAGICS)
-    magic, length, _, _ = HEADER.unpack_from(tail, 0)
-    return magic in MAGICS and HEADER.size + length > len(tail)
-
-
 def scan(data: bytes) -> Scan:
     records, pos = [], 0
     while (record := _record_at(data, pos)) is not None:
@@ -148,8 +178,15 @@ def scan(data: bytes) -> Scan:
         while record is not None:
             later.append(record)
             record = _record_at(data, record.end) or _next_record(data, record.end + 1)
-    torn = pos < len(data) and not later and _is_torn(data[pos:])
-    return Scan(records, pos, len(data), torn, later)
+    torn = pos < len(data) and not later and _parse(data, pos)[0] == SHORT
+    version = MAGICS.get(bytes(data[pos:pos + 4])) or (records[-1].version if records else 2)
+    return Scan(records, pos, len(data), torn, later, version)
+
+
+def torn_at(data: bytes, pos: int) -> bool:
+    """Whether the bytes of ``data`` from ``pos`` on are the prefix of one record (what a crash
+    mid-append leaves), or none."""
+    return pos >= len(data) or _parse(data, pos)[0] == SHORT
 
 
 class FrameLog:

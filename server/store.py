@@ -33,7 +33,7 @@ from canonical_core.scene import Scene
 
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .corrections import BACKGROUND_FRAMES
-from .durability import LOG, repair, restore_scene, restore_session
+from .durability import LOG, repair, restore_session, restored_frames
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
 from .memory import MemoryBudget, release_memory
 from .session import Session
@@ -133,17 +133,16 @@ class SessionStore:
             raise ValueError(f"session: no session {session_id!r} in {self.root}")
         if not (path / META).is_file():
             raise ValueError(f"session: {META} is missing; restore it from a backup (repair needs its settings)")
-        config = SceneConfig.from_dict(json.loads((path / META).read_text())["config"])
+        meta = json.loads((path / META).read_text())
+        config, retention = SceneConfig.from_dict(meta["config"]), meta.get("archive_retention", "all")
         try:
-            restore_scene(path, config).log.close()
+            restored_frames(path, config, retention)  # what a start would find: the log and its archive
             return f"session {session_id}: nothing to repair"
         except Unrestorable as exc:
             if action is None:
                 raise ValueError(f"action: session {session_id} needs repair: {exc}") from None
         done = repair(path, action)
-        restored = restore_scene(path, config)
-        restored.log.close()
-        return f"session {session_id}: {done}; it now holds {restored.scene.frames} frames"
+        return f"session {session_id}: {done}; it now holds {restored_frames(path, config, retention)} frames"
 
     def unavailable_summaries(self) -> list[dict]:
         def created(session_id: str) -> float:

@@ -46,22 +46,24 @@ def test_kill9_restart_keeps_every_acknowledged_frame(tmp_path, frames, referenc
         for kwargs in frames[3:7]:  # a snapshot at 4 frames, then 5..7 in the log
             session.add_frame(**kwargs)
         assert wait_for(lambda: session.stats()["snapshot_frames"] == 4)  # written off the acknowledged path
+        assert wait_for(lambda: session.stats()["archive_frames"] == 7)  # archived off the acknowledged path
         proc.kill9()
         assert (data / "sessions" / sid / "scene.snap").exists()
 
-        # a torn final record (a crash mid-append) is detected by length/CRC and dropped on start
+        # the last acknowledged record cut short (as a crash mid-append would leave it): the archive,
+        # which holds the frame, tells it from a torn tail, and restores it on start
         size = log_path.stat().st_size
         with open(log_path, "r+b") as f:
             f.truncate(size - 5)
         client = restart()
-        check(client, sid, 6)  # the torn frame 7 is gone, nothing else
-        assert log_path.stat().st_size < size - 5  # cut back to the end of the last intact record
+        check(client, sid, 7)
+        assert log_path.stat().st_size == size  # the record as it was
 
         # kill -9 while frames are in flight: every acknowledged one survives, the state is a prefix
         session, acked, stop = client.session(sid), [], threading.Event()
 
         def stream():
-            for kwargs in frames[6:]:
+            for kwargs in frames[7:]:
                 if stop.is_set():
                     return
                 try:
@@ -77,10 +79,10 @@ def test_kill9_restart_keeps_every_acknowledged_frame(tmp_path, frames, referenc
         proc.kill9()
         sender.join()
         with open(log_path, "ab") as f:  # and a torn header after the last record
-            f.write(b"CGF1\x10\x00")
+            f.write(b"CGF2\x10\x00")
         client = restart()
         frames_now = check(client, sid)
-        assert frames_now >= 6 + len(acked)
+        assert frames_now >= 7 + len(acked)
         session = client.session(sid)
         for kwargs in frames[frames_now:]:
             session.add_frame(**kwargs)

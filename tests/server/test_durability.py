@@ -38,9 +38,9 @@ def post(proc: ServerProcess, sid: str, kwargs: dict) -> httpx.Response:
                       headers=MSGPACK, timeout=120)
 
 
-def new_session(proc: ServerProcess, frames: list[dict]) -> str:
-    """The id of a new session on ``proc`` that has folded ``frames`` (each acknowledged)."""
-    session = Client(proc.url).create_session(voxel_size=VOXEL)
+def new_session(proc: ServerProcess, frames: list[dict], **settings) -> str:
+    """The id of a new session on ``proc`` (its ``settings``) that has folded ``frames`` (each acknowledged)."""
+    session = Client(proc.url).create_session(voxel_size=VOXEL, **settings)
     for kwargs in frames:
         session.add_frame(**kwargs)
     return session.id
@@ -104,7 +104,7 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
 def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, frames, reference):
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
-        sid = new_session(proc, frames[:6])
+        sid = new_session(proc, frames[:6], archive_retention="none")  # no second copy (test_log_damage.py has one)
         proc.kill9()
         damaged = bytearray(log_of(data, sid).read_bytes())
         third = framelog.scan(bytes(damaged)).records[2]
@@ -144,7 +144,7 @@ def test_truncate_repair_serves_the_frames_before_the_damage(tmp_path, frames, r
 
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
-        sid = new_session(proc, frames[:4])
+        sid = new_session(proc, frames[:4], archive_retention="none")
     damaged = bytearray(log_of(data, sid).read_bytes())
     damaged[framelog.scan(bytes(damaged)).records[2].offset + 5] ^= 0x01  # frame 2's length field
     log_of(data, sid).write_bytes(bytes(damaged))

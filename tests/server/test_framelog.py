@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import os
+from pathlib import Path
 
 import pytest
 
@@ -118,3 +119,35 @@ def test_reset_replaces_the_log_atomically(tmp_path):
     log.close()
     assert [(r.checkpoint, r.index, r.payload) for r in scan(path.read_bytes()).records] == [(True, 3, b"ids"), (False, 3, b"next")]
     assert not (tmp_path / "log.tmp").exists()
+
+
+@pytest.mark.parametrize("bit", range(framelog.HEADER.size * 8))
+def test_a_flipped_bit_in_the_last_records_header_is_damage_never_a_torn_tail(tmp_path, bit):
+    """A length made longer by one bit runs past the end of the file as a torn record does: the
+    header's own CRC tells them apart."""
+    data = bytearray(written(tmp_path / "log", 6))
+    last = scan(bytes(data)).records[-1]
+    data[last.offset + bit // 8] ^= 1 << bit % 8
+    found = scan(bytes(data))
+    assert found.damaged and not found.torn and len(found.records) == 5 and found.end == last.offset
+
+
+OLD_FORMAT = Path(__file__).resolve().parents[1] / "fixtures" / "frames_v1.log"  # a checkpoint and frames 2..4
+
+
+def test_an_old_format_log_is_read_by_its_rules_and_goes_on_in_the_new_format(tmp_path):
+    data = OLD_FORMAT.read_bytes()
+    found = scan(data)
+    assert [(r.checkpoint, r.index, r.version) for r in found.records] == [(True, 2, 1), (False, 2, 1), (False, 3, 1),
+                                                                           (False, 4, 1)]
+    assert [r.payload for r in found.records[1:]] == payloads(5)[2:] and found.version == 1 and not found.damaged
+    last = found.records[-1]
+    assert scan(data[:last.offset + 30]).torn  # format 1: a record running past the end is a torn tail
+    path = tmp_path / "log"
+    path.write_bytes(data)
+    log = FrameLog(path)
+    log.append(5, b"next")  # the log goes on in the new format
+    log.close()
+    found = scan(path.read_bytes())
+    assert [(r.index, r.version) for r in found.records[-2:]] == [(4, 1), (5, 2)] and found.version == 2
+    assert found.end == found.size and path.read_bytes()[:len(data)] == data
