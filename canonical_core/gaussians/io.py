@@ -3,8 +3,9 @@
 PLY (binary little-endian, float32): ``x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2
 rot_0..3`` with opacity as a logit, scales as logs and rotation as a (w, x, y, z) quaternion, which
 is what common splat viewers read. ``f_rest_*`` is channel-major (all R coefficients, then G, then
-B), as the reference 3DGS code writes it. Fused features and label scores travel as extra
-``feat_*`` / ``label_*`` properties, which viewers ignore.
+B), as the reference 3DGS code writes it. After the 3DGS properties come extras that splat viewers
+ignore: ``red green blue`` (uchar, the DC colour: what a point-cloud tool such as Open3D or MeshLab
+shows) and the fused features and label scores as ``feat_*`` / ``label_*``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,13 @@ _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8
 _OPACITY_EPS = 1e-6
 
 
+def _dc_rgb8(g: Gaussians) -> np.ndarray:  # [N, 3] uint8: the colour seen head-on (SH degree 0)
+    rgb = sh_dc_to_rgb(g.sh[:, 0].detach().cpu().float()).numpy()
+    return np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+
+
 def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
+    """Property name -> values (float32, or uint8 for the point-cloud colours), in header order."""
     n = len(g)
     k = g.sh.shape[1]
     sh = g.sh.detach().cpu().float().numpy()
@@ -46,6 +53,9 @@ def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
     q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
     for i in range(4):
         cols[f"rot_{i}"] = q[:, i]
+    rgb8 = _dc_rgb8(g)
+    for i, a in enumerate(("red", "green", "blue")):
+        cols[a] = rgb8[:, i]
     for prefix, t in (("feat", g.features), ("label", g.labels)):
         if t is not None:
             arr = t.detach().cpu().float().numpy()
@@ -69,9 +79,9 @@ def ply_bytes(g: Gaussians) -> bytes:
     """The PLY file as bytes (header + binary body)."""
     cols = _ply_columns(g)
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
-    header += [f"property float {name}" for name in cols]
+    header += [f"property {'uchar' if v.dtype == np.uint8 else 'float'} {name}" for name, v in cols.items()]
     header.append("end_header")
-    body = np.empty(len(g), dtype=[(name, "<f4") for name in cols])
+    body = np.empty(len(g), dtype=[(name, "u1" if v.dtype == np.uint8 else "<f4") for name, v in cols.items()])
     for name, values in cols.items():
         body[name] = values
     return ("\n".join(header) + "\n").encode("ascii") + body.tobytes()
@@ -160,8 +170,7 @@ def splat_bytes(g: Gaussians) -> bytes:
     rec = np.empty(len(g), SPLAT_DTYPE)
     rec["position"] = g.means.detach().cpu().float().numpy()[order]
     rec["scale"] = scales[order]
-    rgb = sh_dc_to_rgb(g.sh[:, 0].detach().cpu().float()).numpy()[order]
-    rec["rgba"][:, :3] = np.clip(np.round(rgb * 255), 0, 255)
+    rec["rgba"][:, :3] = _dc_rgb8(g)[order]
     rec["rgba"][:, 3] = np.clip(np.round(opac[order] * 255), 0, 255)
     q = g.quats.detach().cpu().float().numpy()[order]
     q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)

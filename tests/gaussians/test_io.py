@@ -3,7 +3,9 @@ import pytest
 import torch
 
 from canonical_core import Gaussians, load_ply, load_splat, save_ply, save_splat
-from canonical_core.gaussians import ply_bytes
+from canonical_core.gaussians import SH_C0, ply_bytes
+
+THREE_DGS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]  # then f_rest_*, opacity, ...
 
 
 def random_gaussians(n=50, degree=2, seed=0, features=4, labels=3):
@@ -20,25 +22,63 @@ def random_gaussians(n=50, degree=2, seed=0, features=4, labels=3):
     )
 
 
-def test_ply_header_is_the_3dgs_layout():
-    header = ply_bytes(random_gaussians(5, degree=1, features=0, labels=0)).split(b"end_header\n")[0].decode()
-    props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
-    assert header.startswith("ply\nformat binary_little_endian 1.0\nelement vertex 5")
-    assert props == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
-                     *[f"f_rest_{i}" for i in range(9)], "opacity", "scale_0", "scale_1", "scale_2",
-                     "rot_0", "rot_1", "rot_2", "rot_3"]
-    assert all(line.startswith("property float ") for line in header.splitlines() if line.startswith("property"))
+def header_properties(data: bytes) -> list[tuple[str, str]]:  # (type, name) in header order
+    header = data.split(b"end_header\n")[0].decode()
+    return [tuple(line.split()[1:]) for line in header.splitlines() if line.startswith("property")]
+
+
+def ply_rows(data: bytes) -> np.ndarray:  # the body as a structured array, read from the header
+    types = {"float": "<f4", "uchar": "u1"}
+    dtype = [(name, types[t]) for t, name in header_properties(data)]
+    return np.frombuffer(data.split(b"end_header\n", 1)[1], dtype)
+
+
+def test_ply_header_is_the_3dgs_layout_then_point_colours_then_extras():
+    data = ply_bytes(random_gaussians(5, degree=1, features=2, labels=0))
+    assert data.startswith(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n")
+    # the 3DGS properties first and in their order (viewers that read by position still work), the
+    # extras after them
+    assert header_properties(data) == [
+        *[("float", p) for p in THREE_DGS], *[("float", f"f_rest_{i}") for i in range(9)],
+        *[("float", p) for p in ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")],
+        ("uchar", "red"), ("uchar", "green"), ("uchar", "blue"), ("float", "feat_0"), ("float", "feat_1")]
+
+
+def test_ply_point_colours_are_the_dc_colour_in_8_bits():
+    g = random_gaussians(200, degree=2, features=0, labels=0)
+    g.sh[:3, 0] = torch.tensor([[-10.0, 0.0, 10.0], [0.1, -0.1, 0.0], [1.77, -1.77, 0.0]])  # clamped, mid-grey, ~1/~0
+    rows = ply_rows(ply_bytes(g))
+    expected = np.clip(np.round((0.5 + SH_C0 * g.sh[:, 0]).numpy() * 255), 0, 255)  # float32, as written
+    got = np.stack([rows["red"], rows["green"], rows["blue"]], 1)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(got[0], [0, 128, 255])
+    assert got.min() == 0 and got.max() == 255
+
+
+def test_open3d_reads_the_ply_as_a_coloured_point_cloud(tmp_path):
+    try:
+        import open3d
+    except ImportError as exc:  # an optional extra: pip install -e ".[bench]"
+        pytest.skip(f"open3d is not installed (the `bench` extra): {exc}")
+    g = random_gaussians(100, degree=1)
+    save_ply(g, tmp_path / "g.ply")
+    cloud = open3d.io.read_point_cloud(str(tmp_path / "g.ply"))
+    assert cloud.has_colors()
+    np.testing.assert_allclose(np.asarray(cloud.points), g.means.numpy(), atol=1e-6)
+    rows = ply_rows(ply_bytes(g))
+    np.testing.assert_allclose(np.asarray(cloud.colors) * 255, np.stack([rows["red"], rows["green"], rows["blue"]], 1),
+                               atol=1e-3)
+    assert np.asarray(cloud.colors).std() > 0.05  # not one grey for all
 
 
 def test_ply_stores_logit_opacity_log_scale_and_channel_major_rest(tmp_path):
     g = random_gaussians(3, degree=1, features=0, labels=0)
-    body = ply_bytes(g).split(b"end_header\n")[1]
-    rows = np.frombuffer(body, np.float32).reshape(3, -1)
+    rows = ply_rows(ply_bytes(g))
     op = g.opacities.double()
-    assert np.allclose(rows[:, 18], torch.log(op / (1 - op)).numpy(), atol=1e-5)
-    assert np.allclose(rows[:, 19:22], g.scales.log().numpy(), atol=1e-6)
+    assert np.allclose(rows["opacity"], torch.log(op / (1 - op)).numpy(), atol=1e-5)
+    assert np.allclose(np.stack([rows[f"scale_{i}"] for i in range(3)], 1), g.scales.log().numpy(), atol=1e-6)
     # f_rest_0..2 are the red channel's three degree-1 coefficients
-    assert np.allclose(rows[:, 9:12], g.sh[:, 1:, 0].numpy())
+    assert np.allclose(np.stack([rows[f"f_rest_{i}"] for i in range(3)], 1), g.sh[:, 1:, 0].numpy())
 
 
 @pytest.mark.parametrize("degree", [0, 1, 3])

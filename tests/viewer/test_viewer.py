@@ -119,7 +119,8 @@ def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page
     open_viewer(page, server, shelf_session.id)
     _, start, _, _ = view_camera(page)
     forward = start[:3, 2]
-    page.locator("#stage").focus()
+    # no click first: the view has the keyboard from the start
+    assert page.evaluate("document.activeElement.id") == "view"
     page.keyboard.down("KeyW")
     page.wait_for_timeout(300)
     page.keyboard.up("KeyW")
@@ -138,6 +139,64 @@ def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page
     np.testing.assert_allclose(snapped, shelf[1]["c2w"], atol=1e-6)
     assert page.locator("#camera-k").inner_text() == "camera 2 / 4"
 
+
+
+def test_the_first_fold_draws_at_once_and_the_status_line_says_what_the_page_waits_for(page, server, client, shelf, shots):
+    session = client.create_session(voxel_size=VOXEL)
+    asked = []
+    page.on("request", lambda r: asked.append(r.url) if "/image?" in r.url else None)
+    page.goto(f"{server.url}/sessions/{session.id}/view")
+    page.wait_for_function("viewer.status === 'waiting for the first frame'", timeout=WAIT_MS)
+    assert page.locator("#status").inner_text() == "waiting for the first frame"
+    assert not asked and page.evaluate("viewer.images") == 0  # an empty session is not rendered
+    page.screenshot(path=shots / "waiting.png")
+    page.evaluate("""window.statuses = [];
+        new MutationObserver((records) => { for (const r of records) for (const n of r.addedNodes) statuses.push(n.data); })
+            .observe(document.getElementById('status'), {childList: true})""")
+    session.add_frame(**shelf[0])
+    # the picture of the first fold comes on that fold alone: no second frame is sent
+    page.wait_for_function(f"{FULL} && viewer.drawn.frames === 1", timeout=WAIT_MS)
+    page.screenshot(path=shots / "first_fold.png")
+    drawn = canvas(page)
+    assert (drawn.max(axis=2) > 20).mean() > 0.3 and drawn.std() > 20  # not blank
+    assert page.locator("#status").inner_text() == "1 frame folded"
+    assert page.evaluate("statuses") == ["1 frame folded · rendering…", "1 frame folded"]
+    latency = page.evaluate("viewer.timing.at - viewer.foldSeenAt")  # the fold event to the picture (ms)
+    print(f"first fold to first picture: {latency:.0f} ms")
+    assert latency > 0
+
+
+def test_frustums_are_at_most_20_spread_over_the_track_by_default_or_all_or_none(page, server, client):
+    from .walls import wall_frames
+
+    session = client.create_session(voxel_size=0.02)
+    frame = wall_frames()[1]
+    n = 25
+    for k in range(n):  # stepping back along the optical axis: the earlier cameras are in front of the latest
+        c2w = np.eye(4)
+        c2w[2, 3] = -0.02 * k
+        session.add_frame(**{**frame, "c2w": c2w, "depth": frame["depth"] + 0.02 * k})
+    open_viewer(page, server, session.id)
+
+    def frustums():
+        return page.evaluate("viewer.frustums")
+
+    default = frustums()
+    chosen = default["chosen"]
+    assert len(chosen) <= 20 and chosen[0] == 0 and chosen[-1] == n - 1
+    assert set(np.diff(chosen)) <= {1, 2}  # evenly spread
+    assert 10 <= default["drawn"] <= len(chosen)  # (the latest camera's own frustum is not in its view)
+    page.select_option("#frustums", "all")
+    assert frustums()["chosen"] == list(range(n)) and frustums()["drawn"] > default["drawn"]
+    page.select_option("#frustums", "none")
+    assert frustums() == {"chosen": [], "drawn": 0}
+    overlay = page.evaluate("Array.from(document.getElementById('overlay').getContext('2d')"
+                            ".getImageData(0, 0, viewer.width, viewer.height).data.filter((_, i) => i % 4 === 3))")
+    assert max(overlay) == 0
+    page.select_option("#frustums", "some")
+    off_grid = next(k for k in range(n) if k not in chosen)
+    page.locator("#scrub").fill(str(off_grid))  # the selected camera keeps its (highlighted) frustum
+    assert off_grid in frustums()["chosen"] and len(frustums()["chosen"]) <= 20
 
 
 def test_touch_one_finger_orbits_and_two_fingers_pinch_to_dolly(touch_page, server, shelf_session):
@@ -286,6 +345,8 @@ def test_with_a_token_set_no_data_without_it_and_the_page_works_with_it(browser,
         form = page.locator("#token-form")
         form.wait_for(state="visible", timeout=WAIT_MS)
         page.screenshot(path=shots / "token_asked.png")
+        page.mouse.move(*center(page))  # the pointer over the view does not take the keyboard from the form
+        assert page.evaluate("document.activeElement === document.querySelector('#token-form input')")
         data = [(u, s) for u, s in answers if "/v1/" in u]
         assert data and all(s == 401 for _, s in data)  # every data request so far was refused
         assert page.evaluate("viewer.images") == 0 and page.evaluate("viewer.cameras.length") == 0

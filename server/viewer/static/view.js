@@ -12,6 +12,7 @@ const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
 const REST_MS = 180;  // the pose counts as resting this long after its last change
 const ORBIT_RAD_PER_PX = 0.006;
 const FLY_SPEED = 0.6;  // orbit distances per second
+const MAX_FRUSTUMS = 20;  // frustums drawn by default: more hide the picture under a wireframe
 const sessionId = decodeURIComponent(location.pathname.split("/")[2]);
 const $ = (id) => document.getElementById(id);
 
@@ -26,7 +27,9 @@ const state = {
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
   version: 0, changedAt: 0, inflight: null,
-  drawn: { version: -1, full: false, mode: null, headers: {} },
+  drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
+  frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
+  status: "connecting…",
   images: 0, info: null, timing: {}, history: [],  // history: timings of the last HISTORY images
 };
 const HISTORY = 500;
@@ -60,10 +63,12 @@ function imageUrl(full) {
 }
 
 // One request in flight at a time, always for the newest pose: a response that arrives after a
-// newer picture was drawn is dropped, so the view never goes back in time.
+// newer picture was drawn is dropped, so the view never goes back in time. An empty session has
+// nothing to draw: no request until its first fold, which then gets the first one at once.
 function pump() {
-  if (state.inflight || !state.info) return;
-  const { version } = state;
+  showStatus();
+  if (state.inflight || !state.info || !state.frames) return;
+  const { version, frames } = state;
   if (state.failed === version) return;  // asked and refused: wait for the next change
   const resting = performance.now() - state.changedAt >= REST_MS;
   if (state.drawn.version === version && (state.drawn.full || !resting)) {
@@ -87,7 +92,7 @@ function pump() {
                        decode: performance.now() - t1, bytes: blob.size, full, at: performance.now() };
       state.history.push(state.timing);
       if (state.history.length > HISTORY) state.history.shift();
-      state.drawn = { version, full, mode, url: response.url, headers: Object.fromEntries(response.headers) };
+      state.drawn = { version, full, mode, frames, url: response.url, headers: Object.fromEntries(response.headers) };
       view.dataset.version = version;
       view.dataset.full = full;
       showReading(mode, response.headers);
@@ -104,6 +109,20 @@ function pump() {
       if (error.status === 429) setTimeout(() => { state.failed = null; pump(); }, 1000);  // busy: try again
     })
     .finally(() => { state.inflight = null; pump(); });
+  showStatus();
+}
+
+// The line over the view says what it waits for: the service, the first frame, or a picture of
+// the latest fold.
+function showStatus() {
+  const n = state.frames;
+  let text = "connecting…";
+  if (state.info && !n) text = "waiting for the first frame";
+  else if (state.info) {
+    const folded = `${n} frame${n === 1 ? "" : "s"} folded`;
+    text = state.drawn.frames < n ? `${folded} · rendering…` : folded;
+  }
+  if (text !== state.status) $("status").textContent = state.status = text;
 }
 
 function serverTiming(text) {
@@ -157,14 +176,26 @@ function drawScaleBar() {
 }
 
 // -- input cameras -------------------------------------------------------------------------------
+// The input cameras that get a frustum: "some" (the default) is at most MAX_FRUSTUMS: one less
+// spread evenly over the track, the first and the latest among them, and the selected one.
+function frustumIndices(n, selected, choice) {
+  if (choice === "none") return [];
+  if (choice === "all" || n <= MAX_FRUSTUMS) return [...Array(n).keys()];
+  const spread = MAX_FRUSTUMS - 1;
+  const picks = new Set(Array.from({ length: spread }, (_, i) => Math.round(i * (n - 1) / (spread - 1))));
+  if (selected >= 0 && selected < n) picks.add(selected);
+  return [...picks].sort((a, b) => a - b);
+}
+
 function drawFrustums() {
   const ctx = overlay.getContext("2d");
   ctx.clearRect(0, 0, WIDTH, HEIGHT);
-  if (!$("frustums").checked) return;
+  const chosen = frustumIndices(state.cameras.length, state.selected, $("frustums").value);
+  state.frustums = { chosen, drawn: 0 };
   const depth = Math.max(0.02, 0.08 * state.distance);
-  state.cameras.forEach((c, k) => {
-    const pts = cam.frustum(c, depth).map((X) => cam.project(state.pose, state.K, X));
-    if (pts.some((p) => p === null)) return;
+  for (const k of chosen) {
+    const pts = cam.frustum(state.cameras[k], depth).map((X) => cam.project(state.pose, state.K, X));
+    if (pts.some((p) => p === null)) continue;  // behind the view
     ctx.strokeStyle = k === state.selected ? "rgba(240,192,72,0.95)" : "rgba(120,200,255,0.55)";
     ctx.lineWidth = k === state.selected ? 2 : 1;
     ctx.beginPath();
@@ -172,7 +203,8 @@ function drawFrustums() {
     ctx.moveTo(...pts[1]);
     for (const i of [2, 3, 4, 1]) ctx.lineTo(...pts[i]);
     ctx.stroke();
-  });
+    state.frustums.drawn += 1;
+  }
 }
 
 function updateScrubber() {
@@ -219,6 +251,8 @@ function refreshStats() {
 function setFrames(n) {
   state.frames = n;
   $("frames").textContent = n;
+  if (!n) view.getContext("2d").clearRect(0, 0, WIDTH, HEIGHT);  // every frame removed: nothing to show
+  showStatus();
 }
 
 function setLabels(labelDim) {
@@ -228,7 +262,9 @@ function setLabels(labelDim) {
 
 function onEvent(name, data) {
   if (name === "state") {
+    const missed = !state.frames && data.frames > 0;  // folds between the track's answer and the stream
     setFrames(data.frames);
+    if (missed) json(`${base}/cameras`).then(showTrack).catch(showError);
     $("voxels").textContent = data.voxels;
     setLabels(data.label_dim);
     return;
@@ -243,6 +279,7 @@ function onEvent(name, data) {
   setFrames(data.frames);
   $("voxels").textContent = data.voxels;
   state.lastFold = data.time;
+  state.foldSeenAt = performance.now();
   $("last-fold").textContent = formatAge(data.time);
   if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
   if ($("follow").checked || state.selected < 0) snapTo(state.cameras.length - 1);
@@ -254,9 +291,19 @@ function onEvent(name, data) {
 const pointers = new Map();
 let gesture = null;
 
+// W A S D need the keyboard: the view takes it on load and when the pointer comes over it, unless
+// the user is typing in a field (the token form).
+const TYPING = new Set(["text", "password", "search", "email", "url", "tel", "number"]);
+function focusView() {
+  const a = document.activeElement;
+  const typing = a && (a.isContentEditable || a.tagName === "TEXTAREA" || (a.tagName === "INPUT" && TYPING.has(a.type)));
+  if (!typing) view.focus({ preventScroll: true });
+}
+stage.addEventListener("pointerenter", focusView);
+
 stage.addEventListener("pointerdown", (e) => {
   stage.setPointerCapture(e.pointerId);
-  stage.focus();
+  view.focus({ preventScroll: true });
   pointers.set(e.pointerId, [e.clientX, e.clientY]);
   gesture = { pan: e.button === 2 || e.shiftKey };
 });
@@ -315,7 +362,7 @@ stage.addEventListener("keydown", (e) => {
   }
 });
 stage.addEventListener("keyup", (e) => keys.delete(e.code));
-stage.addEventListener("blur", () => keys.clear());
+view.addEventListener("blur", () => keys.clear());
 
 let lastFly = null;
 function fly(now) {
@@ -346,20 +393,27 @@ $("ply").addEventListener("click", () => download(`${base}/gaussians.ply`, `${se
 $("splat").addEventListener("click", () => download(`${base}/gaussians.splat`, `${sessionId}.splat`).catch(showError));
 
 // -- start -----------------------------------------------------------------------------------------
-async function start() {
-  $("title").textContent = sessionId;
-  document.title = `CanonicalGS Fusion · ${sessionId.slice(0, 8)}`;
-  const [info, track] = await withToken(() => Promise.all([json("/v1/viewer/info"), json(`${base}/cameras`)]));
-  state.info = info;
-  drawScaleBar();
+// The input cameras and the session's counts (`GET .../cameras`); the view goes to the latest camera.
+function showTrack(track) {
   state.cameras = track.cameras;
   setFrames(track.frames);
   setLabels(track.label_dim);
   $("last-fold").textContent = formatAge(track.last_fold);
-  subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
-  refreshStats();
   if (state.cameras.length) snapTo(state.cameras.length - 1);
   else { updateScrubber(); changed(false); }
+}
+
+async function start() {
+  $("title").textContent = sessionId;
+  document.title = `CanonicalGS Fusion · ${sessionId.slice(0, 8)}`;
+  focusView();
+  const [info, track] = await withToken(() => Promise.all([json("/v1/viewer/info"), json(`${base}/cameras`)]));
+  state.info = info;
+  drawScaleBar();
+  showTrack(track);
+  focusView();  // again: the token form, where it was asked for, had the keyboard
+  subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
+  refreshStats();
   setInterval(() => { if (state.lastFold) $("last-fold").textContent = formatAge(state.lastFold); }, 5000);
 }
 
