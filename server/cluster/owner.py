@@ -241,8 +241,10 @@ class OwnerStore(SessionStore):
             self.used.pop(session_id, None)
             self.evictions += 1
             done.append(session_id)
-        del session
-        release_memory()
+        if done:
+            held.clear()  # this function's last references to the evicted sessions, then their memory goes back
+            session = None
+            release_memory()
         return done
 
     def delete(self, session_id: str) -> None:
