@@ -356,6 +356,13 @@ def test_with_a_token_everything_but_healthz_is_closed(hard, path):
     assert httpx.get(f"{hard.url}/healthz").status_code == 200
 
 
+def test_healthz_tells_the_session_count_only_to_the_token(hard, sid):
+    assert httpx.get(f"{hard.url}/healthz").json() == {"status": "ok"}
+    assert httpx.get(f"{hard.url}/healthz", headers={"Authorization": "Bearer wrong"}).json() == {"status": "ok"}
+    held = len(httpx.get(f"{hard.url}/v1/sessions", headers=AUTH).json()["sessions"])
+    assert httpx.get(f"{hard.url}/healthz", headers=AUTH).json() == {"status": "ok", "sessions": held}
+
+
 def test_wrong_token_is_refused_before_the_body_is_read(hard, sid):
     length = 64 * 1024 * 1024
     # only 1 MiB of the announced 64 MiB is ever sent: an answer proves the body was not awaited
