@@ -13,9 +13,9 @@
 
 Every subcommand is one entry of `COMMANDS`: a name mapped to (add_arguments, run). To add one,
 write both functions and register them: ``COMMANDS["demo"] = Command(add_demo, run_demo, "...")``.
-The CLI talks to the service over HTTP (`client.sdk`); ``serve`` starts it through uvicorn by import
-string, and ``repair`` (which works on a stopped service's data directory) imports it where it runs, so
-the module itself imports nothing from ``server``. Datasets are read client-side with canonical_core.datasets.
+The CLI talks to the service over HTTP (`client.sdk`); ``serve`` (which runs it under uvicorn) and
+``repair`` (which works on a stopped service's data directory) import it where they run, so the module
+itself imports nothing from ``server``. Datasets are read client-side with canonical_core.datasets.
 
 For scripts, the commands that talk to a service print their result alone on stdout: ``stream`` the
 session's id (``S=$(canonical stream ...)``), ``render`` and ``export`` the paths they wrote, one a
@@ -49,6 +49,11 @@ class Command:
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
     help: str
+
+
+class UsageError(Exception):
+    """An option's value that cannot work whatever the files or the service hold; the message names
+    the option. `main` prints it on one line and exits with 2, as argparse does for its own errors."""
 
 
 def _add_connection(p: argparse.ArgumentParser) -> None:
@@ -91,34 +96,72 @@ def add_serve(p: argparse.ArgumentParser) -> None:
                                                             "(default: $CANONICAL_OWNERS or 2)")
 
 
+SERVE_SETTINGS = ("host", "port", "data_dir", "threads", "owners")  # the service's settings `serve` has options for
+
+
 def run_serve(args) -> int:
     if not args.cluster and (args.address is not None or args.owners is not None):
         print("error: --address and --owners need --cluster", file=sys.stderr)
         return 2
     # Settings travel as CANONICAL_* variables to the service's own settings class (server.settings).
-    for name in ("host", "port", "data_dir", "threads", "owners"):
+    for name in SERVE_SETTINGS:
         value = getattr(args, name)
         if value is not None:
             os.environ[f"CANONICAL_{name.upper()}"] = str(value)
-    if args.cluster:
-        from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
-        from server.cluster.settings import ClusterSettings
-
-        return serve_forever(ClusterSettings(), args.address)
     # The service's threads (requests, folds, decodes, log and archive writers, colour solves) each
     # start OpenMP teams on a few cores: idle OpenMP threads sleep instead of spinning against the
     # others (set OMP_WAIT_POLICY to choose otherwise; it must be set before torch or numba loads).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    settings = serve_settings(args)
+    if args.cluster:
+        from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
+
+        return serve_forever(settings, args.address)
     import uvicorn
+
+    from server.app import create_app
+    from server.session_errors import DataDirLocked
 
     # threads reach the service as CANONICAL_THREADS (numba.set_num_threads per worker thread):
     # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
-    host = os.environ.get("CANONICAL_HOST", "127.0.0.1")
-    port = int(os.environ.get("CANONICAL_PORT", "8000"))
+    app = create_app(settings)
+    try:  # the directory's lock before uvicorn starts: a refusal is one line, not the lifespan's traceback
+        app.state.store.lock_dir()
+    except DataDirLocked as exc:
+        print(f"error: {_setting_source(args, 'data_dir')}: {str(exc).removeprefix('data_dir: ')}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return 1
     # The protocol closes connections whose request head is late (slowloris); bodies get 408 in the app.
-    uvicorn.run("server.app:create_app", factory=True, host=host, port=port, log_level=args.log_level,
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
                 http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
+
+
+def _setting_source(args, name: str) -> str:
+    """Where a service setting came from: its ``serve`` option, else its CANONICAL_* variable."""
+    given = name in SERVE_SETTINGS and getattr(args, name, None) is not None
+    return f"--{name.replace('_', '-')}" if given else f"CANONICAL_{name.upper()}"
+
+
+def serve_settings(args):
+    """The service's settings (`server.settings.Settings`, or the cluster's) from the environment that
+    `run_serve` filled; UsageError naming the option or variable of the first invalid one."""
+    from pydantic import ValidationError
+
+    if args.cluster:
+        from server.cluster.settings import ClusterSettings as kind
+    else:
+        from server.settings import Settings as kind
+    try:
+        return kind()
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        name = str(first["loc"][0]) if first["loc"] else "settings"
+        message = first["msg"].removeprefix("Value error, ")
+        raise UsageError(f"{_setting_source(args, name)}: {message[:1].lower()}{message[1:]}, got {first['input']}") from None
 
 
 # -- repair -------------------------------------------------------------------------------------
@@ -138,6 +181,11 @@ def run_repair(args) -> int:
 
     data_dir = args.data_dir or os.environ.get("CANONICAL_DATA_DIR", "./data")
     store = SessionStore(data_dir, max_sessions=1 << 30)
+    if not store.root.is_dir():  # repair creates nothing: a mistyped path is said, not made a new directory
+        problem = "does not exist" if not os.path.exists(data_dir) else \
+            f"is not a data directory (no {store.root.name}/ in it)"
+        print(f"error: {_setting_source(args, 'data_dir')}: {data_dir} {problem}", file=sys.stderr)
+        return 1
     try:
         if args.session is None:
             store.open()
@@ -384,14 +432,6 @@ def image_size_arg(text: str) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def frame_like_camera(frame_like: str):
-    """The `Camera` of frame INDEX of DATASET, from ``DATASET:INDEX``."""
-    path, sep, index = frame_like.rpartition(":")
-    if not sep or not index.lstrip("-").isdigit():
-        raise SystemExit(f"--frame-like: expected DATASET:INDEX, got {frame_like!r}")
-    return _capture(path)[int(index)].camera
-
-
 @functools.lru_cache(maxsize=None)
 def _capture(path: str):
     """A capture read once however many --frame-like views name it."""
@@ -455,6 +495,21 @@ def output_paths(output: str, count: int) -> list[Path]:
     if count > 1:
         raise SystemExit(f"-o: {count} views need a pattern with {{i}} (e.g. view_{{i:03d}}.png) or a folder, got {output!r}")
     return [Path(output)]
+
+
+def frame_like_camera(spec: str):
+    """The camera of ``--frame-like DATASET:INDEX``: UsageError for a spec without an index or an index
+    the dataset does not have, ValueError naming the option for a dataset that cannot be read."""
+    path, _, index = spec.rpartition(":")
+    if not path or re.fullmatch(r"-?[0-9]{1,18}", index) is None:
+        raise UsageError(f"--frame-like: expected DATASET:INDEX (INDEX a frame's number from 0), got {spec!r}")
+    try:
+        frames = _capture(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--frame-like: {exc}") from None
+    if not 0 <= int(index) < len(frames):
+        raise UsageError(f"--frame-like: {path} has {len(frames)} frames (0..{len(frames) - 1}), got {index}")
+    return frames[int(index)].camera
 
 
 def run_render(args) -> int:
@@ -858,20 +913,37 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(only=argv[0] if argv else "").parse_args(argv)
+    url = getattr(args, "url", None)  # the service's URL, for the commands that talk to it
     try:
+        if url is not None:
+            check_service_url(url)
         return COMMANDS[args.command].run(args) or 0
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except CanonicalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     except httpx.TransportError as exc:  # unreachable, refused, timed out
-        print(f"error: cannot reach the service at {getattr(args, 'url', '?')} ({type(exc).__name__}: {exc})", file=sys.stderr)
+        where = f"--url: cannot reach the service at {url}" if url is not None else "cannot reach the service"
+        print(f"error: {where}: {str(exc) or type(exc).__name__}", file=sys.stderr)
         return 1
-    except (OSError, ValueError) as exc:  # a missing file, a malformed number or matrix
+    except (OSError, ValueError, httpx.InvalidURL) as exc:  # a missing file, a malformed number or matrix, an id no URL holds
         print(f"error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def check_service_url(url: str) -> None:
+    """UsageError (naming --url) unless ``url`` is an http(s) URL with a host, before any request is made."""
+    try:
+        parsed = httpx.URL(url)
+    except httpx.InvalidURL as exc:
+        raise UsageError(f"--url: {url!r} is not a valid URL: {exc}") from None
+    if parsed.scheme not in ("http", "https") or not parsed.host:
+        raise UsageError(f"--url: expected http://HOST[:PORT] or https://HOST[:PORT], got {url!r}")
 
 
 if __name__ == "__main__":

@@ -38,7 +38,8 @@ class GuardMiddleware:
     """Pure ASGI, in front of every route, so that no route pays for a request it refuses:
 
     - the bearer token (with ``api_token`` set, everything but /healthz and the viewer's static pages
-      needs it), checked from the headers before a byte of the body is read;
+      needs it), checked from the headers before a byte of the body is read; whether the request
+      carried it is ``request.state.authenticated`` (/healthz tells more to those that did);
     - the body size: 413 at once by Content-Length, or while reading a chunked body;
     - body deadlines: 408 when the body stalls ``read_timeout_s`` between reads or is not complete
       within ``body_timeout_s``; the route then gets the whole body at once;
@@ -74,7 +75,9 @@ class GuardMiddleware:
 
     async def _guarded(self, scope, receive, send):
         headers = dict(scope["headers"])
-        if not self._authorized(scope, headers):
+        authenticated = self._authenticated(headers)
+        scope.setdefault("state", {})["authenticated"] = authenticated
+        if not (authenticated or self._open(scope)):
             return await self._reject(scope, receive, send, 401, "unauthorized", "Authorization: missing or wrong bearer token",
                                       "Authorization", {"WWW-Authenticate": "Bearer"})
         length = headers.get(b"content-length")
@@ -111,9 +114,13 @@ class GuardMiddleware:
 
         return await self.app(scope, replay, send)
 
-    def _authorized(self, scope, headers: dict) -> bool:
+    def _open(self, scope) -> bool:
+        return scope.get("path") in self.OPEN_PATHS or viewer.is_page(scope.get("path", ""))
+
+    def _authenticated(self, headers: dict) -> bool:
+        """Whether the request carries the token (always, where none is set)."""
         token = self.settings.api_token
-        if token is None or scope.get("path") in self.OPEN_PATHS or viewer.is_page(scope.get("path", "")):
+        if token is None:
             return True
         scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
         return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())

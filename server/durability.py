@@ -27,6 +27,7 @@ session is restored before it is served, and repaired while no server runs on it
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import time
@@ -39,6 +40,7 @@ import msgpack
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.scene.corrections import corrected_stream
+from canonical_core.scene.snapshot import read_config
 
 from . import wire
 from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive, payload_digest
@@ -47,7 +49,7 @@ from .session_errors import Unrestorable
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
 
-LOG, SNAPSHOT, QUARANTINE = "frames.log", "scene.snap", "quarantine"
+LOG, SNAPSHOT, QUARANTINE, META = "frames.log", "scene.snap", "quarantine", "meta.json"
 PENDING_SNAPSHOT = "scene.snap.{}.next"  # a snapshot written off the acknowledged path, not yet committed
 
 
@@ -98,6 +100,46 @@ def archived_frame_ids(archive: SessionArchive, known: dict[str, FoldedFrame]) -
             report = (known.get(e.frame_id) or FoldedFrame(0, "", None)).report
             out[e.frame_id] = FoldedFrame(position, e.digest, report and {**report, "frame_index": position})
     return out
+
+
+def config_digest(config: dict) -> str:
+    """The digest of a session's settings as its meta.json holds them (``config_sha256``, written at
+    creation): of the mapping as written, so a later version's reading of it does not change it."""
+    return hashlib.sha256(json.dumps(config, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def session_meta(path: Path) -> tuple[dict, SceneConfig]:
+    """A session's meta.json and its settings, checked against the session's own record of them: the
+    snapshot's settings where there is a snapshot, else the digest meta.json got at creation (sessions
+    of earlier versions have none: theirs are taken as they are). The log folds again only with the
+    settings it was folded with, so a difference (meta.json edited by hand) raises `Unrestorable`
+    naming meta.json and the setting; nothing is changed."""
+    meta = json.loads((path / META).read_text())
+    config = SceneConfig.from_dict(meta["config"])
+    restore = f"restore {META} from a backup (the session's other files are kept as they are)"
+    if (path / SNAPSHOT).exists():
+        try:
+            held = read_config(path / SNAPSHOT)
+        except ValueError:  # an unreadable snapshot: the restore says so
+            return meta, config
+        if held.to_dict() != config.to_dict():
+            name, given, made = _first_difference(config.to_dict(), held.to_dict())
+            raise Unrestorable(f"{META}: config.{name} is {given!r}, but {SNAPSHOT} was made with {made!r}: the "
+                               f"session folds only with the settings it was made with; {restore}")
+    elif "config_sha256" in meta and meta["config_sha256"] != config_digest(meta["config"]):
+        raise Unrestorable(f"{META}: config was changed after the session was created (it no longer matches its "
+                           f"config_sha256): the session folds only with the settings it was made with; {restore}")
+    return meta, config
+
+
+def _first_difference(given: dict, made: dict, prefix: str = "") -> tuple[str, object, object]:
+    """(dotted name, value in ``given``, value in ``made``) of the first setting the two mappings differ in."""
+    for name in given:
+        if isinstance(given[name], dict) and isinstance(made.get(name), dict) and given[name] != made[name]:
+            return _first_difference(given[name], made[name], f"{prefix}{name}.")
+        if given[name] != made.get(name):
+            return f"{prefix}{name}", given[name], made.get(name)
+    raise ValueError("the settings do not differ")
 
 
 def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tuple[Restored, SessionArchive | None]:

@@ -24,7 +24,7 @@ from .wire import WireError
 log = logging.getLogger("canonical.server")
 
 _FIELD = re.compile(r"^([A-Za-z_][\w.\[\]-]*): ")
-_HTTP_CODES = {400: "bad_request", 401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
+_HTTP_CODES = {401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
                406: "not_acceptable", 409: "conflict", 413: "too_large", 415: "unsupported_media_type",
                422: "invalid_value", 429: "busy", 503: "unavailable", 507: "insufficient_storage"}
 
@@ -54,6 +54,16 @@ def from_value_error(exc: ValueError) -> ApiError:
     if isinstance(exc, FrameIdConflict):
         return ApiError(409, "frame_id_conflict", message, "frame_id")
     return ApiError(422, "invalid_value", message, exc.field if isinstance(exc, FieldError) else field_of(message))
+
+
+def unparsable(exc: BaseException) -> str:
+    """Why a JSON text could not be decoded, in words (Python's JSON decoder recurses per nesting level:
+    a deep enough text ends in a RecursionError, which is the text's fault, not the service's)."""
+    if isinstance(exc, RecursionError):
+        return "nested too deeply"
+    if isinstance(exc, UnicodeError):
+        return "not UTF-8 text"
+    return str(exc) or type(exc).__name__
 
 
 def _validation_field(loc) -> str:
@@ -112,12 +122,17 @@ def install_error_handlers(app: FastAPI) -> None:
         status, code = 422, "invalid_value"
         if first.get("type") == "json_invalid":
             status, code, field = 400, "malformed_body", "body"
+            msg = f"not valid JSON ({first.get('ctx', {}).get('error', msg)})"
         return error_response(status, code, f"{field}: {msg}", field)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
-        field = {400: "body", 404: "path", 405: "method"}.get(exc.status_code)
-        message = f"body: {exc.detail}" if field == "body" else f"{request.method} {request.url.path}: {exc.detail}"
+        if exc.status_code == 400:  # FastAPI's answer to a body it failed to decode, a JSONDecodeError aside (above)
+            cause = exc.__cause__
+            problem = exc.detail if cause is None else f"not valid JSON ({unparsable(cause)})"
+            return error_response(400, "malformed_body", f"body: {problem}", "body")
+        field = {404: "path", 405: "method"}.get(exc.status_code)
+        message = f"{request.method} {request.url.path}: {exc.detail}"
         return error_response(exc.status_code, _HTTP_CODES.get(exc.status_code, "error"), message, field, exc.headers)
 
     @app.exception_handler(Exception)

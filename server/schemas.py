@@ -138,7 +138,7 @@ class ErrorBody(BaseModel):
 
 class Health(BaseModel):
     status: str
-    sessions: int
+    sessions: int | None = None  # not told to a request without the token, where one is set
 
 
 class Limits(BaseModel):

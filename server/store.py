@@ -1,8 +1,8 @@
 """The session store: the sessions of one data directory, and the directory's lock. No HTTP here.
 
 Layout: ``<data_dir>/.lock`` (held by the one server that uses the directory), and one folder per
-session under ``<data_dir>/sessions/<id>/``: ``meta.json`` (id, creation time and the SceneConfig,
-written once, atomically), the frame log and the snapshot (`server.durability`), the frame archive
+session under ``<data_dir>/sessions/<id>/``: ``meta.json`` (id, creation time, the SceneConfig and its
+digest, written once, atomically), the frame log and the snapshot (`server.durability`), the frame archive
 (`server.archive`) and a correction's saved state (`server.corrections`). A deleted session's folder
 is renamed to a tombstone first, so a crash mid-delete leaves nothing that looks like a session.
 
@@ -33,7 +33,7 @@ from canonical_core.scene import Scene
 
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .corrections import BACKGROUND_FRAMES
-from .durability import LOG, repair, restore_session, restored_frames
+from .durability import LOG, META, config_digest, repair, restore_session, restored_frames, session_meta
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
 from .memory import MemoryBudget, release_memory
 from .session import Session
@@ -41,7 +41,7 @@ from .session_errors import DataDirLocked, SessionNotFound, SessionUnavailable, 
 
 log = logging.getLogger("canonical.store")
 
-META, LOCK = "meta.json", ".lock"
+LOCK = ".lock"
 TOMBSTONE = ".deleted-"
 
 
@@ -109,8 +109,7 @@ class SessionStore:
                 continue
             t0 = time.perf_counter()
             try:
-                meta = json.loads((path / META).read_text())
-                config = SceneConfig.from_dict(meta["config"])
+                meta, config = session_meta(path)
                 restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
             except Unrestorable as exc:
                 self._unavailable(path.name, str(exc))
@@ -133,8 +132,8 @@ class SessionStore:
             raise ValueError(f"session: no session {session_id!r} in {self.root}")
         if not (path / META).is_file():
             raise ValueError(f"session: {META} is missing; restore it from a backup (repair needs its settings)")
-        meta = json.loads((path / META).read_text())
-        config, retention = SceneConfig.from_dict(meta["config"]), meta.get("archive_retention", "all")
+        meta, config = session_meta(path)  # settings edited by hand are not for repair to fix: raised as they are
+        retention = meta.get("archive_retention", "all")
         try:
             restored_frames(path, config, retention)  # what a start would find: the log and its archive
             return f"session {session_id}: nothing to repair"
@@ -187,7 +186,7 @@ class SessionStore:
             path = self.root / session_id
             created = time.time()
             meta = {"format": "canonicalgs-session", "version": 1, "id": session_id, "created": created, "config": config.to_dict(),
-                    "archive_retention": retention}
+                    "config_sha256": config_digest(config.to_dict()), "archive_retention": retention}
             try:
                 path.mkdir()
                 frame_log = FrameLog(path / LOG)

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from .scene import Scene
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "copied_parts", "encode", "encode_snapshot", "from_bytes", "load",
-           "model_arrays", "save", "snapshot_parts", "state_arrays"]
+           "model_arrays", "read_config", "save", "snapshot_parts", "state_arrays"]
 
 FORMAT_NAME = "canonicalgs-scene"
 FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
@@ -112,15 +112,7 @@ def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:
     """The scene a `Scene.to_bytes` snapshot holds (`Scene.from_bytes`, ``scene_type`` its class), with
     the decoder's parameters the snapshot holds. Raises ValueError for bytes that are not a snapshot, another
     format or an unsupported version."""
-    try:
-        npz = np.load(io.BytesIO(data), allow_pickle=False)
-        header = json.loads(npz["header"].tobytes().decode())
-    except Exception as exc:  # any decoding failure means "not one of our snapshots"
-        raise ValueError(f"snapshot: not a readable scene file ({exc})") from None
-    if header.get("format") != FORMAT_NAME:
-        raise ValueError(f"snapshot: unknown format {header.get('format')!r}")
-    if header.get("version") not in (3, FORMAT_VERSION):
-        raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected 3 or {FORMAT_VERSION})")
+    npz, header = _opened(io.BytesIO(data))
     # the decoder's parameters come from the snapshot, not from the model file (which may be gone)
     scene = scene_type(SceneConfig.from_dict(header["config"]), initial_capacity=max(int(header["voxels"]), 16),
                        load_model=False)
@@ -141,6 +133,29 @@ def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:
     if "colour_solution.rows" in npz.files:
         scene._decoding.solution = ColourSolution.from_arrays(_prefixed(npz, "colour_solution"))
     return scene
+
+
+def _opened(source) -> tuple:
+    """(the npz, its header) of a snapshot file or buffer; ValueError for one that is not a snapshot,
+    another format or an unsupported version. The arrays are read when they are indexed."""
+    try:
+        npz = np.load(source, allow_pickle=False)
+        header = json.loads(npz["header"].tobytes().decode())
+    except Exception as exc:  # any decoding failure means "not one of our snapshots"
+        raise ValueError(f"snapshot: not a readable scene file ({exc})") from None
+    if header.get("format") != FORMAT_NAME:
+        raise ValueError(f"snapshot: unknown format {header.get('format')!r}")
+    if header.get("version") not in (3, FORMAT_VERSION):
+        raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected 3 or {FORMAT_VERSION})")
+    return npz, header
+
+
+def read_config(path: str | os.PathLike) -> SceneConfig:
+    """The settings the snapshot file ``path`` was made with, from its header alone (no array is read).
+    Raises ValueError as `from_bytes` does."""
+    npz, header = _opened(path)
+    npz.close()
+    return SceneConfig.from_dict(header["config"])
 
 
 def load(scene_type: type[Scene], path: str | os.PathLike) -> Scene:

@@ -3,7 +3,8 @@ more middleware inside its guard that forwards each session's requests to the se
 
 - ``/v1/sessions/{id}[/...]``: to owner ``shard_of(id)``, which runs it through the same app.
 - ``POST /v1/sessions``: to an owner picked at random, which makes an id that hashes to itself.
-- ``GET /v1/sessions``, ``GET /metrics``, ``GET /healthz``: gathered from every owner / the data dir.
+- ``GET /v1/sessions``, ``GET /metrics``, ``GET /healthz``: gathered from every owner / the data dir
+  (``/healthz`` without the token, where one is set, is the app's own: liveness alone).
 
 A request whose owner cannot be reached (its process died and is being restarted, or it is slow) is
 answered 429 ``busy`` with ``Retry-After``, once the owner answers again (or after
@@ -95,6 +96,8 @@ class ClusterRouter:
                 return await error_response(409, "too_many_sessions", f"max_sessions: the service holds {held} sessions, "
                                             "its limit", "max_sessions")(scope, receive, send)
             shard = secrets.randbelow(self.owners.count)
+        elif method == "GET" and path == "/healthz" and not scope["state"]["authenticated"]:
+            return await self.app(scope, receive, send)  # liveness alone: the count is for the token's holders
         elif method == "GET" and path in ("/v1/sessions", "/metrics", "/healthz"):
             return await (await self._gathered(path))(scope, receive, send)
         else:

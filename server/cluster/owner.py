@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-import json
 import logging
 import os
 import re
@@ -32,7 +31,7 @@ from canonical_core import SceneConfig
 
 from ..app import create_app
 from ..archive import Retention
-from ..durability import restore_session
+from ..durability import restore_session, session_meta
 from ..framelog import Fenced
 from ..memory import release_memory
 from ..metrics import Histogram
@@ -180,8 +179,7 @@ class OwnerStore(SessionStore):
         lease = Lease(path)
         try:
             with lease.take():
-                meta = json.loads((path / META).read_text())
-                config = SceneConfig.from_dict(meta["config"])
+                meta, config = session_meta(path)
                 restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
         except Unrestorable as exc:
             lease.close()

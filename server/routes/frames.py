@@ -9,7 +9,7 @@ from fastapi import APIRouter, Request, Response
 
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
-from ..errors import ApiError
+from ..errors import ApiError, unparsable
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
 
@@ -41,8 +41,8 @@ def parse_multipart(content_type: str, body: bytes) -> dict:
             continue
         try:
             camera = json.loads(part.data, parse_constant=_no_constant)
-        except ValueError as exc:
-            raise wire.WireError("camera", f"not valid JSON ({exc})") from None
+        except (ValueError, RecursionError) as exc:
+            raise wire.WireError("camera", f"not valid JSON ({unparsable(exc)})") from None
         if not isinstance(camera, dict):
             raise wire.WireError("camera", f"expected a JSON object with {list(CAMERA_FIELDS)}")
         unknown = sorted(k for k in camera if k not in CAMERA_FIELDS)

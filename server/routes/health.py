@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 
 from ..deps import JobsDep, MetricsDep, SettingsDep, StoreDep
@@ -12,10 +12,10 @@ from ..schemas import ErrorBody, Health, Limits
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", response_model=Health)
-async def healthz(store: StoreDep) -> Health:
-    """Liveness (no token needed)."""
-    return Health(status="ok", sessions=len(store))
+@router.get("/healthz", response_model=Health, response_model_exclude_none=True)
+async def healthz(request: Request, store: StoreDep) -> Health:
+    """Liveness (no token needed); the session count only with the token, where one is set."""
+    return Health(status="ok", sessions=len(store) if request.state.authenticated else None)
 
 
 @router.get("/metrics", response_class=PlainTextResponse)

@@ -17,8 +17,8 @@ from client.cli import free_port
 REPO = Path(__file__).resolve().parents[2]
 
 
-def canonical(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".numba_cache")}
+def canonical(*args: str, timeout: float = 120, env: dict | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".numba_cache"), **(env or {})}
     return subprocess.run([sys.executable, "-m", "client.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=timeout)
 
@@ -50,8 +50,67 @@ def test_bad_arguments_are_one_line(argv, word):
 
 def test_unreachable_server_is_one_line():
     url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
-    assert_one_line_error(canonical("sessions", "--url", url), 1, "cannot reach the service", url)
+    assert_one_line_error(canonical("sessions", "--url", url), 1, f"--url: cannot reach the service at {url}: ", "refused")
     assert_one_line_error(canonical("export", "--url", url, "--session", "x", "-o", "a.ply"), 1, "cannot reach")
+
+
+@pytest.mark.parametrize("argv, code, words", [
+    (["sessions", "--url", "http://256.1.1.1:1"], 2, ["--url", "256.1.1.1"]),
+    (["sessions", "--url", "nonsense"], 2, ["--url", "nonsense"]),
+    (["view", "--url", "ftp://127.0.0.1:1", "--session", "x"], 2, ["--url", "ftp://"]),
+], ids=["invalid address", "no scheme", "not http"])
+def test_an_unusable_url_is_one_line_naming_the_option(argv, code, words):
+    assert_one_line_error(canonical(*argv), code, *words)
+
+
+def test_stream_to_an_unusable_url_is_one_line(shelf_dir):
+    assert_one_line_error(canonical("stream", str(shelf_dir), "--url", "http://256.1.1.1:1", "--voxel-size", "0.02"),
+                          2, "--url", "256.1.1.1")
+
+
+@pytest.mark.parametrize("suffix, code, words", [
+    (":999", 2, ["--frame-like", "has 50 frames", "999"]),
+    (":-1", 2, ["--frame-like", "has 50 frames", "-1"]),
+    ("", 2, ["--frame-like", "DATASET:INDEX"]),
+    ("/no-such-capture:0", 1, ["--frame-like", "no-such-capture"]),
+], ids=["past the end", "negative", "no index", "missing capture"])
+def test_a_bad_frame_like_is_one_line_before_any_request(shelf_dir, tmp_path, suffix, code, words):
+    url = f"http://127.0.0.1:{free_port()}"  # nothing listens there: a request would say "cannot reach"
+    result = canonical("render", "--url", url, "--session", "x", "--frame-like", f"{shelf_dir}{suffix}",
+                       "-o", str(tmp_path / "a.png"))
+    assert_one_line_error(result, code, *words)
+    assert not (tmp_path / "a.png").exists()
+
+
+@pytest.mark.parametrize("argv, env, words", [
+    (["--port", "99999"], {}, ["--port", "65535", "got 99999"]),
+    (["--threads", "0"], {}, ["--threads", "greater than 0", "got 0"]),
+    ([], {"CANONICAL_QUEUE_LIMIT": "0"}, ["CANONICAL_QUEUE_LIMIT", "got 0"]),
+], ids=["port", "threads", "from the environment"])
+def test_a_bad_serve_setting_is_one_line_naming_it_and_creates_nothing(tmp_path, argv, env, words):
+    data = tmp_path / "data"
+    result = canonical("serve", "--data-dir", str(data), *argv, env=env)
+    assert_one_line_error(result, 2, *words)
+    assert not data.exists()
+
+
+def test_a_data_dir_that_cannot_be_created_is_one_line():
+    result = canonical("serve", "--data-dir", "/proc/nope", "--port", str(free_port()))
+    assert_one_line_error(result, 1, "--data-dir: cannot create /proc/nope", "No such file or directory")
+
+
+def test_a_second_server_on_a_locked_data_dir_says_so_in_one_line(server):
+    result = canonical("serve", "--data-dir", str(server.data_dir), "--port", str(free_port()))
+    assert_one_line_error(result, 1, "--data-dir", "in use by another server", f"pid {server.proc.pid}")
+
+
+def test_repair_of_a_missing_data_dir_says_so_and_creates_nothing(tmp_path):
+    typo = tmp_path / "typo"
+    assert_one_line_error(canonical("repair", "--data-dir", str(typo)), 1, "--data-dir", str(typo), "does not exist")
+    assert not typo.exists()
+    typo.mkdir()  # a folder, but no service's data directory: nothing is created in it either
+    assert_one_line_error(canonical("repair", "--data-dir", str(typo)), 1, "--data-dir", "not a data directory")
+    assert list(typo.iterdir()) == []
 
 
 def test_bad_values_after_parsing_are_one_line(server, tmp_path):

@@ -215,6 +215,40 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
         assert not (data / "sessions" / ids[2]).exists()
 
 
+def test_settings_edited_in_meta_json_are_refused_until_put_back(tmp_path, frames):
+    data = tmp_path / "data"
+    with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
+        snapped = new_session(proc, frames[:3])  # a snapshot at 2 frames, one frame in the log after it
+        logged = new_session(proc, frames[:1])  # no snapshot: the log alone
+        assert wait_for(lambda: Client(proc.url).session(snapped).stats()["snapshot_frames"] == 2)
+        proc.kill9()
+        metas = {sid: data / "sessions" / sid / "meta.json" for sid in (snapped, logged)}
+        written = {sid: path.read_text() for sid, path in metas.items()}
+        for sid, path in metas.items():
+            assert f'"voxel_size": {VOXEL}' in written[sid]
+            path.write_text(written[sid].replace(f'"voxel_size": {VOXEL}', '"voxel_size": 0.02'))
+        files = {p: p.read_bytes() for p in data.rglob("*") if p.is_file() and p.name != ".lock"}
+
+        proc.start()
+        problems = {s["id"]: s.get("problem") or "served" for s in httpx.get(f"{proc.url}/v1/sessions").json()["sessions"]}
+        assert f"meta.json: config.voxel_size is 0.02, but scene.snap was made with {VOXEL}" in problems[snapped]
+        assert "meta.json: config was changed after the session was created" in problems[logged]
+        for sid in (snapped, logged):
+            r = httpx.get(f"{proc.url}/v1/sessions/{sid}")
+            assert r.status_code == 409 and "meta.json" in r.json()["error"]["message"]
+        proc.kill9()
+        cli = [sys.executable, "-m", "client.cli", "repair", "--data-dir", str(data), "--session", snapped, "--action", "skip"]
+        refused = subprocess.run(cli, cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert refused.returncode == 1 and refused.stderr.startswith("error: meta.json: config.voxel_size"), refused.stderr
+        assert {p: p.read_bytes() for p in files} == files  # nothing changed, nothing quarantined
+        assert not any((data / "sessions" / sid / "quarantine").exists() for sid in metas)
+
+        for sid, path in metas.items():
+            path.write_text(written[sid])
+        proc.start()
+        assert [Client(proc.url).session(sid).stats()["frames"] for sid in (snapped, logged)] == [3, 1]
+
+
 def test_a_retried_frame_is_folded_once_across_a_restart(tmp_path, frames, reference):
     data = tmp_path / "data"
     with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:

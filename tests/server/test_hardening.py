@@ -236,6 +236,31 @@ def test_view_bodies_are_strictly_typed(hard, sid, frames, field, value):
     assert r.status_code == 422 and r.json()["error"]["field"].split(".")[0] == field, r.text
 
 
+UNPARSABLE_JSON = [("nested too deeply", b"[" * 100_000), ("nested objects", b'{"a":' * 100_000),
+                   ("not UTF-8", b'{"voxel_size": "\xff"}'), ("cut short", b'{"voxel_size": ')]
+
+
+@pytest.mark.parametrize("body", [c[1] for c in UNPARSABLE_JSON], ids=[c[0] for c in UNPARSABLE_JSON])
+def test_a_json_body_that_cannot_be_parsed_is_malformed_on_every_json_route(hard, sid, body):
+    operations, _ = _operations(hard)
+    routes = [(method, path) for method, path, op in operations
+              if "application/json" in op.get("requestBody", {}).get("content", {})]
+    assert len(routes) >= 5
+    before = digest(hard, sid)
+    for method, path in routes:
+        r = httpx.request(method, hard.url + path.replace("{session_id}", sid), content=body,
+                          headers={**AUTH, "Content-Type": "application/json"}, timeout=30)
+        assert_error(r, 400, "body")
+        assert r.json()["error"]["code"] == "malformed_body", (method, path, r.text)
+    assert digest(hard, sid) == before
+
+
+def test_a_camera_part_nested_too_deeply_is_refused_naming_it(hard, sid, frames):
+    kwargs = _multipart(frames[1])
+    kwargs["files"][1] = ("camera", (None, "[" * 100_000))
+    assert_error(post_frame(hard, sid, **kwargs), 422, "camera")
+
+
 # -- huge and slow requests -----------------------------------------------------------------------
 def _head(path: str, length: int | None, token: str = TOKEN, content_type: str = "application/msgpack") -> bytes:
     lines = [f"POST {path} HTTP/1.1", "Host: test", f"Authorization: Bearer {token}", f"Content-Type: {content_type}"]
@@ -354,6 +379,13 @@ def test_with_a_token_everything_but_healthz_is_closed(hard, path):
     assert_error(httpx.get(f"{hard.url}{path}"), 401, "Authorization")
     assert_error(httpx.get(f"{hard.url}{path}", headers={"Authorization": "Bearer wrong"}), 401, "Authorization")
     assert httpx.get(f"{hard.url}/healthz").status_code == 200
+
+
+def test_healthz_tells_the_session_count_only_to_the_token(hard, sid):
+    assert httpx.get(f"{hard.url}/healthz").json() == {"status": "ok"}
+    assert httpx.get(f"{hard.url}/healthz", headers={"Authorization": "Bearer wrong"}).json() == {"status": "ok"}
+    held = len(httpx.get(f"{hard.url}/v1/sessions", headers=AUTH).json()["sessions"])
+    assert httpx.get(f"{hard.url}/healthz", headers=AUTH).json() == {"status": "ok", "sessions": held}
 
 
 def test_wrong_token_is_refused_before_the_body_is_read(hard, sid):

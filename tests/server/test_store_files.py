@@ -3,11 +3,18 @@ create or delete are cleaned up, anything that may hold frames is kept."""
 
 from __future__ import annotations
 
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from canonical_core import SceneConfig
 from server.session_errors import DataDirLocked
 from server.store import SessionStore
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
 
 def opened(root) -> SessionStore:
@@ -43,3 +50,22 @@ def test_one_store_per_directory_until_it_closes(tmp_path):
         opened(tmp_path)
     first.close()
     opened(tmp_path).close()
+
+
+def test_a_session_of_an_earlier_version_with_a_snapshot_opens(tmp_path):
+    # meta.json without a config digest, the snapshot's settings and meta.json's in the flat layout of then
+    meta = json.loads((FIXTURES / "session_meta_v1.json").read_text())
+    folder = tmp_path / "sessions" / meta["id"]
+    folder.mkdir(parents=True)
+    shutil.copy(FIXTURES / "scene_v4.snap", folder / "scene.snap")
+    flat = json.loads(np.load(folder / "scene.snap")["header"].tobytes())["config"]
+    assert "free_space_margin" in flat
+    (folder / "meta.json").write_text(json.dumps({**meta, "config": flat, "archive_retention": "none"}))
+    (folder / "frames.log").write_bytes(b"")
+    store = opened(tmp_path)
+    try:
+        assert store.unavailable == {}
+        session = store.get(meta["id"])
+        assert session.scene.frames == 2 and session.config == session.scene.config == SceneConfig.from_dict(flat)
+    finally:
+        store.close()
