@@ -22,6 +22,7 @@ from server.store import SessionStore
 from tests.client.test_cli_errors import canonical
 
 from .harness import TOKEN, VOXEL, ServerProcess, wait_for
+from .test_store import store  # noqa: F401  (the fixture: an opened store in tmp_path)
 
 NOW = 1_700_000_000.0
 DAY = 86400.0
@@ -71,14 +72,6 @@ def make_old(path: Path, seconds: float) -> float:
             os.utime(os.path.join(root, name), (then, then))
     os.utime(path, (then, then))
     return then
-
-
-@pytest.fixture()
-def store(tmp_path):
-    store = SessionStore(tmp_path, max_sessions=8)
-    store.open()
-    yield store
-    store.close()
 
 
 def test_the_store_removes_through_its_delete_and_a_dry_run_removes_nothing(store):
