@@ -4,7 +4,7 @@
     canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F] [--strict] [--json]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX ... | (--pose FILE | --trajectory FILE) (--K fx,fy,cx,cy --size WxH | --frame-like DATASET:INDEX)) -o out.png|'view_{i}.png'|DIR/
     canonical export --url URL --session ID -o scene.ply|scene.splat
-    canonical sessions --url URL [--json]
+    canonical sessions --url URL [--json] [--prune [--dry-run]]
     canonical view --url URL --session ID [--no-browser]   (print the web viewer's URL, open a browser)
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
@@ -19,7 +19,7 @@ itself imports nothing from ``server``. Datasets are read client-side with canon
 
 For scripts, the commands that talk to a service print their result alone on stdout: ``stream`` the
 session's id (``S=$(canonical stream ...)``), ``render`` and ``export`` the paths they wrote, one a
-line, ``view`` the page's URL, ``sessions`` its table; ``--json`` (stream, sessions, poses) prints a
+line, ``view`` the page's URL, ``sessions`` its table (``--prune``: a line per removed session); ``--json`` (stream, sessions, poses) prints a
 JSON result instead. Progress, warnings and summaries go to stderr.
 """
 
@@ -552,7 +552,12 @@ def run_export(args) -> int:
 # -- sessions -----------------------------------------------------------------------------------
 def add_sessions(p: argparse.ArgumentParser) -> None:
     _add_connection(p)
-    _add_json(p, "the sessions (the service's summaries, and each one's age_s in seconds)")
+    _add_json(p, "the sessions (the service's summaries, and each one's age_s and idle_s in seconds); with --prune "
+                 "its report")
+    p.add_argument("--prune", action="store_true", help=(
+        "apply the service's retention policy now (CANONICAL_SESSION_TTL_S, CANONICAL_DISK_BUDGET_BYTES): print a "
+        "line per removed session (id, reason, idle time, disk); never one active in the last 24 hours"))
+    p.add_argument("--dry-run", action="store_true", help="with --prune: remove nothing, print what would be removed")
 
 
 def human_bytes(n: int | None) -> str:
@@ -579,11 +584,17 @@ def human_age(seconds: float) -> str:
 
 
 def run_sessions(args) -> int:
+    if args.dry_run and not args.prune:
+        raise SystemExit("--dry-run goes with --prune")
+    if args.prune:
+        return run_prune(args)
     with _client(args) as client:
         sessions = client.sessions()
     now = time.time()
     if args.json:
-        print(json.dumps([{**s, "age_s": round(now - s["created"], 3) if s["created"] else None} for s in sessions]))
+        print(json.dumps([{**s, "age_s": round(now - s["created"], 3) if s["created"] else None,
+                           "idle_s": round(now - s["last_active"], 3) if s.get("last_active") else None}
+                          for s in sessions]))
         return 0
     rows = [("id", "voxel", "frames", "memory", "disk", "age", "state")]
     for s in sessions:
@@ -596,6 +607,24 @@ def run_sessions(args) -> int:
     for row in rows:  # the id and the state left-aligned, the figures right-aligned
         cells = [cell.ljust(w) if k in (0, 6) else cell.rjust(w) for k, (cell, w) in enumerate(zip(row, widths))]
         print("  ".join(cells).rstrip())
+    return 0
+
+
+def run_prune(args) -> int:
+    """``sessions --prune``: the removed sessions on stdout (one a line), the summary on stderr."""
+    with _client(args) as client:
+        report = client.prune_sessions(dry_run=args.dry_run)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        now = time.time()
+        for s in report["removed"]:
+            print(f"{s['id']}  {s['reason']}  idle {human_age(now - s['last_active'])}  {human_bytes(s['disk_bytes'])}")
+    ttl = "none" if report["session_ttl_s"] is None else human_age(report["session_ttl_s"])
+    print(f"{'would remove' if report['dry_run'] else 'removed'} {len(report['removed'])} sessions "
+          f"({human_bytes(report['freed_bytes'])}) of a data directory of {human_bytes(report['data_dir_bytes'])}; "
+          f"time to live {ttl}, disk budget {human_bytes(report['disk_budget_bytes']) if report['disk_budget_bytes'] else 'none'}, "
+          f"none active in the last {human_age(report['floor_s'])}", file=sys.stderr)
     return 0
 
 

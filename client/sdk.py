@@ -418,6 +418,11 @@ class Client:
     def sessions(self) -> list[dict]:
         return self._request("GET", "/v1/sessions").json()["sessions"]
 
+    def prune_sessions(self, dry_run: bool = False) -> dict:
+        """Apply the service's retention policy now (``POST /v1/sessions/prune``); with ``dry_run`` only
+        list what it would remove. Returns its report (``removed``: the sessions, oldest first)."""
+        return self._request("POST", "/v1/sessions/prune", params={"dry_run": "true" if dry_run else "false"}).json()
+
     def health(self) -> dict:
         return self._request("GET", "/healthz").json()
 

@@ -193,13 +193,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await run_in_threadpool(store.open)
         app.state.events.close_streams_on_exit()
         log.info("serving %d sessions from %s", len(store), settings.data_dir)
-        snapshotter = asyncio.create_task(_snapshot_loop(store, settings.snapshot_every_seconds))
+        every = settings.snapshot_every_seconds
+        loops = [asyncio.create_task(_every(min(every, 5.0), "periodic snapshot", store.snapshot_due, every))]
+        if settings.session_ttl_s is not None or settings.disk_budget_bytes is not None:
+            loops.append(asyncio.create_task(_every(settings.retention_every_s, "retention", store.prune,
+                                                    settings.session_ttl_s, settings.disk_budget_bytes)))
         try:
             yield
         finally:
-            snapshotter.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await snapshotter
+            for loop in loops:
+                loop.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await loop
             await run_in_threadpool(store.close)
 
     app = FastAPI(
@@ -222,11 +227,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
-async def _snapshot_loop(store: SessionStore, every_seconds: float) -> None:
-    """Snapshot sessions whose unsnapshotted frames are older than ``every_seconds`` (idle sessions too)."""
+async def _every(seconds: float, what: str, job, *args) -> None:
+    """Run ``job(*args)`` off the event loop every ``seconds``: the periodic snapshot (sessions whose
+    unsnapshotted frames are older than its setting, idle ones too) and retention."""
     while True:
-        await asyncio.sleep(min(every_seconds, 5.0))
+        await asyncio.sleep(seconds)
         try:
-            await run_in_threadpool(store.snapshot_due, every_seconds)
-        except Exception:  # keep the loop alive; the next fold or shutdown snapshots again
-            log.exception("periodic snapshot failed")
+            await run_in_threadpool(job, *args)
+        except Exception:  # keep the loop alive; the next round tries again
+            log.exception("%s failed", what)

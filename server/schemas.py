@@ -53,6 +53,9 @@ class SessionSummary(BaseModel):
     frames: int | None = Field(description="None while the session is unavailable")
     voxels: int | None
     created: float = Field(description="unix time of its creation")
+    last_active: float | None = Field(None, description=(
+        "unix time of its last frame or correction: the newest change of its files, which every acknowledged "
+        "frame makes (None while unavailable); what the retention policy reads"))
     voxel_size: float | None = Field(None, description="metres (None while unavailable)")
     memory_bytes: int | None = Field(None, description="bytes its scene holds in memory (None while unavailable)")
     disk_bytes: int | None = Field(None, description="bytes of the files in its folder (None while unavailable)")
@@ -89,6 +92,24 @@ class Digest(BaseModel):
     frames: int
     voxels: int
     sha256: str
+
+
+class PrunedSession(BaseModel):
+    id: str
+    reason: Literal["ttl", "disk_budget"] = Field(description="idle longer than session_ttl_s, or the oldest idle "
+                                                              "while the data directory exceeded disk_budget_bytes")
+    last_active: float = Field(description="unix time of its last frame or correction")
+    disk_bytes: int
+
+
+class PruneReport(BaseModel):
+    dry_run: bool = Field(description="true: nothing was removed, `removed` lists what would have been")
+    removed: list[PrunedSession] = Field(description="oldest first")
+    data_dir_bytes: int = Field(description="bytes of the data directory before")
+    freed_bytes: int = Field(description="bytes of the removed sessions' files")
+    session_ttl_s: float | None = Field(description="the service's setting (None: no time to live)")
+    disk_budget_bytes: int | None = Field(description="the service's setting (None: no budget)")
+    floor_s: float = Field(description="a session active more recently than this is never removed, whatever the settings")
 
 
 class Deleted(BaseModel):

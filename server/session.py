@@ -34,6 +34,7 @@ from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
+from .retention import folder_usage
 from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
 
@@ -228,27 +229,15 @@ class Session:
         return self.archive.retention if self.archive is not None else "none"
 
     def summary(self) -> dict:
-        """What the session list shows of it: cheap (no decode, no lock), so listing many sessions is."""
+        """What the session list shows of it: cheap (no decode, no lock), so listing many sessions is.
+        Its files are read without the lock: one that a snapshot commit or a delete removes meanwhile
+        counts as gone."""
+        usage = folder_usage(self.path)
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
+                "last_active": usage.last_active or self.created,
                 "voxel_size": self.config.voxel_size, "memory_bytes": self.scene.memory_bytes(),
-                "disk_bytes": self.disk_bytes(), "archive_retention": self.retention,
+                "disk_bytes": usage.bytes, "archive_retention": self.retention,
                 "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
-
-    def disk_bytes(self) -> int:
-        """Bytes of the files in the session's folder. Read without the lock: a file that a snapshot
-        commit or a delete removes meanwhile counts as gone."""
-        total = 0
-        try:
-            entries = list(self.path.iterdir())
-        except FileNotFoundError:  # the session was deleted
-            return 0
-        for entry in entries:
-            try:
-                if entry.is_file():
-                    total += entry.stat().st_size
-            except FileNotFoundError:
-                continue
-        return total
 
     def stats(self) -> dict:
         gaussians = len(self.gaussians(features=False)[0])  # a decode if none is cached, outside the scene's lock

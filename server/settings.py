@@ -65,6 +65,14 @@ class Settings(BaseSettings):
         "wait for fresh pages: steadier fold times for sessions whose size is known, at that memory per session"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")
+    session_ttl_s: float | None = Field(None, gt=0, description=(
+        "a session idle (no frame, no correction) longer than this is removed (default: never); one active in the "
+        "last 24 hours never is, whatever this says"))
+    disk_budget_bytes: int | None = Field(None, gt=0, description=(
+        "while the data directory holds more than this, the sessions idle longest are removed, oldest first, down to "
+        "those active in the last 24 hours (default: no budget); damaged (unavailable) sessions count but are kept"))
+    retention_every_s: float = Field(300.0, gt=0, description=(
+        "how often the service applies session_ttl_s and disk_budget_bytes (POST /v1/sessions/prune applies them now)"))
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")
     threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
     warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")

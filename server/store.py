@@ -25,6 +25,7 @@ import shutil
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numba
 
@@ -36,6 +37,7 @@ from .corrections import BACKGROUND_FRAMES
 from .durability import LOG, META, config_digest, repair, restore_session, restored_frames, session_meta
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
 from .memory import MemoryBudget, release_memory
+from .retention import prune as prune_idle
 from .session import Session
 from .session_errors import DataDirLocked, SessionNotFound, SessionUnavailable, TooManySessions, Unrestorable
 
@@ -229,16 +231,22 @@ class SessionStore:
     def __len__(self) -> int:
         return len(self._sessions)
 
-    def delete(self, session_id: str) -> None:
-        """Delete a session and its files (an unavailable one too: deleting is one way to resolve it)."""
-        if session_id in self.unavailable:
+    def delete(self, session_id: str, keep_if: Callable[[Session], bool] | None = None) -> bool:
+        """Delete a session and its files (an unavailable one too: deleting is one way to resolve it).
+        With ``keep_if`` (retention's removals) a session whose lock is held is kept, and so is one for
+        which ``keep_if`` says so under its lock; returns whether it was deleted."""
+        if session_id in self.unavailable and keep_if is None:
             with self._lock:
                 self._bury(self.root / session_id)
                 del self.unavailable[session_id]
-            return
+            return True
         session = self.get(session_id)
-        with session.lock:
+        if not session.lock.acquire(blocking=keep_if is None):
+            return False
+        try:
             session.check_alive()
+            if keep_if is not None and keep_if(session):
+                return False
             session.deleted = True
             session.log.close()
             if session.archive is not None:
@@ -246,8 +254,15 @@ class SessionStore:
             with self._lock:
                 self._sessions.pop(session_id, None)
             self._bury(session.path)
+        finally:
+            session.lock.release()
         del session
         release_memory()
+        return True
+
+    def prune(self, ttl_s: float | None, budget_bytes: int | None, dry_run: bool = False) -> dict:
+        """Remove idle sessions by the retention policy (`server.retention`); returns its report."""
+        return prune_idle(self, ttl_s, budget_bytes, dry_run)
 
     def _bury(self, path: Path) -> None:
         tomb = self.root / f"{TOMBSTONE}{path.name}"

@@ -88,6 +88,9 @@ class ClusterRouter:
             return await error_response(501, "not_implemented", "path: live fold events are served by the "
                                         "single-process service only; poll GET /v1/sessions/{id} in cluster mode",
                                         "path")(scope, receive, send)
+        if path == "/v1/sessions/prune":  # not a session: owners hold some sessions each, the directory is shared
+            return await error_response(501, "not_implemented", "path: retention (session_ttl_s, disk_budget_bytes) "
+                                        "is applied by the single-process service only", "path")(scope, receive, send)
         if session_id is not None:
             shard = shard_of(session_id, self.owners.count)
         elif path == "/v1/sessions" and method == "POST":

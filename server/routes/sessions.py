@@ -8,7 +8,8 @@ from canonical_core import SceneConfig
 
 from ..deps import JobsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
-from ..schemas import Deleted, Digest, ErrorBody, SessionCreate, SessionCreated, SessionList, SessionStats, SessionSummary
+from ..schemas import (Deleted, Digest, ErrorBody, PruneReport, SessionCreate, SessionCreated, SessionList, SessionStats,
+                       SessionSummary)
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 422: {"model": ErrorBody}})
@@ -42,6 +43,16 @@ async def list_sessions(store: StoreDep) -> SessionList:
     """Every session, those whose files need an operator (state ``unavailable``, with the problem) too."""
     summaries = [s.summary() for s in store.list()] + store.unavailable_summaries()
     return SessionList(sessions=[SessionSummary(**s) for s in summaries])
+
+
+@router.post("/prune", response_model=PruneReport)
+async def prune_sessions(store: StoreDep, jobs: JobsDep, service: SettingsDep,  # type: ignore[valid-type]
+                         dry_run: bool = False) -> PruneReport:
+    """Apply the retention policy now (what the service does every ``retention_every_s``): remove
+    sessions idle longer than ``session_ttl_s``, then the oldest idle ones while the data directory
+    exceeds ``disk_budget_bytes``. Never one active in the last 24 hours, nor a busy one. With
+    ``?dry_run=true`` nothing is removed and the answer lists what would be."""
+    return PruneReport(**await jobs.run(store.prune, service.session_ttl_s, service.disk_budget_bytes, dry_run))
 
 
 @router.get("/{session_id}", response_model=SessionStats)

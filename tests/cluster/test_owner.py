@@ -132,6 +132,8 @@ def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_o
             assert (await client.get("/nowhere")).status_code == 404
             r = await client.get("/v1/sessions/" + "ab" * 16 + "/events")  # a stream cannot cross an owner call
             assert r.status_code == 501 and r.json()["error"]["field"] == "path"
+            r = await client.post("/v1/sessions/prune")  # no owner holds the whole shared directory
+            assert r.status_code == 501 and "single-process" in r.json()["error"]["message"]
         gone = ingress_app(parts[0].settings, Gone(parts))
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=gone), base_url="http://cluster",
                                      headers={"Authorization": f"Bearer {TOKEN}"}) as lost:
