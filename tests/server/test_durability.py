@@ -102,11 +102,9 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
 
 
 def test_a_restart_on_a_disk_still_full_serves_the_scene_and_reports_the_archive(tmp_path, tmpfs, frames, reference):
-    data = tmpfs / "data"
-    with serving(server(tmp_path, data)) as proc:
-        sid = Client(proc.url).create_session(voxel_size=VOXEL).id
-        for kwargs in frames[:2]:
-            assert post(proc, sid, kwargs).status_code == 200
+    with serving(server(tmp_path, tmpfs / "data")) as proc:
+        sid = new_session(proc, frames[:2])
+        assert wait_for(lambda: Client(proc.url).session(sid).stats()["archive_frames"] == 2)  # archived off the path
         # room for the frame's log record (and 64 KiB), not for its archived copy (zstd: about 40% of it)
         record = len(msgpack.packb(msgpack_frame(frames[2])))
         with open(tmpfs / "filler", "wb") as f:
