@@ -20,7 +20,7 @@ from .warmup import warm_up
 from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .events import FoldEvents
-from .memory import MemoryBudget
+from .memory import MemoryBudget, trim_heap
 from .metrics import Metrics
 from .routes import exports, frames, health, poses, sessions, viewer, views
 from .session_errors import DataDirLocked
@@ -28,10 +28,44 @@ from .settings import Settings
 from .store import SessionStore
 
 log = logging.getLogger("canonical.server")
+BODIES_RETRY_AFTER_S = 1  # bodies in flight are full: most are answered within a second
 
 
 class BodyTimeout(Exception):
     """The request body stalled or took too long (the middleware answers 408)."""
+
+
+class BodiesFull(Exception):
+    """A chunked body grew past what the service's bodies in flight may hold (the middleware answers 429)."""
+
+
+class BodyBytes:
+    """The bytes of the request bodies being received or held, all requests together, at most ``limit``
+    (``max_inflight_body_bytes``). Only touched on the event loop: no lock. Once bodies of a quarter of
+    the limit were given back, glibc is asked to return the freed heap (`trim_heap`): a body arrives in
+    small chunks, whose freed heap the process would otherwise keep.
+
+    Example:
+        >>> bodies = BodyBytes(100)
+        >>> bodies.take(60), bodies.take(50), bodies.held
+        (True, False, 60)
+    """
+
+    def __init__(self, limit: int):
+        self.limit, self.held, self._freed = limit, 0, 0
+
+    def take(self, nbytes: int) -> bool:
+        if self.held + nbytes > self.limit:
+            return False
+        self.held += nbytes
+        return True
+
+    def give(self, nbytes: int) -> None:
+        self.held -= nbytes
+        self._freed += nbytes
+        if self._freed >= self.limit // 4:
+            self._freed = 0
+            trim_heap()
 
 
 class GuardMiddleware:
@@ -43,6 +77,9 @@ class GuardMiddleware:
     - the body size: 413 at once by Content-Length, or while reading a chunked body;
     - body deadlines: 408 when the body stalls ``read_timeout_s`` between reads or is not complete
       within ``body_timeout_s``; the route then gets the whole body at once;
+    - the bodies in flight, all requests together (`BodyBytes`): a body that would pass
+      ``max_inflight_body_bytes`` gets 429 with Retry-After (by Content-Length before a byte is read,
+      or while reading a chunked one); a body's bytes count until its request is answered;
     - the count of responses by status for /metrics, 500s from unhandled errors included (those
       are answered by Starlette's outermost error middleware, outside this one).
     """
@@ -50,8 +87,8 @@ class GuardMiddleware:
     OPEN_PATHS = ("/healthz",)
     DRAIN_IDLE_S, DRAIN_TOTAL_S = 0.25, 2.0  # courtesy reads of a refused body (see _reject)
 
-    def __init__(self, app, settings: Settings, metrics: Metrics):
-        self.app, self.settings, self.metrics = app, settings, metrics
+    def __init__(self, app, settings: Settings, metrics: Metrics, bodies: BodyBytes):
+        self.app, self.settings, self.metrics, self.bodies = app, settings, metrics, bodies
         self.max_bytes = settings.max_body_bytes
 
     async def __call__(self, scope, receive, send):
@@ -92,12 +129,25 @@ class GuardMiddleware:
             if size > self.max_bytes:
                 return await self._reject(scope, receive, send, 413, "too_large",
                                           f"body: {size} bytes exceed the limit of {self.max_bytes} bytes", "body")
+            if not self.bodies.take(size):
+                return await self._reject(scope, receive, send, *self._bodies_full(size))
         elif headers.get(b"transfer-encoding", b"").lower() != b"chunked":
             return await self.app(scope, receive, send)
+        else:
+            size = None  # chunked: taken from the bodies in flight as it arrives
+        held = [size or 0]
         try:
-            body = await self._read_body(receive)
+            return await self._with_body(scope, receive, send, held, chunked=size is None)
+        finally:
+            self.bodies.give(held[0])
+
+    async def _with_body(self, scope, receive, send, held: list[int], chunked: bool):
+        try:
+            body = await self._read_body(receive, held, chunked)
         except BodyTimeout as exc:
             return await error_response(408, "timeout", f"body: {exc}", "body", {"Connection": "close"})(scope, receive, send)
+        except BodiesFull:
+            return await self._reject(scope, receive, send, *self._bodies_full(held[0]))
         if body is None:  # the client went away
             return None
         if len(body) > self.max_bytes:
@@ -117,6 +167,12 @@ class GuardMiddleware:
     def _open(self, scope) -> bool:
         return scope.get("path") in self.OPEN_PATHS or viewer.is_page(scope.get("path", ""))
 
+    def _bodies_full(self, size: int) -> tuple:
+        """`_reject`'s arguments for a body that the bodies in flight cannot hold now."""
+        return (429, "busy", f"body: {size} bytes would pass the {self.bodies.limit} bytes that request bodies in "
+                             f"flight may hold together ({self.bodies.held} held; max_inflight_body_bytes); retry later",
+                "max_inflight_body_bytes", {"Retry-After": str(BODIES_RETRY_AFTER_S)})
+
     def _authenticated(self, headers: dict) -> bool:
         """Whether the request carries the token (always, where none is set)."""
         token = self.settings.api_token
@@ -125,8 +181,10 @@ class GuardMiddleware:
         scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
         return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())
 
-    async def _read_body(self, receive) -> bytes | None:
-        """The whole body (stopping once it passes the limit), or None when the client disconnected."""
+    async def _read_body(self, receive, held: list[int], chunked: bool) -> bytes | None:
+        """The whole body (stopping once it passes the limit), or None when the client disconnected. A
+        chunked body takes its bytes from the bodies in flight as they arrive (counted in ``held[0]``),
+        `BodiesFull` once they have no more."""
         chunks, size = [], 0
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.settings.body_timeout_s
@@ -144,6 +202,10 @@ class GuardMiddleware:
                         return None
                     chunks.append(message.get("body", b""))
                     size += len(chunks[-1])
+                    if chunked:
+                        if not self.bodies.take(len(chunks[-1])):
+                            raise BodiesFull
+                        held[0] = size
                     if size > self.max_bytes or not message.get("more_body", False):
                         return b"".join(chunks)
         except TimeoutError:
@@ -217,8 +279,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.store = store
     app.state.metrics = metrics
     app.state.jobs = JobQueue(settings.queue_limit, settings.threads)
-    app.state.events = FoldEvents()
-    app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics)
+    app.state.events = FoldEvents(settings.max_event_streams_per_session, settings.max_event_streams)
+    app.state.bodies = BodyBytes(settings.max_inflight_body_bytes)
+    app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics, bodies=app.state.bodies)
     install_error_handlers(app)
     for module in (health, sessions, frames, poses, views, exports, viewer):
         app.include_router(module.router)

@@ -305,11 +305,16 @@ class SessionArchive:
         archive written before frames were deferred: a crash between archiving and logging it) is cut
         off; that is only left after a log of format 1 records, since `durability.restore_scene` gives
         a format 2 log every frame the archive holds. Any other difference (a log repaired by hand, an archive that began after the session's
-        first frames) leaves an archive that cannot serve corrections."""
+        first frames) leaves an archive that cannot serve corrections, and so does a frame that cannot be
+        archived now (a disk still full): the log holds it, and the next restart archives it."""
         logged = logged or {}
-        while len(self.entries) < frames and len(self.entries) in logged:
-            payload = logged[len(self.entries)]
-            self.append_frame(wire.unpack(payload).get("frame_id"), payload_digest(payload), payload)
+        try:
+            while len(self.entries) < frames and len(self.entries) in logged:
+                payload = logged[len(self.entries)]
+                self.append_frame(wire.unpack(payload).get("frame_id"), payload_digest(payload), payload)
+        except OSError as exc:  # a disk still full: the scene is served from the log, corrections wait
+            self.problem = self.problem or archive_failure(exc)
+            return
         if len(self.entries) == frames + 1 and self._records and self._records[-1][1]:
             self.cut()
         if len(self.entries) != frames:

@@ -2,8 +2,10 @@
 
 `FoldEvents` lives on the event loop: the frames route calls `FoldEvents.folded` after a fold is
 acknowledged, and every open event stream of that session gets the event (frame counts, the fold
-report, the frame's camera). A subscriber that does not keep up loses its oldest events, never
-blocks a fold: the latest state is in every event, so a dropped one costs nothing.
+report, the frame's camera), encoded once for all of them. Publishing never waits on a subscriber:
+each has a bounded queue, and one whose queue is full has fallen behind and is dropped (its stream
+ends with a ``dropped`` event; the viewer reconnects and gets the latest state). Open streams are
+capped per session and per service, so the fan-out a fold pays for is bounded.
 
 The input cameras of a session (what the viewer draws as frustums and snaps to) are appended to
 ``cameras.f64`` in the session's folder, one row of `CAMERA_COLUMNS` float64 per acknowledged frame,
@@ -14,6 +16,7 @@ fewer frustums.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import signal
 import time
@@ -53,12 +56,45 @@ def read_track(path: Path, frames: int) -> np.ndarray:  # [N, CAMERA_COLUMNS] fl
     return rows[rows[:, 0] < frames]
 
 
-class FoldEvents:
-    """Per-session fan-out of fold events to asyncio queues, and the sessions' camera tracks."""
+DROPPED = b"event: dropped\ndata: {\"reason\":\"the stream fell behind\"}\n\n"  # a stream's last event
 
-    def __init__(self, queue_size: int = 32):
-        self.queue_size = queue_size
-        self._subscribers: dict[str, set[asyncio.Queue]] = defaultdict(set)
+
+def sse(event: str, data: dict) -> bytes:
+    """One Server-Sent Event."""
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
+
+
+class TooManyStreams(Exception):
+    """An event stream over a cap; ``setting`` names the cap."""
+
+    def __init__(self, message: str, setting: str):
+        super().__init__(message)
+        self.setting = setting
+
+
+class FoldEvents:
+    """Per-session fan-out of fold events to bounded asyncio queues, and the sessions' camera tracks.
+
+    A stream holds its slot from `subscribe` until `unsubscribe` (its end), dropped or not, so the
+    caps bound open connections too.
+
+    Example:
+        >>> events = FoldEvents(per_session=1, total=8, queue_size=1)
+        >>> queue = events.subscribe("s")
+        >>> events.subscribe("s")
+        Traceback (most recent call last):
+        ...
+        server.events.TooManyStreams: events: session s has 1 open event streams, the limit (max_event_streams_per_session)
+        >>> events.publish("s", {"type": "fold"}); events.publish("s", {"type": "fold"})
+        >>> [queue.get_nowait() == DROPPED, events.subscribers("s")]
+        [True, 0]
+    """
+
+    def __init__(self, per_session: int = 32, total: int = 256, queue_size: int = 32):
+        self.per_session, self.total, self.queue_size = per_session, total, queue_size
+        self._subscribers: dict[str, set[asyncio.Queue]] = defaultdict(set)  # those that keep up
+        self._open: dict[str, int] = defaultdict(int)  # open streams per session, dropped ones included
+        self.dropped = 0  # streams dropped for falling behind, since start
         self.last_fold: dict[str, float] = {}  # session id -> unix time of its last acknowledged fold
         self.closing = asyncio.Event()  # set when the service begins to stop: open streams end
 
@@ -83,26 +119,52 @@ class FoldEvents:
                 return
 
     def subscribe(self, session_id: str) -> asyncio.Queue:
+        """A new stream's queue of encoded events; `TooManyStreams` over a cap."""
+        if self._open[session_id] >= self.per_session:
+            raise TooManyStreams(f"events: session {session_id} has {self._open[session_id]} open event streams, "
+                                 "the limit (max_event_streams_per_session)", "max_event_streams_per_session")
+        if self.open_streams() >= self.total:
+            raise TooManyStreams(f"events: the service has {self.total} open event streams, the limit "
+                                 "(max_event_streams)", "max_event_streams")
         queue: asyncio.Queue = asyncio.Queue(self.queue_size)
+        self._open[session_id] += 1
         self._subscribers[session_id].add(queue)
         return queue
 
     def unsubscribe(self, session_id: str, queue: asyncio.Queue) -> None:
+        """The stream ended: its slot is free."""
+        self._drop(session_id, queue)
+        self._open[session_id] -= 1
+        if self._open[session_id] <= 0:
+            del self._open[session_id]
+
+    def _drop(self, session_id: str, queue: asyncio.Queue) -> None:
         queues = self._subscribers.get(session_id)
         if queues is not None:
             queues.discard(queue)
             if not queues:
                 del self._subscribers[session_id]
 
+    def open_streams(self) -> int:
+        return sum(self._open.values())
+
     def subscribers(self, session_id: str) -> int:
+        """The session's streams that keep up (those a fold publishes to)."""
         return len(self._subscribers.get(session_id, ()))
 
     def publish(self, session_id: str, event: dict) -> None:
-        """Put ``event`` on every subscriber's queue, dropping a full queue's oldest event."""
-        for queue in self._subscribers.get(session_id, ()):
+        """Put ``event`` (encoded once) on every subscriber's queue; a subscriber whose queue is full is
+        dropped: its queue then holds only `DROPPED`, and no fold publishes to it again."""
+        data = sse(event["type"], event)
+        for queue in list(self._subscribers.get(session_id, ())):
             if queue.full():
-                queue.get_nowait()
-            queue.put_nowait(event)
+                self._drop(session_id, queue)
+                self.dropped += 1
+                while not queue.empty():
+                    queue.get_nowait()
+                queue.put_nowait(DROPPED)
+            else:
+                queue.put_nowait(data)
 
     def folded(self, session, camera: Camera, report) -> None:
         """After an acknowledged fold: record the camera, then tell the session's subscribers."""

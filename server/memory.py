@@ -65,6 +65,11 @@ def release_memory() -> None:
     snapshots and corrections refer to each other), then ask glibc to give its freed heap back
     (it keeps it for reuse otherwise, so the process's resident memory never falls)."""
     gc.collect()
+    trim_heap()
+
+
+def trim_heap() -> None:
+    """Ask glibc to give the heap's free pages back to the system (a no-op elsewhere)."""
     if _LIBC is not None:
         _LIBC.malloc_trim(0)
 

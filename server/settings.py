@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from canonical_core.config import MAX_VOXELS
@@ -42,6 +42,13 @@ class Settings(BaseSettings):
     header_timeout_s: float = Field(10.0, gt=0, description="a connection whose request head has not arrived in this time is closed")
     read_timeout_s: float = Field(15.0, gt=0, description="a request body that stalls this long between reads gets 408")
     body_timeout_s: float = Field(120.0, gt=0, description="a request body not complete in this time gets 408")
+    max_inflight_body_bytes: int = Field(1 << 30, gt=0, description=(
+        "the request bodies being received or held, all requests together; a request whose body would pass it "
+        "gets 429 with Retry-After naming this setting, before its body is read (at least max_body_bytes)"))
+    max_event_streams_per_session: int = Field(32, gt=0, description=(
+        "open event streams (GET /v1/sessions/{id}/events) of one session; one more gets 429"))
+    max_event_streams: int = Field(256, gt=0, description=(
+        "open event streams of all sessions together; one more gets 429 (every fold is sent to its session's)"))
     max_sessions: int = Field(64, gt=0, description="creating one more session gets 409")
     max_session_voxels: int = Field(8_000_000, gt=0, le=MAX_VOXELS, description=(
         "the voxels a session may hold: its max_voxels when it sets none, and the most it may set (422 above); "
@@ -78,3 +85,10 @@ class Settings(BaseSettings):
     warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
+
+    @model_validator(mode="after")
+    def _body_fits_in_flight(self) -> "Settings":
+        if self.max_inflight_body_bytes < self.max_body_bytes:
+            raise ValueError(f"max_inflight_body_bytes ({self.max_inflight_body_bytes}) must be at least "
+                             f"max_body_bytes ({self.max_body_bytes}): a largest body would never be taken")
+        return self

@@ -19,9 +19,11 @@ async def healthz(request: Request, store: StoreDep) -> Health:
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
-async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainTextResponse:
-    """Prometheus text format: fold/view latency histograms, frames, sessions, voxels, queue."""
+async def metrics(request: Request, store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainTextResponse:
+    """Prometheus text format: fold/view latency histograms, frames, sessions, voxels, queue, request
+    bodies and event streams."""
     totals = store.totals()
+    events = request.app.state.events
     gauges = {
         "canonical_sessions": ("Sessions held.", totals["sessions"]),
         "canonical_voxels": ("Voxels over all sessions.", totals["voxels"]),
@@ -35,6 +37,10 @@ async def metrics(store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainT
                                         totals["snapshot_failures"]),
         "canonical_storage_errors": ("Requests refused since start because storage could not make them durable.",
                                      metrics.storage_errors),
+        "canonical_request_body_bytes": ("Request body bytes received or held (max_inflight_body_bytes bounds them).",
+                                         request.app.state.bodies.held),
+        "canonical_event_streams": ("Open event streams (max_event_streams bounds them).", events.open_streams()),
+        "canonical_event_streams_dropped": ("Event streams dropped since start for falling behind.", events.dropped),
     }
     return PlainTextResponse(metrics.exposition(gauges), media_type=CONTENT_TYPE)
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import io
-import json
 import mimetypes
 import time
 from typing import Annotated, Literal
@@ -25,6 +24,7 @@ from canonical_core.rendering.preview import feature_preview
 from .. import viewer, wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
+from ..events import DROPPED, TooManyStreams, sse
 from ..schemas import ErrorBody
 from ..session_errors import SessionNotFound
 from . import views
@@ -37,6 +37,7 @@ Mode = Literal["rgb", "depth", "alpha", "features", "labels"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
 KEEPALIVE_S = 15.0  # an SSE comment this often keeps proxies from closing an idle stream
+STREAM_RETRY_AFTER_S = 5  # a stream refused over a cap: streams end when viewers leave, not at once
 PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"}
 MIN_DEPTH_SPAN = 1e-6  # metres: the narrowest depth_range a depth picture is coloured over
 
@@ -113,11 +114,7 @@ async def input_cameras(request: Request, session: SessionDep) -> dict:
             "last_fold": events.last_fold_time(session), "cameras": cameras}
 
 
-def _sse(event: str, data: dict) -> bytes:
-    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
-
-
-async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> dict | None:
+async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> bytes | None:
     """The next event of ``queue``; None after ``timeout`` seconds or once ``closing`` is set."""
     getter, stop = asyncio.ensure_future(queue.get()), asyncio.ensure_future(closing.wait())
     try:
@@ -129,24 +126,31 @@ async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: flo
 
 
 @router.get("/{session_id}/events", responses={200: {"content": {"text/event-stream": {}}},
-                                               **{c: {"model": ErrorBody} for c in (401, 404)}})
+                                               **{c: {"model": ErrorBody} for c in (401, 404, 429)}})
 async def fold_events(request: Request, session: SessionDep) -> StreamingResponse:
     """Server-Sent Events: ``state`` at once (frames, voxels), then ``fold`` after each acknowledged
     fold (frames, voxels, the fold report, the frame's camera); a comment every 15 s when idle; the
-    stream ends when the session is deleted or the service stops."""
+    stream ends when the session is deleted, the service stops, or the client falls behind by more
+    than the stream's queue (a last ``dropped`` event; reconnect for the latest state). Open streams
+    are capped per session and per service: 429 over a cap, naming its setting."""
     events = request.app.state.events
-    queue = events.subscribe(session.id)
+    try:
+        queue = events.subscribe(session.id)
+    except TooManyStreams as exc:
+        raise ApiError(429, "busy", str(exc), exc.setting, {"Retry-After": str(STREAM_RETRY_AFTER_S)}) from None
 
     async def stream():
         try:
-            yield _sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
-                                 "label_dim": session.scene.label_dim})
+            yield sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
+                                "label_dim": session.scene.label_dim})
             while not events.closing.is_set():
                 event = await _next_event(queue, events.closing, KEEPALIVE_S)
                 if event is not None:
-                    yield _sse(event["type"], event)
+                    yield event
+                    if event is DROPPED:
+                        return
                 elif session.deleted:
-                    yield _sse("deleted", {"id": session.id})
+                    yield sse("deleted", {"id": session.id})
                     return
                 elif not events.closing.is_set():
                     yield b": keep-alive\n\n"

@@ -101,6 +101,28 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
         assert digest["frames"] == 4 and digest["sha256"] == reference[4]["sha256"]
 
 
+def test_a_restart_on_a_disk_still_full_serves_the_scene_and_reports_the_archive(tmp_path, tmpfs, frames, reference):
+    with serving(server(tmp_path, tmpfs / "data")) as proc:
+        sid = new_session(proc, frames[:2])
+        assert wait_for(lambda: Client(proc.url).session(sid).stats()["archive_frames"] == 2)  # archived off the path
+        # room for the frame's log record (and 64 KiB), not for its archived copy (zstd: about 40% of it)
+        record = len(msgpack.packb(msgpack_frame(frames[2])))
+        with open(tmpfs / "filler", "wb") as f:
+            f.write(b"\0" * (shutil.disk_usage(tmpfs).free - record - 65536))
+        assert post(proc, sid, frames[2]).status_code == 200
+        assert wait_for(lambda: Client(proc.url).session(sid).stats()["archive_problem"])
+        proc.kill9()
+        proc.start()  # the disk is still full: the frame cannot be archived from the log
+        session = Client(proc.url).session(sid)
+        digest, stats = session.digest(), session.stats()
+        assert digest["frames"] == 3 and digest["sha256"] == reference[3]["sha256"]
+        assert "No space left" in stats["archive_problem"]
+        (tmpfs / "filler").unlink()
+        proc.kill9()
+        proc.start()  # space again: the restart archives it, and corrections are served
+        assert Client(proc.url).session(sid).stats()["archive_problem"] is None
+
+
 def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, frames, reference):
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
