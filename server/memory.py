@@ -31,7 +31,7 @@ class MemoryBudget:
         >>> budget.reserve(50).__enter__()
         Traceback (most recent call last):
         ...
-        server.session_errors.MemoryBudgetExceeded: frame: folding it may take up to 50 bytes; the service's memory budget (CANONICAL_MEMORY_BUDGET_BYTES, 100 bytes) has 40 left
+        server.session_errors.MemoryBudgetExceeded: frame: folding it may take up to 50 bytes; the service's memory budget (CANONICAL_MEMORY_BUDGET_BYTES, 100 bytes) has 40 bytes left
     """
 
     def __init__(self, limit: int, in_use: Callable[[], int]):

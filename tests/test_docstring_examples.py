@@ -1,4 +1,5 @@
-"""The runnable examples in canonical_core's docstrings run and print what they say.
+"""The runnable examples in the docstrings of canonical_core, the service and the client run and print
+what they say.
 
 Every module with a ``>>>`` example is one case, so an example that rots (a renamed argument, a
 changed shape or value) fails here with the module's name.
@@ -13,14 +14,20 @@ import pkgutil
 import pytest
 
 import canonical_core
+import client
+import server
 
-# `_composite*` are the compositor's C libraries (loaded with ctypes), not Python modules.
-MODULES = sorted(m.name for m in pkgutil.walk_packages(canonical_core.__path__, "canonical_core.")
-                 if not m.name.rsplit(".", 1)[1].startswith(("_composite", "__main__")))
+# `_composite*` are the compositor's C libraries (loaded with ctypes), not Python modules; the cluster
+# mode's modules need Ray (an extra) and are exercised by tests/cluster.
+MODULES = sorted(m.name for package in (canonical_core, server, client)
+                 for m in pkgutil.walk_packages(package.__path__, f"{package.__name__}.")
+                 if not m.name.rsplit(".", 1)[1].startswith(("_composite", "__main__"))
+                 and not m.name.startswith("server.cluster"))
 
 
 def test_modules_are_found():
-    assert {"canonical_core.camera", "canonical_core.scene.scene", "canonical_core.decode.decoder"} <= set(MODULES)
+    assert {"canonical_core.camera", "canonical_core.scene.scene", "canonical_core.decode.decoder", "server.memory",
+            "client.cli"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("name", MODULES)
