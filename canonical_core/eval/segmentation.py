@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,13 +57,13 @@ from ..frame import Frame, resize_frame
 from ..rendering import render
 from .methods import MethodSpec, SceneBuilder, SplatModel, parse_method
 from .metrics import covered
+from .probe import PROBE_STEPS, PROBE_WEIGHT_DECAY, fit_probe
 from .protocol import Split, spread
-from .report import _finite, _method_colours, _num, _pyplot, _save, _table, image_grid, require_matplotlib
+from .report import _num, require_matplotlib
+from .segmentation_report import write_segmentation_report
 
 HELDOUT_EVERY = 3
-PROBE_STEPS = 200  # L-BFGS iterations
 PROBE_PIXELS = 20000  # most training pixels per probe, drawn with a fixed seed
-PROBE_WEIGHT_DECAY = 1e-4  # L2 on the weights, per training pixel
 PROBE_SEED = 0
 GRID_ROWS = 3  # held-out frames shown per grid (first, middle, last)
 # label colours of the grids by channel; uncovered pixels are black
@@ -122,59 +122,6 @@ def label_map(frame: Frame, size: tuple[int, int] | None = None) -> Tensor:  # [
     rows, cols = (a.reshape(-1) for a in np.mgrid[0:H, 0:W])
     ids = frame.labels.argmax(-1).numpy()[..., None]
     return torch.from_numpy(sample_client_features(ids, rows, cols, (H, W)).reshape(H, W)).long()
-
-
-# -- the linear probe ------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class LinearProbe:
-    """A multinomial logistic regression on standardised features."""
-
-    mean: Tensor  # [C]
-    std: Tensor  # [C]
-    weight: Tensor  # [C, S]
-    bias: Tensor  # [S]
-
-    def predict(self, features: Tensor) -> Tensor:  # [M, C] -> [M] int64 class index
-        x = (features.double() - self.mean) / self.std
-        return (x @ self.weight + self.bias).argmax(-1)
-
-
-def fit_probe(
-    features: Tensor,  # [M, C] float
-    labels: Tensor,  # [M] int64 class index in [0, classes)
-    classes: int,
-    steps: int = PROBE_STEPS,
-    weight_decay: float = PROBE_WEIGHT_DECAY,
-) -> LinearProbe:
-    """Fit a `LinearProbe` by full-batch L-BFGS on the mean cross-entropy plus ``weight_decay`` x
-    the squared weights, from zero, in float64: the same inputs give the same probe."""
-    if features.ndim != 2 or len(features) == 0:
-        raise ValueError(f"features: expected shape [M, C] with M > 0, got {list(features.shape)}")
-    if labels.shape != (len(features),):
-        raise ValueError(f"labels: expected shape [{len(features)}], got {list(labels.shape)}")
-    if isinstance(classes, bool) or not isinstance(classes, int) or classes < 1:
-        raise ValueError(f"classes: expected a positive integer, got {classes!r}")
-    if int(labels.min()) < 0 or int(labels.max()) >= classes:
-        raise ValueError(f"labels: class indices must lie in [0, {classes})")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps: expected a positive integer, got {steps!r}")
-    x = features.double()
-    mean, std = x.mean(0), x.std(0, unbiased=False).clamp_min(1e-6)
-    x = (x - mean) / std
-    y = labels.long()
-    weight = torch.zeros(x.shape[1], classes, dtype=torch.float64, requires_grad=True)
-    bias = torch.zeros(classes, dtype=torch.float64, requires_grad=True)
-    optimiser = torch.optim.LBFGS([weight, bias], max_iter=steps, tolerance_grad=1e-9, tolerance_change=1e-12,
-                                  line_search_fn="strong_wolfe")
-
-    def loss() -> Tensor:
-        optimiser.zero_grad()
-        value = torch.nn.functional.cross_entropy(x @ weight + bias, y) + weight_decay * (weight ** 2).sum()
-        value.backward()
-        return value
-
-    optimiser.step(loss)
-    return LinearProbe(mean, std, weight.detach(), bias.detach())
 
 
 # -- renders ---------------------------------------------------------------------------------------
@@ -427,77 +374,3 @@ def evaluate_segmentation(
 
 
 # -- the report ------------------------------------------------------------------------------------
-TABLE_COLUMNS = (("fusion_miou", "label mIoU"), ("fusion_miou_covered", "label mIoU covered"),
-                 ("fusion_accuracy", "label acc."), ("fusion_accuracy_covered", "label acc. covered"),
-                 ("probe_miou", "probe mIoU"), ("probe_miou_covered", "probe mIoU covered"),
-                 ("probe_accuracy", "probe acc."), ("probe_accuracy_covered", "probe acc. covered"),
-                 ("client_probe_miou", "client-feature probe mIoU"), ("client_probe_miou_covered", "client-feature probe mIoU covered"))
-
-
-def segmentation_table(runs: Sequence[Mapping]) -> list[str]:
-    """Markdown rows: per capture, method and N, coverage and the metrics of `TABLE_COLUMNS` that
-    any run has."""
-    columns = [(k, h) for k, h in TABLE_COLUMNS if any(r.get(k) is not None for r in runs)]
-    rows = [[r["dataset"], r["method"], str(r["views"]), _num(r["coverage"], 3), *(_num(r.get(k), 3) for k, _ in columns)]
-            for r in runs]
-    return _table(["capture", "method", "N", "coverage", *(h for _, h in columns)], rows)
-
-
-def segmentation_markdown(results: Mapping) -> str:
-    """results.md: the protocol and the table (every capture, then the mean over captures)."""
-    lines = ["# Segmentation", "",
-             f"Held out: one frame in {results['heldout_every']}, from position 1; the N inputs spread evenly over the rest. "
-             f"Images at scale {results['scale']:g}; label maps looked up nearest at the render's pixels.",
-             "Label mIoU / acc.: the argmax of the fused label scores splatted at the held-out cameras. Probe: a linear "
-             f"classifier (multinomial logistic regression, L-BFGS, {results['probe_settings']['steps']} iterations, at most "
-             f"{results['probe_settings']['pixels']} pixels, seed {results['probe_settings']['seed']}) trained on the feature "
-             "splats at the input cameras against their labels, tested on the feature splats at the held-out cameras.",
-             "Covered: pixels with accumulated opacity >= 0.5, the only ones given a label. All pixels: uncovered ones count "
-             "as wrong (a miss of the true class, no false positive). mIoU: mean IoU over the classes present in the ground "
-             "truth or the prediction; one confusion matrix per capture, method and N over all its held-out frames.", ""]
-    for b in results["bins"]:
-        lines += [f"- {b['dataset']}: {b['frames']} frames, labels {b['label_ids']}, images {b['image_size'][0]}x"
-                  f"{b['image_size'][1]}, voxel {b['voxel_size']:g} m, held out {b['heldout']}, inputs {b['inputs']}"
-                  + (", client features" if b["client_features"] else "")]
-    lines += ["", *segmentation_table([r for b in results["bins"] for r in b["runs"]] + list(results["mean"])), ""]
-    return "\n".join(lines)
-
-
-def plot_segmentation(results: Mapping, path: Path) -> None:
-    """mIoU vs input views per method: label fusion and probe, all pixels and covered; the mean
-    over captures when there are several, else the one capture."""
-    plt = _pyplot()
-    runs = results["mean"] or results["bins"][0]["runs"]
-    panels = [(k, h) for k, h in TABLE_COLUMNS if "miou" in k and any(r.get(k) is not None for r in runs)]
-    colours = _method_colours(plt, results["methods"])
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 4), squeeze=False)
-    for ax, (key, title) in zip(axes[0], panels):
-        for m in results["methods"]:
-            pts = sorted((r["views"], r[key]) for r in runs if r["method"] == m and r.get(key) is not None)
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=m, color=colours[m])
-        ax.set_xscale("log", base=2)
-        ax.set_xticks(results["views"], [str(v) for v in results["views"]])
-        ax.set(title=title, xlabel="input views N", ylabel="mIoU", ylim=(0, 1))
-        ax.grid(alpha=0.3)
-    fig.suptitle("segmentation: " + ("mean over " + ", ".join(b["dataset"] for b in results["bins"])
-                                     if results["mean"] else results["bins"][0]["dataset"]))
-    _save(fig, axes[0][-1], path)
-    plt.close(fig)
-
-
-def write_segmentation_report(results: Mapping, grids: Mapping[str, Mapping[int, Mapping[str, Sequence[np.ndarray]]]],
-                              out_dir: Path) -> list[Path]:
-    """results.json, results.md, miou_vs_views.png and grid_{capture}_N{N}.png (image, ground truth
-    and every method's label map at a few held-out frames); returns the paths."""
-    import json
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = [out_dir / "results.json", out_dir / "results.md", out_dir / "miou_vs_views.png"]
-    written[0].write_text(json.dumps(_finite(results), indent=1))
-    written[1].write_text(segmentation_markdown(results))
-    plot_segmentation(results, written[2])
-    for name, by_views in grids.items():
-        for n, columns in by_views.items():
-            written.append(out_dir / f"grid_{name}_N{n}.png")
-            image_grid(columns).save(written[-1])
-    return written

@@ -24,7 +24,8 @@ from ..frame import Frame
 from ..config import SceneConfig
 from .free_space import (SeeThroughHistory, frame_free_space_kernel, frustum_chunks, history_free_space_kernel,
                          see_through_map)
-from .kernels import fold_kernel, resolve_kernel, resolve_tables_size, voxel_keys_kernel
+from .hashing import resolve_kernel, resolve_tables_size, voxel_keys_kernel
+from .kernels import fold_kernel
 from .undo import RowsBefore
 from .voxel_map import VoxelMap
 

@@ -2,7 +2,7 @@
 
 It knows nothing of frames. It holds, for ``len(map)`` voxels:
 
-- ``keys`` [V] int64, the packed lattice coordinates (`kernels` packs (i, j, k) into 21 bits each);
+- ``keys`` [V] int64, the packed lattice coordinates (`hashing` packs (i, j, k) into 21 bits each);
 - ``rows`` [V, width] float32, the representative and every weighted sum (`kernels.VoxelRows`);
 - ``rep_rgb`` [V, 3] uint8, ``free`` [V] float32 (see-through evidence), ``n_obs`` [V] int32;
 - ``table``, a power-of-two hash table of voxel indices (-1 empty, linear probing), kept at a load
@@ -34,7 +34,8 @@ import numpy as np
 from .decoded import gather_rows
 from .fields import sh_sum_widths
 from .free_space import CHUNK, update_chunk_boxes_kernel
-from .kernels import VoxelRows, insert_range_kernel, lookup_kernel, remove_range_kernel
+from .hashing import insert_range_kernel, lookup_kernel, remove_range_kernel
+from .kernels import VoxelRows
 
 MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
 # rows reserved per array up front (about 5 GB of address space with the default layout, none of

@@ -11,7 +11,7 @@ import torch
 from canonical_core import Frame, SceneConfig
 from canonical_core.scene import CapacityError, Scene, aggregate_batch
 from canonical_core.scene.folding import fold_cost
-from canonical_core.scene.kernels import insert_range_kernel, resolve_kernel, resolve_tables_size
+from canonical_core.scene.hashing import insert_range_kernel, resolve_kernel, resolve_tables_size
 
 from ..conftest import make_frame
 

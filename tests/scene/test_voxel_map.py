@@ -10,7 +10,7 @@ from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core.config import KEY_BITS, KEY_OFFSET
 from canonical_core.scene.free_space import CHUNK
-from canonical_core.scene.kernels import insert_range_kernel, lookup_kernel, remove_range_kernel, voxel_keys_kernel
+from canonical_core.scene.hashing import insert_range_kernel, lookup_kernel, remove_range_kernel, voxel_keys_kernel
 from canonical_core.scene.voxel_map import (ARRAYS, MAX_TABLE_LOAD, NEXT_TABLE_LOAD, CapacityError, VoxelMap,
                                             table_size)
 
@@ -132,7 +132,7 @@ def test_lookups_of_absent_keys_end_in_a_full_table():
 
 
 def home_slot(keys: np.ndarray, table_slots: int) -> np.ndarray:
-    """The slot a key's probe starts at: the multiplicative hash `kernels._slot` computes."""
+    """The slot a key's probe starts at: the multiplicative hash `hashing.home_slot` computes."""
     h = keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
     return ((h >> np.uint64(29)) & np.uint64(table_slots - 1)).astype(np.int64)
 

@@ -1,30 +1,14 @@
-"""Scene settings: one declarative, validated, serialisable record shared by the fold, the batch
-reference and decode.
-
-The pydantic models below are the single definition of every setting: their types and bounds give
-the library's validation (`SceneConfig(...)` raises a ValueError whose message starts with the
-setting's path, e.g. ``free_space.margin: ...``), the service's session-create schema
-(`public_model`) and the CLI's ``--set NAME=VALUE`` (`parse_setting`).
-
-Layout: a few settings sit at the top level (voxel size, capacity, SH degree, the decoder's
-model); everything else lives in groups with defaults: the depth ``range``, the ``features``, the
-``colour_solve``, the ``sensor`` noise model, and expert tuning (``free_space``, ``depth``,
-``decoder``). The aggregation ablations live in ``research``, which the evaluation's method
-definitions set and the public schema leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
-
-Example:
-    >>> config = SceneConfig(voxel_size=0.01, free_space={"margin": 3.0})
-    >>> config.free_space.margin, config.depth.hypotheses
-    (3.0, 64)
-    >>> SceneConfig.from_dict(config.to_dict()) == config
-    True
-"""
+"""The settings' definition: `SceneConfig` and its groups, pydantic models whose types and bounds are
+the validation. Construction raises a ValueError naming the setting's path (``free_space.margin:
+...``), not pydantic's multi-line report."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, ClassVar, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, create_model, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .migration import FLAT_NAMES, migrate_flat
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
@@ -41,7 +25,7 @@ BIAS_WITH_DENOISING = 0.0
 BIAS_WITHOUT_DENOISING = -3.0
 
 
-def _error_message(exc: ValidationError, prefix: str) -> str:
+def error_message(exc: ValidationError, prefix: str) -> str:
     """The first error of ``exc`` as ``"path: problem, got value"`` (path joined with dots)."""
     first = exc.errors()[0]
     path = ".".join([prefix, *map(str, first["loc"])] if prefix else map(str, first["loc"]))
@@ -63,10 +47,10 @@ class _NamedErrors(type(BaseModel)):
         try:
             return super().__call__(*args, **kwargs)
         except ValidationError as exc:
-            raise ValueError(_error_message(exc, cls._path)) from None
+            raise ValueError(error_message(exc, cls._path)) from None
 
 
-class _Settings(BaseModel, metaclass=_NamedErrors):
+class SettingsGroup(BaseModel, metaclass=_NamedErrors):
     """Frozen (hashable), strict, closed: an unknown name or a wrongly typed value is an error."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", strict=True, allow_inf_nan=False,
@@ -87,7 +71,7 @@ MIN_VOXEL, MAX_VOXEL, MAX_DEPTH = 1e-5, 100.0, 1e5
 MAX_VOXELS = 2**31 - 1
 
 
-class DepthRange(_Settings):
+class DepthRange(SettingsGroup):
     """The depths accepted from frames, metres; pixels outside are ignored."""
 
     _path: ClassVar[str] = "range"
@@ -105,7 +89,7 @@ class DepthRange(_Settings):
         return self
 
 
-class FeatureSettings(_Settings):
+class FeatureSettings(SettingsGroup):
     """The per-pixel features that are fused (F_view, F_scene)."""
 
     _path: ClassVar[str] = "features"
@@ -117,7 +101,7 @@ class FeatureSettings(_Settings):
     """L, channels of the fused features."""
 
 
-class ColourSolve(_Settings):
+class ColourSolve(SettingsGroup):
     """The render-consistent colour solve: kept input views, and Gaussian colours solved so that
     renders reproduce them."""
 
@@ -138,7 +122,7 @@ class ColourSolve(_Settings):
     time and of the views' memory)."""
 
 
-class SensorNoise(_Settings):
+class SensorNoise(SettingsGroup):
     """Noise model of supplied depth that carries no per-pixel std (structured-light and
     time-of-flight sensors): sigma(z) = sigma0 + sigma2 (z - sigma_ref)^2 metres, plus
     ``edge_weight`` times the pixel's largest depth jump to a valid 8-neighbour."""
@@ -161,7 +145,7 @@ class SensorNoise(_Settings):
     (`evidence.registration`). 0 turns it off."""
 
 
-class FreeSpace(_Settings):
+class FreeSpace(SettingsGroup):
     """Free-space ("seen-through") evidence: rays that pass a voxel and end on a surface behind it
     count against the voxel when decoding."""
 
@@ -186,7 +170,7 @@ class FreeSpace(_Settings):
     which overstates it up to twice for surfaces seen at 60 degrees."""
 
 
-class DepthEstimation(_Settings):
+class DepthEstimation(SettingsGroup):
     """The depth front end: plane sweep for frames without depth (and for depth completion), and
     the median denoising of rough supplied depth."""
 
@@ -212,7 +196,7 @@ class DepthEstimation(_Settings):
     is never touched; 0 turns it off."""
 
 
-class DecoderSettings(_Settings):
+class DecoderSettings(SettingsGroup):
     """The analytic (untrained) decoder of a new scene. A loaded snapshot keeps its decoder's own
     parameters."""
 
@@ -235,7 +219,7 @@ class DecoderSettings(_Settings):
     20 degrees apart, large enough to ignore the spread of rays within one view."""
 
 
-class Research(_Settings):
+class Research(SettingsGroup):
     """Ablation switches of the aggregation rule, for the evaluation's method definitions
     (`eval.methods`); not part of the public (HTTP, CLI) settings."""
 
@@ -249,7 +233,7 @@ class Research(_Settings):
     """The epsilon of F_scene = sum W F / (R_scene + eps)."""
 
 
-class SceneConfig(_Settings):
+class SceneConfig(SettingsGroup):
     """Settings of a scene: what a user chooses at the top level, expert tuning in groups.
 
     Groups accept a mapping or an instance: ``SceneConfig(voxel_size=0.01, depth={"sources": 3})``.
@@ -334,129 +318,3 @@ class SceneConfig(_Settings):
         if not isinstance(d, dict):
             raise ValueError(f"config: expected a mapping of settings, got {type(d).__name__}")
         return cls(**migrate_flat(d))
-
-
-# Top-level names of earlier layouts -> their path now. Snapshots and session files written with them
-# still load.
-FLAT_NAMES: dict[str, str] = {
-    "depth_sigma0": "sensor.sigma0",
-    "depth_sigma2": "sensor.sigma2",
-    "depth_sigma_ref": "sensor.sigma_ref",
-    "depth_edge_weight": "sensor.edge_weight",
-    "free_space_margin": "free_space.margin",
-    "free_space_sigmas": "free_space.sigmas",
-    "free_space_cell": "free_space.cell",
-    "free_space_history": "free_space.history",
-    "free_space_dominance": "free_space.dominance",
-    "depth_sources": "depth.sources",
-    "depth_hypotheses": "depth.hypotheses",
-    "source_window": "depth.source_window",
-    "depth_completion_radius": "depth.completion_radius",
-    "depth_denoise_radius": "depth.denoise_radius",
-    "opacity_slope": "decoder.opacity_slope",
-    "opacity_bias": "decoder.opacity_bias",
-    "sh_regularization": "decoder.sh_regularization",
-    "weighting": "research.weighting",
-    "eps": "research.eps",
-    "near": "range.near",
-    "far": "range.far",
-    "feature_backend": "features.backend",
-    "feature_dim": "features.dim",
-    "depth_completion": "depth.completion",
-    "colour_solve_views": "colour_solve.views",
-    "colour_solve_refresh": "colour_solve.refresh",
-    "colour_solve_scale": "colour_solve.scale",
-}
-
-
-def migrate_flat(d: dict) -> dict:
-    """A settings mapping in the current layout: the flat layout's names (`FLAT_NAMES`) move into
-    their groups, and its boolean ``free_space`` becomes ``free_space.enabled``. Current-layout input
-    is returned unchanged."""
-    out = {k: v for k, v in d.items() if k not in FLAT_NAMES}
-    groups: dict[str, dict] = {}
-    if isinstance(out.get("free_space"), bool):
-        groups["free_space"] = {"enabled": out.pop("free_space")}
-    for old, new in FLAT_NAMES.items():
-        if old in d:
-            group, name = new.split(".")
-            groups.setdefault(group, {})[name] = d[old]
-    for group, values in groups.items():
-        given = out.get(group)
-        if isinstance(given, dict):  # a group of the current layout beside one of its flat names
-            if both := sorted(set(given) & set(values)):
-                raise ValueError(f"{group}: given both as a group and as flat settings ({both})")
-            values = {**given, **values}
-        out[group] = values
-    return out
-
-
-# -- the public settings: HTTP schema and CLI ------------------------------------------------------
-PRIVATE_GROUPS = ("research",)
-
-
-def public_model(name: str = "SessionCreate", doc: str | None = None) -> type[BaseModel]:
-    """A model of the settings a client may choose: every `SceneConfig` field (same types, bounds,
-    defaults and docs) but the `PRIVATE_GROUPS`, closed to unknown names. Its validated dump
-    (``exclude_unset=True``) is a valid `SceneConfig` keyword set."""
-    fields = {k: (f.annotation, f) for k, f in SceneConfig.model_fields.items() if k not in PRIVATE_GROUPS}
-    return create_model(name, __config__=ConfigDict(**{**SceneConfig.model_config, "frozen": False}),
-                        __doc__=doc or SceneConfig.__doc__, **fields)
-
-
-def _group_of(annotation: Any) -> type[_Settings] | None:
-    return annotation if isinstance(annotation, type) and issubclass(annotation, _Settings) else None
-
-
-def parse_setting(text: str) -> tuple[str, Any]:
-    """``PATH=VALUE`` of a public setting -> (PATH, VALUE), VALUE read as the setting's type (numbers,
-    ``true``/``false``, ``null`` for an optional setting, text for a choice) and checked against its
-    bounds. Raises ValueError naming PATH for an unknown, private or invalid setting.
-
-    Example:
-        >>> parse_setting("free_space.margin=3"), parse_setting("colour_solve.views=16")
-        (('free_space.margin', 3.0), ('colour_solve.views', 16))
-    """
-    path, sep, value = text.partition("=")
-    path = path.strip()
-    if not sep or not path:
-        raise ValueError(f"setting: expected NAME=VALUE, got {text!r}")
-    model: type[BaseModel] = SceneConfig
-    parts = path.split(".")
-    for depth, part in enumerate(parts):
-        field = model.model_fields.get(part)
-        if field is None or (depth == 0 and part in PRIVATE_GROUPS):
-            raise ValueError(f"{path}: unknown setting")
-        group = _group_of(field.annotation)
-        if group is None:
-            if depth != len(parts) - 1:
-                raise ValueError(f"{path}: unknown setting ({'.'.join(parts[:depth + 1])} has no fields)")
-            return path, _parse_value(path, field.annotation, field.metadata, value.strip())
-        if depth == len(parts) - 1:
-            raise ValueError(f"{path}: a group; set one of its fields, e.g. {path}.{next(iter(group.model_fields))}")
-        model = group
-    raise AssertionError("unreachable")
-
-
-def _parse_value(path: str, annotation: Any, metadata: list, text: str) -> Any:
-    optional = type(None) in get_args(annotation)
-    if optional and text.lower() in ("null", "none"):
-        return None
-    base = next(a for a in get_args(annotation) if a is not type(None)) if optional else annotation
-    try:
-        adapter = TypeAdapter(Annotated[(base, *metadata)] if metadata else base, config=ConfigDict(allow_inf_nan=False))
-        return adapter.validate_strings(text)
-    except ValidationError as exc:
-        raise ValueError(_error_message(exc, path)) from None
-
-
-def settings_from_pairs(pairs: list[tuple[str, Any]]) -> dict:
-    """(path, value) pairs (`parse_setting`) -> the nested mapping `SceneConfig` and the service take."""
-    out: dict[str, Any] = {}
-    for path, value in pairs:
-        *groups, name = path.split(".")
-        target = out
-        for g in groups:
-            target = target.setdefault(g, {})
-        target[name] = value
-    return out
