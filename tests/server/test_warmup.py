@@ -11,13 +11,14 @@ REPO = Path(__file__).resolve().parents[2]
 
 # numba kernels of each stage (fold, free space, undo record and roll-back, SH fit, render), and whether numba has loaded them.
 PROBE = """
+import canonical_core.scene.hashing as hashing
 import canonical_core.scene.kernels as fold
 import canonical_core.scene.free_space as free_space
 import canonical_core.scene.undo as undo
 import canonical_core.rendering.cpu_tiles as tiles
 import canonical_core.rendering.splat_geometry as geometry
 import canonical_core.rendering.sh as sh
-kernels = [fold.fold_kernel, fold.resolve_kernel, fold.remove_range_kernel, tiles.bin_splats_by_tile,
+kernels = [fold.fold_kernel, hashing.resolve_kernel, hashing.remove_range_kernel, tiles.bin_splats_by_tile,
            geometry.project_numba, sh._sh_basis_kernel, sh._sh1_colour_kernel]
 kernels += [free_space._coarse_map_kernel, free_space.frustum_chunks_kernel, free_space.frame_free_space_kernel,
             free_space.history_free_space_kernel, free_space.update_chunk_boxes_kernel, undo._copy_chunks_kernel]
