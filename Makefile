@@ -22,8 +22,9 @@ demo: setup
 	$(PY) -m client.cli demo --out out/demo
 
 # The test command also installs what the tests need beyond the service: the [cluster] extra (Ray
-# Serve, for tests/cluster), and Debian's chromium, which the viewer's browser tests drive through
-# Playwright (CI runs as root; `playwright install` is not used: it downloads from outside the registries).
+# Serve, for tests/cluster), Debian's chromium, which the viewer's browser tests drive through
+# Playwright (CI runs as root; `playwright install` is not used: it downloads from outside the registries),
+# and curl, which the README's curl example (run by tests/test_readme.py) calls.
 # Then the service's start-up kernels are compiled into numba's cache once (about two minutes on a
 # fresh machine), so that the services the tests start load them instead of each compiling them
 # within its start-up deadline while the other worker runs. Two workers (pytest-xdist), each taking
@@ -31,7 +32,7 @@ demo: setup
 # and in one process.
 test: setup
 	$(PY) -m pip install -q -e '.[cluster]'
-	@test -x /usr/bin/chromium || apt-get install -y chromium || (apt-get update && apt-get install -y chromium)
+	@test -x /usr/bin/chromium -a -x /usr/bin/curl || apt-get install -y chromium curl || (apt-get update && apt-get install -y chromium curl)
 	@$(PY) -c "import playwright" 2>/dev/null || $(PY) -m pip install -q playwright
 	$(PY) -c "from server.warmup import warm_up; warm_up()"
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
