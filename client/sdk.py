@@ -360,8 +360,8 @@ class Client:
     """A connection to the service.
 
     Args:
-        url: base URL, e.g. ``http://127.0.0.1:8000`` (default: ``CANONICAL_URL`` from the environment,
-            else that one: the CLI's ``--url`` default, so scripts and the CLI find the same service).
+        url: base URL, e.g. ``http://127.0.0.1:8000`` (default: `default_url`, as the CLI's ``--url``,
+            so that scripts and the CLI find the same service).
         token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
         timeout: seconds per request.
         max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each).
