@@ -7,9 +7,9 @@ directory) that they find through ``CANONICAL_URL``, as the README says, on the 
 ../shared/data. They run in a scratch folder laid out like a checkout (``.venv`` is the virtualenv
 running the tests, ``../shared`` the shared data), so the files they write go there.
 
-The rule for a block that is not run: the line above it (blank lines aside) is ``<!-- not run: REASON -->``, and the
-reason may not be empty (the set-up commands, which CI runs itself; a service that runs until
-stopped). Every other block of a language the README uses must run.
+The rule for a block that is not run: the line above it (blank lines aside) is
+``<!-- not run: REASON -->``, and the reason may not be empty (the set-up commands, which CI runs
+itself; a service that runs until stopped). Every other block of a language the README uses must run.
 """
 
 from __future__ import annotations
