@@ -41,7 +41,7 @@ from typing import Callable
 import httpx
 import numpy as np
 
-from .sdk import CanonicalError, Client, exact_sensor_depth
+from .sdk import CanonicalError, Client, default_url, exact_sensor_depth
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ class UsageError(Exception):
 
 
 def _add_connection(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--url", default=os.environ.get("CANONICAL_URL", "http://127.0.0.1:8000"),
+    p.add_argument("--url", default=default_url(),
                    help="service base URL (default: $CANONICAL_URL or http://127.0.0.1:8000)")
     p.add_argument("--token", default=None, help="bearer token (default: $CANONICAL_API_TOKEN)")
 

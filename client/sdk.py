@@ -350,17 +350,26 @@ class Session:
         return f"Session({self.id!r})"
 
 
+def default_url() -> str:
+    """The service's base URL when none is given: ``CANONICAL_URL`` from the environment, else the
+    address `canonical serve` listens on by default."""
+    return os.environ.get("CANONICAL_URL") or "http://127.0.0.1:8000"
+
+
 class Client:
     """A connection to the service.
 
     Args:
-        url: base URL, e.g. ``http://127.0.0.1:8000``.
+        url: base URL, e.g. ``http://127.0.0.1:8000`` (default: `default_url`, as the CLI's ``--url``,
+            so that scripts and the CLI find the same service).
         token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
         timeout: seconds per request.
         max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each).
     """
 
-    def __init__(self, url: str, token: str | None = None, timeout: float = 120.0, max_retries: int = 8, max_wait: float = 10.0):
+    def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 120.0, max_retries: int = 8,
+                 max_wait: float = 10.0):
+        url = url if url is not None else default_url()
         token = token if token is not None else os.environ.get("CANONICAL_API_TOKEN") or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)

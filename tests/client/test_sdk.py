@@ -12,6 +12,7 @@ from PIL import Image
 
 from canonical_core import load_ply, load_splat
 from canonical_core.datasets.files import depth_from_uint16
+from client.cli import build_parser
 from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
                         scaled_intrinsics)
 
@@ -26,6 +27,15 @@ def test_array_codec_roundtrip():
     assert decode_array(encode_array(np.ones(3))).dtype == np.float32  # float64 travels as float32
     with pytest.raises(ValueError, match="int64"):
         encode_array(np.ones(3, np.int64))
+
+
+def test_without_a_url_the_sdk_and_the_cli_find_the_service_at_canonical_url(server, monkeypatch):
+    monkeypatch.setenv("CANONICAL_URL", server.url)
+    with Client() as c:
+        assert c.health()["status"] == "ok"
+    assert build_parser().parse_args(["sessions"]).url == server.url
+    monkeypatch.delenv("CANONICAL_URL")  # neither set nor given: where `canonical serve` listens by default
+    assert build_parser().parse_args(["sessions"]).url == "http://127.0.0.1:8000"
 
 
 @pytest.mark.realdata
