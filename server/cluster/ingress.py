@@ -135,7 +135,8 @@ class ClusterRouter:
                 await asyncio.sleep(0.25)
 
     async def _call(self, shard: int, method: str, *args):
-        """``method`` of owner ``shard``; `OwnerUnreachable` (nothing of the call ran, or it did not answer)."""
+        """``method`` of owner ``shard``; `OwnerUnreachable` when the owner is not running or does not
+        answer (the client retries: a frame it sends again is recognised by its ``frame_id``)."""
         wait = self.settings.owner_restart_wait_s
         if shard not in self._running and not await self._until_back(shard):
             # a call to an actor that is not running waits in Ray's queue for as long as it takes to place it

@@ -4,8 +4,9 @@ an autoscaled Serve deployment, and `serve_forever` behind ``canonical serve --c
 Why an actor per shard of sessions rather than per session: an owner process imports torch and
 numba and compiles kernels, hundreds of MB and seconds per process, so a process per session does not
 scale; Serve's multiplexing routes by affinity only, so it cannot make a session single-writer. A
-fixed number of shards (``owners``), each a named actor created on demand (``get_if_exists``), gives
-every session exactly one owner that every ingress replica finds by name; Ray restarts an owner that
+fixed number of shards (``owners``), each a named actor (created by `start` before the ingress takes
+requests, or by the first replica that needs it under `app_builder`: ``get_if_exists``), gives every
+session exactly one owner that every ingress replica finds by name; Ray restarts an owner that
 dies (``max_restarts=-1``) wherever its declared CPUs fit, and the new process takes each session's
 lease as it restores it from the shared data directory. Those CPUs are fitted to the cluster's nodes at
 start (`server.cluster.claims`), so every owner, every ingress replica and one restarting actor always
@@ -161,7 +162,7 @@ def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     # timed: a signal that one of Ray's threads receives runs its Python handler only once this thread
-    # wakes up, and an untimed wait would never wake (SIGTERM from Docker or Kubernetes was lost so)
+    # wakes up, which an untimed wait never does (SIGTERM, Docker's and Kubernetes' stop, went unanswered)
     while not stop.wait(0.5):
         pass
     close_owners(settings)

@@ -15,15 +15,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import psutil
 import pytest
 
-psutil = pytest.importorskip("psutil")
 pytest.importorskip("ray.serve")
 
 from client.cli import unclaimed_port, wait_until_healthy  # noqa: E402
 from client.sdk import CanonicalError, Client  # noqa: E402
-from server.cluster.owner import shard_of  # noqa: E402
 from server.cluster.lease import EPOCH  # noqa: E402
+from server.cluster.owner import shard_of  # noqa: E402
 
 from ..server.harness import REPO, VOXEL  # noqa: E402
 from .conftest import reference_digest  # noqa: E402
@@ -42,22 +42,24 @@ class Cluster:
     log: Path
 
     def actors(self, title: str) -> list:
-        """The live processes under the service's that run Ray actors of class ``title``."""
-        found = []
-        for p in psutil.Process(self.proc.pid).children(recursive=True):
-            try:
-                if p.status() != psutil.STATUS_ZOMBIE and p.cmdline()[:1] and p.cmdline()[0].startswith(title):
-                    found.append(p)
-            except psutil.Error:  # exited meanwhile
-                continue
-        return found
+        """The live processes below the service's own that run Ray actors of class ``title``."""
+        return [p for p in psutil.Process(self.proc.pid).children(recursive=True)
+                if alive(p, lambda: p.cmdline()[:1] and p.cmdline()[0].startswith(title))]
 
     def owner_of(self, session_id: str):
         """The owner process holding the session's lease (its ``owner.epoch`` open): the session's owner."""
         lease = os.path.realpath(self.data_dir / "sessions" / session_id / EPOCH)
-        holders = [p for p in self.actors(OWNER) if any(f.path == lease for f in p.open_files())]
+        holders = [p for p in self.actors(OWNER) if alive(p, lambda: any(f.path == lease for f in p.open_files()))]
         assert len(holders) == 1, (session_id, holders)
         return holders[0]
+
+
+def alive(process, condition) -> bool:
+    """Whether ``process`` runs and ``condition()`` holds for it (False once it exited)."""
+    try:
+        return process.status() != psutil.STATUS_ZOMBIE and bool(condition())
+    except psutil.Error:
+        return False
 
 
 def stop(proc: subprocess.Popen, timeout: float) -> list:
@@ -106,18 +108,25 @@ class Stream(threading.Thread):
     """A client streaming ``frames`` into a new session back to back, as a robot does. A 429 is retried
     by the SDK; a 500 from Serve's proxy (its request was in flight in an ingress replica that died, so
     its outcome is unknown) is retried once with the same ``frame_id``, which the owner recognises if it
-    folded the frame already."""
+    folded the frame already. It pauses just before it sends frame ``hold`` (from 0) until ``go`` is set."""
 
-    def __init__(self, url: str, frames: list[dict]):
+    def __init__(self, url: str, frames: list[dict], hold: int):
         super().__init__(daemon=True)
-        self.url, self.frames = url, frames
+        self.url, self.frames, self.hold = url, frames, hold
         self.acked: list[float] = []  # when each frame was acknowledged (time.monotonic)
         self.statuses: list[int] = []  # every answer the client got, retried ones included
+        self.paused, self.go = threading.Event(), threading.Event()
         self.session_id = self.digest = self.error = None
+
+    def _sending(self, request) -> None:
+        if request.url.path.endswith("/frames") and len(self.acked) == self.hold and not self.go.is_set():
+            self.paused.set()
+            self.go.wait(120)
 
     def run(self) -> None:
         try:
             with Client(self.url) as client:
+                client._http.event_hooks["request"].append(self._sending)
                 client._http.event_hooks["response"].append(lambda r: self.statuses.append(r.status_code))
                 session = client.create_session(voxel_size=VOXEL)
                 self.session_id = session.id
@@ -132,12 +141,6 @@ class Stream(threading.Thread):
                 self.digest = session.digest()
         except Exception as exc:  # reported by the test
             self.error = exc
-
-    def wait_acked(self, count: int, timeout: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout
-        while len(self.acked) < count and self.error is None and time.monotonic() < deadline:
-            time.sleep(0.005)
-        assert len(self.acked) >= count, (self.error, self.statuses)
 
 
 def test_the_defaults_place_every_owner_and_sessions_created_in_a_row_all_answer(cluster, frames):
@@ -157,19 +160,18 @@ def test_the_defaults_place_every_owner_and_sessions_created_in_a_row_all_answer
 
 @pytest.mark.parametrize("victims", [(INGRESS,), (OWNER,), (INGRESS, OWNER)], ids=["ingress", "owner", "both"])
 def test_sigkill_mid_stream_the_service_answers_again_with_every_frame(cluster, frames, reference, victims):
-    stream = Stream(cluster.url, frames)
+    stream = Stream(cluster.url, frames, hold=4)
     stream.start()
-    stream.wait_acked(3)
+    assert stream.paused.wait(120), (stream.error, stream.statuses)  # frames 0-3 acknowledged
     assert len(cluster.actors(INGRESS)) == 1  # the default: one replica, so killing it stops the ingress
     killed = {title: (cluster.owner_of(stream.session_id) if title == OWNER else cluster.actors(INGRESS)[0]).pid
               for title in victims}
-    killed_at = time.monotonic()
+    stream.go.set()
+    killed_at = time.monotonic()  # as frame 4 leaves: the kill lands before it arrives or while it is served
     for pid in killed.values():
         os.kill(pid, signal.SIGKILL)
-    acked_before = len(stream.acked)
     stream.join(300)
     assert stream.error is None and not stream.is_alive(), (stream.error, stream.statuses)
-    assert acked_before < len(frames)  # it was killed mid-stream
     answered = next(t for t in stream.acked if t > killed_at) - killed_at
     print(f"\nfailover, SIGKILL of {' and '.join(killed)}: the session answered again after {answered:.1f} s "
           f"(answers: {stream.statuses})")
