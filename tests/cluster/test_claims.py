@@ -58,7 +58,7 @@ def test_ingress_claims_that_leave_no_room_for_owners_are_refused_naming_ingress
 @pytest.mark.slow
 def test_serve_cluster_refuses_claims_the_local_cluster_cannot_place_in_one_line(tmp_path, ray_tmpdir):
     pytest.importorskip("ray.serve")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_") and k != "RAY_ADDRESS"}
     env.update(CANONICAL_OWNER_CPUS="1000", RAY_TMPDIR=ray_tmpdir)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
     out = subprocess.run([sys.executable, "-m", "client.cli", "serve", "--cluster", "--port", str(unclaimed_port()),

@@ -83,7 +83,8 @@ def stop(proc: subprocess.Popen, timeout: float) -> list:
 def cluster(tmp_path_factory, ray_tmpdir):
     root = tmp_path_factory.mktemp("failover")
     port, log = unclaimed_port(), root / "serve.log"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+    # the CLI's defaults, and a local cluster of its own (RAY_ADDRESS would make it join another)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_") and k != "RAY_ADDRESS"}
     env["RAY_TMPDIR"] = ray_tmpdir  # this cluster's files apart from any other Ray cluster on the machine
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
     with open(log, "wb") as out:
