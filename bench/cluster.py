@@ -125,7 +125,8 @@ def bench_streaming(payloads, counts, renders, voxel, threads) -> list[dict]:
         port = unclaimed_port()  # Serve's proxy keeps the port it started on; Ray's processes take ephemeral ones
         try:
             for owners in (1, 2):
-                settings = ClusterSettings(data_dir=Path(tmp) / f"cluster{owners}", owners=owners, owner_cpus=0.75,
+                # owner_cpus unset: fitted to the 2 CPUs (a claim is bookkeeping, not a limit on cores used)
+                settings = ClusterSettings(data_dir=Path(tmp) / f"cluster{owners}", owners=owners,
                                            ingress_cpus=0.25, ingress_min_replicas=1, ingress_max_replicas=2,
                                            host="127.0.0.1", port=port, threads=threads,
                                            namespace=f"bench-{owners}")

@@ -114,9 +114,13 @@ def run_serve(args) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     settings = serve_settings(args)
     if args.cluster:
+        from server.cluster.claims import ClaimsDoNotFit
         from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
 
-        return serve_forever(settings, args.address)
+        try:
+            return serve_forever(settings, args.address)
+        except ClaimsDoNotFit as exc:  # claims the cluster cannot place: one line naming the setting
+            raise UsageError(f"{_setting_source(args, exc.setting)}: {exc.problem}") from None
     import uvicorn
 
     from server.app import create_app

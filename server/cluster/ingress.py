@@ -8,7 +8,10 @@ more middleware inside its guard that forwards each session's requests to the se
 
 A request whose owner cannot be reached (its process died and is being restarted, or it is slow) is
 answered 429 ``busy`` with ``Retry-After``, once the owner answers again (or after
-``owner_restart_wait_s``): nothing of it was acknowledged, and clients retry 429.
+``owner_restart_wait_s``): nothing of it was acknowledged, and clients retry 429. A request is sent only
+to an owner this replica knows to run: one not seen running yet, or lost since, is asked for its pid
+first, and one that does not answer within ``owner_restart_wait_s`` (still starting, or waiting for CPUs
+Ray cannot give it) gets the 429 then, its request never sent, rather than after ``owner_timeout_s``.
 Ingress replicas hold no state, so Serve can add and remove them at will.
 """
 
@@ -77,6 +80,7 @@ class ClusterRouter:
 
     def __init__(self, app, settings: ClusterSettings, owners: Owners):
         self.app, self.settings, self.owners = app, settings, owners
+        self._running: set[int] = set()  # shards whose owner answered since it was last lost
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -112,26 +116,40 @@ class ClusterRouter:
             status, headers, content = await self._call(shard, "handle", method, path, scope["query_string"],
                                                         scope["headers"], body)
         except OwnerUnreachable as exc:
-            await self._until_back(shard)  # so that the client's retry finds the owner running
             return await owner_busy(str(exc))(scope, receive, send)
         await send_response(send, status, headers, content)
 
-    async def _until_back(self, shard: int) -> None:
-        """Wait (at most ``owner_restart_wait_s``) until a lost owner answers again (Ray restarts it)."""
+    async def _until_back(self, shard: int) -> bool:
+        """Wait (at most ``owner_restart_wait_s``) until owner ``shard`` answers (Ray starts or restarts
+        it); whether it did."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.settings.owner_restart_wait_s
-        while loop.time() < deadline:
+        while True:
             try:
                 await asyncio.wait_for(self.owners.call(shard, "pid"), max(0.1, deadline - loop.time()))
-                return
+                self._running.add(shard)
+                return True
             except (OwnerUnreachable, asyncio.TimeoutError):
+                if loop.time() >= deadline:
+                    return False
                 await asyncio.sleep(0.25)
 
     async def _call(self, shard: int, method: str, *args):
+        """``method`` of owner ``shard``; `OwnerUnreachable` when the owner is not running or does not
+        answer (the client retries: a frame it sends again is recognised by its ``frame_id``)."""
+        wait = self.settings.owner_restart_wait_s
+        if shard not in self._running and not await self._until_back(shard):
+            # a call to an actor that is not running waits in Ray's queue for as long as it takes to place it
+            raise OwnerUnreachable(f"owner {shard} is not running (starting, restarting, or waiting for CPUs) "
+                                   f"after {wait:g} s (owner_restart_wait_s)")
         try:
             return await asyncio.wait_for(self.owners.call(shard, method, *args), self.settings.owner_timeout_s)
         except asyncio.TimeoutError:
             raise OwnerUnreachable(f"owner {shard} did not answer within {self.settings.owner_timeout_s:g} s") from None
+        except OwnerUnreachable:
+            self._running.discard(shard)
+            await self._until_back(shard)  # so that the client's retry finds the owner running
+            raise
 
     async def _gathered(self, path: str):
         if path == "/healthz":

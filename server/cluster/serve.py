@@ -4,10 +4,13 @@ an autoscaled Serve deployment, and `serve_forever` behind ``canonical serve --c
 Why an actor per shard of sessions rather than per session: an owner process imports torch and
 numba and compiles kernels, hundreds of MB and seconds per process, so a process per session does not
 scale; Serve's multiplexing routes by affinity only, so it cannot make a session single-writer. A
-fixed number of shards (``owners``), each a named actor created on demand (``get_if_exists``), gives
-every session exactly one owner that every ingress replica finds by name; Ray restarts an owner that
+fixed number of shards (``owners``), each a named actor (created by `start` before the ingress takes
+requests, or by the first replica that needs it under `app_builder`: ``get_if_exists``), gives every
+session exactly one owner that every ingress replica finds by name; Ray restarts an owner that
 dies (``max_restarts=-1``) wherever its declared CPUs fit, and the new process takes each session's
-lease as it restores it from the shared data directory.
+lease as it restores it from the shared data directory. Those CPUs are fitted to the cluster's nodes at
+start (`server.cluster.claims`), so every owner, every ingress replica and one restarting actor always
+find room.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import ray
 from ray import serve
 from ray.exceptions import RayActorError
 
+from .claims import fitted
 from .ingress import OwnerUnreachable, ingress_app
 from .owner import SessionOwner
 from .settings import ClusterSettings
@@ -81,6 +85,7 @@ def application(settings: ClusterSettings):
         autoscaling_config={"min_replicas": settings.ingress_min_replicas, "max_replicas": settings.ingress_max_replicas,
                             "target_ongoing_requests": settings.ingress_target_requests},
         max_ongoing_requests=max(64, int(4 * settings.ingress_target_requests)),
+        health_check_period_s=settings.ingress_health_check_s,
         ray_actor_options={"num_cpus": settings.ingress_cpus},
     ).bind(settings)
 
@@ -96,10 +101,33 @@ def connect(address: str | None = None, num_cpus: int | None = None, namespace: 
              runtime_env={"env_vars": {"PYTHONPATH": path}})
 
 
-def start(settings: ClusterSettings) -> None:
-    """Run the app on the connected cluster, answering on settings.host:settings.port."""
+def node_cpus() -> list[float]:
+    """The CPUs of each live node of the connected cluster."""
+    return [node["Resources"].get("CPU", 0.0) for node in ray.nodes() if node["Alive"]]
+
+
+def start_owners(settings: ClusterSettings, report_every_s: float = 30.0) -> None:
+    """Start every owner (or find it running) and wait until each answers, before the ingress takes
+    requests, so that no session's first request waits for its owner's start."""
+    pending = {owner_actor(settings, shard).pid.remote(): shard for shard in range(settings.owners)}
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=report_every_s)
+        for ref in ready:
+            ray.get(ref)  # an owner that failed to start raises here
+            del pending[ref]
+        if pending:  # a cold start compiles kernels for minutes; an owner Ray cannot place waits for CPUs
+            log.warning("owners %s not started yet: each needs %g CPU, the cluster has %g free", sorted(pending.values()),
+                        settings.owner_cpus, ray.available_resources().get("CPU", 0.0))
+
+
+def start(settings: ClusterSettings) -> ClusterSettings:
+    """Run the app on the connected cluster, answering on settings.host:settings.port; the settings it
+    runs with (`server.cluster.claims.fitted`: `ClaimsDoNotFit` when they cannot be placed)."""
+    settings = fitted(settings, node_cpus())
+    start_owners(settings)
     serve.start(http_options={"host": settings.host, "port": settings.port})
     serve.run(application(settings), name=APP_NAME, route_prefix="/")
+    return settings
 
 
 def close_owners(settings: ClusterSettings) -> None:
@@ -121,13 +149,22 @@ def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
     """``canonical serve --cluster``: start (or join) the cluster, run the app until SIGINT/SIGTERM,
     then snapshot the owners' sessions and stop the app."""
     connect(address, namespace=settings.namespace)
-    start(settings)
-    log.warning("serving on http://%s:%d with %d owners (data in %s)", settings.host, settings.port, settings.owners,
+    try:
+        settings = start(settings)
+    except BaseException:
+        ray.shutdown()
+        raise
+    log.warning("serving on http://%s:%d with %d owners of %g CPU and %d-%d ingress replicas of %g CPU on %g CPUs "
+                "(data in %s)", settings.host, settings.port, settings.owners, settings.owner_cpus,
+                settings.ingress_min_replicas, settings.ingress_max_replicas, settings.ingress_cpus, sum(node_cpus()),
                 settings.data_dir)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    stop.wait()
+    # timed: a signal that one of Ray's threads receives runs its Python handler only once this thread
+    # wakes up, which an untimed wait never does (SIGTERM, Docker's and Kubernetes' stop, went unanswered)
+    while not stop.wait(0.5):
+        pass
     close_owners(settings)
     serve.delete(APP_NAME)
     ray.shutdown()
@@ -136,5 +173,8 @@ def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
 
 def app_builder(args: dict):
     """Serve config entry point (``import_path: server.cluster.serve:app_builder``, e.g. KubeRay's
-    RayService): ``args`` are `ClusterSettings` fields; the rest come from ``CANONICAL_*`` variables."""
-    return application(ClusterSettings(**args))
+    RayService): ``args`` are `ClusterSettings` fields; the rest come from ``CANONICAL_*`` variables.
+    An unset ``owner_cpus`` is fitted to the nodes there are now; a set one is taken as it is (an
+    autoscaler adds the nodes that claims wait for)."""
+    settings = ClusterSettings(**args)
+    return application(fitted(settings, node_cpus()) if settings.owner_cpus is None else settings)

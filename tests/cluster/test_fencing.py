@@ -8,14 +8,13 @@ import os
 
 import pytest
 
-from canonical_core import Scene, SceneConfig
-from server import wire
+from canonical_core import SceneConfig
 from server.cluster.lease import EPOCH, Lease
 from server.cluster.owner import SessionOwner
 from server.framelog import Fenced, scan
 from server.durability import LOG, SNAPSHOT, restore_scene
 
-from .conftest import MSGPACK, VOXEL, frame_body, request, run, settings
+from .conftest import MSGPACK, VOXEL, frame_body, reference_digest, request, run, settings
 
 
 def test_a_lease_counts_owners_and_fences_every_earlier_one(tmp_path):
@@ -33,13 +32,6 @@ def test_a_lease_counts_owners_and_fences_every_earlier_one(tmp_path):
         pass
     assert (tmp_path / EPOCH).read_bytes() == (2).to_bytes(8, "little")
     first.close(), second.close()
-
-
-def reference_digest(frames) -> str:
-    scene = Scene(SceneConfig(voxel_size=VOXEL))
-    for kwargs in frames:
-        scene.fold(wire.frame_from_message(wire.unpack(frame_body(kwargs))))
-    return scene.digest()
 
 
 def test_two_owners_of_one_session_the_stale_one_folds_nothing_and_the_log_stays_one_stream(tmp_path, frames):

@@ -145,6 +145,41 @@ def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_o
     run(scenario())
 
 
+def test_a_request_for_an_owner_not_running_is_never_sent_and_gets_429_after_the_restart_wait(tmp_path):
+    """Ray holds a call to an actor that it cannot place (too few CPUs) for as long as that lasts: the
+    ingress asks an owner it has not seen running for its pid first, and answers 429 once
+    ``owner_restart_wait_s`` passes, not ``owner_timeout_s`` (300 s by default) later."""
+    parts, _ = cluster_client(tmp_path, owner_restart_wait_s=0.5)
+
+    class Unplaced(LocalOwners):
+        def __init__(self, owners):
+            super().__init__(owners)
+            self.sent, self.placed = [], asyncio.Event()
+
+        async def call(self, shard, method, *args):
+            self.sent.append((shard, method))
+            if shard == 1:
+                await self.placed.wait()
+            return await super().call(shard, method, *args)
+
+    held_by_1, held_by_0 = parts[1].store.new_session_id(), parts[0].store.new_session_id()
+
+    async def scenario():
+        owners = Unplaced(parts)
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=ingress_app(parts[0].settings, owners)),
+                                     base_url="http://cluster", headers={"Authorization": f"Bearer {TOKEN}"}) as http:
+            r = await asyncio.wait_for(http.get(f"/v1/sessions/{held_by_1}/digest"), 60)  # a hang guard, not a timing
+            assert r.status_code == 429 and r.headers["Retry-After"]
+            assert "owner 1 is not running" in r.json()["error"]["message"] and "owner_restart_wait_s" in r.text
+            assert (1, "pid") in owners.sent and (1, "handle") not in owners.sent  # the request itself was never sent
+            assert (await http.get(f"/v1/sessions/{held_by_0}/digest")).status_code == 404  # owner 0 answers meanwhile
+            owners.placed.set()  # Ray places owner 1: its requests go through again
+            assert (await http.get(f"/v1/sessions/{held_by_1}/digest")).status_code == 404
+            assert (1, "handle") in owners.sent
+
+    run(scenario())
+
+
 def test_metrics_sum_the_owners_and_label_each_by_node_and_owner(tmp_path, frames):
     parts, client = cluster_client(tmp_path)
 
