@@ -14,7 +14,7 @@ import threading
 
 import pytest
 
-from server.scheduler import VIEWER_TURN, QueueFull, Scheduler, Superseded
+from server.scheduler import VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
 
 WAIT_S = 30.0
 
@@ -47,6 +47,14 @@ def run(coro_fn, **settings):
         scheduler.close()
 
 
+async def held(s: Scheduler, kind: Kind = "work", session: str = "a", name: str = "gate") -> tuple[Gate, asyncio.Future]:
+    """A gated ``kind`` job taken by a worker: with one worker a lane, that lane is busy until the gate opens."""
+    gate = Gate()
+    job = asyncio.ensure_future(s.run(gate, name, kind=kind, session=session))
+    await gate.until_started()
+    return gate, job
+
+
 async def queued(scheduler: Scheduler, count: int) -> None:
     """Let ``count`` submitted jobs reach their queues (each `run` enqueues before its first await)."""
     while scheduler.active < count:
@@ -55,9 +63,7 @@ async def queued(scheduler: Scheduler, count: int) -> None:
 
 def test_a_frame_runs_while_the_render_workers_are_busy():
     async def body(s: Scheduler):
-        gate = Gate()
-        render = asyncio.ensure_future(s.run(gate, "render", kind="work", session="a"))
-        await gate.until_started()
+        gate, render = await held(s, name="render")
         assert await s.run(lambda: "folded", kind="frame", session="b") == "folded"
         assert not render.done()  # the frame did not wait for the render
         gate.opened.set()
@@ -70,9 +76,7 @@ def test_work_goes_before_the_viewer_and_sessions_take_turns():
     order: list[str] = []
 
     async def body(s: Scheduler):
-        gate = Gate()
-        first = asyncio.ensure_future(s.run(gate, kind="work", session="a"))
-        await gate.until_started()
+        gate, first = await held(s)
         jobs = [asyncio.ensure_future(s.run(order.append, name, kind=kind, session=session))
                 for name, kind, session in [("viewer b", "viewer", "b"), ("a1", "work", "a"), ("a2", "work", "a"),
                                             ("a3", "work", "a"), ("b1", "work", "b")]]
@@ -89,9 +93,7 @@ def test_looping_work_leaves_the_viewer_a_turn():
     order: list[str] = []
 
     async def body(s: Scheduler):
-        gate = Gate()
-        first = asyncio.ensure_future(s.run(gate, kind="work", session="a"))
-        await gate.until_started()
+        gate, first = await held(s)
         viewer = asyncio.ensure_future(s.run(order.append, "viewer", kind="viewer", session="a", coalesce="page"))
         works = [asyncio.ensure_future(s.run(order.append, f"w{i}", kind="work", session="a")) for i in range(7)]
         await queued(s, 9)
@@ -107,9 +109,7 @@ def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():
     order: list[str] = []
 
     async def body(s: Scheduler):
-        gate = Gate()
-        a1 = asyncio.ensure_future(s.run(gate, "a1", kind="frame", session="a"))
-        await gate.until_started()
+        gate, a1 = await held(s, "frame", name="a1")
         a2 = asyncio.ensure_future(s.run(order.append, "a2", kind="frame", session="a"))
         a3 = asyncio.ensure_future(s.run(order.append, "a3", kind="frame", session="a"))
         # the second frame worker skips a's frames (a1 is folding) and takes b's
@@ -125,7 +125,7 @@ def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():
 def test_the_queue_limit_holds_per_session_and_kind():
     async def body(s: Scheduler):
         gate = Gate()
-        held = [asyncio.ensure_future(s.run(gate, kind="work", session="a")) for _ in range(2)]
+        taken = [asyncio.ensure_future(s.run(gate, kind="work", session="a")) for _ in range(2)]
         await queued(s, 2)
         with pytest.raises(QueueFull, match="queue_limit: session a has 2 work jobs"):
             await s.run(str, kind="work", session="a")
@@ -134,7 +134,7 @@ def test_the_queue_limit_holds_per_session_and_kind():
         assert await s.run(lambda: "b", kind="frame", session="b") == "b"
         assert await s.run(lambda: "a frame", kind="frame", session="a") == "a frame"
         gate.opened.set()
-        await asyncio.gather(*held)
+        await asyncio.gather(*taken)
         assert s.active == 0
         assert await s.run(lambda: "again", kind="work", session="a") == "again"
 
@@ -145,9 +145,7 @@ def test_a_newer_viewer_picture_replaces_the_waiting_one():
     ran: list[str] = []
 
     async def body(s: Scheduler):
-        gate = Gate()
-        first = asyncio.ensure_future(s.run(gate, kind="work", session="a"))
-        await gate.until_started()
+        gate, first = await held(s)
         old = asyncio.ensure_future(s.run(ran.append, "old", kind="viewer", session="a", coalesce="page 1"))
         other = asyncio.ensure_future(s.run(ran.append, "other page", kind="viewer", session="a", coalesce="page 2"))
         await queued(s, 3)
@@ -164,9 +162,7 @@ def test_a_newer_viewer_picture_replaces_the_waiting_one():
 
 def test_a_cancelled_waiting_job_leaves_its_queue():
     async def body(s: Scheduler):
-        gate = Gate()
-        first = asyncio.ensure_future(s.run(gate, kind="work", session="a"))
-        await gate.until_started()
+        gate, first = await held(s)
         waiting = asyncio.ensure_future(s.run(pytest.fail, "a cancelled job ran", kind="work", session="a"))
         await queued(s, 2)
         waiting.cancel()
