@@ -23,6 +23,7 @@ const view = $("view"), overlay = $("overlay"), stage = $("stage");
 for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
 stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
 
+const NOT_ASKED = { version: -1, full: false, at: -Infinity };
 // Everything a test (or the console) may want to read is on window.viewer.
 const state = {
   id: sessionId, width: WIDTH, height: HEIGHT,
@@ -30,15 +31,13 @@ const state = {
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
   version: 0, changedAt: 0,
-  inflight: 0, asked: null, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
+  inflight: 0, asked: NOT_ASKED, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
   drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
   frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
   status: "connecting…",
   images: 0, info: null, timing: {}, history: [],  // history: timings of the last HISTORY images
 };
 const HISTORY = 500;
-const NOT_ASKED = { version: -1, full: false, at: -Infinity };
-state.asked = NOT_ASKED;
 window.viewer = state;
 
 // -- the image loop ---------------------------------------------------------------------------
