@@ -3,12 +3,10 @@ same ratio for Open3D's integrate, in the same run.
 
     python bench/shared_cores.py [--data ../shared/data/realsense_shelf] [--voxel 0.004] [--frames 20] [--rounds 3]
 
-Each round times, on the same frames (a fresh scene or grid each pass): our fold under each thread
-setting below and Open3D's integrate, quiet; then the same with a CPU hog running (a child process
-``python -c 'while 1: pass'``: one core's worth of another process's load, placed by the OS). The
-thread settings are the ones the service applies in its workers (`server.store.configure_thread`):
-numba's threads, and numba's parallel chunk size (0: each thread takes an equal share of a loop at
-the start; n: threads take n iterations at a time, so one slowed by a shared core takes fewer).
+Each round times, on the same frames (a fresh scene or grid each pass): our fold on numba's threads
+(one a core) and on one thread (what `CANONICAL_THREADS=1` gives the service's workers), and
+Open3D's integrate, quiet; then the same with a CPU hog running (a child process
+``python -c 'while 1: pass'``: one core's worth of another process's load, placed by the OS).
 Prints the machine, the medians and the hog/quiet ratios (each round's, and of the medians over all
 rounds). Other work on the machine moves the absolute figures: read the ratios, taken side by side.
 Never asserts timings.
@@ -38,15 +36,13 @@ from canonical_core.eval.open3d_tsdf import open3d_available  # noqa: E402
 HOG = "while 1: pass"
 
 
-def ours(threads: int, chunksize: int):
-    """A timer of our fold with numba's ``threads`` and parallel ``chunksize`` in this thread."""
+def ours(threads: int):
+    """A timer of our fold on ``threads`` of numba's threads."""
     def run(frames, config) -> list[float]:
         numba.set_num_threads(threads)
-        previous = numba.set_parallel_chunksize(chunksize)
         try:
             return time_folds(frames, config)[0]
         finally:
-            numba.set_parallel_chunksize(previous)
             numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     return run
 
@@ -57,16 +53,13 @@ def main(argv=None) -> None:
     p.add_argument("--voxel", type=float, default=0.004)
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--rounds", type=int, default=3, help="quiet + hog measurements, alternated")
-    p.add_argument("--chunksize", type=int, default=64, help="the parallel chunk size of the dynamic setting")
     args = p.parse_args(argv)
-    if min(args.frames, args.rounds, args.chunksize) < 1:
-        p.error("--frames, --rounds and --chunksize: expected positive numbers")
+    if min(args.frames, args.rounds) < 1:
+        p.error("--frames and --rounds: expected positive numbers")
     frames = list(load_dataset(args.data, max_frames=args.frames))
     config = SceneConfig(voxel_size=args.voxel)
     cores = numba.config.NUMBA_NUM_THREADS
-    folds = {f"ours, {cores} threads, equal shares": ours(cores, 0),
-             f"ours, {cores} threads, chunks of {args.chunksize}": ours(cores, args.chunksize),
-             "ours, 1 thread": ours(1, 0)}
+    folds = {f"ours, {cores} threads": ours(cores), "ours, 1 thread": ours(1)}
     if open3d_available():
         folds["Open3D integrate"] = lambda fs, _config: time_open3d(fs, args.voxel)
     print(machine_summary())

@@ -16,8 +16,8 @@ delays, another session's frames. The kinds, first served first:
   turn, so that clients looping renders slow the viewer down but never freeze it.
 
 Work and viewer jobs run on the render workers, whose threads (and the numba and OpenMP threads
-they start, which inherit it) run at a lower OS priority (``nice``), so that a fold running beside
-a render gets the cores first. Threads and queued jobs are bounded: ``frame_workers +
+they start, which inherit it) run at a lower OS priority (``nice``, on Linux), so that a fold
+running beside a render gets the cores first. Threads and queued jobs are bounded: ``frame_workers +
 render_workers`` threads, and at most ``queue_limit`` jobs per session and kind.
 
 Example:
@@ -35,6 +35,7 @@ import contextlib
 import contextvars
 import functools
 import os
+import sys
 import threading
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
@@ -213,8 +214,9 @@ class Scheduler:
         return None
 
     def _work(self, lane: _Lane) -> None:
-        if lane.nice:
-            # Linux keeps the nice value per thread; the threads this one starts (numba's, OpenMP's) inherit it
+        if lane.nice and sys.platform == "linux":
+            # Linux keeps the nice value per thread (elsewhere it is the whole process's: left alone);
+            # the threads this one starts (numba's, OpenMP's) inherit it
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), lane.nice)
         if self._init is not None:
             self._init()
