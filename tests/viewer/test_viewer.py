@@ -120,12 +120,13 @@ def test_a_drag_over_a_busy_session_skips_superseded_pictures_and_ends_on_the_ne
     version = page.evaluate("viewer.version")
     x, y = center(page)
     # renders of the same session go first: the page's pictures wait, and each newer one replaces the last
-    with RenderLoop(server.url, shelf_session.id, shelf[0], (640, 480), clients=4, token=TOKEN):
+    # (eight clients: the session's whole queue of work, so every picture waits for renders first)
+    with RenderLoop(server.url, shelf_session.id, shelf[0], (640, 480), clients=8, token=TOKEN):
         page.mouse.move(x, y)
         page.mouse.down()
-        for k in range(1, 16):
-            page.mouse.move(x + 8 * k, y + 2 * k)
-            page.wait_for_timeout(50)
+        for k in range(1, 31):
+            page.mouse.move(x + 4 * k, y + k)
+            page.wait_for_timeout(10)
         page.mouse.up()
         wait_new_image(page, version)
     page.screenshot(path=shots / "dragged_busy.png")
