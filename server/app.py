@@ -17,15 +17,15 @@ from fastapi.concurrency import run_in_threadpool
 
 from .warmup import warm_up
 
-from .deps import JobQueue
 from .errors import error_response, install_error_handlers
 from .events import FoldEvents
 from .memory import MemoryBudget, trim_heap
 from .metrics import Metrics
 from .routes import exports, frames, health, poses, sessions, viewer, views
+from .scheduler import Scheduler
 from .session_errors import DataDirLocked
 from .settings import Settings
-from .store import SessionStore
+from .store import SessionStore, configure_thread
 
 log = logging.getLogger("canonical.server")
 BODIES_RETRY_AFTER_S = 1  # bodies in flight are full: most are answered within a second
@@ -267,6 +267,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 loop.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await loop
+            await run_in_threadpool(app.state.jobs.close)
             await run_in_threadpool(store.close)
 
     app = FastAPI(
@@ -278,7 +279,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.store = store
     app.state.metrics = metrics
-    app.state.jobs = JobQueue(settings.queue_limit, settings.threads)
+    app.state.jobs = Scheduler(settings.frame_workers, settings.render_workers, settings.queue_limit, settings.render_nice,
+                               init=lambda: configure_thread(settings.threads))
     app.state.events = FoldEvents(settings.max_event_streams_per_session, settings.max_event_streams)
     app.state.bodies = BodyBytes(settings.max_inflight_body_bytes)
     app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics, bodies=app.state.bodies)

@@ -18,12 +18,14 @@ from canonical_core.scene import CapacityError
 from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
+from .scheduler import QueueFull
 from .session_errors import FrameIdConflict, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")
 
 _FIELD = re.compile(r"^([A-Za-z_][\w.\[\]-]*): ")
+QUEUE_RETRY_AFTER_S = 1  # a full queue: its jobs take a fraction of a second each
 _HTTP_CODES = {401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
                406: "not_acceptable", 409: "conflict", 413: "too_large", 415: "unsupported_media_type",
                422: "invalid_value", 429: "busy", 503: "unavailable", 507: "insufficient_storage"}
@@ -101,6 +103,10 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(MemoryBudgetExceeded)
     async def _over_budget(request: Request, exc: MemoryBudgetExceeded):
         return error_response(413, "too_large", str(exc), "frame")
+
+    @app.exception_handler(QueueFull)
+    async def _queue_full(request: Request, exc: QueueFull):
+        return error_response(429, "busy", str(exc), "queue_limit", {"Retry-After": str(QUEUE_RETRY_AFTER_S)})
 
     @app.exception_handler(TooManySessions)
     async def _too_many(request: Request, exc: TooManySessions):

@@ -80,7 +80,18 @@ class Settings(BaseSettings):
         "those active in the last 24 hours (default: no budget); damaged (unavailable) sessions count but are kept"))
     retention_every_s: float = Field(300.0, gt=0, description=(
         "how often the service applies session_ttl_s and disk_budget_bytes (POST /v1/sessions/prune applies them now)"))
-    queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")
+    queue_limit: int = Field(8, gt=0, description=(
+        "compute jobs of one session and one kind (frames and corrections; renders, exports and other work; the "
+        "viewer's pictures) running or waiting; one more of that session and kind gets 429 with Retry-After, "
+        "other sessions and kinds are not affected"))
+    frame_workers: int = Field(2, gt=0, description=(
+        "threads that fold frames (and run corrections, session creation and deletion): one session's one at a "
+        "time, the sessions in turn"))
+    render_workers: int = Field(2, gt=0, description=(
+        "threads that run renders, views, exports, stats and the viewer's pictures, after the frames"))
+    render_nice: int = Field(10, ge=0, le=19, description=(
+        "how much lower the OS priority (nice) of the render workers is than the service's, so that a fold "
+        "running beside a render gets the cores first (0: the same)"))
     threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
     warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")
     host: str = "127.0.0.1"

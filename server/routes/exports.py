@@ -23,7 +23,7 @@ async def _export(session, jobs, max_gaussians, encode, suffix: str, features: b
         gaussians, _ = session.gaussians(max_gaussians, features=features)
         return encode(gaussians), len(gaussians)
 
-    data, n = await jobs.run(job)
+    data, n = await jobs.run(job, kind="work", session=session.id)
     return Response(data, media_type="application/octet-stream", headers={
         "Content-Disposition": f'attachment; filename="{session.id}{suffix}"', "X-Canonical-Gaussians": str(n)})
 

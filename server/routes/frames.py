@@ -99,7 +99,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds), frame.camera
 
     t0 = time.perf_counter()
-    (report, replay), camera = await jobs.run(fold)
+    (report, replay), camera = await jobs.run(fold, kind="frame", session=session.id)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:

@@ -17,7 +17,7 @@ router = APIRouter(prefix="/v1/sessions", tags=["poses"],
 
 async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list, wait: bool = True):
     try:
-        done = await jobs.run(session.corrections.correct, poses, remove, wait)
+        done = await jobs.run(session.corrections.correct, poses, remove, wait, kind="frame", session=session.id)
     except CorrectionRefused as exc:
         raise ApiError(409, "correction_refused", str(exc), exc.field) from None
     if done["state"] == "done":

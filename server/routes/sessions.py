@@ -34,7 +34,7 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  #
     if config.model not in ("default", "none"):  # a client must not make the service read a file of its choosing
         raise ApiError(422, "invalid_value", "model: a checkpoint path cannot be chosen over HTTP; use 'default' "
                                                "or 'none'", "model")
-    session = await jobs.run(store.create, config, retention)
+    session = await jobs.run(store.create, config, retention, kind="frame")
     return SessionCreated(id=session.id, config=config.to_dict(), archive_retention=session.retention)
 
 
@@ -52,23 +52,23 @@ async def prune_sessions(store: StoreDep, jobs: JobsDep, service: SettingsDep,  
     sessions idle longer than ``session_ttl_s``, then the oldest idle ones while the data directory
     exceeds ``disk_budget_bytes``. Never one active in the last 24 hours, nor a busy one. With
     ``?dry_run=true`` nothing is removed and the answer lists what would be."""
-    return PruneReport(**await jobs.run(store.prune, service.session_ttl_s, service.disk_budget_bytes, dry_run))
+    return PruneReport(**await jobs.run(store.prune, service.session_ttl_s, service.disk_budget_bytes, dry_run, kind="work"))
 
 
 @router.get("/{session_id}", response_model=SessionStats)
 async def session_stats(session: SessionDep, jobs: JobsDep) -> SessionStats:
     """Frames, voxels, Gaussians (decodes if the cache is cold), bytes in memory and on disk."""
-    return SessionStats(**await jobs.run(session.stats))
+    return SessionStats(**await jobs.run(session.stats, kind="work", session=session.id))
 
 
 @router.get("/{session_id}/digest", response_model=Digest)
 async def session_digest(session: SessionDep, jobs: JobsDep) -> Digest:
     """sha256 of the scene's raw sums: two sessions fused from the same frames have the same digest."""
-    return Digest(**await jobs.run(session.digest))
+    return Digest(**await jobs.run(session.digest, kind="work", session=session.id))
 
 
 @router.delete("/{session_id}", response_model=Deleted)
 async def delete_session(session_id: str, store: StoreDep, jobs: JobsDep) -> Deleted:
     """Delete the session and its files (an unavailable session's too)."""
-    await jobs.run(store.delete, session_id)
+    await jobs.run(store.delete, session_id, kind="frame", session=session_id)
     return Deleted(id=session_id)

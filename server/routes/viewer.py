@@ -13,7 +13,7 @@ import mimetypes
 import time
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Header, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response, StreamingResponse
 from PIL import Image
@@ -25,6 +25,7 @@ from .. import viewer, wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..events import DROPPED, TooManyStreams, sse
+from ..scheduler import Superseded
 from ..schemas import ErrorBody
 from ..session_errors import SessionNotFound
 from . import views
@@ -99,7 +100,7 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> d
                 continue
         return rows
 
-    rows = await jobs.run(job)
+    rows = await jobs.run(job, kind="viewer")
     rows += [{**s, "last_fold": None} for s in store.unavailable_summaries()]
     return {"sessions": rows}
 
@@ -206,6 +207,8 @@ def _range(text: str | None) -> tuple[float, float] | None:
 
 @router.get("/{session_id}/image", response_class=Response,
             responses={200: {"content": {m: {} for m in MEDIA.values()}},
+                       204: {"description": "superseded: a newer picture of the same viewer replaced this one "
+                                            "while it waited (X-Canonical-Superseded: true)"},
                        **{c: {"model": ErrorBody} for c in (401, 404, 409, 413, 422, 429)}})
 async def view_image(
     view: views.QueryView, session: SessionDep, settings: SettingsDep, jobs: JobsDep, metrics: MetricsDep,
@@ -215,6 +218,8 @@ async def view_image(
     quality: Annotated[int, Query(ge=1, le=100, description="jpeg/webp quality")] = 80,
     depth_range: Annotated[str | None, Query(description="depth mode: near,far in metres (default: "
                                                          "the 2nd-98th percentile of the view)")] = None,
+    x_canonical_viewer: Annotated[str | None, Header(max_length=64, description=(
+        "the viewer page asking (any id it picked): its picture still waiting is replaced by this one"))] = None,
 ) -> Response:
     """A picture of the view for people (the web viewer): one mode, one image format.
 
@@ -223,7 +228,12 @@ async def view_image(
     the colour map), ``X-Canonical-Coverage`` (share of pixels with alpha > 0.5) or
     ``X-Canonical-Labels`` (label ids in view); rgb, depth and alpha also carry
     ``X-Canonical-Centre-Depth`` (the median depth drawn in the middle ninth of the view, where
-    anything is drawn there: the viewer orbits about it). Labels: 409 where the session has none."""
+    anything is drawn there: the viewer orbits about it). Labels: 409 where the session has none.
+
+    Pictures are the service's last priority (after frames, renders and exports), and they coalesce:
+    a picture still waiting when a newer one of the same viewer (``X-Canonical-Viewer``; without it,
+    of the same session) arrives is answered 204 with ``X-Canonical-Superseded: true``, so a viewer
+    that moves faster than the service renders costs one waiting picture, not a queue of stale ones."""
     fixed = _range(depth_range)
     kind = {"features": "features", "labels": "segmentation"}.get(mode, "render")
     timing: dict = {}
@@ -237,7 +247,11 @@ async def view_image(
         return data, MEDIA[format]
 
     t0 = time.perf_counter()
-    response = await views._view(kind, session, view, settings, jobs, metrics, views.Encoder(views.OUTPUTS[kind], encode))
+    try:
+        response = await views._view(kind, session, view, settings, jobs, metrics, views.Encoder(views.OUTPUTS[kind], encode),
+                                     lane="viewer", coalesce=x_canonical_viewer or "")
+    except Superseded:
+        return Response(status_code=204, headers={"X-Canonical-Superseded": "true", "Cache-Control": "no-store"})
     total = time.perf_counter() - t0
     picture_s, encode_s = timing.pop("picture"), timing.pop("encode")
     response.headers.update(timing)

@@ -17,6 +17,7 @@ from canonical_core.rendering.preview import feature_preview
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError
+from ..scheduler import Kind as JobKind
 from ..schemas import ErrorBody, ViewRequest
 
 router = APIRouter(prefix="/v1/sessions", tags=["views"])
@@ -106,7 +107,9 @@ class Encoder(NamedTuple):
     encode: Callable[[dict[str, np.ndarray]], tuple[bytes, str]]
 
 
-async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encoder: Encoder) -> Response:
+async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, encoder: Encoder,
+                lane: JobKind = "work", coalesce: str | None = None) -> Response:
+    """Render ``kind`` at the view on a worker of the scheduler's ``lane`` (`Scheduler.run`)."""
     camera = _camera(view, settings.max_image_pixels)
     outputs, encode = encoder
     if kind == "segmentation" and session.scene.label_dim == 0:
@@ -124,7 +127,7 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
         return encode(maps), len(gaussians)
 
     t0 = time.perf_counter()
-    (content, media), n = await jobs.run(job)
+    (content, media), n = await jobs.run(job, kind=lane, session=session.id, coalesce=coalesce)
     metrics.view_seconds[kind].observe(time.perf_counter() - t0)
     return Response(content, media_type=media, headers={"X-Canonical-Gaussians": str(n)})
 

@@ -123,6 +123,48 @@ def in_process_server(data_dir: Path):
         thread.join(30)
 
 
+class RenderLoop:
+    """``clients`` SDK clients (each with its default 429 retries) rendering session ``session_id`` at
+    ``size`` (width, height: the camera of add_frame kwargs ``kwargs``, its intrinsics scaled) in a
+    loop while the ``with`` block runs: the load of the fairness test and bench. ``done`` counts the
+    renders answered; any other error than a retried 429 is raised when the block ends."""
+
+    def __init__(self, url: str, session_id: str, kwargs: dict, size: tuple[int, int], clients: int,
+                 token: str | None = None):
+        scale = size[0] / kwargs["rgb"].shape[1]
+        self.url, self.session_id, self.size, self.token = url, session_id, size, token
+        self.K, self.c2w = kwargs["K"] * [[scale], [scale], [1.0]], kwargs["c2w"]
+        self.done, self.errors = 0, []
+        self._stop, self._lock = threading.Event(), threading.Lock()
+        self._threads = [threading.Thread(target=self._loop) for _ in range(clients)]
+
+    def __enter__(self) -> "RenderLoop":
+        for t in self._threads:
+            t.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join()
+        if self.errors:
+            raise self.errors[0]
+
+    def _loop(self) -> None:
+        from client.sdk import Client, Session
+
+        try:
+            with Client(self.url, token=self.token) as client:
+                session = Session(client, self.session_id, label_dim=0)
+                while not self._stop.is_set():
+                    view = session.render(self.K, self.c2w, *self.size)
+                    assert view["rgb"].shape == (self.size[1], self.size[0], 3)
+                    with self._lock:
+                        self.done += 1
+        except BaseException as exc:  # noqa: BLE001 - raised by __exit__
+            self.errors.append(exc)
+
+
 def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
     """Poll ``condition()`` until it is true (True) or ``timeout`` seconds pass (False): for what the
     service does off the request's path, such as a due snapshot."""

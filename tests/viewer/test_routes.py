@@ -115,6 +115,14 @@ def test_bad_image_requests_name_the_field(server, walls, params, status, field)
     assert r.status_code == status and r.json()["error"]["field"] == field
 
 
+def test_a_viewer_id_over_64_characters_is_refused_naming_its_header(server, walls):
+    session, frames = walls
+    r = get_image(server, session.id, image_query(frames[-1]), headers={**AUTH, "X-Canonical-Viewer": "v" * 65})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "x-canonical-viewer"
+    r = get_image(server, session.id, image_query(frames[-1]), headers={**AUTH, "X-Canonical-Viewer": "v" * 64})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+
+
 def test_labels_of_a_session_without_labels_is_409(server, client):
     session = client.create_session(voxel_size=VOXEL)
     kwargs = {k: v for k, v in wall_frames()[0].items() if k != "labels"}

@@ -15,7 +15,7 @@ from PIL import Image
 
 from client.sdk import png_to_array
 
-from ..server.harness import TOKEN, VOXEL, small_frames
+from ..server.harness import TOKEN, VOXEL, RenderLoop, small_frames
 from .walls import FAR, LABELS, NEAR, wall_frames
 
 pytestmark = pytest.mark.slow
@@ -112,6 +112,27 @@ def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shot
     after_image = canvas(page)
     assert np.abs(after_pose - before_pose).max() > 0.01
     assert np.abs(after_image.astype(int) - before_image).mean() > 3.0
+
+
+def test_a_drag_over_a_busy_session_skips_superseded_pictures_and_ends_on_the_newest_pose(page, server, shelf_session,
+                                                                                          shelf, shots):
+    open_viewer(page, server, shelf_session.id)
+    version = page.evaluate("viewer.version")
+    x, y = center(page)
+    # renders of the same session go first: the page's pictures wait, and each newer one replaces the last
+    # (eight clients: the session's whole queue of work, so every picture waits for renders first)
+    with RenderLoop(server.url, shelf_session.id, shelf[0], (640, 480), clients=8, token=TOKEN):
+        page.mouse.move(x, y)
+        page.mouse.down()
+        for k in range(1, 31):
+            page.mouse.move(x + 4 * k, y + k)
+            page.wait_for_timeout(10)
+        page.mouse.up()
+        wait_new_image(page, version)
+    page.screenshot(path=shots / "dragged_busy.png")
+    assert page.evaluate("viewer.superseded") > 0
+    K, c2w, w, h = view_camera(page)
+    assert psnr(canvas(page), png_to_array(shelf_session.render_png(K, c2w, w, h))) > 40.0
 
 
 

@@ -10,6 +10,9 @@ const LOW = 0.5;  // size factor of the images asked for while the pose moves
 // ... and their level of detail: the best-supported N Gaussians (rendering time grows with N)
 const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
 const REST_MS = 180;  // the pose counts as resting this long after its last change
+const SEND_GAP_MS = 40;  // while a picture is out, a newer pose is asked for at most this often
+// this page among the service's viewers: its waiting picture is replaced by its newer ones only
+const VIEWER_ID = Math.random().toString(36).slice(2, 12);
 const ORBIT_RAD_PER_PX = 0.006;
 const FLY_SPEED = 0.6;  // orbit distances per second
 const MAX_FRUSTUMS = 20;  // frustums drawn by default: more hide the picture under a wireframe
@@ -20,13 +23,15 @@ const view = $("view"), overlay = $("overlay"), stage = $("stage");
 for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
 stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
 
+const NOT_ASKED = { version: -1, full: false, at: -Infinity };
 // Everything a test (or the console) may want to read is on window.viewer.
 const state = {
   id: sessionId, width: WIDTH, height: HEIGHT,
   pose: { R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], p: [0, 0, 0] }, distance: 1, up: [0, -1, 0],
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
-  version: 0, changedAt: 0, inflight: null,
+  version: 0, changedAt: 0,
+  inflight: 0, asked: NOT_ASKED, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
   drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
   frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
   status: "connecting…",
@@ -62,12 +67,16 @@ function imageUrl(full) {
   return `/v1/sessions/${encodeURIComponent(sessionId)}/image?${q}`;
 }
 
-// One request in flight at a time, always for the newest pose: a response that arrives after a
-// newer picture was drawn is dropped, so the view never goes back in time. An empty session has
-// nothing to draw: no request until its first fold, which then gets the first one at once.
+// The newest pose is asked for as soon as it changes (at most one request per SEND_GAP_MS while
+// others are out), even while an older picture is still on its way: the service renders viewer
+// pictures last, one of this page's at a time, and answers a request that still waits when a newer
+// one of this page (VIEWER_ID) arrives with 204 (superseded). So what it renders next is always the
+// newest pose, and a moving view costs one waiting picture, not a queue of stale ones. A response
+// that arrives after a newer picture was drawn is dropped, so the view never goes back in time. An
+// empty session has nothing to draw: no request until its first fold, which then gets one at once.
 function pump() {
   showStatus();
-  if (state.inflight || !state.info || !state.frames) return;
+  if (!state.info || !state.frames) return;
   const { version, frames } = state;
   if (state.failed === version) return;  // asked and refused: wait for the next change
   const resting = performance.now() - state.changedAt >= REST_MS;
@@ -76,10 +85,20 @@ function pump() {
     return;
   }
   const full = resting;
+  if (state.asked.version === version && (state.asked.full || !full)) return;  // its answer pumps again
+  const wait = state.asked.at + SEND_GAP_MS - performance.now();
+  if (state.inflight && wait > 0) {
+    clearTimeout(state.sendTimer);
+    state.sendTimer = setTimeout(pump, wait);
+    return;
+  }
   const mode = state.mode;
   const t0 = performance.now();
-  state.inflight = request(imageUrl(full))
+  state.asked = { version, full, at: t0 };
+  state.inflight += 1;
+  request(imageUrl(full), { headers: { "X-Canonical-Viewer": VIEWER_ID } })
     .then(async (response) => {
+      if (response.status === 204) { state.superseded += 1; return; }  // a newer request of ours replaced it
       const blob = await response.blob();
       const t1 = performance.now();
       const bitmap = await createImageBitmap(blob);
@@ -108,7 +127,11 @@ function pump() {
       state.failed = version;
       if (error.status === 429) setTimeout(() => { state.failed = null; pump(); }, 1000);  // busy: try again
     })
-    .finally(() => { state.inflight = null; pump(); });
+    .finally(() => {
+      state.inflight -= 1;
+      if (state.asked.version === version && state.asked.full === full) state.asked = NOT_ASKED;  // answered
+      pump();
+    });
   showStatus();
 }
 

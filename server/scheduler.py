@@ -1,0 +1,239 @@
+"""The service's compute: a fixed pool of worker threads that serve per-session queues, frames first.
+
+One queue shared by every session and kind of work let ten clients looping renders on one session
+fill it, so that every frame sent to another session was refused. Here each session has a queue per
+kind of job, bounded on its own; the workers serve the kinds in priority order and, within a kind,
+the sessions with jobs waiting in turn (round-robin), so one session's load never refuses, and hardly
+delays, another session's frames. The kinds, first served first:
+
+- ``frame``: folds, pose corrections, creating and deleting sessions: the writes a streaming client
+  waits on. The frame workers run them, a session's one at a time and in arrival order (its folds
+  take the session lock in turn anyway: a second worker would only wait for it).
+- ``work``: renders, feature and label views, exports, stats, digests, pruning.
+- ``viewer``: the web viewer's pictures and session list. A picture still waiting is replaced by a
+  newer one with the same ``coalesce`` key (one viewer page): the older request gets `Superseded`.
+  After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
+  turn, so that clients looping renders slow the viewer down but never freeze it.
+
+Work and viewer jobs run on the render workers, whose threads (and the numba and OpenMP threads
+they start, which inherit it) run at a lower OS priority (``nice``, on Linux), so that a fold
+running beside a render gets the cores first. Threads and queued jobs are bounded: ``frame_workers +
+render_workers`` threads, and at most ``queue_limit`` jobs per session and kind.
+
+Example:
+    >>> import asyncio
+    >>> scheduler = Scheduler(frame_workers=1, render_workers=1, queue_limit=2)
+    >>> asyncio.run(scheduler.run(sum, [1, 2, 3], kind="frame", session="a"))
+    6
+    >>> scheduler.close()
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import contextvars
+import functools
+import os
+import sys
+import threading
+from collections import Counter, OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, Literal, TypeVar
+
+T = TypeVar("T")
+Kind = Literal["frame", "work", "viewer"]
+KINDS: tuple[Kind, ...] = ("frame", "work", "viewer")  # priority order
+RENDER_KINDS: tuple[Kind, ...] = ("work", "viewer")  # what the render workers take, in this order
+VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
+
+
+class QueueFull(Exception):
+    """A session's queue of one kind holds ``limit`` jobs already (the service answers 429)."""
+
+    def __init__(self, session: str, kind: Kind, limit: int):
+        owner = f"session {session}" if session else "the service"
+        super().__init__(f"queue_limit: {owner} has {limit} {kind} jobs running or waiting, its limit; retry later "
+                         f"(other sessions and kinds of job have their own)")
+        self.session, self.kind, self.limit = session, kind, limit
+
+
+class Superseded(Exception):
+    """A viewer job replaced, while it waited, by a newer one with the same coalesce key."""
+
+
+@dataclass(eq=False)
+class _Job:
+    call: Callable[[], Any]
+    kind: Kind
+    session: str
+    coalesce: str | None
+    future: asyncio.Future
+    loop: asyncio.AbstractEventLoop = field(repr=False)
+
+
+@dataclass(eq=False)
+class _Lane:
+    """Workers that take ``kinds`` (in this order) at OS priority ``nice``, woken through ``ready``."""
+
+    kinds: tuple[Kind, ...]
+    workers: int
+    nice: int
+    ready: threading.Condition
+
+
+def _settle(future: asyncio.Future, result: Any, error: BaseException | None) -> None:
+    if future.done():  # its request was cancelled meanwhile
+        return
+    if error is None:
+        future.set_result(result)
+    else:
+        future.set_exception(error)
+
+
+class Scheduler:
+    """Runs jobs on ``frame_workers`` threads (frames) and ``render_workers`` threads at OS priority
+    ``render_nice`` (other work, then the viewer's); at most ``queue_limit`` jobs running or waiting
+    per session and kind. ``init`` runs once in each worker thread before its first job (the
+    service's numba thread count, which numba keeps per thread). Threads start with the first job.
+    """
+
+    def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = 10,
+                 init: Callable[[], None] | None = None):
+        self.limit, self._init = queue_limit, init
+        self._lock = threading.Lock()
+        self._lanes = (_Lane(("frame",), frame_workers, 0, threading.Condition(self._lock)),
+                       _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)))
+        # kind -> session -> its waiting jobs; a session's place in the dict is its turn
+        self._waiting: dict[Kind, OrderedDict[str, deque[_Job]]] = {kind: OrderedDict() for kind in KINDS}
+        self._held: Counter[tuple[str, Kind]] = Counter()  # jobs running or waiting per (session, kind)
+        self._folding: set[str] = set()  # sessions with a frame job running
+        self._passed_over = 0  # work jobs taken in a row while viewer jobs waited
+        self._threads: list[threading.Thread] = []
+        self._closed = False
+        self.active = 0  # jobs running or waiting, all sessions and kinds
+        self.superseded = 0  # viewer jobs replaced while waiting, since the start
+
+    async def run(self, fn: Callable[..., T], *args, kind: Kind, session: str = "", coalesce: str | None = None,
+                  **kwargs) -> T:
+        """``fn(*args, **kwargs)`` on a worker, for ``session`` ("" for the service's own jobs).
+        Raises `QueueFull` at once when the session's ``kind`` queue is full, `Superseded` when a newer
+        viewer job with the same ``coalesce`` key replaced this one while it waited."""
+        loop = asyncio.get_running_loop()
+        call = functools.partial(contextvars.copy_context().run, fn, *args, **kwargs)
+        job = _Job(call, kind, session, coalesce, loop.create_future(), loop)
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("the scheduler is closed")
+            if coalesce is not None:
+                self._supersede(job)
+            if self._held[session, kind] >= self.limit:
+                raise QueueFull(session, kind, self.limit)
+            self._held[session, kind] += 1
+            self.active += 1
+            self._waiting[kind].setdefault(session, deque()).append(job)
+            if not self._threads:
+                self._start()
+            self._lane(kind).ready.notify()
+        try:
+            return await job.future
+        except asyncio.CancelledError:
+            with self._lock:
+                self._forget(job)
+            raise
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Let the workers finish the jobs taken, then stop them."""
+        with self._lock:
+            self._closed = True
+            for lane in self._lanes:
+                lane.ready.notify_all()
+        for thread in self._threads:
+            thread.join(timeout)
+
+    def _lane(self, kind: Kind) -> _Lane:
+        return self._lanes[0] if kind == "frame" else self._lanes[1]
+
+    def _start(self) -> None:
+        for lane in self._lanes:
+            for i in range(lane.workers):
+                thread = threading.Thread(target=self._work, args=(lane,), daemon=True,
+                                          name=f"canonical-{lane.kinds[0]}-{i}")
+                thread.start()
+                self._threads.append(thread)
+
+    def _supersede(self, job: _Job) -> None:
+        """Answer the waiting viewer job that ``job`` replaces (same session and key), if any."""
+        queue = self._waiting[job.kind].get(job.session, ())
+        for old in queue:
+            if old.coalesce == job.coalesce:
+                self._forget(old)
+                self.superseded += 1
+                _settle(old.future, None, Superseded())  # on the event loop already
+                return
+
+    def _forget(self, job: _Job) -> None:
+        """Drop a job that is still waiting (one taken by a worker runs to its end)."""
+        sessions = self._waiting[job.kind]
+        queue = sessions.get(job.session)
+        if queue is None or job not in queue:
+            return
+        queue.remove(job)
+        if not queue:
+            del sessions[job.session]
+        self._release(job)
+
+    def _release(self, job: _Job) -> None:
+        self._held[job.session, job.kind] -= 1
+        if not self._held[job.session, job.kind]:
+            del self._held[job.session, job.kind]
+        self.active -= 1
+
+    def _next(self, lane: _Lane) -> _Job | None:
+        """The lane's next job: its first kind with a job that may run (the viewer's, when its turn
+        came), the session whose turn it is."""
+        kinds = lane.kinds
+        if "viewer" in kinds and self._waiting["viewer"]:
+            self._passed_over += 1
+            if self._passed_over >= VIEWER_TURN or not self._waiting["work"]:
+                self._passed_over, kinds = 0, ("viewer",)
+        for kind in kinds:
+            sessions = self._waiting[kind]
+            session = next((s for s in sessions if not (kind == "frame" and s in self._folding)), None)
+            if session is None:
+                continue
+            queue = sessions[session]
+            job = queue.popleft()
+            if queue:
+                sessions.move_to_end(session)  # the other sessions' turns come first
+            else:
+                del sessions[session]
+            if kind == "frame":
+                self._folding.add(session)
+            return job
+        return None
+
+    def _work(self, lane: _Lane) -> None:
+        if lane.nice and sys.platform == "linux":
+            # Linux keeps the nice value per thread (elsewhere it is the whole process's: left alone);
+            # the threads this one starts (numba's, OpenMP's) inherit it
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), lane.nice)
+        if self._init is not None:
+            self._init()
+        while True:
+            with self._lock:
+                while (job := self._next(lane)) is None:
+                    if self._closed:
+                        return
+                    lane.ready.wait()
+            try:
+                result, error = job.call(), None
+            except BaseException as exc:  # noqa: BLE001 - handed to the request that waits for it
+                result, error = None, exc
+            with self._lock:
+                self._release(job)
+                if job.kind == "frame":
+                    self._folding.discard(job.session)
+                    lane.ready.notify()  # the session's next frame may run now
+            with contextlib.suppress(RuntimeError):  # its event loop has closed: nobody waits for the answer
+                job.loop.call_soon_threadsafe(_settle, job.future, result, error)

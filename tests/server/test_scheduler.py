@@ -1,0 +1,217 @@
+"""The scheduler on its own threads: frames never wait for renders, work before the viewer's pictures,
+sessions in turn, a session's frames one at a time in order, limits per session and kind, a newer
+viewer picture replacing a waiting one, and the render workers' lower OS priority.
+
+Each test holds a worker inside a job (a `threading.Event`) to line jobs up behind it, so the order
+asserted is the scheduler's choice, never a matter of timing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+
+import pytest
+
+from server.scheduler import VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
+
+WAIT_S = 30.0
+
+
+class Gate:
+    """A job that records that it started, then waits until the test opens it."""
+
+    def __init__(self):
+        self.started, self.opened = threading.Event(), threading.Event()
+
+    def __call__(self, name: str = "gate") -> str:
+        self.started.set()
+        assert self.opened.wait(WAIT_S), "the test never opened the gate"
+        return name
+
+    async def until_started(self) -> None:
+        assert await asyncio.to_thread(self.started.wait, WAIT_S), "the gated job never started"
+
+
+def run(coro_fn, **settings):
+    """``coro_fn(scheduler)`` on a fresh scheduler (one worker per lane, limit 8 unless given)."""
+    scheduler = Scheduler(**{"frame_workers": 1, "render_workers": 1, "queue_limit": 8, **settings})
+
+    async def main():
+        return await asyncio.wait_for(coro_fn(scheduler), WAIT_S)
+
+    try:
+        return asyncio.run(main())
+    finally:
+        scheduler.close()
+
+
+async def held(s: Scheduler, kind: Kind = "work", session: str = "a", name: str = "gate") -> tuple[Gate, asyncio.Future]:
+    """A gated ``kind`` job taken by a worker: with one worker a lane, that lane is busy until the gate opens."""
+    gate = Gate()
+    job = asyncio.ensure_future(s.run(gate, name, kind=kind, session=session))
+    await gate.until_started()
+    return gate, job
+
+
+async def queued(scheduler: Scheduler, count: int) -> None:
+    """Let ``count`` submitted jobs reach their queues (each `run` enqueues before its first await)."""
+    while scheduler.active < count:
+        await asyncio.sleep(0)
+
+
+def test_a_frame_runs_while_the_render_workers_are_busy():
+    async def body(s: Scheduler):
+        gate, render = await held(s, name="render")
+        assert await s.run(lambda: "folded", kind="frame", session="b") == "folded"
+        assert not render.done()  # the frame did not wait for the render
+        gate.opened.set()
+        assert await render == "render"
+
+    run(body)
+
+
+def test_work_goes_before_the_viewer_and_sessions_take_turns():
+    order: list[str] = []
+
+    async def body(s: Scheduler):
+        gate, first = await held(s)
+        jobs = [asyncio.ensure_future(s.run(order.append, name, kind=kind, session=session))
+                for name, kind, session in [("viewer b", "viewer", "b"), ("a1", "work", "a"), ("a2", "work", "a"),
+                                            ("a3", "work", "a"), ("b1", "work", "b")]]
+        await queued(s, 6)
+        gate.opened.set()
+        await asyncio.gather(first, *jobs)
+
+    run(body)
+    # a's jobs were queued first, b's one waited for a single turn of a's; the viewer came last
+    assert order == ["a1", "b1", "a2", "a3", "viewer b"]
+
+
+def test_looping_work_leaves_the_viewer_a_turn():
+    order: list[str] = []
+
+    async def body(s: Scheduler):
+        gate, first = await held(s)
+        viewer = asyncio.ensure_future(s.run(order.append, "viewer", kind="viewer", session="a", coalesce="page"))
+        works = [asyncio.ensure_future(s.run(order.append, f"w{i}", kind="work", session="a")) for i in range(7)]
+        await queued(s, 9)
+        gate.opened.set()
+        await asyncio.gather(first, viewer, *works)
+
+    run(body, queue_limit=16)
+    # the gated job was taken before the viewer's waited; then VIEWER_TURN - 1 work jobs passed it over
+    assert order.index("viewer") == VIEWER_TURN - 1 and len(order) == 8
+
+
+def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():
+    order: list[str] = []
+
+    async def body(s: Scheduler):
+        gate, a1 = await held(s, "frame", name="a1")
+        a2 = asyncio.ensure_future(s.run(order.append, "a2", kind="frame", session="a"))
+        a3 = asyncio.ensure_future(s.run(order.append, "a3", kind="frame", session="a"))
+        # the second frame worker skips a's frames (a1 is folding) and takes b's
+        await s.run(order.append, "b1", kind="frame", session="b")
+        assert not a2.done() and order == ["b1"]
+        gate.opened.set()
+        await asyncio.gather(a1, a2, a3)
+
+    run(body, frame_workers=2)
+    assert order == ["b1", "a2", "a3"]
+
+
+def test_the_queue_limit_holds_per_session_and_kind():
+    async def body(s: Scheduler):
+        gate = Gate()
+        taken = [asyncio.ensure_future(s.run(gate, kind="work", session="a")) for _ in range(2)]
+        await queued(s, 2)
+        with pytest.raises(QueueFull, match="queue_limit: session a has 2 work jobs"):
+            await s.run(str, kind="work", session="a")
+        assert s.active == 2  # the refused job changed nothing
+        # other sessions and other kinds of the same session have queues of their own
+        assert await s.run(lambda: "b", kind="frame", session="b") == "b"
+        assert await s.run(lambda: "a frame", kind="frame", session="a") == "a frame"
+        gate.opened.set()
+        await asyncio.gather(*taken)
+        assert s.active == 0
+        assert await s.run(lambda: "again", kind="work", session="a") == "again"
+
+    run(body, queue_limit=2)
+
+
+def test_a_newer_viewer_picture_replaces_the_waiting_one():
+    ran: list[str] = []
+
+    async def body(s: Scheduler):
+        gate, first = await held(s)
+        old = asyncio.ensure_future(s.run(ran.append, "old", kind="viewer", session="a", coalesce="page 1"))
+        other = asyncio.ensure_future(s.run(ran.append, "other page", kind="viewer", session="a", coalesce="page 2"))
+        await queued(s, 3)
+        new = asyncio.ensure_future(s.run(ran.append, "new", kind="viewer", session="a", coalesce="page 1"))
+        with pytest.raises(Superseded):
+            await old
+        assert s.superseded == 1 and s.active == 3
+        gate.opened.set()
+        await asyncio.gather(first, other, new)
+
+    run(body)
+    assert ran == ["other page", "new"]
+
+
+def test_a_cancelled_waiting_job_leaves_its_queue():
+    async def body(s: Scheduler):
+        gate, first = await held(s)
+        waiting = asyncio.ensure_future(s.run(pytest.fail, "a cancelled job ran", kind="work", session="a"))
+        await queued(s, 2)
+        waiting.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await waiting
+        assert s.active == 1
+        gate.opened.set()
+        await first
+        assert await s.run(lambda: "next", kind="work", session="a") == "next"
+
+    run(body)
+
+
+def test_errors_reach_the_caller():
+    async def body(s: Scheduler):
+        with pytest.raises(ValueError, match="width: too wide"):
+            await s.run(_raise, ValueError("width: too wide"), kind="work", session="a")
+        assert s.active == 0
+
+    run(body)
+
+
+def _raise(exc: Exception):
+    raise exc
+
+
+def _nice() -> int:
+    return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+
+def test_render_workers_run_at_a_lower_os_priority():
+    async def body(s: Scheduler):
+        return (await s.run(_nice, kind="frame", session="a"), await s.run(_nice, kind="work", session="a"),
+                await s.run(_nice, kind="viewer", session="a"))
+
+    base = _nice()
+    frame, work, viewer = run(body, render_nice=7)
+    assert frame == base and work == viewer == min(base + 7, 19)
+
+
+def test_worker_threads_are_bounded_and_stop_on_close():
+    scheduler = Scheduler(frame_workers=2, render_workers=3, queue_limit=8)
+
+    async def body():
+        await asyncio.gather(*[scheduler.run(str, i, kind=kind, session=f"s{i}")
+                               for i, kind in enumerate(["frame", "work", "viewer"] * 4)])
+
+    before = threading.active_count()
+    asyncio.run(body())
+    assert threading.active_count() - before == 5
+    scheduler.close()
+    assert threading.active_count() == before
