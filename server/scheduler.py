@@ -216,8 +216,10 @@ class Scheduler:
     def _work(self, lane: _Lane) -> None:
         if lane.nice and sys.platform == "linux":
             # Linux keeps the nice value per thread (elsewhere it is the whole process's: left alone);
-            # the threads this one starts (numba's, OpenMP's) inherit it
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), lane.nice)
+            # the threads this one starts (numba's, OpenMP's) inherit it. Relative to the service's
+            # own: a service started under `nice` keeps its renders below its folds all the same.
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + lane.nice, 19))
         if self._init is not None:
             self._init()
         while True:
