@@ -2,11 +2,11 @@
 
 The distance is `surface`'s: built from the support and the representative geometry the scene
 already holds (each voxel's point moments and view directions), no extra state. The lattice is cut
-into cubic blocks of ``block`` cells; each block that holds voxels gets a dense grid of its cells
-plus a margin (`surface.MARGIN`), its distance, and scikit-image's marching cubes (Lewiner) over its
-own cubes. Neighbouring blocks share their boundary nodes, so a vertex on a shared face comes out of
-both: vertices are merged by the lattice edge they lie on. Memory is one block's grid at a time
-(plus the mesh), whatever the scene's extent.
+into cubic blocks of ``block`` cubes; each block with voxels near it gets a dense grid of its
+``block + 1`` nodes a side, their distance, and scikit-image's marching cubes (Lewiner) over its
+cubes. Neighbouring blocks share their boundary nodes, so a vertex on a shared face comes out of
+both: vertices are merged by the lattice edge they lie on. Memory is the per-voxel arrays plus one
+block's grid at a time (and the mesh), whatever the scene's extent.
 """
 
 from __future__ import annotations
@@ -19,9 +19,11 @@ from torch import Tensor
 
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 from .decoding import decoded_rows
-from .surface import MARGIN, signed_distance, tangent_planes, unpack_cells, view_direction_sums, voxel_moments
+from .scene import Scene
+from .fields import unpack_keys
+from .surface import block_distance, tangent_planes, view_direction_sums, voxel_moments, voxel_table
 
-DEFAULT_BLOCK = 64  # cells per block edge: a grid of (64 + 5)^3 cells, about 60 MB of float64 channels
+DEFAULT_BLOCK = 32  # cubes per block edge: 33^3 nodes, a few MB of grids per block
 
 
 @dataclass(frozen=True)
@@ -37,15 +39,21 @@ class Mesh:
         return int(self.faces.shape[0])
 
 
+def pack_cells(cells: np.ndarray) -> np.ndarray:  # [N, 3] int64 -> [N] int64
+    """Lattice cells packed as the voxel keys are (`hashing`): one sortable integer per cell."""
+    packed = cells + KEY_OFFSET
+    return (packed[:, 0] << (2 * KEY_BITS)) | (packed[:, 1] << KEY_BITS) | packed[:, 2]
+
+
 def block_members(
     cells: np.ndarray,  # [V, 3] int64 lattice cells
-    block: int,  # cells per block edge
+    block: int,  # cubes per block edge: its nodes are cells b * block .. (b + 1) * block
 ) -> tuple[np.ndarray, np.ndarray]:  # rows [M] int64, blocks [M, 3] int64
-    """Every (voxel, block) pair where the voxel lies in the block's grid: its cells
-    ``[b * block - MARGIN, (b + 1) * block + MARGIN]`` on each axis. A cell is in one or two blocks
-    per axis (``block > 2 * MARGIN``), so in at most eight."""
-    first = -((block + MARGIN - cells) // block)  # ceil((cell - block - MARGIN) / block)
-    last = (cells + MARGIN) // block
+    """Every (voxel, block) pair where the voxel lies within one cell of the block's nodes (a node's
+    distance reads its 3x3x3 neighbourhood). A cell is in one or two blocks per axis (``block > 2``),
+    so in at most eight."""
+    first = -((block + 1 - cells) // block)  # ceil((cell - block - 1) / block)
+    last = (cells + 1) // block
     rows, blocks = [], []
     for step in np.ndindex(2, 2, 2):
         b = first + np.array(step)
@@ -81,28 +89,21 @@ def trilinear(grid: np.ndarray, points: np.ndarray) -> np.ndarray:  # [X, Y, Z, 
     return out
 
 
-def _block_surface(origin, cells, weight, mean_local, second_local, view, colour, block):
-    """Marching cubes of one block: vertices (global node coordinates, float64), colours [0, 1], faces."""
+def _block_surface(members, origin, cells, weight, mean, normal, colour, block):
+    """Marching cubes of one block: vertices (global node coordinates, float64), colours [0, 1], faces; None if it has none."""
     from skimage.measure import marching_cubes  # the service's extra; the library imports without it
 
-    shape = (block + 2 * MARGIN + 1,) * 3
-    c = (cells + 0.5)[:, :, None]  # block coordinates of each voxel's centre
-    mean = mean_local + c[:, :, 0]
-    second = second_local + c * mean_local[:, None, :] + mean_local[:, :, None] * c.transpose(0, 2, 1) \
-        + c * c.transpose(0, 2, 1)
-    normal = tangent_planes(cells, weight, mean, second, view, shape)
-    distance, defined, colours = signed_distance(cells, weight, mean, normal, colour, shape)
-    nodes = (slice(MARGIN, MARGIN + block + 1),) * 3  # node j of the block is cell origin + j
-    distance, defined, colours = distance[nodes], defined[nodes], colours[nodes]
+    distance, defined, colours = block_distance(members, cells, origin, block + 1, weight, mean, normal, colour)
     mask = cube_mask(defined)
     if not mask.any() or not (distance[defined] < 0).any() or not (distance[defined] > 0).any():
         return None
-    volume = np.where(defined, distance, 1.0).astype(np.float32)  # the value of undefined nodes is never read
+    volume = np.where(defined, distance, 1.0).astype(np.float32)  # masked cubes never read undefined nodes
     try:
         verts, faces, _, _ = marching_cubes(volume, 0.0, mask=mask, gradient_direction="descent")
     except RuntimeError:  # "No surface found": every sign change lies in masked cubes
         return None
-    return verts.astype(np.float64) + origin, trilinear(colours, verts.astype(np.float64)), faces.astype(np.int64)
+    verts = verts.astype(np.float64)
+    return verts + origin, trilinear(colours, verts), faces.astype(np.int64)
 
 
 def merge_vertices(
@@ -114,8 +115,7 @@ def merge_vertices(
     on their shared face become one. Faces that collapse are dropped."""
     lower = np.floor(vertices).astype(np.int64)
     axis = np.argmax(vertices - lower, 1)
-    packed = lower + KEY_OFFSET
-    key = (packed[:, 0] << (2 * KEY_BITS)) | (packed[:, 1] << KEY_BITS) | packed[:, 2]
+    key = pack_cells(lower)
     order = np.lexsort((axis, key))
     new = np.ones(len(order), bool)
     new[1:] = (key[order][1:] != key[order][:-1]) | (axis[order][1:] != axis[order][:-1])
@@ -130,7 +130,7 @@ def surface_mesh(
     sums: dict[str, np.ndarray],  # a scene's sums (`Scene.sums`, `DecodeInputs.sums`), every row
     config: SceneConfig,
     min_support: float = 0.0,  # R_scene a voxel needs to count as surface, as for the Gaussians
-    block: int = DEFAULT_BLOCK,  # cells per block edge (> 2 * MARGIN)
+    block: int = DEFAULT_BLOCK,  # cubes per block edge (>= 4)
 ) -> Mesh:
     """The scene's surface as a coloured triangle mesh (module docstring). The voxels that count are
     the ones that decode to Gaussians (`decoding.decoded_rows`: support above ``min_support``, not
@@ -142,8 +142,8 @@ def surface_mesh(
         >>> len(surface_mesh(Scene(SceneConfig(voxel_size=0.01)).sums(), SceneConfig(voxel_size=0.01)))
         0
     """
-    if isinstance(block, bool) or not isinstance(block, int) or block <= 2 * MARGIN:
-        raise ValueError(f"block: expected an integer above {2 * MARGIN}, got {block!r}")
+    if isinstance(block, bool) or not isinstance(block, int) or block < 4:
+        raise ValueError(f"block: expected an integer of at least 4, got {block!r}")
     chosen = decoded_rows(sums, min_support, config)
     rows = chosen.rows
     empty = Mesh(torch.zeros((0, 3)), torch.zeros((0, 3), dtype=torch.int64), torch.zeros((0, 3), dtype=torch.uint8))
@@ -151,20 +151,18 @@ def surface_mesh(
     if not len(rows):
         return empty
     picked = {name: sums[name][rows] for name in ("keys", "r_sum", "rep_pos", "pos_sum", "pos_sq", "rgb_sum", "rep_rgb")}
-    mean_local, second_local, colour = voxel_moments(picked, config.voxel_size, config.research.eps)
-    weight = 1.0 - np.exp(-chosen.support.numpy().astype(np.float64) / chosen.unit)
-    cells = unpack_cells(picked["keys"])
+    mean, second, colour = voxel_moments(picked, config.voxel_size, config.research.eps)
+    weight = -np.expm1(-chosen.support.numpy().astype(np.float64) / chosen.unit)  # > 0 for the faintest R_scene too
+    normal = tangent_planes(picked["keys"], voxel_table(picked["keys"]), weight, mean, second, view)
+    cells = unpack_keys(torch.from_numpy(picked["keys"])).numpy()
     members, blocks = block_members(cells, block)
-    packed = blocks + KEY_OFFSET
-    block_key = (packed[:, 0] << (2 * KEY_BITS)) | (packed[:, 1] << KEY_BITS) | packed[:, 2]
+    block_key = pack_cells(blocks)
     order = np.argsort(block_key, kind="stable")
     starts = np.flatnonzero(np.r_[True, block_key[order][1:] != block_key[order][:-1]])
     vertices, colours, faces, count = [], [], [], 0
     for start, stop in zip(starts, np.r_[starts[1:], len(order)]):
-        mine = members[order[start:stop]]
-        origin = blocks[order[start]] * block
-        part = _block_surface(origin, cells[mine] - (origin - MARGIN), weight[mine], mean_local[mine],
-                              second_local[mine], view[mine], colour[mine], block)
+        part = _block_surface(members[order[start:stop]], blocks[order[start]] * block, cells, weight, mean, normal,
+                              colour, block)
         if part is not None:
             vertices.append(part[0])
             colours.append(part[1])
@@ -176,6 +174,12 @@ def surface_mesh(
     world = (np.concatenate(vertices)[keep] + 0.5) * config.voxel_size  # node j is the centre of cell j
     rgb = np.clip(np.rint(np.concatenate(colours)[keep] * 255.0), 0, 255).astype(np.uint8)
     return Mesh(torch.from_numpy(world.astype(np.float32)), torch.from_numpy(merged), torch.from_numpy(rgb))
+
+
+def scene_mesh(scene: Scene, min_support: float = 0.0) -> Mesh:
+    """`surface_mesh` of a live scene: its sums are copied under the scene's lock (`Scene.decode_inputs`)
+    and meshed outside it, so folds go on meanwhile."""
+    return surface_mesh(scene.decode_inputs().sums, scene.config, min_support)
 
 
 def mesh_ply_bytes(mesh: Mesh) -> bytes:

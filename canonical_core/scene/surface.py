@@ -1,4 +1,4 @@
-"""The scene's surface as a signed distance on the voxel lattice, one dense block of cells at a time.
+"""The scene's surface as a signed distance on the voxel lattice (numba kernels).
 
 Each occupied voxel keeps the weighted moments of the points lifted into it (`fields`: centroid and
 second moments) and, in its SH fit's sums, the weighted sum of the directions it was seen from. Its
@@ -9,32 +9,30 @@ support-weighted mean, over the occupied voxels of its 3x3x3 neighbourhood, of i
 tangent planes: positive in front of the surface (the cameras' side), negative behind it, and
 defined only within about a voxel of support, the band where marching cubes needs it.
 
-Everything here works on one block's dense cell grid (the caller places each voxel's cell in it), so
-memory is bounded by the block's size, not the scene's extent. Units: voxels, block coordinates
-(cell ``c`` spans ``[c, c + 1)``, its centre is ``c + 0.5``).
+Units: voxels. A voxel's moments are relative to its own centre; the distance is computed block by
+block (`block_distance`) on a dense grid of the block's nodes (node j = the centre of cell origin + j).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
+import torch
 
-from ..config import KEY_BITS, KEY_OFFSET
+from ..config import KEY_BITS
+from ..decode.eigen import jacobi3
+from .fields import unpack_keys
+from .hashing import home_slot, insert_range_kernel
+from .voxel_map import table_size
 
-MARGIN = 2  # cells a block needs around its nodes: a distance reads normals one cell away, which read moments one further
 FLAT = 1e-3  # voxels^2: a pooled spread below this in two axes is a line or a point, which fixes no plane
-
+_CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
 _SQ_COLUMNS = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # pos_sq's xx xy xz yy yz zz -> rows of the symmetric 3x3
-
-
-def unpack_cells(keys: np.ndarray) -> np.ndarray:  # [V] int64 packed keys -> [V, 3] int64 lattice cells (i, j, k)
-    """The lattice cells of packed voxel keys (`hashing`'s layout: 21 bits per axis, offset)."""
-    mask = (1 << KEY_BITS) - 1
-    return np.stack([(keys >> (2 * KEY_BITS)) & mask, (keys >> KEY_BITS) & mask, keys & mask], -1) - KEY_OFFSET
 
 
 def view_direction_sums(
     sh_a: np.ndarray,  # [V, K(K+1)/2 - 1] the SH fit's sums of W b b^T (upper triangle without (0, 0))
-) -> np.ndarray:  # [V, 3] sum W d, up to a positive factor
+) -> np.ndarray:  # [V, 3] float64 sum W d, up to a positive factor
     """The weighted sum of the directions (camera centre to point) each voxel was seen along.
 
     Why from the SH sums: their first row is sum W Y_0 Y_k(d) for k = 1..3, and the degree-1 basis is
@@ -51,11 +49,11 @@ def voxel_moments(
     sums: dict[str, np.ndarray],  # a scene's sums (`Scene.sums`), rows already chosen
     voxel_size: float,
     eps: float,  # `SceneConfig.research.eps`: the representative's share, as `fields_from_sums` gives it
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # mean [V, 3], second [V, 3, 3], colour [V, 3]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # mean [V, 3], second [V, 3, 3], colour [V, 3]: float64
     """Each voxel's centroid and second moment of its lifted points (voxel units, relative to its
     centre) and its fused colour in [0, 1], with `fields_from_sums`'s fallback to the representative
     where R_scene ~ 0."""
-    cells = unpack_cells(sums["keys"])
+    cells = unpack_keys(torch.from_numpy(sums["keys"])).numpy()
     den = sums["r_sum"].astype(np.float64)[:, None] + eps
     rep = sums["rep_pos"].astype(np.float64) / voxel_size - (cells + 0.5)
     mean = (sums["pos_sum"] + eps * rep) / den
@@ -66,67 +64,128 @@ def voxel_moments(
     return mean, second, colour
 
 
-def box3(a: np.ndarray) -> np.ndarray:  # [X, Y, Z, ...] -> [X, Y, Z, ...]
-    """The sum over each cell's 3x3x3 neighbourhood (zero outside the grid), in three separable passes."""
-    for axis in range(3):
-        lo = (slice(None),) * axis + (slice(None, -1),)
-        hi = (slice(None),) * axis + (slice(1, None),)
-        out = a.copy()
-        out[hi] += a[lo]
-        out[lo] += a[hi]
-        a = out
-    return a
+def voxel_table(keys: np.ndarray) -> np.ndarray:  # [V] int64 -> hash table of their indices (`hashing`)
+    """An open-addressing table of ``keys`` (the voxel map's layout), for the kernels' neighbour lookups."""
+    table = np.full(table_size(len(keys)), -1, np.int32)
+    insert_range_kernel(table, keys, 0, len(keys))
+    return table
+
+
+@numba.njit(inline="always")
+def _neighbour(table, keys, key, dx, dy, dz, mask):  # index of the voxel at key + (dx, dy, dz), or -1
+    probe = key + (dx << (2 * KEY_BITS)) + (dy << KEY_BITS) + dz
+    s = home_slot(probe, mask)
+    while True:  # `hashing.find_voxel`'s probe, for a key that may be absent
+        idx = table[s]
+        if idx < 0 or keys[idx] == probe:
+            return idx
+        s = (s + 1) & mask
+
+
+@numba.njit(parallel=True, cache=True)
+def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, normal):
+    mask = table.shape[0] - 1
+    n = keys.shape[0]
+    for chunk in numba.prange(-(-n // _CHUNK)):
+        a = np.empty((_CHUNK, 3, 3))  # the pooled covariance, diagonalised in place
+        vec = np.empty((_CHUNK, 3, 3))
+        for v in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            li = v - chunk * _CHUNK
+            w = m0 = m1 = m2 = l0 = l1 = l2 = 0.0
+            s = a[li]
+            s[:] = 0.0
+            for dx in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dz in range(-1, 2):
+                        u = _neighbour(table, keys, keys[v], dx, dy, dz, mask)
+                        if u < 0:
+                            continue
+                        wu = weight[u]
+                        d0, d1, d2 = dx + mean[u, 0], dy + mean[u, 1], dz + mean[u, 2]
+                        w += wu
+                        m0, m1, m2 = m0 + wu * d0, m1 + wu * d1, m2 + wu * d2
+                        c = (float(dx), float(dy), float(dz))
+                        for i in range(3):  # E[x x^T] of the neighbour's points, moved by its offset
+                            for j in range(3):
+                                s[i, j] += wu * (second[u, i, j] + c[i] * mean[u, j] + mean[u, i] * c[j] + c[i] * c[j])
+                        l0, l1, l2 = l0 + view[u, 0], l1 + view[u, 1], l2 + view[u, 2]
+            mm = (m0 / w, m1 / w, m2 / w)
+            for i in range(3):
+                for j in range(3):
+                    s[i, j] = s[i, j] / w - mm[i] * mm[j]
+            jacobi3(a, vec, li)
+            d = (s[0, 0], s[1, 1], s[2, 2])
+            low = 0 if d[0] <= d[1] and d[0] <= d[2] else (1 if d[1] <= d[2] else 2)
+            middle = max(min(d[(low + 1) % 3], d[(low + 2) % 3]), 0.0)
+            n0, n1, n2 = vec[li, 0, low], vec[li, 1, low], vec[li, 2, low]
+            look = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
+            if middle < flat and look > 0.0:  # no plane: face the cameras straight on
+                n0, n1, n2 = -l0 / look, -l1 / look, -l2 / look
+            sign = -1.0 if n0 * l0 + n1 * l1 + n2 * l2 > 0.0 else 1.0
+            normal[v, 0], normal[v, 1], normal[v, 2] = sign * n0, sign * n1, sign * n2
 
 
 def tangent_planes(
-    cells: np.ndarray,  # [N, 3] int64 occupied cells of the block grid
+    keys: np.ndarray,  # [N] int64 the occupied voxels' keys
+    table: np.ndarray,  # their hash table (`voxel_table`)
     weight: np.ndarray,  # [N] float64 support of each, > 0
-    mean: np.ndarray,  # [N, 3] centroids, block coordinates
-    second: np.ndarray,  # [N, 3, 3] second moments E[x x^T], block coordinates
-    view: np.ndarray,  # [N, 3] sums of view directions (any positive scale)
-    shape: tuple[int, int, int],  # the block grid's cells
-) -> np.ndarray:  # [N, 3] unit normals, facing the cameras
+    mean: np.ndarray,  # [N, 3] float64 centroids (voxel units, relative to each voxel's centre)
+    second: np.ndarray,  # [N, 3, 3] float64 second moments, likewise
+    view: np.ndarray,  # [N, 3] float64 sums of view directions (any positive scale)
+) -> np.ndarray:  # [N, 3] float64 unit normals, facing the cameras
     """Each voxel's surface normal: the least-spread axis of the moments pooled over its 3x3x3
-    neighbourhood (mixture moments: each voxel's points weighted by its support), turned toward
-    the pooled view directions. Where the pooled points fix no plane (`FLAT`), the normal faces the
+    neighbourhood (mixture moments: each voxel's points weighted by its support), turned toward the
+    pooled view directions. Where the pooled points fix no plane (`FLAT`), the normal faces the
     cameras straight on."""
-    grid = np.zeros(shape + (16,))
-    grid[tuple(cells.T)] = np.concatenate([weight[:, None], weight[:, None] * mean,
-                                           (weight[:, None, None] * second).reshape(-1, 9), view], 1)
-    pooled = box3(grid)[tuple(cells.T)]
-    w = pooled[:, :1]
-    m = pooled[:, 1:4] / w
-    cov = pooled[:, 4:13].reshape(-1, 3, 3) / w[:, :, None] - m[:, :, None] * m[:, None, :]
-    spread, axes = np.linalg.eigh(cov)  # ascending: axes[:, :, 0] is the least-spread one
-    normal = axes[:, :, 0]
-    looking = pooled[:, 13:]
-    norm = np.linalg.norm(looking, axis=1, keepdims=True)
-    facing = -looking / np.maximum(norm, 1e-30)
-    normal = np.where((spread[:, 1] < FLAT)[:, None] & (norm > 0), facing, normal)
-    return np.where((np.sum(normal * looking, 1) > 0)[:, None], -normal, normal)
+    normal = np.empty((len(keys), 3))
+    if len(keys):
+        _tangent_planes_kernel(keys, table, weight, mean, second, view, FLAT, normal)
+    return normal
 
 
-def signed_distance(
-    cells: np.ndarray,  # [N, 3] int64 occupied cells of the block grid
-    weight: np.ndarray,  # [N] float64 support of each, > 0
-    mean: np.ndarray,  # [N, 3] centroids, block coordinates
-    normal: np.ndarray,  # [N, 3] unit normals (`tangent_planes`)
-    colour: np.ndarray,  # [N, 3] colours in [0, 1]
-    shape: tuple[int, int, int],  # the block grid's cells
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # distance [X, Y, Z], defined [X, Y, Z] bool, colour [X, Y, Z, 3]
-    """The signed distance (voxels) at every cell centre of the block: the support-weighted mean of
-    its distances to the tangent planes of the occupied voxels in its 3x3x3 neighbourhood; defined
-    where there is one. The colour at a cell is its own voxel's, or where it holds none the
-    neighbourhood's weighted mean (vertices between an occupied and an empty cell take some of it)."""
-    w = weight[:, None]
-    grid = np.zeros(shape + (8,))
-    grid[tuple(cells.T)] = np.concatenate([w, w * normal, w * np.sum(normal * mean, 1, keepdims=True), w * colour], 1)
-    near = box3(grid)
-    total = near[..., 0]
-    defined = total > 0
-    safe = np.where(defined, total, 1.0)
-    centres = np.stack(np.meshgrid(*(np.arange(n) + 0.5 for n in shape), indexing="ij"), -1)
-    distance = (np.sum(centres * near[..., 1:4], -1) - near[..., 4]) / safe
-    colours = near[..., 5:] / safe[..., None]
-    colours[tuple(cells.T)] = colour
-    return distance, defined, colours
+@numba.njit(cache=True)
+def _block_distance_kernel(members, cells, origin, weight, mean, normal, colour, num, den, col, own):
+    size = num.shape[0]
+    for t in range(members.shape[0]):
+        u = members[t]
+        wu = weight[u]
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    i, j, k = cells[u, 0] + dx - origin[0], cells[u, 1] + dy - origin[1], cells[u, 2] + dz - origin[2]
+                    if i < 0 or j < 0 or k < 0 or i >= size or j >= size or k >= size:
+                        continue
+                    # the node's distance to u's plane: its centre minus u's centroid, along u's normal
+                    dist = normal[u, 0] * (dx - mean[u, 0]) + normal[u, 1] * (dy - mean[u, 1]) + normal[u, 2] * (dz - mean[u, 2])
+                    num[i, j, k] += wu * dist
+                    den[i, j, k] += wu
+                    for c in range(3):
+                        col[i, j, k, c] += wu * colour[u, c]
+                    if dx == 0 and dy == 0 and dz == 0:
+                        own[i, j, k] = u
+
+
+def block_distance(
+    members: np.ndarray,  # [M] int64 the voxels within one cell of the block's nodes
+    cells: np.ndarray,  # [N, 3] int64 lattice cells of all voxels
+    origin: np.ndarray,  # [3] int64 the cell of the block's node 0
+    size: int,  # nodes per block edge
+    weight: np.ndarray,  # [N] float64
+    mean: np.ndarray,  # [N, 3] float64 (`voxel_moments`)
+    normal: np.ndarray,  # [N, 3] float64 (`tangent_planes`)
+    colour: np.ndarray,  # [N, 3] float64 in [0, 1]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # distance [S, S, S], defined [S, S, S] bool, colour [S, S, S, 3]
+    """The signed distance (voxels) at the block's nodes: the support-weighted mean of each node's
+    distances to the tangent planes of the occupied voxels in its 3x3x3 neighbourhood; defined where
+    there is one. A node's colour is its own voxel's, or where it holds none the neighbourhood's
+    weighted mean (a vertex between an occupied and an empty node takes some of it)."""
+    num, den = np.zeros((size,) * 3), np.zeros((size,) * 3)
+    col = np.zeros((size,) * 3 + (3,))
+    own = np.full((size,) * 3, -1, np.int64)
+    _block_distance_kernel(members, cells, origin, weight, mean, normal, colour, num, den, col, own)
+    defined = den > 0
+    safe = np.where(defined, den, 1.0)
+    colours = col / safe[..., None]
+    mine = own >= 0
+    colours[mine] = colour[own[mine]]
+    return num / safe, defined, colours

@@ -13,7 +13,7 @@ from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.datasets.synthetic import look_at
 from canonical_core.scene import Scene
 from canonical_core.scene.mesh import Mesh, block_members, cube_mask, mesh_ply_bytes, merge_vertices, surface_mesh
-from canonical_core.scene.surface import MARGIN, box3
+from tests.mesh_ply import parse_mesh_ply
 
 VOXEL = 0.02
 RADIUS = 0.25  # the sphere, at the origin: red above z = 0, blue below
@@ -133,24 +133,6 @@ def test_min_support_keeps_the_better_supported_surface(scene, mesh):
     assert 0 < len(strict) < len(mesh)
 
 
-def parse_mesh_ply(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """xyz [N, 3] float32, rgb [N, 3] uint8, faces [F, 3] int32 of the layout `mesh_ply_bytes` writes,
-    read by the header's own words (the PLY format), not by the writer's code."""
-    head, _, body = data.partition(b"end_header\n")
-    lines = head.decode("ascii").splitlines()
-    assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
-    props = [line for line in lines if line.startswith("property")]
-    assert props == ["property float x", "property float y", "property float z", "property uchar red",
-                     "property uchar green", "property uchar blue", "property list uchar int vertex_indices"]
-    n = int(next(line for line in lines if line.startswith("element vertex")).split()[2])
-    f = int(next(line for line in lines if line.startswith("element face")).split()[2])
-    vertex = np.frombuffer(body, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")]), n)
-    face = np.frombuffer(body, np.dtype([("n", "u1"), ("i", "<i4", 3)]), f, offset=vertex.nbytes)
-    assert len(body) == vertex.nbytes + face.nbytes and (face["n"] == 3).all()
-    xyz = np.stack([vertex["x"], vertex["y"], vertex["z"]], 1)
-    return xyz, np.stack([vertex["r"], vertex["g"], vertex["b"]], 1), face["i"]
-
-
 def test_ply_holds_the_mesh(mesh):
     xyz, rgb, faces = parse_mesh_ply(mesh_ply_bytes(mesh))
     assert np.array_equal(xyz, mesh.vertices.numpy())
@@ -167,7 +149,7 @@ def test_an_empty_scene_has_an_empty_mesh():
 
 
 def test_bad_arguments_name_their_field(scene):
-    for block in (4, 0, 8.0, True):
+    for block in (3, 0, 8.0, True):
         with pytest.raises(ValueError, match="^block: "):
             surface_mesh(scene.sums(), scene.config, block=block)
     flat = SceneConfig(voxel_size=VOXEL, sh_degree=0)
@@ -178,21 +160,13 @@ def test_bad_arguments_name_their_field(scene):
         surface_mesh(no_directions.sums(), flat)
 
 
-def test_box3_sums_each_neighbourhood():
-    rng = np.random.default_rng(0)
-    a = rng.random((5, 6, 7, 2))
-    padded = np.pad(a, ((1, 1), (1, 1), (1, 1), (0, 0)))
-    brute = sum(padded[i: i + 5, j: j + 6, k: k + 7] for i in range(3) for j in range(3) for k in range(3))
-    np.testing.assert_allclose(box3(a), brute)
-
-
 def test_every_voxel_is_in_each_block_whose_grid_holds_it():
     block = 8
     cells = np.array([[0, 0, 0], [7, 8, 9], [-3, 10, -9], [1, 5, 2]])
     rows, blocks = block_members(cells, block)
     for r, cell in enumerate(cells):
         expected = {b for b in np.ndindex(6, 6, 6) if all(
-            (bb - 3) * block - MARGIN <= c <= (bb - 2) * block + MARGIN for bb, c in zip(b, cell))}
+            (bb - 3) * block - 1 <= c <= (bb - 2) * block + 1 for bb, c in zip(b, cell))}
         got = {tuple(int(x) + 3 for x in b) for b in blocks[rows == r]}
         assert got == expected
 
