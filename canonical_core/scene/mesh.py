@@ -89,11 +89,11 @@ def trilinear(grid: np.ndarray, points: np.ndarray) -> np.ndarray:  # [X, Y, Z, 
     return out
 
 
-def _block_surface(members, origin, cells, weight, mean, normal, colour, block):
+def _block_surface(members, origin, cells, weight, point, normal, colour, block):
     """Marching cubes of one block: vertices (global node coordinates, float64), colours [0, 1], faces; None if it has none."""
     from skimage.measure import marching_cubes  # the service's extra; the library imports without it
 
-    distance, defined, colours = block_distance(members, cells, origin, block + 1, weight, mean, normal, colour)
+    distance, defined, colours = block_distance(members, cells, origin, block + 1, weight, point, normal, colour)
     mask = cube_mask(defined)
     if not mask.any() or not (distance[defined] < 0).any() or not (distance[defined] > 0).any():
         return None
@@ -134,8 +134,7 @@ def surface_mesh(
 ) -> Mesh:
     """The scene's surface as a coloured triangle mesh (module docstring). The voxels that count are
     the ones that decode to Gaussians (`decoding.decoded_rows`: support above ``min_support``, not
-    seen through more than seen); each weighs by its support in views, ``1 - exp(-R_scene / unit)``.
-    An empty scene gives an empty mesh.
+    seen through more than seen); each weighs by its R_scene. An empty scene gives an empty mesh.
 
     Example:
         >>> from canonical_core.scene import Scene
@@ -151,17 +150,18 @@ def surface_mesh(
     if not len(rows):
         return empty
     picked = {name: sums[name][rows] for name in ("keys", "r_sum", "rep_pos", "pos_sum", "pos_sq", "rgb_sum", "rep_rgb")}
-    mean, second, colour = voxel_moments(picked, config.voxel_size, config.research.eps)
-    weight = -np.expm1(-chosen.support.numpy().astype(np.float64) / chosen.unit)  # > 0 for the faintest R_scene too
-    normal = tangent_planes(picked["keys"], voxel_table(picked["keys"]), weight, mean, second, view)
     cells = unpack_keys(torch.from_numpy(picked["keys"])).numpy()
+    mean, second, colour = voxel_moments(picked, cells, config.voxel_size, config.research.eps)
+    # R_scene is the total weight of a voxel's points: weighted by it, pooled moments are the points' own
+    weight = chosen.support.numpy().astype(np.float64) + config.research.eps
+    normal, point = tangent_planes(picked["keys"], voxel_table(picked["keys"]), weight, mean, second, view)
     members, blocks = block_members(cells, block)
     block_key = pack_cells(blocks)
     order = np.argsort(block_key, kind="stable")
     starts = np.flatnonzero(np.r_[True, block_key[order][1:] != block_key[order][:-1]])
     vertices, colours, faces, count = [], [], [], 0
     for start, stop in zip(starts, np.r_[starts[1:], len(order)]):
-        part = _block_surface(members[order[start:stop]], blocks[order[start]] * block, cells, weight, mean, normal,
+        part = _block_surface(members[order[start:stop]], blocks[order[start]] * block, cells, weight, point, normal,
                               colour, block)
         if part is not None:
             vertices.append(part[0])

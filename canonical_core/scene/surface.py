@@ -2,29 +2,32 @@
 
 Each occupied voxel keeps the weighted moments of the points lifted into it (`fields`: centroid and
 second moments) and, in its SH fit's sums, the weighted sum of the directions it was seen from. Its
-tangent plane is the smallest principal axis of those moments pooled over its 3x3x3 neighbourhood
-(one voxel's own points are often too few, or all on one depth row, to fix a plane), through its own
-centroid, facing the cameras that saw it. The signed distance at a voxel centre is the
-support-weighted mean, over the occupied voxels of its 3x3x3 neighbourhood, of its distance to their
-tangent planes: positive in front of the surface (the cameras' side), negative behind it, and
-defined only within about a voxel of support, the band where marching cubes needs it.
+tangent plane: the normal is the least-spread axis of the moments pooled over its 5x5x5
+neighbourhood, turned toward the cameras that saw it; the plane passes through the centroid of the
+points of its 3x3x3 neighbourhood. Why pooled: one voxel's own points are too few, or all on one
+depth row, to fix a plane, and sensor noise spreads one surface's points over a band of voxels a few
+deep, where each voxel's own centroid sits at its own depth (planes through them give a bumpy
+surface); the wider neighbourhood steadies the normal, the narrower one keeps the plane local. The
+signed distance at a voxel centre is the weighted mean, over the occupied voxels of its 3x3x3
+neighbourhood, of its distance to their tangent planes: positive in front of the surface (the
+cameras' side), negative behind it, and defined only within about a voxel of support, the band
+where marching cubes needs it.
 
-Units: voxels. A voxel's moments are relative to its own centre; the distance is computed block by
-block (`block_distance`) on a dense grid of the block's nodes (node j = the centre of cell origin + j).
-"""
+Units: voxels. Moments and plane points are relative to each voxel's own centre; the distance is
+computed block by block (`block_distance`) on a dense grid of the block's nodes (node j = the centre
+of cell origin + j)."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-import torch
 
 from ..config import KEY_BITS
 from ..decode.eigen import jacobi3
-from .fields import unpack_keys
 from .hashing import home_slot, insert_range_kernel
 from .voxel_map import table_size
 
+NORMAL_REACH = 2  # cells each side of a voxel whose moments its normal pools (5x5x5)
 FLAT = 1e-3  # voxels^2: a pooled spread below this in two axes is a line or a point, which fixes no plane
 _CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
 _SQ_COLUMNS = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # pos_sq's xx xy xz yy yz zz -> rows of the symmetric 3x3
@@ -47,13 +50,13 @@ def view_direction_sums(
 
 def voxel_moments(
     sums: dict[str, np.ndarray],  # a scene's sums (`Scene.sums`), rows already chosen
+    cells: np.ndarray,  # [V, 3] int64 their lattice cells (`fields.unpack_keys`)
     voxel_size: float,
     eps: float,  # `SceneConfig.research.eps`: the representative's share, as `fields_from_sums` gives it
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # mean [V, 3], second [V, 3, 3], colour [V, 3]: float64
     """Each voxel's centroid and second moment of its lifted points (voxel units, relative to its
     centre) and its fused colour in [0, 1], with `fields_from_sums`'s fallback to the representative
     where R_scene ~ 0."""
-    cells = unpack_keys(torch.from_numpy(sums["keys"])).numpy()
     den = sums["r_sum"].astype(np.float64)[:, None] + eps
     rep = sums["rep_pos"].astype(np.float64) / voxel_size - (cells + 0.5)
     mean = (sums["pos_sum"] + eps * rep) / den
@@ -83,7 +86,7 @@ def _neighbour(table, keys, key, dx, dy, dz, mask):  # index of the voxel at key
 
 
 @numba.njit(parallel=True, cache=True)
-def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, normal):
+def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, reach, normal, point):
     mask = table.shape[0] - 1
     n = keys.shape[0]
     for chunk in numba.prange(-(-n // _CHUNK)):
@@ -92,11 +95,12 @@ def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, normal
         for v in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
             li = v - chunk * _CHUNK
             w = m0 = m1 = m2 = l0 = l1 = l2 = 0.0
+            pw = p0 = p1 = p2 = 0.0
             s = a[li]
             s[:] = 0.0
-            for dx in range(-1, 2):
-                for dy in range(-1, 2):
-                    for dz in range(-1, 2):
+            for dx in range(-reach, reach + 1):
+                for dy in range(-reach, reach + 1):
+                    for dz in range(-reach, reach + 1):
                         u = _neighbour(table, keys, keys[v], dx, dy, dz, mask)
                         if u < 0:
                             continue
@@ -109,6 +113,8 @@ def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, normal
                             for j in range(3):
                                 s[i, j] += wu * (second[u, i, j] + c[i] * mean[u, j] + mean[u, i] * c[j] + c[i] * c[j])
                         l0, l1, l2 = l0 + view[u, 0], l1 + view[u, 1], l2 + view[u, 2]
+                        if abs(dx) <= 1 and abs(dy) <= 1 and abs(dz) <= 1:  # the plane's point: 3x3x3
+                            pw, p0, p1, p2 = pw + wu, p0 + wu * d0, p1 + wu * d1, p2 + wu * d2
             mm = (m0 / w, m1 / w, m2 / w)
             for i in range(3):
                 for j in range(3):
@@ -123,28 +129,30 @@ def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, normal
                 n0, n1, n2 = -l0 / look, -l1 / look, -l2 / look
             sign = -1.0 if n0 * l0 + n1 * l1 + n2 * l2 > 0.0 else 1.0
             normal[v, 0], normal[v, 1], normal[v, 2] = sign * n0, sign * n1, sign * n2
+            point[v, 0], point[v, 1], point[v, 2] = p0 / pw, p1 / pw, p2 / pw
 
 
 def tangent_planes(
     keys: np.ndarray,  # [N] int64 the occupied voxels' keys
     table: np.ndarray,  # their hash table (`voxel_table`)
-    weight: np.ndarray,  # [N] float64 support of each, > 0
+    weight: np.ndarray,  # [N] float64 each voxel's points' total weight (R_scene), > 0
     mean: np.ndarray,  # [N, 3] float64 centroids (voxel units, relative to each voxel's centre)
     second: np.ndarray,  # [N, 3, 3] float64 second moments, likewise
     view: np.ndarray,  # [N, 3] float64 sums of view directions (any positive scale)
-) -> np.ndarray:  # [N, 3] float64 unit normals, facing the cameras
-    """Each voxel's surface normal: the least-spread axis of the moments pooled over its 3x3x3
-    neighbourhood (mixture moments: each voxel's points weighted by its support), turned toward the
-    pooled view directions. Where the pooled points fix no plane (`FLAT`), the normal faces the
-    cameras straight on."""
-    normal = np.empty((len(keys), 3))
+) -> tuple[np.ndarray, np.ndarray]:  # normal [N, 3] unit, facing the cameras; point [N, 3] on the plane
+    """Each voxel's tangent plane (module docstring): the normal, the least-spread axis of the moments
+    pooled over `NORMAL_REACH` cells each side (mixture moments: each voxel's points weighted by
+    ``weight``), turned toward the pooled view directions; where those points fix no plane (`FLAT`)
+    it faces the cameras straight on. The point: the weighted centroid of the 3x3x3 neighbourhood's
+    points, in the voxel's own units."""
+    normal, point = np.empty((len(keys), 3)), np.empty((len(keys), 3))
     if len(keys):
-        _tangent_planes_kernel(keys, table, weight, mean, second, view, FLAT, normal)
-    return normal
+        _tangent_planes_kernel(keys, table, weight, mean, second, view, FLAT, NORMAL_REACH, normal, point)
+    return normal, point
 
 
 @numba.njit(cache=True)
-def _block_distance_kernel(members, cells, origin, weight, mean, normal, colour, num, den, col, own):
+def _block_distance_kernel(members, cells, origin, weight, point, normal, colour, num, den, col, own):
     size = num.shape[0]
     for t in range(members.shape[0]):
         u = members[t]
@@ -155,8 +163,8 @@ def _block_distance_kernel(members, cells, origin, weight, mean, normal, colour,
                     i, j, k = cells[u, 0] + dx - origin[0], cells[u, 1] + dy - origin[1], cells[u, 2] + dz - origin[2]
                     if i < 0 or j < 0 or k < 0 or i >= size or j >= size or k >= size:
                         continue
-                    # the node's distance to u's plane: its centre minus u's centroid, along u's normal
-                    dist = normal[u, 0] * (dx - mean[u, 0]) + normal[u, 1] * (dy - mean[u, 1]) + normal[u, 2] * (dz - mean[u, 2])
+                    # the node's distance to u's plane: its centre minus the plane's point, along u's normal
+                    dist = normal[u, 0] * (dx - point[u, 0]) + normal[u, 1] * (dy - point[u, 1]) + normal[u, 2] * (dz - point[u, 2])
                     num[i, j, k] += wu * dist
                     den[i, j, k] += wu
                     for c in range(3):
@@ -170,19 +178,19 @@ def block_distance(
     cells: np.ndarray,  # [N, 3] int64 lattice cells of all voxels
     origin: np.ndarray,  # [3] int64 the cell of the block's node 0
     size: int,  # nodes per block edge
-    weight: np.ndarray,  # [N] float64
-    mean: np.ndarray,  # [N, 3] float64 (`voxel_moments`)
+    weight: np.ndarray,  # [N] float64 (as `tangent_planes`')
+    point: np.ndarray,  # [N, 3] float64 a point of each plane, relative to its voxel's centre (`tangent_planes`)
     normal: np.ndarray,  # [N, 3] float64 (`tangent_planes`)
     colour: np.ndarray,  # [N, 3] float64 in [0, 1]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # distance [S, S, S], defined [S, S, S] bool, colour [S, S, S, 3]
-    """The signed distance (voxels) at the block's nodes: the support-weighted mean of each node's
+    """The signed distance (voxels) at the block's nodes: the weighted mean of each node's
     distances to the tangent planes of the occupied voxels in its 3x3x3 neighbourhood; defined where
     there is one. A node's colour is its own voxel's, or where it holds none the neighbourhood's
     weighted mean (a vertex between an occupied and an empty node takes some of it)."""
     num, den = np.zeros((size,) * 3), np.zeros((size,) * 3)
     col = np.zeros((size,) * 3 + (3,))
     own = np.full((size,) * 3, -1, np.int64)
-    _block_distance_kernel(members, cells, origin, weight, mean, normal, colour, num, den, col, own)
+    _block_distance_kernel(members, cells, origin, weight, point, normal, colour, num, den, col, own)
     defined = den > 0
     safe = np.where(defined, den, 1.0)
     colours = col / safe[..., None]

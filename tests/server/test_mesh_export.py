@@ -67,3 +67,11 @@ def test_mesh_ply_of_real_frames(client, server, frames, tmp_path):
         client.session("no-such-session").export_mesh(tmp_path / "x.ply")
     assert not (tmp_path / "x.ply").exists()
     assert session.digest()["frames"] == len(frames)  # reading the mesh changed nothing
+
+
+@pytest.mark.realdata
+def test_a_session_without_view_directions_is_told_why(client, server, frames):
+    session = client.create_session(voxel_size=VOXEL, sh_degree=0)
+    session.add_frame(**frames[0])
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/mesh.ply", headers=AUTH, timeout=120)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "sh_degree", r.text
