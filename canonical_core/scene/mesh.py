@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
+from ..config import SceneConfig
 from .decoding import decoded_rows
 from .scene import Scene
 from .fields import unpack_keys
-from .surface import block_distance, tangent_planes, view_direction_sums, voxel_moments, voxel_table
+from .surface import block_distance, blocks_of, pack_cells, tangent_planes, view_direction_sums, voxel_moments
 
 DEFAULT_BLOCK = 32  # cubes per block edge: 33^3 nodes, a few MB of grids per block
 
@@ -37,30 +37,6 @@ class Mesh:
 
     def __len__(self) -> int:
         return int(self.faces.shape[0])
-
-
-def pack_cells(cells: np.ndarray) -> np.ndarray:  # [N, 3] int64 -> [N] int64
-    """Lattice cells packed as the voxel keys are (`hashing`): one sortable integer per cell."""
-    packed = cells + KEY_OFFSET
-    return (packed[:, 0] << (2 * KEY_BITS)) | (packed[:, 1] << KEY_BITS) | packed[:, 2]
-
-
-def block_members(
-    cells: np.ndarray,  # [V, 3] int64 lattice cells
-    block: int,  # cubes per block edge: its nodes are cells b * block .. (b + 1) * block
-) -> tuple[np.ndarray, np.ndarray]:  # rows [M] int64, blocks [M, 3] int64
-    """Every (voxel, block) pair where the voxel lies within one cell of the block's nodes (a node's
-    distance reads its 3x3x3 neighbourhood). A cell is in one or two blocks per axis (``block > 2``),
-    so in at most eight."""
-    first = -((block + 1 - cells) // block)  # ceil((cell - block - 1) / block)
-    last = (cells + 1) // block
-    rows, blocks = [], []
-    for step in np.ndindex(2, 2, 2):
-        b = first + np.array(step)
-        inside = np.all(b <= last, 1)
-        rows.append(np.flatnonzero(inside))
-        blocks.append(b[inside])
-    return np.concatenate(rows), np.concatenate(blocks)
 
 
 def cube_mask(defined: np.ndarray) -> np.ndarray:  # [X, Y, Z] bool -> [X, Y, Z] bool
@@ -154,15 +130,12 @@ def surface_mesh(
     mean, second, colour = voxel_moments(picked, cells, config.voxel_size, config.research.eps)
     # R_scene is the total weight of a voxel's points: weighted by it, pooled moments are the points' own
     weight = chosen.support.numpy().astype(np.float64) + config.research.eps
-    normal, point = tangent_planes(picked["keys"], voxel_table(picked["keys"]), weight, mean, second, view)
-    members, blocks = block_members(cells, block)
-    block_key = pack_cells(blocks)
-    order = np.argsort(block_key, kind="stable")
-    starts = np.flatnonzero(np.r_[True, block_key[order][1:] != block_key[order][:-1]])
+    normal, point = tangent_planes(cells, weight, mean, second, view, block)
+    groups = blocks_of(cells, block, 1, 2)  # a block's nodes are cells b * block .. (b + 1) * block; each reads 3x3x3
     vertices, colours, faces, count = [], [], [], 0
-    for start, stop in zip(starts, np.r_[starts[1:], len(order)]):
-        part = _block_surface(members[order[start:stop]], blocks[order[start]] * block, cells, weight, point, normal,
-                              colour, block)
+    for g in range(len(groups.origins)):
+        part = _block_surface(groups.members[groups.starts[g]: groups.starts[g + 1]], groups.origins[g], cells, weight,
+                              point, normal, colour, block)
         if part is not None:
             vertices.append(part[0])
             colours.append(part[1])

@@ -19,17 +19,16 @@ of cell origin + j)."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
-from ..config import KEY_BITS
+from ..config import KEY_BITS, KEY_OFFSET
 from ..decode.eigen import jacobi3
-from .hashing import home_slot, insert_range_kernel
-from .voxel_map import table_size
 
 NORMAL_REACH = 2  # cells each side of a voxel whose moments its normal pools (5x5x5)
 FLAT = 1e-3  # voxels^2: a pooled spread below this in two axes is a line or a point, which fixes no plane
-_CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
 _SQ_COLUMNS = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # pos_sq's xx xy xz yy yz zz -> rows of the symmetric 3x3
 
 
@@ -67,41 +66,69 @@ def voxel_moments(
     return mean, second, colour
 
 
-def voxel_table(keys: np.ndarray) -> np.ndarray:  # [V] int64 -> hash table of their indices (`hashing`)
-    """An open-addressing table of ``keys`` (the voxel map's layout), for the kernels' neighbour lookups."""
-    table = np.full(table_size(len(keys)), -1, np.int32)
-    insert_range_kernel(table, keys, 0, len(keys))
-    return table
+def pack_cells(cells: np.ndarray) -> np.ndarray:  # [N, 3] int64 -> [N] int64
+    """Lattice cells packed as the voxel keys are (`hashing`): one sortable integer per cell."""
+    packed = cells + KEY_OFFSET
+    return (packed[:, 0] << (2 * KEY_BITS)) | (packed[:, 1] << KEY_BITS) | packed[:, 2]
 
 
-@numba.njit(inline="always")
-def _neighbour(table, keys, key, dx, dy, dz, mask):  # index of the voxel at key + (dx, dy, dz), or -1
-    probe = key + (dx << (2 * KEY_BITS)) + (dy << KEY_BITS) + dz
-    s = home_slot(probe, mask)
-    while True:  # `hashing.find_voxel`'s probe, for a key that may be absent
-        idx = table[s]
-        if idx < 0 or keys[idx] == probe:
-            return idx
-        s = (s + 1) & mask
+class Blocks(NamedTuple):
+    """Voxels grouped by the cubic blocks of the lattice whose cells (with a margin) hold them."""
+
+    members: np.ndarray  # [M] int64 voxel rows, block after block
+    starts: np.ndarray  # [G + 1] int64: block g's members are members[starts[g]:starts[g + 1]]
+    origins: np.ndarray  # [G, 3] int64 the first core cell of each block (b * block)
+
+
+def blocks_of(
+    cells: np.ndarray,  # [V, 3] int64 lattice cells
+    block: int,  # core cells per block edge (>= 4)
+    before: int,  # margin cells below the core a block takes in (<= 2)
+    after: int,  # margin cells above it (<= 2)
+) -> Blocks:
+    """Every block with voxels in its cells ``b * block - before .. (b + 1) * block - 1 + after`` (per
+    axis), and those voxels. A cell is in one or two blocks per axis, so in at most eight."""
+    first = -((block - 1 + after - cells) // block)  # ceil((cell - block + 1 - after) / block)
+    last = (cells + before) // block
+    rows, blocks = [], []
+    for step in np.ndindex(2, 2, 2):
+        b = first + np.array(step)
+        inside = np.all(b <= last, 1)
+        rows.append(np.flatnonzero(inside))
+        blocks.append(b[inside])
+    rows, blocks = np.concatenate(rows), np.concatenate(blocks)
+    key = pack_cells(blocks)
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    return Blocks(rows[order], np.r_[starts, len(order)].astype(np.int64), blocks[order][starts] * block)
 
 
 @numba.njit(parallel=True, cache=True)
-def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, reach, normal, point):
-    mask = table.shape[0] - 1
-    n = keys.shape[0]
-    for chunk in numba.prange(-(-n // _CHUNK)):
-        a = np.empty((_CHUNK, 3, 3))  # the pooled covariance, diagonalised in place
-        vec = np.empty((_CHUNK, 3, 3))
-        for v in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
-            li = v - chunk * _CHUNK
+def _tangent_planes_kernel(members, starts, origins, cells, block, weight, mean, second, view, flat, reach, normal, point):
+    side = block + 2 * reach
+    for g in numba.prange(starts.shape[0] - 1):
+        # the block's cells and margin as a dense grid of voxel rows: neighbours by index, in cache
+        grid = np.full((side, side, side), -1, np.int64)
+        o0, o1, o2 = origins[g, 0] - reach, origins[g, 1] - reach, origins[g, 2] - reach
+        for t in range(starts[g], starts[g + 1]):
+            u = members[t]
+            grid[cells[u, 0] - o0, cells[u, 1] - o1, cells[u, 2] - o2] = u
+        a = np.empty((1, 3, 3))  # the pooled covariance, diagonalised in place
+        vec = np.empty((1, 3, 3))
+        for t in range(starts[g], starts[g + 1]):
+            v = members[t]
+            x, y, z = cells[v, 0] - o0, cells[v, 1] - o1, cells[v, 2] - o2
+            if min(x, y, z) < reach or max(x, y, z) >= reach + block:
+                continue  # a margin voxel: its own block does it
             w = m0 = m1 = m2 = l0 = l1 = l2 = 0.0
             pw = p0 = p1 = p2 = 0.0
-            s = a[li]
+            s = a[0]
             s[:] = 0.0
             for dx in range(-reach, reach + 1):
                 for dy in range(-reach, reach + 1):
                     for dz in range(-reach, reach + 1):
-                        u = _neighbour(table, keys, keys[v], dx, dy, dz, mask)
+                        u = grid[x + dx, y + dy, z + dz]
                         if u < 0:
                             continue
                         wu = weight[u]
@@ -119,11 +146,11 @@ def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, reach,
             for i in range(3):
                 for j in range(3):
                     s[i, j] = s[i, j] / w - mm[i] * mm[j]
-            jacobi3(a, vec, li)
+            jacobi3(a, vec, 0)
             d = (s[0, 0], s[1, 1], s[2, 2])
             low = 0 if d[0] <= d[1] and d[0] <= d[2] else (1 if d[1] <= d[2] else 2)
             middle = max(min(d[(low + 1) % 3], d[(low + 2) % 3]), 0.0)
-            n0, n1, n2 = vec[li, 0, low], vec[li, 1, low], vec[li, 2, low]
+            n0, n1, n2 = vec[0, 0, low], vec[0, 1, low], vec[0, 2, low]
             look = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
             if middle < flat and look > 0.0:  # no plane: face the cameras straight on
                 n0, n1, n2 = -l0 / look, -l1 / look, -l2 / look
@@ -133,21 +160,23 @@ def _tangent_planes_kernel(keys, table, weight, mean, second, view, flat, reach,
 
 
 def tangent_planes(
-    keys: np.ndarray,  # [N] int64 the occupied voxels' keys
-    table: np.ndarray,  # their hash table (`voxel_table`)
+    cells: np.ndarray,  # [N, 3] int64 the occupied voxels' lattice cells
     weight: np.ndarray,  # [N] float64 each voxel's points' total weight (R_scene), > 0
     mean: np.ndarray,  # [N, 3] float64 centroids (voxel units, relative to each voxel's centre)
     second: np.ndarray,  # [N, 3, 3] float64 second moments, likewise
     view: np.ndarray,  # [N, 3] float64 sums of view directions (any positive scale)
+    block: int = 32,  # cells per block edge of the work (it changes nothing but the cost)
 ) -> tuple[np.ndarray, np.ndarray]:  # normal [N, 3] unit, facing the cameras; point [N, 3] on the plane
     """Each voxel's tangent plane (module docstring): the normal, the least-spread axis of the moments
     pooled over `NORMAL_REACH` cells each side (mixture moments: each voxel's points weighted by
     ``weight``), turned toward the pooled view directions; where those points fix no plane (`FLAT`)
     it faces the cameras straight on. The point: the weighted centroid of the 3x3x3 neighbourhood's
-    points, in the voxel's own units."""
-    normal, point = np.empty((len(keys), 3)), np.empty((len(keys), 3))
-    if len(keys):
-        _tangent_planes_kernel(keys, table, weight, mean, second, view, FLAT, NORMAL_REACH, normal, point)
+    points, in the voxel's own units. Worked block by block, each on a dense grid of its cells."""
+    normal, point = np.empty((len(cells), 3)), np.empty((len(cells), 3))
+    if len(cells):
+        groups = blocks_of(cells, block, NORMAL_REACH, NORMAL_REACH)
+        _tangent_planes_kernel(groups.members, groups.starts, groups.origins, cells, block, weight, mean, second, view,
+                               FLAT, NORMAL_REACH, normal, point)
     return normal, point
 
 

@@ -12,7 +12,8 @@ import pytest
 from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.datasets.synthetic import look_at
 from canonical_core.scene import Scene
-from canonical_core.scene.mesh import Mesh, block_members, cube_mask, mesh_ply_bytes, merge_vertices, surface_mesh
+from canonical_core.scene.mesh import Mesh, cube_mask, mesh_ply_bytes, merge_vertices, surface_mesh
+from canonical_core.scene.surface import blocks_of
 from tests.mesh_ply import parse_mesh_ply
 
 VOXEL = 0.02
@@ -160,15 +161,18 @@ def test_bad_arguments_name_their_field(scene):
         surface_mesh(no_directions.sums(), flat)
 
 
-def test_every_voxel_is_in_each_block_whose_grid_holds_it():
+@pytest.mark.parametrize("before, after", [(1, 2), (2, 2), (0, 0)])
+def test_every_voxel_is_in_each_block_whose_grid_holds_it(before, after):
     block = 8
-    cells = np.array([[0, 0, 0], [7, 8, 9], [-3, 10, -9], [1, 5, 2]])
-    rows, blocks = block_members(cells, block)
+    cells = np.array([[0, 0, 0], [7, 8, 9], [-3, 10, -9], [1, 5, 2], [15, -17, 6]])
+    groups = blocks_of(cells, block, before, after)
     for r, cell in enumerate(cells):
         expected = {b for b in np.ndindex(6, 6, 6) if all(
-            (bb - 3) * block - 1 <= c <= (bb - 2) * block + 1 for bb, c in zip(b, cell))}
-        got = {tuple(int(x) + 3 for x in b) for b in blocks[rows == r]}
+            (bb - 3) * block - before <= c <= (bb - 2) * block - 1 + after for bb, c in zip(b, cell))}
+        got = {tuple(int(x) // block + 3 for x in groups.origins[g]) for g in range(len(groups.origins))
+               if r in groups.members[groups.starts[g]: groups.starts[g + 1]]}
         assert got == expected
+    assert len({tuple(o) for o in groups.origins}) == len(groups.origins)  # each block once
 
 
 def test_cube_mask_marks_cubes_with_every_corner_defined():
