@@ -53,11 +53,14 @@ async def export_mesh(session: SessionDep, jobs: JobsDep, min_support: MinSuppor
     cameras' side. Marching cubes of the signed distance to the voxels' tangent planes
     (`canonical_core.scene.mesh`). 409 while the session holds no surface (no frames, or none above
     ``min_support``)."""
-    mesh = await jobs.run(session.mesh, min_support)
+    def job():
+        mesh = session.mesh(min_support)
+        return mesh, mesh_ply_bytes(mesh) if len(mesh) else b""
+
+    mesh, data = await jobs.run(job)
     if not len(mesh):
         raise ApiError(409, "no_surface", f"frames: session {session.id} holds no surface to mesh yet "
                        f"({session.scene.frames} frames folded, min_support {min_support:g}); send frames first", "frames")
-    data = await jobs.run(mesh_ply_bytes, mesh)
     return Response(data, media_type="application/octet-stream", headers={
         "Content-Disposition": f'attachment; filename="{session.id}.mesh.ply"',
         "X-Canonical-Vertices": str(len(mesh.vertices)), "X-Canonical-Faces": str(len(mesh))})
