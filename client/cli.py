@@ -4,6 +4,7 @@
     canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F] [--strict] [--json]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX ... | (--pose FILE | --trajectory FILE) (--K fx,fy,cx,cy --size WxH | --frame-like DATASET:INDEX)) -o out.png|'view_{i}.png'|DIR/
     canonical export --url URL --session ID -o scene.ply|scene.splat
+    canonical export --url URL --session ID --mesh -o surface.ply
     canonical sessions --url URL [--json] [--prune [--dry-run]]
     canonical view --url URL --session ID [--no-browser]   (print the web viewer's URL, open a browser)
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
@@ -539,16 +540,23 @@ def add_export(p: argparse.ArgumentParser) -> None:
     _add_connection(p)
     p.add_argument("--session", required=True)
     p.add_argument("--max-gaussians", type=int, default=None)
-    p.add_argument("-o", "--output", required=True, help="file ending in .ply or .splat")
+    p.add_argument("--mesh", action="store_true",
+                   help="the surface as a coloured triangle mesh (PLY: vertex colours and faces) instead of the Gaussians")
+    p.add_argument("-o", "--output", required=True, help="file ending in .ply or .splat (.ply with --mesh)")
 
 
 def run_export(args) -> int:
     suffix = Path(args.output).suffix.lower()
-    if suffix not in (".ply", ".splat"):
-        raise SystemExit(f"-o: expected a .ply or .splat file name, got {args.output!r}")
+    if suffix not in ((".ply",) if args.mesh else (".ply", ".splat")):
+        raise SystemExit(f"-o: expected a {'.ply' if args.mesh else '.ply or .splat'} file name, got {args.output!r}")
+    if args.mesh and args.max_gaussians is not None:
+        raise SystemExit("--max-gaussians: a level of detail of the Gaussians; --mesh exports the surface")
     with _client(args) as client:
         session = client.session(args.session)
-        path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
+        if args.mesh:
+            path = session.export_mesh(args.output)
+        else:
+            path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
     print(path)
     return 0
 
@@ -913,7 +921,7 @@ COMMANDS: dict[str, Command] = {
     "stream": Command(add_stream, run_stream, "stream a dataset's frames into a session"),
     "repair": Command(add_repair, run_repair, "list or repair sessions whose files are damaged (service stopped)"),
     "render": Command(add_render, run_render, "render a session at a camera to a PNG"),
-    "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat"),
+    "export": Command(add_export, run_export, "download a session's Gaussians as .ply or .splat, or with --mesh its surface mesh"),
     "sessions": Command(add_sessions, run_sessions, "list sessions"),
     "view": Command(add_view, run_view, "print a session's web viewer URL and open it in a browser"),
     "poses": Command(add_poses, run_poses, "correct a session's frame poses from a pose file (a loop closure), or remove frames"),

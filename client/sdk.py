@@ -186,6 +186,15 @@ def label_scores(class_map, num_classes: int) -> np.ndarray:  # [H, W] ids -> [H
     return (ids[..., None] == np.arange(num_classes)).astype(np.float16)
 
 
+def _write(path: str | os.PathLike, data: bytes) -> Path:
+    """``data`` to ``path`` by way of a temporary file beside it, so a failed download leaves no half file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
+
+
 class Session:
     """One session of a `Client`; get it from `Client.create_session` or `Client.session`.
 
@@ -328,14 +337,14 @@ class Session:
     def export_splat(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
         return self._export(".splat", path, max_gaussians)
 
+    def export_mesh(self, path: str | os.PathLike, min_support: float | None = None) -> Path:
+        """The surface as a coloured triangle mesh (binary PLY: vertex x, y, z, red, green, blue; faces)."""
+        params = {} if min_support is None else {"min_support": float(min_support)}
+        return _write(path, self.client._request("GET", f"{self._path}/mesh.ply", params=params).content)
+
     def _export(self, suffix: str, path, max_gaussians) -> Path:
         params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
-        data = self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_bytes(data)
-        os.replace(tmp, path)
-        return path
+        return _write(path, self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content)
 
     def stats(self) -> dict:
         return self.client._request("GET", self._path).json()

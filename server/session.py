@@ -27,6 +27,7 @@ from typing import ClassVar
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.scene import FoldReport, Scene
 from canonical_core.scene.folding import fold_cost
+from canonical_core.scene.mesh import Mesh, scene_mesh
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 
 from .archive import SessionArchive, names_payload, payload_digest
@@ -223,6 +224,14 @@ class Session:
             scene = self.scene
         g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES, features=features)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
+
+    def mesh(self, min_support: float = 0.0) -> Mesh:
+        """The scene's surface mesh (`scene_mesh`: its sums copied under the scene's own lock, so folds
+        go on while it is meshed)."""
+        with self.lock:
+            self.check_alive()
+            scene = self.scene
+        return scene_mesh(scene, min_support)
 
     @property
     def retention(self) -> str:

@@ -1,4 +1,4 @@
-"""Gaussian exports: the standard 3DGS PLY and antimatter15 .splat."""
+"""Exports: the Gaussians (the standard 3DGS PLY, antimatter15 .splat) and the surface as a triangle mesh (PLY)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,16 @@ from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
 from canonical_core.gaussians import ply_bytes, splat_bytes
+from canonical_core.scene.mesh import mesh_ply_bytes
 
 from ..deps import JobsDep, SessionDep
+from ..errors import ApiError
 from ..schemas import ErrorBody
 
 router = APIRouter(prefix="/v1/sessions", tags=["exports"],
                    responses={c: {"model": ErrorBody} for c in (401, 404, 422, 429)})
 
+MinSupport = Annotated[float, Query(ge=0, allow_inf_nan=False, description="R_scene a voxel needs to count as surface")]
 MaxGaussians = Annotated[int | None, Query(ge=0, description="level of detail: the best-supported N Gaussians")]
 
 
@@ -40,3 +43,24 @@ async def export_ply(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGauss
 async def export_splat(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> Response:
     """antimatter15 .splat: 32 bytes per Gaussian, most important first."""
     return await _export(session, jobs, max_gaussians, splat_bytes, ".splat", features=False)  # colour only
+
+
+@router.get("/{session_id}/mesh.ply", response_class=Response,
+            responses={200: {"content": {"application/octet-stream": {}}}, 409: {"model": ErrorBody}})
+async def export_mesh(session: SessionDep, jobs: JobsDep, min_support: MinSupport = 0.0) -> Response:
+    """The surface as a coloured triangle mesh: binary little-endian PLY, vertices (float x, y, z;
+    uchar red, green, blue), faces (uchar count, int vertex_indices), counter-clockwise seen from the
+    cameras' side. Marching cubes of the signed distance to the voxels' tangent planes
+    (`canonical_core.scene.mesh`). 409 while the session holds no surface (no frames, or none above
+    ``min_support``)."""
+    def job():
+        mesh = session.mesh(min_support)
+        return mesh, mesh_ply_bytes(mesh) if len(mesh) else b""
+
+    mesh, data = await jobs.run(job, kind="work", session=session.id)
+    if not len(mesh):
+        raise ApiError(409, "no_surface", f"frames: session {session.id} holds no surface to mesh yet "
+                       f"({session.scene.frames} frames folded, min_support {min_support:g}); send frames first", "frames")
+    return Response(data, media_type="application/octet-stream", headers={
+        "Content-Disposition": f'attachment; filename="{session.id}.mesh.ply"',
+        "X-Canonical-Vertices": str(len(mesh.vertices)), "X-Canonical-Faces": str(len(mesh))})
