@@ -48,7 +48,7 @@ class StreamRefused(CanonicalError):
     status, code, message and field as `CanonicalError`'s."""
 
     def __init__(self, refusal: CanonicalError, index: int, acknowledged: int):
-        message = f"frame {index} refused after {acknowledged} acknowledged: {refusal.message}"
+        message = f"frame {index} refused (the session holds the {index} frames before it): {refusal.message}"
         super().__init__(refusal.status, refusal.code, message, refusal.field)
         self.index, self.acknowledged = index, acknowledged
 
@@ -304,7 +304,9 @@ class Session:
             for position, frame in enumerate(itertools.chain(frames, [None])):
                 if frame is not None:
                     pending.append(pool.submit(self._post_frame, frame, index + position))
-                while pending and (frame is None or len(pending) >= in_flight):
+                # the first frame goes alone: where an earlier stream's frame was refused, the frames
+                # after it are refused until a frame takes its place
+                while pending and (frame is None or len(pending) >= (in_flight if position else 1)):
                     try:
                         report = pending[0].result()
                     except CanonicalError as exc:

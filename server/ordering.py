@@ -29,9 +29,12 @@ class FrameOrder:
 
     def wait_turn(self, index: int, frames, wait_s: float) -> None:
         """Return once ``frames()`` (the session's frame count) is ``index`` or more; raise
-        `FrameOutOfOrder` when the frame at the gap was refused, or the gap stays open ``wait_s``."""
-        deadline = time.monotonic() + wait_s
+        `FrameOutOfOrder` when the frame at the gap was refused, or when no frame is folded for
+        ``wait_s`` (a long pipeline that moves on keeps its frames waiting)."""
+        deadline, last = time.monotonic() + wait_s, frames()
         while (held := frames()) < index:
+            if held != last:
+                deadline, last = time.monotonic() + wait_s, held
             if held in self._refused:
                 raise FrameOutOfOrder(FIELD, f"frame {index} follows frame {held}, which was refused "
                                              f"({self._refused[held]}); frames after a refused one are not folded")
