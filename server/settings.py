@@ -81,8 +81,8 @@ class Settings(BaseSettings):
     retention_every_s: float = Field(300.0, gt=0, description=(
         "how often the service applies session_ttl_s and disk_budget_bytes (POST /v1/sessions/prune applies them now)"))
     frame_order_wait_s: float = Field(30.0, gt=0, description=(
-        "a frame numbered with Frame-Index waits this long for the frames before it (posted on other connections) "
-        "before it gets 409; frames are folded in their numbers' order"))
+        "a frame numbered with Frame-Index waits for the frames before it (posted on other connections) until no "
+        "frame has been folded for this long, then gets 409; numbered frames fold in their numbers' order"))
     queue_limit: int = Field(8, gt=0, description="compute jobs (running + waiting) before requests get 429")
     threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
     warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")
