@@ -34,8 +34,8 @@ from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
-from .retention import folder_usage
 from .ordering import FrameOrder
+from .retention import folder_usage
 from .session_errors import FrameIdConflict, FrameOutOfOrder, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
 
@@ -98,7 +98,7 @@ class Session:
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
 
     def __post_init__(self, snapshot_frames: int):
-        self.order = FrameOrder(self.lock)
+        self.order = FrameOrder()
         self.snapshots = self.snapshots_class(self, snapshot_frames)
         self.corrections = Corrections(self)
         self._prepare_scene()
@@ -118,7 +118,7 @@ class Session:
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
-                  index: int | None = None, wait_s: float = 30.0) -> tuple[FoldReport, bool]:
+                  index: int | None = None) -> tuple[FoldReport, bool]:
         """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
 
         A frame whose ``frame_id`` the session already folded is not folded again: its first report
@@ -127,13 +127,10 @@ class Session:
         frame that cannot be made durable raises `StorageError`, its fold undone. On a ValueError the
         log record is cut off again and the scene is unchanged (the library validates before it mutates).
 
-        A numbered frame (``index``: its place in the stream) waits up to ``wait_s`` seconds for the
-        frames before it and is folded in its place, or refused (`server.ordering`)."""
+        A numbered frame (``index``: its place in the stream, its turn awaited with `order`) is folded
+        only in that place, else `FrameOutOfOrder`; its refusal refuses the frames waiting behind it."""
         with self.lock:
             self.check_alive()
-            if index is not None:
-                self.order.wait_turn(index, lambda: self.scene.frames, wait_s)
-                self.check_alive()
             try:
                 result = self._add_frame(payload, frame, snapshot_every_frames, snapshot_every_seconds, index)
             except FrameOutOfOrder:
@@ -143,12 +140,6 @@ class Session:
                 raise
             self.order.folded(self.scene.frames)
             return result
-
-    def refuse(self, index: int | None, exc: Exception) -> None:
-        """A numbered frame was refused before it reached `add_frame` (its message did not validate):
-        the frames waiting behind it give up."""
-        with self.lock:
-            self.order.refused(index, exc)
 
     def _add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
                    index: int | None) -> tuple[FoldReport, bool]:

@@ -97,7 +97,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
                        "Content-Type")
     body = await request.body()
 
-    def fold():
+    def parse():
         try:
             if kind == "multipart/form-data":
                 msg = parse_multipart(request.headers["content-type"], body)
@@ -107,17 +107,22 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
             check_session_accepts(frame, session.scene.config)
         except ValueError as exc:
-            session.refuse(frame_index, exc)  # the frames numbered after it are not folded
+            session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
             raise
-        return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds,
-                                 frame_index, settings.frame_order_wait_s), frame.camera
+        return record, frame
 
     t0 = time.perf_counter()
-    (report, replay), camera = await jobs.run(fold)
+    record, frame = await jobs.run(parse)  # while the frames before it fold
+    decoded = time.perf_counter() - t0
+    if frame_index is not None:  # on the loop, holding no job
+        await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
+    t0 = time.perf_counter()
+    report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
+                                    settings.snapshot_every_seconds, frame_index)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:
-        metrics.fold_seconds.observe(time.perf_counter() - t0)
+        metrics.fold_seconds.observe(decoded + time.perf_counter() - t0)  # its turn's wait left out
         metrics.frames_total += 1
-        request.app.state.events.folded(session, camera, report)
+        request.app.state.events.folded(session, frame.camera, report)
     return FoldReportOut(**report.to_dict())
