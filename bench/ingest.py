@@ -7,7 +7,9 @@ CLI's own defaults; frames/s end to end and the disk a session keeps per frame.
 Each run starts a fresh service (a subprocess, its own temporary data directory), streams the capture
 with the CLI (a subprocess: its summary line gives frames/s), samples the session's folder every
 20 ms while it runs, then stops the service gracefully (SIGTERM: it snapshots and restarts the log)
-and measures the folder again. Disk per frame counts every file but the scene snapshot
+and measures the folder again. Before the runs, the client's side in process: what building one
+frame's body costs and weighs in each form the SDK sends (`client.sdk.frame_body`), and what the
+service's decode of it costs (`server.wire.frame_from_message`). Disk per frame counts every file but the scene snapshot
 (``scene.snap`` and one being written); the peak while it runs is given without and with the
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
@@ -32,7 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table  # noqa: E402
 
-from client.cli import free_port, wait_until_healthy  # noqa: E402
+from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
+from client.cli import capture_frames, free_port, frame_arrays, wait_until_healthy  # noqa: E402
+from client.sdk import frame_body  # noqa: E402
+from server.wire import frame_from_message, unpack  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "realsense_shelf"
@@ -102,6 +107,29 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None) -> dict
                 "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
 
 
+def body_costs(data: Path, frames: int = 10) -> list[dict]:
+    """Per form of a frame's body: ms to build it on the client, ms to decode it on the service, MB."""
+    capture = load_tsdf_fusion(data, max_frames=frames)
+    arrays = [frame_arrays(capture[i], sensor_units=True) for i in range(len(capture))]
+    forms = {"raw arrays (16-bit depth), the SDK before": lambda k: frame_body(**arrays[k], codec="raw"),
+             "compact from arrays: PNG colour, zstandard depth (the SDK's default)": lambda k: frame_body(**arrays[k]),
+             "the capture's own files (canonical stream's default)": lambda k: frame_body(**files[k])}
+    files = list(capture_frames(capture))
+    rows = []
+    for name, build in forms.items():
+        frame_from_message(unpack(build(0)))  # the decoders' kernels loaded outside the measurement
+        t0 = time.perf_counter()
+        bodies = [build(k) for k in range(len(capture))]
+        built = (time.perf_counter() - t0) * 1000 / len(bodies)
+        t0 = time.perf_counter()
+        for body in bodies:
+            frame_from_message(unpack(body))
+        decoded = (time.perf_counter() - t0) * 1000 / len(bodies)
+        rows.append({"body": name, "client builds, ms": f"{built:.1f}", "service decodes, ms": f"{decoded:.1f}",
+                     "MB a frame": f"{sum(map(len, bodies)) / len(bodies) / 1e6:.3f}"})
+    return rows
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA)
@@ -115,6 +143,8 @@ def main(argv=None) -> None:
         configs.append((f"base tree {args.base}", args.base.resolve(), None))
     print(machine_summary())
     print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved\n")
+    print_table("A frame's body: built by the client, decoded by the service (in process, 10 frames, means)",
+                body_costs(args.data))
     results: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
     for _ in range(args.runs):
         for name, repo, in_flight in configs:
