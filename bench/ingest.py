@@ -14,7 +14,9 @@ service's decode of it costs (`server.wire.frame_from_message`). Disk per frame 
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
 warmed), interleaved with this one, so that both see the same load. Timings on a shared machine are
-noisy: compare the runs of one invocation, and take the best of several. Never asserts timings.
+noisy: compare the runs of one invocation, and take the best of several; the CPU time a frame costs
+the service and the client (user + system, all threads; the client's includes its start-up) moves
+less with other work than the wall time does. Never asserts timings.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import signal
 import subprocess
 import sys
@@ -76,6 +79,12 @@ class Sampler(threading.Thread):
             time.sleep(self.interval)
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (all its threads), from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None) -> dict:
     """One service and one `canonical stream` of ``repo`` (the CLI's defaults, ``--in-flight`` when
     given); frames/s and disk per frame."""
@@ -91,8 +100,12 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None) -> dict
             sampler = Sampler(data_dir / "sessions")
             sampler.start()
             cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
+            service_cpu, client_cpu = cpu_seconds(service.pid), resource.getrusage(resource.RUSAGE_CHILDREN)
             stream = subprocess.run(cmd + ([] if in_flight is None else ["--in-flight", str(in_flight)]), cwd=repo,
                                     env=env, capture_output=True, text=True)
+            service_cpu = cpu_seconds(service.pid) - service_cpu  # before the graceful stop's snapshot
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            client_cpu = after.ru_utime + after.ru_stime - client_cpu.ru_utime - client_cpu.ru_stime
             sampler.stop.set()
             sampler.join()
             if stream.returncode != 0:
@@ -104,6 +117,7 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None) -> dict
         kept, snaps = folder_bytes(data_dir / "sessions")
         n = int(frames)
         return {"frames": n, "seconds": float(seconds), "fps": float(fps), "stopped": kept / n,
+                "service_cpu": service_cpu / n, "client_cpu": client_cpu / n,
                 "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
 
 
@@ -154,6 +168,8 @@ def main(argv=None) -> None:
         {"configuration": name, "frames": runs[0]["frames"],
          "frames/s (each run)": " / ".join(f"{r['fps']:.1f}" for r in runs),
          "frames/s (best)": f"{max(r['fps'] for r in runs):.1f}",
+         "CPU ms a frame, service / client (best)": f"{min(r['service_cpu'] for r in runs) * 1000:.0f} / "
+                                                    f"{min(r['client_cpu'] for r in runs) * 1000:.0f}",
          "MB/frame after a graceful stop, no snapshot": mb(min(r["stopped"] for r in runs)),
          "peak MB/frame while running, no snapshot": mb(max(r["peak"] for r in runs)),
          "peak MB/frame while running, with snapshots": mb(max(r["peak_all"] for r in runs)),
