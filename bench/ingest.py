@@ -8,8 +8,9 @@ Each run starts a fresh service (a subprocess, its own temporary data directory)
 with the CLI (a subprocess: its summary line gives frames/s), samples the session's folder every
 20 ms while it runs, then stops the service gracefully (SIGTERM: it snapshots and restarts the log)
 and measures the folder again. Before the runs, the client's side in process: what building one
-frame's body costs and weighs in each form the SDK sends (`client.sdk.frame_body`), and what the
-service's decode of it costs (`server.wire.frame_from_message`). Disk per frame counts every file but the scene snapshot
+frame's body costs and weighs in each form the SDK sends (`client.sdk.frame_body`), what the
+service's decode of it costs (`server.wire.frame_from_message`), and what zstandard over it (the
+archive's compression of raw arrays) would cost and gain. Disk per frame counts every file but the scene snapshot
 (``scene.snap`` and one being written); the peak while it runs is given without and with the
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
@@ -33,6 +34,8 @@ import threading
 import time
 from pathlib import Path
 
+import zstandard
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table  # noqa: E402
@@ -40,6 +43,7 @@ from common import machine_summary, print_table  # noqa: E402
 from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
 from client.cli import capture_frames, free_port, frame_arrays, wait_until_healthy  # noqa: E402
 from client.sdk import frame_body  # noqa: E402
+from server.archive import ZSTD_LEVEL  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -139,8 +143,13 @@ def body_costs(data: Path, frames: int = 10) -> list[dict]:
         for body in bodies:
             frame_from_message(unpack(body))
         decoded = (time.perf_counter() - t0) * 1000 / len(bodies)
+        squeeze = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True)
+        t0 = time.perf_counter()
+        squeezed = sum(len(squeeze.compress(body)) for body in bodies)
+        zstd_ms = (time.perf_counter() - t0) * 1000 / len(bodies)
         rows.append({"body": name, "client builds, ms": f"{built:.1f}", "service decodes, ms": f"{decoded:.1f}",
-                     "MB a frame": f"{sum(map(len, bodies)) / len(bodies) / 1e6:.3f}"})
+                     "MB a frame": f"{sum(map(len, bodies)) / len(bodies) / 1e6:.3f}",
+                     "the archive's zstandard over it: ms, size": f"{zstd_ms:.1f}, {squeezed / sum(map(len, bodies)):.3f}x"})
     return rows
 
 
