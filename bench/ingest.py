@@ -89,16 +89,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None) -> dict:
-    """One service and one `canonical stream` of ``repo`` (the CLI's defaults, ``--in-flight`` when
-    given); frames/s and disk per frame."""
+def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None) -> dict:
+    """One service (``--threads`` when given) and one `canonical stream` of ``repo`` (the CLI's
+    defaults, ``--in-flight`` when given); frames/s and disk per frame."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
     env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
     with tempfile.TemporaryDirectory() as tmp:
         port, data_dir = free_port(), Path(tmp) / "data"
         url = f"http://127.0.0.1:{port}"
         service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
-                                    str(data_dir), "--log-level", "warning"], cwd=repo, env=env)
+                                    str(data_dir), "--log-level", "warning"] + ([] if threads is None else
+                                                                              ["--threads", str(threads)]),
+                                   cwd=repo, env=env)
         try:
             wait_until_healthy(url, service, timeout=600.0)
             sampler = Sampler(data_dir / "sessions")
@@ -160,18 +162,20 @@ def main(argv=None) -> None:
     p.add_argument("--runs", type=int, default=2, help="runs of each configuration (the table gives each and the best)")
     p.add_argument("--in-flight", type=int, nargs="*", default=[3, 1], help="the CLI's --in-flight values to run")
     p.add_argument("--base", type=Path, default=None, help="also run this checkout (its own CLI defaults), interleaved")
+    p.add_argument("--threads", type=int, default=None, help="the service's --threads (CPU threads a job; default: all)")
     args = p.parse_args(argv)
     configs = [(f"this tree, --in-flight {k}", REPO, k) for k in args.in_flight]
     if args.base is not None:
         configs.append((f"base tree {args.base}", args.base.resolve(), None))
     print(machine_summary())
-    print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved\n")
+    print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved, service "
+          f"--threads {args.threads or 'default'}\n")
     print_table("A frame's body: built by the client, decoded by the service (in process, 10 frames, means)",
                 body_costs(args.data))
     results: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
     for _ in range(args.runs):
         for name, repo, in_flight in configs:
-            results[name].append(one_run(repo, args.data, args.voxel_size, in_flight))
+            results[name].append(one_run(repo, args.data, args.voxel_size, in_flight, args.threads))
     mb = lambda x: f"{x / 1e6:.3f}"  # noqa: E731
     print_table("`canonical stream` end to end, and disk per frame (MB = 10^6 bytes)", [
         {"configuration": name, "frames": runs[0]["frames"],
