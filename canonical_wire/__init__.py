@@ -1,10 +1,12 @@
 """The array wire codec shared by the service (``server``) and the SDK (``client``).
 
-It depends on numpy and msgpack only (no torch, no ``canonical_core``), so the SDK stays a thin
-HTTP client while both ends encode and decode arrays with the same code.
+It depends on numpy, msgpack and zstandard only (no torch, no ``canonical_core``), so the SDK
+stays a thin HTTP client while both ends encode and decode arrays with the same code.
 
 An array travels as a msgpack map ``{"dtype": "uint8"|"uint16"|"float16"|"float32", "shape": [...],
-"data": <bytes, little-endian, C order>}``.
+"data": <bytes, little-endian, C order>}``, or with ``"codec": "zstd"`` and ``data`` a zstandard
+frame of those bytes (lossless: a sensor's 16-bit depth in a fraction of its bytes and of the CPU
+time of a 16-bit PNG).
 
 Example:
     >>> import numpy as np
@@ -18,13 +20,23 @@ from __future__ import annotations
 
 import math
 
+from typing import Literal
+
 import msgpack
 import numpy as np
+import zstandard
 
-__all__ = ["DTYPES", "FLOATS", "WireError", "array_shape", "decode_array", "encode_array", "is_array", "pack", "unpack"]
+__all__ = ["CODECS", "DTYPES", "FLOATS", "WireError", "array_shape", "decode_array", "encode_array", "is_array", "pack",
+           "unpack"]
 
 DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "float16": np.dtype("<f2"), "float32": np.dtype("<f4")}
 FLOATS = ("float16", "float32")
+Codec = Literal["raw", "zstd"]
+CODECS = ("raw", "zstd")
+_KEYS = frozenset({"dtype", "shape", "data"})
+# zstandard's level 1: depth maps pack about as small as at level 3, in less time (the client's CPU
+# is often the service's too)
+ZSTD_LEVEL = 1
 
 
 class WireError(ValueError):
@@ -55,20 +67,33 @@ def pack(obj) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
 
 
-def encode_array(a, field: str = "array") -> dict:
-    """An array map of ``a``; float64 travels as float32, other dtypes outside `DTYPES` raise ValueError."""
+def encode_array(a, field: str = "array", codec: Codec = "raw") -> dict:
+    """An array map of ``a``, its bytes as they are (``raw``) or zstandard-compressed (``zstd``);
+    float64 travels as float32, other dtypes outside `DTYPES` raise ValueError.
+
+    Example:
+        >>> m = encode_array(np.zeros((480, 640), np.uint16), codec="zstd")
+        >>> m["codec"], len(m["data"]) < 100, decode_array(m).shape
+        ('zstd', True, (480, 640))
+    """
     a = np.asarray(a)
     if a.dtype == np.float64:
         a = a.astype(np.float32)
     name = a.dtype.name
     if name not in DTYPES:
         raise WireError(field, f"dtype {name} cannot travel; use one of {list(DTYPES)}")
-    return {"dtype": name, "shape": list(a.shape), "data": np.ascontiguousarray(a, DTYPES[name]).tobytes()}
+    if codec not in CODECS:
+        raise ValueError(f"codec: expected one of {list(CODECS)}, got {codec!r}")
+    data = np.ascontiguousarray(a, DTYPES[name]).tobytes()
+    out = {"dtype": name, "shape": list(a.shape), "data": data}
+    if codec == "zstd":
+        out["data"], out["codec"] = zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(data), "zstd"
+    return out
 
 
 def is_array(obj) -> bool:
-    """Whether ``obj`` has exactly the keys of an array map (its values are not checked)."""
-    return isinstance(obj, dict) and set(obj) == {"dtype", "shape", "data"}
+    """Whether ``obj`` has exactly the keys of an array map, ``codec`` optional (values not checked)."""
+    return isinstance(obj, dict) and (set(obj) == _KEYS or set(obj) == _KEYS | {"codec"})
 
 
 def array_shape(obj) -> list[int] | None:
@@ -100,6 +125,24 @@ def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | No
     if not isinstance(data, (bytes, bytearray)):
         raise WireError(field, f"data must be bytes, got {type(data).__name__}")
     expected = math.prod(shape) * DTYPES[dtype].itemsize
+    codec = obj.get("codec", "raw")
+    if codec == "zstd":
+        data = _decompress(data, expected, field)
+    elif codec != "raw":
+        raise WireError(field, f"codec {codec!r} is not accepted; expected one of {list(CODECS)}")
     if len(data) != expected:
         raise WireError(field, f"data holds {len(data)} bytes; shape {shape} of {dtype} needs {expected}")
     return np.frombuffer(data, DTYPES[dtype]).reshape(shape).astype(DTYPES[dtype].newbyteorder("="), copy=True)
+
+
+def _decompress(data: bytes, expected: int, field: str) -> bytes:
+    """The bytes of a zstandard frame, never more than ``expected`` (the shape's bytes): a small frame
+    that would inflate past its declared shape (a decompression bomb) is refused unread."""
+    try:
+        # a frame that declares its size is decompressed into that many bytes at once: check it first
+        declared = zstandard.frame_content_size(data)
+        if declared > expected:
+            raise WireError(field, f"data inflates to {declared} bytes; shape and dtype need {expected}")
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=expected)
+    except zstandard.ZstdError as exc:
+        raise WireError(field, f"data is not a zstandard frame of at most {expected} bytes ({exc})") from None

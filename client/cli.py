@@ -37,12 +37,12 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import httpx
 import numpy as np
 
-from .sdk import CanonicalError, Client, default_url, exact_sensor_depth
+from .sdk import CanonicalError, Client, Session, StreamRefused, default_url, exact_sensor_depth
 
 
 @dataclass(frozen=True)
@@ -220,12 +220,25 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
                                                              "frames without depth over the service's limit for them "
                                                              "are downscaled to it anyway")
+    p.add_argument("--in-flight", type=positive_int, default=IN_FLIGHT, help="frames posted at once (the service "
+                                                                              "folds them in order; 1: one at a time)")
     p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
                                                          "(default: skip them, with a warning that counts them)")
     _add_json(p, "the session's stats when the stream ends, with the frames sent and the seconds taken")
     p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
                    help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
                         "the field's type), e.g. --set colour_solve.views=16 --set free_space.margin=3; repeatable")
+
+
+def positive_int(text: str) -> int:
+    """An argument that must be a whole number of at least 1 (a usage error otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
 
 
 def session_setting(text: str) -> tuple[str, object]:
@@ -274,6 +287,37 @@ def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
     return out
 
 
+def frame_files(source) -> dict | None:
+    """A capture's frame (a `FrameSequence.source`) as keyword arguments of `Session.add_frame` that
+    carry its files' own bytes: PNG or JPEG colour, 16-bit PNG depth with its ``depth_scale``. Nothing
+    is decoded and encoded again (the client's CPU is often the service's), the capture's own
+    compression is what travels and what the service keeps, and the service decodes the very frame
+    the loader reads. None where the loader changes the images it reads (undistortion, a size to
+    check, depth that is not a PNG): send `frame_arrays` then."""
+    from canonical_core.datasets.files import IMAGE_SUFFIXES, RGBDFile
+
+    if not isinstance(source, RGBDFile) or source.distortion is not None or source.size is not None:
+        return None
+    if source.color.suffix.lower() not in IMAGE_SUFFIXES or (source.depth is not None and source.depth.suffix.lower() != ".png"):
+        return None
+    out = {"rgb": source.color.read_bytes(), "K": source.K, "c2w": source.c2w, "frame_id": source.frame_id}
+    if source.depth is not None:
+        out["depth"], out["depth_scale"] = source.depth.read_bytes(), source.depth_scale
+    return out
+
+
+def capture_frames(frames, scale: float = 1.0, start: int = 0) -> Iterator[dict]:
+    """Frames ``start`` .. end of a capture as `Session.add_frame` keyword arguments, read one at a
+    time: its files as they are (`frame_files`) where they can be, else decoded (`frame_arrays`,
+    depth in its 16-bit sensor units)."""
+    for i in range(start, len(frames)):
+        files = frame_files(frames.source(i)) if scale == 1.0 else None
+        yield files if files is not None else frame_arrays(frames[i], scale, sensor_units=True)
+
+
+IN_FLIGHT = 3  # frames `canonical stream` keeps posted at once: one folding, the next ones read and decoded
+
+
 class FirstFrameSession:
     """A new session that exists once its first frame is in: the first `add_frame` creates it (with
     ``settings``, as `Client.create_session`) and, if the service refuses that frame or the call is
@@ -299,13 +343,25 @@ class FirstFrameSession:
             self.created(session)
         return report
 
+    def add_frames(self, frames, in_flight: int = IN_FLIGHT, first_index: int | None = None) -> Iterator[dict]:
+        """`Session.add_frames`, the first frame posted alone (it creates the session)."""
+        frames = iter(frames)
+        if self.session is None:
+            first = next(frames, None)
+            if first is None:
+                return
+            yield self.add_frame(**first)
+            first_index = 1
+        yield from self.session.add_frames(frames, in_flight, first_index)
 
-def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[int, float]:
+
+def stream_frames(session, frames, scale: float = 1.0, start: int = 0, in_flight: int = IN_FLIGHT) -> tuple[int, float]:
     """Post frames ``start`` .. end to ``session`` (a `Session` or a `FirstFrameSession`) with a progress
-    bar; returns (frames sent, elapsed seconds). The fold reports' warnings and those raised while a
-    frame is read and sent (a frame downscaled to the service's limit) go to stderr, each kind once.
+    bar, ``in_flight`` at once (`Session.add_frames`: folded in order); returns (frames sent, elapsed
+    seconds). The fold reports' warnings and those raised while a frame is read and sent (a frame
+    downscaled to the service's limit) go to stderr, each kind once.
 
-    Ctrl-C stops after the frame in flight; the count says how many were acknowledged."""
+    Ctrl-C stops after the frames in flight; a refused frame stops the stream (`StreamRefused`)."""
     from tqdm import tqdm
 
     t0, new, sent = time.perf_counter(), 0, 0
@@ -314,8 +370,9 @@ def stream_frames(session, frames, scale: float = 1.0, start: int = 0) -> tuple[
             warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            for i in range(start, len(frames)):
-                report = session.add_frame(**frame_arrays(frames[i], scale, sensor_units=True))
+            first_index = start if isinstance(session, Session) else None
+            reports = session.add_frames(capture_frames(frames, scale, start), in_flight, first_index)
+            for i, report in enumerate(reports, start):
                 sent += 1
                 new += report["new_voxels"]
                 raised = [str(w.message) for w in caught]
@@ -376,20 +433,29 @@ def run_stream(args) -> int:
         else:
             target = FirstFrameSession(client, {"voxel_size": args.voxel_size, **settings_from_pairs(args.settings)},
                                        created=announce)
-        interrupted = False
+        interrupted, refused = False, None
+        t0 = time.perf_counter()
         try:
-            sent, elapsed = stream_frames(target, frames, args.scale, start)
+            sent, elapsed = stream_frames(target, frames, args.scale, start, args.in_flight)
         except StreamInterrupted as stop:
             sent, elapsed, interrupted = stop.sent, stop.elapsed, True
+        except StreamRefused as exc:
+            sent, elapsed, refused = exc.index - start, time.perf_counter() - t0, exc
         session = target.session if isinstance(target, FirstFrameSession) else target
         if session is None:  # no frame went in: no session was made
             print(("interrupted" if interrupted else f"{frames.name}: no frames to stream")
                   + "; no session was created", file=sys.stderr)
             return 130 if interrupted else 1
         stats = session.stats()
+        if interrupted:  # the frames in flight at Ctrl-C were folded too
+            sent = stats["frames"] - start
         summary = _stream_summary(sent, elapsed, session, stats)
-        if interrupted:
-            summary = f"interrupted: {summary}; continue with --session {session.id}"
+        if interrupted or refused:
+            summary = f"{'interrupted' if interrupted else 'stopped'}: {summary}; continue with --session {session.id}"
+        if refused:
+            print(f"error: {refused}", file=sys.stderr)
+            print(summary, file=sys.stderr)
+            return 1
         print(summary, file=sys.stderr)
         if args.json:
             print(json.dumps({**stats, "sent": sent, "seconds": round(elapsed, 3), "interrupted": interrupted}))

@@ -6,10 +6,11 @@ magic, length, index, CRCs, payload; ``index`` is the record's number), appended
 Each payload is a msgpack map of one of two kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
-  frame_id, the digest of its wire payload (to recognise a retry), and its wire message, losslessly
-  compressed (`compress_payload`: zstandard over the payload as it arrived, the packed map; archives
-  written before read back too: an 8-bit colour array as PNG, zlib over the map), or None where the
-  retention setting did not keep it;
+  frame_id, the digest of its wire payload (to recognise a retry), and its wire payload as it
+  arrived (`compress_payload`): the bytes the client sent where its images came compressed (PNG or
+  JPEG colour, depth as a PNG or a zstandard array), else zstandard over them; archives written
+  before read back too (an 8-bit colour array as PNG, zlib over the map); None where the retention
+  setting did not keep it;
 - a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
   "first": the stream position of the first frame it touches, "id": the id of a background
   correction or None}``.
@@ -81,26 +82,46 @@ def names_payload(digest: str, payload: bytes) -> bool:
     return digest == hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
-# zstandard's fast levels: -1 packs a 640x480 RGB-D frame as small as level 1 does (2.8x) in four
-# fifths of its time, and level 3 takes twice as long for 8 % smaller
+# zstandard's fast levels: -1 packs a 640x480 RGB-D frame of raw arrays as small as level 1 does
+# (2.8x) in four fifths of its time, and level 3 takes twice as long for 8 % smaller
 ZSTD_LEVEL = -1
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+_MSGPACK_MAPS = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}  # a payload's first byte (a map); zlib's and zstd's differ
 
 
 def compress_payload(payload: bytes) -> bytes:
-    """A frame's wire payload (its packed message), losslessly smaller: zstandard over it as it is, so
-    the writer neither unpacks nor packs it again."""
+    """A frame's wire payload (its packed message) as the archive keeps it, losslessly: as it is when
+    its images came compressed (`arrived_compressed`: zstandard over PNG and zstandard bytes gains
+    nothing and costs milliseconds a frame), else zstandard over it as it is, so the writer neither
+    unpacks nor packs the arrays again."""
+    if arrived_compressed(payload):
+        return payload
     # with the frame's checksum, so a damaged record is detected when it is read back
     return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(payload)
 
 
+def arrived_compressed(payload: bytes) -> bool:
+    """Whether a frame's colour came as PNG/JPEG bytes and its depth (if any) as a PNG or a zstandard
+    array: what the SDK and the CLI send by default."""
+    msg = msgpack.unpackb(payload, strict_map_key=False)  # a validated frame's payload
+    depth = msg.get("depth")
+    return isinstance(msg.get("rgb"), bytes) and (depth is None or isinstance(depth, bytes)
+                                                  or (isinstance(depth, dict) and depth.get("codec") == "zstd"))
+
+
 class DamagedFrame(Exception):
-    """An archived frame's message does not decompress: the archive's file was damaged."""
+    """An archived frame's message does not decompress (or no longer matches its digest): the archive's
+    file was damaged."""
 
 
-def decompress_payload(data: bytes) -> bytes:
+def decompress_payload(data: bytes, digest: str | None = None) -> bytes:
     """The wire payload of `compress_payload`'s bytes (of earlier archives: the packed map with its colour
-    as PNG, which the wire takes too). Raises `DamagedFrame` when the bytes are not what either wrote."""
+    as PNG, which the wire takes too). Raises `DamagedFrame` when the bytes are not what either wrote,
+    or, for a payload kept as it arrived, when they no longer match ``digest`` (its `payload_digest`)."""
+    if data[:1] and data[0] in _MSGPACK_MAPS:
+        if digest is not None and not names_payload(digest, data):
+            raise DamagedFrame(f"{ARCHIVE}: an archived frame no longer matches its digest")
+        return data
     try:
         if data[:4] == _ZSTD_MAGIC:
             return zstandard.ZstdDecompressor().decompress(data)
@@ -109,10 +130,10 @@ def decompress_payload(data: bytes) -> bytes:
         raise DamagedFrame(f"{ARCHIVE}: an archived frame does not decompress ({exc})") from None
 
 
-def decompress_message(data: bytes) -> dict:
+def decompress_message(data: bytes, digest: str | None = None) -> dict:
     """The message of `compress_payload`'s bytes, and of the PNG + zlib form of earlier archives. Raises
-    `DamagedFrame` when the bytes are not what either wrote."""
-    return wire.unpack(decompress_payload(data))
+    `DamagedFrame` when the bytes are not what either wrote (or do not match ``digest``)."""
+    return wire.unpack(decompress_payload(data, digest))
 
 
 @dataclass(frozen=True)
@@ -190,7 +211,7 @@ class SessionArchive:
     def messages(self, entries: list[Entry]) -> Iterator[dict | None]:
         """The wire messages of ``entries`` in order, each with its current pose (None where not kept)."""
         for e in entries:
-            yield None if not e.kept else self._message(e, decompress_message(os.pread(self._fd, e.length, e.offset)))
+            yield None if not e.kept else self._message(e, decompress_message(os.pread(self._fd, e.length, e.offset), e.digest))
 
     def payloads(self, entries: list[Entry]) -> Iterator[bytes | None]:
         """The wire payloads of ``entries`` in order (None where not kept), as the frame log holds them: as
@@ -200,7 +221,7 @@ class SessionArchive:
             if not e.kept:
                 yield None
                 continue
-            payload = decompress_payload(os.pread(self._fd, e.length, e.offset))
+            payload = decompress_payload(os.pread(self._fd, e.length, e.offset), e.digest)
             yield payload if e.arrival not in self.poses else wire.pack(self._message(e, wire.unpack(payload)))
 
     def _message(self, e: Entry, msg: dict) -> dict:

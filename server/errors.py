@@ -19,7 +19,7 @@ from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
 from .scheduler import QueueFull
-from .session_errors import FrameIdConflict, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
+from .session_errors import FrameIdConflict, FrameOutOfOrder, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")
@@ -55,6 +55,8 @@ def from_value_error(exc: ValueError) -> ApiError:
         return ApiError(409, "capacity", message, field_of(message) or "max_voxels")
     if isinstance(exc, FrameIdConflict):
         return ApiError(409, "frame_id_conflict", message, "frame_id")
+    if isinstance(exc, FrameOutOfOrder):
+        return ApiError(409, "frame_out_of_order", message, exc.field)
     return ApiError(422, "invalid_value", message, exc.field if isinstance(exc, FieldError) else field_of(message))
 
 

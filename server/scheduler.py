@@ -6,6 +6,9 @@ kind of job, bounded on its own; the workers serve the kinds in priority order a
 the sessions with jobs waiting in turn (round-robin), so one session's load never refuses, and hardly
 delays, another session's frames. The kinds, first served first:
 
+- ``ingest``: reading, decoding and checking a frame's body before it folds. The frame workers run
+  these first and in parallel with the session's fold, so that a client keeping frames in flight has
+  the next frame ready when the fold before it ends.
 - ``frame``: folds, pose corrections, creating and deleting sessions: the writes a streaming client
   waits on. The frame workers run them, a session's one at a time and in arrival order (its folds
   take the session lock in turn anyway: a second worker would only wait for it).
@@ -42,8 +45,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Literal, TypeVar
 
 T = TypeVar("T")
-Kind = Literal["frame", "work", "viewer"]
-KINDS: tuple[Kind, ...] = ("frame", "work", "viewer")  # priority order
+Kind = Literal["ingest", "frame", "work", "viewer"]
+KINDS: tuple[Kind, ...] = ("ingest", "frame", "work", "viewer")  # priority order
+FRAME_KINDS: tuple[Kind, ...] = ("ingest", "frame")  # what the frame workers take, in this order
 RENDER_KINDS: tuple[Kind, ...] = ("work", "viewer")  # what the render workers take, in this order
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
 
@@ -92,7 +96,7 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 
 
 class Scheduler:
-    """Runs jobs on ``frame_workers`` threads (frames) and ``render_workers`` threads at OS priority
+    """Runs jobs on ``frame_workers`` threads (frames and their decoding) and ``render_workers`` threads at OS priority
     ``render_nice`` (other work, then the viewer's); at most ``queue_limit`` jobs running or waiting
     per session and kind. ``init`` runs once in each worker thread before its first job (the
     service's numba thread count, which numba keeps per thread). Threads start with the first job.
@@ -102,7 +106,7 @@ class Scheduler:
                  init: Callable[[], None] | None = None):
         self.limit, self._init = queue_limit, init
         self._lock = threading.Lock()
-        self._lanes = (_Lane(("frame",), frame_workers, 0, threading.Condition(self._lock)),
+        self._lanes = (_Lane(FRAME_KINDS, frame_workers, 0, threading.Condition(self._lock)),
                        _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)))
         # kind -> session -> its waiting jobs; a session's place in the dict is its turn
         self._waiting: dict[Kind, OrderedDict[str, deque[_Job]]] = {kind: OrderedDict() for kind in KINDS}
@@ -152,13 +156,13 @@ class Scheduler:
             thread.join(timeout)
 
     def _lane(self, kind: Kind) -> _Lane:
-        return self._lanes[0] if kind == "frame" else self._lanes[1]
+        return self._lanes[0] if kind in FRAME_KINDS else self._lanes[1]
 
     def _start(self) -> None:
         for lane in self._lanes:
             for i in range(lane.workers):
                 thread = threading.Thread(target=self._work, args=(lane,), daemon=True,
-                                          name=f"canonical-{lane.kinds[0]}-{i}")
+                                          name=f"canonical-{'frame' if lane is self._lanes[0] else 'render'}-{i}")
                 thread.start()
                 self._threads.append(thread)
 

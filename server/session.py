@@ -35,8 +35,9 @@ from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
+from .ordering import FrameOrder
 from .retention import folder_usage
-from .session_errors import FrameIdConflict, SessionNotFound, SessionUnavailable
+from .session_errors import FrameIdConflict, FrameOutOfOrder, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
@@ -92,11 +93,13 @@ class Session:
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
     budget: MemoryBudget | None = None  # the service's memory, which each fold reserves its worst case from
+    order: FrameOrder = field(init=False, repr=False)  # the turns of its numbered frames (`server.ordering`)
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
     corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
 
     def __post_init__(self, snapshot_frames: int):
+        self.order = FrameOrder()
         self.snapshots = self.snapshots_class(self, snapshot_frames)
         self.corrections = Corrections(self)
         self._prepare_scene()
@@ -115,47 +118,65 @@ class Session:
         scene.preallocate(min(self.preallocate_voxels, self.config.max_voxels or self.preallocate_voxels))
 
     # -- writing (callers hold no lock; these take it) ------------------------------------------
-    def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int,
-                  snapshot_every_seconds: float) -> tuple[FoldReport, bool]:
+    def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
+                  index: int | None = None) -> tuple[FoldReport, bool]:
         """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
 
         A frame whose ``frame_id`` the session already folded is not folded again: its first report
         comes back (replay = True), or `FrameIdConflict` if its content differs. The record is logged
         on a writer thread while the frame folds, and the report is returned once both are done. A
         frame that cannot be made durable raises `StorageError`, its fold undone. On a ValueError the
-        log record is cut off again and the scene is unchanged (the library validates before it mutates)."""
+        log record is cut off again and the scene is unchanged (the library validates before it mutates).
+
+        A numbered frame (``index``: its place in the stream, its turn awaited with `order`) is folded
+        only in that place, else `FrameOutOfOrder`; its refusal refuses the frames waiting behind it."""
         with self.lock:
             self.check_alive()
-            known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
-            if known is not None:
-                if not names_payload(known.digest, payload):
-                    raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
-                report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
-                                          "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
-                return FoldReport(**report), True
-            if self.wedged:
-                raise SessionUnavailable(self.id, self.wedged, retry_later=True)
-            frames = self.scene.frames
-            with self.budget.reserve(fold_cost(self.scene, frame)) if self.budget is not None else nullcontext():
-                logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
-                try:
-                    report = self.scene.fold(frame)
-                except Exception as exc:
-                    self._fold_failed(logged, exc)
-                    raise
             try:
-                digest, _ = logged.result()
-            except StorageError as exc:
-                self._append_failed(exc, frames)
+                result = self._add_frame(payload, frame, snapshot_every_frames, snapshot_every_seconds, index)
+            except FrameOutOfOrder:
                 raise
-            if self.archive is not None:
-                refolding = self.corrections.background is not None  # the re-fold catches up on the archive
-                self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
-            if frame.frame_id is not None:
-                self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
-            self.version += 1
-            self.snapshots.after_fold(snapshot_every_frames, snapshot_every_seconds)
-            return report, False
+            except Exception as exc:
+                self.order.refused(index, exc)
+                raise
+            self.order.folded(self.scene.frames)
+            return result
+
+    def _add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
+                   index: int | None) -> tuple[FoldReport, bool]:
+        """`add_frame` once it is the frame's turn, under the lock."""
+        known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
+        if known is not None:
+            if not names_payload(known.digest, payload):
+                raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
+            report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
+                                      "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
+            return FoldReport(**report), True
+        if index is not None:
+            self.order.check_turn(index, self.scene.frames)
+        if self.wedged:
+            raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+        frames = self.scene.frames
+        with self.budget.reserve(fold_cost(self.scene, frame)) if self.budget is not None else nullcontext():
+            logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
+            try:
+                report = self.scene.fold(frame)
+            except Exception as exc:
+                self._fold_failed(logged, exc)
+                raise
+        try:
+            digest, _ = logged.result()
+        except StorageError as exc:
+            self._append_failed(exc, frames)
+            raise
+        if self.archive is not None:
+            refolding = self.corrections.background is not None  # the re-fold catches up on the archive
+            self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
+        if frame.frame_id is not None:
+            self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
+        self.version += 1
+        self.snapshots.after_fold(snapshot_every_frames, snapshot_every_seconds)
+        return report, False
 
     def _fold_failed(self, logged, exc: Exception) -> None:
         """A fold raised while its record was being logged: the record is cut off again once written.

@@ -31,6 +31,14 @@ class FrameIdConflict(ValueError):
     """A frame_id that the session already folded, sent again with other content."""
 
 
+class FrameOutOfOrder(ValueError):
+    """A numbered frame (``Frame-Index``) that cannot be folded in its place: 409 naming ``field``."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+
 class CorrectionRefused(ValueError):
     """A correction the session cannot take (no archive, or one that cannot serve it): 409 naming ``field``."""
 

@@ -80,6 +80,9 @@ class Settings(BaseSettings):
         "those active in the last 24 hours (default: no budget); damaged (unavailable) sessions count but are kept"))
     retention_every_s: float = Field(300.0, gt=0, description=(
         "how often the service applies session_ttl_s and disk_budget_bytes (POST /v1/sessions/prune applies them now)"))
+    frame_order_wait_s: float = Field(30.0, gt=0, description=(
+        "a frame numbered with Frame-Index waits for the frames before it (posted on other connections) until no "
+        "frame has been folded for this long, then gets 409; numbered frames fold in their numbers' order"))
     queue_limit: int = Field(8, gt=0, description=(
         "compute jobs of one session and one kind (frames and corrections; renders, exports and other work; the "
         "viewer's pictures) running or waiting; one more of that session and kind gets 429 with Retry-After, "

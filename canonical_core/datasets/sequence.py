@@ -48,6 +48,11 @@ class FrameSequence(Sequence[Frame]):
     def frame_ids(self) -> list[str]:
         return [s.frame_id for s in self._sources]
 
+    def source(self, index: int) -> FrameSource:
+        """Where frame ``index`` is read from, without reading it (a client may send a capture's files
+        as they are rather than decode them)."""
+        return self._sources[operator.index(index)]
+
     def __len__(self) -> int:
         return len(self._sources)
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import time
 
-from fastapi import APIRouter, Request, Response
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Request, Response
 
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
@@ -17,6 +19,8 @@ router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 CAMERA_FIELDS = ("K", "c2w", "depth_scale", "frame_id", "width", "height")
+FrameIndex = Annotated[int | None, Header(alias="Frame-Index", ge=0, description=(
+    "the frame's place in the session's stream (0 for its first frame): numbered frames fold in this order"))]
 
 
 def media_type(request: Request) -> str:
@@ -75,12 +79,17 @@ def check_session_accepts(frame, config) -> None:
              responses={c: {"model": ErrorBody} for c in (400, 401, 404, 409, 413, 415, 422, 429, 503, 507)},
              openapi_extra={"requestBody": {"content": {"application/msgpack": {}, "multipart/form-data": {}}}})
 async def add_frame(request: Request, response: Response, session: SessionDep, settings: SettingsDep, jobs: JobsDep,
-                    metrics: MetricsDep) -> FoldReportOut:
+                    metrics: MetricsDep, frame_index: FrameIndex = None) -> FoldReportOut:
     """Validate, log (fsync) and fold one posed frame; the report says what changed.
 
     Idempotent on ``frame_id``: a frame the session already folded (a retry after a lost answer) is
     not folded again; its first report comes back with ``Idempotent-Replay: true`` (409 if its
-    content differs). A frame that cannot be made durable is not folded: 507 (disk full) or 503."""
+    content differs). A frame that cannot be made durable is not folded: 507 (disk full) or 503.
+
+    Header ``Frame-Index`` (optional): the frame's place in the session's stream, for clients that
+    keep several frames in flight. The frame is validated at once, then folded once the session
+    holds the frames before it, in that order whatever order they arrive in; 409 when one of those
+    was refused, or when they do not come within ``frame_order_wait_s``."""
     kind = media_type(request)
     if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
         raise ApiError(415, "unsupported_media_type",
@@ -88,22 +97,32 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
                        "Content-Type")
     body = await request.body()
 
-    def fold():
-        if kind == "multipart/form-data":
-            msg = parse_multipart(request.headers["content-type"], body)
-            record = wire.pack(msg)
-        else:
-            msg, record = wire.unpack(body), body
-        frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
-        check_session_accepts(frame, session.scene.config)
-        return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds), frame.camera
+    def parse():
+        try:
+            if kind == "multipart/form-data":
+                msg = parse_multipart(request.headers["content-type"], body)
+                record = wire.pack(msg)
+            else:
+                msg, record = wire.unpack(body), body
+            frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
+            check_session_accepts(frame, session.scene.config)
+        except ValueError as exc:
+            session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
+            raise
+        return record, frame
 
     t0 = time.perf_counter()
-    (report, replay), camera = await jobs.run(fold, kind="frame", session=session.id)
+    record, frame = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
+    decoded = time.perf_counter() - t0
+    if frame_index is not None:  # on the loop, holding no job
+        await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
+    t0 = time.perf_counter()
+    report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
+                                    settings.snapshot_every_seconds, frame_index, kind="frame", session=session.id)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:
-        metrics.fold_seconds.observe(time.perf_counter() - t0)
+        metrics.fold_seconds.observe(decoded + time.perf_counter() - t0)  # its turn's wait left out
         metrics.frames_total += 1
-        request.app.state.events.folded(session, camera, report)
+        request.app.state.events.folded(session, frame.camera, report)
     return FoldReportOut(**report.to_dict())

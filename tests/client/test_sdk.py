@@ -8,13 +8,14 @@ import threading
 import httpx
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from canonical_core import load_ply, load_splat
-from canonical_core.datasets.files import depth_from_uint16
+from canonical_core.datasets.files import depth_from_uint16, read_depth, read_rgb
 from client.cli import build_parser
 from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
-                        scaled_intrinsics)
+                        frame_body, scaled_intrinsics, unpack)
 
 VOXEL = 0.008
 
@@ -115,6 +116,42 @@ def test_sensor_depth_errors_name_the_field_before_anything_is_sent(depth, depth
     rgb, K, c2w = np.zeros((4, 4, 3), np.uint8), np.eye(3), np.eye(4)
     with pytest.raises(ValueError, match=rf"^{field}:"):
         session.add_frame(rgb, K, c2w, depth=depth, depth_scale=depth_scale)
+
+
+def test_compact_frames_are_lossless_and_small(shelf_dir):
+    """Every form of `frame_body`'s compact codec decodes, on the service's side, to the frame the
+    raw arrays give: colour as PNG, depth as zstandard uint16 (integer, or float that 16-bit units
+    hold exactly) or float32, a capture's own PNG and JPEG bytes untouched."""
+    from server.wire import frame_from_message
+
+    color, depth_png = shelf_dir / "frames" / "frame-000015.color.png", shelf_dir / "frames" / "frame-000015.depth.png"
+    rgb, metres = read_rgb(color), read_depth(depth_png, 1000.0)
+    K, c2w = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]]), np.eye(4)
+    noisy = metres + np.float32(1e-4) * (metres > 0)  # not a multiple of any sensor unit
+
+    def decoded(**kwargs):
+        body = frame_body(rgb=kwargs.pop("rgb", rgb), K=K, c2w=c2w, **kwargs)
+        return unpack(body), frame_from_message(unpack(body)), len(body)
+
+    raw_msg, raw, raw_bytes = decoded(depth=metres, codec="raw")
+    assert raw_msg["rgb"]["dtype"] == "uint8" and raw_msg["depth"]["dtype"] == "float32" and "codec" not in raw_msg["depth"]
+    cases = {"float metres": {"depth": metres}, "millimetres": {"depth": np.rint(metres * 1000).astype(np.uint16), "depth_scale": 1000},
+             "the capture's files": {"rgb": color.read_bytes(), "depth": depth_png.read_bytes(), "depth_scale": 1000}}
+    for name, kwargs in cases.items():
+        msg, frame, size = decoded(**kwargs)
+        assert msg["rgb"][:8] == b"\x89PNG\r\n\x1a\n", name
+        assert torch.equal(frame.rgb, raw.rgb) and torch.equal(frame.depth, raw.depth), name
+        assert size < raw_bytes / 3, name
+    assert decoded(**cases["millimetres"])[0]["depth"]["codec"] == "zstd"
+    assert decoded(**cases["the capture's files"])[0]["rgb"] == color.read_bytes()
+    msg, frame, _ = decoded(depth=noisy)
+    assert msg["depth"]["dtype"] == "float32" and msg["depth"]["codec"] == "zstd" and np.array_equal(frame.depth.numpy(), noisy)
+    jpeg = io.BytesIO()
+    Image.fromarray(rgb).save(jpeg, format="JPEG", quality=90)
+    msg, frame, _ = decoded(rgb=jpeg.getvalue(), depth=metres)
+    assert msg["rgb"] == jpeg.getvalue() and np.array_equal(frame.rgb.numpy(), np.asarray(Image.open(jpeg).convert("RGB")))
+    with pytest.raises(ValueError, match="^codec: expected one of"):
+        frame_body(rgb, K, c2w, codec="png")
 
 
 @pytest.mark.realdata

@@ -159,3 +159,32 @@ def test_a_damaged_frame_record_is_named():
     data[len(data) // 2] ^= 0xFF
     with pytest.raises(DamagedFrame, match=r"^archive\.log: an archived frame does not decompress"):
         decompress_message(bytes(data))
+
+
+def test_a_frame_that_came_compressed_is_kept_as_it_came_and_checked_by_its_digest():
+    msg = message(6, "d")
+    rgb, depth = frame_from_message(msg).rgb.numpy(), frame_from_message(msg).depth.numpy()
+    compact = pack({**msg, "rgb": encode_png(rgb), "depth": encode_array(depth, codec="zstd")})
+    assert compress_payload(compact) == compact  # zstandard over PNG and zstandard bytes would gain nothing
+    assert compress_payload(pack(msg))[:4] == b"\x28\xb5\x2f\xfd"  # raw arrays are compressed
+    a, b = frame_from_message(msg), frame_from_message(decompress_message(compact, payload_digest(compact)))
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    damaged = bytearray(compact)
+    damaged[len(damaged) // 2] ^= 0xFF
+    with pytest.raises(DamagedFrame, match=r"^archive\.log: an archived frame no longer matches its digest"):
+        decompress_message(bytes(damaged), payload_digest(compact))
+
+
+def test_an_archive_reads_back_the_bytes_the_client_sent(tmp_path):
+    archive = SessionArchive(tmp_path / ARCHIVE, "all")
+    payloads = []
+    for k in range(3):
+        msg = message(k, f"f{k}")
+        frame = frame_from_message(msg)
+        payloads.append(pack({**msg, "rgb": encode_png(frame.rgb.numpy()), "depth": encode_array(frame.depth.numpy(), codec="zstd")}))
+        archive.append_frame(f"f{k}", payload_digest(payloads[-1]), payloads[-1])
+    archive.close()
+    assert all(p in (tmp_path / ARCHIVE).read_bytes() for p in payloads)  # verbatim
+    again = SessionArchive(tmp_path / ARCHIVE, "all")
+    assert list(again.payloads(again.entries)) == payloads
+    again.close()

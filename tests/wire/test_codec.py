@@ -123,3 +123,37 @@ def test_docstring_example_runs():
 
     result = doctest.testmod(canonical_wire, verbose=False)
     assert result.attempted > 0 and result.failed == 0
+
+
+@pytest.mark.parametrize("dtype", list(DTYPES))
+def test_zstd_round_trip_is_exact_and_smaller_for_depth(dtype):
+    rng = np.random.default_rng(7)
+    a = (rng.random((48, 64)) * (60000 if dtype == "uint16" else 200 if dtype == "uint8" else 1)).astype(dtype)
+    obj = unpack(pack({"a": encode_array(a, "a", codec="zstd")}))["a"]
+    assert obj["codec"] == "zstd" and is_array(obj) and array_shape(obj) == [48, 64]
+    b = decode_array(obj, "a")
+    assert b.dtype == a.dtype and b.tobytes() == a.tobytes()
+    depth = np.where(rng.random((480, 640)) < 0.6, 0, 400 + np.arange(640)[None, :] // 8).astype(np.uint16)  # sensor-like
+    assert len(encode_array(depth, codec="zstd")["data"]) < depth.nbytes / 4
+
+
+def test_zstd_frames_that_inflate_past_their_shape_are_refused_unread():
+    import zstandard
+
+    obj = encode_array(np.zeros((4, 4), np.uint16), codec="zstd")
+    declared = {**obj, "data": zstandard.ZstdCompressor().compress(bytes(1 << 24))}  # says 16 MiB in its header
+    with pytest.raises(WireError, match=r"^d: data inflates to 16777216 bytes; shape and dtype need 32") as info:
+        decode_array(declared, "d")
+    assert info.value.status == 422
+    undeclared = {**obj, "data": zstandard.ZstdCompressor(write_content_size=False).compress(bytes(1 << 24))}
+    with pytest.raises(WireError, match=r"^d: data is not a zstandard frame of at most 32 bytes"):
+        decode_array(undeclared, "d")
+    short = {**obj, "data": zstandard.ZstdCompressor().compress(bytes(30))}
+    with pytest.raises(WireError, match=r"^d: data holds 30 bytes; shape \[4, 4\] of uint16 needs 32"):
+        decode_array(short, "d")
+    with pytest.raises(WireError, match="^d: data is not a zstandard frame"):
+        decode_array({**obj, "data": b"not zstd"}, "d")
+    with pytest.raises(WireError, match=r"^d: codec 'lz4' is not accepted; expected one of \['raw', 'zstd'\]"):
+        decode_array({**obj, "codec": "lz4"}, "d")
+    with pytest.raises(ValueError, match="^codec: expected one of"):
+        encode_array(np.zeros(3, np.uint8), codec="png")

@@ -1,0 +1,198 @@
+"""Ingest as a user runs it: `canonical serve` plus `canonical stream CAPTURE --voxel-size V` with the
+CLI's own defaults; frames/s end to end and the disk a session keeps per frame.
+
+    python bench/ingest.py [--data ../shared/data/realsense_shelf] [--voxel-size 0.004] [--runs 2]
+                           [--in-flight 1 3] [--base PATH]
+
+Each run starts a fresh service (a subprocess, its own temporary data directory), streams the capture
+with the CLI (a subprocess: its summary line gives frames/s), samples the session's folder every
+20 ms while it runs, then stops the service gracefully (SIGTERM: it snapshots and restarts the log)
+and measures the folder again. Before the runs, the client's side in process: what building one
+frame's body costs and weighs in each form the SDK sends (`client.sdk.frame_body`), what the
+service's decode of it costs (`server.wire.frame_from_message`), and what zstandard over it (the
+archive's compression of raw arrays) would cost and gain. Disk per frame counts every file but the scene snapshot
+(``scene.snap`` and one being written); the peak while it runs is given without and with the
+snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
+``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
+warmed), interleaved with this one, so that both see the same load. Timings on a shared machine are
+noisy: compare the runs of one invocation, and take the best of several; the CPU time a frame costs
+the service and the client (user + system, all threads; the client's includes its start-up) moves
+less with other work than the wall time does. Never asserts timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import zstandard
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from common import machine_summary, print_table  # noqa: E402
+
+from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
+from client.cli import capture_frames, free_port, frame_arrays, wait_until_healthy  # noqa: E402
+from client.sdk import frame_body  # noqa: E402
+from server.archive import ZSTD_LEVEL  # noqa: E402
+from server.wire import frame_from_message, unpack  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / "shared" / "data" / "realsense_shelf"
+SNAPSHOT = re.compile(r"^scene\.snap(\..*)?$")  # the snapshot and one being written (`server.durability`)
+SUMMARY = re.compile(r"(\d+) frames in ([\d.]+) s \(([\d.]+) frames/s\)")
+
+
+def folder_bytes(folder: Path) -> tuple[int, int]:
+    """(bytes of every file but the snapshots, bytes of the snapshots) under ``folder``."""
+    kept = snaps = 0
+    for root, _, files in os.walk(folder):
+        for name in files:
+            try:
+                size = os.stat(os.path.join(root, name)).st_size
+            except FileNotFoundError:  # renamed or removed meanwhile (a snapshot's commit)
+                continue
+            if SNAPSHOT.match(name):
+                snaps += size
+            else:
+                kept += size
+    return kept, snaps
+
+
+class Sampler(threading.Thread):
+    """The peak of `folder_bytes` of the sessions' folder, sampled every ``interval`` seconds."""
+
+    def __init__(self, folder: Path, interval: float = 0.02):
+        super().__init__(daemon=True)
+        self.folder, self.interval, self.stop = folder, interval, threading.Event()
+        self.peak_kept = self.peak_all = 0
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            kept, snaps = folder_bytes(self.folder)
+            self.peak_kept, self.peak_all = max(self.peak_kept, kept), max(self.peak_all, kept + snaps)
+            time.sleep(self.interval)
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (all its threads), from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None) -> dict:
+    """One service (``--threads`` when given) and one `canonical stream` of ``repo`` (the CLI's
+    defaults, ``--in-flight`` when given); frames/s and disk per frame."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+    env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
+    with tempfile.TemporaryDirectory() as tmp:
+        port, data_dir = free_port(), Path(tmp) / "data"
+        url = f"http://127.0.0.1:{port}"
+        service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
+                                    str(data_dir), "--log-level", "warning"] + ([] if threads is None else
+                                                                              ["--threads", str(threads)]),
+                                   cwd=repo, env=env)
+        try:
+            wait_until_healthy(url, service, timeout=600.0)
+            sampler = Sampler(data_dir / "sessions")
+            sampler.start()
+            cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
+            service_cpu, client_cpu = cpu_seconds(service.pid), resource.getrusage(resource.RUSAGE_CHILDREN)
+            stream = subprocess.run(cmd + ([] if in_flight is None else ["--in-flight", str(in_flight)]), cwd=repo,
+                                    env=env, capture_output=True, text=True)
+            service_cpu = cpu_seconds(service.pid) - service_cpu  # before the graceful stop's snapshot
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            client_cpu = after.ru_utime + after.ru_stime - client_cpu.ru_utime - client_cpu.ru_stime
+            sampler.stop.set()
+            sampler.join()
+            if stream.returncode != 0:
+                raise SystemExit(f"canonical stream failed ({stream.returncode}):\n{stream.stderr[-2000:]}")
+            frames, seconds, fps = SUMMARY.search(stream.stderr).groups()
+        finally:
+            service.send_signal(signal.SIGINT if sys.platform == "win32" else signal.SIGTERM)
+            service.wait(timeout=120)
+        kept, snaps = folder_bytes(data_dir / "sessions")
+        n = int(frames)
+        return {"frames": n, "seconds": float(seconds), "fps": float(fps), "stopped": kept / n,
+                "service_cpu": service_cpu / n, "client_cpu": client_cpu / n,
+                "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
+
+
+def body_costs(data: Path, frames: int = 10) -> list[dict]:
+    """Per form of a frame's body: ms to build it on the client, ms to decode it on the service, MB."""
+    capture = load_tsdf_fusion(data, max_frames=frames)
+    arrays = [frame_arrays(capture[i], sensor_units=True) for i in range(len(capture))]
+    forms = {"raw arrays (16-bit depth), the SDK before": lambda k: frame_body(**arrays[k], codec="raw"),
+             "compact from arrays: PNG colour, zstandard depth (the SDK's default)": lambda k: frame_body(**arrays[k]),
+             "the capture's own files (canonical stream's default)": lambda k: frame_body(**files[k])}
+    files = list(capture_frames(capture))
+    rows = []
+    for name, build in forms.items():
+        frame_from_message(unpack(build(0)))  # the decoders' kernels loaded outside the measurement
+        t0 = time.perf_counter()
+        bodies = [build(k) for k in range(len(capture))]
+        built = (time.perf_counter() - t0) * 1000 / len(bodies)
+        t0 = time.perf_counter()
+        for body in bodies:
+            frame_from_message(unpack(body))
+        decoded = (time.perf_counter() - t0) * 1000 / len(bodies)
+        squeeze = zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True)
+        t0 = time.perf_counter()
+        squeezed = sum(len(squeeze.compress(body)) for body in bodies)
+        zstd_ms = (time.perf_counter() - t0) * 1000 / len(bodies)
+        rows.append({"body": name, "client builds, ms": f"{built:.1f}", "service decodes, ms": f"{decoded:.1f}",
+                     "MB a frame": f"{sum(map(len, bodies)) / len(bodies) / 1e6:.3f}",
+                     "the archive's zstandard over it: ms, size": f"{zstd_ms:.1f}, {squeezed / sum(map(len, bodies)):.3f}x"})
+    return rows
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--voxel-size", type=float, default=0.004)
+    p.add_argument("--runs", type=int, default=2, help="runs of each configuration (the table gives each and the best)")
+    p.add_argument("--in-flight", type=int, nargs="*", default=[3, 1], help="the CLI's --in-flight values to run")
+    p.add_argument("--base", type=Path, default=None, help="also run this checkout (its own CLI defaults), interleaved")
+    p.add_argument("--threads", type=int, default=None, help="the service's --threads (CPU threads a job; default: all)")
+    args = p.parse_args(argv)
+    configs = [(f"this tree, --in-flight {k}", REPO, k) for k in args.in_flight]
+    if args.base is not None:
+        configs.append((f"base tree {args.base}", args.base.resolve(), None))
+    print(machine_summary())
+    print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved, service "
+          f"--threads {args.threads or 'default'}\n")
+    print_table("A frame's body: built by the client, decoded by the service (in process, 10 frames, means)",
+                body_costs(args.data))
+    results: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
+    for _ in range(args.runs):
+        for name, repo, in_flight in configs:
+            results[name].append(one_run(repo, args.data, args.voxel_size, in_flight, args.threads))
+    mb = lambda x: f"{x / 1e6:.3f}"  # noqa: E731
+    print_table("`canonical stream` end to end, and disk per frame (MB = 10^6 bytes)", [
+        {"configuration": name, "frames": runs[0]["frames"],
+         "frames/s (each run)": " / ".join(f"{r['fps']:.1f}" for r in runs),
+         "frames/s (best)": f"{max(r['fps'] for r in runs):.1f}",
+         "CPU ms a frame, service / client (best)": f"{min(r['service_cpu'] for r in runs) * 1000:.0f} / "
+                                                    f"{min(r['client_cpu'] for r in runs) * 1000:.0f}",
+         "MB/frame after a graceful stop, no snapshot": mb(min(r["stopped"] for r in runs)),
+         "peak MB/frame while running, no snapshot": mb(max(r["peak"] for r in runs)),
+         "peak MB/frame while running, with snapshots": mb(max(r["peak_all"] for r in runs)),
+         "snapshot MB/frame": mb(runs[0]["snapshot"])}
+        for name, runs in results.items()])
+    best = {name: max(r["fps"] for r in runs) for name, runs in results.items()}
+    first = configs[0][0]
+    print_table(f"best frames/s against {first!r} (same invocation)", [
+        {"configuration": name, "ratio": f"{best[name] / best[first]:.2f}"} for name in best if name != first])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""Frames in flight against a real service: `Session.add_frames` and `canonical stream` keep several
+posted, the service folds them in their ``Frame-Index`` order whatever order they arrive in, and a
+refused frame stops the stream with what was acknowledged."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import httpx
+import pytest
+
+from canonical_core.datasets import load_tsdf_fusion
+from client.cli import capture_frames, main
+from client.sdk import MSGPACK, Client, StreamRefused, frame_body
+from tests.conftest import folded_scene
+from tests.server.harness import VOXEL, ServerProcess, small_frames
+
+pytestmark = pytest.mark.realdata
+
+WAIT_S = 3.0  # the service's frame_order_wait_s here: a gap that stays open is refused this soon
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pipeline")
+    proc = ServerProcess(root / "data", root / "server.log", frame_order_wait_s=WAIT_S, snapshot_every_seconds=3600)
+    proc.start()
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def frames(shelf_dir) -> list[dict]:
+    return small_frames(shelf_dir, count=8, step=5)
+
+
+@pytest.fixture(scope="module")
+def digests(service, frames) -> dict[int, str]:
+    """The digests of the frames posted one at a time, without a Frame-Index: after k frames."""
+    with Client(service.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        out = {}
+        for kwargs in frames:
+            session.add_frame(**kwargs)
+            out[session.stats()["frames"]] = session.digest()["sha256"]
+        return out
+
+
+def post(client: httpx.Client, session_id: str, kwargs: dict, index) -> httpx.Response:
+    return client.post(f"/v1/sessions/{session_id}/frames", content=frame_body(**kwargs),
+                       headers={"Content-Type": MSGPACK, "Frame-Index": str(index)})
+
+
+def test_frames_in_flight_fold_in_order_and_give_the_one_by_one_scene(service, frames, digests):
+    with Client(service.url) as client:
+        for in_flight in (2, 4):
+            session = client.create_session(voxel_size=VOXEL)
+            reports = list(session.add_frames(frames, in_flight=in_flight))
+            assert [r["frame_index"] for r in reports] == list(range(len(frames)))
+            assert all(r["new_voxels"] >= 0 and "ms" in r for r in reports)  # each answer is its fold report
+            assert session.digest()["sha256"] == digests[len(frames)]
+
+
+def test_frames_arriving_in_reverse_fold_in_their_numbers_order(service, frames, digests):
+    """The last frame is posted first, the first one last: each waits for the frames before it."""
+    frames = frames[:4]
+    with Client(service.url) as sdk, httpx.Client(base_url=service.url, timeout=60) as http:
+        session = sdk.create_session(voxel_size=VOXEL)
+        answers: dict[int, httpx.Response] = {}
+
+        def send(k: int) -> None:
+            answers[k] = post(http, session.id, frames[k], k)
+
+        threads = []
+        for k in reversed(range(len(frames))):
+            threads.append(threading.Thread(target=send, args=(k,)))
+            threads[-1].start()
+            time.sleep(0.05)  # so that they arrive in this (reversed) order
+        for t in threads:
+            t.join()
+        assert {k: r.status_code for k, r in answers.items()} == {k: 200 for k in range(len(frames))}
+        assert all(answers[k].json()["frame_index"] == k for k in answers)
+        assert session.digest()["sha256"] == digests[4]
+
+
+def test_a_refused_frame_stops_the_stream_and_says_what_was_acknowledged(service, frames, digests):
+    bad = {**frames[3], "depth": frames[3]["depth"][:-8]}  # not the colour image's size: the service refuses it
+    with Client(service.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        got = []
+        with pytest.raises(StreamRefused) as info:
+            for report in session.add_frames(frames[:3] + [bad] + frames[4:], in_flight=4):
+                got.append(report["frame_index"])
+        refused = info.value
+        assert got == [0, 1, 2] and refused.index == 3 and refused.acknowledged == 3
+        assert refused.status == 422 and refused.field == "depth" and "frame 3 refused (the session holds the 3 frames before it)" in str(refused)
+        assert session.stats()["frames"] == 3  # the frames posted behind it were not folded
+        # the stream goes on from the refused frame, corrected
+        assert [r["frame_index"] for r in session.add_frames(frames[3:])] == list(range(3, len(frames)))
+        assert session.digest()["sha256"] == digests[len(frames)]
+
+
+def test_frame_index_out_of_place_is_refused_naming_it(service, frames):
+    with Client(service.url) as sdk, httpx.Client(base_url=service.url, timeout=60) as http:
+        session = sdk.create_session(voxel_size=VOXEL)
+        assert post(http, session.id, frames[0], 0).status_code == 200
+        late = post(http, session.id, frames[1], 0)  # its place is taken
+        assert late.status_code == 409
+        assert late.json()["error"] == {"code": "frame_out_of_order", "field": "Frame-Index", "message":
+                                         "Frame-Index: frame 0 comes too late: the session holds 1 frames, so the next "
+                                         "one is frame 1"}
+        gap = post(http, session.id, frames[2], 2)  # frame 1 never comes
+        assert gap.status_code == 409
+        assert gap.json()["error"]["message"].startswith(f"Frame-Index: frame 2 waited {WAIT_S:g} s for frame 1")
+        for value in ("-1", "one"):
+            bad = http.post(f"/v1/sessions/{session.id}/frames", content=frame_body(**frames[1]),
+                            headers={"Content-Type": MSGPACK, "Frame-Index": value})
+            assert bad.status_code == 422 and bad.json()["error"]["field"] == "Frame-Index"
+        assert session.stats()["frames"] == 1  # nothing of these changed the session
+
+
+def test_a_retried_frame_with_its_frame_id_is_a_replay_in_a_pipeline(service, frames):
+    with Client(service.url) as sdk, httpx.Client(base_url=service.url, timeout=60) as http:
+        session = sdk.create_session(voxel_size=VOXEL)
+        named = [{**f, "frame_id": f"f{k}"} for k, f in enumerate(frames[:3])]
+        first = list(session.add_frames(named, in_flight=3))
+        again = post(http, session.id, named[1], 1)  # an answer lost, the frame sent again
+        assert again.status_code == 200 and again.headers["Idempotent-Replay"] == "true"
+        assert again.json() == first[1] and session.stats()["frames"] == 3
+        other = post(http, session.id, {**named[0], "frame_id": "f1"}, 1)
+        assert other.status_code == 409 and other.json()["error"]["field"] == "frame_id"
+
+
+def test_stream_sends_the_captures_own_files_and_folds_what_the_loader_reads(service, shelf_dir, capsys):
+    capture = load_tsdf_fusion(shelf_dir, stride=10, max_frames=4)
+    sent = list(capture_frames(capture))
+    files = capture.source(0)
+    assert sent[0]["rgb"] == files.color.read_bytes() and sent[0]["depth"] == files.depth.read_bytes()
+    assert sent[0]["depth_scale"] == 1000.0 and sent[0]["frame_id"] == "frame-000015"
+    assert main(["stream", str(shelf_dir), "--voxel-size", str(VOXEL), "--stride", "10", "--max-frames", "4",
+                 "--url", service.url]) == 0
+    session_id = capsys.readouterr().out.strip().splitlines()[-1]
+    with Client(service.url) as client:
+        digest = client.session(session_id).digest()
+    assert digest["frames"] == 4 and digest["sha256"] == folded_scene(capture, VOXEL).digest()
+
+
+def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_dir, tmp_path, capsys):
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    (capture / "intrinsics.K.txt").write_bytes((shelf_dir / "intrinsics.K.txt").read_bytes())
+    original = load_tsdf_fusion(shelf_dir, stride=10, max_frames=4)
+    for k in range(len(original)):
+        source = original.source(k)
+        for kind, path in (("color.png", source.color), ("depth.png", source.depth), ("pose.txt", None)):
+            target = capture / f"frame-{k:06d}.{kind}"
+            if path is not None:
+                target.write_bytes(path.read_bytes())
+            else:
+                target.write_text("\n".join(" ".join(f"{x:.9g}" for x in row) for row in source.c2w))
+    (capture / "frame-000002.color.png").write_bytes((shelf_dir / "intrinsics.K.txt").read_bytes())  # not an image
+    code = main(["stream", str(capture), "--voxel-size", str(VOXEL), "--url", service.url])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "error: 422 invalid_value: frame 2 refused (the session holds the 2 frames before it): rgb: not a PNG" in err
+    assert "stopped: 2 frames in" in err
+    session_id = err.split("continue with --session ")[1].split()[0]
+    with Client(service.url) as client:
+        assert client.session(session_id).stats()["frames"] == 2
