@@ -42,7 +42,8 @@ class FoldReport:
     frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
     was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
     ``warnings``: problems with the input that did not stop the fold, each ``"field: problem"``
-    (e.g. depth that gave no observation). The ``description`` metadata reaches the HTTP schema.
+    (e.g. depth that gave no observation). ``sensor``: the sensor family whose noise model the scene
+    uses, ``sensor_chosen`` why (`choices`). The ``description`` metadata reaches the HTTP schema.
     """
 
     frame_index: int = field(metadata={"description": "the frame's arrival index in the session"})
@@ -59,6 +60,10 @@ class FoldReport:
         "description": "the frame's depth was far rougher than its noise model and was replaced by a local median"})
     warnings: list[str] = field(default_factory=list, metadata={
         "description": "problems with the input that did not stop the fold, each 'field: problem'"})
+    sensor: str | None = field(default=None, metadata={
+        "description": "the depth sensor family whose noise model the scene uses (setting sensor.family)"})
+    sensor_chosen: str | None = field(default=None, metadata={
+        "description": "why that family: 'set', 'detected from depth quantisation (...)' or 'default: ...'"})
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -115,7 +120,7 @@ def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
         warnings += scene._consistency.observe(prepared.frame)
     return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
                       also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
-                      warnings=warnings)
+                      warnings=warnings, sensor=scene.config.sensor.family, sensor_chosen=scene.chosen.get("sensor"))
 
 
 def _integrate(scene: Scene, frame: Frame) -> tuple[int, int, int, int]:
