@@ -184,6 +184,7 @@ class SessionStore:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
             scene = Scene(config)  # before any file: a config whose model cannot load leaves nothing behind
+            config = scene.config  # a named sensor family's values are known now (`Scene.chosen`)
             session_id = self.new_session_id()
             path = self.root / session_id
             created = time.time()

@@ -23,7 +23,7 @@ from torch import Tensor
 from ..config import DEFAULT_FAMILY, SceneConfig
 from ..frame import Frame
 
-__all__ = ["VOXEL_PIXELS", "choose_settings", "default_voxel_size", "detect_family", "disparity_step"]
+__all__ = ["VOXEL_PIXELS", "choose_settings", "default_voxel_size", "detect_family", "disparity_step", "filled_from"]
 
 VOXEL_PIXELS = 6.0  # voxel edge in pixel footprints at the median depth
 
@@ -113,3 +113,14 @@ def choose_settings(config: SceneConfig, frame: Frame | None) -> tuple[SceneConf
             family, why["sensor"] = detect_family(depth)
         changes["sensor"] = config.sensor.with_preset(family)
     return (config.replace(**changes) if changes else config), why
+
+
+def filled_from(config: SceneConfig, made: SceneConfig) -> SceneConfig:
+    """``config`` with what it leaves open as ``made`` chose it: equal to ``made`` when ``made`` is
+    the settings of a scene that started with ``config``. Why: a session's files may record its
+    settings from before the first frame and from after it, and both name the same session."""
+    if config.chosen:
+        return config
+    given = {k: v for k, v in config.sensor.model_dump().items() if v not in (None, "auto")}
+    return config.replace(voxel_size=made.voxel_size if config.voxel_size is None else config.voxel_size,
+                          sensor={**made.sensor.model_dump(), **given})
