@@ -91,6 +91,7 @@ class Session:
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
     budget: MemoryBudget | None = None  # the service's memory, which each fold reserves its worst case from
+    chosen: dict[str, str] = field(default_factory=dict)  # why meta.json's settings are what they are (`Scene.chosen`)
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
     corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
@@ -108,6 +109,8 @@ class Session:
         if self.archive is not None:
             self.scene.keep_undo(self.undo_depth)
         self.preallocate(self.scene)
+        if self.chosen and self.scene.config == self.config:  # a scene rebuilt from meta.json's settings
+            self.scene.chosen = dict(self.chosen)
         self._keep_chosen()
 
     def _keep_chosen(self) -> None:
@@ -122,7 +125,7 @@ class Session:
         except OSError as exc:
             log.warning("session %s: cannot record its chosen settings in meta.json (%s)", self.id, exc)
             return
-        self.config = self.scene.config
+        self.config, self.chosen = self.scene.config, dict(self.scene.chosen)
 
     def preallocate(self, scene: Scene) -> None:
         """`Scene.preallocate` of `preallocate_voxels` voxels, at most the session's ``max_voxels``."""

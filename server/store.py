@@ -121,7 +121,7 @@ class SessionStore:
                 self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
                 continue
             self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive,
-                                                 **self._session_options())
+                                                 chosen=meta.get("chosen", {}), **self._session_options())
             log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
                      restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
 

@@ -79,7 +79,7 @@ class Scene:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {undo_depth!r}")
         # what the config leaves open is chosen from the first frame (`choices`), unless no frame is needed
         self.chosen: dict[str, str] = {}  # why each chosen setting has its value (empty until chosen)
-        if not config.chosen and (config.voxel_size is not None and config.sensor.family != "auto"):
+        if config.voxel_size is not None and config.sensor.family != "auto":
             config, self.chosen = choose_settings(config, None)
         self.config = config
         self.appearance = AppearanceUncertainty(config.features.dim)

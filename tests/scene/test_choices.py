@@ -87,6 +87,7 @@ def test_explicit_values_win_over_the_family_and_the_family_over_detection(first
 def test_a_scene_chooses_once_from_its_first_frame_and_keeps_it(shelf):
     scene = Scene(SceneConfig(), keep_frames=True)
     assert scene.stats()["voxel_size"] is None and scene.stats()["chosen"] == {}
+    assert len(scene.decode()) == len(scene.gaussians()) == 0  # nothing to decode before the choice
     report = scene.fold(shelf[0])
     expected = default_voxel_size([shelf[0]])
     assert scene.config.voxel_size == expected and scene.config.chosen
