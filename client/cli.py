@@ -338,8 +338,11 @@ class StreamInterrupted(Exception):
 
 
 def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
+    size = "" if stats.get("voxel_size") is None else f" of {stats['voxel_size'] * 1000:g} mm"
+    sensor = "" if stats.get("sensor", "auto") == "auto" else f"; {stats['sensor']} noise model ({stats['chosen']['sensor']})"
     return (f"{n} frames in {elapsed:.1f} s ({n / max(elapsed, 1e-9):.2f} frames/s); "
-            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels, {stats['gaussians']} Gaussians")
+            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels{size}, "
+            f"{stats['gaussians']} Gaussians{sensor}")
 
 
 def run_stream(args) -> int:

@@ -84,8 +84,8 @@ class SessionStats(SessionSummary):
     inconsistent_depth_below: float | None = Field(
         None, description="metres: the depth under which this session's consecutive frames disagree, likely under "
                           "the sensor's working range (the setting near can ignore it); None while they agree")
-    sensor: str | None = Field(None, description="the depth sensor family whose noise model the session uses "
-                                                 "(None until the first frame chooses it)")
+    sensor: str = Field("auto", description="the depth sensor family whose noise model the session uses (auto "
+                                            "until the first frame chooses it)")
     chosen: dict[str, str] = Field(default_factory=dict, description=(
         "why voxel_size and sensor have their values: 'set', or the rule that chose them from the first frame"))
     snapshot_frames: int

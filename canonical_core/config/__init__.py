@@ -21,7 +21,7 @@ Example:
 """
 
 from .migration import FLAT_NAMES, migrate_flat
-from .sensors import DEFAULT_FAMILY, SENSOR_PRESETS, SensorFamily
+from .sensors import DEFAULT_FAMILY, SENSOR_PRESETS, SensorFamily, detect_family, disparity_step
 from .public import PRIVATE_GROUPS, parse_setting, public_model, settings_from_pairs
 from .settings import (
     BIAS_WITH_DENOISING,
@@ -49,4 +49,4 @@ from .settings import (
 __all__ = ["BIAS_WITHOUT_DENOISING", "BIAS_WITH_DENOISING", "DEFAULT_FAMILY", "FLAT_NAMES", "KEY_BITS", "KEY_OFFSET", "MAX_DEPTH", "MAX_VOXEL",
            "MAX_VOXELS", "MIN_VOXEL", "PRIVATE_GROUPS", "SENSOR_PRESETS", "ColourSolve", "DecoderSettings", "DepthEstimation", "DepthRange",
            "FeatureBackend", "FeatureSettings", "FreeSpace", "Research", "SceneConfig", "SensorFamily", "SensorNoise", "SettingsGroup",
-           "Weighting", "migrate_flat", "parse_setting", "public_model", "settings_from_pairs"]
+           "Weighting", "detect_family", "disparity_step", "migrate_flat", "parse_setting", "public_model", "settings_from_pairs"]

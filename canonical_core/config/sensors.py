@@ -5,12 +5,14 @@ settings a scene leaves None; a value set explicitly wins over its family's.
 
 The structured-light preset is the model the project has used from the start (and that the
 leave-one-capture-out tuning kept, `eval.tuning`): it is also `DEFAULT_FAMILY`, the family of depth
-whose statistics name no family (`scene.choices`).
+whose statistics name no family (`detect_family`).
 """
 
 from __future__ import annotations
 
 from typing import Literal
+
+import numpy as np
 
 SensorFamily = Literal["auto", "structured_light", "active_stereo", "time_of_flight", "phone_lidar", "hololens"]
 
@@ -46,3 +48,56 @@ SENSOR_PRESETS: dict[str, dict[str, float]] = {
 }
 
 DEFAULT_FAMILY = "structured_light"  # the family of depth whose statistics name none (module docstring)
+
+# Disparity quantisation (`detect_family`): depth levels spaced c z^2 apart. The exponent of
+# the spacing must be 2 within this, and the levels' c agree within this log-spread (median absolute
+# deviation of log c), over at least this many gaps and a depth span of at least this ratio.
+EXPONENT_TOLERANCE = 0.3
+MAX_LOG_SPREAD = 0.1
+MIN_GAPS = 16
+MIN_DEPTH_RATIO = 1.5
+# c, 1/m, of the families whose disparity is quantised: 1/8 pixel at f B about 40 px m (Kinect v1,
+# PrimeSense: 580 px x 7.5 cm) is about 2.9e-3; 1/32 pixel at f B 20 to 37 px m (RealSense D4xx) is
+# 0.85e-3 to 1.6e-3.
+STRUCTURED_LIGHT_STEP = 2e-3
+ACTIVE_STEREO_STEP = 0.4e-3
+
+
+def disparity_step(
+    depth: np.ndarray,  # [H, W] metres, 0 = no measurement
+) -> float | None:  # c, 1/m, or None
+    """c where the distinct depth values lie c z^2 apart, as depth computed from a disparity
+    quantised in fixed sub-pixel steps does (structured light, active stereo); None where they do
+    not (time of flight, depth stored in a fixed unit finer than the disparity's steps, float depth)
+    or the depth spans too little range to tell. Why: the step c = s / (f B) is the sensor's own
+    fingerprint, s its sub-pixel step and f B its focal length times baseline."""
+    z = np.asarray(depth, dtype=np.float64)
+    levels = np.unique(z[z > 0])
+    if levels.size <= MIN_GAPS or levels[-1] < MIN_DEPTH_RATIO * levels[0]:
+        return None
+    gaps, mid = np.diff(levels), (levels[1:] + levels[:-1]) / 2
+    exponent, _ = np.polyfit(np.log(mid), np.log(gaps), 1)
+    log_steps = np.log(gaps / mid**2)
+    spread = float(np.median(np.abs(log_steps - np.median(log_steps))))
+    if abs(exponent - 2.0) > EXPONENT_TOLERANCE or spread > MAX_LOG_SPREAD:
+        return None
+    return float(np.exp(np.median(log_steps)))
+
+
+def detect_family(
+    depth: np.ndarray | None,  # [H, W] metres, or None for a frame without depth
+) -> tuple[str, str]:  # (family, why)
+    """The sensor family a frame's depth shows, and why: disparity steps of structured light's size
+    (c >= `STRUCTURED_LIGHT_STEP`) or of active stereo's, else `DEFAULT_FAMILY` (time of flight,
+    HoloLens and phone LiDAR depth carry no such fingerprint)."""
+    if depth is None:
+        return DEFAULT_FAMILY, "default: no depth to detect it from"
+    step = disparity_step(depth)
+    if step is None:
+        return DEFAULT_FAMILY, "default: the depth shows no disparity quantisation"
+    found = f"detected from depth quantisation (levels {step:.2g} z^2 apart)"
+    if step >= STRUCTURED_LIGHT_STEP:
+        return "structured_light", found
+    if step >= ACTIVE_STEREO_STEP:
+        return "active_stereo", found
+    return DEFAULT_FAMILY, f"default: depth levels {step:.2g} z^2 apart match no family"

@@ -9,7 +9,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .migration import FLAT_NAMES, migrate_flat
-from .sensors import SENSOR_PRESETS, SensorFamily
+from .sensors import SENSOR_PRESETS, SensorFamily, detect_family
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
@@ -165,6 +165,12 @@ class SensorNoise(SettingsGroup):
         preset = SENSOR_PRESETS[family]  # KeyError for "auto": the caller chooses a family first
         return SensorNoise(**{**preset, **{k: v for k, v in self.model_dump().items() if v is not None},
                               "family": family})
+
+    def in_effect(self, depth) -> "SensorNoise":
+        """This group where it is `chosen`, else `with_preset` of the family ``depth`` ([H, W] metres,
+        or None) shows (`detect_family`): what evidence from that depth uses outside a scene, which
+        chooses once for its life (`scene.choices`)."""
+        return self if self.chosen else self.with_preset(None if self.family != "auto" else detect_family(depth)[0])
 
 
 class FreeSpace(SettingsGroup):

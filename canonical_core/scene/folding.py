@@ -23,7 +23,9 @@ from typing import TYPE_CHECKING
 
 from ..evidence import extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
+from ..config import SceneConfig
 from . import snapshot
+from .choices import choose_settings
 from .integrate import integrate, integrate_free_space
 from .undo import FoldUndo, history_slot
 
@@ -71,12 +73,19 @@ class FoldReport:
 
 def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport:
     """`Scene.fold` of ``frame`` (arrival index ``arrival``, started at ``t0``) for a caller that holds
-    the scene's lock: the fold with its undo record, then the frame kept (with ``keep_frames``) and
-    a checkpoint where one is due."""
+    the scene's lock: the settings the config leaves open chosen (the scene's first frame), the fold
+    with its undo record, then the frame kept (with ``keep_frames``) and a checkpoint where one is due."""
+    before = None if scene.config.chosen else (scene.config, scene.chosen)
+    if before is not None:  # what the settings leave to the first frame is chosen now, once (`choices`)
+        _set_config(scene, *choose_settings(scene.config, frame))
     # the fold in progress enters what it overwrites in its undo record, the map's journal
     record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth else None
     try:
         report = _fold(scene, frame, t0)
+    except BaseException:
+        if before is not None:  # a refused frame chooses nothing
+            _set_config(scene, *before)
+        raise
     finally:
         scene._voxels.journal = None
         scene._generation += 1
@@ -92,6 +101,12 @@ def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport
         if scene.checkpoint_every and scene.frames % scene.checkpoint_every == 0:
             scene._checkpoints[scene.frames] = snapshot.encode(scene, *snapshot.snapshot_parts(scene))
     return report
+
+
+def _set_config(scene: Scene, config: SceneConfig, chosen: dict[str, str]) -> None:
+    """The settings chosen from the first frame (`choices`), for the scene and the parts that read them."""
+    scene.config, scene.chosen = config, chosen
+    scene._front.config = scene._decoding.config = config
 
 
 def _undo_record(scene: Scene) -> FoldUndo:

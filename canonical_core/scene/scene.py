@@ -21,9 +21,8 @@ from ..evidence import AppearanceUncertainty, DepthConsistency
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
-from . import folding, refold, snapshot
+from . import choices, folding, refold, snapshot
 from ..config import SceneConfig
-from .choices import choose_settings
 from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
@@ -77,10 +76,7 @@ class Scene:
             undo_depth = DEFAULT_UNDO_DEPTH if keep_frames else 0
         if isinstance(undo_depth, bool) or not isinstance(undo_depth, int) or undo_depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {undo_depth!r}")
-        # what the config leaves open is chosen from the first frame (`choices`), unless no frame is needed
-        self.chosen: dict[str, str] = {}  # why each chosen setting has its value (empty until chosen)
-        if config.voxel_size is not None and config.sensor.family != "auto":
-            config, self.chosen = choose_settings(config, None)
+        config, self.chosen = choices.choose_without_frame(config)  # the rest at the first fold (`choices`)
         self.config = config
         self.appearance = AppearanceUncertainty(config.features.dim)
         self.frames = 0
@@ -131,20 +127,7 @@ class Scene:
         if not isinstance(frame, Frame):
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         with self._lock:
-            before = None if self.config.chosen else (self.config, self.chosen)
-            if before is not None:
-                self._set_config(*choose_settings(self.config, frame))
-            try:
-                return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
-            except BaseException:
-                if before is not None:  # a refused frame chooses nothing
-                    self._set_config(*before)
-                raise
-
-    def _set_config(self, config: SceneConfig, chosen: dict[str, str]) -> None:
-        """The settings the first frame chose (`choices`), for the parts that read them."""
-        self.config, self.chosen = config, chosen
-        self._front.config = self._decoding.config = config
+            return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
 
     def keep_undo(self, depth: int) -> None:
         """Keep undo records of the next ``depth`` folds from now on (0: none); the records kept so far
@@ -385,13 +368,10 @@ class Scene:
         return self._voxels.bytes_per_voxel()
 
     def stats(self) -> dict:
-        """Counts and sizes, and the settings chosen from the first frame: ``voxel_size`` and ``sensor``
-        (the family; None until chosen) and ``chosen`` (why each has its value: "set" or the rule)."""
         return {"frames": self.frames, "voxels": len(self), "memory_bytes": self.memory_bytes(),
                 "capacity": self.capacity, "label_dim": self.label_dim,
                 "inconsistent_depth_below": self._consistency.limit(), "voxel_size": self.config.voxel_size,
-                "sensor": None if self.config.sensor.family == "auto" else self.config.sensor.family,
-                "chosen": dict(self.chosen)}
+                "sensor": self.config.sensor.family, "chosen": dict(self.chosen)}  # `choices`: why these
 
     # -- persistence (`snapshot`) -------------------------------------------------------------
     def to_bytes(self) -> bytes:

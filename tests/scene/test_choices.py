@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from canonical_core import Scene, SceneConfig
-from canonical_core.config import DEFAULT_FAMILY, SENSOR_PRESETS
+from canonical_core.config import DEFAULT_FAMILY, SENSOR_PRESETS, detect_family, disparity_step
 from canonical_core.datasets import load_dataset
 from canonical_core.eval import run
-from canonical_core.scene.choices import choose_settings, default_voxel_size, detect_family, disparity_step, filled_from
+from canonical_core.scene.choices import choose_settings, default_voxel_size, filled_from
 from tests.conftest import DATA, require_capture
 
 pytestmark = pytest.mark.realdata
@@ -70,7 +70,7 @@ def test_synthetic_disparity_quantisation_is_told_by_its_step():
         assert detect_family(1.0 / (c * disparity))[0] == family
     assert detect_family(z + 1e-3 * np.random.default_rng(0).standard_normal(z.shape))[1].startswith("default")
     assert detect_family(np.full((8, 8), 1.5))[1].startswith("default")  # too little range to tell
-    assert detect_family(None) == (DEFAULT_FAMILY, "default: the first frame carries no depth")
+    assert detect_family(None) == (DEFAULT_FAMILY, "default: no depth to detect it from")
 
 
 def test_explicit_values_win_over_the_family_and_the_family_over_detection(first_frames):
@@ -122,7 +122,7 @@ def test_a_first_frame_without_depth_is_refused_naming_voxel_size_and_changes_no
     assert (scene.frames, scene.config, scene.chosen) == (0, SceneConfig(), {})
     # with the voxel size given, such a frame waits for a partner; the sensor takes the default family
     scene = Scene(SceneConfig(voxel_size=0.01))
-    assert scene.fold(dataclasses.replace(shelf[0], depth=None)).sensor_chosen == "default: the first frame carries no depth"
+    assert scene.fold(dataclasses.replace(shelf[0], depth=None)).sensor_chosen == "default: no depth to detect it from"
 
 
 def test_a_refused_first_frame_chooses_nothing(shelf):
@@ -138,3 +138,10 @@ def test_settings_recorded_before_the_choice_name_the_same_scene(shelf):
     assert filled_from(SceneConfig(sensor={"registration_px": 1.0}), scene.config) == scene.config
     assert filled_from(SceneConfig(sensor={"registration_px": 2.0}), scene.config) != scene.config
     assert filled_from(scene.config, SceneConfig(voxel_size=1.0)) == scene.config  # nothing left open
+
+
+def test_evidence_outside_a_scene_uses_the_family_of_its_frames_depth(first_frames):
+    depth = first_frames["sun3d_studyroom"].depth
+    assert SceneConfig().sensor.in_effect(depth).family == "structured_light"
+    named = SceneConfig(sensor={"family": "hololens"}).sensor
+    assert named.in_effect(depth) == named.with_preset() and named.with_preset().chosen

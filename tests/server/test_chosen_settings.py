@@ -30,7 +30,7 @@ def test_the_first_frame_chooses_the_voxel_size_and_restarts_keep_it(tmp_path, f
         client = Client(proc.url)
         session = client.create_session()  # no voxel_size: the service chooses it
         stats = session.stats()
-        assert (stats["voxel_size"], stats["sensor"], stats["chosen"]) == (None, None, {})
+        assert (stats["voxel_size"], stats["sensor"], stats["chosen"]) == (None, "auto", {})
         assert stats["config"]["voxel_size"] is None and stats["config"]["sensor"]["family"] == "auto"
 
         # a first frame without depth cannot choose it: refused naming voxel_size, nothing changes
