@@ -4,8 +4,8 @@
 the scene then keeps the result for its life (snapshots, corrections and rollbacks included):
 
 - ``voxel_size`` None: `default_voxel_size` of that frame, ``VOXEL_PIXELS`` pixel footprints at its
-  median depth, the evaluation's rule (`eval.run`), so a voxel covers a similar patch of pixels on
-  any capture. It needs depth: a first frame without depth is refused, naming ``voxel_size``.
+  median depth, the rule `canonical eval` uses for its captures too (`eval.run`), so a voxel covers
+  a similar patch of pixels on any capture. It needs depth: a first frame without depth is refused, naming ``voxel_size``.
 - ``sensor.family`` ``auto``: the family its depth's quantisation shows (`config.detect_family`),
   else `config.DEFAULT_FAMILY`; the family's preset then fills every sensor value left None.
 
@@ -24,7 +24,10 @@ from ..frame import Frame
 
 __all__ = ["VOXEL_PIXELS", "choose_settings", "choose_without_frame", "default_voxel_size", "filled_from"]
 
-VOXEL_PIXELS = 6.0  # voxel edge in pixel footprints at the median depth
+# voxel edge in pixel footprints at the median depth: fine enough to keep a pixel's detail within a
+# few voxels, coarse enough that one view gives each voxel several observations
+VOXEL_PIXELS = 6.0
+
 
 def default_voxel_size(frames: Sequence[Frame]) -> float:
     """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth of ``frames``, to 2
