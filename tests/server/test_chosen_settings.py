@@ -1,6 +1,7 @@
 """A session created without voxel_size over a real service: its first frame with depth chooses the voxel
 size (6 pixel footprints at its median depth) and the sensor family, the session's GET and fold
-reports say so, meta.json records it, and a graceful restart and a kill -9 keep it."""
+reports say so, meta.json records it, and a graceful restart, a kill -9 and the removal of that
+frame keep it."""
 
 from __future__ import annotations
 
@@ -72,6 +73,10 @@ def test_the_first_frame_chooses_the_voxel_size_and_restarts_keep_it(tmp_path, f
         session = Client(proc.url).session(session.id)
         assert session.digest() == before
         assert (session.stats()["voxel_size"], session.stats()["chosen"]) == (chosen["voxel_size"], chosen["chosen"])
+
+        session.remove_frame(frames[0]["frame_id"])  # the frame that chose: the choice stays for the session's life
+        assert {k: session.stats()[k] for k in ("voxel_size", "chosen", "config", "frames")} == \
+            {**{k: chosen[k] for k in ("voxel_size", "chosen", "config")}, "frames": 4}
     finally:
         proc.stop()
 
