@@ -43,12 +43,14 @@ def row(path: Path) -> dict:
     return {"capture": str(path.relative_to(DATA)) if path.is_relative_to(DATA) else str(path),
             "frames": len(sequence), "detected per frame": ", ".join(f"{f} {n}" for f, n in families.most_common()),
             "c (1/m)": f"{min(found):.3g}-{max(found):.3g}" if found else "-",
-            "first frame": f"{family} ({why})", "voxel (first frame)": f"{default_voxel_size([sequence[0]]) * 1000:g} mm"}
+            "first frame": f"{family} ({why})",
+            "voxel (first frame)": f"{default_voxel_size([sequence[0]]) * 1000:g} mm"}
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("captures", nargs="*", type=Path, help="capture folders (default: every capture in ../shared/data)")
+    parser.add_argument("captures", nargs="*", type=Path,
+                        help="capture folders (default: every capture in ../shared/data)")
     args = parser.parse_args()
     paths = args.captures or [DATA / name for name in CAPTURES if (DATA / name).is_dir()]
     print_table("Sensor family detected from depth quantisation", [row(p) for p in paths])

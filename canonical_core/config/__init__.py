@@ -10,8 +10,9 @@ Layout: a few settings sit at the top level (voxel size, capacity, SH degree, th
 model); everything else lives in groups with defaults: the depth ``range``, the ``features``, the
 ``colour_solve``, the ``sensor`` noise model (its family's preset, `sensors`, under the values set
 explicitly), and expert tuning (``free_space``, ``depth``, ``decoder``). The voxel size and the
-sensor family may be left to the scene's first frame (`scene.choices`). The aggregation ablations live in ``research``, which the evaluation's method
-definitions set and the public schema leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
+sensor family may be left to the scene's first frame (`scene.choices`). The aggregation ablations
+live in ``research``, which the evaluation's method definitions set and the public schema leaves
+out. Types are strict: a string or a boolean is not a number, a float is not an integer.
 
 Example:
     >>> config = SceneConfig(voxel_size=0.01, free_space={"margin": 3.0})

@@ -5,7 +5,8 @@ the scene then keeps the result for its life (snapshots, corrections and rollbac
 
 - ``voxel_size`` None: `default_voxel_size` of that frame, ``VOXEL_PIXELS`` pixel footprints at its
   median depth, the rule `canonical eval` uses for its captures too (`eval.run`), so a voxel covers
-  a similar patch of pixels on any capture. It needs depth: a first frame without depth is refused, naming ``voxel_size``.
+  a similar patch of pixels on any capture. It needs depth: a first frame without depth is
+  refused, naming ``voxel_size``.
 - ``sensor.family`` ``auto``: the family its depth's quantisation shows (`config.detect_family`),
   else `config.DEFAULT_FAMILY`; the family's preset then fills every sensor value left None.
 
