@@ -58,9 +58,11 @@ def time_open3d(frames, voxel: float) -> list[float]:
 def time_denoise(frames, config: SceneConfig, repeats: int) -> list[dict]:
     """ms per frame of the rough-depth check (every frame with depth pays it) and of the whole
     denoising step on the evaluation's depth noise 0.25 (where the check fires and the median runs)."""
+    sensor = config.sensor.in_effect(frames[0].depth)  # the family a scene of these frames chooses
+
     def step(f):
-        denoise_rough_depth(f.depth.numpy(), None, config.depth.denoise_radius, config.sensor.sigma0,
-                            config.sensor.sigma2, config.sensor.sigma_ref)
+        denoise_rough_depth(f.depth.numpy(), None, config.depth.denoise_radius, sensor.sigma0, sensor.sigma2,
+                            sensor.sigma_ref)
 
     noisy = [add_depth_noise(f, 0.25, k) for k, f in enumerate(frames)]
     step(noisy[0])  # compile / load the numba cache outside the measurement

@@ -1,7 +1,7 @@
 """The ``canonical`` command line.
 
     canonical serve [--host H] [--port P] [--data-dir D] [--threads N] [--cluster [--address A] [--owners N]]
-    canonical stream DATASET --url URL (--session ID | --voxel-size S [--set PATH=VALUE ...]) [--stride K] [--max-frames N] [--scale F] [--strict] [--json]
+    canonical stream DATASET --url URL [--session ID | [--voxel-size S] [--set PATH=VALUE ...]] [--stride K] [--max-frames N] [--scale F] [--strict] [--json]
     canonical render --url URL --session ID (--frame-like DATASET:INDEX ... | (--pose FILE | --trajectory FILE) (--K fx,fy,cx,cy --size WxH | --frame-like DATASET:INDEX)) -o out.png|'view_{i}.png'|DIR/
     canonical export --url URL --session ID -o scene.ply|scene.splat
     canonical export --url URL --session ID --mesh -o surface.ply
@@ -211,10 +211,11 @@ def run_repair(args) -> int:
 def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
     _add_connection(p)
-    target = p.add_mutually_exclusive_group(required=True)
+    target = p.add_mutually_exclusive_group()
     target.add_argument("--session", help="stream into this existing session, after the frames it already has "
                                            "(give the same dataset, --stride and --max-frames to resume)")
-    target.add_argument("--voxel-size", type=float, help="create a new session with this voxel size")
+    target.add_argument("--voxel-size", type=float, help="a new session's voxel size, metres (default: chosen by the "
+                                                         "service from the first frame, 6 pixel footprints at its median depth)")
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
@@ -399,8 +400,11 @@ class StreamInterrupted(Exception):
 
 
 def _stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
+    size = "" if stats.get("voxel_size") is None else f" of {stats['voxel_size'] * 1000:g} mm"
+    sensor = "" if stats.get("sensor", "auto") == "auto" else f"; {stats['sensor']} noise model ({stats['chosen']['sensor']})"
     return (f"{n} frames in {elapsed:.1f} s ({n / max(elapsed, 1e-9):.2f} frames/s); "
-            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels, {stats['gaussians']} Gaussians")
+            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels{size}, "
+            f"{stats['gaussians']} Gaussians{sensor}")
 
 
 def run_stream(args) -> int:
@@ -408,7 +412,7 @@ def run_stream(args) -> int:
     from canonical_core.config import settings_from_pairs
 
     if args.session and args.settings:
-        print("--set: settings belong to a new session (--voxel-size), not to an existing one", file=sys.stderr)
+        print("--set: settings belong to a new session (without --session), not to an existing one", file=sys.stderr)
         return 2
     if any(name == "voxel_size" for name, _ in args.settings):
         print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
@@ -431,8 +435,8 @@ def run_stream(args) -> int:
             print(f"session {target.id}: resuming after its {start} frames", file=sys.stderr)
             announce(target)
         else:
-            target = FirstFrameSession(client, {"voxel_size": args.voxel_size, **settings_from_pairs(args.settings)},
-                                       created=announce)
+            voxel = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
+            target = FirstFrameSession(client, {**voxel, **settings_from_pairs(args.settings)}, created=announce)
         interrupted, refused = False, None
         t0 = time.perf_counter()
         try:

@@ -518,10 +518,12 @@ class Client:
         except (ValueError, KeyError, TypeError):
             return CanonicalError(r.status_code, "error", r.text[:500])
 
-    def create_session(self, voxel_size: float, **settings) -> Session:
+    def create_session(self, voxel_size: float | None = None, **settings) -> Session:
         """A new session; ``settings`` are the service's session settings (SceneConfig's public fields:
-        max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, free_space={"margin": 3.0}``)."""
-        r = self._request("POST", "/v1/sessions", json={"voxel_size": voxel_size, **settings})
+        max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, sensor={"family": "hololens"}``).
+        Without ``voxel_size`` the service chooses it from the first frame with depth (its stats say which)."""
+        body = settings if voxel_size is None else {"voxel_size": voxel_size, **settings}
+        r = self._request("POST", "/v1/sessions", json=body)
         return Session(self, r.json()["id"], label_dim=0)
 
     def session(self, session_id: str) -> Session:

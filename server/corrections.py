@@ -309,12 +309,15 @@ class Corrections:
         if job is not None:
             job.total = len(entries) - len(removed) - start
             stream = counted(stream, job)
+        # the settings the first frame chose stay, even where that frame is removed (`Scene.chosen`)
+        config, chosen = session.scene.config, dict(session.scene.chosen)
         if base is not None:
             base.keep_undo(session.undo_depth)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
         else:
-            base = Scene(session.config, undo_depth=session.undo_depth)
+            base = Scene(config, undo_depth=session.undo_depth)
         session.preallocate(base)  # the re-fold and the scene it becomes grow into committed memory
-        return Scene.refolded(session.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
+        base.chosen = chosen
+        return Scene.refolded(config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
 
     def _keep_base(self, checkpoints: dict[int, bytes]) -> None:
         """Keep the latest state the re-fold started from or passed before the scene's end (`BASE`),

@@ -40,6 +40,7 @@ import msgpack
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.scene.corrections import corrected_stream
+from canonical_core.scene.choices import filled_from
 from canonical_core.scene.snapshot import read_config
 
 from . import wire
@@ -108,6 +109,13 @@ def config_digest(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
+def write_chosen(path: Path, config: SceneConfig, chosen: dict[str, str]) -> None:
+    """meta.json with the settings its scene chose from the first frame (``config``) and why (``chosen``)."""
+    meta = json.loads((path / META).read_text())
+    meta |= {"config": config.to_dict(), "config_sha256": config_digest(config.to_dict()), "chosen": chosen}
+    write_atomic(path / META, json.dumps(meta, indent=1).encode())
+
+
 def session_meta(path: Path) -> tuple[dict, SceneConfig]:
     """A session's meta.json and its settings, checked against the session's own record of them: the
     snapshot's settings where there is a snapshot, else the digest meta.json got at creation (sessions
@@ -122,8 +130,8 @@ def session_meta(path: Path) -> tuple[dict, SceneConfig]:
             held = read_config(path / SNAPSHOT)
         except ValueError:  # an unreadable snapshot: the restore says so
             return meta, config
-        if held.to_dict() != config.to_dict():
-            name, given, made = _first_difference(config.to_dict(), held.to_dict())
+        if filled_from(config, held).to_dict() != held.to_dict():  # settings chosen by the first frame agree
+            name, given, made = _first_difference(filled_from(config, held).to_dict(), held.to_dict())
             raise Unrestorable(f"{META}: config.{name} is {given!r}, but {SNAPSHOT} was made with {made!r}: the "
                                f"session folds only with the settings it was made with; {restore}")
     elif "config_sha256" in meta and meta["config_sha256"] != config_digest(meta["config"]):
@@ -161,7 +169,7 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tu
     scene = Scene.load(snap) if snap.exists() else Scene(config)
     entries = list(archive.entries)
     dropped = {k for k, e in enumerate(entries) if not e.kept}
-    scene.adopt(Scene.refolded(config, corrected_stream(archive.frames(entries), {}, dropped), scene.appearance))
+    scene.adopt(Scene.refolded(scene.config, corrected_stream(archive.frames(entries), {}, dropped), scene.appearance))
     if dropped:
         archive.append_correction({}, [entries[k].arrival for k in dropped], min(dropped))
     frame_ids = archived_frame_ids(archive, {})

@@ -33,8 +33,9 @@ def model_of_dataclass(cls: type, name: str) -> type[BaseModel]:
 # evaluation-only groups are left out, so they are unknown fields here (422).
 SessionCreate = create_model(
     "SessionCreate", __base__=public_model("SessionSettings", doc="Scene settings of a new session"),
-    __doc__="Scene settings of a new session (canonical_core.SceneConfig without its research group; voxel_size "
-            "is required) and its frame archive's retention.",
+    __doc__="Scene settings of a new session (canonical_core.SceneConfig without its research group; without "
+            "voxel_size, or with sensor.family auto, they are chosen from the first frame with depth) and its frame "
+            "archive's retention.",
     archive_retention=(Literal["all", "keyframes", "none"] | None, Field(
         None, description="which frames the session keeps for pose corrections and frame removal: all, keyframes "
                           "(one in five) or none (corrections are refused); default: the service's "
@@ -56,7 +57,8 @@ class SessionSummary(BaseModel):
     last_active: float | None = Field(None, description=(
         "unix time of its last frame or correction: the newest change of its files, which every acknowledged "
         "frame makes (None while unavailable); what the retention policy reads"))
-    voxel_size: float | None = Field(None, description="metres (None while unavailable)")
+    voxel_size: float | None = Field(None, description="metres (None while unavailable, or until the first frame "
+                                                       "with depth chooses it)")
     memory_bytes: int | None = Field(None, description="bytes its scene holds in memory (None while unavailable)")
     disk_bytes: int | None = Field(None, description="bytes of the files in its folder (None while unavailable)")
     archive_retention: Literal["all", "keyframes", "none"] | None = Field(
@@ -82,6 +84,10 @@ class SessionStats(SessionSummary):
     inconsistent_depth_below: float | None = Field(
         None, description="metres: the depth under which this session's consecutive frames disagree, likely under "
                           "the sensor's working range (the setting near can ignore it); None while they agree")
+    sensor: str = Field("auto", description="the depth sensor family whose noise model the session uses (auto "
+                                            "until the first frame chooses it)")
+    chosen: dict[str, str] = Field(default_factory=dict, description=(
+        "why voxel_size and sensor have their values: 'set', or the rule that chose them from the first frame"))
     snapshot_frames: int
     snapshot_error: str | None = Field(None, description="why the last snapshot failed (its frames stay durable in the log)")
     config: dict[str, Any]

@@ -32,7 +32,7 @@ from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 
 from .archive import SessionArchive, names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
-from .durability import FoldedFrame, checkpoint_payload, restore_scene
+from .durability import FoldedFrame, checkpoint_payload, restore_scene, write_chosen
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
 from .ordering import FrameOrder
@@ -94,6 +94,7 @@ class Session:
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
     budget: MemoryBudget | None = None  # the service's memory, which each fold reserves its worst case from
     order: FrameOrder = field(init=False, repr=False)  # the turns of its numbered frames (`server.ordering`)
+    chosen: dict[str, str] = field(default_factory=dict)  # why meta.json's settings are what they are (`Scene.chosen`)
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
     corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
@@ -112,6 +113,23 @@ class Session:
         if self.archive is not None:
             self.scene.keep_undo(self.undo_depth)
         self.preallocate(self.scene)
+        if self.chosen and self.scene.config == self.config:  # a scene rebuilt from meta.json's settings
+            self.scene.chosen = dict(self.chosen)
+        self._keep_chosen()
+
+    def _keep_chosen(self) -> None:
+        """meta.json records the settings the scene chose from its first frame (`Scene.chosen`), once,
+        so a restart folds with them whatever a later version would choose. A failed write is logged
+        and tried again after the next fold; meanwhile a restart finds them in the snapshot, or
+        chooses them again from the same first frame."""
+        if self.scene.config == self.config:
+            return
+        try:
+            write_chosen(self.path, self.scene.config, self.scene.chosen)
+        except OSError as exc:
+            log.warning("session %s: cannot record its chosen settings in meta.json (%s)", self.id, exc)
+            return
+        self.config, self.chosen = self.scene.config, dict(self.scene.chosen)
 
     def preallocate(self, scene: Scene) -> None:
         """`Scene.preallocate` of `preallocate_voxels` voxels, at most the session's ``max_voxels``."""
@@ -175,6 +193,7 @@ class Session:
         if frame.frame_id is not None:
             self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
         self.version += 1
+        self._keep_chosen()
         self.snapshots.after_fold(snapshot_every_frames, snapshot_every_seconds)
         return report, False
 
@@ -265,7 +284,7 @@ class Session:
         usage = folder_usage(self.path)
         return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
                 "last_active": usage.last_active or self.created,
-                "voxel_size": self.config.voxel_size, "memory_bytes": self.scene.memory_bytes(),
+                "voxel_size": self.scene.config.voxel_size, "memory_bytes": self.scene.memory_bytes(),
                 "disk_bytes": usage.bytes, "archive_retention": self.retention,
                 "state": "read_only" if self.wedged else "ok", "problem": self.wedged}
 
@@ -285,9 +304,11 @@ class Session:
                 "undo_bytes": self.scene.undo_bytes(),
                 "label_dim": stats["label_dim"],
                 "inconsistent_depth_below": stats["inconsistent_depth_below"],
+                "sensor": stats["sensor"],
+                "chosen": stats["chosen"],
                 "snapshot_frames": self.snapshots.frames,
                 "snapshot_error": self.snapshots.error,
-                "config": self.config.to_dict(),
+                "config": self.scene.config.to_dict(),
             }
 
     def digest(self) -> dict:

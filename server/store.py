@@ -121,7 +121,7 @@ class SessionStore:
                 self._unavailable(path.name, f"cannot be restored ({type(exc).__name__}: {exc})")
                 continue
             self._sessions[meta["id"]] = Session(meta["id"], path, config, meta["created"], *restored, archive=archive,
-                                                 **self._session_options())
+                                                 chosen=meta.get("chosen", {}), **self._session_options())
             log.info("session %s…: %d frames (%d replayed) in %.2fs", meta["id"][:6], restored.scene.frames,
                      restored.scene.frames - restored.snapshot_frames, time.perf_counter() - t0)
 
@@ -184,6 +184,7 @@ class SessionStore:
             if len(self._sessions) >= self.max_sessions:
                 raise TooManySessions(f"max_sessions: the service holds {len(self._sessions)} sessions, its limit")
             scene = Scene(config)  # before any file: a config whose model cannot load leaves nothing behind
+            config = scene.config  # a named sensor family's values are known now (`Scene.chosen`)
             session_id = self.new_session_id()
             path = self.root / session_id
             created = time.time()

@@ -8,9 +8,11 @@ setting's path, e.g. ``free_space.margin: ...``), the service's session-create s
 
 Layout: a few settings sit at the top level (voxel size, capacity, SH degree, the decoder's
 model); everything else lives in groups with defaults: the depth ``range``, the ``features``, the
-``colour_solve``, the ``sensor`` noise model, and expert tuning (``free_space``, ``depth``,
-``decoder``). The aggregation ablations live in ``research``, which the evaluation's method
-definitions set and the public schema leaves out. Types are strict: a string or a boolean is not a number, a float is not an integer.
+``colour_solve``, the ``sensor`` noise model (its family's preset, `sensors`, under the values set
+explicitly), and expert tuning (``free_space``, ``depth``, ``decoder``). The voxel size and the
+sensor family may be left to the scene's first frame (`scene.choices`). The aggregation ablations
+live in ``research``, which the evaluation's method definitions set and the public schema leaves
+out. Types are strict: a string or a boolean is not a number, a float is not an integer.
 
 Example:
     >>> config = SceneConfig(voxel_size=0.01, free_space={"margin": 3.0})
@@ -21,6 +23,7 @@ Example:
 """
 
 from .migration import FLAT_NAMES, migrate_flat
+from .sensors import DEFAULT_FAMILY, SENSOR_PRESETS, SensorFamily, detect_family, disparity_step
 from .public import PRIVATE_GROUPS, parse_setting, public_model, settings_from_pairs
 from .settings import (
     BIAS_WITH_DENOISING,
@@ -45,7 +48,7 @@ from .settings import (
     Weighting,
 )
 
-__all__ = ["BIAS_WITHOUT_DENOISING", "BIAS_WITH_DENOISING", "FLAT_NAMES", "KEY_BITS", "KEY_OFFSET", "MAX_DEPTH", "MAX_VOXEL",
-           "MAX_VOXELS", "MIN_VOXEL", "PRIVATE_GROUPS", "ColourSolve", "DecoderSettings", "DepthEstimation", "DepthRange",
-           "FeatureBackend", "FeatureSettings", "FreeSpace", "Research", "SceneConfig", "SensorNoise", "SettingsGroup",
-           "Weighting", "migrate_flat", "parse_setting", "public_model", "settings_from_pairs"]
+__all__ = ["BIAS_WITHOUT_DENOISING", "BIAS_WITH_DENOISING", "DEFAULT_FAMILY", "FLAT_NAMES", "KEY_BITS", "KEY_OFFSET", "MAX_DEPTH", "MAX_VOXEL",
+           "MAX_VOXELS", "MIN_VOXEL", "PRIVATE_GROUPS", "SENSOR_PRESETS", "ColourSolve", "DecoderSettings", "DepthEstimation", "DepthRange",
+           "FeatureBackend", "FeatureSettings", "FreeSpace", "Research", "SceneConfig", "SensorFamily", "SensorNoise", "SettingsGroup",
+           "Weighting", "detect_family", "disparity_step", "migrate_flat", "parse_setting", "public_model", "settings_from_pairs"]

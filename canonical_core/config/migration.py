@@ -36,11 +36,17 @@ FLAT_NAMES: dict[str, str] = {
     "colour_solve_scale": "colour_solve.scale",
 }
 
+# Layouts before the sensor families wrote every noise value and no family; those values were the
+# structured-light model's or set by hand, so such a group keeps them under that family's name.
+EARLIER_SENSOR_VALUES = {"sigma0", "sigma2", "sigma_ref", "edge_weight"}
+EARLIER_FAMILY = "structured_light"
+
 
 def migrate_flat(d: dict) -> dict:
     """A settings mapping in the current layout: the flat layout's names (`FLAT_NAMES`) move into
-    their groups, and its boolean ``free_space`` becomes ``free_space.enabled``. Current-layout input
-    is returned unchanged."""
+    their groups, its boolean ``free_space`` becomes ``free_space.enabled``, and a ``sensor`` group
+    with every noise value but no family (written before the families) gets `EARLIER_FAMILY`.
+    Current-layout input is returned unchanged."""
     out = {k: v for k, v in d.items() if k not in FLAT_NAMES}
     groups: dict[str, dict] = {}
     if isinstance(out.get("free_space"), bool):
@@ -56,4 +62,7 @@ def migrate_flat(d: dict) -> dict:
                 raise ValueError(f"{group}: given both as a group and as flat settings ({both})")
             values = {**given, **values}
         out[group] = values
+    sensor = out.get("sensor")
+    if isinstance(sensor, dict) and "family" not in sensor and EARLIER_SENSOR_VALUES <= set(sensor):
+        out["sensor"] = {**sensor, "family": EARLIER_FAMILY}
     return out

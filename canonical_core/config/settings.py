@@ -9,6 +9,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .migration import FLAT_NAMES, migrate_flat
+from .sensors import SENSOR_PRESETS, SensorFamily, detect_family
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
@@ -123,26 +124,53 @@ class ColourSolve(SettingsGroup):
 
 
 class SensorNoise(SettingsGroup):
-    """Noise model of supplied depth that carries no per-pixel std (structured-light and
-    time-of-flight sensors): sigma(z) = sigma0 + sigma2 (z - sigma_ref)^2 metres, plus
-    ``edge_weight`` times the pixel's largest depth jump to a valid 8-neighbour."""
+    """Noise model of supplied depth that carries no per-pixel std: sigma(z) = sigma0 + sigma2
+    (z - sigma_ref)^2 metres, plus ``edge_weight`` times the pixel's largest depth jump to a valid
+    8-neighbour. ``family`` names the sensor family whose preset (`config.sensors`) gives every value
+    left None; a value set here overrides the preset's."""
 
     _path: ClassVar[str] = "sensor"
 
-    sigma0: SensorLength = 0.0012
-    """Constant term of the depth std, metres."""
-    sigma2: SensorLength = 0.0019
-    """Quadratic term of the depth std, metres per square metre of distance from ``sigma_ref``."""
-    sigma_ref: Annotated[float, Field(ge=0, le=MAX_DEPTH)] = 0.4
-    """Depth at which the std is smallest, metres."""
-    edge_weight: Annotated[float, Field(ge=0, le=100.0)] = 0.5
+    family: SensorFamily = "auto"
+    """The depth sensor's family: ``structured_light`` (Kinect v1, Xtion, PrimeSense), ``active_stereo``
+    (RealSense D4xx), ``time_of_flight`` (Kinect v2, Azure Kinect), ``phone_lidar`` (iPhone / iPad
+    LiDAR), ``hololens`` (HoloLens 2 depth), or ``auto``: detected from the first frame's depth where
+    its quantisation shows the family, else the default family (`scene.choices`); the fold report
+    says which and why. Fixed for the scene's life once chosen."""
+    sigma0: SensorLength | None = None
+    """Constant term of the depth std, metres (None: the family's preset)."""
+    sigma2: SensorLength | None = None
+    """Quadratic term of the depth std, metres per square metre of distance from ``sigma_ref`` (None:
+    the family's preset)."""
+    sigma_ref: Annotated[float, Field(ge=0, le=MAX_DEPTH)] | None = None
+    """Depth at which the std is smallest, metres (None: the family's preset)."""
+    edge_weight: Annotated[float, Field(ge=0, le=100.0)] | None = None
     """Weight of the largest neighbour depth jump added to the std, so "flying pixels" on depth
-    discontinuities get low reliability."""
-    registration_px: Annotated[float, Field(ge=0, le=32)] = 0.0
+    discontinuities get low reliability (None: the family's preset)."""
+    registration_px: Annotated[float, Field(ge=0, le=32)] | None = None
     """Pixels; evidence within this distance of a depth edge is down-weighted (its reliability times
     min(1, (d + 1) / (registration_px + 1)), d the distance), because colour and depth measured by
     two sensors disagree there and the colour may belong to the surface behind
-    (`evidence.registration`). 0 turns it off."""
+    (`evidence.registration`). 0 turns it off (None: the family's preset)."""
+
+    @property
+    def chosen(self) -> bool:
+        """Whether the family and every value are known (`with_preset` made them so)."""
+        return self.family != "auto" and None not in self.model_dump().values()
+
+    def with_preset(self, family: str | None = None) -> "SensorNoise":
+        """Every value left None taken from the preset of ``family`` (default: this group's own,
+        which must then not be ``auto``); values set here stay (they take precedence)."""
+        family = self.family if family is None else family
+        preset = SENSOR_PRESETS[family]  # KeyError for "auto": the caller chooses a family first
+        return SensorNoise(**{**preset, **{k: v for k, v in self.model_dump().items() if v is not None},
+                              "family": family})
+
+    def in_effect(self, depth) -> "SensorNoise":
+        """This group where it is `chosen`, else `with_preset` of the family ``depth`` ([H, W] metres,
+        or None) shows (`detect_family`): what evidence from that depth uses outside a scene, which
+        chooses once for its life (`scene.choices`)."""
+        return self if self.chosen else self.with_preset(None if self.family != "auto" else detect_family(depth)[0])
 
 
 class FreeSpace(SettingsGroup):
@@ -239,9 +267,10 @@ class SceneConfig(SettingsGroup):
     Groups accept a mapping or an instance: ``SceneConfig(voxel_size=0.01, depth={"sources": 3})``.
     """
 
-    voxel_size: Annotated[float, Field(ge=MIN_VOXEL, le=MAX_VOXEL)]
+    voxel_size: Annotated[float, Field(ge=MIN_VOXEL, le=MAX_VOXEL)] | None = None
     """Edge length of the sparse lattice's voxels, in the scene's unit (metres). ``range.far`` must
-    stay on the lattice: at most 2^20 voxels from the origin."""
+    stay on the lattice: at most 2^20 voxels from the origin. None: chosen from the first frame with
+    depth (6 pixel footprints at its median depth, `scene.choices`) and fixed for the scene's life."""
     max_voxels: Annotated[int, Field(gt=0, le=MAX_VOXELS)] | None = None
     """Cap on the number of voxels (None = unbounded); a fold that would exceed it raises instead of
     folding part of a frame."""
@@ -279,10 +308,16 @@ class SceneConfig(SettingsGroup):
     @model_validator(mode="after")
     def _far_on_lattice(self) -> "SceneConfig":
         far = self.range.far
-        if far > self.voxel_size * KEY_OFFSET:
+        if self.voxel_size is not None and far > self.voxel_size * KEY_OFFSET:
             raise ValueError(f"range.far: {far} is {far / self.voxel_size:.3g} voxels of {self.voxel_size}, beyond the "
                              f"lattice's {KEY_OFFSET} voxels from the origin; use larger voxels or a nearer far")
         return self
+
+    @property
+    def chosen(self) -> bool:
+        """Whether nothing is left to choose from the first frame (`scene.choices`): the voxel size is
+        set and the sensor's family and values are known."""
+        return self.voxel_size is not None and self.sensor.chosen
 
     @property
     def uses_reliability(self) -> bool:

@@ -42,12 +42,11 @@ from tqdm import tqdm
 from ..datasets import FrameSequence, load_dataset
 from ..frame import Frame, resize_frame
 from ..rendering import Colour
+from ..scene.choices import default_voxel_size
 from .methods import METHODS, Model, build, check_methods, parse_method
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
-
-VOXEL_PIXELS = 6.0  # default voxel edge in pixel footprints at the median depth (4 mm on the shelf)
 
 
 def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:
@@ -80,16 +79,6 @@ def _positive_level(name: str, level) -> float:
     if isinstance(level, bool) or not isinstance(level, (int, float)) or not (math.isfinite(level) and level > 0):
         raise ValueError(f"{name}: expected a positive level, got {level!r}")
     return float(level)
-
-
-def default_voxel_size(frames: Sequence[Frame]) -> float:
-    """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth, 2 significant digits."""
-    depths = torch.cat([f.depth[f.depth > 0] for f in frames if f.depth is not None])
-    if depths.numel() == 0:
-        raise ValueError("dataset: no valid depth in the input frames")
-    focal = float(np.mean([(f.camera.fx + f.camera.fy) / 2 for f in frames]))
-    size = VOXEL_PIXELS * float(depths.median()) / focal
-    return float(f"{size:.2g}")
 
 
 def _nanmean(values: Sequence[float]) -> float | None:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..config import DEFAULT_FAMILY
 from ..datasets import load_dataset
 from ..frame import resize_frame
 from ..scene import Scene, SceneConfig
@@ -59,8 +60,10 @@ DEFAULT = Variant("default")
 
 
 def default_of(path: str):
-    """The default value of a knob (``group.name`` or a top-level name) in a new `SceneConfig`."""
+    """The default value of a knob (``group.name`` or a top-level name) in a new `SceneConfig`; a
+    sensor value is the default family's (what `auto` gives every capture here: `bench/sensor_families.py`)."""
     value = SceneConfig(voxel_size=1.0)
+    value = value.replace(sensor=value.sensor.with_preset(DEFAULT_FAMILY))
     for part in path.split("."):
         value = getattr(value, part)
     return value

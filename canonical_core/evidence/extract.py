@@ -120,19 +120,19 @@ def extract_evidence(
     if frame.depth is None:
         raise ValueError("depth: this frame has no depth; RGB-only frames need the multi-view depth stage")
     depth = frame.depth.numpy()
+    sensor = config.sensor.in_effect(depth)  # a scene's own choice; outside one, this frame's family
     rows, cols = valid_depth_pixels(depth, np.float32(config.range.near), np.float32(config.range.far))
     features = frame_features(frame, rows, cols, config)
     points, colors = lift_pixels(frame, rows, cols)
     u_pos = positional_uncertainty(
         depth, rows, cols, config.voxel_size,
         depth_std=None if frame.depth_std is None else frame.depth_std.numpy(),
-        sigma0=config.sensor.sigma0, sigma2=config.sensor.sigma2, z_ref=config.sensor.sigma_ref,
-        edge_weight=config.sensor.edge_weight,
+        sigma0=sensor.sigma0, sigma2=sensor.sigma2, z_ref=sensor.sigma_ref, edge_weight=sensor.edge_weight,
     )
     log_r = -u_pos
-    if config.sensor.registration_px > 0:
-        log_r = log_r + np.log(registration_weight(depth, rows, cols, config.sensor.registration_px, config.voxel_size,
-                                                   config.sensor.sigma0, config.sensor.sigma2, config.sensor.sigma_ref))
+    if sensor.registration_px > 0:
+        log_r = log_r + np.log(registration_weight(depth, rows, cols, sensor.registration_px, config.voxel_size,
+                                                   sensor.sigma0, sensor.sigma2, sensor.sigma_ref))
     if appearance is not None and not appearance.is_zero:
         with torch.no_grad():
             log_r = log_r - appearance(torch.from_numpy(features)).numpy()

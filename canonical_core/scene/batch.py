@@ -23,6 +23,7 @@ from torch import Tensor
 from ..evidence import AppearanceUncertainty, extract_evidence, observation_sh_basis
 from ..frame import Frame
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
+from .choices import choose_settings
 from .fields import fields_from_sums, unpack_keys
 from .free_space import SeeThroughMap, see_through_map
 
@@ -65,11 +66,13 @@ def aggregate_batch(
     config: SceneConfig,
     appearance: AppearanceUncertainty | None = None,
 ) -> dict[str, Tensor]:
-    """The batch rule over ``frames``; returns the same fields as `Scene.fields` (sorted by key)."""
+    """The batch rule over ``frames``; returns the same fields as `Scene.fields` (sorted by key).
+    What ``config`` leaves open is chosen from the first frame, as a `Scene` does (`choices`)."""
     frames = list(frames)
-    evidence = [extract_evidence(f, config, appearance) for f in frames]
-    if not evidence:
+    if not frames:
         raise ValueError("frames: expected at least one frame")
+    config = config if config.chosen else choose_settings(config, frames[0])[0]
+    evidence = [extract_evidence(f, config, appearance) for f in frames]
     L = config.features.dim
     points = torch.from_numpy(np.concatenate([e.points for e in evidence]))
     rel = torch.from_numpy(np.concatenate([e.reliability for e in evidence]))

@@ -293,6 +293,8 @@ class SceneDecoding:
         executor, and what to call once a re-solve has landed there), a colour re-solve that falls due
         runs on the executor: this decode, and those until it lands, show the last solution
         (`_colour_offsets`)."""
+        if self.config.voxel_size is None:  # no frame has chosen it (`choices`): no voxel to decode
+            return Gaussians.empty(self.config.sh_degree, self.config.features.dim if work.wants_features else None)
         chosen = work.chosen
         with torch.no_grad():
             opacities = self.decoder.opacities(chosen.support, chosen.free, chosen.unit * work.observations_per_view)

@@ -23,7 +23,9 @@ from typing import TYPE_CHECKING
 
 from ..evidence import extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
+from ..config import SceneConfig
 from . import snapshot
+from .choices import choose_settings
 from .integrate import integrate, integrate_free_space
 from .undo import FoldUndo, history_slot
 
@@ -42,7 +44,8 @@ class FoldReport:
     frame gives it a partner; that call counts it in ``also_folded``. ``denoised``: the frame's depth
     was far rougher than its noise model and was folded as its local median (`evidence.denoise`).
     ``warnings``: problems with the input that did not stop the fold, each ``"field: problem"``
-    (e.g. depth that gave no observation). The ``description`` metadata reaches the HTTP schema.
+    (e.g. depth that gave no observation). ``sensor``: the sensor family whose noise model the scene
+    uses, ``sensor_chosen`` why (`choices`). The ``description`` metadata reaches the HTTP schema.
     """
 
     frame_index: int = field(metadata={"description": "the frame's arrival index in the session"})
@@ -59,6 +62,10 @@ class FoldReport:
         "description": "the frame's depth was far rougher than its noise model and was replaced by a local median"})
     warnings: list[str] = field(default_factory=list, metadata={
         "description": "problems with the input that did not stop the fold, each 'field: problem'"})
+    sensor: str | None = field(default=None, metadata={
+        "description": "the depth sensor family whose noise model the scene uses (setting sensor.family)"})
+    sensor_chosen: str | None = field(default=None, metadata={
+        "description": "why that family: 'set', 'detected from depth quantisation (...)' or 'default: ...'"})
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -66,12 +73,19 @@ class FoldReport:
 
 def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport:
     """`Scene.fold` of ``frame`` (arrival index ``arrival``, started at ``t0``) for a caller that holds
-    the scene's lock: the fold with its undo record, then the frame kept (with ``keep_frames``) and
-    a checkpoint where one is due."""
+    the scene's lock: the settings the config leaves open chosen (the scene's first frame), the fold
+    with its undo record, then the frame kept (with ``keep_frames``) and a checkpoint where one is due."""
+    before = None if scene.config.chosen else (scene.config, scene.chosen)
+    if before is not None:  # what the settings leave to the first frame is chosen now, once (`choices`)
+        _set_config(scene, *choose_settings(scene.config, frame))
     # the fold in progress enters what it overwrites in its undo record, the map's journal
     record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth else None
     try:
         report = _fold(scene, frame, t0)
+    except BaseException:
+        if before is not None:  # a refused frame chooses nothing
+            _set_config(scene, *before)
+        raise
     finally:
         scene._voxels.journal = None
         scene._generation += 1
@@ -87,6 +101,12 @@ def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport
         if scene.checkpoint_every and scene.frames % scene.checkpoint_every == 0:
             scene._checkpoints[scene.frames] = snapshot.encode(scene, *snapshot.snapshot_parts(scene))
     return report
+
+
+def _set_config(scene: Scene, config: SceneConfig, chosen: dict[str, str]) -> None:
+    """The settings chosen from the first frame (`choices`), for the scene and the parts that read them."""
+    scene.config, scene.chosen = config, chosen
+    scene._front.config = scene._decoding.config = config
 
 
 def _undo_record(scene: Scene) -> FoldUndo:
@@ -115,7 +135,7 @@ def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
         warnings += scene._consistency.observe(prepared.frame)
     return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
                       also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
-                      warnings=warnings)
+                      warnings=warnings, sensor=scene.config.sensor.family, sensor_chosen=scene.chosen.get("sensor"))
 
 
 def _integrate(scene: Scene, frame: Frame) -> tuple[int, int, int, int]:

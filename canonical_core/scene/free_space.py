@@ -97,9 +97,10 @@ def see_through_map(frame, config: SceneConfig) -> SeeThroughMap:
     thr = np.empty((h, w), np.float32)
     wcell = np.empty((h, w), np.float32)
     std = frame.depth_std.numpy() if frame.depth_std is not None else np.zeros((1, 1), np.float32)
+    sensor = config.sensor.in_effect(frame.depth.numpy())  # a scene's own choice; outside one, this frame's family
     _coarse_map_kernel(frame.depth.numpy(), std, frame.depth_std is not None, c, np.float32(config.range.near),
-                       np.float32(config.range.far), np.float32(config.sensor.sigma0), np.float32(config.sensor.sigma2),
-                       np.float32(config.sensor.sigma_ref), np.float32(config.voxel_size),
+                       np.float32(config.range.far), np.float32(sensor.sigma0), np.float32(sensor.sigma2),
+                       np.float32(sensor.sigma_ref), np.float32(config.voxel_size),
                        np.float32(config.free_space.margin), np.float32(config.free_space.sigmas),
                        config.uses_reliability, thr, wcell)
     cam = frame.camera

@@ -21,7 +21,7 @@ from ..evidence import AppearanceUncertainty, DepthConsistency
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
-from . import folding, refold, snapshot
+from . import choices, folding, refold, snapshot
 from ..config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
 from .decoding import DecodeInputs, SceneDecoding
@@ -76,6 +76,7 @@ class Scene:
             undo_depth = DEFAULT_UNDO_DEPTH if keep_frames else 0
         if isinstance(undo_depth, bool) or not isinstance(undo_depth, int) or undo_depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {undo_depth!r}")
+        config, self.chosen = choices.choose_without_frame(config)  # the rest at the first fold (`choices`)
         self.config = config
         self.appearance = AppearanceUncertainty(config.features.dim)
         self.frames = 0
@@ -369,7 +370,8 @@ class Scene:
     def stats(self) -> dict:
         return {"frames": self.frames, "voxels": len(self), "memory_bytes": self.memory_bytes(),
                 "capacity": self.capacity, "label_dim": self.label_dim,
-                "inconsistent_depth_below": self._consistency.limit()}
+                "inconsistent_depth_below": self._consistency.limit(), "voxel_size": self.config.voxel_size,
+                "sensor": self.config.sensor.family, "chosen": dict(self.chosen)}  # `choices`: why these
 
     # -- persistence (`snapshot`) -------------------------------------------------------------
     def to_bytes(self) -> bytes:

@@ -54,7 +54,7 @@ def snapshot_parts(scene: Scene, sums: dict[str, np.ndarray] | None = None) -> t
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "config": scene.config.to_dict(),
               "frames": scene.frames, "label_dim": scene.label_dim, "voxels": len(scene),
               "pending": len(scene._front.pending), "density": [scene._density_sum, scene._density_frames],
-              "model": {"setting": scene.config.model, "sha256": scene.model_sha256}}
+              "model": {"setting": scene.config.model, "sha256": scene.model_sha256}, "chosen": scene.chosen}
     arrays = state_arrays(scene, sums) | {f"consistency.{k}": v for k, v in scene._consistency.to_arrays().items()}
     solution = scene._decoding.solution
     if solution is not None:  # not in the digest: decodes made it of the state, and they may differ in when
@@ -117,6 +117,7 @@ def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:
     scene = scene_type(SceneConfig.from_dict(header["config"]), initial_capacity=max(int(header["voxels"]), 16),
                        load_model=False)
     scene.model_sha256 = (header.get("model") or {}).get("sha256")
+    scene.chosen = dict(header.get("chosen") or scene.chosen)  # why the settings are what they are (`choices`)
     if header["label_dim"]:
         scene._voxels.set_label_dim(int(header["label_dim"]))
     scene._voxels.load_sums(_prefixed(npz, "state"))

@@ -188,7 +188,8 @@ class OwnerStore(SessionStore):
         except BaseException:
             lease.close()
             raise
-        session = OwnedSession(meta["id"], path, config, meta["created"], *restored, archive=archive)
+        session = OwnedSession(meta["id"], path, config, meta["created"], *restored, archive=archive,
+                               chosen=meta.get("chosen", {}))
         session.fence(lease)
         with self._lock:
             self._sessions[session_id] = session

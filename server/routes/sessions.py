@@ -18,8 +18,9 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
 @router.post("", status_code=201, response_model=SessionCreated, responses={409: {"model": ErrorBody}})
 async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  # type: ignore[valid-type]
                          service: SettingsDep) -> SessionCreated:
-    """A new, empty session. Settings map onto canonical_core.SceneConfig (voxel_size required; nested
-    groups as objects, e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``), and the frame
+    """A new, empty session. Settings map onto canonical_core.SceneConfig (nested groups as objects,
+    e.g. ``{"voxel_size": 0.004, "free_space": {"margin": 3}}``; without ``voxel_size`` the first frame
+    with depth chooses it, and ``sensor.family`` auto the noise model: the session's GET says), and the frame
     archive's ``archive_retention`` (all, keyframes or none; default: the service's setting). A session
     that sets no ``max_voxels`` gets the service's ``max_session_voxels``, and may set no more."""
     settings = body.model_dump(exclude_unset=True)
@@ -35,7 +36,7 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  #
         raise ApiError(422, "invalid_value", "model: a checkpoint path cannot be chosen over HTTP; use 'default' "
                                                "or 'none'", "model")
     session = await jobs.run(store.create, config, retention, kind="frame")
-    return SessionCreated(id=session.id, config=config.to_dict(), archive_retention=session.retention)
+    return SessionCreated(id=session.id, config=session.config.to_dict(), archive_retention=session.retention)
 
 
 @router.get("", response_model=SessionList)

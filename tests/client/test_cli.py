@@ -7,6 +7,7 @@ import pytest
 from PIL import Image
 
 from canonical_core import load_ply
+from canonical_core.datasets import load_tsdf_fusion
 from client import cli
 from client.sdk import Client
 
@@ -88,6 +89,20 @@ def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--set", "voxel_size=0.02"]) == 2
     assert "--voxel-size" in capsys.readouterr().err
     assert len(Client(server.url).sessions()) == before
+
+
+@pytest.mark.realdata
+def test_stream_by_default_lets_the_service_choose_the_voxel_size(server, shelf_dir, capsys):
+    assert cli.build_parser().parse_args(["stream", "x", "--url", "http://x"]).voxel_size is None
+    assert cli.main(["stream", str(shelf_dir), "--url", server.url, "--stride", "20", "--max-frames", "2",
+                     "--scale", "0.25"]) == 0
+    out, err = capsys.readouterr()
+    stats = Client(server.url).session(out.strip()).stats()
+    first = cli.frame_arrays(load_tsdf_fusion(shelf_dir, max_frames=1)[0], 0.25)  # the frame as the CLI sent it
+    depth, K = first["depth"], first["K"]
+    assert stats["voxel_size"] == float(f"{6 * np.median(depth[depth > 0]) / ((K[0, 0] + K[1, 1]) / 2):.2g}")
+    assert stats["chosen"]["voxel_size"] == "6 pixel footprints at the first frame's median depth"
+    assert f"voxels of {stats['voxel_size'] * 1000:g} mm" in err and "structured_light noise model (default: " in err
 
 
 @pytest.mark.parametrize("setting, message", [

@@ -34,7 +34,8 @@ def assert_one_line_error(result: subprocess.CompletedProcess, code: int, *words
 BAD_ARGUMENTS = [
     ("no command", [], "required"),
     ("unknown command", ["frobnicate"], "invalid choice"),
-    ("stream without target", ["stream", "somewhere"], "--session"),
+    ("stream to a session and a voxel size", ["stream", "somewhere", "--session", "x", "--voxel-size", "0.01"],
+     "not allowed with"),
     ("voxel size not a number", ["stream", "somewhere", "--voxel-size", "big"], "--voxel-size"),
     ("stride not an integer", ["stream", "somewhere", "--voxel-size", "0.01", "--stride", "1.5"], "--stride"),
     ("bad --set", ["stream", "somewhere", "--voxel-size", "0.01", "--set", "nonsense"], "NAME=VALUE"),

@@ -57,7 +57,11 @@ CHOICES = {
     "features.backend": ("default", "client"),
     "research.weighting": ("full", "no_reliability", "no_similarity", "average"),
     "model": ("default", "none", "checkpoint.safetensors"),  # names or a checkpoint's path (read when a scene starts)
+    "sensor.family": ("auto", "structured_light", "active_stereo", "time_of_flight", "phone_lidar", "hololens"),
 }
+# settings whose None means "chosen for the scene": from its first frame or its sensor family's preset
+OPTIONAL = ("voxel_size", "max_voxels", "decoder.opacity_bias", "sensor.sigma0", "sensor.sigma2", "sensor.sigma_ref",
+            "sensor.edge_weight", "sensor.registration_px")
 SWITCHES = ("depth.completion", "free_space.enabled")
 
 
@@ -120,7 +124,7 @@ def test_each_number_accepts_its_edges_and_refuses_past_them_naming_the_field(pa
 @pytest.mark.parametrize("path", sorted(BOUNDS))
 def test_numbers_are_strict_about_types(path):
     kind = BOUNDS[path][0]
-    wrong = ["1", True, None] if path not in ("max_voxels", "decoder.opacity_bias") else ["1", True]
+    wrong = ["1", True, None] if path not in OPTIONAL else ["1", True]
     if kind is int:
         wrong.append(2.0)  # a float is not an integer, even a whole one
     else:
@@ -147,9 +151,9 @@ def test_switches_are_booleans_only(path):
             make(path, value)
 
 
-def test_optional_settings_take_none():
-    assert make("max_voxels", None).max_voxels is None
-    assert make("decoder.opacity_bias", None).decoder.opacity_bias is None
+@pytest.mark.parametrize("path", OPTIONAL)
+def test_optional_settings_take_none(path):
+    assert read(make(path, None), path) is None
 
 
 def test_far_must_stay_on_the_lattice():
@@ -164,9 +168,11 @@ def test_near_must_be_below_far():
         SceneConfig(voxel_size=0.01, range={"near": 2.0, "far": 2.0})
 
 
-def test_voxel_size_is_required():
-    with pytest.raises(ValueError, match="^voxel_size: "):
-        SceneConfig()
+def test_voxel_size_and_the_sensor_are_left_to_the_first_frame_by_default():
+    config = SceneConfig()
+    assert config.voxel_size is None and config.sensor.family == "auto" and config.sensor.sigma0 is None
+    assert not config.chosen and not SceneConfig(voxel_size=0.01).chosen  # the sensor is still open
+    assert SceneConfig(voxel_size=0.01, sensor=SceneConfig().sensor.with_preset("hololens")).chosen
 
 
 @pytest.mark.parametrize("settings, message", [
@@ -230,7 +236,7 @@ def test_public_model_is_the_definition_without_research():
     Public = public_model("Public")
     assert set(Public.model_fields) == set(SceneConfig.model_fields) - {"research"}
     schema = Public.model_json_schema()
-    assert "research" not in schema["properties"] and schema["required"] == ["voxel_size"]
+    assert "research" not in schema["properties"] and "required" not in schema  # voxel_size too may be left out
     assert schema["properties"]["sh_degree"]["maximum"] == 3  # bounds come along
     body = Public(voxel_size=0.01, depth={"sources": 3})
     assert SceneConfig(**body.model_dump(exclude_unset=True)) == SceneConfig(voxel_size=0.01, depth={"sources": 3})
@@ -255,6 +261,7 @@ def test_parsed_settings_build_the_nested_config():
     ("depth.hypotheses=1", r"^depth\.hypotheses: input should be greater than or equal to 2"),
     ("max_voxels=0", "^max_voxels: "),
     ("voxel_size=inf", "^voxel_size: input should be a finite number"),
+    ("sensor.family=sonar", r"^sensor\.family: input should be 'auto', 'structured_light'"),
     ("decoder.opacity_bias=nan", r"^decoder\.opacity_bias: input should be a finite number"),
     ("=3", "^setting: expected NAME=VALUE"),
 ])

@@ -29,9 +29,11 @@ def test_flat_snapshot_settings_land_in_their_groups(loaded):
     assert (c.free_space.enabled, c.free_space.margin, c.depth.hypotheses, c.sensor.edge_weight) == (True, 2.5, 32, 0.4)
     assert (c.decoder.opacity_slope, c.decoder.opacity_bias, c.decoder.sh_regularization) == (25.0, -1.0, 0.004)
     assert (c.research.weighting, c.research.eps) == ("full", 1e-8)
-    # and every other setting is its default
+    # and every other setting is its default; the sensor values, written before the families, under the
+    # family of the model they were (registration_px, newer than the layout, is its preset's)
     assert c == SceneConfig(voxel_size=0.15, features={"dim": 4}, free_space={"margin": 2.5}, depth={"hypotheses": 32},
-                            sensor={"edge_weight": 0.4},
+                            sensor={"family": "structured_light", "sigma0": 0.0012, "sigma2": 0.0019, "sigma_ref": 0.4,
+                                    "edge_weight": 0.4, "registration_px": 0.0},
                             decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
 
 
@@ -72,7 +74,8 @@ def test_migration_moves_every_flat_name_and_only_those():
     out = migrate_flat(flat)
     assert set(out) == {"voxel_size", "sensor", "free_space", "depth", "decoder", "research", "range", "features",
                         "colour_solve"}
-    assert sum(len(group) for name, group in out.items() if name != "voxel_size") == len(FLAT_NAMES) + 1
+    # + free_space.enabled, + sensor.family (a whole earlier sensor group gets its family)
+    assert sum(len(group) for name, group in out.items() if name != "voxel_size") == len(FLAT_NAMES) + 2
     grouped = SceneConfig(voxel_size=1.0).to_dict()
     assert migrate_flat(grouped) == grouped
 
@@ -82,3 +85,12 @@ def test_migration_refuses_a_setting_given_twice():
         SceneConfig.from_dict({"voxel_size": 1.0, "free_space": {"margin": 1.0}, "free_space_margin": 2.0})
     with pytest.raises(ValueError, match="^config: expected a mapping"):
         SceneConfig.from_dict([("voxel_size", 1.0)])
+
+
+def test_an_earlier_sensor_group_gets_the_family_of_its_model_and_a_partial_one_stays_open():
+    earlier = {"sigma0": 0.002, "sigma2": 0.001, "sigma_ref": 0.5, "edge_weight": 0.5, "registration_px": 2.0}
+    config = SceneConfig.from_dict({"voxel_size": 0.01, "sensor": earlier})
+    assert config.sensor.family == "structured_light" and config.chosen  # every value as it was written
+    assert config.sensor.model_dump() == {**earlier, "family": "structured_light"}
+    partial = SceneConfig.from_dict({"voxel_size": 0.01, "sensor": {"sigma0": 0.002}})
+    assert partial.sensor.family == "auto" and partial.sensor.sigma2 is None and not partial.chosen

@@ -108,8 +108,9 @@ def test_see_through_map_equals_a_direct_per_cell_computation(with_std):
                 assert m.threshold[cy, cx] == 0 and m.weight[cy, cx] == 0
                 continue
             dmin = d[valid].min()
+            sensor = config.sensor.in_effect(depth)  # the config leaves the family to the depth
             sigma = s[np.flatnonzero(valid & (d == dmin))[0]] if with_std else (
-                config.sensor.sigma0 + config.sensor.sigma2 * (dmin - config.sensor.sigma_ref) ** 2)
+                sensor.sigma0 + sensor.sigma2 * (dmin - sensor.sigma_ref) ** 2)
             expect = dmin - (config.free_space.margin * config.voxel_size + config.free_space.sigmas * sigma)
             assert m.threshold[cy, cx] == pytest.approx(expect, rel=1e-6)
             assert m.weight[cy, cx] == pytest.approx(np.exp(-sigma / config.voxel_size) * valid.sum() / 16, rel=1e-5)

@@ -171,7 +171,7 @@ CASES = [
     ("create unknown setting", lambda c: c.create({"voxel_size": 0.01, "voxle_size": 0.02}), 422, "voxle_size"),
     ("create voxel_size zero", lambda c: c.create({"voxel_size": 0}), 422, "voxel_size"),
     ("create voxel_size negative", lambda c: c.create({"voxel_size": -0.01}), 422, "voxel_size"),
-    ("create missing voxel_size", lambda c: c.create({"features": {"dim": 8}}), 422, "voxel_size"),
+    ("create unknown sensor family", lambda c: c.create({"sensor": {"family": "sonar"}}), 422, "sensor.family"),
     ("create bad weighting", lambda c: c.create({"voxel_size": 0.01, "weighting": "median"}), 422, "weighting"),
     ("create near above far", lambda c: c.create({"voxel_size": 0.01, "range": {"near": 5, "far": 1}}), 422, "range.near"),
     ("create completion radius zero", lambda c: c.create({"voxel_size": 0.01, "depth": {"completion_radius": 0}}), 422,

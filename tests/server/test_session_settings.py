@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from canonical_core import SceneConfig
+from canonical_core import Scene, SceneConfig
 from canonical_core.scene import FoldReport
 from server.store import SessionStore
 
@@ -65,7 +65,7 @@ def test_openapi_schemas_are_generated_from_the_library(server):
     schemas = httpx.get(f"{server.url}/openapi.json", headers=AUTH).json()["components"]["schemas"]  # the docs need the token too
     create_schema = schemas["SessionCreate"]
     assert set(create_schema["properties"]) == set(SceneConfig.model_fields) - {"research"} | {"archive_retention"}
-    assert create_schema["required"] == ["voxel_size"]
+    assert "required" not in create_schema  # voxel_size too: the first frame chooses it
     report = schemas["FoldReportOut"]
     assert list(report["properties"]) == list(FoldReport.__dataclass_fields__)
 
@@ -85,7 +85,8 @@ def test_a_session_stored_with_flat_settings_opens(tmp_path):
     store.open()
     try:
         session = store.get(session_id)
-        assert session.config == SceneConfig.from_dict(flat)
+        # the flat layout's sensor values under their family, completed by its preset (newer settings)
+        assert session.config == Scene(SceneConfig.from_dict(flat)).config != SceneConfig.from_dict(flat)
         assert (session.config.free_space.enabled, session.config.colour_solve.views) == (False, 4)
         assert session.scene.config == session.config and session.scene.frames == 0
     finally:
