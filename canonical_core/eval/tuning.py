@@ -103,6 +103,7 @@ CAPTURES = (
     Capture(str(DATA / "hololens_office"), "hololens_office"),
     Capture(str(DATA / "apc_bins" / "bin_labels"), "apc_bins"),
     Capture(str(DATA / "apc_bins" / "bin_mask"), "apc_bins"),
+    Capture(str(DATA / "sun3d_studyroom"), "sun3d_studyroom"),  # Kinect-class: flying pixels, quantised far depth
 )
 
 
