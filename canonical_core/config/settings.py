@@ -256,6 +256,12 @@ class SceneConfig(SettingsGroup):
     folding part of a frame."""
     sh_degree: Annotated[int, Field(ge=0, le=3)] = 1
     """Degree of the per-voxel spherical-harmonics colour fit (0 = view-independent colour)."""
+    weight_floor: Annotated[float, Field(ge=0, le=1)] = 0.0
+    """The least weight an observation gets in its voxel's sums, as a share of the voxel's most
+    reliable observation's: the reliability and similarity weights model depth noise and
+    appearance, not misregistration at edges, quantised far depth or exposure, where observations
+    disagree for other reasons and a plain average does better. 1 weighs every observation the
+    same (the ``average`` rule); 0 is the paper's rule."""
     range: DepthRange = DepthRange()
     """The depths accepted from frames."""
     features: FeatureSettings = FeatureSettings()
