@@ -38,7 +38,6 @@ from .settings import (
     FeatureBackend,
     FeatureSettings,
     FreeSpace,
-    MixedRule,
     Research,
     SceneConfig,
     SensorNoise,
@@ -48,5 +47,5 @@ from .settings import (
 
 __all__ = ["BIAS_WITHOUT_DENOISING", "BIAS_WITH_DENOISING", "FLAT_NAMES", "KEY_BITS", "KEY_OFFSET", "MAX_DEPTH", "MAX_VOXEL",
            "MAX_VOXELS", "MIN_VOXEL", "PRIVATE_GROUPS", "ColourSolve", "DecoderSettings", "DepthEstimation", "DepthRange",
-           "FeatureBackend", "FeatureSettings", "FreeSpace", "MixedRule", "Research", "SceneConfig", "SensorNoise", "SettingsGroup",
+           "FeatureBackend", "FeatureSettings", "FreeSpace", "Research", "SceneConfig", "SensorNoise", "SettingsGroup",
            "Weighting", "migrate_flat", "parse_setting", "public_model", "settings_from_pairs"]

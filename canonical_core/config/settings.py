@@ -12,7 +12,6 @@ from .migration import FLAT_NAMES, migrate_flat
 
 Weighting = Literal["full", "no_reliability", "no_similarity", "average"]
 FeatureBackend = Literal["default", "client"]
-MixedRule = Literal["jump", "between"]  # `evidence.mixed`'s rules (the settings import nothing of the library)
 
 # Voxel indices are packed into one int64 key with 21 bits per axis: a lattice of +-2^20 voxels
 # per axis around the fixed origin, which is "unbounded" for any capture.
@@ -144,14 +143,6 @@ class SensorNoise(SettingsGroup):
     min(1, (d + 1) / (registration_px + 1)), d the distance), because colour and depth measured by
     two sensors disagree there and the colour may belong to the surface behind
     (`evidence.registration`). 0 turns it off."""
-    mixed_jump: Annotated[float, Field(ge=0, le=1)] = 0.0
-    """Relative depth jump; a pixel whose depth jumps to a neighbour by more than this fraction of its
-    own depth is a mixed ("flying") pixel and is not folded (`evidence.mixed`): a blend of the
-    surfaces on either side of a depth edge, which makes voxels in empty space and paints the
-    background's colour on the foreground's rim. 0 turns it off."""
-    mixed_rule: MixedRule = "jump"
-    """Which pixels at a jump over ``mixed_jump`` are mixed: ``jump``, both sides of the edge;
-    ``between``, only pixels whose depth lies between two opposite neighbours'."""
 
 
 class FreeSpace(SettingsGroup):

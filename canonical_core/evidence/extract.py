@@ -12,7 +12,6 @@ import torch
 from ..frame import Frame
 from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
 from .features import DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features
-from .mixed import mixed_pixels
 from .registration import registration_weight
 from .reliability import AppearanceUncertainty, positional_uncertainty
 
@@ -113,8 +112,7 @@ def extract_evidence(
     config: SceneConfig,
     appearance: AppearanceUncertainty | None = None,
 ) -> FrameEvidence:
-    """Evidence of one frame with depth: every pixel whose depth lies in (near, far), but mixed pixels
-    (`evidence.mixed`, with ``sensor.mixed_jump``).
+    """Evidence of one frame with depth: every pixel whose depth lies in (near, far).
 
     Raises ValueError (naming the field) when the frame has no depth, or the session's feature
     backend needs client features the frame does not carry.
@@ -123,9 +121,6 @@ def extract_evidence(
         raise ValueError("depth: this frame has no depth; RGB-only frames need the multi-view depth stage")
     depth = frame.depth.numpy()
     rows, cols = valid_depth_pixels(depth, np.float32(config.range.near), np.float32(config.range.far))
-    if config.sensor.mixed_jump > 0:
-        keep = ~mixed_pixels(depth, rows, cols, config.sensor.mixed_jump, config.sensor.mixed_rule)
-        rows, cols = rows[keep], cols[keep]
     features = frame_features(frame, rows, cols, config)
     points, colors = lift_pixels(frame, rows, cols)
     u_pos = positional_uncertainty(

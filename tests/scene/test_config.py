@@ -38,7 +38,6 @@ BOUNDS = {
     "sensor.sigma_ref": (float, 0.0, 1e5, False),
     "sensor.edge_weight": (float, 0.0, 100.0, False),
     "sensor.registration_px": (float, 0.0, 32.0, False),
-    "sensor.mixed_jump": (float, 0.0, 1.0, False),
     "weight_floor": (float, 0.0, 1.0, False),
     "free_space.margin": (float, 0.0, INF, False),
     "free_space.sigmas": (float, 0.0, INF, False),
@@ -57,7 +56,6 @@ BOUNDS = {
 }
 CHOICES = {
     "features.backend": ("default", "client"),
-    "sensor.mixed_rule": ("jump", "between"),
     "research.weighting": ("full", "no_reliability", "no_similarity", "average"),
     "model": ("default", "none", "checkpoint.safetensors"),  # names or a checkpoint's path (read when a scene starts)
 }
