@@ -102,7 +102,7 @@ def aggregate_batch(
     if uses_sim:
         cos = torch.nn.functional.cosine_similarity(feat, feat[rep][inv], dim=-1, eps=1e-10)
         w = w * cos.clamp_min(0.0)
-    w = torch.maximum(w, config.weight_floor * best[inv])  # the floor: a share of the voxel's best reliability
+    w = torch.maximum(w, config.sensor.weight_floor * best[inv])  # the floor: a share of the voxel's best reliability
     # local positions in voxel units, relative to the voxel centre (as the streaming kernel)
     scaled = points * torch.tensor(1.0 / config.voxel_size, dtype=torch.float32)
     local = scaled - (torch.floor(scaled) + 0.5)
