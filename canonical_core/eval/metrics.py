@@ -181,7 +181,7 @@ def depth_agreement(
     return float(((depth[mask] - sensor[mask]).abs() <= tolerance).double().mean())
 
 
-def depth_edges(
+def depth_edge_band(
     depth: Tensor,  # [H, W] sensor z-depth, 0 = missing
     jump: float = EDGE_JUMP,
     radius: int = EDGE_RADIUS,
@@ -197,7 +197,7 @@ def depth_edges(
         >>> import torch
         >>> depth = torch.ones(1, 12)
         >>> depth[:, 6:] = 2.0  # a step between columns 5 and 6
-        >>> depth_edges(depth, radius=1).int().tolist()
+        >>> depth_edge_band(depth, radius=1).int().tolist()
         [[0, 0, 0, 0, 1, 1, 1, 1, 0, 0, 0, 0]]
     """
     if not isinstance(depth, Tensor) or depth.ndim != 2:

@@ -44,7 +44,7 @@ from ..datasets import FrameSequence, load_dataset
 from ..frame import Frame, resize_frame
 from ..rendering import Colour
 from .methods import METHODS, Model, build, check_methods, parse_method
-from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edges, psnr, ssim
+from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edge_band, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
 
@@ -133,7 +133,7 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float, colour: Col
 def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Sequence[Frame]) -> None:
     """Give each of ``runs`` (one group: same inputs, every method) ``psnr_common``, its mean PSNR
     over the pixels that every run of the group covers, and ``common_coverage``, the share of
-    pixels that is; and that PSNR split by the held-out frames' sensor depth (`depth_edges`):
+    pixels that is; and that PSNR split by the held-out frames' sensor depth (`depth_edge_band`):
     ``psnr_edge`` on the common pixels near a depth edge or a hole, ``psnr_flat`` on the rest, with
     ``edge_share``, the edge pixels' share of the common ones (None without sensor depth).
 
@@ -146,7 +146,7 @@ def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Seq
     masks = [torch.stack([s.covered[k] for s in scored]).all(0) for k in range(len(targets))]
     share = float(np.mean([float(m.double().mean()) for m in masks]))
     truths = [t.rgb.float() / 255.0 for t in targets]  # once per group, not once per method
-    edges = [None if t.depth is None else depth_edges(t.depth) for t in targets]
+    edges = [None if t.depth is None else depth_edge_band(t.depth) for t in targets]
     edge_shares = [float((m & e).sum()) / max(int(m.sum()), 1) for m, e in zip(masks, edges) if e is not None]
     for run, s in zip(runs, scored):
         renders = [torch.from_numpy(image).float() / 255.0 for image in s.images]
