@@ -127,7 +127,8 @@ class SensorNoise(SettingsGroup):
     """Noise model of supplied depth that carries no per-pixel std: sigma(z) = sigma0 + sigma2
     (z - sigma_ref)^2 metres, plus ``edge_weight`` times the pixel's largest depth jump to a valid
     8-neighbour. ``family`` names the sensor family whose preset (`config.sensors`) gives every value
-    left None; a value set here overrides the preset's."""
+    left None; a value set here overrides the preset's. ``weight_floor``: how far below its
+    voxel's best the weight of an observation may fall."""
 
     _path: ClassVar[str] = "sensor"
 
@@ -152,6 +153,14 @@ class SensorNoise(SettingsGroup):
     min(1, (d + 1) / (registration_px + 1)), d the distance), because colour and depth measured by
     two sensors disagree there and the colour may belong to the surface behind
     (`evidence.registration`). 0 turns it off (None: the family's preset)."""
+    weight_floor: Annotated[float, Field(ge=0, le=1)] = 0.5
+    """The least weight an observation gets in its voxel's sums, as a share of the voxel's most
+    reliable observation's. The reliability and similarity weights model depth noise and
+    appearance, not misregistration at edges, quantised far depth or exposure, where observations
+    disagree for other reasons and a plain average does better; the floor keeps every observation in
+    the average. 1 weighs them all alike (the ``average`` rule), 0 is the paper's rule. Chosen
+    leave-one-capture-out (`eval.tuning`); settings stored before it existed read as 0, the rule
+    their scenes were folded with (`SceneConfig.from_dict`)."""
 
     @property
     def chosen(self) -> bool:
@@ -349,7 +358,11 @@ class SceneConfig(SettingsGroup):
     @classmethod
     def from_dict(cls, d: dict) -> "SceneConfig":
         """The inverse of `to_dict`; also reads the flat layout of earlier snapshots and session
-        files (every setting at the top level, see `FLAT_NAMES`)."""
+        files (every setting at the top level, see `FLAT_NAMES`), and settings written before
+        ``sensor.weight_floor`` existed with the floor 0 they were folded with."""
         if not isinstance(d, dict):
             raise ValueError(f"config: expected a mapping of settings, got {type(d).__name__}")
-        return cls(**migrate_flat(d))
+        settings = migrate_flat(d)
+        if isinstance(settings.get("sensor", {}), dict):  # stored before the weight floor: folded without one
+            settings["sensor"] = {"weight_floor": 0.0, **settings.get("sensor", {})}
+        return cls(**settings)

@@ -1,5 +1,6 @@
 """Image metrics of the evaluation: PSNR (all pixels or a mask), SSIM, coverage and the all-pixel
-PSNR it allows, depth agreement, feature cosine.
+PSNR it allows, depth agreement, the depth-edge mask that splits PSNR into edge and flat pixels,
+feature cosine.
 
 Images are float tensors [H, W, C] with values in [0, 1] (peak signal 1). A pixel is *covered*
 when the method drew something there: accumulated opacity >= ``COVERAGE_THRESHOLD``.
@@ -23,6 +24,8 @@ from torch import Tensor
 from ..decode.colour_solve import COVERED_ALPHA as COVERAGE_THRESHOLD  # the colour solve's covered pixels
 
 DEPTH_TOLERANCE_VOXELS = 2.0  # rendered depth "agrees" with the held-out sensor depth within 2 voxels
+EDGE_JUMP = 0.05  # a depth edge: a jump to a neighbour over 5 % of the nearer depth
+EDGE_RADIUS = 3  # pixels: "edge" pixels lie within this (square) distance of a depth edge or a hole
 
 # SSIM as defined by Wang, Bovik, Sheikh and Simoncelli (2004): an 11x11 Gaussian window with
 # sigma 1.5, C1 = (K1 L)^2, C2 = (K2 L)^2 with K1 = 0.01, K2 = 0.03 and dynamic range L = 1,
@@ -176,6 +179,43 @@ def depth_agreement(
     if not bool(mask.any()):
         return math.nan
     return float(((depth[mask] - sensor[mask]).abs() <= tolerance).double().mean())
+
+
+def depth_edge_band(
+    depth: Tensor,  # [H, W] sensor z-depth, 0 = missing
+    jump: float = EDGE_JUMP,
+    radius: int = EDGE_RADIUS,
+) -> Tensor:  # [H, W] bool
+    """Pixels within ``radius`` pixels (a square window) of a depth edge: a missing depth, or a jump
+    to a 4-neighbour over ``jump`` times the nearer of the two depths.
+
+    Renders go wrong there first (mixed "flying" pixels, colour out of register with depth, the
+    background's colour on the foreground's rim), so PSNR on these pixels and on the rest ("flat")
+    tells edge speckle from noisy surfaces.
+
+    Example:
+        >>> import torch
+        >>> depth = torch.ones(1, 12)
+        >>> depth[:, 6:] = 2.0  # a step between columns 5 and 6
+        >>> depth_edge_band(depth, radius=1).int().tolist()
+        [[0, 0, 0, 0, 1, 1, 1, 1, 0, 0, 0, 0]]
+    """
+    if not isinstance(depth, Tensor) or depth.ndim != 2:
+        raise ValueError(f"depth: expected a depth map [H, W], got {list(depth.shape) if isinstance(depth, Tensor) else type(depth).__name__}")
+    if not (jump > 0 and isinstance(radius, int) and radius >= 0):
+        raise ValueError(f"jump, radius: expected a positive jump and a non-negative integer radius, got {jump!r}, {radius!r}")
+    d = depth.double()
+    edge = d <= 0
+    # jumps between valid pixels only: holes are edges themselves, and a hole's 0 would mark its
+    # neighbours too (any difference from 0 is a jump)
+    across = ~edge[:, :-1] & ~edge[:, 1:] & ((d[:, :-1] - d[:, 1:]).abs() > jump * torch.minimum(d[:, :-1], d[:, 1:]))
+    down = ~edge[:-1] & ~edge[1:] & ((d[:-1] - d[1:]).abs() > jump * torch.minimum(d[:-1], d[1:]))
+    edge[:, :-1] |= across
+    edge[:, 1:] |= across
+    edge[:-1] |= down
+    edge[1:] |= down
+    k = 2 * radius + 1
+    return torch.nn.functional.max_pool2d(edge[None, None].float(), k, stride=1, padding=radius)[0, 0] > 0
 
 
 def cosine_map(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:  # [H, W, C] x2 -> [H, W]

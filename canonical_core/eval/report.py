@@ -5,8 +5,8 @@ Files in the output folder:
 - ``results.json``: the results dict (non-finite numbers written as null);
 - ``results.md``: protocol, main table, PSNR pivots (all / covered, common pixels), noise tables,
   mixed-quality inputs, extrapolation, stability;
-- ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, common pixels, extrapolation) vs input
-  views per method;
+- ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, common pixels, common pixels near depth
+  edges and elsewhere, extrapolation) vs input views per method;
 - ``noise_psnr.png``: PSNR vs depth-noise level per method, one panel per N (with --noise);
 - ``stability.png``: feature-splat cosine to the reference vs input views (when computed);
 - ``grid_N{N}.png``: ground truth and every method at a few held-out frames, clean depth.
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from .metrics import COVERAGE_THRESHOLD, DEPTH_TOLERANCE_VOXELS
+from .metrics import COVERAGE_THRESHOLD, DEPTH_TOLERANCE_VOXELS, EDGE_JUMP, EDGE_RADIUS
 from .protocol import EXTRAPOLATION_RATIO, HELDOUT_COUNT
 
 GRID_TILE_WIDTH = 320  # pixels: tiles of the image grids are downscaled to at most this width
@@ -156,6 +156,15 @@ def markdown(results: Mapping) -> str:
     lines += ["", "## PSNR on the pixels every method covers (dB) vs input views", "", *_table(
         ["method", *(f"N={n} ({_num(share[n], 3)} of the image)" for n in views)],
         [[m, *(_num(by_key[m, n, 0.0]["psnr_common"]) for n in views)] for m in methods])]
+    if all(by_key[m, n, 0.0].get("psnr_edge") is not None for m in methods for n in views):  # needs sensor depth
+        edge_share = {n: by_key[methods[0], n, 0.0]["edge_share"] for n in views}
+        lines += ["", "## PSNR on the common pixels near depth edges / elsewhere (dB) vs input views", "",
+                  f"edge = the common pixels within {EDGE_RADIUS} pixels of a depth edge of the held-out frame's sensor depth "
+                  f"(a jump to a neighbour over {EDGE_JUMP:.0%} of the depth, or a hole; share of the common pixels in the "
+                  "header); flat = the rest. Speckle at depth edges shows in the first number, noisy surfaces in the second.",
+                  "", *_table(["method", *(f"N={n} ({_num(edge_share[n], 3)} edge)" for n in views)],
+                              [[m, *(f"{_num(by_key[m, n, 0.0]['psnr_edge'])} / {_num(by_key[m, n, 0.0]['psnr_flat'])}"
+                                     for n in views)] for m in methods])]
     lines += ["", "## PSNR on the pixels the smallest N covers (dB) vs input views", "",
               f"Each method on the pixels its own N={views[0]} scene covered (those still covered): whether more views "
               "make the scene better where it was already drawn. Covered PSNR also counts the pixels that added views "
@@ -240,13 +249,17 @@ def _save(fig, ax, path: Path) -> None:
 
 
 def plot_views(results: Mapping, path: Path) -> None:
-    """PSNR vs input views per method: all pixels, covered pixels, the pixels every method covers,
-    the pixels each method covered at the smallest N, extrapolation (if run); the all-pixel panels
+    """PSNR vs input views per method: all pixels, covered pixels, the pixels every method covers
+    (and those of them near depth edges and away from them), the pixels each method covered at the
+    smallest N, extrapolation (if run); the all-pixel panels
     also show the first method's coverage ceiling (dashed)."""
     plt = _pyplot()
     clean = [r for r in results["runs"] if r["noise"] == 0]
     panels = [("PSNR, all pixels", clean, "psnr"), ("PSNR, covered pixels", clean, "psnr_covered"),
               ("PSNR, pixels every method covers", clean, "psnr_common")]
+    if all(r.get("psnr_edge") is not None for r in clean):  # none without sensor depth, or in older results
+        panels += [("PSNR, common pixels near depth edges", clean, "psnr_edge"),
+                   ("PSNR, common pixels away from edges", clean, "psnr_flat")]
     if all("psnr_fixed" in r for r in clean):  # results written before this figure existed lack it
         panels.append(("PSNR, pixels the smallest N covered", clean, "psnr_fixed"))
     if results["extrapolation"] is not None:

@@ -21,7 +21,8 @@ The mixed-quality run (``mixed_noise``) adds that noise to every other input vie
 
 Every group of runs on the same inputs also gets ``psnr_common``: PSNR over the pixels that every
 method of the run covers (`add_common_psnr`), so that methods of unequal coverage are compared on
-the same pixels.
+the same pixels; and the same split into ``psnr_edge`` (within 3 pixels of a depth edge or a hole
+of the held-out frame's sensor depth) and ``psnr_flat`` (the rest).
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from ..frame import Frame, resize_frame
 from ..rendering import Colour
 from ..scene.choices import default_voxel_size
 from .methods import METHODS, Model, build, check_methods, parse_method
-from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, psnr, ssim
+from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edge_band, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
 from .report import require_matplotlib, write_report
 
@@ -121,21 +122,29 @@ def score(model: Model, targets: Sequence[Frame], voxel_size: float, colour: Col
 def add_common_psnr(runs: Sequence[dict], scored: Sequence[Scored], targets: Sequence[Frame]) -> None:
     """Give each of ``runs`` (one group: same inputs, every method) ``psnr_common``, its mean PSNR
     over the pixels that every run of the group covers, and ``common_coverage``, the share of
-    pixels that is.
+    pixels that is; and that PSNR split by the held-out frames' sensor depth (`depth_edge_band`):
+    ``psnr_edge`` on the common pixels near a depth edge or a hole, ``psnr_flat`` on the rest, with
+    ``edge_share``, the edge pixels' share of the common ones (None without sensor depth).
 
     Covered PSNR compares each method on its own pixels, and a method that draws only where it is
     sure (Open3D's TSDF, where few views see a surface) is scored on easier pixels; on the
-    common pixels every method is judged on the same ones. Computed from the 8-bit renders (their
-    rounding moves PSNR by well under 0.01 dB at these error levels).
+    common pixels every method is judged on the same ones. The split tells speckle at depth edges
+    (halos of the background's colour on the foreground's rim) from noisy flat surfaces. Computed
+    from the 8-bit renders (their rounding moves PSNR by well under 0.01 dB at these error levels).
     """
     masks = [torch.stack([s.covered[k] for s in scored]).all(0) for k in range(len(targets))]
     share = float(np.mean([float(m.double().mean()) for m in masks]))
     truths = [t.rgb.float() / 255.0 for t in targets]  # once per group, not once per method
+    edges = [None if t.depth is None else depth_edge_band(t.depth) for t in targets]
+    edge_shares = [float((m & e).sum()) / max(int(m.sum()), 1) for m, e in zip(masks, edges) if e is not None]
     for run, s in zip(runs, scored):
-        values = [psnr(torch.from_numpy(image).float() / 255.0, gt, mask)
-                  for image, gt, mask in zip(s.images, truths, masks)]
-        run["psnr_common"] = _nanmean(values)
+        renders = [torch.from_numpy(image).float() / 255.0 for image in s.images]
+        run["psnr_common"] = _nanmean([psnr(r, gt, m) for r, gt, m in zip(renders, truths, masks)])
         run["common_coverage"] = share
+        for key, near in (("psnr_edge", True), ("psnr_flat", False)):
+            run[key] = _nanmean([psnr(r, gt, m & (e if near else ~e))
+                                 for r, gt, m, e in zip(renders, truths, masks, edges) if e is not None])
+        run["edge_share"] = _nanmean(edge_shares)
 
 
 def add_fixed_psnr(

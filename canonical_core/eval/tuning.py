@@ -89,6 +89,7 @@ KNOBS = {
     # score higher in normalised colour only by letting renders blend through surfaces
     "decoder.opacity_slope": (3.0, 5.0, 10.0, 30.0, 90.0),
     "sh_degree": (0, 1),
+    "sensor.weight_floor": (0.0, 0.5, 1.0),
     # metres: depth sensors of the RealSense class return no depth, or wrong depth, below about 0.2 m
     "range.near": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3),
 }
@@ -106,6 +107,7 @@ CAPTURES = (
     Capture(str(DATA / "hololens_office"), "hololens_office"),
     Capture(str(DATA / "apc_bins" / "bin_labels"), "apc_bins"),
     Capture(str(DATA / "apc_bins" / "bin_mask"), "apc_bins"),
+    Capture(str(DATA / "sun3d_studyroom"), "sun3d_studyroom"),  # Kinect-class: flying pixels, quantised far depth
 )
 
 

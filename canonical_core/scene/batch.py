@@ -2,7 +2,7 @@
 
 For the observations Omega(v) of voxel v (all frames, in frame order then pixel order):
     representative (i*, m*) = argmax R_view          (first maximum wins)
-    W = R_view(m) * max(0, cos(F(m), F(m*)))
+    W = max(R_view(m) * max(0, cos(F(m), F(m*))), weight_floor * R_view(m*))
     R_scene(v) = sum W,   F_scene(v) = sum W F / (R_scene + eps)
 and the same W accumulate colour, position moments and label scores. Ablation modes:
 ``no_reliability`` (R := 1: W = max(0, cos), representative = first observation),
@@ -105,6 +105,7 @@ def aggregate_batch(
     if uses_sim:
         cos = torch.nn.functional.cosine_similarity(feat, feat[rep][inv], dim=-1, eps=1e-10)
         w = w * cos.clamp_min(0.0)
+    w = torch.maximum(w, config.sensor.weight_floor * best[inv])  # the floor: a share of the voxel's best reliability
     # local positions in voxel units, relative to the voxel centre (as the streaming kernel)
     scaled = points * torch.tensor(1.0 / config.voxel_size, dtype=torch.float32)
     local = scaled - (torch.floor(scaled) + 0.5)

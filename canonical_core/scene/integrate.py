@@ -89,7 +89,7 @@ def integrate(
     labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
     switches = fold_kernel(
         voxels.table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(),
-        config.uses_reliability, config.uses_similarity, inv_voxel,
+        config.uses_reliability, config.uses_similarity, np.float32(config.sensor.weight_floor), inv_voxel,
         n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
         ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
         journal is not None, t.before_slot, before.index, before.rows, before.rep_rgb, before.n_obs,

@@ -107,7 +107,7 @@ OBS_PREFETCH_AHEAD = 2  # voxels ahead whose observations' evidence it asks for
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
     # scene state (rows >= n_voxels are zero)
-    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, uses_rel, uses_sim, inv_voxel,
+    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, uses_rel, uses_sim, weight_floor, inv_voxel,
     # phase A's result
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
@@ -117,7 +117,8 @@ def fold_kernel(
 ):
     """Phase B: insert the new voxels; then, per touched voxel, replace its representative if the
     frame-best observation beats it (rescaling the old sums by max(0, cos(old rep, new rep))) and
-    accumulate W = R * max(0, cos(F, F_rep)) weighted sums into its row (`VoxelRows`). Returns the
+    accumulate W = max(R * max(0, cos(F, F_rep)), weight_floor * R_rep) weighted sums into its row
+    (`VoxelRows`). Returns the
     representative switches. With ``keep_before`` it first copies each existing voxel's row, colour
     and count into the ``before_*`` arrays (one entry per existing touched voxel, in slot order),
     for an undo record: the copy reads the row the visit reads anyway.
@@ -197,6 +198,7 @@ def fold_kernel(
                 row[REP_POS + c] = points[b, c]
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
         rep_inv_norm = _inv_norm(row[REP_F: REP_F + L])
+        floor_w = weight_floor * row[0]  # no observation weighs less than this share of the representative's
         # 2) its weighted sums over its observations in frame order (phase A's chain); the
         # fixed-size sums go through registers and are added to the row once
         rep_f, f_sum = row[REP_F: REP_F + L], row[F_SUM: F_SUM + L]
@@ -211,6 +213,7 @@ def fold_kernel(
             w = rel[i] if uses_rel else np.float32(1.0)
             if uses_sim:
                 w = w * max(np.float32(0.0), _dot(f, rep_f) * _inv_norm(f) * rep_inv_norm)
+            w = max(w, floor_w)
             r_acc += w
             for c in range(L):
                 f_sum[c] += w * f[c]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.eval.metrics import (SSIM_C1, SSIM_C2, cosine_map, coverage, coverage_ceiling, covered, depth_agreement, psnr,
-                                        ssim)
+from canonical_core.eval.metrics import (SSIM_C1, SSIM_C2, cosine_map, coverage, coverage_ceiling, covered, depth_agreement,
+                                        depth_edge_band, psnr, ssim)
 
 
 def test_identical_images_give_infinite_psnr_and_unit_ssim():
@@ -115,3 +115,30 @@ def test_depth_agreement_counts_covered_pixels_with_sensor_depth():
     assert math.isnan(depth_agreement(depth, torch.zeros(1, 4), sensor, 0.01))
     with pytest.raises(ValueError, match="depth"):
         depth_agreement(depth, alpha, sensor[:, :3], 0.01)
+
+
+def test_the_depth_edge_band_marks_pixels_near_a_jump_or_a_hole_and_nothing_on_a_slanted_plane():
+    # a plane slanted along u (1 % a column: no jump), a box 20 % nearer in rows 10-19, cols 20-29,
+    # and a hole at (30, 50)
+    depth = 1.0 + 0.01 * torch.arange(64, dtype=torch.float32)[None].repeat(40, 1)
+    assert not depth_edge_band(depth).any()
+    depth[10:20, 20:30] *= 0.8
+    depth[30, 50] = 0.0
+    edges = depth_edge_band(depth)
+    expected = torch.zeros(40, 64, dtype=torch.bool)
+    expected[10 - 4:20 + 4, 20 - 4:30 + 4] = True  # both sides of the box's rim, and 3 pixels out
+    for v, u in ((6, 16), (6, 33), (23, 16), (23, 33)):  # but the box's corners: a jump is to a 4-neighbour
+        expected[v, u] = False
+    expected[10 + 4:20 - 4, 20 + 4:30 - 4] = False  # the box's inside, more than 3 pixels from its rim
+    expected[30 - 3:30 + 4, 50 - 3:50 + 4] = True  # the hole and 3 pixels around it
+    assert torch.equal(edges, expected)
+    # a jump of 4 % is no edge, one of 6 % is (of the nearer depth)
+    step = torch.ones(8, 16)
+    step[:, 8:] = 1.04
+    assert not depth_edge_band(step).any()
+    step[:, 8:] = 1.06
+    assert depth_edge_band(step)[0].int().tolist() == [0] * 4 + [1] * 8 + [0] * 4
+    with pytest.raises(ValueError, match="depth"):
+        depth_edge_band(torch.ones(4))
+    with pytest.raises(ValueError, match="radius"):
+        depth_edge_band(depth, radius=-1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -17,7 +18,7 @@ from canonical_core.eval.run import Scored, add_common_psnr, add_fixed_psnr, add
 from canonical_core.frame import resize_frame
 
 RUN_KEYS = {"method", "views", "noise", "psnr", "psnr_covered", "coverage", "psnr_ceiling", "ssim", "gaussians", "fold_ms", "render_ms",
-            "depth_agreement", "psnr_common", "common_coverage", "psnr_fixed"}
+            "depth_agreement", "psnr_common", "common_coverage", "psnr_fixed", "psnr_edge", "psnr_flat", "edge_share"}
 
 
 def _check_group_common(runs: list[dict]) -> None:
@@ -189,6 +190,37 @@ def test_common_psnr_is_the_psnr_on_the_pixels_every_run_covers():
     runs = [{}, {}]
     add_common_psnr(runs, [Scored({}, [img.numpy()], [m]) for img, m in zip(images, masks)], [target])
     assert runs[0]["psnr_common"] is None and runs[0]["common_coverage"] == 0
+
+
+def test_common_psnr_splits_into_pixels_near_a_depth_edge_and_the_rest():
+    # the held-out depth steps from 1 m to 2 m between columns 15 and 16: columns 12-19 are the
+    # edge; one render is exact away from it and off by 0.2 on it, the other off by 0.1 everywhere
+    target = synthetic_rgbd(num_frames=1, width=32, height=24)[0]
+    depth = torch.ones(24, 32)
+    depth[:, 16:] = 2.0
+    target = replace(target, rgb=torch.full((24, 32, 3), 100, dtype=torch.uint8), depth=depth)
+    gt = target.rgb.float() / 255.0
+    speckled = gt.clone()
+    speckled[:, 12:20] += 0.2
+    offset = gt + 0.1
+    images = [(img * 255.0).round().clamp(0, 255).to(torch.uint8).numpy() for img in (speckled, offset)]
+    everything = torch.ones(24, 32, dtype=torch.bool)
+    runs = [{}, {}]
+    add_common_psnr(runs, [Scored({}, [img], [everything]) for img in images], [target])
+
+    def expected(image, columns):
+        err = (torch.from_numpy(image)[:, columns].double() / 255.0 - gt[:, columns].double()) ** 2
+        return -10 * math.log10(float(err.mean()))
+
+    edge, flat = list(range(12, 20)), [*range(12), *range(20, 32)]
+    assert runs[0]["psnr_flat"] == math.inf and runs[0]["psnr_edge"] == pytest.approx(expected(images[0], edge), abs=1e-5)
+    assert runs[1]["psnr_edge"] == pytest.approx(expected(images[1], edge), abs=1e-5)
+    assert runs[1]["psnr_flat"] == pytest.approx(expected(images[1], flat), abs=1e-5)
+    assert runs[0]["edge_share"] == runs[1]["edge_share"] == pytest.approx(8 / 32)
+    # a held-out frame without depth has no split
+    runs = [{}]
+    add_common_psnr(runs, [Scored({}, [images[0]], [everything])], [replace(target, depth=None)])
+    assert runs[0]["psnr_edge"] is None and runs[0]["psnr_flat"] is None and runs[0]["edge_share"] is None
 
 
 def test_fixed_psnr_is_the_psnr_on_the_pixels_the_smallest_n_covered_and_still_covers():

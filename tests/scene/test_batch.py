@@ -20,27 +20,29 @@ def tiny_frame():
     return make_frame(np.full((1, 3), 0.5), rgb=RGB[None], features=FEATS[None], depth_std=STD[None], fx=10.0)
 
 
-def config(mode="full"):
-    return SceneConfig(voxel_size=1.0, features={"dim": 2, "backend": "client"}, research={"weighting": mode}, sensor={"edge_weight": 0.0}, range={"near": 0.01})
+def config(mode="full", weight_floor=0.0):  # the paper's rule unless a floor is asked for
+    return SceneConfig(voxel_size=1.0, features={"dim": 2, "backend": "client"}, research={"weighting": mode}, sensor={"edge_weight": 0.0, "weight_floor": weight_floor},
+                       range={"near": 0.01})
 
 
 def cos(a, b):
     return a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
 
 
-def expected(mode):
+def expected(mode, weight_floor=0.0):
     R = np.exp(-STD.astype(np.float64))  # U_pos = std / voxel_size, U_app = 0
     rsel = R if mode in ("full", "no_similarity") else np.ones(3)
     rep = int(np.argmax(rsel))
     sim = np.array([max(0.0, cos(f, FEATS[rep])) for f in FEATS]) if mode in ("full", "no_reliability") else np.ones(3)
-    W = rsel * sim
+    W = np.maximum(rsel * sim, weight_floor * rsel[rep])
     return rep, W.sum(), (W[:, None] * FEATS).sum(0) / (W.sum() + 1e-8), (W[:, None] * RGB / 255.0).sum(0) / W.sum()
 
 
+@pytest.mark.parametrize("weight_floor", [0.0, 0.5, 1.0])
 @pytest.mark.parametrize("mode", ["full", "no_reliability", "no_similarity", "average"])
-def test_batch_rule_matches_hand_computation(mode):
-    f = aggregate_batch([tiny_frame()], config(mode))
-    rep, r_scene, f_scene, colour = expected(mode)
+def test_batch_rule_matches_hand_computation(mode, weight_floor):
+    f = aggregate_batch([tiny_frame()], config(mode, weight_floor))
+    rep, r_scene, f_scene, colour = expected(mode, weight_floor)
     assert f["keys"].numel() == 1
     assert f["reliability"].item() == pytest.approx(r_scene, rel=1e-6)
     assert np.allclose(f["features"][0].numpy(), f_scene, atol=1e-6)

@@ -38,6 +38,7 @@ BOUNDS = {
     "sensor.sigma_ref": (float, 0.0, 1e5, False),
     "sensor.edge_weight": (float, 0.0, 100.0, False),
     "sensor.registration_px": (float, 0.0, 32.0, False),
+    "sensor.weight_floor": (float, 0.0, 1.0, False),
     "free_space.margin": (float, 0.0, INF, False),
     "free_space.sigmas": (float, 0.0, INF, False),
     "free_space.cell": (int, 1, 64, False),
@@ -279,7 +280,8 @@ def test_the_previous_layout_loads_its_top_level_names_into_their_groups():
          "colour_solve_views": 4, "colour_solve_scale": 1.0}
     assert SceneConfig.from_dict(d) == SceneConfig(voxel_size=0.01, range={"near": 0.1}, features={"dim": 8},
                                                    depth={"sources": 3, "completion": True},
-                                                   colour_solve={"views": 4, "scale": 1.0})
+                                                   colour_solve={"views": 4, "scale": 1.0},
+                                                   sensor={"weight_floor": 0.0})  # folded before the floor
     with pytest.raises(ValueError, match=r"^depth: given both as a group and as flat settings \(\['completion'\]\)"):
         SceneConfig.from_dict({"voxel_size": 0.01, "depth": {"completion": False}, "depth_completion": True})
 

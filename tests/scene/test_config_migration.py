@@ -29,11 +29,11 @@ def test_flat_snapshot_settings_land_in_their_groups(loaded):
     assert (c.free_space.enabled, c.free_space.margin, c.depth.hypotheses, c.sensor.edge_weight) == (True, 2.5, 32, 0.4)
     assert (c.decoder.opacity_slope, c.decoder.opacity_bias, c.decoder.sh_regularization) == (25.0, -1.0, 0.004)
     assert (c.research.weighting, c.research.eps) == ("full", 1e-8)
-    # and every other setting is its default; the sensor values, written before the families, under the
+    # and every other setting is its default but the weight floor, which did not exist then (0); the sensor values, written before the families, under the
     # family of the model they were (registration_px, newer than the layout, is its preset's)
     assert c == SceneConfig(voxel_size=0.15, features={"dim": 4}, free_space={"margin": 2.5}, depth={"hypotheses": 32},
                             sensor={"family": "structured_light", "sigma0": 0.0012, "sigma2": 0.0019, "sigma_ref": 0.4,
-                                    "edge_weight": 0.4, "registration_px": 0.0},
+                                    "edge_weight": 0.4, "registration_px": 0.0, "weight_floor": 0.0},
                             decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
 
 
@@ -67,6 +67,7 @@ def test_flat_session_meta_migrates():
     assert (config.free_space.enabled, config.depth.denoise_radius) == (False, 0)
     assert config.decoder.opacity_bias == config.opacity_bias == -3.0
     assert SceneConfig.from_dict(config.to_dict()) == config
+    assert config.sensor.weight_floor == 0.0 and SceneConfig(voxel_size=0.004).sensor.weight_floor == 0.5  # folded without one
 
 
 def test_migration_moves_every_flat_name_and_only_those():

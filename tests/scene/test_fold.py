@@ -36,10 +36,11 @@ def deviation(stream, batch):
 
 
 @pytest.mark.realdata
-def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
+@pytest.mark.parametrize("weight_floor", [0.0, 0.5])
+def test_streaming_equals_batch_when_representatives_never_change(shelf_frames, weight_floor):
     # reliability strictly falls frame after frame, so each voxel keeps its first frame's representative
     frames = [with_std(f, 0.001 * (1 + k)) for k, f in enumerate(shelf_frames[::5])]
-    config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0})
+    config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0, "weight_floor": weight_floor})
     scene, reports = fold_all(frames, config)
     assert sum(r.representative_switches for r in reports) == 0
     stream, batch = scene.fields(), aggregate_batch(frames, config)
@@ -68,11 +69,28 @@ def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
 
 
 @pytest.mark.realdata
+def test_a_full_weight_floor_averages_one_frames_observations(shelf_frames):
+    # within one frame every observation of a voxel then weighs its representative's reliability:
+    # the colours and positions are the plain means, as the average rule's
+    floored = fold_all(shelf_frames[:1], SceneConfig(voxel_size=VOXEL, sensor={"weight_floor": 1.0}))[0].fields()
+    plain = fold_all(shelf_frames[:1], SceneConfig(voxel_size=VOXEL, research={"weighting": "average"}))[0].fields()
+    paper = fold_all(shelf_frames[:1], SceneConfig(voxel_size=VOXEL, sensor={"weight_floor": 0.0}))[0].fields()
+    assert torch.equal(floored["keys"], plain["keys"])
+    # where R_scene is far above the fields' eps (1e-8), which pulls the rest toward the representative
+    clear = floored["reliability"] > 1e-4
+    assert clear.double().mean() > 0.9
+    for name in ("colour", "position_mean"):
+        assert torch.allclose(floored[name][clear], plain[name][clear], atol=1e-5), name
+    assert not torch.allclose(paper["colour"], plain["colour"], atol=1e-5)  # the paper's rule weighs them apart
+
+
+@pytest.mark.realdata
 @pytest.mark.parametrize("mode", ["no_reliability", "no_similarity", "average"])
 def test_ablation_modes_stream_exactly(shelf_frames, mode):
-    # these modes never rescale (first-observation or similarity-free representatives)
+    # these modes never rescale (first-observation or similarity-free representatives); without a
+    # floor, which the stream takes from the representative of the moment and the batch from the last
     frames = shelf_frames[:3]
-    config = SceneConfig(voxel_size=VOXEL, research={"weighting": mode})
+    config = SceneConfig(voxel_size=VOXEL, research={"weighting": mode}, sensor={"weight_floor": 0.0})
     stream, batch = fold_all(frames, config)[0].fields(), aggregate_batch(frames, config)
     assert torch.allclose(stream["reliability"], batch["reliability"], rtol=1e-4)
     assert torch.allclose(stream["features"], batch["features"], rtol=1e-4, atol=1e-6)
