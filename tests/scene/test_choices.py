@@ -76,11 +76,12 @@ def test_synthetic_disparity_quantisation_is_told_by_its_step():
 def test_explicit_values_win_over_the_family_and_the_family_over_detection(first_frames):
     frame = first_frames["sun3d_studyroom"]  # detected as structured light
     config, why = choose_settings(SceneConfig(sensor={"family": "hololens", "sigma0": 0.004}), frame)
-    assert config.sensor.model_dump() == {**SENSOR_PRESETS["hololens"], "sigma0": 0.004, "family": "hololens"}
+    floor = {"weight_floor": SceneConfig().sensor.weight_floor}  # not a noise value: no preset sets it
+    assert config.sensor.model_dump() == {**SENSOR_PRESETS["hololens"], "sigma0": 0.004, "family": "hololens", **floor}
     assert why["sensor"] == "set" and config.chosen
     config, why = choose_settings(SceneConfig(voxel_size=0.05, sensor={"edge_weight": 2.0}), frame)
     assert config.sensor.model_dump() == {**SENSOR_PRESETS["structured_light"], "edge_weight": 2.0,
-                                          "family": "structured_light"}
+                                          "family": "structured_light", **floor}
     assert (config.voxel_size, why["voxel_size"]) == (0.05, "set") and why["sensor"].startswith("detected")
 
 

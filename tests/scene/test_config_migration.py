@@ -92,6 +92,6 @@ def test_an_earlier_sensor_group_gets_the_family_of_its_model_and_a_partial_one_
     earlier = {"sigma0": 0.002, "sigma2": 0.001, "sigma_ref": 0.5, "edge_weight": 0.5, "registration_px": 2.0}
     config = SceneConfig.from_dict({"voxel_size": 0.01, "sensor": earlier})
     assert config.sensor.family == "structured_light" and config.chosen  # every value as it was written
-    assert config.sensor.model_dump() == {**earlier, "family": "structured_light"}
+    assert config.sensor.model_dump() == {**earlier, "family": "structured_light", "weight_floor": 0.0}  # the floor did not exist then
     partial = SceneConfig.from_dict({"voxel_size": 0.01, "sensor": {"sigma0": 0.002}})
     assert partial.sensor.family == "auto" and partial.sensor.sigma2 is None and not partial.chosen
