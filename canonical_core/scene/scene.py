@@ -12,7 +12,7 @@ import hashlib
 import os
 import threading
 import time
-from concurrent.futures import Executor, Future
+from typing import get_args
 
 import numpy as np
 import torch
@@ -21,10 +21,10 @@ from ..evidence import AppearanceUncertainty, DepthConsistency
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
-from . import folding, refold, snapshot
+from . import folding, refold, snapshot, solving
 from ..config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
-from .decoding import DecodeInputs, SceneDecoding
+from .decoding import Colours, DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
 from .folding import FoldReport
@@ -284,7 +284,7 @@ class Scene:
         """
         return self._decoding.decode(inputs, max_gaussians, min_support, features)
 
-    def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None,
+    def gaussians(self, max_gaussians: int | None = None, colours: Colours = "solve",
                   features: bool = True) -> Gaussians:
         """`decode(max_gaussians)` of the scene as it is now, decoded once per change: until the next
         fold, later calls (from any thread) return the same Gaussians. Concurrent calls on an
@@ -293,43 +293,39 @@ class Scene:
         the others: a fold's worth, not the scene), so folds go on meanwhile, and a decode that a
         fold overtook answers its caller but is not kept.
 
-        With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve.refresh`)
-        runs on that executor (on another thread: it takes the decode lock this call holds) instead of
-        in this call, which shows the last solution meanwhile; once it lands, the next call decodes
-        with it (`colour_solve_pending` is its future). A service does so, so that a render never
-        waits for a re-solve.
+        With ``colours="last"`` the call never solves colours: it shows the last solution (the fused
+        colours before the first), and `solve_colours`, run elsewhere, makes the next one. A service
+        does so, so that a render never waits for a solve.
 
         Without ``features`` the Gaussians may carry no F_scene (``features`` None; kept Gaussians
         that carry it are returned as they are): for renders of colour, depth or labels, whose decode
         after a fold then reads only the voxels the fold touched and the columns that pick the
         decoded voxels, not F_scene of every decoded voxel."""
+        if colours not in get_args(Colours):
+            raise ValueError(f"colours: expected one of {list(get_args(Colours))}, got {colours!r}")
         with self._lock:
-            hit = self._decoding.cached(self._lod(max_gaussians), features)
+            # a decode that solves when due does not take Gaussians kept by one that did not
+            solves = colours == "solve" and len(self._keyframes) > 0 and self._decoding.refresh_due(self.frames)
+            hit = None if solves else self._decoding.cached(self._lod(max_gaussians), features)
         if hit is not None:
             return hit
         with self._decoding.lock:  # one decode at a time: a second caller waits, then finds it kept
             with self._lock:
                 lod = self._lod(max_gaussians)  # the scene may have grown while we waited
-                hit = self._decoding.cached(lod, features)
+                hit = None if solves else self._decoding.cached(lod, features)
                 if hit is not None:
                     return hit
                 work = self._decoding.take(self._decode_inputs(live=True), lod, features=features)
                 generation = self._generation
-            solver = (colour_solver, self._forget_decoded) if colour_solver is not None else None
-            gaussians = self._decoding.finish(work, solver)
+            gaussians = self._decoding.finish(work, colours)
             with self._lock:
                 if self._generation == generation:
                     self._decoding.keep(lod, gaussians)
             return gaussians
 
-    def _forget_decoded(self) -> None:
-        """A colour re-solve landed: the decoded Gaussians kept for this state show the last one."""
-        with self._lock:
-            self._decoding.forget()
-
-    def colour_solve_pending(self) -> Future | None:
-        """The future of the last colour re-solve that `gaussians` started on its ``colour_solver``."""
-        return self._decoding.pending
+    # the colour solve off the decode path (`solving`): whether one is due, and the solve
+    colour_solve_due = solving.colour_solve_due
+    solve_colours = solving.solve_colours
 
     def _lod(self, max_gaussians: int | None) -> int | None:
         """The level of detail ``max_gaussians`` means now: None when it leaves out nothing."""

@@ -12,6 +12,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError, unparsable
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
+from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
@@ -99,7 +100,10 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         return session.add_frame(record, frame, settings.snapshot_every_frames, settings.snapshot_every_seconds), frame.camera
 
     t0 = time.perf_counter()
-    (report, replay), camera = await jobs.run(fold, kind="frame", session=session.id)
+    try:
+        (report, replay), camera = await jobs.run(fold, kind="frame", session=session.id)
+    finally:  # the colours of what the session holds now, solved while no frame of it waits
+        solve_soon(jobs, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:
