@@ -124,6 +124,8 @@ class Scheduler:
         self._closed = False
         self.active = 0  # jobs running or waiting, all sessions and kinds
         self.superseded = 0  # viewer jobs replaced while waiting, since the start
+        self.background_running = 0  # background jobs running now
+        self.background_done = 0  # background jobs finished (or failed) since the start
 
     async def run(self, fn: Callable[..., T], *args, kind: Kind, session: str = "", coalesce: str | None = None,
                   **kwargs) -> T:
@@ -246,6 +248,7 @@ class Scheduler:
                 del sessions[session]
             if kind in SERIAL_KINDS:
                 self._serial.add((kind, session))
+            self.background_running += job.future is None
             return job
         return None
 
@@ -273,6 +276,9 @@ class Scheduler:
                 if job.kind in SERIAL_KINDS:
                     self._serial.discard((job.kind, job.session))
                     lane.ready.notify()  # the session's next job of the kind may run now
+                if job.future is None:
+                    self.background_running -= 1
+                    self.background_done += 1
             if job.future is None:
                 if error is not None:
                     log.error("%s job of session %s failed", job.kind, job.session, exc_info=error)

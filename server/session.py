@@ -257,6 +257,7 @@ class Session:
                 "inconsistent_depth_below": stats["inconsistent_depth_below"],
                 "snapshot_frames": self.snapshots.frames,
                 "snapshot_error": self.snapshots.error,
+                "colours_solved_frames": self.scene.colours_solved_frames(),
                 "config": self.config.to_dict(),
             }
 
