@@ -15,7 +15,7 @@ delays, another session's frames. The kinds, first served first:
   After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
   turn, so that clients looping renders slow the viewer down but never freeze it.
 - ``solve``: the sessions' colour solves, in the background (`background`: no request waits for
-  them). They run on their own ``solve_workers`` threads at the lowest OS priority, so that a solve
+  them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``), so that a solve
   of seconds never holds a render worker; a session's one at a time and at most one waiting, the
   sessions in turn.
 
@@ -51,7 +51,7 @@ Kind = Literal["frame", "work", "viewer", "solve"]
 KINDS: tuple[Kind, ...] = ("frame", "work", "viewer", "solve")  # priority order
 RENDER_KINDS: tuple[Kind, ...] = ("work", "viewer")  # what the render workers take, in this order
 SERIAL_KINDS: tuple[Kind, ...] = ("frame", "solve")  # a session's jobs of these kinds run one at a time
-SOLVE_NICE = 19  # the solve workers' OS priority below the service's: the lowest there is
+SOLVE_NICE = 19  # the solve workers' default OS priority below the service's: the lowest there is
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
 
 
@@ -103,18 +103,18 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 
 class Scheduler:
     """Runs jobs on ``frame_workers`` threads (frames), ``render_workers`` threads at OS priority
-    ``render_nice`` (other work, then the viewer's) and ``solve_workers`` threads at `SOLVE_NICE`
+    ``render_nice`` (other work, then the viewer's) and ``solve_workers`` threads at ``solve_nice``
     (background solves); at most ``queue_limit`` jobs running or waiting per session and kind. ``init`` runs once in each worker thread before its first job (the
     service's numba thread count, which numba keeps per thread). Threads start with the first job.
     """
 
     def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = 10,
-                 init: Callable[[], None] | None = None, solve_workers: int = 1):
+                 init: Callable[[], None] | None = None, solve_workers: int = 1, solve_nice: int = SOLVE_NICE):
         self.limit, self._init = queue_limit, init
         self._lock = threading.Lock()
         self._lanes = (_Lane(("frame",), frame_workers, 0, threading.Condition(self._lock)),
                        _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)),
-                       _Lane(("solve",), solve_workers, SOLVE_NICE, threading.Condition(self._lock)))
+                       _Lane(("solve",), solve_workers, solve_nice, threading.Condition(self._lock)))
         # kind -> session -> its waiting jobs; a session's place in the dict is its turn
         self._waiting: dict[Kind, OrderedDict[str, deque[_Job]]] = {kind: OrderedDict() for kind in KINDS}
         self._held: Counter[tuple[str, Kind]] = Counter()  # jobs running or waiting per (session, kind)

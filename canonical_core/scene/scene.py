@@ -326,6 +326,7 @@ class Scene:
     # the colour solve off the decode path (`solving`): whether one is due, and the solve
     colour_solve_due = solving.colour_solve_due
     solve_colours = solving.solve_colours
+    colours_solved_frames = solving.colours_solved_frames
 
     def _lod(self, max_gaussians: int | None) -> int | None:
         """The level of detail ``max_gaussians`` means now: None when it leaves out nothing."""

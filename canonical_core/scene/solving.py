@@ -27,6 +27,13 @@ def colour_solve_due(scene: Scene) -> bool:
     return len(scene._keyframes) > 0 and (solution is None or solution.frames < scene.frames)
 
 
+def colours_solved_frames(scene: Scene) -> int | None:
+    """The frame count of the state the kept colour solution was solved for; None: none kept (a
+    correction's carried solution counts as the older state it is due from)."""
+    solution = scene._decoding.solution
+    return None if solution is None else max(solution.frames, 0)
+
+
 def solve_colours(scene: Scene) -> bool:
     """Solve the colours of ``scene`` as it is now against its kept views, from zero
     (`decode.colour_offsets`), and keep the solution for its later decodes, which then show it.
