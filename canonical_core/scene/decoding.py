@@ -294,7 +294,7 @@ class SceneDecoding:
         ``"last"`` it never solves: it shows the last solution (`_colour_offsets`), for a caller whose
         solves run elsewhere (`Scene.solve_colours`)."""
         gaussians = self.base(work)
-        if not work.views:
+        if not work.views or (colours == "last" and self.solution is None):  # nothing solved: the fused colours
             return gaussians
         return with_colour_offsets(gaussians, self._colour_offsets(gaussians, work.chosen.rows, work, colours))
 
@@ -314,11 +314,11 @@ class SceneDecoding:
         """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
         is fresh (fewer than `SceneConfig.colour_solve.refresh` frames folded since), for a decode
         of part of the scene (a level of detail or a support floor, which never replaces the whole
-        scene's solution) and with ``colours="last"`` (none: the fused colours); else solved, from
-        the last solution where there is one, and kept."""
+        scene's solution) and with ``colours="last"``; else solved, from the last solution where there
+        is one, and kept."""
         solution = self.solution
-        last = solution.at(rows) if solution is not None else torch.zeros(len(rows), *self._offset_shape(gaussians))
-        if colours == "last" or (solution is not None and not (work.whole and self.refresh_due(work.frames))):
+        last = solution.at(rows) if solution is not None else None
+        if solution is not None and (colours == "last" or not (work.whole and self.refresh_due(work.frames))):
             return last
         if solution is None:
             offsets = colour_offsets(gaussians, work.views)
@@ -327,10 +327,6 @@ class SceneDecoding:
         if work.whole:
             self.solution = ColourSolution(rows.copy(), offsets, work.frames)
         return offsets
-
-    @staticmethod
-    def _offset_shape(gaussians: Gaussians) -> tuple[int, int]:  # (K, 3): the solve's SH coefficients
-        return (min(1, gaussians.sh_degree) + 1) ** 2, 3
 
     def land(self, solution: ColourSolution, epoch: int) -> bool:
         """Keep ``solution`` (of the state at ``epoch``, `Scene.solve_colours`) unless a correction

@@ -293,9 +293,8 @@ class Scene:
         the others: a fold's worth, not the scene), so folds go on meanwhile, and a decode that a
         fold overtook answers its caller but is not kept.
 
-        With ``colours="last"`` the call never solves colours: it shows the last solution (the fused
-        colours before the first), and `solve_colours`, run elsewhere, makes the next one. A service
-        does so, so that a render never waits for a solve.
+        With ``colours="last"`` it never solves: it shows the last solution (before the first, the
+        fused colours); `solve_colours`, run elsewhere, makes the next. A render never waits so.
 
         Without ``features`` the Gaussians may carry no F_scene (``features`` None; kept Gaussians
         that carry it are returned as they are): for renders of colour, depth or labels, whose decode
@@ -304,15 +303,13 @@ class Scene:
         if colours not in get_args(Colours):
             raise ValueError(f"colours: expected one of {list(get_args(Colours))}, got {colours!r}")
         with self._lock:
-            # a decode that solves when due does not take Gaussians kept by one that did not
-            solves = colours == "solve" and len(self._keyframes) > 0 and self._decoding.refresh_due(self.frames)
-            hit = None if solves else self._decoding.cached(self._lod(max_gaussians), features)
+            hit = self._cached(self._lod(max_gaussians), colours, features)
         if hit is not None:
             return hit
         with self._decoding.lock:  # one decode at a time: a second caller waits, then finds it kept
             with self._lock:
                 lod = self._lod(max_gaussians)  # the scene may have grown while we waited
-                hit = None if solves else self._decoding.cached(lod, features)
+                hit = self._cached(lod, colours, features)
                 if hit is not None:
                     return hit
                 work = self._decoding.take(self._decode_inputs(live=True), lod, features=features)
@@ -322,6 +319,13 @@ class Scene:
                 if self._generation == generation:
                     self._decoding.keep(lod, gaussians)
             return gaussians
+
+    def _cached(self, lod: int | None, colours: Colours, features: bool) -> Gaussians | None:
+        """The kept Gaussians `gaussians` may answer with: none for a decode that solves when due (the
+        kept ones may show an older solution); the caller holds the lock."""
+        if colours == "solve" and len(self._keyframes) > 0 and self._decoding.refresh_due(self.frames):
+            return None
+        return self._decoding.cached(lod, features)
 
     # the colour solve off the decode path (`solving`): whether one is due, and the solve
     colour_solve_due = solving.colour_solve_due
