@@ -15,9 +15,9 @@ delays, another session's frames. The kinds, first served first:
   After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
   turn, so that clients looping renders slow the viewer down but never freeze it.
 - ``solve``: the sessions' colour solves, in the background (`background`: no request waits for
-  them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``), so that a solve
-  of seconds never holds a render worker; a session's one at a time and at most one waiting, the
-  sessions in turn.
+  them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``),
+  so that a solve of seconds never holds a render worker; a session's one at a time and at most one
+  waiting, the sessions in turn.
 
 Work and viewer jobs run on the render workers, whose threads (and the numba and OpenMP threads
 they start, which inherit it) run at a lower OS priority (``nice``, on Linux), so that a fold
@@ -104,8 +104,9 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 class Scheduler:
     """Runs jobs on ``frame_workers`` threads (frames), ``render_workers`` threads at OS priority
     ``render_nice`` (other work, then the viewer's) and ``solve_workers`` threads at ``solve_nice``
-    (background solves); at most ``queue_limit`` jobs running or waiting per session and kind. ``init`` runs once in each worker thread before its first job (the
-    service's numba thread count, which numba keeps per thread). Threads start with the first job.
+    (background solves); at most ``queue_limit`` jobs running or waiting per session and kind.
+    ``init`` runs once in each worker thread before its first job (the service's numba thread count,
+    which numba keeps per thread). Threads start with the first job.
     """
 
     def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = 10,
