@@ -321,8 +321,7 @@ class Scene:
             return gaussians
 
     def _cached(self, lod: int | None, colours: Colours, features: bool) -> Gaussians | None:
-        """The kept Gaussians `gaussians` may answer with: none for a decode that solves when due (the
-        kept ones may show an older solution); the caller holds the lock."""
+        """Kept Gaussians for `gaussians`; none when it solves (they may show an older solution)."""
         if colours == "solve" and len(self._keyframes) > 0 and self._decoding.refresh_due(self.frames):
             return None
         return self._decoding.cached(lod, features)
