@@ -2,6 +2,8 @@
 
     python bench/colour_solve.py [--data ../shared/data/realsense_shelf] [--views 4,8,16] [--scales 1,0.5] [--repeats 3]
     python bench/colour_solve.py --stream [--refresh 1,4,8,16] [--kept 16]
+    python bench/colour_solve.py --pause [--frames 20] [--rounds 3] [--solve-nice 19]
+    python bench/colour_solve.py --costs [--frames 20]
 
 For N input views of the evaluation protocol (640x480, its voxel size), kept at each keyframe
 scale (`SceneConfig.colour_solve.scale`; 0.5 is the default): ms for one kept view's part of the
@@ -18,15 +20,35 @@ scene that solves colours (``--kept`` views, `SceneConfig.colour_solve.refresh` 
 ``--refresh``) and by one that does not. Per refresh: the solves made, the decode's extra ms per
 fold (mean: the solve's cost amortised over the stream; median; largest), and held-out all-pixel /
 covered PSNR of the last decode, against the same scene solved from scratch over the same kept views.
+
+``--pause`` measures the service's background solve: the real service (`canonical serve`, its
+``solve_nice`` from ``--solve-nice``) on a free port, ``--frames`` frames of the capture (640x480,
+voxel 0.004 m, every other frame) posted one after the other as a streaming client does, to a
+session with the defaults and one with the solve off (``colour_solve.views`` 0) in turn, then a
+pause. Per round: the two sessions' frame round trips (median), what the fold path pays for keeping
+views and solving; from the last frame's acknowledgement, ms until the session's stats say its
+colours are solved for every frame (``colours_solved_frames``), and until a render that shows them
+has come back; and the solves run in the pause.
+
+``--costs`` measures what keeping the views costs the fold path, in one process: a scene with the
+solve off and one with the defaults fold the same ``--frames`` frames (640x480, voxel 0.004 m) in
+turn; per scene, the fold's ms per frame and the ms of a render's decode after each fold
+(`Scene.gaussians` with ``colours="last"``, as the service decodes: no solve; the scene with the
+solve solves once, untimed, halfway, so that its later decodes apply a solution), medians / min /
+max, and the bytes the scene holds at the end.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table, stats_ms, time_each  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -42,6 +64,8 @@ from canonical_core.decode import colour_offsets, with_colour_offsets  # noqa: E
 from canonical_core.rendering.weights import weight_rows_and_blend  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 from canonical_core.scene.decoding import REFRESH_ITERATIONS  # noqa: E402
+from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.sdk import Client  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -53,7 +77,7 @@ def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> No
     rows = []
     for refresh in refreshes:
         solving = Scene(SceneConfig(voxel_size=voxel, colour_solve={"views": kept, "refresh": refresh}))
-        plain = Scene(SceneConfig(voxel_size=voxel))
+        plain = Scene(SceneConfig(voxel_size=voxel, colour_solve={"views": 0}))
         extra, solves = [], 0
         for frame in frames:
             solving.fold(frame)
@@ -79,6 +103,71 @@ def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> No
                 f"{SceneConfig(voxel_size=voxel).colour_solve.scale:g}, voxel {voxel:.4f} m", rows)
 
 
+def solves_done(client: Client) -> int:
+    text = client._request("GET", "/metrics").text
+    return int(float(next(line.split()[1] for line in text.splitlines()
+                          if line.startswith("canonical_colour_solves_done "))))
+
+
+def pause(sequence, frames: int, rounds: int, solve_nice: int) -> None:
+    """The ``--pause`` table (module docstring)."""
+    os.environ["CANONICAL_SOLVE_NICE"] = str(solve_nice)  # the service's setting, from its environment
+    payloads = [frame_arrays(sequence[i]) for i in range(0, 2 * frames, 2)]
+    view = payloads[len(payloads) // 2]
+    K, c2w, (h, w) = view["K"], view["c2w"], view["rgb"].shape[:2]
+    rows = []
+    with tempfile.TemporaryDirectory() as data_dir:
+        port = free_port()
+        service = start_service(port, Path(data_dir))
+        try:
+            with Client(f"http://127.0.0.1:{port}", timeout=600) as client:
+                for r in range(rounds):
+                    sessions = {"off": client.create_session(voxel_size=0.004, colour_solve={"views": 0}),
+                                "on": client.create_session(voxel_size=0.004)}
+                    trips = {name: [] for name in sessions}
+                    for p in payloads:  # in turn, so that both sessions' frames meet the same background solves
+                        for name, session in sessions.items():
+                            trips[name] += time_each(lambda q: session.add_frame(**q), [p])
+                    acked = time.perf_counter()
+                    before = solves_done(client)
+                    while session.stats()["colours_solved_frames"] != frames:  # the "on" session
+                        time.sleep(0.02)
+                    solved = time.perf_counter()
+                    session.render(K, c2w, w, h)
+                    shown = time.perf_counter()
+                    rows.append({
+                        "round": r + 1, "frame round trip ms, solve off / on": f"{np.median(trips['off']):.0f} / "
+                                                                            f"{np.median(trips['on']):.0f}",
+                        "last ack -> solved ms": f"{(solved - acked) * 1000:.0f}",
+                        "last ack -> solved render ms": f"{(shown - acked) * 1000:.0f}",
+                        "solves in the pause": solves_done(client) - before,
+                    })  # fmt: skip
+                    print(f"round {r + 1} done", file=sys.stderr, flush=True)
+        finally:
+            service.terminate()
+            service.wait(60)
+    print_table(f"Background colour solve, real service (solve_nice {solve_nice}): {frames} frames at 640x480, "
+                f"voxel 0.004 m, then a pause", rows)
+
+
+def costs(sequence, frames: int) -> None:
+    """The ``--costs`` table (module docstring)."""
+    scenes = {"off": Scene(SceneConfig(voxel_size=0.004, colour_solve={"views": 0})),
+              "on (defaults)": Scene(SceneConfig(voxel_size=0.004))}
+    fold_ms, decode_ms = {k: [] for k in scenes}, {k: [] for k in scenes}
+    for i in range(frames):
+        frame = sequence[i]
+        for name, scene in scenes.items():  # in turn, so that the load falls on both alike
+            fold_ms[name] += time_each(scene.fold, [frame])
+            decode_ms[name] += time_each(lambda _: scene.gaussians(colours="last", features=False), [0])
+        if i == frames // 2:  # untimed: from here on its decodes apply a solution, as the service's do
+            scenes["on (defaults)"].solve_colours()
+    rows = [{"colour solve": name, "fold ms": stats_ms(fold_ms[name]), "render decode ms": stats_ms(decode_ms[name]),
+             "memory MB": f"{scene.memory_bytes() / 1e6:.1f}", "kept views MB": f"{scene._keyframes.nbytes() / 1e6:.2f}"}
+            for name, scene in scenes.items()]
+    print_table(f"Keeping the views: {frames} frames at 640x480, voxel 0.004 m (median / min / max)", rows)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(DEFAULT_DATA))
@@ -88,12 +177,20 @@ def main() -> None:
     parser.add_argument("--stream", action="store_true", help="a streaming session decoded after every fold")
     parser.add_argument("--refresh", default="1,4,8,16", help="with --stream: colour_solve.refresh values")
     parser.add_argument("--kept", type=int, default=16, help="with --stream: colour_solve.views")
+    parser.add_argument("--pause", action="store_true", help="the service's background solve after a stream pauses")
+    parser.add_argument("--costs", action="store_true", help="the fold and a render's decode with the solve off and on")
+    parser.add_argument("--frames", type=int, default=20, help="with --pause or --costs: frames streamed")
+    parser.add_argument("--rounds", type=int, default=3, help="with --pause: rounds")
+    parser.add_argument("--solve-nice", type=int, default=19, help="with --pause: the service's solve_nice")
     args = parser.parse_args()
     views = [int(v) for v in args.views.split(",")]
     scales = [float(s) for s in args.scales.split(",")]
     if any(v not in (2, 4, 8, 16) for v in views) or args.repeats < 1 or not all(0 < s <= 1 for s in scales):
         parser.error("--views: a list from 2,4,8,16; --scales: numbers in (0, 1]; --repeats: at least 1")
     sequence = load_dataset(args.data)
+    if args.pause or args.costs:
+        print(machine_summary())
+        return pause(sequence, args.frames, args.rounds, args.solve_nice) if args.pause else costs(sequence, args.frames)
     split = interpolation_split(len(sequence), (2, 4, 8, 16))
     targets = [sequence[p] for p in split.heldout]
     voxel = default_voxel_size([sequence[p] for p in split.inputs[16]])
@@ -103,7 +200,7 @@ def main() -> None:
     rows = []
     for n in views:
         full_size = [sequence[p] for p in split.inputs[n]]
-        model, _ = build("canonical", full_size, voxel)
+        model, _ = build("canonical:colour_solve.views=0", full_size, voxel)  # the fused colours
         splats = model.splats
         before = score(model, targets, voxel).metrics
         for scale in scales:

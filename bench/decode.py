@@ -77,8 +77,11 @@ def main(argv=None) -> None:
     # the viewed scenes fold the same frames and are decoded the way a service does it
     # (`Scene.gaussians`): for a colour render (no F_scene) and for a feature map (with it); the part
     # of each decode that holds the scene's lock is timed on its own
-    scene, folded = Scene(SceneConfig(voxel_size=args.voxel)), 0
-    viewed = {features: Scene(SceneConfig(voxel_size=args.voxel)) for features in (False, True)}
+    # the decode alone: the colour solve off (a service's render shows the last solution and never
+    # solves; what applying one adds is `python bench/colour_solve.py --costs`)
+    config = SceneConfig(voxel_size=args.voxel, colour_solve={"views": 0})
+    scene, folded = Scene(config), 0
+    viewed = {features: Scene(config) for features in (False, True)}
     held: dict[bool, list[float]] = {features: [] for features in viewed}
     for features, v in viewed.items():
         v._decoding.take = timed(v._decoding.take, held[features])

@@ -17,11 +17,15 @@ delays, another session's frames. The kinds, first served first:
   newer one with the same ``coalesce`` key (one viewer page): the older request gets `Superseded`.
   After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
   turn, so that clients looping renders slow the viewer down but never freeze it.
+- ``solve``: the sessions' colour solves, in the background (`background`: no request waits for
+  them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``),
+  so that a solve of seconds never holds a render worker; a session's one at a time and at most one
+  waiting, the sessions in turn.
 
 Work and viewer jobs run on the render workers, whose threads (and the numba and OpenMP threads
 they start, which inherit it) run at a lower OS priority (``nice``, on Linux), so that a fold
 running beside a render gets the cores first. Threads and queued jobs are bounded: ``frame_workers +
-render_workers`` threads, and at most ``queue_limit`` jobs per session and kind.
+render_workers + solve_workers`` threads, and at most ``queue_limit`` jobs per session and kind.
 
 Example:
     >>> import asyncio
@@ -37,6 +41,7 @@ import asyncio
 import contextlib
 import contextvars
 import functools
+import logging
 import os
 import sys
 import threading
@@ -45,10 +50,12 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Literal, TypeVar
 
 T = TypeVar("T")
-Kind = Literal["ingest", "frame", "work", "viewer"]
-KINDS: tuple[Kind, ...] = ("ingest", "frame", "work", "viewer")  # priority order
+Kind = Literal["ingest", "frame", "work", "viewer", "solve"]
+KINDS: tuple[Kind, ...] = ("ingest", "frame", "work", "viewer", "solve")  # priority order
 FRAME_KINDS: tuple[Kind, ...] = ("ingest", "frame")  # what the frame workers take, in this order
 RENDER_KINDS: tuple[Kind, ...] = ("work", "viewer")  # what the render workers take, in this order
+SERIAL_KINDS: tuple[Kind, ...] = ("frame", "solve")  # a session's jobs of these kinds run one at a time
+SOLVE_NICE = 19  # the solve workers' default OS priority below the service's: the lowest there is
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
 
 
@@ -72,8 +79,8 @@ class _Job:
     kind: Kind
     session: str
     coalesce: str | None
-    future: asyncio.Future
-    loop: asyncio.AbstractEventLoop = field(repr=False)
+    future: asyncio.Future | None  # None: a background job, whose failure is logged
+    loop: asyncio.AbstractEventLoop | None = field(repr=False)
 
 
 @dataclass(eq=False)
@@ -86,6 +93,9 @@ class _Lane:
     ready: threading.Condition
 
 
+log = logging.getLogger("canonical.scheduler")
+
+
 def _settle(future: asyncio.Future, result: Any, error: BaseException | None) -> None:
     if future.done():  # its request was cancelled meanwhile
         return
@@ -96,27 +106,31 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 
 
 class Scheduler:
-    """Runs jobs on ``frame_workers`` threads (frames and their decoding) and ``render_workers`` threads at OS priority
-    ``render_nice`` (other work, then the viewer's); at most ``queue_limit`` jobs running or waiting
-    per session and kind. ``init`` runs once in each worker thread before its first job (the
-    service's numba thread count, which numba keeps per thread). Threads start with the first job.
+    """Runs jobs on ``frame_workers`` threads (frames and their decoding), ``render_workers`` threads at OS priority
+    ``render_nice`` (other work, then the viewer's) and ``solve_workers`` threads at ``solve_nice``
+    (background solves); at most ``queue_limit`` jobs running or waiting per session and kind.
+    ``init`` runs once in each worker thread before its first job (the service's numba thread count,
+    which numba keeps per thread). Threads start with the first job.
     """
 
     def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = 10,
-                 init: Callable[[], None] | None = None):
+                 init: Callable[[], None] | None = None, solve_workers: int = 1, solve_nice: int = SOLVE_NICE):
         self.limit, self._init = queue_limit, init
         self._lock = threading.Lock()
         self._lanes = (_Lane(FRAME_KINDS, frame_workers, 0, threading.Condition(self._lock)),
-                       _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)))
+                       _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)),
+                       _Lane(("solve",), solve_workers, solve_nice, threading.Condition(self._lock)))
         # kind -> session -> its waiting jobs; a session's place in the dict is its turn
         self._waiting: dict[Kind, OrderedDict[str, deque[_Job]]] = {kind: OrderedDict() for kind in KINDS}
         self._held: Counter[tuple[str, Kind]] = Counter()  # jobs running or waiting per (session, kind)
-        self._folding: set[str] = set()  # sessions with a frame job running
+        self._serial: set[tuple[Kind, str]] = set()  # (kind, session) of the SERIAL_KINDS jobs running
         self._passed_over = 0  # work jobs taken in a row while viewer jobs waited
         self._threads: list[threading.Thread] = []
         self._closed = False
         self.active = 0  # jobs running or waiting, all sessions and kinds
         self.superseded = 0  # viewer jobs replaced while waiting, since the start
+        self.background_running = 0  # background jobs running now
+        self.background_done = 0  # background jobs finished (or failed) since the start
 
     async def run(self, fn: Callable[..., T], *args, kind: Kind, session: str = "", coalesce: str | None = None,
                   **kwargs) -> T:
@@ -146,23 +160,51 @@ class Scheduler:
                 self._forget(job)
             raise
 
+    def background(self, fn: Callable[[], Any], session: str) -> bool:
+        """Queue ``fn()`` as a ``solve`` job of ``session``, answered to nobody (a failure is logged),
+        unless one waits already (it will see what this one would) or a frame of the session is
+        running or waiting (its fold queues the next); returns whether it was queued."""
+        with self._lock:
+            if self._closed or self._frames_held(session) or session in self._waiting["solve"]:
+                return False
+            job = _Job(fn, "solve", session, None, None, None)
+            self._held[session, "solve"] += 1
+            self.active += 1
+            self._waiting["solve"][session] = deque([job])
+            if not self._threads:
+                self._start()
+            self._lane("solve").ready.notify()
+            return True
+
+    def frames_held(self, session: str) -> int:
+        """Frame jobs of ``session`` (and frames being decoded for it) running or waiting."""
+        with self._lock:
+            return self._frames_held(session)
+
+    def _frames_held(self, session: str) -> int:
+        return sum(self._held[session, kind] for kind in FRAME_KINDS)
+
     def close(self, timeout: float = 30.0) -> None:
-        """Let the workers finish the jobs taken, then stop them."""
+        """Let the workers finish the jobs taken and those a request waits for, then stop them."""
         with self._lock:
             self._closed = True
+            for queue in self._waiting["solve"].values():  # nobody waits for these
+                for job in queue:
+                    self._release(job)
+            self._waiting["solve"].clear()
             for lane in self._lanes:
                 lane.ready.notify_all()
         for thread in self._threads:
             thread.join(timeout)
 
     def _lane(self, kind: Kind) -> _Lane:
-        return self._lanes[0] if kind in FRAME_KINDS else self._lanes[1]
+        return next(lane for lane in self._lanes if kind in lane.kinds)
 
     def _start(self) -> None:
         for lane in self._lanes:
             for i in range(lane.workers):
                 thread = threading.Thread(target=self._work, args=(lane,), daemon=True,
-                                          name=f"canonical-{'frame' if lane is self._lanes[0] else 'render'}-{i}")
+                                          name=f"canonical-{'render' if lane.kinds == RENDER_KINDS else lane.kinds[-1]}-{i}")
                 thread.start()
                 self._threads.append(thread)
 
@@ -203,7 +245,7 @@ class Scheduler:
                 self._passed_over, kinds = 0, ("viewer",)
         for kind in kinds:
             sessions = self._waiting[kind]
-            session = next((s for s in sessions if not (kind == "frame" and s in self._folding)), None)
+            session = next((s for s in sessions if (kind, s) not in self._serial), None)
             if session is None:
                 continue
             queue = sessions[session]
@@ -212,8 +254,9 @@ class Scheduler:
                 sessions.move_to_end(session)  # the other sessions' turns come first
             else:
                 del sessions[session]
-            if kind == "frame":
-                self._folding.add(session)
+            if kind in SERIAL_KINDS:
+                self._serial.add((kind, session))
+            self.background_running += job.future is None
             return job
         return None
 
@@ -238,8 +281,15 @@ class Scheduler:
                 result, error = None, exc
             with self._lock:
                 self._release(job)
-                if job.kind == "frame":
-                    self._folding.discard(job.session)
-                    lane.ready.notify()  # the session's next frame may run now
+                if job.kind in SERIAL_KINDS:
+                    self._serial.discard((job.kind, job.session))
+                    lane.ready.notify()  # the session's next job of the kind may run now
+                if job.future is None:
+                    self.background_running -= 1
+                    self.background_done += 1
+            if job.future is None:
+                if error is not None:
+                    log.error("%s job of session %s failed", job.kind, job.session, exc_info=error)
+                continue
             with contextlib.suppress(RuntimeError):  # its event loop has closed: nobody waits for the answer
                 job.loop.call_soon_threadsafe(_settle, job.future, result, error)

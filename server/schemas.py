@@ -90,6 +90,10 @@ class SessionStats(SessionSummary):
         "why voxel_size and sensor have their values: 'set', or the rule that chose them from the first frame"))
     snapshot_frames: int
     snapshot_error: str | None = Field(None, description="why the last snapshot failed (its frames stay durable in the log)")
+    colours_solved_frames: int | None = Field(
+        None, description="the frame count whose state the colours that renders show were solved for (equal to frames: "
+                          "solved colours of the scene as it is; lower: a solve runs in the background while no frame "
+                          "waits); None: none solved yet, or colour_solve.views is 0")
     config: dict[str, Any]
 
 

@@ -11,7 +11,8 @@ Locks: ``Session.lock`` serialises what reads or writes one session's scene and 
 snapshot, digest); rendering works on decoded Gaussians outside it, so a render never sees a
 half-folded scene and never blocks another session. Decoded Gaussians come from `Scene.gaussians`,
 which decodes once per change and holds the scene's own lock only to copy its sums, so folds go on
-while a decode (and its colour solve) runs.
+while a decode runs. Renders show the last colour solution; the solve itself (`Session.solve_colours`)
+runs in the background, also outside the session's lock (`server.solves`).
 """
 
 from __future__ import annotations
@@ -46,29 +47,6 @@ log = logging.getLogger("canonical.store")  # the store's logger: one name for a
 # that can fold at a time is enough (a session's appends are ordered by its lock)
 LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
 UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll back in place (`Scene.rollback`)
-
-
-class ColourSolves(ThreadPoolExecutor):
-    """The colour re-solves of sessions that keep views (`SceneConfig.colour_solve.refresh`): they run
-    here, not in the render that found one due, which shows the last solution. One at a time: each
-    is seconds of work on every core, and folds and renders share those cores. A re-solve that
-    fails is logged (the next render that finds one due starts another)."""
-
-    def __init__(self):
-        super().__init__(max_workers=1, thread_name_prefix="colour-solve")
-
-    def submit(self, fn, /, *args, **kwargs):
-        future = super().submit(fn, *args, **kwargs)
-        future.add_done_callback(_log_failure)
-        return future
-
-
-def _log_failure(future) -> None:
-    if future.exception() is not None:
-        log.error("colour re-solve failed", exc_info=future.exception())
-
-
-COLOUR_SOLVES = ColourSolves()
 
 
 @dataclass(eq=False)
@@ -257,13 +235,26 @@ class Session:
 
     # -- reading --------------------------------------------------------------------------------
     def gaussians(self, max_gaussians: int | None = None, features: bool = True) -> tuple[Gaussians, int]:
-        """Decoded Gaussians (`Scene.gaussians`: decoded once per change; colour re-solves run on
-        `COLOUR_SOLVES`; without ``features``, F_scene may be left out) and their label_dim."""
+        """Decoded Gaussians (`Scene.gaussians`: decoded once per change, in the last colour solution,
+        never waiting for a solve; without ``features``, F_scene may be left out) and their label_dim."""
         with self.lock:
             self.check_alive()
             scene = self.scene
-        g = scene.gaussians(max_gaussians, colour_solver=COLOUR_SOLVES, features=features)
+        g = scene.gaussians(max_gaussians, colours="last", features=features)
         return g, 0 if g.labels is None else int(g.labels.shape[1])
+
+    def colour_solve_due(self) -> bool:
+        """Whether the served scene's colours are solved for an earlier state than its own
+        (`Scene.colour_solve_due`); False for a deleted session."""
+        return not self.deleted and self.scene.colour_solve_due()
+
+    def solve_colours(self) -> bool:
+        """`Scene.solve_colours` of the served scene, outside the session's lock: folds go on
+        meanwhile. Returns whether a solution was kept."""
+        with self.lock:
+            self.check_alive()
+            scene = self.scene
+        return scene.solve_colours()
 
     def mesh(self, min_support: float = 0.0) -> Mesh:
         """The scene's surface mesh (`scene_mesh`: its sums copied under the scene's own lock, so folds
@@ -308,6 +299,7 @@ class Session:
                 "chosen": stats["chosen"],
                 "snapshot_frames": self.snapshots.frames,
                 "snapshot_error": self.snapshots.error,
+                "colours_solved_frames": self.scene.colours_solved_frames(),
                 "config": self.scene.config.to_dict(),
             }
 

@@ -95,6 +95,13 @@ class Settings(BaseSettings):
     render_nice: int = Field(10, ge=0, le=19, description=(
         "how much lower the OS priority (nice) of the render workers is than the service's, so that a fold "
         "running beside a render gets the cores first (0: the same)"))
+    solve_workers: int = Field(1, gt=0, description=(
+        "threads that solve the sessions' colours in the background (colour_solve.views), at the lowest OS "
+        "priority, while a session has no frame waiting: a session's one at a time, the sessions in turn"))
+    solve_nice: int = Field(19, ge=0, le=19, description=(
+        "how much lower the OS priority (nice) of the solve workers is than the service's (19: the lowest, so "
+        "that folds and renders get the cores first; on a machine that other work keeps busy a solve then waits "
+        "for idle cores, and a lower value trades fold time for solved colours sooner)"))
     threads: int | None = Field(None, gt=0, description="CPU threads per job for numba and torch (default: their own)")
     warm_up: bool = Field(True, description="fold, decode and render a tiny scene at start-up, so the first request does not pay for loading the kernels")
     host: str = "127.0.0.1"

@@ -19,8 +19,9 @@ from canonical_core import Camera, Frame, Scene, SceneConfig, render
 def warm_up(num_threads: int | None = None) -> float:
     """Fold two small synthetic RGB-D frames of a plane (the second one moved, so free space runs
     against the first) into a scene that keeps undo records (as a session with a frame archive
-    does), decode the scene, render every map once and roll the second fold back (a correction's
-    first step). Returns the seconds it took.
+    does), decode the scene (its colours solved: the background solve's kernels load too), render
+    every map once and roll the second fold back (a correction's first step). Returns the seconds
+    it took.
 
     Example:
         >>> warm_up() > 0

@@ -108,11 +108,12 @@ class ColourSolve(SettingsGroup):
 
     _path: ClassVar[str] = "colour_solve"
 
-    views: Annotated[int, Field(ge=0, le=64)] = 0
+    views: Annotated[int, Field(ge=0, le=64)] = 16
     """Keep this many input views (colour and camera, spread over the stream: `scene.keyframes`) and
     solve the decoded Gaussians' colours (SH up to degree 1) so that renders reproduce them
     (`decode.solve_colours`); geometry and opacity unchanged. 0 turns it off. A decode that solves
-    takes seconds instead of milliseconds (``refresh`` says which decodes do)."""
+    takes seconds instead of milliseconds (``refresh`` says which decodes do); the service solves
+    off its renders instead, whenever a session has no frame waiting (`Scene.solve_colours`)."""
     refresh: Annotated[int, Field(ge=1, le=1_000_000)] = 4
     """Frames folded between two colour solves of a streaming scene. The first decode solves from
     scratch; later decodes reuse the last solution (its offsets, on the voxels it solved: voxels
@@ -290,7 +291,7 @@ class SceneConfig(SettingsGroup):
     features: FeatureSettings = FeatureSettings()
     """The fused features: where they come from and how many channels."""
     colour_solve: ColourSolve = ColourSolve()
-    """The render-consistent colour solve (off by default)."""
+    """The render-consistent colour solve (on by default: 16 kept views)."""
     model: Annotated[str, Field(min_length=1, max_length=4096)] = "default"
     """The decoder's parameters: ``default`` (the checkpoint shipped with the library when one ships,
     else the training-free decoder), ``none`` (the training-free, analytic decoder) or the path of a

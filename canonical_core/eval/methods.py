@@ -1,7 +1,9 @@
 """The methods under evaluation: each builds a renderable model from input frames.
 
 ``METHODS`` maps a name to a `Method`:
-- ``canonical``: the full method, `Scene` with the paper's weighting, decoded analytically;
+- ``canonical``: the full method, `Scene` with the paper's weighting and the library's defaults,
+  decoded analytically and its colours solved against the inputs (`SceneConfig.colour_solve`, on
+  by default; ``canonical:colour_solve.views=0`` is the fused colours alone);
 - ``no_reliability``, ``no_similarity``, ``average``: the aggregation ablations (``SceneConfig.research``,
   which only the evaluation sets);
 - ``plain_decoding``: the same fused voxels as ``canonical``, but every Gaussian gets one opacity,
@@ -10,7 +12,8 @@
 - ``depth_completion``: ``canonical`` with `SceneConfig.depth.completion` (large sensor-depth holes
   filled by the plane sweep against the session's earlier views);
 - ``colour_solve``: ``canonical`` with `SceneConfig.colour_solve.views` 16 (every input of the
-  protocol kept): decoded colours solved so that renders reproduce the input views (least squares);
+  protocol kept, the default): decoded colours solved so that renders reproduce the input views
+  (least squares), whatever the default;
 - ``completion_solve``: both of the above, the setting for sessions captured first and viewed after;
 - ``pixel_aligned``, ``gaussian_merge``: baselines without fusion (see `baselines`);
 - ``open3d_tsdf``: Open3D TSDF fusion + ray-cast colour (needs the ``bench`` extra).

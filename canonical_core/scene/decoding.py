@@ -18,8 +18,7 @@ Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one sc
 from __future__ import annotations
 
 import threading
-from concurrent.futures import Executor, Future
-from typing import Callable, NamedTuple
+from typing import Callable, Literal, NamedTuple
 
 import numba
 import numpy as np
@@ -37,6 +36,9 @@ POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` 
 # conjugate-gradient steps of a colour solve that starts from the last solution (one from zero takes the
 # library's default, 4): from a solution a handful of frames old, two reach about what a solve from zero does
 REFRESH_ITERATIONS = 2
+# "solve": a decode solves the colours when due (`SceneConfig.colour_solve.refresh`); "last": it shows
+# the last solution and never solves, for a caller whose solves run elsewhere (`Scene.solve_colours`)
+Colours = Literal["solve", "last"]
 DECODE_CACHE_ENTRIES = 4  # levels of detail of one scene state kept decoded (the full decode always among them)
 
 
@@ -201,8 +203,7 @@ class SceneDecoding:
         self._rows: DecodedRows | None = None
         self._gaussians: dict = {}  # (level of detail, decoder key) -> Gaussians of the current state
         self.solution: ColourSolution | None = None  # the colour solve's last answer (snapshots keep it)
-        self.pending: Future | None = None  # a re-solve running on a caller's executor (`finish`)
-        self._epoch = 0  # bumped by `reset`: a re-solve started on the replaced state is not kept
+        self.epoch = 0  # bumped by `reset`: a solve started on the replaced state is not kept (`land`)
 
     def key(self) -> tuple:
         """What a row's decode depends on besides its sums: the decoder's parameters and clamps."""
@@ -239,7 +240,7 @@ class SceneDecoding:
             self._rows = None
         self._gaussians.clear()
         self.solution = None
-        self._epoch += 1
+        self.epoch += 1
 
     # -- decoding -----------------------------------------------------------------------------
     def decode(self, inputs: DecodeInputs, max_gaussians: int | None = None, min_support: float = 0.0,
@@ -288,58 +289,54 @@ class SceneDecoding:
             inputs.observations_per_view, list(inputs.views), inputs.frames, whole,
         )  # fmt: skip
 
-    def finish(self, work: DecodeWork, solver: tuple[Executor, Callable[[], None]] | None = None) -> Gaussians:
-        """The second half of a decode (`take`), for a caller that holds `lock`. With ``solver`` (an
-        executor, and what to call once a re-solve has landed there), a colour re-solve that falls due
-        runs on the executor: this decode, and those until it lands, show the last solution
-        (`_colour_offsets`)."""
+    def finish(self, work: DecodeWork, colours: Colours = "solve") -> Gaussians:
+        """The second half of a decode (`take`), for a caller that holds `lock`. With ``colours``
+        ``"last"`` it never solves: it shows the last solution (`_colour_offsets`), for a caller whose
+        solves run elsewhere (`Scene.solve_colours`)."""
+        gaussians = self.base(work)
+        if not work.views or (colours == "last" and self.solution is None):  # nothing solved: the fused colours
+            return gaussians
+        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, work.chosen.rows, work, colours))
+
+    def base(self, work: DecodeWork) -> Gaussians:
+        """`finish` before the colour solve: the decoded Gaussians in their fused colours."""
         if self.config.voxel_size is None:  # no frame has chosen it (`choices`): no voxel to decode
             return Gaussians.empty(self.config.sh_degree, self.config.features.dim if work.wants_features else None)
         chosen = work.chosen
         with torch.no_grad():
             opacities = self.decoder.opacities(chosen.support, chosen.free, chosen.unit * work.observations_per_view)
-        gaussians = Gaussians(opacities=opacities, **self._shapes_and_colours(work))
-        if not work.views:
-            return gaussians
-        return with_colour_offsets(gaussians, self._colour_offsets(gaussians, chosen.rows, work, solver))
+        return Gaussians(opacities=opacities, **self._shapes_and_colours(work))
 
-    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, work: DecodeWork,
-                        solver: tuple[Executor, Callable[[], None]] | None) -> torch.Tensor:
+    def refresh_due(self, frames: int) -> bool:
+        """Whether a decode with ``colours="solve"`` of a scene at ``frames`` solves (views kept): no
+        solution yet, or `SceneConfig.colour_solve.refresh` frames folded since the last one."""
+        return self.solution is None or frames - self.solution.frames >= self.config.colour_solve.refresh
+
+    def _colour_offsets(self, gaussians: Gaussians, rows: np.ndarray, work: DecodeWork, colours: Colours) -> torch.Tensor:
         """The colour solve's offsets of the decoded ``rows`` ([N, K, 3]): the last solution's while it
-        is fresh (fewer than `SceneConfig.colour_solve.refresh` frames folded since) and for a decode
+        is fresh (fewer than `SceneConfig.colour_solve.refresh` frames folded since), for a decode
         of part of the scene (a level of detail or a support floor, which never replaces the whole
-        scene's solution); else solved, from the last solution where there is one, and kept. With a
-        ``solver``, that re-solve runs there and this decode shows the last solution; the first solve
-        of a scene runs here, so a scene is never shown unsolved."""
+        scene's solution) and with ``colours="last"``; else solved, from the last solution where there
+        is one, and kept."""
         solution = self.solution
         last = solution.at(rows) if solution is not None else None
-        if solution is not None and (not work.whole or work.frames - solution.frames < self.config.colour_solve.refresh):
+        if solution is not None and (colours == "last" or not (work.whole and self.refresh_due(work.frames))):
             return last
         if solution is None:
             offsets = colour_offsets(gaussians, work.views)
-        elif solver is not None:
-            if self.pending is None or self.pending.done():
-                executor, landed = solver
-                self.pending = executor.submit(self._resolve, gaussians, rows.copy(), list(work.views), last,
-                                               work.frames, self._epoch, landed)
-            return last
         else:
             offsets = colour_offsets(gaussians, work.views, last, iterations=REFRESH_ITERATIONS)
         if work.whole:
             self.solution = ColourSolution(rows.copy(), offsets, work.frames)
         return offsets
 
-    def _resolve(self, gaussians: Gaussians, rows: np.ndarray, views: list[Frame], initial: torch.Tensor,
-                 frames: int, epoch: int, landed: Callable[[], None]) -> None:
-        """A re-solve on an executor: kept unless the state was replaced meanwhile (`reset`) or a newer
-        solution is there; then ``landed`` (the scene drops its decoded Gaussians, so the next
-        request decodes again with it)."""
-        offsets = colour_offsets(gaussians, views, initial, iterations=REFRESH_ITERATIONS)
-        with self.lock:
-            if epoch != self._epoch or (self.solution is not None and self.solution.frames >= frames):
-                return
-            self.solution = ColourSolution(rows, offsets, frames)
-        landed()
+    def land(self, solution: ColourSolution, epoch: int) -> bool:
+        """Keep ``solution`` (of the state at ``epoch``, `Scene.solve_colours`) unless a correction
+        replaced that state meanwhile or a solution as new is kept; the caller holds `lock`."""
+        if epoch != self.epoch or (self.solution is not None and self.solution.frames >= solution.frames):
+            return False
+        self.solution = solution
+        return True
 
     def _shapes_and_colours(self, work: DecodeWork) -> dict[str, torch.Tensor | None]:
         """`GaussianDecoder.shapes_and_colours` of the rows that decode: decoded from the work's sums

@@ -12,7 +12,7 @@ import hashlib
 import os
 import threading
 import time
-from concurrent.futures import Executor, Future
+from typing import get_args
 
 import numpy as np
 import torch
@@ -21,10 +21,10 @@ from ..evidence import AppearanceUncertainty, DepthConsistency
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..decode.checkpoint import load_model as _load_model
-from . import choices, folding, refold, snapshot
+from . import choices, folding, refold, snapshot, solving
 from ..config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
-from .decoding import DecodeInputs, SceneDecoding
+from .decoding import Colours, DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
 from .folding import FoldReport
@@ -285,7 +285,7 @@ class Scene:
         """
         return self._decoding.decode(inputs, max_gaussians, min_support, features)
 
-    def gaussians(self, max_gaussians: int | None = None, colour_solver: Executor | None = None,
+    def gaussians(self, max_gaussians: int | None = None, colours: Colours = "solve",
                   features: bool = True) -> Gaussians:
         """`decode(max_gaussians)` of the scene as it is now, decoded once per change: until the next
         fold, later calls (from any thread) return the same Gaussians. Concurrent calls on an
@@ -294,43 +294,41 @@ class Scene:
         the others: a fold's worth, not the scene), so folds go on meanwhile, and a decode that a
         fold overtook answers its caller but is not kept.
 
-        With ``colour_solver``, a colour re-solve that falls due (`SceneConfig.colour_solve.refresh`)
-        runs on that executor (on another thread: it takes the decode lock this call holds) instead of
-        in this call, which shows the last solution meanwhile; once it lands, the next call decodes
-        with it (`colour_solve_pending` is its future). A service does so, so that a render never
-        waits for a re-solve.
+        With ``colours="last"`` it never solves: it shows the last solution (before the first, the
+        fused colours); `solve_colours`, run elsewhere, makes the next. A render never waits so.
 
         Without ``features`` the Gaussians may carry no F_scene (``features`` None; kept Gaussians
         that carry it are returned as they are): for renders of colour, depth or labels, whose decode
         after a fold then reads only the voxels the fold touched and the columns that pick the
         decoded voxels, not F_scene of every decoded voxel."""
+        if colours not in get_args(Colours):
+            raise ValueError(f"colours: expected one of {list(get_args(Colours))}, got {colours!r}")
         with self._lock:
-            hit = self._decoding.cached(self._lod(max_gaussians), features)
+            hit = self._cached(self._lod(max_gaussians), colours, features)
         if hit is not None:
             return hit
         with self._decoding.lock:  # one decode at a time: a second caller waits, then finds it kept
             with self._lock:
                 lod = self._lod(max_gaussians)  # the scene may have grown while we waited
-                hit = self._decoding.cached(lod, features)
+                hit = self._cached(lod, colours, features)
                 if hit is not None:
                     return hit
                 work = self._decoding.take(self._decode_inputs(live=True), lod, features=features)
                 generation = self._generation
-            solver = (colour_solver, self._forget_decoded) if colour_solver is not None else None
-            gaussians = self._decoding.finish(work, solver)
+            gaussians = self._decoding.finish(work, colours)
             with self._lock:
                 if self._generation == generation:
                     self._decoding.keep(lod, gaussians)
             return gaussians
 
-    def _forget_decoded(self) -> None:
-        """A colour re-solve landed: the decoded Gaussians kept for this state show the last one."""
-        with self._lock:
-            self._decoding.forget()
+    def _cached(self, lod: int | None, colours: Colours, features: bool) -> Gaussians | None:
+        """Kept Gaussians for `gaussians`; none when it solves (they may show an older solution)."""
+        if colours == "solve" and len(self._keyframes) > 0 and self._decoding.refresh_due(self.frames):
+            return None
+        return self._decoding.cached(lod, features)
 
-    def colour_solve_pending(self) -> Future | None:
-        """The future of the last colour re-solve that `gaussians` started on its ``colour_solver``."""
-        return self._decoding.pending
+    # the colour solve off the decode path (`solving`): whether one is due, and the solve
+    colour_solve_due, solve_colours, colours_solved_frames = solving.colour_solve_due, solving.solve_colours, solving.colours_solved_frames
 
     def _lod(self, max_gaussians: int | None) -> int | None:
         """The level of detail ``max_gaussians`` means now: None when it leaves out nothing."""
@@ -348,6 +346,8 @@ class Scene:
         with self._lock:
             h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|density={self._density_sum!r},{self._density_frames}|".encode())
             for name, array in sorted(self._snapshot_arrays().items()):
+                if name.startswith("keyframes.") and name.endswith(".id"):  # a kept view's name: neither folds nor decodes
+                    continue
                 h.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
                 h.update(np.ascontiguousarray(array).tobytes())
             return h.hexdigest()

@@ -14,6 +14,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError, unparsable
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
+from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
@@ -112,13 +113,16 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         return record, frame
 
     t0 = time.perf_counter()
-    record, frame = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
-    decoded = time.perf_counter() - t0
-    if frame_index is not None:  # on the loop, holding no job
-        await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
-    t0 = time.perf_counter()
-    report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
-                                    settings.snapshot_every_seconds, frame_index, kind="frame", session=session.id)
+    try:
+        record, frame = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
+        decoded = time.perf_counter() - t0
+        if frame_index is not None:  # on the loop, holding no job
+            await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
+        t0 = time.perf_counter()
+        report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
+                                        settings.snapshot_every_seconds, frame_index, kind="frame", session=session.id)
+    finally:  # the colours of what the session holds now, solved while no frame of it waits
+        solve_soon(jobs, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:

@@ -166,7 +166,7 @@ def test_opacity_line_settings_move_only_opacity_along_the_line(shelf_frames):
     # moves every logit by that change, a change of a by that change times r; nothing else moves
     settings = {"default": {}, "bias -3": {"decoder": {"opacity_bias": -3.0}},
                 "slope 1": {"decoder": {"opacity_slope": 1.0}}}
-    scenes = {k: Scene(SceneConfig(voxel_size=0.004, **v)) for k, v in settings.items()}
+    scenes = {k: Scene(SceneConfig(voxel_size=0.004, colour_solve={"views": 0}, **v)) for k, v in settings.items()}
     for scene in scenes.values():
         for f in shelf_frames[:2]:
             scene.fold(f)

@@ -94,18 +94,20 @@ def test_depth_completion_fills_what_the_sensor_missed():
     assert band(completed) > band(canonical) + 0.05
 
 
-def test_colour_solve_is_canonical_with_colours_solved_against_its_inputs(frames):
+def test_canonical_solves_its_colours_against_its_inputs_by_default(frames):
+    fused, _ = build("canonical:colour_solve.views=0", frames[:2], 0.02)
     canonical, _ = build("canonical", frames[:2], 0.02)
     solved, _ = build("colour_solve", frames[:2], 0.02)
-    expected = solve_colours(canonical.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
+    expected = solve_colours(fused.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(solved.splats, name)), name
-    assert not torch.equal(canonical.splats.sh, solved.splats.sh)
+        assert torch.equal(getattr(expected, name), getattr(canonical.splats, name)), name
+    assert not torch.equal(fused.splats.sh, solved.splats.sh)
 
 
 def test_completion_solve_is_depth_completion_with_colours_solved():
     holed = holed_frames()
-    completed, _ = build("depth_completion", holed, 0.02)
+    completed, _ = build("depth_completion:colour_solve.views=0", holed, 0.02)
     both, _ = build("completion_solve", holed, 0.02)
     assert both.gaussians == completed.gaussians > build("canonical", holed, 0.02)[0].gaussians
     expected = solve_colours(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])

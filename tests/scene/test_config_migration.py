@@ -29,11 +29,14 @@ def test_flat_snapshot_settings_land_in_their_groups(loaded):
     assert (c.free_space.enabled, c.free_space.margin, c.depth.hypotheses, c.sensor.edge_weight) == (True, 2.5, 32, 0.4)
     assert (c.decoder.opacity_slope, c.decoder.opacity_bias, c.decoder.sh_regularization) == (25.0, -1.0, 0.004)
     assert (c.research.weighting, c.research.eps) == ("full", 1e-8)
-    # and every other setting is its default but the weight floor, which did not exist then (0); the sensor values, written before the families, under the
-    # family of the model they were (registration_px, newer than the layout, is its preset's)
+    # and every other setting is its default, but the weight floor (0: it did not exist then) and the colour
+    # solve, which the snapshot has off (written when that was the default): a loaded scene keeps the
+    # settings it was made with; the sensor values, written before the families, under the family of the
+    # model they were (registration_px, newer than the layout, is its preset's)
     assert c == SceneConfig(voxel_size=0.15, features={"dim": 4}, free_space={"margin": 2.5}, depth={"hypotheses": 32},
                             sensor={"family": "structured_light", "sigma0": 0.0012, "sigma2": 0.0019, "sigma_ref": 0.4,
                                     "edge_weight": 0.4, "registration_px": 0.0, "weight_floor": 0.0},
+                            colour_solve={"views": 0},
                             decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
 
 

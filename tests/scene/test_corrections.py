@@ -12,7 +12,7 @@ from canonical_core.scene.corrections import FrameRef, check_poses, drift_walk, 
 from canonical_core.scene.corrections import drifted as drifted_frames
 from tests.conftest import make_frame
 
-CONFIG = SceneConfig(voxel_size=0.05)
+CONFIG = SceneConfig(voxel_size=0.05, colour_solve={"views": 0})  # the fused state under test: its decodes too
 
 
 def pose(tx: float, ty: float = 0.0, yaw: float = 0.0) -> np.ndarray:

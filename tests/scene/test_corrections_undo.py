@@ -62,7 +62,7 @@ def test_a_room_scale_walk_rolls_back_exactly_and_its_records_keep_the_frustums_
     if not (DATA / "hololens_office").is_dir():
         pytest.skip("real capture not found")
     frames = list(load_dataset(DATA / "hololens_office", stride=8, max_frames=12))
-    scene = Scene(SceneConfig(voxel_size=0.02), undo_depth=4)
+    scene = Scene(SceneConfig(voxel_size=0.02, colour_solve={"views": 0}), undo_depth=4)
     for frame in frames[:8]:
         scene.fold(frame)
     digest, expected = scene.digest(), state(scene)
@@ -80,7 +80,7 @@ def test_a_room_scale_walk_rolls_back_exactly_and_its_records_keep_the_frustums_
     table = scene._voxels.table.copy()  # the created voxels left the table: as a rebuild would leave it
     scene._voxels.rebuild_table()
     np.testing.assert_array_equal(table, scene._voxels.table)
-    fresh = Scene(SceneConfig(voxel_size=0.02))
+    fresh = Scene(SceneConfig(voxel_size=0.02, colour_solve={"views": 0}))
     for frame in frames[:8]:
         fresh.fold(frame)
     assert_same_gaussians(scene.decode(), fresh.decode())
@@ -152,7 +152,7 @@ def test_labels_that_widen_the_rows_end_the_records_before_them():
 def test_a_correction_that_fails_in_place_leaves_the_scene_as_it_was():
     frames = stream(6)
     full = fold(frames)
-    scene = Scene(SceneConfig(voxel_size=CONFIG.voxel_size, max_voxels=len(full) + 5), keep_frames=True)
+    scene = Scene(SceneConfig(voxel_size=CONFIG.voxel_size, max_voxels=len(full) + 5, colour_solve={"views": 0}), keep_frames=True)
     for frame in frames:
         scene.fold(frame)
     before = scene.digest()

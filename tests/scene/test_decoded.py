@@ -14,7 +14,13 @@ from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS, gather_rows
 from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES, decoded_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
-from ..conftest import folded_scene, make_frame
+from ..conftest import folded_scene as _folded_scene, make_frame
+
+UNSOLVED = {"views": 0}  # the decoded rows are under test: the colour solve off, whose solutions vary by decode history
+
+
+def folded_scene(frames, voxel_size: float = 0.008, **settings):
+    return _folded_scene(frames, voxel_size, colour_solve=UNSOLVED, **settings)
 
 
 def assert_same_gaussians(a, b):
@@ -115,7 +121,7 @@ def test_a_changed_decoder_parameter_is_not_served_from_earlier_decodes(shelf):
 
 @pytest.mark.realdata
 def test_one_scenes_inputs_never_match_another_scenes_decoded_rows(shelf):
-    a, b = Scene(SceneConfig(voxel_size=0.008)), Scene(SceneConfig(voxel_size=0.008))
+    a, b = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.008)), Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.008))
     a.fold(shelf[0])
     b.fold(shelf[5])  # the same number of folds: equal per-scene fold counts would collide
     b.decode()
@@ -136,7 +142,7 @@ def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
 
 
 def test_labels_arriving_after_a_decode_reach_every_voxel():
-    scene = Scene(SceneConfig(voxel_size=0.1, free_space={"enabled": False}))
+    scene = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.1, free_space={"enabled": False}))
     depth = np.full((4, 4), 1.0)
     scene.fold(make_frame(depth, fx=4.0))
     assert scene.decode().labels is None
@@ -161,7 +167,7 @@ def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
 @pytest.mark.realdata
 def test_decodes_racing_folds_and_each_other_each_decode_their_own_inputs(shelf):
     # as the service runs them: folds and the copy of the inputs under one lock, decodes outside it
-    scene, lock = Scene(SceneConfig(voxel_size=0.008)), threading.Lock()
+    scene, lock = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.008)), threading.Lock()
     scene.fold(shelf[0])
     decoded, errors, started, folded = [], [], threading.Barrier(3, timeout=120), threading.Event()
 
@@ -299,7 +305,7 @@ def test_decoded_rows_equals_its_reference(free_space, min_support, n):
     sums = {"r_sum": rng.gamma(1.0, 0.5, n).astype(np.float32), "n_obs": rng.integers(0, 6, n).astype(np.int32),
             "free": rng.gamma(1.0, 0.4, n).astype(np.float32)}
     sums["r_sum"][sums["n_obs"] == 0] = 0.0
-    config = SceneConfig(voxel_size=0.01, free_space={"enabled": free_space})
+    config = SceneConfig(colour_solve=UNSOLVED, voxel_size=0.01, free_space={"enabled": free_space})
     keep, support, free, unit = decoded_rows(sums, min_support, config)
     r, f = torch.from_numpy(sums["r_sum"]), torch.from_numpy(sums["free"])
     mask = r > min_support
@@ -333,7 +339,7 @@ def test_gather_rows_equals_fancy_indexing_on_the_scenes_columns():
 
 
 def test_an_empty_scene_decodes_to_no_gaussians():
-    scene = Scene(SceneConfig(voxel_size=0.05))
+    scene = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.05))
     assert len(scene.decode()) == 0 and len(scene.decode_from(scene.decode_inputs())) == 0
     empty = scene.decode_inputs().sums
     for name, column in empty.items():

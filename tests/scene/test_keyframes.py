@@ -3,8 +3,6 @@ as `solve_colours` does, and they travel with the snapshot."""
 
 from __future__ import annotations
 
-from concurrent.futures import Executor, Future
-
 import numpy as np
 import pytest
 import torch
@@ -77,7 +75,7 @@ def small(shelf_frames):
 @pytest.mark.realdata
 def test_decode_solves_colours_against_the_kept_views(small):
     solving = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0}))
-    plain = Scene(SceneConfig(voxel_size=0.008))
+    plain = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 0}))
     for f in small:
         solving.fold(f)
         plain.fold(f)
@@ -126,7 +124,7 @@ def test_keyframes_travel_with_the_snapshot(small, tmp_path):
 
 @pytest.mark.realdata
 def test_a_frame_that_fails_to_fold_is_not_kept(small):
-    probe = Scene(SceneConfig(voxel_size=0.008))
+    probe = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 0}))
     probe.fold(small[0])
     scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 8}, max_voxels=len(probe) + 10))
     scene.fold(small[0])
@@ -142,7 +140,7 @@ def rows_of(scene: Scene) -> np.ndarray:  # the voxel rows a full decode of the 
 @pytest.mark.realdata
 def test_decodes_reuse_the_solution_until_refresh_frames_were_folded(small):
     solving = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 2}))
-    plain = Scene(SceneConfig(voxel_size=0.008))
+    plain = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 0}))
     for f in small[:2]:
         solving.fold(f)
         plain.fold(f)
@@ -192,7 +190,7 @@ def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(smal
     loaded = Scene.load(tmp_path / "scene.cgs")
     assert loaded._decoding.solution.frames == 2 and np.array_equal(loaded._decoding.solution.rows, scene._decoding.solution.rows)
     assert torch.equal(loaded.decode().sh, scene.decode().sh)
-    plain = Scene(SceneConfig(voxel_size=0.008))
+    plain = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 0}))
     for f in small[:3]:
         plain.fold(f)
     assert not torch.equal(loaded.decode().sh, solve_colours(plain.decode(), loaded._keyframes.frames()).sh)
@@ -202,67 +200,6 @@ def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(smal
     assert carried.frames == 2 - scene.config.colour_solve.refresh
     assert np.array_equal(carried.rows, solved.rows[solved.rows < len(scene)])
     assert torch.equal(carried.offsets, solved.offsets[torch.from_numpy(solved.rows < len(scene))])
-
-
-class Deferred(Executor):
-    """Runs what is submitted when told to (`run`), on the test's thread: the order is the test's."""
-
-    def __init__(self):
-        self.jobs = []
-
-    def submit(self, fn, /, *args, **kwargs) -> Future:
-        future = Future()
-        self.jobs.append((future, fn, args, kwargs))
-        return future
-
-    def run(self) -> None:
-        while self.jobs:
-            future, fn, args, kwargs = self.jobs.pop(0)
-            future.set_result(fn(*args, **kwargs))
-
-
-@pytest.mark.realdata
-def test_a_colour_solver_re_solves_off_the_decode_and_the_next_decode_shows_it(small):
-    solver = Deferred()
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 1}))
-    plain = Scene(SceneConfig(voxel_size=0.008))
-    for f in small[:2]:
-        scene.fold(f)
-        plain.fold(f)
-    first_g = scene.gaussians(colour_solver=solver)  # a scene's first solve runs in the call
-    first = scene._decoding.solution
-    assert first.frames == 2 and not solver.jobs and scene.colour_solve_pending() is None
-    assert torch.equal(first_g.sh, with_colour_offsets(plain.decode(), first.offsets).sh)
-    scene.fold(small[2])
-    plain.fold(small[2])
-    rows, base = rows_of(scene), plain.decode()
-    shown = scene.gaussians(colour_solver=solver)  # due: submitted, and this call shows the last solution
-    assert len(solver.jobs) == 1 and not scene.colour_solve_pending().done() and scene._decoding.solution is first
-    assert torch.equal(shown.sh, with_colour_offsets(base, first.at(rows)).sh)
-    assert scene.gaussians(colour_solver=solver) is shown and len(solver.jobs) == 1  # cached; one re-solve at a time
-    solver.run()
-    second = scene._decoding.solution
-    expected = colour_offsets(base, scene._keyframes.frames(), first.at(rows), iterations=REFRESH_ITERATIONS)
-    assert second.frames == 3 and torch.equal(second.offsets, expected)
-    landed = scene.gaussians(colour_solver=solver)  # the landed solve dropped the kept Gaussians
-    assert landed is not shown and torch.equal(landed.sh, with_colour_offsets(base, expected).sh) and not solver.jobs
-
-
-@pytest.mark.realdata
-def test_a_re_solve_of_a_replaced_state_is_not_kept(small):
-    solver = Deferred()
-    scene = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "scale": 1.0, "refresh": 1}),
-                  undo_depth=2)
-    scene.fold(small[0])
-    scene.gaussians(colour_solver=solver)
-    scene.fold(small[1])
-    scene.gaussians(colour_solver=solver)
-    assert len(solver.jobs) == 1
-    first = scene._decoding.solution
-    scene.rollback(1)  # the re-solve in flight is of the rolled-back state: it is not kept
-    solver.run()
-    assert scene._decoding.solution.frames == 1 - scene.config.colour_solve.refresh
-    assert torch.equal(scene._decoding.solution.offsets, first.offsets[torch.from_numpy(first.rows < len(scene))])
 
 
 @pytest.mark.realdata

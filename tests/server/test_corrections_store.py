@@ -242,14 +242,15 @@ def test_a_correction_carries_the_colour_solution_to_the_corrected_scene(tmp_pat
         session = store.create(SceneConfig(voxel_size=0.01, colour_solve={"views": 3, "scale": 1.0}))
         for kwargs in shelf[:5]:
             session.add_frame(*payload(kwargs), 1000, 3600)
-        session.gaussians()  # the first solve
+        assert session.solve_colours()  # as the service's background solve does
         solved = session.scene._decoding.solution
         offsets_of = dict(zip(session.scene._voxels.state["keys"][solved.rows].tolist(), solved.offsets))
         shift = np.zeros((4, 4))
         shift[:3, 3] = 0.01
         session.corrections.correct({shelf[4]["frame_id"]: shelf[4]["c2w"] + shift})
-        carried = session.scene._decoding.solution  # the served scene starts from it, not from zero
-        assert carried is not None and session.scene.frames - carried.frames >= session.config.colour_solve.refresh  # due
+        carried = session.scene._decoding.solution  # the served scene shows it until its re-solve lands
+        assert carried is not None and session.scene.frames - carried.frames >= session.config.colour_solve.refresh
+        assert session.colour_solve_due()
         keys = session.scene._voxels.state["keys"][carried.rows].tolist()
         assert len(keys) > 0.8 * len(solved.rows)
         assert all(np.array_equal(offset, offsets_of[key]) for key, offset in zip(keys, carried.offsets))

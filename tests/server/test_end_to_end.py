@@ -13,7 +13,7 @@ from PIL import Image
 from canonical_core import load_ply
 from client.sdk import CanonicalError, png_to_array
 
-from .harness import TOKEN, VOXEL
+from .harness import TOKEN, VOXEL, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -238,12 +238,15 @@ def test_rgb_only_session_end_to_end(client, frames):
 @pytest.mark.realdata
 def test_colour_solve_session_renders_its_inputs_closer(client, frames):
     """A session with colour_solve.views keeps input views and solves the Gaussians' colours against
-    them: its renders at an input pose are closer to that frame than a plain session's."""
+    them (in the background, once no frame waits): its renders at an input pose are then closer to
+    that frame than those of a session with the solve off."""
     solving = client.create_session(voxel_size=VOXEL, colour_solve={"views": 4})
-    plain = client.create_session(voxel_size=VOXEL)
+    plain = client.create_session(voxel_size=VOXEL, colour_solve={"views": 0})
     for f in frames[:4]:
         solving.add_frame(**f)
         plain.add_frame(**f)
+    assert wait_for(lambda: solving.stats()["colours_solved_frames"] == 4, 300)  # solved in the background
+    assert plain.stats()["colours_solved_frames"] is None
     kept = 4 * frames[0]["rgb"].nbytes // 4  # four views at half size
     assert solving.stats()["memory_bytes"] >= plain.stats()["memory_bytes"] + kept
     view = view_of(frames[2])

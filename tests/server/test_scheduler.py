@@ -1,6 +1,7 @@
 """The scheduler on its own threads: frames never wait for renders, work before the viewer's pictures,
 sessions in turn, a session's frames one at a time in order, limits per session and kind, a newer
-viewer picture replacing a waiting one, and the render workers' lower OS priority.
+viewer picture replacing a waiting one, the render workers' lower OS priority, and the background
+solves: their own lowest lane, a session's one at a time, none while its frames wait.
 
 Each test holds a worker inside a job (a `threading.Event`) to line jobs up behind it, so the order
 asserted is the scheduler's choice, never a matter of timing.
@@ -14,7 +15,7 @@ import threading
 
 import pytest
 
-from server.scheduler import VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
+from server.scheduler import SOLVE_NICE, VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
 
 WAIT_S = 30.0
 
@@ -204,7 +205,7 @@ def test_render_workers_run_at_a_lower_os_priority():
 
 
 def test_worker_threads_are_bounded_and_stop_on_close():
-    scheduler = Scheduler(frame_workers=2, render_workers=3, queue_limit=8)
+    scheduler = Scheduler(frame_workers=2, render_workers=3, queue_limit=8, solve_workers=1)
 
     async def body():
         await asyncio.gather(*[scheduler.run(str, i, kind=kind, session=f"s{i}")
@@ -212,6 +213,69 @@ def test_worker_threads_are_bounded_and_stop_on_close():
 
     before = threading.active_count()
     asyncio.run(body())
-    assert threading.active_count() - before == 5
+    assert threading.active_count() - before == 6
     scheduler.close()
     assert threading.active_count() == before
+
+
+def test_background_solves_wait_for_nothing_and_hold_no_render_worker():
+    async def body(s: Scheduler):
+        gate, done = Gate(), []
+        assert s.background(lambda: done.append(gate()), "a")
+        await gate.until_started()  # the one solve worker is busy: renders and frames still run
+        assert await s.run(str, 1, kind="work", session="a") == "1"
+        assert await s.run(str, 2, kind="frame", session="a") == "2"
+        gate.opened.set()
+        while s.active:
+            await asyncio.sleep(0.01)
+        return done
+
+    assert run(body) == ["gate"]
+
+
+def test_a_session_has_one_solve_waiting_none_while_its_frames_wait_and_sessions_take_turns():
+    async def body(s: Scheduler):
+        order, gate = [], Gate()
+        assert s.background(gate, "x")  # holds the solve worker
+        await gate.until_started()
+        assert s.background(lambda: order.append("a1"), "a") and not s.background(lambda: order.append("a2"), "a")
+        assert s.background(lambda: order.append("b1"), "b")
+        frame_gate = Gate()
+        frame = asyncio.ensure_future(s.run(frame_gate, kind="frame", session="c"))
+        await frame_gate.until_started()
+        assert s.frames_held("c") == 1 and not s.background(lambda: order.append("c1"), "c")  # its fold queues one after
+        frame_gate.opened.set()
+        await frame
+        assert s.frames_held("c") == 0 and s.background(lambda: order.append("c1"), "c")
+        gate.opened.set()
+        while s.active:
+            await asyncio.sleep(0.01)
+        return order
+
+    assert run(body) == ["a1", "b1", "c1"]
+
+
+def test_a_failed_background_job_is_logged_and_the_lane_goes_on(caplog):
+    async def body(s: Scheduler):
+        done = []
+        assert s.background(lambda: _raise(RuntimeError("solve broke")), "a")
+        while s.active:
+            await asyncio.sleep(0.01)
+        assert s.background(lambda: done.append(1), "a")
+        while s.active:
+            await asyncio.sleep(0.01)
+        return done
+
+    assert run(body) == [1]
+    assert "solve job of session a failed" in caplog.text and "solve broke" in caplog.text
+
+
+def test_solve_workers_run_at_the_lowest_os_priority():
+    async def body(s: Scheduler):
+        seen = []
+        s.background(lambda: seen.append(_nice()), "a")
+        while s.active:
+            await asyncio.sleep(0.01)
+        return seen
+
+    assert run(body) == [min(_nice() + SOLVE_NICE, 19)]

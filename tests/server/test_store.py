@@ -18,8 +18,8 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.datasets import load_tsdf_fusion
-from canonical_core.decode import solve_colours, with_colour_offsets
-from canonical_core.scene.decoding import decoded_rows
+from canonical_core.decode import solve_colours
+from canonical_core.scene import Scene
 from client.cli import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
@@ -60,16 +60,17 @@ def test_session_ids_are_hex_so_a_command_line_never_reads_one_as_a_flag(store):
 
 
 @pytest.mark.realdata
-def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
+def test_a_session_serves_its_last_colour_solution_and_solves_off_the_render(store, shelf_frames):
     session = store.create(SceneConfig(voxel_size=0.008, colour_solve={"views": 2}))
     for frame in shelf_frames[:3]:
         fold(session, frame)
-    g, label_dim = session.gaussians()
     inputs = session.scene.decode_inputs()
-    assert label_dim == 0 and len(inputs.views) == 2
-    assert same(g, session.scene.decode())
     fused = session.scene.decode_from(inputs._replace(views=[]))  # the analytic decode
-    assert same(g, solve_colours(fused, inputs.views)) and not same(g, fused)
+    g, label_dim = session.gaussians()  # no solution yet: the fused colours, and no solve in the call
+    assert label_dim == 0 and len(inputs.views) == 2 and same(g, fused) and session.colour_solve_due()
+    assert session.solve_colours() and not session.colour_solve_due()
+    g = session.gaussians()[0]
+    assert same(g, solve_colours(fused, inputs.views)) and not same(g, fused) and same(g, session.scene.decode())
     assert session.gaussians()[0] is g  # cached until the next fold
     assert session.stats()["gaussians"] == len(g)
     fewer, _ = session.gaussians(max_gaussians=len(g) // 2)
@@ -77,57 +78,33 @@ def test_a_colour_solve_session_serves_the_solved_decode(store, shelf_frames):
 
 
 @pytest.mark.realdata
-def test_a_colour_re_solve_runs_off_the_render_and_the_next_render_shows_it(store, shelf_frames):
-    session = store.create(SceneConfig(voxel_size=0.008, colour_solve={"views": 3, "refresh": 1}))
-    for frame in shelf_frames[:2]:
-        fold(session, frame)
-    session.gaussians()  # the first solve, in the call
-    first = session.scene._decoding.solution
-    fold(session, shelf_frames[2])
-    shown, _ = session.gaussians()  # a re-solve is due: it goes to the colour-solve thread
-    pending = session.scene.colour_solve_pending()
-    assert pending is not None
-    inputs = session.scene.decode_inputs()
-    fused = session.scene.decode_from(inputs._replace(views=[]))
-    rows = decoded_rows(inputs.sums, 0.0, session.config).rows
-    assert same(shown, with_colour_offsets(fused, first.at(rows)))  # the render showed the last solution
-    pending.result(timeout=300)
-    assert session.scene._decoding.solution.frames == 3
-    landed, _ = session.gaussians()
-    assert not same(landed, shown) and same(landed, session.scene.decode())
-
-
-@pytest.mark.realdata
-def test_a_fold_goes_on_while_a_decode_runs_and_the_overtaken_decode_is_not_served(store, shelf_frames):
+def test_a_fold_goes_on_while_a_colour_solve_runs(store, shelf_frames):
     session = store.create(SceneConfig(voxel_size=0.004, colour_solve={"views": 4, "scale": 1.0}))
     for frame in shelf_frames[:4]:
         fold(session, frame)
-    before = len(session.scene.decode_from(session.scene.decode_inputs()._replace(views=[])))
-    answer = {}
-    render = threading.Thread(target=lambda: answer.update(g=session.gaussians()[0]))
-    render.start()
+    scene = session.scene
+    solver = threading.Thread(target=session.solve_colours)
+    solver.start()
 
-    def solving() -> bool:
-        """The decode lock held and the scene's lock free, seen twice 20 ms apart (so not the instant
-        between taking the one and the other): the render is decoding and solving."""
-        scene = session.scene
-        if not (scene._decoding.lock.locked() and not scene._lock.locked() and not session.lock.locked()):
-            return False
-        time.sleep(0.02)
-        return scene._decoding.lock.locked() and not scene._lock.locked() and not session.lock.locked()
+    def locked() -> bool:
+        return scene._decoding.lock.locked() or scene._lock.locked() or session.lock.locked()
 
     deadline = time.monotonic() + 120
-    while not solving():
-        assert time.monotonic() < deadline, "the render never decoded outside the scene's lock"
-        time.sleep(0.005)
-    fold(session, shelf_frames[4])  # takes the scene's lock: it would wait out the decode if the decode held it
-    assert render.is_alive(), "the fold waited for the decode"
-    render.join()
-
-    assert len(answer["g"]) == before  # the render answered with the scene as it was asked
-    current = session.gaussians()[0]  # after the fold: the overtaken solve was not cached
-    assert len(current) != before
-    assert same(current, session.scene.decode())
+    while not locked():  # the solve copies and decodes the state under the locks ...
+        assert time.monotonic() < deadline and solver.is_alive(), "the solve never took the decode lock"
+        time.sleep(0.002)
+    while locked() or (time.sleep(0.02) or locked()):  # ... then solves with none held (free twice, 20 ms apart)
+        assert time.monotonic() < deadline and solver.is_alive(), "the solve never let go of the locks"
+        time.sleep(0.002)
+    fold(session, shelf_frames[4])  # takes the session's and the scene's locks: it would wait out a solve that held them
+    assert solver.is_alive(), "the fold waited for the solve"
+    solver.join()
+    assert scene._decoding.solution.frames == 4 and session.colour_solve_due()  # the state it copied; due again
+    plain = Scene(SceneConfig(voxel_size=0.004, colour_solve={"views": 0}))
+    for frame in shelf_frames[:5]:
+        plain.fold(frame)
+    assert session.solve_colours()
+    assert same(session.gaussians()[0], solve_colours(plain.decode(), scene._keyframes.frames()))
 
 
 @pytest.mark.realdata

@@ -1,0 +1,95 @@
+"""The colour solve in the background of a real service: a stream that pauses is shown in the
+library's solved colours, a frame sent while a solve runs is taken without waiting for it, and a
+restarted service (kill -9) shows the same solved colours again."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+from canonical_core import SceneConfig
+from canonical_core.camera import Camera
+from canonical_core.rendering import render
+from canonical_core.scene import Scene
+from client.sdk import Client
+from server import wire
+
+from .harness import VOXEL, ServerProcess, msgpack_frame, wait_for
+
+pytestmark = [pytest.mark.slow, pytest.mark.realdata]
+
+SOLVE_WAIT_S = 300.0  # a solve takes seconds; the cores are shared with other test workers
+
+
+def library_rgb(frames: list[dict], view: tuple) -> np.ndarray:  # [H, W, 3] uint8
+    """The library's render of ``frames`` folded with the defaults and their colours solved: what the
+    service must show once it has solved them (the same wire conversion, the same render call)."""
+    scene = Scene(SceneConfig(voxel_size=VOXEL))
+    for kwargs in frames:
+        scene.fold(wire.frame_from_message(msgpack_frame(kwargs)))
+    assert scene.solve_colours()
+    out = render(scene.gaussians(colours="last", features=False), Camera(*view), ("rgb",), colour="normalised")
+    return wire.to_uint8(out.rgb.numpy())
+
+
+def view_of(kwargs: dict) -> tuple:
+    h, w = kwargs["rgb"].shape[:2]
+    return kwargs["K"], kwargs["c2w"], w, h
+
+
+def solved(session, frames: int) -> bool:
+    return session.stats()["colours_solved_frames"] == frames
+
+
+def test_a_paused_stream_shows_the_librarys_solved_colours_and_a_restart_keeps_them(tmp_path, frames):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_frames=3, snapshot_every_seconds=3600)
+    streamed, view = frames[:5], view_of(frames[2])
+    expected = library_rgb(streamed, view)
+    try:
+        client = Client(proc.start().url)
+        session = client.create_session(voxel_size=VOXEL)  # the defaults: the colour solve on
+        assert session.stats()["config"]["colour_solve"]["views"] == 16
+        for kwargs in streamed:
+            session.add_frame(**kwargs)
+        # nobody renders: the pause alone gets the colours solved, for the state after the last frame
+        assert wait_for(lambda: solved(session, len(streamed)), SOLVE_WAIT_S), session.stats()
+        shown = session.render(*view)["rgb"]
+        assert np.array_equal(shown, expected)
+        assert np.array_equal(session.render(*view)["rgb"], shown)  # deterministic: the same pixels again
+        digest = session.digest()["sha256"]
+        proc.kill9()
+
+        client = Client(proc.start().url)
+        session = client.session(session.id)
+        assert session.digest()["sha256"] == digest  # solving never touched the fused state
+        session.render(*view)  # a restored session whose colours are due gets them solved
+        assert wait_for(lambda: solved(session, len(streamed)), SOLVE_WAIT_S), session.stats()
+        assert np.array_equal(session.render(*view)["rgb"], expected)
+    finally:
+        proc.kill9()
+
+
+def gauge(url: str, name: str) -> float:
+    text = httpx.get(f"{url}/metrics").text
+    return float(next(line.split()[1] for line in text.splitlines() if line.startswith(name + " ")))
+
+
+def test_a_frame_sent_while_a_solve_runs_is_taken_before_the_solve_lands(tmp_path, frames):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_seconds=3600)
+    try:
+        client = Client(proc.start().url)
+        # full-size kept views at a finer voxel: a solve of seconds against a fold's fraction of one
+        session = client.create_session(voxel_size=VOXEL / 2, colour_solve={"scale": 1.0})
+        for kwargs in frames[:5]:
+            session.add_frame(**kwargs)
+        # the pause after the fifth frame started a solve of the 5-frame state; a frame arrives while it runs
+        assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_running") == 1, SOLVE_WAIT_S)
+        done = gauge(proc.url, "canonical_colour_solves_done")
+        report = session.add_frame(**frames[5])
+        assert report["frame_index"] == 5
+        # acknowledged before that solve finished: the fold did not wait for it
+        assert gauge(proc.url, "canonical_colour_solves_done") == done
+        assert wait_for(lambda: solved(session, 6), SOLVE_WAIT_S), session.stats()  # the pause gets them solved
+    finally:
+        proc.kill9()
