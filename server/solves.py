@@ -13,19 +13,27 @@ arrives meanwhile folds at once.
 from __future__ import annotations
 
 import functools
+import weakref
 
+from .memory import release_memory
 from .scheduler import Scheduler
 from .session import Session
 
 
 def solve_soon(jobs: Scheduler, session: Session) -> bool:
     """Queue a background colour solve of ``session`` if one is due and none waits; returns whether
-    one was queued."""
-    return session.colour_solve_due() and jobs.background(functools.partial(_solve, jobs, session), session.id)
+    one was queued. The job refers to the session weakly, so a deleted session's memory is not held by
+    a solve that waits for its turn."""
+    return session.colour_solve_due() and jobs.background(functools.partial(_solve, jobs, weakref.ref(session)), session.id)
 
 
-def _solve(jobs: Scheduler, session: Session) -> None:
-    if jobs.frames_held(session.id) or session.deleted:  # a frame's fold queues the next solve
+def _solve(jobs: Scheduler, ref: weakref.ref) -> None:
+    session = ref()
+    if session is None or jobs.frames_held(session.id) or session.deleted:  # a frame's fold queues the next solve
         return
-    if session.solve_colours():
+    solved = session.solve_colours()
+    if session.deleted:  # deleted while it solved: what it and its copy of the state held goes back now
+        del session
+        release_memory()
+    elif solved:
         solve_soon(jobs, session)  # frames folded while it solved: their colours are due too

@@ -16,6 +16,7 @@ from canonical_core.datasets.files import depth_from_uint16, read_depth, read_rg
 from client.cli import build_parser
 from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
                         frame_body, scaled_intrinsics, unpack)
+from tests.server.harness import colours_solved
 
 VOXEL = 0.008
 
@@ -53,6 +54,7 @@ def test_session_roundtrip(server, frames, tmp_path):
 
         kwargs = frames[0]
         h, w = kwargs["rgb"].shape[:2]
+        assert colours_solved(session)  # the render and the PNG below then show the same colours
         view = session.render(kwargs["K"], kwargs["c2w"], w, h)
         assert view["rgb"].dtype == np.uint8 and view["rgb"].shape == (h, w, 3)
         assert view["depth"].dtype == np.float32 and view["alpha"].dtype == np.float32

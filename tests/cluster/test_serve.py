@@ -18,7 +18,7 @@ from client.sdk import Client  # noqa: E402
 from server.cluster import serve as cluster  # noqa: E402
 from server.cluster.owner import shard_of  # noqa: E402
 
-from ..server.harness import VOXEL, ServerProcess  # noqa: E402
+from ..server.harness import VOXEL, ServerProcess, colours_solved  # noqa: E402
 from .conftest import settings  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -119,10 +119,13 @@ def test_eviction_and_restore_keep_the_digest_and_png_bytes_and_metrics_count_th
         for kwargs in frames[:4]:
             session.add_frame(**kwargs)
         K, c2w = frames[0]["K"], frames[0]["c2w"]
+        assert colours_solved(session)
         digest, png = session.digest(), session.render_png(K, c2w, 320, 240)
         owner = ray.get_actor(cluster.owner_name(shard_of(session.id, 2)), namespace=config.namespace)
         assert session.id in ray.get(owner.evict.remote(0))
-        assert session.digest() == digest and session.render_png(K, c2w, 320, 240) == png
+        assert session.digest() == digest
+        session.render_png(K, c2w, 320, 240)  # the restored session's first render queues its solve
+        assert colours_solved(session) and session.render_png(K, c2w, 320, 240) == png
         text = client.metrics()
     lines = dict(line.rsplit(" ", 1) for line in text.splitlines() if not line.startswith("#"))
     shard = str(shard_of(session.id, 2))

@@ -37,7 +37,8 @@ def _capture(name: str):
 
 
 def fused(frames, positions, voxel: float) -> Scene:
-    scene = Scene(SceneConfig(voxel_size=voxel), keep_frames=True)
+    # the colour solve off: it would fit colours to the drifted views too, and the subject is the fusion
+    scene = Scene(SceneConfig(voxel_size=voxel, colour_solve={"views": 0}), keep_frames=True)
     for k in positions:
         scene.fold(frames[k])
     return scene

@@ -248,7 +248,7 @@ def test_a_reservation_the_system_refuses_falls_back_to_smaller_blocks(monkeypat
 
 def test_a_preallocated_scene_folds_the_same_and_never_grows_below_its_reservation(shelf_frames):
     frames = shelf_frames[:6]
-    config = SceneConfig(voxel_size=0.004)
+    config = SceneConfig(voxel_size=0.004, colour_solve={"views": 0})  # no kept views: the map's memory alone
     plain, reserved = Scene(config), Scene(config)
     reserved.preallocate(200_000)
     voxels = reserved._voxels

@@ -176,6 +176,15 @@ def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
     return True
 
 
+SOLVE_WAIT_S = 300.0  # a background colour solve takes seconds; the cores are shared with other test workers
+
+
+def colours_solved(session, timeout: float = SOLVE_WAIT_S) -> bool:
+    """Wait until ``session`` (an SDK `Session`) shows colours solved for all its frames: renders
+    show the last solution, so two renders of one state are equal only once its solve has landed."""
+    return wait_for(lambda: (s := session.stats())["colours_solved_frames"] == s["frames"], timeout, 0.1)
+
+
 def hold_snapshot_commits(monkeypatch) -> tuple[threading.Event, threading.Event]:
     """Hold each snapshot written off the acknowledged path once its file is on disk, before its
     commit: returns (written: set then, release: set it to let the commit go on)."""

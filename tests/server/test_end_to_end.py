@@ -13,7 +13,7 @@ from PIL import Image
 from canonical_core import load_ply
 from client.sdk import CanonicalError, png_to_array
 
-from .harness import TOKEN, VOXEL, wait_for
+from .harness import TOKEN, VOXEL, colours_solved, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -118,6 +118,7 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
 def test_get_render_matches_post(client, server, frames):
     session = client.create_session(voxel_size=VOXEL)
     session.add_frame(**frames[0])
+    assert colours_solved(session)  # until then a solve landing between the two renders changes the second
     K, c2w, w, h = view_of(frames[0])
     params = {"pose": ",".join(repr(float(x)) for x in np.asarray(c2w).ravel()),
               "K": f"{K[0][0]},{K[1][1]},{K[0][2]},{K[1][2]}", "width": w, "height": h}

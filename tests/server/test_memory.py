@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from .harness import ServerProcess
+from .harness import SOLVE_WAIT_S, ServerProcess, wait_for
 
 SIDE = 1024
 FINE = 0.0005  # metres: every pixel of the ramp its own voxel
@@ -97,6 +97,8 @@ def test_a_deleted_sessions_memory_goes_back_to_the_system(tmp_path):
         assert peak - start > 400  # two million voxels
         for i in ids:
             assert httpx.delete(f"{proc.url}/v1/sessions/{i}", timeout=60).status_code == 200
+        # a background colour solve that was running works on its own copy of the state until it ends
+        assert wait_for(lambda: "canonical_colour_solves_running 0" in httpx.get(f"{proc.url}/metrics").text, SOLVE_WAIT_S)
         after = resident_mib(proc.proc.pid)
         assert after - start < (peak - start) / 4, (start, peak, after)
     finally:
