@@ -31,6 +31,7 @@ from ..gaussians import Gaussians
 from ..config import SceneConfig
 from .decoded import PARTS, DecodedRows
 from .fields import fields_from_sums
+from .half import float_bits
 from .shapes import voxel_shapes
 
 POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
@@ -112,11 +113,14 @@ def decoded_rows(
 
 
 @numba.njit(parallel=True, cache=True)
-def _features_kernel(rows, f_sum, r_sum, eps, out):
+def _features_kernel(rows, f_mean, r_sum, eps, out):  # f_mean: [V, L] float16 bits (uint16)
+    out_bits = out.view(np.uint32)
     for i in numba.prange(rows.shape[0]):
-        den = r_sum[rows[i]] + eps
-        for j in range(f_sum.shape[1]):
-            out[i, j] = f_sum[rows[i], j] / den
+        r = r_sum[rows[i]]
+        den = r + eps
+        for j in range(f_mean.shape[1]):
+            out_bits[i, j] = float_bits(f_mean[rows[i], j])
+            out[i, j] = out[i, j] * r / den  # the sum as `fields_from_sums` has it, then F_scene
 
 
 def scene_features(
@@ -124,11 +128,13 @@ def scene_features(
     rows: np.ndarray,  # [N] int64
     eps: float,  # `SceneConfig.research.eps`
 ) -> torch.Tensor:  # [N, L] float32
-    """F_scene = sum W F / (R_scene + eps) of ``rows``, as `fields_from_sums` has it (float32). The
-    decoded rows do not keep it (it is the largest part of a row): a division, cheaper to redo
-    from the sums, read in place (a numba gather: torch's of a strided column is several times slower)."""
-    out = np.empty((len(rows), sums["f_sum"].shape[1]), np.float32)
-    _features_kernel(rows, sums["f_sum"], sums["r_sum"], np.float32(eps), out)
+    """F_scene = sum W F / (R_scene + eps) of ``rows``, as `fields_from_sums` has it (float32, the sum
+    being the stored mean times R_scene). The decoded rows do not keep it (it is the largest part of
+    a row): cheaper to redo from the sums, read in place (a numba gather: torch's of a strided
+    column is several times slower)."""
+    f_mean = sums["f_mean"]
+    out = np.empty((len(rows), f_mean.shape[1]), np.float32)
+    _features_kernel(rows, f_mean.view(np.uint16), sums["r_sum"], np.float32(eps), out)
     return torch.from_numpy(out)
 
 

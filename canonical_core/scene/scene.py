@@ -256,7 +256,7 @@ class Scene:
         v = self._voxels
         state = v.state if live else v.copied_state()
         changed_at = v.changed_at[: len(v)]
-        return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.layout),
+        return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.stored),
                             self.observations_per_view(), self._keyframes.frames(),
                             changed_at if live else changed_at.copy(), self.frames)
 

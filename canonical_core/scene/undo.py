@@ -7,8 +7,9 @@ k roll-backs and k folds, not a snapshot load and the folds since it.
 
 What a fold overwrites, and what its record keeps of it:
 
-- the rows of the existing voxels it touches (representative, sums, colour, count): their values
-  before each integration, copied by the fold kernel as it reads them (`RowsBefore`);
+- the records of the existing voxels it touches (representative, sums, colour, count), as the map
+  stores them (`stored`): their values before each integration, copied by the fold kernel as it
+  reads them (`RowsBefore`);
 - the see-through evidence ``free`` of the existing voxels in the chunks its frustum meets, before
   each free-space pass (`FreeBefore`), not the whole column: on a room-scale map most chunks lie
   outside one frame's view;
@@ -36,6 +37,7 @@ import numba
 import numpy as np
 
 from .free_space import CHUNK, SeeThroughHistory
+from .stored import StoredRows
 from .voxel_map import VoxelMap
 
 __all__ = ["FoldUndo", "FreeBefore", "RowsBefore", "UndoRing"]
@@ -46,22 +48,24 @@ class RowsBefore:
     """Existing voxels' records before one integration overwrote them."""
 
     index: np.ndarray  # [T] int64 voxel indices
-    rows: np.ndarray  # [T, width] float32
+    rows: np.ndarray  # [T, width] float32, the stored records' float32 part
+    half: np.ndarray  # [T, half_width] uint16, their float16 part
     rep_rgb: np.ndarray  # [T, 3] uint8
     n_obs: np.ndarray  # [T] int32
 
     @classmethod
-    def room(cls, count: int, width: int) -> "RowsBefore":
-        """Room for ``count`` rows of ``width`` columns, for the fold kernel to fill."""
-        return cls(np.empty(count, np.int64), np.empty((count, width), np.float32), np.empty((count, 3), np.uint8),
+    def room(cls, count: int, stored: StoredRows) -> "RowsBefore":
+        """Room for ``count`` records laid out as ``stored``, for the fold kernel to fill."""
+        return cls(np.empty(count, np.int64), np.empty((count, stored.width), np.float32),
+                   np.empty((count, stored.half_width), np.uint16), np.empty((count, 3), np.uint8),
                    np.empty(count, np.int32))
 
     def restore(self, voxels: VoxelMap) -> None:
-        s = voxels.state
-        s["rows"][self.index], s["rep_rgb"][self.index], s["n_obs"][self.index] = self.rows, self.rep_rgb, self.n_obs
+        s, i = voxels.state, self.index
+        s["rows"][i], s["half"][i], s["rep_rgb"][i], s["n_obs"][i] = self.rows, self.half, self.rep_rgb, self.n_obs
 
     def nbytes(self) -> int:
-        return self.index.nbytes + self.rows.nbytes + self.rep_rgb.nbytes + self.n_obs.nbytes
+        return self.index.nbytes + self.rows.nbytes + self.half.nbytes + self.rep_rgb.nbytes + self.n_obs.nbytes
 
 
 @dataclass(frozen=True)
@@ -116,10 +120,10 @@ class FoldUndo:
     before: list[RowsBefore | FreeBefore] = field(default_factory=list)  # in the order the fold overwrote them
     history: list[tuple] = field(default_factory=list)  # per history push, in order (`history_slot`)
 
-    def rows_before(self, count: int, width: int) -> RowsBefore:
-        """Room for the ``count`` rows that an integration is about to overwrite (`RowsBefore.room`),
+    def rows_before(self, count: int, stored: StoredRows) -> RowsBefore:
+        """Room for the ``count`` records that an integration is about to overwrite (`RowsBefore.room`),
         entered in the record."""
-        before = RowsBefore.room(count, width)
+        before = RowsBefore.room(count, stored)
         self.before.append(before)
         return before
 
