@@ -19,6 +19,16 @@ from torch import Tensor
 # the parts of a decoded row that are kept, in `GaussianDecoder.shapes_and_colours`' names; the
 # features (F_scene, 64 bytes a voxel at 16 channels) are recomputed from the sums instead
 PARTS = ("means", "scales", "quats", "sh", "labels")
+# the parts kept in float16 (a decode rounds them so, `rounded`, whether it reuses rows or not): a
+# scale's or a colour coefficient's relative precision is all that matters of it, where the means
+# are world positions, which float16 would put centimetres off a few metres from the origin
+HALF_PARTS = ("scales", "quats", "sh")
+
+
+def rounded(parts: dict[str, Tensor | None]) -> dict[str, Tensor | None]:
+    """``parts`` with `HALF_PARTS` rounded to float16 (and back to float32): what the decoded rows
+    keep of them, so a decode that reuses rows and one that does not give the same Gaussians."""
+    return {k: v.half().float() if k in HALF_PARTS and v is not None else v for k, v in parts.items()}
 
 
 @numba.njit(parallel=True, cache=True)
@@ -111,7 +121,8 @@ class DecodedRows:
                 if part is None:
                     self._parts[name] = None
                     continue
-                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=part.dtype)
+                dtype = torch.float16 if name in HALF_PARTS else part.dtype
+                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=dtype)
                 if old is not None:
                     grown_part[: len(old)] = old
                 self._parts[name] = grown_part
@@ -119,12 +130,20 @@ class DecodedRows:
         index = torch.from_numpy(slots.astype(np.int64))
         for name, part in parts.items():
             if part is not None:
-                self._parts[name].index_copy_(0, index, part.detach())
+                self._parts[name].index_copy_(0, index, part.detach().to(self._parts[name].dtype))
         self.stamps[slots] = stamps
 
-    def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...]
+    def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...] float32
         slots = self.slot_of[rows].astype(np.int64)
-        return {name: None if part is None else gather_rows(part.numpy(), slots) for name, part in self._parts.items()}
+        out = {}
+        for name, part in self._parts.items():
+            if part is None:
+                out[name] = None
+            elif part.dtype == torch.float16:  # gathered as bits: numba has no float16
+                out[name] = gather_rows(part.view(torch.int16).numpy(), slots).view(torch.float16).float()
+            else:
+                out[name] = gather_rows(part.numpy(), slots)
+        return out
 
     def nbytes(self) -> int:
         return int(self.slot_of.nbytes + self.stamps.nbytes

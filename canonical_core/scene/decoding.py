@@ -29,7 +29,7 @@ from ..decode import GaussianDecoder, colour_offsets, with_colour_offsets
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..config import SceneConfig
-from .decoded import PARTS, DecodedRows
+from .decoded import PARTS, DecodedRows, rounded
 from .fields import fields_from_sums
 from .half import float_bits
 from .shapes import voxel_shapes
@@ -353,7 +353,7 @@ class SceneDecoding:
                              positions=False)
         base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
-            fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
+            fresh = rounded(self.decoder.shapes_and_colours(f, self.config.voxel_size, base))
         if not work.wants_features:
             fresh["features"] = None
         if work.todo_stamps is None:
