@@ -17,6 +17,7 @@ from pathlib import Path
 
 from canonical_core.scene import Scene
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
+from canonical_core.scene.undo import MAX_UNDO_SHARE
 
 from . import wire
 from .archive import SessionArchive
@@ -309,10 +310,9 @@ class Corrections:
         if job is not None:
             job.total = len(entries) - len(removed) - start
             stream = counted(stream, job)
-        if base is not None:
-            base.keep_undo(session.undo_depth)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
-        else:
-            base = Scene(session.config, undo_depth=session.undo_depth)
+        if base is None:
+            base = Scene(session.config)
+        base.keep_undo(session.undo_depth, MAX_UNDO_SHARE)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
         session.preallocate(base)  # the re-fold and the scene it becomes grow into committed memory
         return Scene.refolded(session.config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints
 

@@ -44,12 +44,16 @@ def gather_rows(
 ) -> torch.Tensor:  # [N] or [N, ...], contiguous
     """``source[rows]`` on the numba threads: over a strided view this is several times faster than
     torch's index_select or numpy's fancy indexing, which copy element by element, and over a
-    contiguous one it still splits the copy between the threads."""
+    contiguous one it still splits the copy between the threads. Float16 is copied as its bits
+    (numba has no float16)."""
+    dtype = source.dtype
+    if dtype == np.float16:
+        source = source.view(np.uint16)
     width = int(np.prod(source.shape[1:]))  # not -1: an empty scene's columns have no size to infer it from
     out = np.empty((len(rows), width), source.dtype)
     if len(rows) and width:
         _gather_kernel(source.reshape(len(source), width), rows, out)
-    return torch.from_numpy(out.reshape(len(rows), *source.shape[1:]))
+    return torch.from_numpy(out.view(dtype).reshape(len(rows), *source.shape[1:]))
 
 
 @numba.njit(cache=True)
@@ -135,15 +139,8 @@ class DecodedRows:
 
     def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...] float32
         slots = self.slot_of[rows].astype(np.int64)
-        out = {}
-        for name, part in self._parts.items():
-            if part is None:
-                out[name] = None
-            elif part.dtype == torch.float16:  # gathered as bits: numba has no float16
-                out[name] = gather_rows(part.view(torch.int16).numpy(), slots).view(torch.float16).float()
-            else:
-                out[name] = gather_rows(part.numpy(), slots)
-        return out
+        return {name: None if part is None else gather_rows(part.numpy(), slots).float()
+                for name, part in self._parts.items()}
 
     def nbytes(self) -> int:
         return int(self.slot_of.nbytes + self.stamps.nbytes

@@ -31,7 +31,7 @@ from ..gaussians import Gaussians
 from ..config import SceneConfig
 from .decoded import PARTS, DecodedRows, rounded
 from .fields import fields_from_sums
-from .half import float_bits
+from .half import from_half
 from .shapes import voxel_shapes
 
 POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
@@ -114,13 +114,11 @@ def decoded_rows(
 
 @numba.njit(parallel=True, cache=True)
 def _features_kernel(rows, f_mean, r_sum, eps, out):  # f_mean: [V, L] float16 bits (uint16)
-    out_bits = out.view(np.uint32)
     for i in numba.prange(rows.shape[0]):
         r = r_sum[rows[i]]
         den = r + eps
         for j in range(f_mean.shape[1]):
-            out_bits[i, j] = float_bits(f_mean[rows[i], j])
-            out[i, j] = out[i, j] * r / den  # the sum as `fields_from_sums` has it, then F_scene
+            out[i, j] = from_half(f_mean[rows[i], j]) * r / den  # the sum as `fields_from_sums` has it, then F_scene
 
 
 def scene_features(

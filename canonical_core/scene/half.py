@@ -19,6 +19,41 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+
+@intrinsic
+def _bits_of(typingctx, x):
+    """A float32's bits as a uint32 (a bit cast: no view of memory, so nothing for the compiler to reorder)."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+
+    return types.uint32(types.float32), codegen
+
+
+@intrinsic
+def _float_of(typingctx, bits):
+    """The float32 whose bits are the uint32 ``bits``."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    return types.float32(types.uint32), codegen
+
+
+@numba.njit(inline="always")
+def to_half(x):  # float32 -> float16's bits (uint16)
+    """The float16 nearest ``x`` (ties to even), as bits."""
+    return half_bits(_bits_of(np.float32(x)))
+
+
+@numba.njit(inline="always")
+def from_half(h):  # float16's bits (uint16) -> float32
+    """The float32 equal to the float16 whose bits are ``h`` (exact: every half is a float32)."""
+    return _float_of(float_bits(h))
 
 
 @numba.njit(inline="always")
@@ -76,10 +111,9 @@ def halves_of(
     x: np.ndarray,  # [N] float32, contiguous
     out: np.ndarray,  # [N] uint16: the float16 bits of each
 ) -> None:
-    """``x.astype(np.float16)`` as bits, by `half_bits` (what the tests check it against)."""
-    bits = x.view(np.uint32)
+    """``x.astype(np.float16)`` as bits, by `to_half` (what the tests check it against)."""
     for i in range(x.shape[0]):
-        out[i] = half_bits(bits[i])
+        out[i] = to_half(x[i])
 
 
 @numba.njit(cache=True)
@@ -87,7 +121,6 @@ def floats_of(
     h: np.ndarray,  # [N] uint16 float16 bits
     out: np.ndarray,  # [N] float32, contiguous
 ) -> None:
-    """``h.view(np.float16).astype(np.float32)``, by `float_bits`."""
-    bits = out.view(np.uint32)
+    """``h.view(np.float16).astype(np.float32)``, by `from_half`."""
     for i in range(h.shape[0]):
-        bits[i] = float_bits(h[i])
+        out[i] = from_half(h[i])

@@ -139,7 +139,6 @@ def fold_kernel(
     L = feat.shape[1]
     S = labels.shape[1]
     D = work.shape[1]
-    work_bits = work.view(np.uint32)
     mask = table.shape[0] - 1
     for j in range(n_new):
         vi = n_voxels + j
@@ -176,8 +175,8 @@ def fold_kernel(
                 j = next_obs[j]
         vi = touched[t]
         thread = numba.get_thread_id()
-        row, row_bits = work[thread], work_bits[thread]
-        load_row(rows, half, vi, wide_cols, half_cols, half_mean, R_SUM, row, row_bits)
+        row = work[thread]
+        load_row(rows, half, vi, wide_cols, half_cols, half_mean, R_SUM, row)
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
         elif keep_before:
@@ -298,5 +297,5 @@ def fold_kernel(
                 row[SH_A + c] += a
             for c, a in enumerate((s1r, s1g, s1b, s2r, s2g, s2b, s3r, s3g, s3b)):
                 row[SH_B + c] += a
-        store_row(row, row_bits, rows, half, vi, wide_cols, half_cols, half_mean, R_SUM)
+        store_row(row, rows, half, vi, wide_cols, half_cols, half_mean, R_SUM)
     return switches

@@ -128,13 +128,17 @@ class Scene:
         with self._lock:
             return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
 
-    def keep_undo(self, depth: int) -> None:
-        """Keep undo records of the next ``depth`` folds from now on (0: none); the records kept so far
-        are dropped (a loaded snapshot has none)."""
+    def keep_undo(self, depth: int, max_share: float | None = None) -> None:
+        """Keep undo records of the next ``depth`` folds from now on (0: none); with ``max_share``, only
+        the newest of them that hold at most that share of the map's bytes (the newest always; the
+        service's sessions: `undo.MAX_UNDO_SHARE`). The records kept so far are dropped (a loaded
+        snapshot has none)."""
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {depth!r}")
+        if max_share is not None and not max_share > 0:
+            raise ValueError(f"max_share: expected a positive share of the map's bytes, got {max_share!r}")
         with self._lock:
-            self._undo = UndoRing(depth)
+            self._undo = UndoRing(depth, max_share)
 
     def preallocate(self, voxels: int) -> None:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from .half import float_bits, half_bits
+from .half import from_half, to_half
 
 if TYPE_CHECKING:
     from .kernels import VoxelRows
@@ -89,28 +89,26 @@ class StoredRows:
 
 
 @numba.njit(inline="always")
-def load_row(rows, half, v, wide_cols, half_cols, half_mean, r_col, work, work_bits):
-    """Voxel ``v``'s stored record into the float32 working record ``work`` (``work_bits``: its
-    uint32 view); means become sums again (times R_scene)."""
+def load_row(rows, half, v, wide_cols, half_cols, half_mean, r_col, work):
+    """Voxel ``v``'s stored record into the float32 working record ``work``; means become sums again
+    (times R_scene)."""
     for c in range(wide_cols.shape[0]):
         work[wide_cols[c]] = rows[v, c]
     r = work[r_col]
     for c in range(half_cols.shape[0]):
-        col = half_cols[c]
-        work_bits[col] = float_bits(half[v, c])
-        if half_mean[c]:
-            work[col] *= r
+        value = from_half(half[v, c])
+        work[half_cols[c]] = value * r if half_mean[c] else value
 
 
 @numba.njit(inline="always")
-def store_row(work, work_bits, rows, half, v, wide_cols, half_cols, half_mean, r_col):
+def store_row(work, rows, half, v, wide_cols, half_cols, half_mean, r_col):
     """`load_row` inverted: the working record into voxel ``v``'s stored one, sums as means (0 where
-    R_scene is not positive), rounded to float16. ``work`` is left changed."""
+    R_scene is not positive), rounded to float16."""
     for c in range(wide_cols.shape[0]):
         rows[v, c] = work[wide_cols[c]]
     r = work[r_col]
     for c in range(half_cols.shape[0]):
-        col = half_cols[c]
+        value = work[half_cols[c]]
         if half_mean[c]:
-            work[col] = work[col] / r if r > np.float32(0.0) else np.float32(0.0)
-        half[v, c] = half_bits(work_bits[col])
+            value = value / r if r > np.float32(0.0) else np.float32(0.0)
+        half[v, c] = to_half(value)

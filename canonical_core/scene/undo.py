@@ -164,12 +164,21 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
     voxels.touch(np.concatenate(restored) if restored else np.zeros(0, np.int64))
 
 
-class UndoRing:
-    """The undo records of the last ``depth`` folds, oldest first."""
+# the service's bound on its sessions' undo records, as a share of the bytes of the map they undo:
+# a correction from records then never holds more than a re-fold from a saved state would (which
+# builds a second map), and a deep ring (`undo_depth` up to 1024) costs at most this beside the state
+MAX_UNDO_SHARE = 0.5
 
-    def __init__(self, depth: int):
-        self.depth = depth
-        self.records: deque[FoldUndo] = deque(maxlen=depth or None)
+
+class UndoRing:
+    """The undo records of the last ``depth`` folds, oldest first; with ``max_share``, only as many
+    of them as hold at most that share of the map's bytes (`push`)."""
+
+    def __init__(self, depth: int, max_share: float | None = None):
+        self.depth, self.max_share = depth, max_share
+        self.records: deque[FoldUndo] = deque()
+        self._sizes: deque[int] = deque()  # each record's bytes, as `nbytes` sums them
+        self._bytes = 0
 
     def __len__(self) -> int:
         return len(self.records)
@@ -178,12 +187,28 @@ class UndoRing:
         """The smallest frame count the scene (now holding ``frames``) can be rolled back to."""
         return self.records[0].frames if self.records else frames
 
-    def push(self, record: FoldUndo) -> None:
-        if self.depth:
-            self.records.append(record)
+    def push(self, record: FoldUndo, map_bytes: int) -> None:
+        """Keep ``record``, the newest; then drop the oldest ones while more than ``depth`` are kept or
+        they hold more than ``max_share`` of ``map_bytes`` (the map's bytes now), the newest kept
+        whatever its size (a fold's record is at most the rows it touched and 4 bytes a voxel)."""
+        if not self.depth:
+            return
+        self.records.append(record)
+        self._sizes.append(size := record.nbytes())
+        self._bytes += size
+        limit = float("inf") if self.max_share is None else self.max_share * map_bytes
+        while len(self.records) > 1 and (len(self.records) > self.depth or self._bytes > limit):
+            self._pop(0)
+
+    def _pop(self, end: int) -> FoldUndo:  # end: 0 the oldest record, -1 the newest
+        record = self.records.popleft() if end == 0 else self.records.pop()
+        self._bytes -= self._sizes.popleft() if end == 0 else self._sizes.pop()
+        return record
 
     def clear(self) -> None:
         self.records.clear()
+        self._sizes.clear()
+        self._bytes = 0
 
     def take(self, frames: int, current: int) -> list[FoldUndo]:
         """Remove and return the records of the folds from frame count ``frames`` on (the scene holds
@@ -192,9 +217,9 @@ class UndoRing:
             raise ValueError(f"frames: the undo records reach back to {self.floor(current)} frames, not {frames}")
         undone = []
         while self.records and self.records[-1].frames >= frames:
-            undone.append(self.records.pop())
+            undone.append(self._pop(-1))
         return undone
 
     def nbytes(self) -> int:
-        return sum(r.nbytes() for r in self.records)
+        return self._bytes
 

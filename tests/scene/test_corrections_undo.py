@@ -173,3 +173,35 @@ def test_the_ring_keeps_the_last_records_only():
         ring.push(FoldUndo(frames, 0, 0, [], [], ([], []), (0.0, 0)))
     assert len(ring) == 2 and ring.floor(10) == 8
     assert [r.frames for r in ring.take(9, 10)] == [9] and ring.floor(9) == 8
+
+
+def test_a_share_of_the_maps_bytes_bounds_the_records_and_the_newest_is_always_kept():
+    ring = UndoRing(depth=8, max_share=0.5)
+    record = FoldUndo(0, 0, 0, [], [], ([], []), (0.0, 0), before=[FreeBefore(np.zeros(0, np.int32), 0,
+                                                                          np.zeros(100, np.float32))])
+    for frames in range(6):
+        ring.push(replace(record, frames=frames), map_bytes=1000)  # 400 bytes each: one fits in 500
+    assert len(ring) == 1 and ring.nbytes() == 400 and ring.floor(6) == 5
+    ring.push(replace(record, frames=6), map_bytes=100)  # the newest stays, however large
+    assert len(ring) == 1 and ring.floor(7) == 6
+    ring.push(replace(record, frames=7), map_bytes=10_000)
+    assert len(ring) == 2 and ring.nbytes() == 800
+    assert [r.frames for r in ring.take(6, 8)] == [7, 6] and ring.nbytes() == 0
+    with pytest.raises(ValueError, match=r"^max_share: "):
+        Scene(CONFIG).keep_undo(4, max_share=0.0)
+
+
+@pytest.mark.realdata
+def test_a_bounded_ring_keeps_within_its_share_and_rolls_back_exactly(shelf_frames):
+    config = SceneConfig(voxel_size=0.01)
+    scene = Scene(config)
+    scene.keep_undo(32, max_share=0.5)
+    digests = []
+    for frame in shelf_frames[:8]:
+        scene.fold(frame)
+        digests.append(scene.digest())
+        assert 0 < scene.undo_bytes() <= 0.5 * scene._voxels.nbytes() or len(scene._undo) == 1
+    floor = scene.undo_floor
+    assert 0 < floor < 7  # the share, not the depth, dropped the oldest records
+    scene.rollback(floor)
+    assert scene.digest() == digests[floor - 1]
