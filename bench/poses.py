@@ -86,12 +86,16 @@ def in_process(frames, voxel: float, checkpoint_every: int) -> tuple[list[dict],
 
 def last_against_all(frames, voxel: float, last: int) -> list[dict]:
     """Correcting the last ``last`` of ``frames`` and correcting all of them, each in a fresh scene
-    that folded them all (frames kept, default undo records, no checkpoints): ms, in folds, the
-    peak resident growth, and the undo records' bytes before and after."""
+    that folded them all (frames kept, no checkpoints; the default undo records, and for the last
+    ones also records of ``last`` folds, so that they roll back in place): ms, in folds, the peak
+    resident growth, and the undo records' bytes before and after."""
     Scene(SceneConfig(voxel_size=voxel)).fold(frames[0])  # load the kernels outside the measurement
     n, rows, fold_ms = len(frames), [], None
-    for label, positions in ((f"the last {last}", list(range(n - last, n))), (f"all {n}", list(range(n)))):
-        scene = Scene(SceneConfig(voxel_size=voxel), keep_frames=True)
+    cases = ((f"the last {last}", None, list(range(n - last, n))),
+             (f"the last {last}, records of {last} folds", last, list(range(n - last, n))),
+             (f"all {n}", None, list(range(n))))
+    for label, depth, positions in cases:
+        scene = Scene(SceneConfig(voxel_size=voxel), keep_frames=True, undo_depth=depth)
         ms = time_each(scene.fold, frames)
         fold_ms = fold_ms or float(np.median(ms))
         undo_before = scene.undo_bytes()
