@@ -89,7 +89,10 @@ def measure_fold() -> dict:
     return out
 
 
-def measure_long() -> dict:
+def _office_walked_twice(undo_depth: int):
+    """The office walk played twice at 1 cm (after a warm-up fold in a throwaway scene) by a scene
+    keeping the undo records of its last ``undo_depth`` folds, then one decode: (the scene, each
+    fold's ms, the resident memory before the scene was made)."""
     from canonical_core import SceneConfig
     from canonical_core.datasets import load_dataset
     from canonical_core.scene import Scene
@@ -101,8 +104,14 @@ def measure_long() -> dict:
     gc.collect()
     before = _rss()
     scene = Scene(SceneConfig(voxel_size=0.01))
+    scene.keep_undo(undo_depth)
     ms = [_ms(scene.fold, f) for f in frames + frames]
     scene.gaussians()
+    return scene, ms, before
+
+
+def measure_long() -> dict:
+    scene, ms, before = _office_walked_twice(0)
     median = float(np.median(ms))
     return {"folds": len(ms), "fold ms": median, "last 20 / first 20": float(np.median(ms[-20:]) / np.median(ms[:20])),
             "slowest / median": max(ms) / median, "memory_bytes a voxel": scene.memory_bytes() / len(scene),
@@ -110,21 +119,7 @@ def measure_long() -> dict:
 
 
 def measure_memory() -> dict:
-    from canonical_core import SceneConfig
-    from canonical_core.datasets import load_dataset
-    from canonical_core.scene import Scene
-
-    frames = list(load_dataset(DATA / "hololens_office"))
-    warm = Scene(SceneConfig(voxel_size=0.01))
-    warm.fold(frames[0])
-    del warm
-    gc.collect()
-    before = _rss()
-    scene = Scene(SceneConfig(voxel_size=0.01))
-    scene.keep_undo(4)
-    for f in frames + frames:
-        scene.fold(f)
-    scene.gaussians()
+    scene, _, before = _office_walked_twice(4)
     n, all_in, undo = len(scene), scene.memory_bytes(), scene.undo_bytes()
     caches = scene._decoding.nbytes() + scene._keyframes.nbytes()  # both trees keep these parts so
     return {"voxels": n, "state a voxel": (all_in - undo - caches) / n, "undo a voxel": undo / n,

@@ -49,7 +49,8 @@ def _prefetch(typingctx, array, row, column):
 
 
 class VoxelRows:
-    """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
+    """Column layout of the per-voxel float32 record the fold works on: the representative, then every
+    weighted sum (the map stores it narrower: `stored.StoredRows`).
 
     One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
     state in a few adjacent cache lines, where one array per field costs a cache miss per field.

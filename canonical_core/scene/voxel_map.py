@@ -49,7 +49,7 @@ TABLE_SLOTS_PER_NEW_VOXEL = 9
 NEXT_TABLE_CLEAR = 1 / 8  # slots of it marked empty per fold (its pages are first touched then)
 NEXT_TABLE_SLICE = 1 / 32  # voxels entered into it per fold once it is clear, as a share of its slots
 
-# per-voxel arrays beside the float32 record (`VoxelRows`): name -> (dtype, trailing shape)
+# per-voxel arrays beside the stored record (`rows` and `half`, `stored`): name -> (dtype, trailing shape)
 ARRAYS = {
     "keys": (np.int64, ()),
     "rep_rgb": (np.uint8, (3,)),  # input colours are 8-bit: lossless
