@@ -20,7 +20,8 @@ the load average at each run; then this tree over the base. Never asserts timing
   scene): the median of the last 20 folds over the first 20, the slowest fold over the median, and
   after one decode `Scene.memory_bytes` per voxel and the process's resident growth per voxel.
 - ``memory``: the office walk played twice at 1 cm by a scene keeping the undo records of its last
-  4 folds (as a service session with a frame archive does), then one decode: bytes a voxel of its
+  8 folds (as a service session with a frame archive does, within half the map's bytes where the
+  tree bounds them so), then one decode: bytes a voxel of its
   state (the map), its undo records, its caches (the decoded rows, the colour solve's views and
   solution) and all of them (`Scene.memory_bytes`), and the process's resident growth a voxel.
 - ``decode``: the shelf's 50 frames at 4 mm (204k voxels): a decode from scratch (a scene restored
@@ -89,10 +90,13 @@ def measure_fold() -> dict:
     return out
 
 
-def _office_walked_twice(undo_depth: int):
+def _office_walked_twice(undo_depth: int, undo_share: float | None = None):
     """The office walk played twice at 1 cm (after a warm-up fold in a throwaway scene) by a scene
-    keeping the undo records of its last ``undo_depth`` folds, then one decode: (the scene, each
-    fold's ms, the resident memory before the scene was made)."""
+    keeping the undo records of its last ``undo_depth`` folds (within ``undo_share`` of the map's
+    bytes, where the tree has that bound), then one decode: (the scene, each fold's ms, the resident
+    memory before the scene was made)."""
+    import inspect
+
     from canonical_core import SceneConfig
     from canonical_core.datasets import load_dataset
     from canonical_core.scene import Scene
@@ -104,7 +108,10 @@ def _office_walked_twice(undo_depth: int):
     gc.collect()
     before = _rss()
     scene = Scene(SceneConfig(voxel_size=0.01))
-    scene.keep_undo(undo_depth)
+    if undo_share is not None and "max_share" in inspect.signature(scene.keep_undo).parameters:
+        scene.keep_undo(undo_depth, undo_share)
+    else:
+        scene.keep_undo(undo_depth)
     ms = [_ms(scene.fold, f) for f in frames + frames]
     scene.gaussians()
     return scene, ms, before
@@ -119,7 +126,7 @@ def measure_long() -> dict:
 
 
 def measure_memory() -> dict:
-    scene, _, before = _office_walked_twice(4)
+    scene, _, before = _office_walked_twice(8, 0.5)
     n, all_in, undo = len(scene), scene.memory_bytes(), scene.undo_bytes()
     caches = scene._decoding.nbytes() + scene._keyframes.nbytes()  # both trees keep these parts so
     return {"voxels": n, "state a voxel": (all_in - undo - caches) / n, "undo a voxel": undo / n,

@@ -36,9 +36,11 @@ from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
-# folds a scene that keeps its frames can roll back in place: each record holds the rows the fold
-# touched and the whole see-through column, several times the fold's share of the state, so few
-DEFAULT_UNDO_DEPTH = 4
+# folds a scene that keeps its frames can roll back in place: enough that a correction of the last
+# few frames rolls back rather than re-folds the whole stream (which cost more than correcting every
+# frame: bench/poses.py --last 5 --of 25); each record holds the stored rows the fold touched and
+# the see-through evidence of its frustum's chunks, bounded in the service (`undo.MAX_UNDO_SHARE`)
+DEFAULT_UNDO_DEPTH = 8
 
 
 class Scene:
