@@ -36,10 +36,8 @@ from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
-# folds a scene that keeps its frames can roll back in place: enough that a correction of the last
-# few frames rolls back rather than re-folds the whole stream (which cost more than correcting every
-# frame: bench/poses.py --last 5 --of 25); each record holds the stored rows the fold touched and
-# the see-through evidence of its frustum's chunks, bounded in the service (`undo.MAX_UNDO_SHARE`)
+# folds a scene that keeps its frames can roll back in place: enough for the last 5 frames, which past
+# the records re-fold the whole stream (`bench/poses.py --last 5 --of 25`); bounded: `undo.MAX_UNDO_SHARE`
 DEFAULT_UNDO_DEPTH = 8
 
 
@@ -131,14 +129,11 @@ class Scene:
             return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
 
     def keep_undo(self, depth: int, max_share: float | None = None) -> None:
-        """Keep undo records of the next ``depth`` folds from now on (0: none); with ``max_share``, only
-        the newest of them that hold at most that share of the map's bytes (the newest always; the
-        service's sessions: `undo.MAX_UNDO_SHARE`). The records kept so far are dropped (a loaded
-        snapshot has none)."""
+        """Keep undo records of the next ``depth`` folds from now on (0: none), with ``max_share`` only as
+        many as hold at most that share of the map's bytes (`undo.UndoRing`); the records kept so far
+        are dropped (a loaded snapshot has none)."""
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {depth!r}")
-        if max_share is not None and not max_share > 0:
-            raise ValueError(f"max_share: expected a positive share of the map's bytes, got {max_share!r}")
         with self._lock:
             self._undo = UndoRing(depth, max_share)
 

@@ -175,6 +175,8 @@ class UndoRing:
     of them as hold at most that share of the map's bytes (`push`)."""
 
     def __init__(self, depth: int, max_share: float | None = None):
+        if max_share is not None and not max_share > 0:
+            raise ValueError(f"max_share: expected a positive share of the map's bytes, got {max_share!r}")
         self.depth, self.max_share = depth, max_share
         self.records: deque[FoldUndo] = deque()
         self._sizes: deque[int] = deque()  # each record's bytes, as `nbytes` sums them
