@@ -175,7 +175,7 @@ def fold_kernel(
                 _prefetch(rgb, j, 0)
                 j = next_obs[j]
         vi = touched[t]
-        thread = numba.get_thread_id()
+        thread = numba.get_thread_id()  # below NUMBA_NUM_THREADS (the rows of work) in every threading layer
         row = work[thread]
         load_row(rows, half, vi, wide_cols, half_cols, half_mean, R_SUM, row)
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
