@@ -62,7 +62,7 @@ class Settings(BaseSettings):
     correction_background_frames: int = Field(64, ge=0, description=(
         "a pose correction that would re-fold more frames than this re-folds in the background: POST /poses "
         "answers 202 and the client polls its status"))
-    correction_undo_frames: int = Field(8, ge=0, le=1024, description=(
+    correction_undo_frames: int = Field(4, ge=0, le=1024, description=(
         "a session keeps undo records of its last this many folds, so that a pose correction of them rolls "
         "back in place and re-folds only them; each record costs about the rows its fold touched (megabytes "
         "at 640x480), counted in the session's memory_bytes; the oldest are dropped while the records hold "

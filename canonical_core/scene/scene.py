@@ -36,9 +36,9 @@ from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
-# folds a scene that keeps its frames can roll back in place: enough for the last 5 frames, which past
-# the records re-fold the whole stream (`bench/poses.py --last 5 --of 25`); bounded: `undo.MAX_UNDO_SHARE`
-DEFAULT_UNDO_DEPTH = 8
+# folds a scene that keeps its frames can roll back in place: each record holds the stored rows the fold
+# touched and its frustum's see-through evidence, several times the fold's share of the state, so few
+DEFAULT_UNDO_DEPTH = 4
 
 
 class Scene:
