@@ -165,14 +165,15 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
 
 
 # the service's bound on its sessions' undo records, as a share of the bytes of the map they undo:
-# a correction from records then never holds more than a re-fold from a saved state would (which
-# builds a second map), and a deep ring (`undo_depth` up to 1024) costs at most this beside the state
+# a deep ring (`undo_depth` up to 1024) costs at most this beside the state, or its newest
+# `MIN_KEPT` records where those alone hold more (a capture whose every frame touches most of the map)
 MAX_UNDO_SHARE = 0.5
+MIN_KEPT = 4  # records kept whatever their size: corrections of the last few frames stay in place
 
 
 class UndoRing:
-    """The undo records of the last ``depth`` folds, oldest first; with ``max_share``, only as many
-    of them as hold at most that share of the map's bytes (`push`)."""
+    """The undo records of the last ``depth`` folds, oldest first; with ``max_share``, those past
+    the newest `MIN_KEPT` only while they all hold at most that share of the map's bytes (`push`)."""
 
     def __init__(self, depth: int, max_share: float | None = None):
         if max_share is not None and not max_share > 0:
@@ -190,16 +191,15 @@ class UndoRing:
         return self.records[0].frames if self.records else frames
 
     def push(self, record: FoldUndo, map_bytes: int) -> None:
-        """Keep ``record``, the newest; then drop the oldest ones while more than ``depth`` are kept or
-        they hold more than ``max_share`` of ``map_bytes`` (the map's bytes now), the newest kept
-        whatever its size (a fold's record is at most the rows it touched and 4 bytes a voxel)."""
+        """Keep ``record``, the newest; then drop the oldest ones while more than ``depth`` are kept, or
+        more than `MIN_KEPT` holding more than ``max_share`` of ``map_bytes`` (the map's bytes now)."""
         if not self.depth:
             return
         self.records.append(record)
         self._sizes.append(size := record.nbytes())
         self._bytes += size
         limit = float("inf") if self.max_share is None else self.max_share * map_bytes
-        while len(self.records) > 1 and (len(self.records) > self.depth or self._bytes > limit):
+        while len(self.records) > self.depth or (len(self.records) > MIN_KEPT and self._bytes > limit):
             self._pop(0)
 
     def _pop(self, end: int) -> FoldUndo:  # end: 0 the oldest record, -1 the newest
