@@ -65,8 +65,8 @@ class Settings(BaseSettings):
     correction_undo_frames: int = Field(4, ge=0, le=1024, description=(
         "a session keeps undo records of its last this many folds, so that a pose correction of them rolls "
         "back in place and re-folds only them; each record costs about the rows its fold touched (megabytes "
-        "at 640x480), counted in the session's memory_bytes; the oldest are dropped while the records hold "
-        "more than half the bytes of the session's voxel map"))
+        "at 640x480), counted in the session's memory_bytes; past the newest 4, the oldest are dropped while "
+        "the records hold more than half the bytes of the session's voxel map"))
     preallocate_voxels: int = Field(0, ge=0, le=MAX_VOXELS, description=(
         "each session's scene commits the memory of this many voxels up front (at most its max_voxels; about "
         "200 bytes a voxel, counted in its memory_bytes), so that folds growing the map up to that size never "
