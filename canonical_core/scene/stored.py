@@ -5,12 +5,13 @@ weighted sums). Stored that way it is the bulk of a scene's memory, so the map k
 arrays instead:
 
 - ``rows`` [V, width] float32: the representative's reliability and position, R_scene, the colour
-  and position moments, the label sums;
+  and position moments, the SH fit's normal equations, the label sums;
 - ``half`` [V, half_width] float16 (held as uint16 bits, `half`): the representative's feature as
-  it is, and the feature and SH normal-equation sums as their means over R_scene. A sum grows
-  without bound on a long stream (float16 ends at 65504); its mean stays within its inputs' range,
-  where float16 keeps about 3.3 significant digits. A representative's replacement rescales every
-  sum and R_scene alike, so it leaves the means as they were.
+  it is, and the feature sum as its mean over R_scene. A sum grows without bound on a long stream
+  (float16 ends at 65504); its mean stays within its inputs' range, where float16 keeps about 3.3
+  significant digits. A representative's replacement rescales every sum and R_scene alike, so it
+  leaves the mean as it was. The SH normal equations stay float32: their solve amplifies float16's
+  rounding where the views leave a direction weakly determined (`tests/scene/test_sh_fit.py`).
 
 The fold kernel loads each touched voxel's stored record into a float32 working record
 (`load_row`), folds into that, and stores it back (`store_row`); everything else reads the stored
@@ -22,7 +23,7 @@ Example:
     >>> from canonical_core.scene.kernels import VoxelRows
     >>> stored = StoredRows(VoxelRows(feature_dim=4, sh_widths=(9, 9)))
     >>> stored.width, stored.half_width, sorted(n for n, c in stored.columns.items() if c[0] == "half")
-    (17, 26, ['f_mean', 'rep_f', 'sh_a_mean', 'sh_b_mean'])
+    (35, 8, ['f_mean', 'rep_f'])
 """
 
 from __future__ import annotations
@@ -38,8 +39,7 @@ if TYPE_CHECKING:
     from .kernels import VoxelRows
 
 # the working record's fields kept in float16: name -> (stored name, stored as its mean over R_scene)
-HALF_FIELDS = {"rep_f": ("rep_f", False), "f_sum": ("f_mean", True), "sh_a": ("sh_a_mean", True),
-               "sh_b": ("sh_b_mean", True)}
+HALF_FIELDS = {"rep_f": ("rep_f", False), "f_sum": ("f_mean", True)}
 MEANS = {stored: name for name, (stored, mean) in HALF_FIELDS.items() if mean}  # stored mean -> its sum's name
 
 

@@ -35,18 +35,11 @@ def deviation(stream, batch):
     return rel.median().item(), rel.quantile(0.9).item(), cos.median().item(), cos.quantile(0.1).item()
 
 
-# The map stores the representative's feature and the feature and SH sums as float16 means
-# (`scene.stored`); the batch rule keeps float32. So F_scene, and through the representatives'
-# similarity weights R_scene and colour, agree to float16's rounding; the SH fit agrees to that
-# rounding of its normal equations, amplified where the views leave a direction weakly determined:
-# bounded on the whole and on its 99th percentile. Measured (2026-11-29, 10 shelf frames): F_scene
-# 1.1e-3 at most, R_scene 5e-4 relative, SH 0.32 at most and 0.07 at the 99th percentile.
+# The map stores the representative's feature and the feature sum as float16 (`scene.stored`);
+# the batch rule keeps float32. So F_scene, and through the representatives' similarity weights
+# R_scene and colour, agree to float16's rounding. Measured (2026-11-29, 10 shelf frames): F_scene
+# 1.1e-3 at most, R_scene 5e-4 relative.
 HALF = dict(rtol=1e-3, atol=2e-3)
-
-
-def assert_sh_close(stream: torch.Tensor, batch: torch.Tensor) -> None:
-    off = (stream - batch).abs().flatten()
-    assert off.max() <= 0.5 and off.quantile(0.99) <= 0.15, (off.max(), off.quantile(0.99))
 
 
 @pytest.mark.realdata
@@ -63,7 +56,7 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames):
         assert torch.allclose(stream[name], batch[name], **HALF), name
     assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=2e-9)
     assert torch.equal(stream["observations"], batch["observations"])
-    assert_sh_close(stream["sh"], batch["sh"])
+    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
     assert torch.allclose(stream["free_space"], batch["free_space"], rtol=1e-4, atol=1e-3)
     assert (batch["free_space"] > 0).sum() > 100  # real captures do see through some voxels
 
@@ -76,10 +69,10 @@ def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
     config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0}, sh_degree=sh_degree)
     scene = fold_all(frames, config)[0]
     k = (sh_degree + 1) ** 2
-    assert scene.sums()["sh_a_mean"].shape == (len(scene), k * (k + 1) // 2 - 1)
+    assert scene.sums()["sh_a"].shape == (len(scene), k * (k + 1) // 2 - 1)
     stream, batch = scene.fields(), aggregate_batch(frames, config)
     assert stream["sh"].shape == (len(scene), k, 3)
-    assert_sh_close(stream["sh"], batch["sh"])
+    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
     assert len(scene.decode()) > 0
 
 

@@ -11,7 +11,6 @@ from canonical_core.config import KEY_BITS, KEY_OFFSET
 from canonical_core.scene.free_space import history_free_space_kernel, see_through_map
 
 from ..conftest import make_frame
-from .test_fold import assert_sh_close
 
 W, H, F = 64, 48, 100.0
 VOXEL = 0.05
@@ -64,9 +63,8 @@ def test_streaming_free_space_and_sh_equal_batch_and_ignore_order():
         assert torch.allclose(fields["free_space"], batch["free_space"], rtol=1e-5, atol=1e-4)
         floater = fields["position_mean"][:, 2] < 1.5
         assert floater.sum() >= 4 and (fields["free_space"][floater] > 0).all()
-    # SH of a representative-stable set equal the batch's (uniform colour: no switches matter), to the
-    # precision of the stored float16 sums
-    assert_sh_close(fields["sh"], batch["sh"])
+    # SH sums of a representative-stable set equal the batch's (uniform colour: no switches matter)
+    assert torch.allclose(fields["sh"], batch["sh"], atol=1e-4)
 
 
 @pytest.mark.parametrize("weighting", ["no_reliability", "average"])
