@@ -35,7 +35,7 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "copied_parts", "encode", "encode_sn
 
 FORMAT_NAME = "canonicalgs-scene"
 # 4 adds the per-view observation density (v3 files load with a density of 1); 5 stores the records
-# as the map does (`stored`: float16 means of the feature and SH sums; v3 and v4 files hold float32
+# as the map does (`stored`: the feature sum as a float16 mean; v3 and v4 files hold float32
 # sums, stored on loading as a fold stores them)
 FORMAT_VERSION = 5
 READABLE_VERSIONS = (3, 4, FORMAT_VERSION)
