@@ -1,6 +1,6 @@
 """Before and after: the speed and memory targets on this tree and on another checkout, in the same runs.
 
-    python bench/ab.py --base ../before [--rounds 2] [--targets fold,long,decode,render,service,solve]
+    python bench/ab.py --base ../before [--rounds 2] [--targets fold,long,memory,decode,render,service,solve]
 
 ``--base`` is another checkout of the project (a `git worktree` of an earlier commit, its compositor
 built: ``python setup.py build_ext --inplace`` there). Every measurement runs in a child process
@@ -19,6 +19,11 @@ the load average at each run; then this tree over the base. Never asserts timing
 - ``long``: the office walk played twice at 1 cm (374 folds, after a warm-up fold in a throwaway
   scene): the median of the last 20 folds over the first 20, the slowest fold over the median, and
   after one decode `Scene.memory_bytes` per voxel and the process's resident growth per voxel.
+- ``memory``: the office walk played twice at 1 cm by a scene keeping the undo records of its last
+  4 folds (as a service session with a frame archive does, within half the map's bytes where the
+  tree bounds them so), then one decode: bytes a voxel of its
+  state (the map), its undo records, its caches (the decoded rows, the colour solve's views and
+  solution) and all of them (`Scene.memory_bytes`), and the process's resident growth a voxel.
 - ``decode``: the shelf's 50 frames at 4 mm (204k voxels): a decode from scratch (a scene restored
   from its snapshot bytes; median of 7), and a decode after each of the last 10 folds (median; the
   scene of the first 40 decoded once before them); where the tree has it, the latter also without
@@ -50,7 +55,7 @@ sys.path.insert(0, str(HERE))
 from common import machine_summary, print_table  # noqa: E402
 
 DATA = HERE.parents[1] / "shared" / "data"
-TARGETS = ("fold", "long", "decode", "render", "service", "solve")
+TARGETS = ("fold", "long", "memory", "decode", "render", "service", "solve")
 
 
 def _ms(fn, *args) -> float:
@@ -85,7 +90,13 @@ def measure_fold() -> dict:
     return out
 
 
-def measure_long() -> dict:
+def _office_walked_twice(undo_depth: int, undo_share: float | None = None):
+    """The office walk played twice at 1 cm (after a warm-up fold in a throwaway scene) by a scene
+    keeping the undo records of its last ``undo_depth`` folds (within ``undo_share`` of the map's
+    bytes, where the tree has that bound), then one decode: (the scene, each fold's ms, the resident
+    memory before the scene was made)."""
+    import inspect
+
     from canonical_core import SceneConfig
     from canonical_core.datasets import load_dataset
     from canonical_core.scene import Scene
@@ -97,8 +108,17 @@ def measure_long() -> dict:
     gc.collect()
     before = _rss()
     scene = Scene(SceneConfig(voxel_size=0.01))
+    if undo_share is not None and "max_share" in inspect.signature(scene.keep_undo).parameters:
+        scene.keep_undo(undo_depth, undo_share)
+    else:
+        scene.keep_undo(undo_depth)
     ms = [_ms(scene.fold, f) for f in frames + frames]
     scene.gaussians()
+    return scene, ms, before
+
+
+def measure_long() -> dict:
+    scene, ms, before = _office_walked_twice(0)
     median = float(np.median(ms))
     return {"folds": len(ms), "fold ms": median, "last 20 / first 20": float(np.median(ms[-20:]) / np.median(ms[:20])),
             "slowest / median": max(ms) / median, "memory_bytes a voxel": scene.memory_bytes() / len(scene),
@@ -112,6 +132,14 @@ def _unsolved(config_class, voxel: float):
         return config_class(voxel_size=voxel, colour_solve={"views": 0})
     except ValueError:
         return config_class(voxel_size=voxel)
+
+
+def measure_memory() -> dict:
+    scene, _, before = _office_walked_twice(4, 0.5)
+    n, all_in, undo = len(scene), scene.memory_bytes(), scene.undo_bytes()
+    caches = scene._decoding.nbytes() + scene._keyframes.nbytes()  # both trees keep these parts so
+    return {"voxels": n, "state a voxel": (all_in - undo - caches) / n, "undo a voxel": undo / n,
+            "caches a voxel": caches / n, "all in a voxel": all_in / n, "resident growth a voxel": (_rss() - before) / n}
 
 
 def measure_decode() -> dict:
@@ -202,8 +230,8 @@ def measure_service(tree: Path) -> dict:
     return {"in-process fold ms": fold, "round trip ms": trip, "round trip / fold": trip / fold}
 
 
-MEASURES = {"fold": measure_fold, "long": measure_long, "decode": measure_decode, "render": measure_render,
-            "solve": measure_solve}
+MEASURES = {"fold": measure_fold, "long": measure_long, "memory": measure_memory, "decode": measure_decode,
+            "render": measure_render, "solve": measure_solve}
 
 
 def _env(tree: Path) -> dict:

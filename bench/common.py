@@ -39,6 +39,23 @@ def time_each(fn, items) -> list[float]:
     return ms
 
 
+def status_bytes(field: str) -> int:
+    """A figure of /proc/self/status in bytes: ``VmRSS`` (resident now) or ``VmHWM`` (its peak)."""
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
+
+
+def peak_growth(fn, *args) -> tuple[float, int]:
+    """(ms, bytes) of ``fn(*args)``: its time, and how far resident memory rose above where it
+    started, at its peak (the peak is reset to the current figure first: /proc/self/clear_refs)."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    before = status_bytes("VmRSS")
+    t0 = time.perf_counter()
+    fn(*args)
+    return (time.perf_counter() - t0) * 1000, status_bytes("VmHWM") - before
+
+
 def stats_ms(values) -> str:
     v = np.asarray(values, dtype=np.float64)
     return f"{np.median(v):.2f} / {v.min():.2f} / {v.max():.2f}"

@@ -11,6 +11,13 @@ service's snapshot), which the service runs in the background past its threshold
 its status every half second until it is done). Both are measured, in-process
 (`Scene.update_poses`) and over HTTP (`POST /v1/sessions/{id}/poses`, a real service started here),
 next to re-streaming every frame. Prints tables and the machine they ran on; never asserts timings.
+
+``--last K --of N`` also prints what correcting the last K of N frames costs against correcting all
+N, in-process, each in its own scene as a service session keeps it (frames kept, the default undo
+records): ms, the resident memory the correction adds at its peak, and the undo records' bytes.
+For the office walk as the memory target reads it:
+
+    python bench/poses.py --scale 1 --voxel 0.01 --last 5 --of 25 --tables last
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import machine_summary, print_table, time_each  # noqa: E402
+from common import machine_summary, peak_growth, print_table, time_each  # noqa: E402
 
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
@@ -75,6 +82,44 @@ def in_process(frames, voxel: float, checkpoint_every: int) -> tuple[list[dict],
         scene.update_poses(new_poses(frames, positions, seed))
         rows.append(row(label, len(positions), (time.perf_counter() - t0) * 1000, fold_ms))
     return rows, fold_ms
+
+
+def revision(frames, positions: list[int], seed: int) -> dict[int, np.ndarray]:
+    """New poses for the contiguous ``positions``: the drift walk of `new_poses` started at the first
+    of them, so a revision of the last frames moves them as little, against their neighbours, as a
+    revision of all moves the first ones (the walk from frame 0 would move the last frames by the
+    drift of all before them, and their re-fold would make new voxels that a revision of all does not)."""
+    walk = drift_walk(len(positions), 0.01, 0.5, every=10, seed=seed)
+    return {k: walk[i] @ frames[k].camera.c2w64() for i, k in enumerate(positions)}
+
+
+def last_against_all(frames, voxel: float, last: int) -> list[dict]:
+    """Correcting the last ``last`` of ``frames`` and correcting all of them (`revision`), each in a
+    fresh scene that folded them all (frames kept, no checkpoints; the default undo records, and for
+    the last ones also records of ``last`` folds, so that they roll back in place): ms, in folds, the
+    peak resident growth, and the undo records' bytes before and after."""
+    n, rows, fold_ms = len(frames), [], None
+    # the kernels loaded, and a throwaway correction of them all made, outside the measurement: the
+    # first large allocations of a process fault in fresh pages, which would fall on the first row
+    warm = Scene(SceneConfig(voxel_size=voxel), keep_frames=True)
+    for frame in frames:
+        warm.fold(frame)
+    warm.update_poses(revision(frames, list(range(n)), seed=n))
+    del warm
+    cases = ((f"the last {last}", None, list(range(n - last, n))),
+             (f"the last {last}, records of {last} folds", last, list(range(n - last, n))),
+             (f"all {n}", None, list(range(n))))
+    for label, depth, positions in cases:
+        scene = Scene(SceneConfig(voxel_size=voxel), keep_frames=True, undo_depth=depth)
+        ms = time_each(scene.fold, frames)
+        fold_ms = fold_ms or float(np.median(ms))
+        undo_before = scene.undo_bytes()
+        ms, peak = peak_growth(scene.update_poses, revision(frames, positions, seed=n))
+        rows.append({"correction": label, "frames": len(positions), "ms": f"{ms:.0f}", "in folds": f"{ms / fold_ms:.1f}",
+                     "peak resident growth MB": f"{peak / 1e6:.1f}", "undo MB before / after":
+                     f"{undo_before / 1e6:.1f} / {scene.undo_bytes() / 1e6:.1f}",
+                     "scene MB": f"{scene.memory_bytes() / 1e6:.1f}", "voxels": len(scene)})
+    return rows
 
 
 def drift_figures(frames, voxel: float, held_every: int) -> list[dict]:
@@ -135,14 +180,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--checkpoint-every", type=int, default=25, help="library checkpoints (frames)")
     parser.add_argument("--snapshot-every", type=int, default=25, help="the service's snapshot_every_frames")
     parser.add_argument("--held-every", type=int, default=8, help="drift figures: every k-th frame held out")
+    parser.add_argument("--last", type=int, default=5, help="the 'last K of N' table: K")
+    parser.add_argument("--of", type=int, default=25, help="the 'last K of N' table: N (the first N frames)")
+    parser.add_argument("--tables", default="drift,in-process,last,http", help="which tables, comma-separated")
     args = parser.parse_args(argv)
+    tables = set(args.tables.split(","))
     frames = [resize_frame(f, args.scale) for f in load_dataset(args.data, stride=args.stride, max_frames=args.max_frames)]
     print(machine_summary())
     print(f"{args.data.name}: {len(frames)} frames at {frames[0].width}x{frames[0].height}, voxel {args.voxel} m\n")
-    print_table(f"drift and one correction: held-out views (every {args.held_every}th frame)",
-                drift_figures(frames, args.voxel, args.held_every))
-    rows, _ = in_process(frames, args.voxel, args.checkpoint_every)
-    print_table(f"in-process: Scene.update_poses (checkpoint every {args.checkpoint_every} frames)", rows)
+    if "drift" in tables:
+        print_table(f"drift and one correction: held-out views (every {args.held_every}th frame)",
+                    drift_figures(frames, args.voxel, args.held_every))
+    if "in-process" in tables:
+        rows, _ = in_process(frames, args.voxel, args.checkpoint_every)
+        print_table(f"in-process: Scene.update_poses (checkpoint every {args.checkpoint_every} frames)", rows)
+    if "last" in tables:
+        print_table(f"in-process: the last {args.last} of {args.of} frames corrected, against all {args.of}",
+                    last_against_all(frames[: args.of], args.voxel, args.last))
+    if "http" not in tables:
+        return 0
     os.environ["CANONICAL_SNAPSHOT_EVERY_FRAMES"] = str(args.snapshot_every)
     os.environ.setdefault("CANONICAL_SNAPSHOT_EVERY_SECONDS", "3600")
     rows, stats = over_http(frames, args.voxel)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from canonical_core.scene import Scene
 from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
+from canonical_core.scene.undo import MAX_UNDO_SHARE
 
 from . import wire
 from .archive import SessionArchive
@@ -311,10 +312,9 @@ class Corrections:
             stream = counted(stream, job)
         # the settings the first frame chose stay, even where that frame is removed (`Scene.chosen`)
         config, chosen = session.scene.config, dict(session.scene.chosen)
-        if base is not None:
-            base.keep_undo(session.undo_depth)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
-        else:
-            base = Scene(config, undo_depth=session.undo_depth)
+        if base is None:
+            base = Scene(config)
+        base.keep_undo(session.undo_depth, MAX_UNDO_SHARE)  # the re-fold's last folds can be rolled back: a next correction of them is cheap
         session.preallocate(base)  # the re-fold and the scene it becomes grow into committed memory
         base.chosen = chosen
         return Scene.refolded(config, stream, appearance, base, BASE_EVERY, checkpoints), checkpoints

@@ -30,6 +30,7 @@ from canonical_core.scene import FoldReport, Scene
 from canonical_core.scene.folding import fold_cost
 from canonical_core.scene.mesh import Mesh, scene_mesh
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
+from canonical_core.scene.undo import MAX_UNDO_SHARE
 
 from .archive import SessionArchive, names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
@@ -89,7 +90,7 @@ class Session:
         served scene back and re-folds only them (`Corrections.correct`). And the scene commits the
         memory of `preallocate_voxels` voxels up front."""
         if self.archive is not None:
-            self.scene.keep_undo(self.undo_depth)
+            self.scene.keep_undo(self.undo_depth, MAX_UNDO_SHARE)
         self.preallocate(self.scene)
         if self.chosen and self.scene.config == self.config:  # a scene rebuilt from meta.json's settings
             self.scene.chosen = dict(self.chosen)

@@ -65,10 +65,11 @@ class Settings(BaseSettings):
     correction_undo_frames: int = Field(4, ge=0, le=1024, description=(
         "a session keeps undo records of its last this many folds, so that a pose correction of them rolls "
         "back in place and re-folds only them; each record costs about the rows its fold touched (megabytes "
-        "at 640x480), counted in the session's memory_bytes"))
+        "at 640x480), counted in the session's memory_bytes; past the newest 4, the oldest are dropped while "
+        "the records hold more than half the bytes of the session's voxel map"))
     preallocate_voxels: int = Field(0, ge=0, le=MAX_VOXELS, description=(
         "each session's scene commits the memory of this many voxels up front (at most its max_voxels; about "
-        "300 bytes a voxel, counted in its memory_bytes), so that folds growing the map up to that size never "
+        "200 bytes a voxel, counted in its memory_bytes), so that folds growing the map up to that size never "
         "wait for fresh pages: steadier fold times for sessions whose size is known, at that memory per session"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")

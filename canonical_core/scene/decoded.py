@@ -19,6 +19,16 @@ from torch import Tensor
 # the parts of a decoded row that are kept, in `GaussianDecoder.shapes_and_colours`' names; the
 # features (F_scene, 64 bytes a voxel at 16 channels) are recomputed from the sums instead
 PARTS = ("means", "scales", "quats", "sh", "labels")
+# the parts kept in float16 (a decode rounds them so, `rounded`, whether it reuses rows or not): a
+# scale's or a colour coefficient's relative precision is all that matters of it, where the means
+# are world positions, which float16 would put centimetres off a few metres from the origin
+HALF_PARTS = ("scales", "quats", "sh")
+
+
+def rounded(parts: dict[str, Tensor | None]) -> dict[str, Tensor | None]:
+    """``parts`` with `HALF_PARTS` rounded to float16 (and back to float32): what the decoded rows
+    keep of them, so a decode that reuses rows and one that does not give the same Gaussians."""
+    return {k: v.half().float() if k in HALF_PARTS and v is not None else v for k, v in parts.items()}
 
 
 @numba.njit(parallel=True, cache=True)
@@ -34,12 +44,16 @@ def gather_rows(
 ) -> torch.Tensor:  # [N] or [N, ...], contiguous
     """``source[rows]`` on the numba threads: over a strided view this is several times faster than
     torch's index_select or numpy's fancy indexing, which copy element by element, and over a
-    contiguous one it still splits the copy between the threads."""
+    contiguous one it still splits the copy between the threads. Float16 is copied as its bits
+    (numba has no float16)."""
+    dtype = source.dtype
+    if dtype == np.float16:
+        source = source.view(np.uint16)
     width = int(np.prod(source.shape[1:]))  # not -1: an empty scene's columns have no size to infer it from
     out = np.empty((len(rows), width), source.dtype)
     if len(rows) and width:
         _gather_kernel(source.reshape(len(source), width), rows, out)
-    return torch.from_numpy(out.reshape(len(rows), *source.shape[1:]))
+    return torch.from_numpy(out.view(dtype).reshape(len(rows), *source.shape[1:]))
 
 
 @numba.njit(cache=True)
@@ -111,7 +125,8 @@ class DecodedRows:
                 if part is None:
                     self._parts[name] = None
                     continue
-                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=part.dtype)
+                dtype = torch.float16 if name in HALF_PARTS else part.dtype
+                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=dtype)
                 if old is not None:
                     grown_part[: len(old)] = old
                 self._parts[name] = grown_part
@@ -119,12 +134,13 @@ class DecodedRows:
         index = torch.from_numpy(slots.astype(np.int64))
         for name, part in parts.items():
             if part is not None:
-                self._parts[name].index_copy_(0, index, part.detach())
+                self._parts[name].index_copy_(0, index, part.detach().to(self._parts[name].dtype))
         self.stamps[slots] = stamps
 
-    def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...]
+    def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...] float32
         slots = self.slot_of[rows].astype(np.int64)
-        return {name: None if part is None else gather_rows(part.numpy(), slots) for name, part in self._parts.items()}
+        return {name: None if part is None else gather_rows(part.numpy(), slots).float()
+                for name, part in self._parts.items()}
 
     def nbytes(self) -> int:
         return int(self.slot_of.nbytes + self.stamps.nbytes

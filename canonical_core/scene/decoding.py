@@ -28,8 +28,9 @@ from ..decode import GaussianDecoder, colour_offsets, with_colour_offsets
 from ..frame import Frame
 from ..gaussians import Gaussians
 from ..config import SceneConfig
-from .decoded import PARTS, DecodedRows
+from .decoded import PARTS, DecodedRows, rounded
 from .fields import fields_from_sums
+from .half import from_half
 from .shapes import voxel_shapes
 
 POSITION_SUMS = ("keys", "rep_pos", "pos_sum", "pos_sq")  # what `voxel_shapes` reads in place
@@ -114,11 +115,12 @@ def decoded_rows(
 
 
 @numba.njit(parallel=True, cache=True)
-def _features_kernel(rows, f_sum, r_sum, eps, out):
+def _features_kernel(rows, f_mean, r_sum, eps, out):  # f_mean: [V, L] float16 bits (uint16)
     for i in numba.prange(rows.shape[0]):
-        den = r_sum[rows[i]] + eps
-        for j in range(f_sum.shape[1]):
-            out[i, j] = f_sum[rows[i], j] / den
+        r = r_sum[rows[i]]
+        den = r + eps
+        for j in range(f_mean.shape[1]):
+            out[i, j] = from_half(f_mean[rows[i], j]) * r / den  # the sum as `fields_from_sums` has it, then F_scene
 
 
 def scene_features(
@@ -126,11 +128,13 @@ def scene_features(
     rows: np.ndarray,  # [N] int64
     eps: float,  # `SceneConfig.research.eps`
 ) -> torch.Tensor:  # [N, L] float32
-    """F_scene = sum W F / (R_scene + eps) of ``rows``, as `fields_from_sums` has it (float32). The
-    decoded rows do not keep it (it is the largest part of a row): a division, cheaper to redo
-    from the sums, read in place (a numba gather: torch's of a strided column is several times slower)."""
-    out = np.empty((len(rows), sums["f_sum"].shape[1]), np.float32)
-    _features_kernel(rows, sums["f_sum"], sums["r_sum"], np.float32(eps), out)
+    """F_scene = sum W F / (R_scene + eps) of ``rows``, as `fields_from_sums` has it (float32, the sum
+    being the stored mean times R_scene). The decoded rows do not keep it (it is the largest part of
+    a row): cheaper to redo from the sums, read in place (a numba gather: torch's of a strided
+    column is several times slower)."""
+    f_mean = sums["f_mean"]
+    out = np.empty((len(rows), f_mean.shape[1]), np.float32)
+    _features_kernel(rows, f_mean.view(np.uint16), sums["r_sum"], np.float32(eps), out)
     return torch.from_numpy(out)
 
 
@@ -346,7 +350,7 @@ class SceneDecoding:
                              positions=False)
         base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
-            fresh = self.decoder.shapes_and_colours(f, self.config.voxel_size, base)
+            fresh = rounded(self.decoder.shapes_and_colours(f, self.config.voxel_size, base))
         if not work.wants_features:
             fresh["features"] = None
         if work.todo_stamps is None:

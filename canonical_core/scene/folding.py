@@ -94,7 +94,7 @@ def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport
         if scene.label_dim != record.label_dim:  # rows were widened: earlier records no longer fit
             scene._undo.clear()
         else:
-            scene._undo.push(record)
+            scene._undo.push(record, scene._voxels.nbytes())
     if scene._kept is not None:
         scene._arrivals.append(arrival)
         scene._kept.append(frame)

@@ -82,17 +82,19 @@ def integrate(
     if ev.labels is not None and not voxels.label_dim:
         voxels.set_label_dim(ev.labels.shape[1])
     voxels.reserve(len(voxels) + n_new)
-    # the rows it overwrites, for an undo record: the kernel copies each as it reads it
-    journal, width = voxels.journal, voxels.layout.width
-    before = journal.rows_before(n_touched - n_new, width) if journal is not None else RowsBefore.room(0, width)
+    # the records it overwrites, for an undo record: the kernel copies each as it reads it
+    journal, stored = voxels.journal, voxels.stored
+    before = journal.rows_before(n_touched - n_new, stored) if journal is not None else RowsBefore.room(0, stored)
     s = voxels.state
     labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
+    work = np.empty((numba.config.NUMBA_NUM_THREADS, voxels.layout.width), np.float32)  # a record per thread
     switches = fold_kernel(
-        voxels.table, s["keys"], s["rows"], s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(),
-        config.uses_reliability, config.uses_similarity, np.float32(config.sensor.weight_floor), inv_voxel,
+        voxels.table, s["keys"], s["rows"], s["half"], stored.wide_cols, stored.half_cols, stored.half_mean, work,
+        s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(), config.uses_reliability,
+        config.uses_similarity, np.float32(config.sensor.weight_floor), inv_voxel,
         n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
         ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,
-        journal is not None, t.before_slot, before.index, before.rows, before.rep_rgb, before.n_obs,
+        journal is not None, t.before_slot, before.index, before.rows, before.half, before.rep_rgb, before.n_obs,
     )
     voxels.commit(t.touched[:n_touched], n_new)
     return Integrated(int(n_obs), int(n_new), int(n_touched), int(switches))

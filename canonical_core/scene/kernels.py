@@ -21,6 +21,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .hashing import find_voxel, home_slot
+from .stored import load_row, store_row
 
 # LLVM's prefetch intrinsic takes an opaque pointer from LLVM 15 on, an i8* before
 _PREFETCH = "llvm.prefetch.p0" if llvm_binding.llvm_version_info[0] >= 15 else "llvm.prefetch.p0i8"
@@ -48,7 +49,8 @@ def _prefetch(typingctx, array, row, column):
 
 
 class VoxelRows:
-    """Column layout of the per-voxel float32 record: the representative, then every weighted sum.
+    """Column layout of the per-voxel float32 record the fold works on: the representative, then every
+    weighted sum (the map stores it narrower: `stored.StoredRows`).
 
     One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
     state in a few adjacent cache lines, where one array per field costs a cache miss per field.
@@ -106,22 +108,24 @@ OBS_PREFETCH_AHEAD = 2  # voxels ahead whose observations' evidence it asks for
 
 @numba.njit(cache=True, parallel=True)
 def fold_kernel(
-    # scene state (rows >= n_voxels are zero)
-    table, keys, rows, rep_rgb, n_obs, n_voxels, offsets, uses_rel, uses_sim, weight_floor, inv_voxel,
+    # scene state (rows >= n_voxels are zero): the stored records (`stored.StoredRows`) and, per
+    # thread, a float32 working record [threads, width] that each voxel is folded in
+    table, keys, rows, half, wide_cols, half_cols, half_mean, work, rep_rgb, n_obs, n_voxels, offsets, uses_rel,
+    uses_sim, weight_floor, inv_voxel,
     # phase A's result
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
     rel, feat, rgb, points, sh_basis, labels, has_labels,
     # with keep_before: the existing rows touched, copied before they change (slot: scratch [>= n_touched])
-    keep_before, before_slot, before_index, before_rows, before_rgb, before_n_obs,
+    keep_before, before_slot, before_index, before_rows, before_half, before_rgb, before_n_obs,
 ):
     """Phase B: insert the new voxels; then, per touched voxel, replace its representative if the
     frame-best observation beats it (rescaling the old sums by max(0, cos(old rep, new rep))) and
     accumulate W = max(R * max(0, cos(F, F_rep)), weight_floor * R_rep) weighted sums into its row
-    (`VoxelRows`). Returns the
-    representative switches. With ``keep_before`` it first copies each existing voxel's row, colour
-    and count into the ``before_*`` arrays (one entry per existing touched voxel, in slot order),
-    for an undo record: the copy reads the row the visit reads anyway.
+    (`VoxelRows`, loaded from the stored record and stored back: `stored`). Returns the
+    representative switches. With ``keep_before`` it first copies each existing voxel's stored
+    record, colour and count into the ``before_*`` arrays (one entry per existing touched voxel, in
+    slot order), for an undo record: the copy reads the record the visit reads anyway.
 
     Besides F, colour and position moments, W accumulates the normal equations of the per-voxel
     SH colour fit: sh_a = upper triangle of sum W b b^T without its (0, 0) entry (= C0^2 R_scene),
@@ -135,7 +139,7 @@ def fold_kernel(
     REP_F, REP_POS, R_SUM, F_SUM, RGB_SUM, POS_SUM, POS_SQ, SH_A, SH_B, LABEL_W, LABEL_SUM = offsets
     L = feat.shape[1]
     S = labels.shape[1]
-    D = rows.shape[1]
+    D = work.shape[1]
     mask = table.shape[0] - 1
     for j in range(n_new):
         vi = n_voxels + j
@@ -155,9 +159,11 @@ def fold_kernel(
         # touches lie scattered over far more memory than the caches hold
         if t + PREFETCH_AHEAD < n_touched:
             ahead = touched[t + PREFETCH_AHEAD]
-            for c in range(0, D, 16):
-                _prefetch(rows, ahead, c)
-            _prefetch(rows, ahead, D - 1)
+            _prefetch(rows, ahead, 0)
+            _prefetch(rows, ahead, rows.shape[1] - 1)
+            for c in range(0, half.shape[1], 32):
+                _prefetch(half, ahead, c)
+            _prefetch(half, ahead, half.shape[1] - 1)
         # and the evidence of the voxel OBS_PREFETCH_AHEAD on: its observations' lines lie a few image
         # rows apart, and the sums below are too long a loop for the CPU to reach the next ones itself
         if t + OBS_PREFETCH_AHEAD < n_touched:
@@ -169,14 +175,18 @@ def fold_kernel(
                 _prefetch(rgb, j, 0)
                 j = next_obs[j]
         vi = touched[t]
-        row = rows[vi]
+        thread = numba.get_thread_id()  # below NUMBA_NUM_THREADS (the rows of work) in every threading layer
+        row = work[thread]
+        load_row(rows, half, vi, wide_cols, half_cols, half_mean, R_SUM, row)
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
         elif keep_before:
             k = before_slot[t]
             before_index[k] = vi
-            for c in range(D):
-                before_rows[k, c] = row[c]
+            for c in range(rows.shape[1]):
+                before_rows[k, c] = rows[vi, c]
+            for c in range(half.shape[1]):
+                before_half[k, c] = half[vi, c]
             for c in range(3):
                 before_rgb[k, c] = rep_rgb[vi, c]
             before_n_obs[k] = n_obs[vi]
@@ -290,4 +300,5 @@ def fold_kernel(
                 row[SH_A + c] += a
             for c, a in enumerate((s1r, s1g, s1b, s2r, s2g, s2b, s3r, s3g, s3b)):
                 row[SH_B + c] += a
+        store_row(row, rows, half, vi, wide_cols, half_cols, half_mean, R_SUM)
     return switches

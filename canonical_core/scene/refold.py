@@ -82,10 +82,11 @@ def _refold_from_checkpoint(scene: Scene, first: int, frames: list[Frame], arriv
     start = max((c for c in scene._checkpoints if c <= first), default=0)
     base = type(scene).from_bytes(scene._checkpoints[start]) if start else None
     checkpoints = {c: b for c, b in scene._checkpoints.items() if c <= start}
-    if base is not None:
-        base.keep_undo(scene._undo.depth)
+    if base is None:
+        base = type(scene)(scene.config)
+    base.keep_undo(scene._undo.depth, scene._undo.max_share)
     refold_scene = refolded(type(scene), scene.config, frames[start:], scene.appearance, base, scene.checkpoint_every,
-                            checkpoints, scene._undo.depth)
+                            checkpoints)
     adopt(scene, refold_scene)
     scene._kept, scene._arrivals, scene._checkpoints = frames, arrivals, checkpoints
 
@@ -131,7 +132,8 @@ def adopt(scene: Scene, other: Scene) -> None:
     scene._front, scene._history, scene._keyframes = other._front, other._history, other._keyframes
     scene._density_sum, scene._density_frames = other._density_sum, other._density_frames
     scene._consistency = other._consistency
-    scene._undo = other._undo if other._undo.depth == scene._undo.depth else UndoRing(scene._undo.depth)
+    same = (other._undo.depth, other._undo.max_share) == (scene._undo.depth, scene._undo.max_share)
+    scene._undo = other._undo if same else UndoRing(scene._undo.depth, scene._undo.max_share)
     scene._generation += 1
     scene._decoding.reset()
 

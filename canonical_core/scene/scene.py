@@ -36,8 +36,8 @@ from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
-# folds a scene that keeps its frames can roll back in place: each record holds the rows the fold
-# touched and the whole see-through column, several times the fold's share of the state, so few
+# folds a scene that keeps its frames can roll back in place: each record holds the stored rows the fold
+# touched and its frustum's see-through evidence, several times the fold's share of the state, so few
 DEFAULT_UNDO_DEPTH = 4
 
 
@@ -129,13 +129,14 @@ class Scene:
         with self._lock:
             return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
 
-    def keep_undo(self, depth: int) -> None:
-        """Keep undo records of the next ``depth`` folds from now on (0: none); the records kept so far
+    def keep_undo(self, depth: int, max_share: float | None = None) -> None:
+        """Keep undo records of the next ``depth`` folds from now on (0: none), with ``max_share`` only as
+        many as hold at most that share of the map's bytes (`undo.UndoRing`); the records kept so far
         are dropped (a loaded snapshot has none)."""
         if isinstance(depth, bool) or not isinstance(depth, int) or depth < 0:
             raise ValueError(f"undo_depth: expected a non-negative integer, got {depth!r}")
         with self._lock:
-            self._undo = UndoRing(depth)
+            self._undo = UndoRing(depth, max_share)
 
     def preallocate(self, voxels: int) -> None:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block
@@ -257,7 +258,7 @@ class Scene:
         v = self._voxels
         state = v.state if live else v.copied_state()
         changed_at = v.changed_at[: len(v)]
-        return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.layout),
+        return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.stored),
                             self.observations_per_view(), self._keyframes.frames(),
                             changed_at if live else changed_at.copy(), self.frames)
 

@@ -34,7 +34,11 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "copied_parts", "encode", "encode_sn
            "model_arrays", "read_config", "save", "snapshot_parts", "state_arrays"]
 
 FORMAT_NAME = "canonicalgs-scene"
-FORMAT_VERSION = 4  # 4 adds the per-view observation density (v3 files load with a density of 1)
+# 4 adds the per-view observation density (v3 files load with a density of 1); 5 stores the records
+# as the map does (`stored`: the feature sum as a float16 mean; v3 and v4 files hold float32
+# sums, stored on loading as a fold stores them)
+FORMAT_VERSION = 5
+READABLE_VERSIONS = (3, 4, FORMAT_VERSION)
 
 
 def state_arrays(scene: Scene, sums: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
@@ -146,8 +150,8 @@ def _opened(source) -> tuple:
         raise ValueError(f"snapshot: not a readable scene file ({exc})") from None
     if header.get("format") != FORMAT_NAME:
         raise ValueError(f"snapshot: unknown format {header.get('format')!r}")
-    if header.get("version") not in (3, FORMAT_VERSION):
-        raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected 3 or {FORMAT_VERSION})")
+    if header.get("version") not in READABLE_VERSIONS:
+        raise ValueError(f"snapshot: version {header.get('version')} is not supported (expected one of {READABLE_VERSIONS})")
     return npz, header
 
 

@@ -7,8 +7,9 @@ k roll-backs and k folds, not a snapshot load and the folds since it.
 
 What a fold overwrites, and what its record keeps of it:
 
-- the rows of the existing voxels it touches (representative, sums, colour, count): their values
-  before each integration, copied by the fold kernel as it reads them (`RowsBefore`);
+- the records of the existing voxels it touches (representative, sums, colour, count), as the map
+  stores them (`stored`): their values before each integration, copied by the fold kernel as it
+  reads them (`RowsBefore`);
 - the see-through evidence ``free`` of the existing voxels in the chunks its frustum meets, before
   each free-space pass (`FreeBefore`), not the whole column: on a room-scale map most chunks lie
   outside one frame's view;
@@ -36,6 +37,7 @@ import numba
 import numpy as np
 
 from .free_space import CHUNK, SeeThroughHistory
+from .stored import StoredRows
 from .voxel_map import VoxelMap
 
 __all__ = ["FoldUndo", "FreeBefore", "RowsBefore", "UndoRing"]
@@ -46,22 +48,24 @@ class RowsBefore:
     """Existing voxels' records before one integration overwrote them."""
 
     index: np.ndarray  # [T] int64 voxel indices
-    rows: np.ndarray  # [T, width] float32
+    rows: np.ndarray  # [T, width] float32, the stored records' float32 part
+    half: np.ndarray  # [T, half_width] uint16, their float16 part
     rep_rgb: np.ndarray  # [T, 3] uint8
     n_obs: np.ndarray  # [T] int32
 
     @classmethod
-    def room(cls, count: int, width: int) -> "RowsBefore":
-        """Room for ``count`` rows of ``width`` columns, for the fold kernel to fill."""
-        return cls(np.empty(count, np.int64), np.empty((count, width), np.float32), np.empty((count, 3), np.uint8),
+    def room(cls, count: int, stored: StoredRows) -> "RowsBefore":
+        """Room for ``count`` records laid out as ``stored``, for the fold kernel to fill."""
+        return cls(np.empty(count, np.int64), np.empty((count, stored.width), np.float32),
+                   np.empty((count, stored.half_width), np.uint16), np.empty((count, 3), np.uint8),
                    np.empty(count, np.int32))
 
     def restore(self, voxels: VoxelMap) -> None:
-        s = voxels.state
-        s["rows"][self.index], s["rep_rgb"][self.index], s["n_obs"][self.index] = self.rows, self.rep_rgb, self.n_obs
+        s, i = voxels.state, self.index
+        s["rows"][i], s["half"][i], s["rep_rgb"][i], s["n_obs"][i] = self.rows, self.half, self.rep_rgb, self.n_obs
 
     def nbytes(self) -> int:
-        return self.index.nbytes + self.rows.nbytes + self.rep_rgb.nbytes + self.n_obs.nbytes
+        return self.index.nbytes + self.rows.nbytes + self.half.nbytes + self.rep_rgb.nbytes + self.n_obs.nbytes
 
 
 @dataclass(frozen=True)
@@ -116,10 +120,10 @@ class FoldUndo:
     before: list[RowsBefore | FreeBefore] = field(default_factory=list)  # in the order the fold overwrote them
     history: list[tuple] = field(default_factory=list)  # per history push, in order (`history_slot`)
 
-    def rows_before(self, count: int, width: int) -> RowsBefore:
-        """Room for the ``count`` rows that an integration is about to overwrite (`RowsBefore.room`),
+    def rows_before(self, count: int, stored: StoredRows) -> RowsBefore:
+        """Room for the ``count`` records that an integration is about to overwrite (`RowsBefore.room`),
         entered in the record."""
-        before = RowsBefore.room(count, width)
+        before = RowsBefore.room(count, stored)
         self.before.append(before)
         return before
 
@@ -160,12 +164,24 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
     voxels.touch(np.concatenate(restored) if restored else np.zeros(0, np.int64))
 
 
-class UndoRing:
-    """The undo records of the last ``depth`` folds, oldest first."""
+# the service's bound on its sessions' undo records, as a share of the bytes of the map they undo:
+# a deep ring (`undo_depth` up to 1024) costs at most this beside the state, or its newest
+# `MIN_KEPT` records where those alone hold more (a capture whose every frame touches most of the map)
+MAX_UNDO_SHARE = 0.5
+MIN_KEPT = 4  # records kept whatever their size: corrections of the last few frames stay in place
 
-    def __init__(self, depth: int):
-        self.depth = depth
-        self.records: deque[FoldUndo] = deque(maxlen=depth or None)
+
+class UndoRing:
+    """The undo records of the last ``depth`` folds, oldest first; with ``max_share``, those past
+    the newest `MIN_KEPT` only while they all hold at most that share of the map's bytes (`push`)."""
+
+    def __init__(self, depth: int, max_share: float | None = None):
+        if max_share is not None and not max_share > 0:
+            raise ValueError(f"max_share: expected a positive share of the map's bytes, got {max_share!r}")
+        self.depth, self.max_share = depth, max_share
+        self.records: deque[FoldUndo] = deque()
+        self._sizes: deque[int] = deque()  # each record's bytes, as `nbytes` sums them
+        self._bytes = 0
 
     def __len__(self) -> int:
         return len(self.records)
@@ -174,12 +190,27 @@ class UndoRing:
         """The smallest frame count the scene (now holding ``frames``) can be rolled back to."""
         return self.records[0].frames if self.records else frames
 
-    def push(self, record: FoldUndo) -> None:
-        if self.depth:
-            self.records.append(record)
+    def push(self, record: FoldUndo, map_bytes: int) -> None:
+        """Keep ``record``, the newest; then drop the oldest ones while more than ``depth`` are kept, or
+        more than `MIN_KEPT` holding more than ``max_share`` of ``map_bytes`` (the map's bytes now)."""
+        if not self.depth:
+            return
+        self.records.append(record)
+        self._sizes.append(size := record.nbytes())
+        self._bytes += size
+        limit = float("inf") if self.max_share is None else self.max_share * map_bytes
+        while len(self.records) > self.depth or (len(self.records) > MIN_KEPT and self._bytes > limit):
+            self._pop(0)
+
+    def _pop(self, end: int) -> FoldUndo:  # end: 0 the oldest record, -1 the newest
+        record = self.records.popleft() if end == 0 else self.records.pop()
+        self._bytes -= self._sizes.popleft() if end == 0 else self._sizes.pop()
+        return record
 
     def clear(self) -> None:
         self.records.clear()
+        self._sizes.clear()
+        self._bytes = 0
 
     def take(self, frames: int, current: int) -> list[FoldUndo]:
         """Remove and return the records of the folds from frame count ``frames`` on (the scene holds
@@ -188,9 +219,9 @@ class UndoRing:
             raise ValueError(f"frames: the undo records reach back to {self.floor(current)} frames, not {frames}")
         undone = []
         while self.records and self.records[-1].frames >= frames:
-            undone.append(self.records.pop())
+            undone.append(self._pop(-1))
         return undone
 
     def nbytes(self) -> int:
-        return sum(r.nbytes() for r in self.records)
+        return self._bytes
 

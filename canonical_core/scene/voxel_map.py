@@ -3,7 +3,8 @@
 It knows nothing of frames. It holds, for ``len(map)`` voxels:
 
 - ``keys`` [V] int64, the packed lattice coordinates (`hashing` packs (i, j, k) into 21 bits each);
-- ``rows`` [V, width] float32, the representative and every weighted sum (`kernels.VoxelRows`);
+- ``rows`` [V, width] float32 and ``half`` [V, half_width] float16 bits, the representative and
+  every weighted sum (`kernels.VoxelRows`), stored as `stored.StoredRows` lays them out;
 - ``rep_rgb`` [V, 3] uint8, ``free`` [V] float32 (see-through evidence), ``n_obs`` [V] int32;
 - ``table``, a power-of-two hash table of voxel indices (-1 empty, linear probing), kept at a load
   of at most `MAX_TABLE_LOAD` so that a probe ends after a few slots. Its successor, twice the
@@ -20,8 +21,8 @@ address space, not memory: the allocator maps it lazily, and a page costs memory
 only when a fold first writes a row in it. Growing the capacity is a new, longer view. Only a map
 that outgrows its block (or one where the reservation is refused) copies its rows into a new one.
 
-Integration (`integrate`) writes the records; the snapshot reads and restores them as arrays
-(`sums`, `load_sums`).
+Integration (`integrate`) writes the records; the snapshot reads and restores them as arrays of
+the stored fields (`sums`, `load_sums`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from .fields import sh_sum_widths
 from .free_space import CHUNK, update_chunk_boxes_kernel
 from .hashing import insert_range_kernel, lookup_kernel, remove_range_kernel
 from .kernels import VoxelRows
+from .stored import StoredRows
 
 MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
 # rows reserved per array up front (about 5 GB of address space with the default layout, none of
@@ -47,7 +49,7 @@ TABLE_SLOTS_PER_NEW_VOXEL = 9
 NEXT_TABLE_CLEAR = 1 / 8  # slots of it marked empty per fold (its pages are first touched then)
 NEXT_TABLE_SLICE = 1 / 32  # voxels entered into it per fold once it is clear, as a share of its slots
 
-# per-voxel arrays beside the float32 record (`VoxelRows`): name -> (dtype, trailing shape)
+# per-voxel arrays beside the stored record (`rows` and `half`, `stored`): name -> (dtype, trailing shape)
 ARRAYS = {
     "keys": (np.int64, ()),
     "rep_rgb": (np.uint8, (3,)),  # input colours are 8-bit: lossless
@@ -61,26 +63,27 @@ _STAMPS = itertools.count(1)
 
 def sums_view(
     state: dict[str, np.ndarray],  # a map's arrays (`VoxelMap.state`) or a copy of some of their rows
-    layout: VoxelRows,  # the layout of its records
+    stored: StoredRows,  # the stored layout of its records
     n: int,  # rows to view
 ) -> dict[str, np.ndarray]:
-    """The sums of the first ``n`` rows of ``state``, as views: each field of the records a column."""
-    rows = state["rows"][:n]
-    out = {k: v[:n] for k, v in state.items() if k != "rows"}
-    out |= {name: layout.field(rows, name) for name in layout.columns}
-    if not layout.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
+    """The sums of the first ``n`` rows of ``state``, as views: each stored field of the records a
+    column (float16 means for the half-precision ones, `stored`)."""
+    records = {name: state[name][:n] for name in ("rows", "half")}
+    out = {k: v[:n] for k, v in state.items() if k not in records}
+    out |= {name: stored.field(records, name) for name in stored.columns}
+    if not stored.layout.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
         out["label_sum"] = np.zeros((n, 0), np.float32)
     return out
 
 
 def gathered_sums(
     state: dict[str, np.ndarray],  # as `sums_view`'s
-    layout: VoxelRows,
+    stored: StoredRows,
     rows: np.ndarray,  # [N] int64 rows of it
 ) -> dict[str, np.ndarray]:  # name -> [N, ...]
     """The sums of ``rows`` of ``state``, copied: a gather of whole records (on the numba threads),
     where a gather per column would read each record once per field."""
-    return sums_view({k: gather_rows(v, rows).numpy() for k, v in state.items()}, layout, len(rows))
+    return sums_view({k: gather_rows(v, rows).numpy() for k, v in state.items()}, stored, len(rows))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -125,6 +128,7 @@ class VoxelMap:
                  max_voxels: int | None = None):
         self.feature_dim, self.sh_degree, self.max_voxels = feature_dim, sh_degree, max_voxels
         self.layout = VoxelRows(feature_dim, sh_sum_widths(sh_degree))
+        self.stored = StoredRows(self.layout)
         self.n = 0
         self._written = 0  # rows of the blocks ever written: the part of them that is memory
         self._backing: dict[str, np.ndarray] = {}  # the reserved blocks that `state` and `changed_at` view
@@ -149,7 +153,8 @@ class VoxelMap:
         return self.layout.label_dim
 
     def _shapes(self) -> dict[str, tuple[type, tuple[int, ...]]]:
-        return ARRAYS | {"rows": (np.float32, (self.layout.width,)), "changed_at": (np.int64, ())}
+        return ARRAYS | {"rows": (np.float32, (self.stored.width,)), "half": (np.uint16, (self.stored.half_width,)),
+                         "changed_at": (np.int64, ())}
 
     def _reserve(self, capacity: int, rows: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
         """Zeroed blocks of ``rows`` rows (of every array, or of ``names``), fewer (down to
@@ -275,11 +280,12 @@ class VoxelMap:
 
     def set_label_dim(self, label_dim: int) -> None:
         """Widen every row by the label columns (zero so far) once the first frame with labels arrives."""
-        old = self.layout
+        old = self.stored
         self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
+        self.stored = StoredRows(self.layout)
         narrow = self._backing["rows"]
         wide = self._reserve(self.capacity, narrow.shape[0], ("rows",))["rows"]
-        wide[: self.n, : old.width] = narrow[: self.n]  # the label columns come last, zero so far
+        wide[: self.n, : old.width] = narrow[: self.n]  # the label columns come last (float32), zero so far
         self._backing["rows"] = wide
         self._provide(self.capacity)
 
@@ -312,10 +318,10 @@ class VoxelMap:
         if not self.n:
             return None
         step = max(1, self.n // max_points)
-        return self.layout.field(self.state["rows"][: self.n: step], "rep_pos")
+        return self.stored.field({"rows": self.state["rows"][: self.n: step]}, "rep_pos")
 
     def sums(self) -> dict[str, np.ndarray]:
-        """The raw per-voxel sums (contiguous copies, insertion order, spare rows excluded)."""
+        """The stored per-voxel sums (`stored`: contiguous copies, insertion order, spare rows excluded)."""
         return {name: array.copy() for name, array in self.sums_of(self.state).items()}
 
     def copied_state(self) -> dict[str, np.ndarray]:
@@ -330,16 +336,16 @@ class VoxelMap:
 
     def sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The sums as views into ``state`` (the map's arrays or a copy of them), its first `len(self)` rows."""
-        return sums_view(state, self.layout, self.n)
+        return sums_view(state, self.stored, self.n)
 
     def load_sums(self, sums: dict[str, np.ndarray]) -> None:
-        """Inverse of `sums` on an empty map (snapshot loading): rows, hash table and chunk boxes."""
+        """Inverse of `sums` on an empty map (snapshot loading): rows, hash table and chunk boxes.
+        Float32 sums in place of the stored means (earlier snapshots) are stored as a fold stores them."""
         n = len(sums["keys"])
         self.reserve(n)
         for name in ARRAYS:
             self.state[name][:n] = sums[name]
-        for name in self.layout.columns:
-            self.layout.field(self.state["rows"][:n], name)[...] = sums[name]
+        self.stored.from_sums(sums, self.state)
         self.n = n
         self._written = max(self._written, n)
         self.changed_at[:n] = next(_STAMPS)

@@ -40,14 +40,24 @@ def test_flat_snapshot_settings_land_in_their_groups(loaded):
                             decoder={"opacity_slope": 25.0, "opacity_bias": -1.0, "sh_regularization": 0.004})
 
 
+# the fixture's state as the map stores it since records keep the feature sum as a float16 mean
+# (`scene.stored`): the file's float32 sums are stored so on loading, and this digest pins that
+# conversion (the file's own digest, in its expected.json, was of the float32 sums)
+STORED_DIGEST = "8bb088d99d77634eeda7e526e63e17a10545dbd5390e96e3e13dc012fc9ea515"
+# how far its decode may lie from what it decoded to when written: positions and opacities do not
+# move; F_scene moves by float16's rounding of the stored feature sums, and scales, rotations and
+# SH by the decoded rows' float16 (`scene.decoded.HALF_PARTS`)
+DECODE_ATOL = {"means": 1e-6, "opacities": 1e-6, "scales": 1e-4, "quats": 1e-3, "features": 1e-3, "sh": 1e-3}
+
+
 def test_flat_snapshot_keeps_its_state_and_decode(loaded):
     expected = json.loads((FIXTURES / "scene_v4.expected.json").read_text())
-    assert (loaded.digest(), loaded.frames, len(loaded)) == (expected["digest"], expected["frames"], expected["voxels"])
+    assert (loaded.digest(), loaded.frames, len(loaded)) == (STORED_DIGEST, expected["frames"], expected["voxels"])
     decoded = loaded.decode()
     stored = np.load(FIXTURES / "scene_v4.decoded.npz")
     assert len(decoded) == expected["gaussians"]
     for name in stored.files:
-        np.testing.assert_allclose(getattr(decoded, name).numpy(), stored[name], atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(getattr(decoded, name).numpy(), stored[name], atol=DECODE_ATOL[name], err_msg=name)
 
 
 def test_a_loaded_flat_snapshot_folds_on_and_saves_in_the_grouped_layout(loaded, tmp_path):

@@ -11,7 +11,7 @@ import torch
 from canonical_core import Frame, Scene, SceneConfig
 from canonical_core.datasets import load_dataset
 from canonical_core.scene.free_space import CHUNK
-from canonical_core.scene.undo import FoldUndo, FreeBefore, UndoRing
+from canonical_core.scene.undo import MIN_KEPT, FoldUndo, FreeBefore, UndoRing
 from tests.conftest import DATA
 from tests.scene.test_corrections import CONFIG, drifted, fold, pose, stream
 
@@ -170,6 +170,39 @@ def test_the_ring_keeps_the_last_records_only():
     with pytest.raises(ValueError, match=r"^frames: the undo records reach back to 7 frames, not 3"):
         ring.take(3, 7)
     for frames in (7, 8, 9):
-        ring.push(FoldUndo(frames, 0, 0, [], [], ([], []), (0.0, 0)))
+        ring.push(FoldUndo(frames, 0, 0, [], [], ([], []), (0.0, 0)), map_bytes=0)  # no share: the depth alone
     assert len(ring) == 2 and ring.floor(10) == 8
     assert [r.frames for r in ring.take(9, 10)] == [9] and ring.floor(9) == 8
+
+
+def test_a_share_of_the_maps_bytes_bounds_the_records_past_the_newest_few():
+    ring = UndoRing(depth=8, max_share=0.5)
+    record = FoldUndo(0, 0, 0, [], [], ([], []), (0.0, 0), before=[FreeBefore(np.zeros(0, np.int32), 0,
+                                                                          np.zeros(100, np.float32))])
+    for frames in range(8):
+        ring.push(replace(record, frames=frames), map_bytes=100)  # 400 bytes each, past any share of 100
+    assert len(ring) == MIN_KEPT and ring.nbytes() == 400 * MIN_KEPT and ring.floor(8) == 8 - MIN_KEPT
+    for frames in range(8, 16):
+        ring.push(replace(record, frames=frames), map_bytes=5600)  # 2800 bytes: 7 records
+    assert len(ring) == 7 and ring.nbytes() == 2800 and ring.floor(16) == 9
+    ring.push(replace(record, frames=16), map_bytes=10_000)  # the depth: 8 at most
+    assert len(ring) == 8 and ring.floor(17) == 9
+    assert [r.frames for r in ring.take(15, 17)] == [16, 15] and ring.nbytes() == 2400
+    with pytest.raises(ValueError, match=r"^max_share: "):
+        Scene(CONFIG).keep_undo(4, max_share=0.0)
+
+
+@pytest.mark.realdata
+def test_a_bounded_ring_keeps_within_its_share_and_rolls_back_exactly(shelf_frames):
+    config = SceneConfig(voxel_size=0.01)
+    scene = Scene(config)
+    scene.keep_undo(32, max_share=0.5)
+    digests = []
+    for frame in shelf_frames[:8]:
+        scene.fold(frame)
+        digests.append(scene.digest())
+        assert 0 < scene.undo_bytes() <= 0.5 * scene._voxels.nbytes() or len(scene._undo) <= MIN_KEPT
+    floor = scene.undo_floor
+    assert floor == 8 - MIN_KEPT  # the share, not the depth (32), dropped the older records
+    scene.rollback(floor)
+    assert scene.digest() == digests[floor - 1]

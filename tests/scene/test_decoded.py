@@ -160,7 +160,8 @@ def test_the_decoded_rows_count_in_the_scenes_memory(shelf):
     scene = folded_scene(shelf[:1])
     before = scene.memory_bytes()
     g = scene.decode()
-    per_gaussian = (3 + 3 + 4 + g.sh[0].numel()) * 4  # kept: means, scales, quats, sh (features are recomputed)
+    # kept: means in float32, scales, quats and sh in float16 (features are recomputed)
+    per_gaussian = 3 * 4 + (3 + 4 + g.sh[0].numel()) * 2
     assert len(g) * per_gaussian <= scene.memory_bytes() - before < len(g) * (per_gaussian + g.features.shape[1] * 4)
 
 
@@ -329,13 +330,13 @@ def test_scene_features_equal_the_fields_features():
 def test_gather_rows_equals_fancy_indexing_on_the_scenes_columns():
     scene = folded_scene([make_frame(np.full((12, 16), 2.0, np.float32))], 0.05)
     sums = scene.decode_inputs().sums  # strided views of the rows, 1-D arrays, uint8 colours, [V, 0] labels
-    assert not sums["f_sum"].flags.c_contiguous and not sums["r_sum"].flags.c_contiguous
+    assert not sums["f_mean"].flags.c_contiguous and not sums["r_sum"].flags.c_contiguous
     rows = np.array([5, 0, len(scene) - 1, 5], np.int64)
     for name, column in sums.items():
         gathered = gather_rows(column, rows)
         assert gathered.shape == column[rows].shape and gathered.numpy().dtype == column.dtype, name
         np.testing.assert_array_equal(gathered.numpy(), column[rows], err_msg=name)
-    assert gather_rows(sums["f_sum"], np.empty(0, np.int64)).shape == (0, sums["f_sum"].shape[1])
+    assert gather_rows(sums["f_mean"], np.empty(0, np.int64)).shape == (0, sums["f_mean"].shape[1])
 
 
 def test_an_empty_scene_decodes_to_no_gaussians():

@@ -35,6 +35,13 @@ def deviation(stream, batch):
     return rel.median().item(), rel.quantile(0.9).item(), cos.median().item(), cos.quantile(0.1).item()
 
 
+# The map stores the representative's feature and the feature sum as float16 (`scene.stored`);
+# the batch rule keeps float32. So F_scene, and through the representatives' similarity weights
+# R_scene and colour, agree to float16's rounding. Measured (2026-11-29, 10 shelf frames): F_scene
+# 1.1e-3 at most, R_scene 5e-4 relative.
+HALF = dict(rtol=1e-3, atol=2e-3)
+
+
 @pytest.mark.realdata
 @pytest.mark.parametrize("weight_floor", [0.0, 0.5])
 def test_streaming_equals_batch_when_representatives_never_change(shelf_frames, weight_floor):
@@ -44,9 +51,11 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames, 
     scene, reports = fold_all(frames, config)
     assert sum(r.representative_switches for r in reports) == 0
     stream, batch = scene.fields(), aggregate_batch(frames, config)
-    for name in ("reliability", "features", "colour", "representative_position", "position_mean"):
+    for name in ("representative_position", "position_mean"):
         assert torch.allclose(stream[name], batch[name], rtol=1e-4, atol=1e-6), name
-    assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=1e-9)
+    for name in ("reliability", "features", "colour"):
+        assert torch.allclose(stream[name], batch[name], **HALF), name
+    assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=2e-9)
     assert torch.equal(stream["observations"], batch["observations"])
     assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
     assert torch.allclose(stream["free_space"], batch["free_space"], rtol=1e-4, atol=1e-3)
@@ -86,14 +95,14 @@ def test_a_full_weight_floor_averages_one_frames_observations(shelf_frames):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("mode", ["no_reliability", "no_similarity", "average"])
-def test_ablation_modes_stream_exactly(shelf_frames, mode):
+def test_ablation_modes_stream_as_the_batch_rule_to_the_stored_precision(shelf_frames, mode):
     # these modes never rescale (first-observation or similarity-free representatives); without a
     # floor, which the stream takes from the representative of the moment and the batch from the last
     frames = shelf_frames[:3]
     config = SceneConfig(voxel_size=VOXEL, research={"weighting": mode}, sensor={"weight_floor": 0.0})
     stream, batch = fold_all(frames, config)[0].fields(), aggregate_batch(frames, config)
-    assert torch.allclose(stream["reliability"], batch["reliability"], rtol=1e-4)
-    assert torch.allclose(stream["features"], batch["features"], rtol=1e-4, atol=1e-6)
+    assert torch.allclose(stream["reliability"], batch["reliability"], **HALF)
+    assert torch.allclose(stream["features"], batch["features"], **HALF)
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,8 @@ def random_sums(voxels: VoxelMap, keys: np.ndarray, seed: int = 0) -> dict[str, 
     n = len(keys)
     sums = {name: rng.integers(0, 100, (n, *shape)).astype(dtype) for name, (dtype, shape) in ARRAYS.items()}
     sums["keys"] = np.asarray(keys, np.int64)
-    sums |= {name: rng.standard_normal((n, *shape)).astype(np.float32) for name, (_, shape) in voxels.layout.columns.items()}
+    sums |= {name: rng.standard_normal((n, *shape)).astype(np.float32 if array == "rows" else np.float16)
+             for name, (array, _, shape) in voxels.stored.columns.items()}
     return sums
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from canonical_core import SceneConfig
+from canonical_core.scene.undo import MAX_UNDO_SHARE, MIN_KEPT
 from canonical_wire import encode_array, pack
 from client.cli import frame_arrays
 from server import corrections, wire
@@ -227,6 +228,9 @@ def test_the_services_undo_setting_reaches_its_sessions_and_their_memory(tmp_pat
             session = streamed(store, shelf[:3])
             assert session.undo_depth == depth and session.scene._undo.depth == depth
             memory[depth], undo[depth] = session.scene.memory_bytes(), session.scene.undo_bytes()
+            # bounded by a share of the map as well: the shelf's frames each touch much of it
+            assert session.scene._undo.max_share == MAX_UNDO_SHARE
+            assert undo[depth] <= MAX_UNDO_SHARE * session.scene._voxels.nbytes() or len(session.scene._undo) <= MIN_KEPT
         finally:
             store.close()
     assert undo[0] == 0 and undo[7] > 0
