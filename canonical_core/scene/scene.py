@@ -354,8 +354,7 @@ class Scene:
             return h.hexdigest()
 
     def memory_bytes(self) -> int:
-        """Bytes the scene holds: its state, the colour solve's kept views, the decoded rows and the
-        undo records (`undo_bytes`)."""
+        """Bytes the scene holds: state, the colour solve's kept views, decoded rows, undo records."""
         return int(self._voxels.nbytes() + self._keyframes.nbytes() + self._decoding.nbytes() + self._undo.nbytes())
 
     def undo_bytes(self) -> int:

@@ -49,12 +49,29 @@ def resident_mib(pid: int) -> float:
     return int(status.split("VmRSS:")[1].split()[0]) / 1024
 
 
+def ramp_cost() -> int:
+    """The library's price of one ramp frame (`fold_cost`): the worst case a fold reserves."""
+    import torch
+
+    from canonical_core import Camera, Frame, Scene, SceneConfig
+    from canonical_core.scene.folding import fold_cost
+
+    depth = np.asarray(Image.open(io.BytesIO(RAMP)), np.float32) / 1000
+    K = np.array(json.loads(CAMERA)["K"])
+    frame = Frame(rgb=torch.zeros(SIDE, SIDE, 3, dtype=torch.uint8), camera=Camera(K, np.eye(4), SIDE, SIDE),
+                  depth=torch.from_numpy(depth))
+    scene = Scene(SceneConfig(voxel_size=FINE))
+    scene.keep_undo(4)  # as a session with a frame archive does
+    return fold_cost(scene, frame)
+
+
 @pytest.fixture(scope="module")
 def budgeted(tmp_path_factory):
-    """A service whose memory budget takes about two of the ramp frames, and whose sessions hold at most
-    3 million voxels."""
+    """A service whose memory budget takes two of the ramp frames but not a third: a fold reserves its
+    worst case (one ramp's price), and a folded ramp holds less than half of it, so the second fits
+    beside the first and the third does not beside both. Its sessions hold at most 3 million voxels."""
     root = tmp_path_factory.mktemp("memory")
-    proc = ServerProcess(root / "data", root / "server.log", memory_budget_bytes=1_200_000_000,
+    proc = ServerProcess(root / "data", root / "server.log", memory_budget_bytes=int(1.7 * ramp_cost()),
                          max_session_voxels=3_000_000).start()
     yield proc
     proc.stop()

@@ -15,7 +15,7 @@ from PIL import Image
 
 from client.sdk import png_to_array
 
-from ..server.harness import TOKEN, VOXEL, RenderLoop, small_frames
+from ..server.harness import TOKEN, VOXEL, RenderLoop, colours_solved, small_frames
 from .walls import FAR, LABELS, NEAR, wall_frames
 
 pytestmark = pytest.mark.slow
@@ -70,6 +70,7 @@ def shelf_session(client, shelf):
     session = client.create_session(voxel_size=VOXEL)
     for kwargs in shelf[:4]:
         session.add_frame(**kwargs)
+    assert colours_solved(session)  # the pictures compared below then show one solution
     return session
 
 
