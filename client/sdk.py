@@ -21,7 +21,7 @@ import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterable, Iterator, Literal
+from typing import Iterable, Iterator, Literal, get_args
 from urllib.parse import quote
 
 import httpx
@@ -31,7 +31,7 @@ from canonical_wire import decode_array, encode_array, pack, unpack  # the codec
 
 MSGPACK = "application/msgpack"
 FrameCodec = Literal["compact", "raw"]
-FRAME_CODECS = ("compact", "raw")
+FRAME_CODECS = get_args(FrameCodec)
 
 
 class CanonicalError(Exception):
