@@ -252,9 +252,9 @@ class SessionStore:
             session.log.close()
             if session.archive is not None:
                 session.archive.close()
+            self._bury(session.path)  # files first: a session gone from the listing is gone from disk
             with self._lock:
                 self._sessions.pop(session_id, None)
-            self._bury(session.path)
         finally:
             session.lock.release()
         del session
