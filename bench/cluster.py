@@ -45,7 +45,8 @@ from common import machine_summary, print_table  # noqa: E402
 
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service, unclaimed_port  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service, unclaimed_port  # noqa: E402
 from client.sdk import Client, encode_array, pack  # noqa: E402
 from server.store import configure_thread  # noqa: E402
 

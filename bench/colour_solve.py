@@ -64,7 +64,8 @@ from canonical_core.decode import colour_offsets, with_colour_offsets  # noqa: E
 from canonical_core.rendering.weights import weight_rows_and_blend  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 from canonical_core.scene.decoding import REFRESH_ITERATIONS  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service  # noqa: E402
 from client.sdk import Client  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"

@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table, stats_ms  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service  # noqa: E402
 from client.sdk import CanonicalError, Client, Session  # noqa: E402
 from tests.server.harness import RenderLoop, wait_for  # noqa: E402  (the fairness test's load)
 

@@ -41,7 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table  # noqa: E402
 
 from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
-from client.cli import capture_frames, free_port, frame_arrays, wait_until_healthy  # noqa: E402
+from client.cli.capture import capture_frames, frame_arrays  # noqa: E402
+from client.cli.launch import free_port, wait_until_healthy  # noqa: E402
 from client.sdk import frame_body  # noqa: E402
 from server.archive import ZSTD_LEVEL  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402

@@ -42,7 +42,8 @@ from canonical_core.eval.run import score  # noqa: E402
 from canonical_core.frame import resize_frame  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
 from canonical_core.scene.corrections import drift_walk, drifted  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service  # noqa: E402
 from client.sdk import Client  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hololens_office"

@@ -35,7 +35,8 @@ from common import machine_summary, print_table, stats_ms, time_each  # noqa: E4
 from canonical_core import SceneConfig  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.scene import Scene  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service, wait_until_healthy  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service, wait_until_healthy  # noqa: E402
 from client.sdk import Client, frame_body  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"

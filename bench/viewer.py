@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common import machine_summary, print_table  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
-from client.cli import frame_arrays, free_port, start_service  # noqa: E402
+from client.cli.capture import frame_arrays  # noqa: E402
+from client.cli.launch import free_port, start_service  # noqa: E402
 from client.sdk import Client  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"

@@ -9,6 +9,8 @@ from PIL import Image
 from canonical_core import load_ply
 from canonical_core.datasets import load_tsdf_fusion
 from client import cli
+from client.cli import demo
+from client.cli.capture import frame_arrays
 from client.sdk import Client
 
 
@@ -98,7 +100,7 @@ def test_stream_by_default_lets_the_service_choose_the_voxel_size(server, shelf_
                      "--scale", "0.25"]) == 0
     out, err = capsys.readouterr()
     stats = Client(server.url).session(out.strip()).stats()
-    first = cli.frame_arrays(load_tsdf_fusion(shelf_dir, max_frames=1)[0], 0.25)  # the frame as the CLI sent it
+    first = frame_arrays(load_tsdf_fusion(shelf_dir, max_frames=1)[0], 0.25)  # the frame as the CLI sent it
     depth, K = first["depth"], first["K"]
     assert stats["voxel_size"] == float(f"{6 * np.median(depth[depth > 0]) / ((K[0, 0] + K[1, 1]) / 2):.2g}")
     assert stats["chosen"]["voxel_size"] == "6 pixel footprints at the first frame's median depth"
@@ -139,7 +141,7 @@ def test_set_reads_values_as_the_fields_type(setting, parsed):
 def test_demo_without_shared_data_fuses_a_generated_sample(tmp_path, monkeypatch, capsys):
     """The README's main job on a machine without ../shared/data: it generates a sample, starts its
     own service, streams it, and writes a render that resembles the input view and a PLY."""
-    monkeypatch.setattr(cli, "SHARED_SHELF", tmp_path / "absent")
+    monkeypatch.setattr(demo, "SHARED_SHELF", tmp_path / "absent")
     out = tmp_path / "demo"
     assert cli.main(["demo", "--out", str(out)]) == 0
     printed = capsys.readouterr().out

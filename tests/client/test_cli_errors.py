@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from client.cli import free_port
+from client.cli.launch import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -10,6 +10,7 @@ import pytest
 from canonical_core.camera import quaternion_to_matrix
 from canonical_core.datasets import load_deep_video_mvs, load_tum
 from client import cli
+from client.cli.poses import read_pose_file
 from client.sdk import Client
 from tests.datasets.conftest import hololens_path, slambook_path  # noqa: F401 (fixtures)
 from tests.server.test_poses_api import drifted
@@ -26,12 +27,12 @@ def matrix_to_tum(T: np.ndarray) -> list[float]:
 @pytest.mark.realdata
 def test_pose_files_read_as_the_loaders_read_them(slambook_path, hololens_path):
     seq = load_tum(slambook_path, K=(518.0, 519.0, 325.5, 253.5))
-    poses = cli.read_pose_file(slambook_path / "pose.txt")  # 7 columns: line k = frame k
+    poses = read_pose_file(slambook_path / "pose.txt")  # 7 columns: line k = frame k
     assert list(poses) == [str(k) for k in range(len(seq))]
     for k, frame in enumerate(seq):
         np.testing.assert_allclose(poses[str(k)], frame.camera.c2w64(), atol=1e-6)
     walk = load_deep_video_mvs(hololens_path, max_frames=3)
-    poses = cli.read_pose_file(hololens_path / "poses.txt")  # 16 numbers a line
+    poses = read_pose_file(hololens_path / "poses.txt")  # 16 numbers a line
     for k, frame in enumerate(walk):
         np.testing.assert_allclose(poses[str(k)], frame.camera.c2w64(), atol=1e-6)
 
@@ -43,7 +44,7 @@ def test_keyed_lines_and_errors_name_the_line(tmp_path):
     path = tmp_path / "poses.txt"
     path.write_text("# key tx ty tz qx qy qz qw\n" + "a " + " ".join(map(str, matrix_to_tum(T))) + "\n\n"
                     + "b " + " ".join(map(str, T.reshape(16))) + "\n")
-    poses = cli.read_pose_file(path)
+    poses = read_pose_file(path)
     assert list(poses) == ["a", "b"]
     np.testing.assert_allclose(poses["a"], T, atol=1e-9)
     np.testing.assert_allclose(poses["b"], T, atol=1e-12)
@@ -52,7 +53,7 @@ def test_keyed_lines_and_errors_name_the_line(tmp_path):
                           (" ".join(["2"] * 16) + "\n", "bottom row")):
         path.write_text(text)
         with pytest.raises(ValueError, match=rf"^{path}:\d+: .*{problem}"):
-            cli.read_pose_file(path)
+            read_pose_file(path)
 
 
 @pytest.mark.realdata

@@ -11,7 +11,8 @@ import httpx
 import pytest
 
 from canonical_core.datasets import load_tsdf_fusion
-from client.cli import capture_frames, main
+from client.cli import main
+from client.cli.capture import capture_frames
 from client.sdk import MSGPACK, Client, StreamRefused, frame_body
 from tests.conftest import folded_scene
 from tests.server.harness import VOXEL, ServerProcess, small_frames

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from client.cli import unclaimed_port
+from client.cli.launch import unclaimed_port
 from server.cluster.claims import CLAIM_STEP, ClaimsDoNotFit, all_claims, fitted, packs
 
 from ..server.harness import REPO

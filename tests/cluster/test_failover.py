@@ -20,7 +20,7 @@ import pytest
 
 pytest.importorskip("ray.serve")
 
-from client.cli import unclaimed_port, wait_until_healthy  # noqa: E402
+from client.cli.launch import unclaimed_port, wait_until_healthy  # noqa: E402
 from client.sdk import CanonicalError, Client  # noqa: E402
 from server.cluster.lease import EPOCH  # noqa: E402
 from server.cluster.owner import shard_of  # noqa: E402

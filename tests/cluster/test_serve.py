@@ -13,7 +13,7 @@ import pytest
 ray = pytest.importorskip("ray")
 pytest.importorskip("ray.serve")
 
-from client.cli import unclaimed_port  # noqa: E402
+from client.cli.launch import unclaimed_port  # noqa: E402
 from client.sdk import Client  # noqa: E402
 from server.cluster import serve as cluster  # noqa: E402
 from server.cluster.owner import shard_of  # noqa: E402

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import uvicorn
 
-from client.cli import frame_arrays, free_port, wait_until_healthy
+from client.cli.capture import frame_arrays
+from client.cli.launch import free_port, wait_until_healthy
 
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "test-token-5f1c"

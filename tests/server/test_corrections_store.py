@@ -11,7 +11,7 @@ import pytest
 from canonical_core import SceneConfig
 from canonical_core.scene.undo import MAX_UNDO_SHARE, MIN_KEPT
 from canonical_wire import encode_array, pack
-from client.cli import frame_arrays
+from client.cli.capture import frame_arrays
 from server import corrections, wire
 from server import session as session_module
 from server.archive import ARCHIVE, DamagedFrame

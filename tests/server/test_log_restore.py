@@ -12,7 +12,7 @@ import pytest
 
 from canonical_core import SceneConfig
 from canonical_core.datasets import synthetic_rgbd
-from client.cli import frame_arrays
+from client.cli.capture import frame_arrays
 from server import framelog, wire
 from server.archive import ARCHIVE, SessionArchive
 from server.durability import LOG, QUARANTINE, restore_session

@@ -20,7 +20,7 @@ from canonical_core import SceneConfig
 from canonical_core.datasets import load_tsdf_fusion
 from canonical_core.decode import solve_colours
 from canonical_core.scene import Scene
-from client.cli import frame_arrays
+from client.cli.capture import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
 from server.archive import payload_digest

@@ -282,7 +282,7 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
 
 def test_a_fold_warning_shows_on_the_open_page(page, server, client, apc_bins_path, shots):
     from canonical_core.datasets import load_dataset
-    from client.cli import frame_arrays
+    from client.cli.capture import frame_arrays
 
     # the labels bin's depth under about 0.14 m disagrees from frame to frame (`evidence.consistency`)
     frames = [frame_arrays(f) for f in load_dataset(apc_bins_path / "bin_labels")]

@@ -1,0 +1,7 @@
+"""``python -m client.cli``: the ``canonical`` command."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,67 @@
+"""A capture's frames as keyword arguments of `Session.add_frame`: its files' own bytes where they can
+travel as they are, else the decoded frame (optionally resized)."""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import numpy as np
+
+from ..sdk import exact_sensor_depth
+
+
+def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
+    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized.
+
+    With ``sensor_units``, depth that 16-bit sensor units hold exactly (depth read from a 16-bit depth
+    image) travels as those units and their ``depth_scale``: half the depth's bytes, and the service
+    folds the same float32 metres."""
+    camera = frame.camera
+    rgb = frame.rgb.numpy()
+    depth = None if frame.depth is None else frame.depth.numpy()
+    if scale != 1.0:
+        from PIL import Image
+
+        camera = camera.scaled(scale)
+        size = (camera.width, camera.height)
+        rgb = np.array(Image.fromarray(rgb).resize(size, Image.BILINEAR))
+        if depth is not None:  # nearest: averaging depth across edges invents surfaces
+            depth = np.array(Image.fromarray(np.ascontiguousarray(depth, np.float32)).resize(size, Image.NEAREST))
+    out = {"rgb": rgb, "K": camera.K64(), "c2w": camera.c2w64(), "depth": depth, "frame_id": frame.frame_id}
+    sensor = exact_sensor_depth(depth) if sensor_units and depth is not None else None
+    if sensor is not None:
+        out["depth"], out["depth_scale"] = sensor
+    if scale == 1.0:
+        for name in ("depth_std", "features", "labels"):
+            value = getattr(frame, name)
+            if value is not None:
+                out[name] = value.numpy()
+    return out
+
+
+def frame_files(source) -> dict | None:
+    """A capture's frame (a `FrameSequence.source`) as keyword arguments of `Session.add_frame` that
+    carry its files' own bytes: PNG or JPEG colour, 16-bit PNG depth with its ``depth_scale``. Nothing
+    is decoded and encoded again (the client's CPU is often the service's), the capture's own
+    compression is what travels and what the service keeps, and the service decodes the very frame
+    the loader reads. None where the loader changes the images it reads (undistortion, a size to
+    check, depth that is not a PNG): send `frame_arrays` then."""
+    from canonical_core.datasets.files import IMAGE_SUFFIXES, RGBDFile
+
+    if not isinstance(source, RGBDFile) or source.distortion is not None or source.size is not None:
+        return None
+    if source.color.suffix.lower() not in IMAGE_SUFFIXES or (source.depth is not None and source.depth.suffix.lower() != ".png"):
+        return None
+    out = {"rgb": source.color.read_bytes(), "K": source.K, "c2w": source.c2w, "frame_id": source.frame_id}
+    if source.depth is not None:
+        out["depth"], out["depth_scale"] = source.depth.read_bytes(), source.depth_scale
+    return out
+
+
+def capture_frames(frames, scale: float = 1.0, start: int = 0) -> Iterator[dict]:
+    """Frames ``start`` .. end of a capture as `Session.add_frame` keyword arguments, read one at a
+    time: its files as they are (`frame_files`) where they can be, else decoded (`frame_arrays`,
+    depth in its 16-bit sensor units)."""
+    for i in range(start, len(frames)):
+        files = frame_files(frames.source(i)) if scale == 1.0 else None
+        yield files if files is not None else frame_arrays(frames[i], scale, sensor_units=True)

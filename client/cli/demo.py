@@ -1,0 +1,68 @@
+"""``demo``: start a service, stream a sample capture into it, write a render, a comparison and a PLY."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ..sdk import Client
+from .launch import free_port, start_service
+from .stream import FirstFrameSession, stream_frames, stream_summary
+
+
+SHARED_SHELF = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "realsense_shelf"
+
+
+def add_demo(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", nargs="?", default=None,
+                   help="a capture to fuse (default: ../shared/data/realsense_shelf, else a generated sample)")
+    p.add_argument("--out", default="out/demo", help="folder for the render, comparison, PLY and the service's data")
+    p.add_argument("--voxel-size", type=float, default=None, help="default: 4 mm for the shelf, 2 cm for the sample")
+    p.add_argument("--port", type=int, default=0, help="port of the embedded service (default: a free one)")
+
+
+def run_demo(args) -> int:
+    from PIL import Image
+
+    from canonical_core.datasets import load_dataset, synthetic_rgbd, write_tsdf_fusion
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.dataset:
+        path, voxel = Path(args.dataset), args.voxel_size or 0.004
+    elif SHARED_SHELF.is_dir():
+        path, voxel = SHARED_SHELF, args.voxel_size or 0.004
+    else:  # no data on this machine: generate a small RGB-D sequence (textured boxes, exact depth)
+        path, voxel = out / "sample", args.voxel_size or 0.02
+        if not path.is_dir():
+            write_tsdf_fusion(synthetic_rgbd(num_frames=24, width=320, height=240), path)
+    frames = load_dataset(path)
+    port = args.port or free_port()
+    print(f"demo: fusing {len(frames)} frames of {path} at {voxel * 1000:g} mm voxels through a service on port {port}")
+    service = start_service(port, out / "data")
+    try:
+        with Client(f"http://127.0.0.1:{port}") as client:
+            new_session = FirstFrameSession(client, {"voxel_size": voxel})
+            sent, elapsed = stream_frames(new_session, frames)
+            session = new_session.session
+            print(stream_summary(sent, elapsed, session, session.stats()))
+            view = frames[len(frames) // 2]
+            cam = view.camera
+            rendered = session.render(cam.K64(), cam.c2w64(), cam.width, cam.height)
+            session.export_ply(out / "scene.ply")
+    finally:
+        service.terminate()
+        service.wait(timeout=60)
+    rgb = rendered["rgb"]  # uint8 [H, W, 3] on the wire
+    truth = view.rgb.numpy()
+    Image.fromarray(rgb).save(out / "render.png")
+    Image.fromarray(np.concatenate([truth, rgb], 1)).save(out / "comparison.png")
+    sq_err = ((rgb.astype(np.float64) - truth) / 255.0) ** 2
+    covered = rendered["alpha"] > 0.5  # pixels the scene covers; nothing was seen at the others
+    psnr = lambda mse: 10 * np.log10(1 / max(float(mse), 1e-12))  # noqa: E731
+    print(f"rendered frame {view.frame_id} (an input view): PSNR {psnr(sq_err.mean()):.2f} dB over all pixels, "
+          f"covered PSNR {psnr(sq_err[covered].mean()):.2f} dB on the {100 * covered.mean():.0f} % of pixels the scene covers")
+    print(f"wrote {out / 'render.png'}, {out / 'comparison.png'} (truth | render) and {out / 'scene.ply'}")
+    return 0

@@ -1,0 +1,75 @@
+"""The commands that run the library here on captures, without a service: ``depth`` (plane-sweep depth
+and uncertainty pictures), ``train`` (the decoder's heads) and ``eval`` (methods on held-out views)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+# -- depth --------------------------------------------------------------------------------------
+def add_depth(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (its depth, if any, is only compared against)")
+    p.add_argument("--out", required=True, help="folder for <frame>.depth.png and <frame>.uncertainty.png")
+    p.add_argument("--sources", type=int, default=2, help="source views per frame (default 2)")
+    p.add_argument("--stride", type=int, default=1)
+    p.add_argument("--max-frames", type=int, default=None)
+
+
+def run_depth(args) -> int:
+    from canonical_core.datasets import load_dataset
+    from canonical_core.eval.mvs_preview import write_depth_previews
+
+    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
+    rows = write_depth_previews(frames, args.out, num_sources=args.sources)
+    errors = [r["median_abs_rel"] for r in rows if r.get("median_abs_rel") is not None]
+    summary = f"; median AbsRel vs the sensor {np.median(errors):.4f}" if errors else ""
+    print(f"wrote depth and uncertainty pictures of {len(rows)} frames to {args.out}{summary}")
+    return 0
+
+
+# -- train --------------------------------------------------------------------------------------
+def add_train(p: argparse.ArgumentParser) -> None:
+    p.add_argument("captures", nargs="+", help="RGB-D capture folders (never the evaluation capture, realsense_shelf)")
+    p.add_argument("--out", required=True, help="the checkpoint to write (.safetensors); the report goes to <stem>_report/")
+    p.add_argument("--seed", type=int, default=0, help="seed of the samples, the step order and the initial heads (default 0)")
+    p.add_argument("--steps", type=int, default=400, help="optimisation steps (default 400)")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this many minutes even if steps remain")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where the decode and render run (default cpu)")
+    p.add_argument("--width", type=int, default=160, help="training image width in pixels (default 160)")
+    p.add_argument("--coverage-weight", type=float, default=0.0,
+                   help="weight of the coverage term (1 - alpha)^2 at pixels with measured depth (default 0)")
+    p.add_argument("--heads", default=None,
+                   help="comma-separated heads to train (default all: opacity,free_space_penalty,offset,log_scale_delta,color_delta)")
+
+
+def run_train(args) -> int:
+    from canonical_core.train.loop import TrainSettings, run_training
+
+    heads = {} if args.heads is None else {"heads": tuple(h.strip() for h in args.heads.split(",") if h.strip())}
+    try:
+        settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width,
+                                 device=args.device, coverage_weight=args.coverage_weight, **heads)
+    except ValueError as exc:
+        print(f"canonical train: {exc}", file=sys.stderr)
+        return 2
+    result = run_training(args.captures, args.out, settings)
+    report = Path(args.out).with_name(Path(args.out).stem + "_report")
+    print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")
+    print((report / "report.md").read_text())
+    return 0
+
+
+# -- eval ---------------------------------------------------------------------------------------
+# canonical_core (torch) is imported only when `eval` is the command: the other commands start fast.
+def add_eval(p: argparse.ArgumentParser) -> None:
+    from canonical_core.eval.cli import configure_parser
+
+    configure_parser(p)
+
+
+def run_eval(args) -> int:
+    from canonical_core.eval import cli

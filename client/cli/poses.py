@@ -1,0 +1,71 @@
+"""``poses``: correct a session's frame poses from a pose file (a loop closure), or remove frames; and
+the pose file's reader, which ``render --trajectory`` shares."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .common import add_connection, add_json, connect
+
+
+def add_poses(p: argparse.ArgumentParser) -> None:
+    p.add_argument("poses", nargs="?", help="a pose file: one frame a line, 'tx ty tz qx qy qz qw' (TUM / slambook, "
+                                            "quaternion scalar last) or the 16 numbers of a row-major 4x4 camera-to-world "
+                                            "matrix, either optionally after the frame's key (frame_id or TUM timestamp); "
+                                            "a line without a key names the frame of that arrival index (line k = frame k)")
+    add_connection(p)
+    p.add_argument("--session", required=True, help="the session whose frames get the poses")
+    p.add_argument("--remove", action="append", default=[], metavar="KEY",
+                   help="also remove this frame (frame_id or arrival index); repeatable")
+    add_json(p, "what the correction did (the service's answer)")
+
+
+def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
+    """A pose file (see ``canonical poses --help``) -> {frame key: validated 4x4 c2w}; '#' comments and
+    blank lines skipped. Raises ValueError naming the file and line."""
+    from canonical_core.camera import validate_pose
+    from canonical_core.datasets.files import parse_floats, read_text
+    from canonical_core.datasets.tum import tum_pose_to_matrix
+
+    poses: dict[str, np.ndarray] = {}
+    for number, line in enumerate(read_text(path).splitlines(), start=1):
+        words = line.split("#", 1)[0].split()
+        if not words:
+            continue
+        where = f"{path}:{number}"
+        key, numbers = (words[0], words[1:]) if len(words) in (8, 17) else (str(len(poses)), words)
+        if len(numbers) == 7:
+            c2w = tum_pose_to_matrix(parse_floats(numbers, where), where)
+        elif len(numbers) == 16:
+            c2w = validate_pose(parse_floats(numbers, where).reshape(4, 4), where)
+        else:
+            raise ValueError(f"{where}: expected 7 (tx ty tz qx qy qz qw) or 16 (a 4x4 matrix) numbers, optionally "
+                             f"after a key, got {len(words)} words")
+        if key in poses:
+            raise ValueError(f"{where}: frame {key!r} has a pose on an earlier line")
+        poses[key] = c2w
+    return poses
+
+
+def run_poses(args) -> int:
+    if args.poses is None and not args.remove:
+        print("poses: give a pose file, --remove, or both", file=sys.stderr)
+        return 2
+    poses = read_pose_file(args.poses) if args.poses else {}
+    def progress(status: dict) -> None:  # a long re-fold runs in the service's background: show how far it is
+        print(f"correction {status['correction_id']}: {status['state']}, {status['refolded']} of {status['total']} "
+              "frames re-folded", file=sys.stderr)
+
+    with connect(args) as client:
+        done = client.session(args.session).update_poses(poses, remove=args.remove, progress=progress)
+    print(f"session {done['id']}: {done['corrected']} poses corrected, {done['removed']} frames removed"
+          + (f", {done['dropped']} not archived dropped" if done["dropped"] else "") + f"; it holds {done['frames']} frames",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps(done))
+    return 0

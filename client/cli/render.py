@@ -1,0 +1,181 @@
+"""``render`` (views of a session at --frame-like cameras, a pose or a trajectory, to PNGs) and
+``export`` (its Gaussians as .ply or .splat, or its surface mesh)."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .common import UsageError, add_connection, connect, warnings_on_stderr
+from .poses import read_pose_file
+
+
+# -- render -------------------------------------------------------------------------------------
+def add_render(p: argparse.ArgumentParser) -> None:
+    add_connection(p)
+    p.add_argument("--session", required=True)
+    p.add_argument("--frame-like", metavar="DATASET:INDEX", action="append", default=[],
+                   help="a view at the camera of frame INDEX of DATASET; repeatable, one view each. With --pose or "
+                        "--trajectory, only its intrinsics and image size are taken")
+    poses = p.add_mutually_exclusive_group()
+    poses.add_argument("--pose", metavar="FILE", help="camera-to-world pose (OpenCV axes): a 4x4 matrix, or pose lines "
+                                                      "as --trajectory reads them; needs --K and --size, or --frame-like")
+    poses.add_argument("--trajectory", metavar="FILE",
+                       help="one view per line: TUM 'timestamp tx ty tz qx qy qz qw' (camera-to-world, quaternion "
+                            "scalar last; the timestamp optional) or the 16 numbers of a 4x4 matrix; '#' comments. "
+                            "Needs --K and --size, or --frame-like")
+    p.add_argument("--K", help="fx,fy,cx,cy in pixels (with --pose or --trajectory)")
+    p.add_argument("--size", type=image_size_arg, metavar="WxH", help="image size (with --K), e.g. 640x480")
+    p.add_argument("--width", type=int, help="image width (or --size)")
+    p.add_argument("--height", type=int, help="image height (or --size)")
+    p.add_argument("--max-gaussians", type=int, default=None)
+    p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
+    p.add_argument("--colour", choices=["normalised", "composited"], default=None,
+                   help="normalised (the service's default: each drawn pixel the surface's expected colour, not darkened "
+                        "where splats cover it only in part) or composited (the blend over the background)")
+    p.add_argument("-o", "--output", required=True,
+                   help="the PNG to write; for several views a pattern with {i}, the view's index (e.g. "
+                        "'views/{i:03d}.png'), or a folder (DIR/: view_0000.png, ...). The paths written are printed")
+
+
+def image_size_arg(text: str) -> tuple[int, int]:
+    """``WxH`` -> (W, H), both positive.
+
+    Example:
+        >>> image_size_arg("640x480")
+        (640, 480)
+    """
+    width, sep, height = text.lower().partition("x")
+    if not (sep and width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise argparse.ArgumentTypeError(f"expected WxH in pixels (e.g. 640x480), got {text!r}")
+    return int(width), int(height)
+
+
+@functools.lru_cache(maxsize=None)
+def _capture(path: str):
+    """A capture read once however many --frame-like views name it."""
+    from canonical_core.datasets import load_dataset
+
+    return load_dataset(path)
+
+
+def view_poses(path: str) -> list[np.ndarray]:
+    """The camera-to-world poses of a --pose or --trajectory file, in file order: one 4x4 (or 3x4)
+    matrix written over its lines, else one pose a line (`read_pose_file`)."""
+    from canonical_core.camera import validate_pose
+
+    try:
+        matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError:  # not one block of numbers: pose lines with keys, or malformed (read_pose_file says where)
+        matrix = None
+    if matrix is not None and matrix.shape in ((4, 4), (3, 4)):
+        return [validate_pose(matrix, str(path))]
+    return list(read_pose_file(path).values())
+
+
+def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
+    """(K, c2w, width, height) of each view the arguments name, in order: each --frame-like's camera,
+    or each pose of --pose / --trajectory with --K and --size (else the --frame-like camera's)."""
+    cameras = [frame_like_camera(spec) for spec in args.frame_like]
+    pose_file = args.pose or args.trajectory
+    if pose_file is None:
+        if args.K or args.size or args.width or args.height:
+            raise SystemExit("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
+        return [(c.K64(), c.c2w64(), c.width, c.height) for c in cameras]
+    width, height = args.size or (args.width, args.height)
+    if args.K:
+        fx, fy, cx, cy = (float(x) for x in args.K.split(","))
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        if not (width and height):
+            if len(cameras) != 1:
+                raise SystemExit("--K needs --size WxH (or one --frame-like whose image size to take)")
+            width, height = cameras[0].width, cameras[0].height
+    elif len(cameras) == 1:
+        K, width, height = cameras[0].K64(), width or cameras[0].width, height or cameras[0].height
+    else:
+        raise SystemExit("--pose and --trajectory need --K fx,fy,cx,cy and --size WxH, or one --frame-like "
+                         "DATASET:INDEX whose intrinsics and image size to take")
+    return [(K, c2w, width, height) for c2w in view_poses(pose_file)]
+
+
+def output_paths(output: str, count: int) -> list[Path]:
+    """Where each of ``count`` views goes: ``output`` with its {i} filled in, or in the folder
+    ``output`` (view_0000.png, ...), or, for one view, ``output`` itself."""
+    if "{" in output:
+        try:
+            paths = [Path(output.format(i=i)) for i in range(count)]
+        except (KeyError, IndexError, ValueError) as exc:
+            raise SystemExit(f"-o: expected a pattern with {{i}} (e.g. view_{{i:03d}}.png), got {output!r} ({exc!r})") from None
+        if len(set(paths)) < count:
+            raise SystemExit(f"-o: {output!r} names one file for several views; put {{i}} in it")
+        return paths
+    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+        return [Path(output) / f"view_{i:04d}.png" for i in range(count)]
+    if count > 1:
+        raise SystemExit(f"-o: {count} views need a pattern with {{i}} (e.g. view_{{i:03d}}.png) or a folder, got {output!r}")
+    return [Path(output)]
+
+
+def frame_like_camera(spec: str):
+    """The camera of ``--frame-like DATASET:INDEX``: UsageError for a spec without an index or an index
+    the dataset does not have, ValueError naming the option for a dataset that cannot be read."""
+    path, _, index = spec.rpartition(":")
+    if not path or re.fullmatch(r"-?[0-9]{1,18}", index) is None:
+        raise UsageError(f"--frame-like: expected DATASET:INDEX (INDEX a frame's number from 0), got {spec!r}")
+    try:
+        frames = _capture(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--frame-like: {exc}") from None
+    if not 0 <= int(index) < len(frames):
+        raise UsageError(f"--frame-like: {path} has {len(frames)} frames (0..{len(frames) - 1}), got {index}")
+    return frames[int(index)].camera
+
+
+def run_render(args) -> int:
+    if not (args.frame_like or args.pose or args.trajectory):
+        print("render: give the view(s): --frame-like DATASET:INDEX, --pose FILE or --trajectory FILE", file=sys.stderr)
+        return 2
+    with warnings_on_stderr():
+        views = render_views(args)
+    paths = output_paths(args.output, len(views))
+    background = None if args.background is None else [float(x) for x in args.background.split(",")]
+    with connect(args) as client:  # one process and one connection for every view
+        session = client.session(args.session)
+        for (K, c2w, width, height), path in zip(views, paths):
+            png = session.render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(png)
+            print(path, flush=True)
+    return 0
+
+
+# -- export -------------------------------------------------------------------------------------
+def add_export(p: argparse.ArgumentParser) -> None:
+    add_connection(p)
+    p.add_argument("--session", required=True)
+    p.add_argument("--max-gaussians", type=int, default=None)
+    p.add_argument("--mesh", action="store_true",
+                   help="the surface as a coloured triangle mesh (PLY: vertex colours and faces) instead of the Gaussians")
+    p.add_argument("-o", "--output", required=True, help="file ending in .ply or .splat (.ply with --mesh)")
+
+
+def run_export(args) -> int:
+    suffix = Path(args.output).suffix.lower()
+    if suffix not in ((".ply",) if args.mesh else (".ply", ".splat")):
+        raise SystemExit(f"-o: expected a {'.ply' if args.mesh else '.ply or .splat'} file name, got {args.output!r}")
+    if args.mesh and args.max_gaussians is not None:
+        raise SystemExit("--max-gaussians: a level of detail of the Gaussians; --mesh exports the surface")
+    with connect(args) as client:
+        session = client.session(args.session)
+        if args.mesh:
+            path = session.export_mesh(args.output)
+        else:
+            path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
+    print(path)
+    return 0

@@ -1,0 +1,136 @@
+"""``serve`` (the service in this process, under uvicorn or on Ray Serve) and ``repair`` (a stopped
+service's data directory). The one module that imports the service's code, only where a command runs it."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from .common import UsageError
+
+
+# -- serve --------------------------------------------------------------------------------------
+def add_serve(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default=None, help="bind address (default: $CANONICAL_HOST or 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="port (default: $CANONICAL_PORT or 8000)")
+    p.add_argument("--data-dir", default=None, help="session storage (default: $CANONICAL_DATA_DIR or ./data)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads per job (default: $CANONICAL_THREADS or all)")
+    p.add_argument("--log-level", default="info")
+    p.add_argument("--cluster", action="store_true",
+                   help="run on Ray Serve (needs the [cluster] extra): start a local Ray cluster, or join --address; "
+                        "--data-dir must then be a folder every node mounts")
+    p.add_argument("--address", default=None, help="with --cluster: the Ray cluster to join (default: $RAY_ADDRESS, "
+                                                   "else a local one)")
+    p.add_argument("--owners", type=int, default=None, help="with --cluster: session owner processes "
+                                                            "(default: $CANONICAL_OWNERS or 2)")
+
+
+SERVE_SETTINGS = ("host", "port", "data_dir", "threads", "owners")  # the service's settings `serve` has options for
+
+
+def run_serve(args) -> int:
+    if not args.cluster and (args.address is not None or args.owners is not None):
+        print("error: --address and --owners need --cluster", file=sys.stderr)
+        return 2
+    # Settings travel as CANONICAL_* variables to the service's own settings class (server.settings).
+    for name in SERVE_SETTINGS:
+        value = getattr(args, name)
+        if value is not None:
+            os.environ[f"CANONICAL_{name.upper()}"] = str(value)
+    # The service's threads (requests, folds, decodes, log and archive writers, colour solves) each
+    # start OpenMP teams on a few cores: idle OpenMP threads sleep instead of spinning against the
+    # others (set OMP_WAIT_POLICY to choose otherwise; it must be set before torch or numba loads).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    settings = serve_settings(args)
+    if args.cluster:
+        from server.cluster.claims import ClaimsDoNotFit
+        from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
+
+        try:
+            return serve_forever(settings, args.address)
+        except ClaimsDoNotFit as exc:  # claims the cluster cannot place: one line naming the setting
+            raise UsageError(f"{_setting_source(args, exc.setting)}: {exc.problem}") from None
+    import uvicorn
+
+    from server.app import create_app
+    from server.session_errors import DataDirLocked
+
+    # threads reach the service as CANONICAL_THREADS (numba.set_num_threads per worker thread):
+    # NUMBA_NUM_THREADS must not change after numba is imported, or its next compile fails.
+    app = create_app(settings)
+    try:  # the directory's lock before uvicorn starts: a refusal is one line, not the lifespan's traceback
+        app.state.store.lock_dir()
+    except DataDirLocked as exc:
+        print(f"error: {_setting_source(args, 'data_dir')}: {str(exc).removeprefix('data_dir: ')}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    # The protocol closes connections whose request head is late (slowloris); bodies get 408 in the app.
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
+                http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
+    return 0
+
+
+def _setting_source(args, name: str) -> str:
+    """Where a service setting came from: its ``serve`` option, else its CANONICAL_* variable."""
+    given = name in SERVE_SETTINGS and getattr(args, name, None) is not None
+    return f"--{name.replace('_', '-')}" if given else f"CANONICAL_{name.upper()}"
+
+
+def serve_settings(args):
+    """The service's settings (`server.settings.Settings`, or the cluster's) from the environment that
+    `run_serve` filled; UsageError naming the option or variable of the first invalid one."""
+    from pydantic import ValidationError
+
+    if args.cluster:
+        from server.cluster.settings import ClusterSettings as kind
+    else:
+        from server.settings import Settings as kind
+    try:
+        return kind()
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        name = str(first["loc"][0]) if first["loc"] else "settings"
+        message = first["msg"].removeprefix("Value error, ")
+        raise UsageError(f"{_setting_source(args, name)}: {message[:1].lower()}{message[1:]}, got {first['input']}") from None
+
+
+# -- repair -------------------------------------------------------------------------------------
+def add_repair(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", default=None, help="the service's data directory (default: $CANONICAL_DATA_DIR or "
+                                                    "./data); the service must be stopped")
+    p.add_argument("--session", default=None, help="the session to repair (default: list the sessions that need it)")
+    p.add_argument("--action", choices=["truncate", "skip"], default=None,
+                   help="truncate: keep the frames logged before the damage; skip: keep every intact frame "
+                        "(the log as it was stays in the session's quarantine/ folder)")
+
+
+def run_repair(args) -> int:
+    # Works on the data directory itself, not over HTTP: the one place the CLI imports the service's code.
+    from server.session_errors import DataDirLocked, Unrestorable
+    from server.store import SessionStore
+
+    data_dir = args.data_dir or os.environ.get("CANONICAL_DATA_DIR", "./data")
+    store = SessionStore(data_dir, max_sessions=1 << 30)
+    if not store.root.is_dir():  # repair creates nothing: a mistyped path is said, not made a new directory
+        problem = "does not exist" if not os.path.exists(data_dir) else \
+            f"is not a data directory (no {store.root.name}/ in it)"
+        print(f"error: {_setting_source(args, 'data_dir')}: {data_dir} {problem}", file=sys.stderr)
+        return 1
+    try:
+        if args.session is None:
+            store.open()
+            for session_id, problem in sorted(store.unavailable.items()):
+                print(f"{session_id}: {problem}")
+            print(f"{len(store.unavailable)} of {len(store) + len(store.unavailable)} sessions need repair")
+        else:
+            print(store.repair(args.session, args.action))
+    except (DataDirLocked, Unrestorable, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        store.close()
+    return 0

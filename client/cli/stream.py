@@ -1,0 +1,218 @@
+"""``stream``: a capture's frames into a new or an existing session, several in flight, with a progress
+bar, a summary and a resumable stop (Ctrl-C, a refused frame)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import re
+import sys
+import time
+import warnings
+from typing import Callable, Iterator
+
+from ..sdk import Client, Session, StreamRefused
+from .capture import capture_frames
+from .common import add_connection, add_json, connect, warnings_on_stderr
+
+
+def add_stream(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
+    add_connection(p)
+    target = p.add_mutually_exclusive_group()
+    target.add_argument("--session", help="stream into this existing session, after the frames it already has "
+                                           "(give the same dataset, --stride and --max-frames to resume)")
+    target.add_argument("--voxel-size", type=float, help="a new session's voxel size, metres (default: chosen by the "
+                                                         "service from the first frame, 6 pixel footprints at its median depth)")
+    p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
+                                                             "frames without depth over the service's limit for them "
+                                                             "are downscaled to it anyway")
+    p.add_argument("--in-flight", type=positive_int, default=IN_FLIGHT, help="frames posted at once (the service "
+                                                                              "folds them in order; 1: one at a time)")
+    p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
+                                                         "(default: skip them, with a warning that counts them)")
+    add_json(p, "the session's stats when the stream ends, with the frames sent and the seconds taken")
+    p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
+                   help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
+                        "the field's type), e.g. --set colour_solve.views=16 --set free_space.margin=3; repeatable")
+
+
+def positive_int(text: str) -> int:
+    """An argument that must be a whole number of at least 1 (a usage error otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def session_setting(text: str) -> tuple[str, object]:
+    """``PATH=VALUE`` -> (PATH, VALUE), checked and typed by the library's settings definition
+    (`canonical_core.config.parse_setting`): an unknown or evaluation-only setting, or a value
+    of the wrong type or out of bounds, is a usage error naming the setting.
+
+    Example:
+        >>> session_setting("colour_solve.views=16"), session_setting("depth.sources=3")
+        (('colour_solve.views', 16), ('depth.sources', 3))
+    """
+    from canonical_core.config import parse_setting
+
+    try:
+        return parse_setting(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+IN_FLIGHT = 3  # frames `canonical stream` keeps posted at once: one folding, the next ones read and decoded
+
+
+class FirstFrameSession:
+    """A new session that exists once its first frame is in: the first `add_frame` creates it (with
+    ``settings``, as `Client.create_session`) and, if the service refuses that frame or the call is
+    interrupted, deletes it again, so a stream that fails at its start leaves no empty session
+    behind. ``created(session)`` is called once the first frame is in; ``session`` is None until then."""
+
+    def __init__(self, client: Client, settings: dict, created: Callable | None = None):
+        self.client, self.settings, self.created = client, settings, created
+        self.session = None
+
+    def add_frame(self, **frame) -> dict:
+        if self.session is not None:
+            return self.session.add_frame(**frame)
+        session = self.client.create_session(**self.settings)
+        try:
+            report = session.add_frame(**frame)
+        except BaseException:
+            with contextlib.suppress(Exception):  # the refusal is what the user needs to see, not this
+                session.delete()
+            raise
+        self.session = session
+        if self.created is not None:
+            self.created(session)
+        return report
+
+    def add_frames(self, frames, in_flight: int = IN_FLIGHT, first_index: int | None = None) -> Iterator[dict]:
+        """`Session.add_frames`, the first frame posted alone (it creates the session)."""
+        frames = iter(frames)
+        if self.session is None:
+            first = next(frames, None)
+            if first is None:
+                return
+            yield self.add_frame(**first)
+            first_index = 1
+        yield from self.session.add_frames(frames, in_flight, first_index)
+
+
+def stream_frames(session, frames, scale: float = 1.0, start: int = 0, in_flight: int = IN_FLIGHT) -> tuple[int, float]:
+    """Post frames ``start`` .. end to ``session`` (a `Session` or a `FirstFrameSession`) with a progress
+    bar, ``in_flight`` at once (`Session.add_frames`: folded in order); returns (frames sent, elapsed
+    seconds). The fold reports' warnings and those raised while a frame is read and sent (a frame
+    downscaled to the service's limit) go to stderr, each kind once.
+
+    Ctrl-C stops after the frames in flight; a refused frame stops the stream (`StreamRefused`)."""
+    from tqdm import tqdm
+
+    t0, new, sent = time.perf_counter(), 0, 0
+    shown: set[str] = set()
+    with tqdm(total=len(frames), initial=start, unit="frame", desc=frames.name) as bar, \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            first_index = start if isinstance(session, Session) else None
+            reports = session.add_frames(capture_frames(frames, scale, start), in_flight, first_index)
+            for i, report in enumerate(reports, start):
+                sent += 1
+                new += report["new_voxels"]
+                raised = [str(w.message) for w in caught]
+                caught.clear()
+                for warning in raised + report.get("warnings", []):
+                    kind = re.sub(r"[0-9.,%]+", "#", warning)  # each kind of warning once, whatever its figures
+                    if kind not in shown:
+                        shown.add(kind)
+                        bar.write(f"frame {i}: {warning}", file=sys.stderr)
+                bar.set_postfix(voxels=new, refresh=False)
+                bar.update()
+        except KeyboardInterrupt:
+            bar.close()
+            raise StreamInterrupted(sent, time.perf_counter() - t0) from None
+    return sent, time.perf_counter() - t0
+
+
+class StreamInterrupted(Exception):
+    """Ctrl-C during `stream_frames`: ``sent`` frames were acknowledged in ``elapsed`` seconds."""
+
+    def __init__(self, sent: int, elapsed: float):
+        super().__init__(f"interrupted after {sent} frames")
+        self.sent, self.elapsed = sent, elapsed
+
+
+def stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
+    size = "" if stats.get("voxel_size") is None else f" of {stats['voxel_size'] * 1000:g} mm"
+    sensor = "" if stats.get("sensor", "auto") == "auto" else f"; {stats['sensor']} noise model ({stats['chosen']['sensor']})"
+    return (f"{n} frames in {elapsed:.1f} s ({n / max(elapsed, 1e-9):.2f} frames/s); "
+            f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels{size}, "
+            f"{stats['gaussians']} Gaussians{sensor}")
+
+
+def run_stream(args) -> int:
+    from canonical_core.datasets import load_dataset
+    from canonical_core.config import settings_from_pairs
+
+    if args.session and args.settings:
+        print("--set: settings belong to a new session (without --session), not to an existing one", file=sys.stderr)
+        return 2
+    if any(name == "voxel_size" for name, _ in args.settings):
+        print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
+        return 2
+    with warnings_on_stderr():
+        frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict)
+
+    def announce(session) -> None:  # the id on stdout as soon as the session holds a frame: S=$(canonical stream ...)
+        if not args.json:
+            from tqdm import tqdm
+
+            tqdm.write(session.id, file=sys.stdout)  # on a terminal, above the progress bar rather than through it
+            sys.stdout.flush()
+
+    with connect(args) as client:
+        start = 0
+        if args.session:
+            target = client.session(args.session)
+            start = min(target.stats()["frames"], len(frames))  # resume after the frames it already has
+            print(f"session {target.id}: resuming after its {start} frames", file=sys.stderr)
+            announce(target)
+        else:
+            voxel = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
+            target = FirstFrameSession(client, {**voxel, **settings_from_pairs(args.settings)}, created=announce)
+        interrupted, refused = False, None
+        t0 = time.perf_counter()
+        try:
+            sent, elapsed = stream_frames(target, frames, args.scale, start, args.in_flight)
+        except StreamInterrupted as stop:
+            sent, elapsed, interrupted = stop.sent, stop.elapsed, True
+        except StreamRefused as exc:
+            sent, elapsed, refused = exc.index - start, time.perf_counter() - t0, exc
+        session = target.session if isinstance(target, FirstFrameSession) else target
+        if session is None:  # no frame went in: no session was made
+            print(("interrupted" if interrupted else f"{frames.name}: no frames to stream")
+                  + "; no session was created", file=sys.stderr)
+            return 130 if interrupted else 1
+        stats = session.stats()
+        if interrupted:  # the frames in flight at Ctrl-C were folded too
+            sent = stats["frames"] - start
+        summary = stream_summary(sent, elapsed, session, stats)
+        if interrupted or refused:
+            summary = f"{'interrupted' if interrupted else 'stopped'}: {summary}; continue with --session {session.id}"
+        if refused:
+            print(f"error: {refused}", file=sys.stderr)
+            print(summary, file=sys.stderr)
+            return 1
+        print(summary, file=sys.stderr)
+        if args.json:
+            print(json.dumps({**stats, "sent": sent, "seconds": round(elapsed, 3), "interrupted": interrupted}))
+    return 130 if interrupted else 0
