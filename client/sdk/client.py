@@ -1,0 +1,113 @@
+"""`Client`: a connection to the service (its URL and token, 429s retried, errors as `CanonicalError`),
+its sessions, limits, health and metrics."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+import httpx
+
+from .errors import CanonicalError
+from .session import Session
+
+
+def default_url() -> str:
+    """The service's base URL when none is given: ``CANONICAL_URL`` from the environment, else the
+    address `canonical serve` listens on by default."""
+    return os.environ.get("CANONICAL_URL") or "http://127.0.0.1:8000"
+
+
+class Client:
+    """A connection to the service.
+
+    Args:
+        url: base URL, e.g. ``http://127.0.0.1:8000`` (default: `default_url`, as the CLI's ``--url``,
+            so that scripts and the CLI find the same service).
+        token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
+        timeout: seconds per request.
+        max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each).
+    """
+
+    def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 120.0, max_retries: int = 8,
+                 max_wait: float = 10.0):
+        url = url if url is not None else default_url()
+        token = token if token is not None else os.environ.get("CANONICAL_API_TOKEN") or None
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
+        self.max_retries, self.max_wait = max_retries, max_wait
+        self._limits: dict | None = None
+
+    def _request(self, method: str, path: str, **kwargs) -> httpx.Response:
+        for attempt in range(self.max_retries + 1):
+            r = self._http.request(method, path, **kwargs)
+            if r.status_code != 429 or attempt == self.max_retries:
+                break
+            time.sleep(self._retry_after(r, attempt))
+        if r.status_code >= 400:
+            raise self._error(r)
+        return r
+
+    def _retry_after(self, r: httpx.Response, attempt: int) -> float:
+        try:
+            wait = float(r.headers.get("Retry-After", ""))
+        except ValueError:
+            wait = 0.25 * 2**attempt
+        return min(self.max_wait, wait if math.isfinite(wait) and wait >= 0 else 1.0)
+
+    @staticmethod
+    def _error(r: httpx.Response) -> CanonicalError:
+        try:
+            err = r.json()["error"]
+            return CanonicalError(r.status_code, err.get("code", "error"), err.get("message", ""), err.get("field"))
+        except (ValueError, KeyError, TypeError):
+            return CanonicalError(r.status_code, "error", r.text[:500])
+
+    def create_session(self, voxel_size: float | None = None, **settings) -> Session:
+        """A new session; ``settings`` are the service's session settings (SceneConfig's public fields:
+        max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, sensor={"family": "hololens"}``).
+        Without ``voxel_size`` the service chooses it from the first frame with depth (its stats say which)."""
+        body = settings if voxel_size is None else {"voxel_size": voxel_size, **settings}
+        r = self._request("POST", "/v1/sessions", json=body)
+        return Session(self, r.json()["id"], label_dim=0)
+
+    def session(self, session_id: str) -> Session:
+        """An existing session (checked: raises CanonicalError 404 when unknown)."""
+        stats = self._request("GET", f"/v1/sessions/{session_id}").json()
+        return Session(self, session_id, label_dim=stats.get("label_dim"))
+
+    def limits(self) -> dict:
+        """The service's request limits (``GET /v1/limits``: ``max_rgb_only_pixels``, ``max_image_pixels``,
+        ...), read once per client; {} from a service that does not publish them."""
+        if self._limits is None:
+            try:
+                self._limits = self._request("GET", "/v1/limits").json()
+            except CanonicalError as exc:
+                if exc.status != 404:
+                    raise
+                self._limits = {}
+        return self._limits
+
+    def sessions(self) -> list[dict]:
+        return self._request("GET", "/v1/sessions").json()["sessions"]
+
+    def prune_sessions(self, dry_run: bool = False) -> dict:
+        """Apply the service's retention policy now (``POST /v1/sessions/prune``); with ``dry_run`` only
+        list what it would remove. Returns its report (``removed``: the sessions, oldest first)."""
+        return self._request("POST", "/v1/sessions/prune", params={"dry_run": "true" if dry_run else "false"}).json()
+
+    def health(self) -> dict:
+        return self._request("GET", "/healthz").json()
+
+    def metrics(self) -> str:
+        return self._request("GET", "/metrics").text
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,209 @@
+"""A frame's msgpack body as the SDK sends it, and what is done to a frame before it goes: depth in
+16-bit sensor units where that is lossless, colour as PNG, a frame without depth downscaled to the
+service's limit, a class map as one-hot label scores. Also PNG bytes back to numpy."""
+
+from __future__ import annotations
+
+import io
+import math
+import numbers
+import warnings
+from typing import Literal, get_args
+
+import numpy as np
+
+from canonical_wire import encode_array, pack
+
+MSGPACK = "application/msgpack"
+FrameCodec = Literal["compact", "raw"]
+FRAME_CODECS = get_args(FrameCodec)
+
+
+def wire_matrix(m, shape: tuple[int, int]) -> list:
+    """``m`` as the nested lists of floats a body carries (msgpack or JSON); ValueError unless its
+    shape is ``shape``, before anything is sent."""
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"expected a {shape[0]}x{shape[1]} matrix, got shape {list(a.shape)}")
+    return a.tolist()
+
+
+def check_depth_scale(depth_scale) -> float:
+    """``depth_scale`` (sensor units per metre) as a float; ValueError naming it when it is missing,
+    not positive or not finite."""
+    if isinstance(depth_scale, bool) or not isinstance(depth_scale, numbers.Real) or not depth_scale > 0 \
+            or not math.isfinite(depth_scale):
+        raise ValueError(f"depth_scale: integer depth needs its units per metre (e.g. 1000 for millimetres), got {depth_scale!r}")
+    return float(depth_scale)
+
+
+def sensor_depth(depth, depth_scale) -> np.ndarray:  # [H, W] integers -> [H, W] uint16
+    """A sensor's integer depth as the 16-bit array it travels as; ValueError (naming the field) for a
+    missing or non-positive ``depth_scale`` or values outside 0..65535."""
+    check_depth_scale(depth_scale)
+    depth = np.asarray(depth)
+    if depth.size and (depth.min() < 0 or depth.max() > 65535):
+        raise ValueError(f"depth: integer depth must fit 16 bits (0..65535), got values {depth.min()}..{depth.max()}")
+    return depth.astype(np.uint16, copy=False)
+
+
+def exact_sensor_depth(depth, scales=(1000.0, 5000.0, 10000.0, 4000.0)) -> tuple[np.ndarray, float] | None:
+    """``depth`` (float metres, 0 = missing) as (16-bit sensor units, units per metre) when that is
+    lossless: the service's conversion of those units gives back exactly these float32 metres (as
+    with depth read from a 16-bit depth image). None when no scale of ``scales`` does.
+
+    Example:
+        >>> raw, scale = exact_sensor_depth(np.array([[0.0, 0.5]], np.float32))
+        >>> raw.tolist(), scale
+        ([[0, 500]], 1000.0)
+    """
+    metres = np.asarray(depth, dtype=np.float32)
+    if metres.size == 0 or not np.isfinite(metres).all() or metres.min() < 0:
+        return None
+    for scale in scales:
+        units = np.rint(metres.astype(np.float64) * scale)
+        if units.max() >= 65535:  # 65535 is a missing-depth code on the service's side
+            continue
+        units = units.astype(np.uint16)
+        if np.array_equal((units / scale).astype(np.float32), metres):
+            return units, scale
+    return None
+
+
+def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
+               depth_scale=None, codec: FrameCodec = "compact") -> bytes:
+    """The msgpack body of one frame as `Session.add_frame` sends it (its arguments, the same checks).
+
+    ``codec`` "compact" (the default) sends what is lossless and small: an ``rgb`` array as a PNG
+    (fast level), integer depth, and float depth that 16-bit sensor units hold exactly
+    (`exact_sensor_depth`), as zstandard-compressed uint16 with its ``depth_scale``, other float depth
+    as zstandard-compressed float32. "raw" sends the arrays as they are. PNG/JPEG ``rgb`` bytes and
+    16-bit PNG ``depth`` bytes (with ``depth_scale``) travel untouched either way. The service folds
+    the same frame from all of them.
+    """
+    if codec not in FRAME_CODECS:
+        raise ValueError(f"codec: expected one of {list(FRAME_CODECS)}, got {codec!r}")
+    array_codec = "zstd" if codec == "compact" else "raw"
+    if isinstance(rgb, (bytes, bytearray)):
+        rgb = bytes(rgb)
+    elif codec == "compact" and np.asarray(rgb).dtype == np.uint8 and np.ndim(rgb) == 3:
+        rgb = encode_png(np.asarray(rgb))
+    else:
+        rgb = encode_array(rgb)
+    msg: dict = {"rgb": rgb, "K": wire_matrix(K, (3, 3)), "c2w": wire_matrix(c2w, (4, 4))}
+    if depth is not None and depth_scale is None and codec == "compact" and np.issubdtype(np.asarray(depth).dtype, np.floating):
+        depth, depth_scale = exact_sensor_depth(depth) or (depth, None)
+    if isinstance(depth, (bytes, bytearray)):  # a 16-bit depth PNG, as a depth camera's files hold it
+        msg["depth"], msg["depth_scale"] = bytes(depth), check_depth_scale(depth_scale)
+        depth = None
+    elif depth is not None and np.issubdtype(np.asarray(depth).dtype, np.integer):
+        msg["depth"] = encode_array(sensor_depth(depth, depth_scale), "depth", array_codec)
+        msg["depth_scale"] = float(depth_scale)
+        depth = None
+    elif depth_scale is not None:  # a float depth is in metres already: a scale would be applied twice or ignored
+        raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
+    if depth is not None:
+        msg["depth"] = encode_array(np.asarray(depth, np.float32), "depth", array_codec)
+    for name, value in (("depth_std", depth_std), ("features", features), ("labels", labels)):
+        if value is not None:  # float maps gain little from lossless compression: they travel as they are
+            value = np.asarray(value)
+            msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
+    if frame_id is not None:
+        msg["frame_id"] = str(frame_id)
+    return pack(msg)
+
+
+# zlib's fastest level: a colour frame packs nearly as small as at the default level in a fraction
+# of its time (the client's CPU is often the service's too)
+PNG_LEVEL = 1
+
+
+def encode_png(rgb: np.ndarray) -> bytes:  # [H, W, 3] uint8 -> PNG bytes
+    """A colour image as a lossless PNG at a fast compression level (`PNG_LEVEL`)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb, np.uint8)).save(buf, format="PNG", compress_level=PNG_LEVEL)
+    return buf.getvalue()
+
+
+class DownscaledFrame(UserWarning):
+    """A frame without depth was over the service's limit for such frames and was sent downscaled."""
+
+
+def scaled_intrinsics(K, sx: float, sy: float) -> np.ndarray:  # [3, 3] float64
+    """``K`` of the image resized by ``sx`` across and ``sy`` down. Pixel centres sit on integers (the
+    convention of `canonical_core.camera`: pixel u spans u - 0.5 .. u + 0.5), so the image's edges
+    stay its edges: c' + 0.5 = (c + 0.5) s, as `Camera.scaled` does with one factor.
+
+    Example:
+        >>> scaled_intrinsics([[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], 0.5, 0.5)[:2].tolist()
+        [[250.0, 0.0, 159.5], [0.0, 250.0, 119.5]]
+    """
+    K = np.array(wire_matrix(K, (3, 3)))
+    K[0] *= sx
+    K[1] *= sy
+    K[0, 2] += 0.5 * sx - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    return K
+
+
+def _rgb_size(rgb) -> tuple[int, int]:  # (width, height) of an array, or of PNG/JPEG bytes from their header
+    if isinstance(rgb, (bytes, bytearray)):
+        from PIL import Image
+
+        with Image.open(io.BytesIO(bytes(rgb))) as image:
+            return image.size
+    shape = np.shape(rgb)
+    return (shape[1], shape[0]) if len(shape) == 3 else (0, 0)  # not an image: the service names the problem
+
+
+def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
+    """``(rgb, K)`` of a frame without depth, fitted to ``max_pixels``: as they are when within it,
+    else the image area-averaged down to the largest size within it (aspect kept) and K scaled to
+    match (`scaled_intrinsics`), with a `DownscaledFrame` warning."""
+    width, height = _rgb_size(rgb)
+    if width * height <= max_pixels:
+        return rgb, K
+    from PIL import Image
+
+    factor = math.sqrt(max_pixels / (width * height))
+    size = (max(1, int(width * factor)), max(1, int(height * factor)))  # rounded down: within the limit
+    if isinstance(rgb, (bytes, bytearray)):
+        image = Image.open(io.BytesIO(bytes(rgb))).convert("RGB")
+    else:
+        image = Image.fromarray(np.ascontiguousarray(rgb, np.uint8))
+    warnings.warn(f"rgb: a frame without depth of {width}x{height} pixels is over the service's limit of {max_pixels} "
+                  f"pixels for such frames; sent downscaled to {size[0]}x{size[1]}, with K scaled to match (or send "
+                  f"depth)", DownscaledFrame, stacklevel=4)  # the caller of `Session.add_frame`
+    return np.asarray(image.resize(size, Image.BOX)), scaled_intrinsics(K, size[0] / width, size[1] / height)
+
+
+def is_class_map(labels) -> bool:
+    """Whether ``labels`` is a class map (integer or boolean [H, W]: one class id a pixel), not scores."""
+    labels = np.asarray(labels)
+    return labels.ndim == 2 and (np.issubdtype(labels.dtype, np.integer) or labels.dtype == np.bool_)
+
+
+def label_scores(class_map, num_classes: int) -> np.ndarray:  # [H, W] ids -> [H, W, K] float16
+    """A class map as the per-pixel label scores the service fuses: one-hot over K = ``num_classes``
+    (a negative id: no class, every score 0). float16 holds 0 and 1 exactly in half the bytes.
+    ValueError naming K when an id does not fit.
+
+    Example:
+        >>> label_scores(np.array([[0, 2], [-1, 1]]), 3)[0].tolist()
+        [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    ids = np.asarray(class_map)
+    top = int(ids.max()) if ids.size else -1
+    if top >= num_classes:
+        raise ValueError(f"labels: class {top} does not fit K = {num_classes} label classes (ids 0..{num_classes - 1}); "
+                         "a session's K is fixed by its first labelled frame: pass num_classes= with that frame")
+    return (ids[..., None] == np.arange(num_classes)).astype(np.float16)
+
+
+def png_to_array(data: bytes) -> np.ndarray:
+    """PNG bytes -> numpy (uint8 [H,W,3] for colour, [H,W] for palette/grey)."""
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)))

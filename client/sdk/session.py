@@ -1,0 +1,257 @@
+"""`Session`: one session of a `Client`: frames in (one, or a stream with several in flight), pose
+corrections, renders, features, segmentation and exports out."""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING, Iterable, Iterator
+from urllib.parse import quote
+
+import httpx
+import numpy as np
+
+from canonical_wire import decode_array, unpack
+
+from .errors import CanonicalError, StreamRefused
+from .frames import MSGPACK, FrameCodec, fit_rgb_only, frame_body, is_class_map, label_scores, wire_matrix
+
+if TYPE_CHECKING:
+    from .client import Client
+
+
+def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None,
+          depth: str | None = None) -> dict:
+    body = {"K": wire_matrix(K, (3, 3)), "c2w": wire_matrix(c2w, (4, 4)), "width": int(width), "height": int(height)}
+    if colour is not None:
+        body["colour"] = colour
+    if depth is not None:
+        body["depth"] = depth
+    if max_gaussians is not None:
+        body["max_gaussians"] = int(max_gaussians)
+    if background is not None:
+        body["background"] = [float(x) for x in background]
+    return body
+
+
+def _write(path: str | os.PathLike, data: bytes) -> Path:
+    """``data`` to ``path`` by way of a temporary file beside it, so a failed download leaves no half file."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
+
+
+class Session:
+    """One session of a `Client`; get it from `Client.create_session` or `Client.session`.
+
+    ``label_dim`` is the session's label channels (K; 0 before its first labelled frame) where the
+    client knows it, else None (read from the service when a class map needs it)."""
+
+    def __init__(self, client: "Client", session_id: str, label_dim: int | None = None):
+        self.client, self.id, self.label_dim = client, session_id, label_dim
+
+    @property
+    def _path(self) -> str:
+        return f"/v1/sessions/{self.id}"
+
+    def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
+                  depth_scale=None, num_classes: int | None = None, downscale: bool = True,
+                  codec: FrameCodec = "compact") -> dict:
+        """Fold one frame. ``rgb`` uint8 [H,W,3] array or PNG/JPEG bytes; ``K`` 3x3; ``c2w`` 4x4 OpenCV
+        camera-to-world; ``depth`` float [H,W] metres, or a sensor's integer [H,W] depth (0 = missing)
+        or its 16-bit PNG bytes, with ``depth_scale`` its units per metre (1000 for millimetres);
+        ``depth_std`` float [H,W]; ``features`` float [H',W',C]. Returns the fold report
+        (frame_index, new_voxels, ...). ``codec``: how arrays travel (`frame_body`; by default
+        "compact": compressed, lossless).
+
+        ``labels``: per-pixel label scores, float [H',W',K], or a class map, integer [H',W'] (one
+        class id a pixel, negative for none), sent as one-hot scores over K = ``num_classes``, else
+        the session's label channels, else (its first labelled frame) the map's largest id + 1.
+
+        With ``downscale``, a frame without depth that is over the service's limit for such frames
+        (`Client.limits`) is sent downscaled to it, K scaled to match, with a `DownscaledFrame`
+        warning; without, the service refuses it (413). To stream many frames, `add_frames` keeps
+        several in flight."""
+        return self._post_frame(dict(rgb=rgb, K=K, c2w=c2w, depth=depth, depth_std=depth_std, features=features,
+                                     labels=labels, frame_id=frame_id, depth_scale=depth_scale, num_classes=num_classes,
+                                     downscale=downscale, codec=codec))
+
+    def add_frames(self, frames: Iterable[dict], in_flight: int = 3, first_index: int | None = None) -> Iterator[dict]:
+        """Fold a stream of frames, each the keyword arguments of `add_frame`, with up to ``in_flight``
+        of them encoded and posted at once (threads sharing the client's keep-alive connections);
+        yields their fold reports in order.
+
+        Each frame carries its place in the session's stream (header ``Frame-Index``: ``first_index``,
+        by default the session's frame count, then one more a frame), and the service folds them in
+        that order whatever order they arrive in, so the scene is the one that posting them one by
+        one gives. A refused frame stops the stream: `StreamRefused` (the refusal's status, code and
+        field) says which frame it was and how many were acknowledged (the reports yielded); the
+        frames posted after it are not folded. ``frames`` is read lazily, ``in_flight`` ahead."""
+        if isinstance(in_flight, bool) or not isinstance(in_flight, int) or in_flight < 1:
+            raise ValueError(f"in_flight: expected a positive integer, got {in_flight!r}")
+        index = self.stats()["frames"] if first_index is None else int(first_index)
+        pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="canonical-frames")
+        pending: collections.deque = collections.deque()
+        acknowledged = 0
+        try:
+            for position, frame in enumerate(itertools.chain(frames, [None])):
+                if frame is not None:
+                    pending.append(pool.submit(self._post_frame, frame, index + position))
+                # the first frame goes alone: where an earlier stream's frame was refused, the frames
+                # after it are refused until a frame takes its place
+                while pending and (frame is None or len(pending) >= (in_flight if position else 1)):
+                    try:
+                        report = pending[0].result()
+                    except CanonicalError as exc:
+                        raise StreamRefused(exc, index + acknowledged, acknowledged) from exc
+                    pending.popleft()
+                    acknowledged += 1
+                    yield report
+        finally:
+            # frames not yet posted are dropped; posted ones finish (the service answers them, in order)
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _post_frame(self, frame: dict, index: int | None = None) -> dict:
+        """POST one frame (`add_frame`'s keyword arguments), with its ``Frame-Index`` when given."""
+        frame = dict(frame)
+        num_classes, downscale = frame.pop("num_classes", None), frame.pop("downscale", True)
+        if frame.get("labels") is not None:
+            frame["labels"] = self._label_scores(frame["labels"], num_classes)
+        if frame.get("depth") is None and downscale:
+            limit = self.client.limits().get("max_rgb_only_pixels")
+            if limit is not None:
+                frame["rgb"], frame["K"] = fit_rgb_only(frame["rgb"], frame["K"], limit)
+        headers = {"Content-Type": MSGPACK} | ({} if index is None else {"Frame-Index": str(index)})
+        report = self.client._request("POST", f"{self._path}/frames", content=frame_body(**frame), headers=headers).json()
+        if frame.get("labels") is not None:
+            self.label_dim = int(np.shape(frame["labels"])[-1])
+        return report
+
+    def _label_scores(self, labels, num_classes: int | None):
+        """``labels`` as scores [H',W',K] (a class map one-hot encoded); ValueError naming K when they
+        disagree with the session's K."""
+        known = self.label_dim
+        if is_class_map(labels):
+            if num_classes is None:
+                known = self.stats()["label_dim"] if known is None else known
+                num_classes = known or int(np.asarray(labels, np.int64).max(initial=-1)) + 1
+            if num_classes < 1:
+                raise ValueError("labels: the class map holds no class id (all negative) and K is not known yet: "
+                                 "pass num_classes=")
+            limit = self.client.limits().get("max_label_channels")
+            if limit is not None and num_classes > limit:  # before a one-hot of that many channels is built
+                raise ValueError(f"labels: K = {num_classes} label classes exceed the service's limit of {limit} "
+                                 "label channels")
+            labels = label_scores(labels, num_classes)
+        channels = np.shape(labels)[-1] if np.ndim(labels) == 3 else None
+        if known and channels is not None and channels != known:
+            raise ValueError(f"labels: {channels} label channels, but this session's labels have K = {known} "
+                             "(fixed by its first labelled frame)")
+        return labels
+
+    def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
+        """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
+        re-fold of the session's archived frames. A key is a frame's ``frame_id``, or its arrival
+        index for frames sent without one. Returns what changed (frames, corrected, removed, ...).
+
+        A long re-fold runs in the service's background (it answers 202): with ``wait`` this polls its
+        status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
+        without, the service answers at once and this returns the status (``correction_id``, ``state``;
+        see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
+        body = {"poses": {str(k): wire_matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove],
+                "wait": bool(wait)}
+        for k, c2w in body["poses"].items():
+            if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
+                raise ValueError(f"poses.{k}: contains NaN or inf")
+        return self._finished(self.client._request("POST", f"{self._path}/poses", json=body), wait, progress, poll)
+
+    def remove_frame(self, frame_id, wait: bool = True, progress=None, poll: float = 0.5) -> dict:
+        """Remove one frame (its ``frame_id`` or arrival index) from the session's scene (``wait``,
+        ``progress``, ``poll``: as for `update_poses`)."""
+        r = self.client._request("DELETE", f"{self._path}/frames/{quote(str(frame_id), safe='')}")
+        return self._finished(r, wait, progress, poll)
+
+    def correction(self, correction_id: str) -> dict:
+        """A background correction's status: ``state`` (pending, running, done, failed), ``refolded``
+        of ``total`` frames, and once done its ``result``."""
+        return self.client._request("GET", f"{self._path}/corrections/{quote(correction_id, safe='')}").json()
+
+    def _finished(self, r: httpx.Response, wait: bool, progress, poll: float) -> dict:
+        """A correction's answer: as it came (200, or 202 without ``wait``), else its polled result."""
+        status = r.json()
+        if r.status_code != 202 or not wait:
+            return status
+        while True:
+            if progress is not None:
+                progress(status)
+            if status["state"] == "done":
+                return status["result"]
+            if status["state"] == "failed":
+                raise CanonicalError(409, "correction_failed", status["error"] or "the re-fold failed", "correction_id")
+            time.sleep(poll)
+            status = self.correction(status["correction_id"])
+
+    def render(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
+               colour: str | None = None, depth: str | None = None) -> dict:
+        """{"rgb": uint8 [H,W,3], "depth": float32 [H,W], "alpha": float32 [H,W]}; ``colour``
+        "normalised" (the service's default) or "composited", ``depth`` "median" (the service's
+        default) or "expected" (see `canonical_core.rendering.render`)."""
+        return self._arrays("render", _view(K, c2w, width, height, max_gaussians, background, colour, depth))
+
+    def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
+                   colour: str | None = None) -> bytes:
+        body = _view(K, c2w, width, height, max_gaussians, background, colour)
+        return self.client._request("POST", f"{self._path}/render", json=body, headers={"Accept": "image/png"}).content
+
+    def features(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
+        """{"features": float16 [H,W,C], "alpha": float32 [H,W]}."""
+        return self._arrays("features", _view(K, c2w, width, height, max_gaussians, None))
+
+    def features_preview_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        return self.client._request("POST", f"{self._path}/features", params={"preview": "png"},
+                                    json=_view(K, c2w, width, height, max_gaussians, None)).content
+
+    def segmentation(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
+        """{"labels": uint16 [H,W] (65535 where nothing is drawn), "alpha": float32 [H,W]}."""
+        return self._arrays("segmentation", _view(K, c2w, width, height, max_gaussians, None))
+
+    def segmentation_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        return self.client._request("POST", f"{self._path}/segmentation", json=_view(K, c2w, width, height, max_gaussians, None),
+                                    headers={"Accept": "image/png"}).content
+
+    def _arrays(self, route: str, body: dict) -> dict:
+        r = self.client._request("POST", f"{self._path}/{route}", json=body, headers={"Accept": MSGPACK})
+        return {k: decode_array(v, k) for k, v in unpack(r.content, route).items()}
+
+    def export_ply(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        return self._export(".ply", path, max_gaussians)
+
+    def export_splat(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        return self._export(".splat", path, max_gaussians)
+
+    def export_mesh(self, path: str | os.PathLike, min_support: float | None = None) -> Path:
+        """The surface as a coloured triangle mesh (binary PLY: vertex x, y, z, red, green, blue; faces)."""
+        params = {} if min_support is None else {"min_support": float(min_support)}
+        return _write(path, self.client._request("GET", f"{self._path}/mesh.ply", params=params).content)
+
+    def _export(self, suffix: str, path, max_gaussians) -> Path:
+        params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
+        return _write(path, self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content)
+
+    def stats(self) -> dict:
+        return self.client._request("GET", self._path).json()
+
+    def digest(self) -> dict:
+        return self.client._request("GET", f"{self._path}/digest").json()
+
+    def delete(self) -> None:
+        self.client._request("DELETE", self._path)
+
+    def __repr__(self) -> str:
+        return f"Session({self.id!r})"
