@@ -41,6 +41,7 @@ def test_stream_render_export_delete(client, server, frames, reference, tmp_path
         assert report["frame_index"] == i
         assert set(report) >= {"frame_index", "new_voxels", "updated_voxels", "representative_switches", "ms"}
     assert session.digest()["sha256"] == reference[len(frames)]["sha256"]  # deterministic across sessions
+    assert colours_solved(session)  # the renders below compare pixels: none may land between them
 
     K, c2w, w, h = view_of(frames[0])
     png = session.render_png(K, c2w, w, h)
