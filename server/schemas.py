@@ -94,6 +94,9 @@ class SessionStats(SessionSummary):
         None, description="the frame count whose state the colours that renders show were solved for (equal to frames: "
                           "solved colours of the scene as it is; lower: a solve runs in the background while no frame "
                           "waits); None: none solved yet, or colour_solve.views is 0")
+    colour_solves_stopped: int = Field(0, description="background colour solves of this session that gave way to one "
+                                                      "of its frames since the service started (a frame that arrives "
+                                                      "stops the solve running: streams never wait for it)")
     config: dict[str, Any]
 
 

@@ -23,9 +23,10 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import InitVar, dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 from canonical_core import Frame, Gaussians, SceneConfig
+from canonical_core.decode import SolveStopped
 from canonical_core.scene import FoldReport, Scene
 from canonical_core.scene.folding import fold_cost
 from canonical_core.scene.mesh import Mesh, scene_mesh
@@ -72,6 +73,7 @@ class Session:
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
     budget: MemoryBudget | None = None  # the service's memory, which each fold reserves its worst case from
+    colour_solves_stopped: int = 0  # background colour solves that gave way to a frame of it
     order: FrameOrder = field(init=False, repr=False)  # the turns of its numbered frames (`server.ordering`)
     chosen: dict[str, str] = field(default_factory=dict)  # why meta.json's settings are what they are (`Scene.chosen`)
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
@@ -249,13 +251,18 @@ class Session:
         (`Scene.colour_solve_due`); False for a deleted session."""
         return not self.deleted and self.scene.colour_solve_due()
 
-    def solve_colours(self) -> bool:
+    def solve_colours(self, stop: Callable[[], bool] | None = None) -> bool:
         """`Scene.solve_colours` of the served scene, outside the session's lock: folds go on
-        meanwhile. Returns whether a solution was kept."""
+        meanwhile. ``stop`` can end it between its steps (counted in ``colour_solves_stopped``).
+        Returns whether a solution was kept."""
         with self.lock:
             self.check_alive()
             scene = self.scene
-        return scene.solve_colours()
+        try:
+            return scene.solve_colours(stop)
+        except SolveStopped:
+            self.colour_solves_stopped += 1
+            return False
 
     def mesh(self, min_support: float = 0.0) -> Mesh:
         """The scene's surface mesh (`scene_mesh`: its sums copied under the scene's own lock, so folds
@@ -301,6 +308,7 @@ class Session:
                 "snapshot_frames": self.snapshots.frames,
                 "snapshot_error": self.snapshots.error,
                 "colours_solved_frames": self.scene.colours_solved_frames(),
+                "colour_solves_stopped": self.colour_solves_stopped,
                 "config": self.scene.config.to_dict(),
             }
 

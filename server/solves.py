@@ -7,7 +7,11 @@ running or waiting; a solve that finds a frame waiting when its turn comes leave
 frame's fold. A solve that lands queues the next if frames were folded while it ran, so a stream
 that pauses is shown in solved colours one or two solves after its last frame. The solve copies the
 session's state as a decode does and solves outside its locks (`Scene.solve_colours`): a frame that
-arrives meanwhile folds at once.
+arrives meanwhile folds at once, and the solve gives up at its next step, so that it takes neither
+cores nor the interpreter's lock from a stream (the frame's fold queues a new one once no frame
+waits). A solve begins only after `QUIET_S` without a new frame: between two frames of a stream
+there is no time to solve, and its first step, a copy and decode of the state, would be spent for
+nothing.
 """
 
 from __future__ import annotations
@@ -15,9 +19,15 @@ from __future__ import annotations
 import functools
 import weakref
 
+import time
+
 from .memory import release_memory
 from .scheduler import Scheduler
 from .session import Session
+
+# seconds a session's state must stay as it is before its solve begins: longer than the gap between
+# two frames of any stream worth the name, short against the second or two a solve takes
+QUIET_S = 0.25
 
 
 def solve_soon(jobs: Scheduler, session: Session) -> bool:
@@ -31,7 +41,15 @@ def _solve(jobs: Scheduler, ref: weakref.ref) -> None:
     session = ref()
     if session is None or jobs.frames_held(session.id) or session.deleted:  # a frame's fold queues the next solve
         return
-    solved = session.solve_colours()
+    frames = session.scene.frames
+
+    def stop() -> bool:  # a frame on its way, or one folded since: its fold queues the next solve
+        return session.deleted or jobs.frames_held(session.id) > 0 or session.scene.frames != frames
+
+    time.sleep(QUIET_S)
+    if stop():  # a stream: no time to solve between its frames
+        return
+    solved = session.solve_colours(stop)
     if session.deleted:  # deleted while it solved: what it and its copy of the state held goes back now
         del session
         release_memory()

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import replace
-from typing import Sequence, get_args
+from typing import Callable, Sequence, get_args
 
 import numba
 import numpy as np
@@ -60,6 +60,11 @@ COVERED_ALPHA = 0.5
 # little of its colour, but such tails (splats far behind the surface, the rims of splats) are more
 # than half of all weights, and the solve's time is a pass over the weights per step
 ROW_MIN_WEIGHT = 0.01
+
+
+class SolveStopped(Exception):
+    """Raised by `colour_offsets` when its ``stop`` says so: the caller wants the CPU back (a
+    service's background solve gives way to a frame that arrives)."""
 
 
 def _check(views: Sequence[Frame], ridge: float, prior: float, iterations: int, degree: int, colour: str) -> None:
@@ -209,20 +214,28 @@ def _arrays(A: Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # CSR row 
     return A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy()
 
 
+def _stop_if(stop: Callable[[], bool] | None) -> None:
+    if stop is not None and stop():
+        raise SolveStopped("the colour solve was stopped by its caller")
+
+
 def colour_system(
     gaussians: Gaussians,
     views: Sequence[Frame],
     backend: WeightsBackend = "cpu",
     colour: Colour = "normalised",
+    stop: Callable[[], bool] | None = None,
 ) -> tuple[Tensor, Tensor]:  # A: sparse CSR [P, N] (int32 indices), residual b [P, 3]
     """The linear system of the fit: A's rows are the views' pixels (view-major), its columns the
     Gaussians, its entries the compositing weights of at least `ROW_MIN_WEIGHT`, each row scaled to
     its pixel's whole weight (``"normalised"``: to 1, over the kept weights' sum, and no row for a
     pixel they cover less than `COVERED_ALPHA`; ``"composited"``: to the render's alpha, the dropped
     tail's weight shared in proportion); b is each pixel's colour minus its render in that mode
-    (`rendering.render`, every weight in), 0 for a pixel without a row."""
+    (`rendering.render`, every weight in), 0 for a pixel without a row. ``stop`` is asked before
+    each view (`SolveStopped`)."""
     starts, columns, weights, residuals = [np.zeros(1, np.int64)], [], [], []
     for view in views:
+        _stop_if(stop)
         camera = view.camera
         # the residual against the render itself, every weight in, from the rows' own compositor
         # pass: a scene that already shows its views is left as it is, whatever the rows leave out
@@ -257,13 +270,17 @@ def colour_offsets(
     degree: int = 1,
     backend: WeightsBackend = "cpu",
     colour: Colour = "normalised",
+    stop: Callable[[], bool] | None = None,
 ) -> Tensor:  # [N, K, 3] float32 offsets x_ik, K = (min(degree, sh_degree) + 1)^2
     """The offsets of `solve_colours` (module docstring), by ``iterations`` steps of conjugate
     gradients from ``initial``. A solution of a scene that has changed little since is a good
     start: a few steps from it come close to a full solve from zero (a streaming scene re-solves so).
+    ``stop``, if given, is asked between the solve's steps (each view of the system, each
+    iteration): when it answers True the solve gives up at once.
 
     Raises:
         ValueError: as `solve_colours`, and an ``initial`` of the wrong shape.
+        SolveStopped: ``stop`` answered True.
     """
     _check(views, ridge, prior, iterations, degree, colour)
     num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
@@ -272,7 +289,7 @@ def colour_offsets(
     offsets = torch.zeros(len(gaussians), num_bases, 3) if initial is None else initial.detach().float().clone()
     if len(gaussians) == 0:
         return offsets
-    A, b = colour_system(gaussians, views, backend, colour)
+    A, b = colour_system(gaussians, views, backend, colour, stop)
     view_rows = np.cumsum([0] + [view.camera.height * view.camera.width for view in views]).astype(np.int64)
     means = gaussians.means.detach().numpy()
     bases = np.stack([sh_basis_at_points(means, view.camera.c2w64()[:3, 3], 1)[:, :num_bases] for view in views])
@@ -304,6 +321,7 @@ def colour_offsets(
     z = precondition(residual)
     direction, rz = z.clone(), (residual * z).sum((0, 1))
     for _ in range(iterations):
+        _stop_if(stop)
         product = normal(direction)
         step = rz / (direction * product).sum((0, 1)).clamp_min(1e-30)
         offsets += step * direction

@@ -10,7 +10,7 @@ the same frames, shows the same colours).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 from ..decode import colour_offsets
 from .decoding import ColourSolution
@@ -34,11 +34,12 @@ def colours_solved_frames(scene: Scene) -> int | None:
     return None if solution is None else max(solution.frames, 0)
 
 
-def solve_colours(scene: Scene) -> bool:
+def solve_colours(scene: Scene, stop: Callable[[], bool] | None = None) -> bool:
     """Solve the colours of ``scene`` as it is now against its kept views, from zero
     (`decode.colour_offsets`), and keep the solution for its later decodes, which then show it.
     Returns whether one was kept (False: none was due, or a correction replaced the state or a
-    newer solution landed meanwhile)."""
+    newer solution landed meanwhile). ``stop`` is asked between the solve's steps; when it answers
+    True the solve raises `decode.SolveStopped` and keeps nothing."""
     decoding = scene._decoding
     with decoding.lock:  # the decode lock before the scene's, as every decode takes them
         with scene._lock:
@@ -46,7 +47,7 @@ def solve_colours(scene: Scene) -> bool:
                 return False
             work = decoding.take(scene._decode_inputs(live=True), features=False)
         base, epoch = decoding.base(work), decoding.epoch
-    offsets = colour_offsets(base, work.views)  # seconds of work: no lock held
+    offsets = colour_offsets(base, work.views, stop=stop)  # seconds of work: no lock held
     with decoding.lock:
         if not decoding.land(ColourSolution(work.chosen.rows.copy(), offsets, work.frames), epoch):
             return False

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 
 import numba
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.decode import colour_offsets, colour_system, solve_colours, with_colour_offsets
+from canonical_core.decode import SolveStopped, colour_offsets, colour_system, solve_colours, with_colour_offsets
 from canonical_core.decode.colour_solve import ROW_MIN_WEIGHT, _sh_products
 from canonical_core.gaussians.container import SH_C0
 from canonical_core.rendering.sh import SH_C1, sh_basis, sh_basis_at_points
@@ -284,3 +285,21 @@ def test_a_warm_start_of_the_wrong_shape_is_named(scene):
     g, cameras = scene
     with pytest.raises(ValueError, match=r"^initial: expected shape \[60, 4, 3\], got \[60, 1, 3\]"):
         colour_offsets(g, views_of(g, cameras[:1]), torch.zeros(len(g), 1, 3))
+
+
+def test_stop_is_asked_before_each_view_and_each_step_and_ends_the_solve_when_it_says_so(scene):
+    g, cameras = scene
+    views = views_of(g, cameras, shift=0.1)
+    asked = []
+
+    def never() -> bool:
+        asked.append(len(asked))
+        return False
+
+    assert torch.equal(colour_offsets(g, views, iterations=5, stop=never), colour_offsets(g, views, iterations=5))
+    assert len(asked) == len(views) + 5  # each view of the system, then each step of conjugate gradients
+    for at in (0, len(views) - 1, len(views), len(views) + 4):  # in the system's views, then in the steps
+        calls = itertools.count()
+        with pytest.raises(SolveStopped):
+            colour_offsets(g, views, iterations=5, stop=lambda: next(calls) == at)
+        assert next(calls) == at + 1  # nothing asked after the answer that stopped it

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from canonical_core import SceneConfig
-from canonical_core.decode import solve_colours
+from canonical_core.decode import SolveStopped, solve_colours
 from canonical_core.frame import resize_frame
 from canonical_core.scene import Scene
 from canonical_core.scene.decoding import ColourSolution
@@ -91,3 +91,13 @@ def test_folds_go_on_while_a_solve_runs_and_a_replaced_state_keeps_no_solution(s
     with scene._decoding.lock:
         assert not scene._decoding.land(late, epoch)
     assert scene._decoding.solution is carried
+
+
+@pytest.mark.realdata
+def test_a_stopped_solve_keeps_nothing_and_the_next_one_solves(small):
+    scene = folded(small[:2])
+    with pytest.raises(SolveStopped):
+        scene.solve_colours(stop=lambda: True)
+    assert scene._decoding.solution is None and scene.colour_solve_due()
+    assert scene.solve_colours(stop=lambda: False)
+    assert torch.equal(scene.gaussians(colours="last").sh, reference(scene, small[:2]))

@@ -74,7 +74,7 @@ def gauge(url: str, name: str) -> float:
     return float(next(line.split()[1] for line in text.splitlines() if line.startswith(name + " ")))
 
 
-def test_a_frame_sent_while_a_solve_runs_is_taken_before_the_solve_lands(tmp_path, frames):
+def test_a_frame_sent_while_a_solve_runs_is_taken_at_once_and_stops_the_solve(tmp_path, frames):
     proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_seconds=3600)
     try:
         client = Client(proc.start().url)
@@ -82,19 +82,22 @@ def test_a_frame_sent_while_a_solve_runs_is_taken_before_the_solve_lands(tmp_pat
         session = client.create_session(voxel_size=VOXEL / 2, colour_solve={"scale": 1.0})
         for kwargs in frames[:5]:
             session.add_frame(**kwargs)
-        # the pause after the fifth frame started a solve; a frame arrives while it runs. Taken before
-        # that solve finished, the fold did not wait for it. A solve may still end first by chance (on
-        # a quiet machine it takes about a second): then the next frame tries again. A fold that waited
-        # for the running solve would find it finished every time.
-        taken_during_a_solve = False
+        # the pause after the fifth frame started a solve; a frame arrives while it runs: the solve
+        # gives way to it at its next step and lands nothing, and the frame is taken. A solve may still
+        # end first by chance (on a quiet machine it takes about a second): then the next frame tries
+        # again. A solve that went on would never count as stopped, and would land a solution of the
+        # state before the frame.
+        stopped_by = None
         for k in range(5, 8):
             assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_running") == 1, SOLVE_WAIT_S)
-            done = gauge(proc.url, "canonical_colour_solves_done")
+            stopped, done = session.stats()["colour_solves_stopped"], gauge(proc.url, "canonical_colour_solves_done")
             assert session.add_frame(**frames[k])["frame_index"] == k
-            if gauge(proc.url, "canonical_colour_solves_done") == done:
-                taken_during_a_solve = True
+            assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_done") > done, SOLVE_WAIT_S)
+            if session.stats()["colour_solves_stopped"] == stopped + 1:
+                stopped_by = k
                 break
-        assert taken_during_a_solve
+        assert stopped_by is not None, session.stats()
+        assert session.stats()["colours_solved_frames"] in (None, 5, 6, 7)  # of a state before the frame, if any
         assert wait_for(lambda: solved(session, k + 1), SOLVE_WAIT_S), session.stats()  # the pause gets them solved
     finally:
         proc.kill9()
