@@ -2,7 +2,7 @@
 CLI's own defaults; frames/s end to end and the disk a session keeps per frame.
 
     python bench/ingest.py [--data ../shared/data/realsense_shelf] [--voxel-size 0.004] [--runs 2]
-                           [--in-flight 1 3] [--base PATH]
+                           [--in-flight 1 3] [--base PATH] [--viewer]
 
 Each run starts a fresh service (a subprocess, its own temporary data directory), streams the capture
 with the CLI (a subprocess: its summary line gives frames/s), samples the session's folder every
@@ -14,7 +14,10 @@ archive's compression of raw arrays) would cost and gain. Disk per frame counts 
 (``scene.snap`` and one being written); the peak while it runs is given without and with the
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
-warmed), interleaved with this one, so that both see the same load. Timings on a shared machine are
+warmed), interleaved with this one, so that both see the same load. ``--viewer`` also runs the first
+``--in-flight`` value with the web viewer open on the session while it streams: headless Debian
+chromium (Playwright, as `bench/viewer.py`) opens the session's page as soon as the CLI prints its id,
+and the page renders each new state as a user's would. Timings on a shared machine are
 noisy: compare the runs of one invocation, and take the best of several; the CPU time a frame costs
 the service and the client (user + system, all threads; the client's includes its start-up) moves
 less with other work than the wall time does. Never asserts timings.
@@ -43,6 +46,7 @@ from common import machine_summary, print_table  # noqa: E402
 from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
 from client.cli.capture import capture_frames, frame_arrays  # noqa: E402
 from client.cli.launch import free_port, wait_until_healthy  # noqa: E402
+from client.cli.sessions import viewer_url  # noqa: E402
 from client.sdk import frame_body  # noqa: E402
 from server.archive import ZSTD_LEVEL  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402
@@ -90,9 +94,29 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None) -> dict:
+def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> subprocess.CompletedProcess:
+    """Run the `canonical stream` command ``cmd`` with the web viewer open on its session from its first
+    frame on (the id the CLI prints on stdout), in headless chromium; its completed process."""
+    from playwright.sync_api import sync_playwright
+    from viewer import CHROMIUM, CHROMIUM_ARGS
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_context(viewport={"width": 900, "height": 520}).new_page()
+        stream = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        session_id = stream.stdout.readline().strip()
+        if session_id:
+            page.goto(viewer_url(url, session_id))
+        stdout, stderr = stream.communicate()
+        browser.close()
+    return subprocess.CompletedProcess(cmd, stream.returncode, session_id + "\n" + stdout, stderr)
+
+
+def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None,
+            viewer: bool = False) -> dict:
     """One service (``--threads`` when given) and one `canonical stream` of ``repo`` (the CLI's
-    defaults, ``--in-flight`` when given); frames/s and disk per frame."""
+    defaults, ``--in-flight`` when given; with ``viewer``, watched in the web viewer); frames/s and
+    disk per frame."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
     env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
     with tempfile.TemporaryDirectory() as tmp:
@@ -108,8 +132,9 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
             sampler.start()
             cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
             service_cpu, client_cpu = cpu_seconds(service.pid), resource.getrusage(resource.RUSAGE_CHILDREN)
-            stream = subprocess.run(cmd + ([] if in_flight is None else ["--in-flight", str(in_flight)]), cwd=repo,
-                                    env=env, capture_output=True, text=True)
+            cmd += [] if in_flight is None else ["--in-flight", str(in_flight)]
+            stream = (stream_watched(cmd, repo, env, url) if viewer else
+                      subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True))
             service_cpu = cpu_seconds(service.pid) - service_cpu  # before the graceful stop's snapshot
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             client_cpu = after.ru_utime + after.ru_stime - client_cpu.ru_utime - client_cpu.ru_stime
@@ -164,19 +189,23 @@ def main(argv=None) -> None:
     p.add_argument("--in-flight", type=int, nargs="*", default=[3, 1], help="the CLI's --in-flight values to run")
     p.add_argument("--base", type=Path, default=None, help="also run this checkout (its own CLI defaults), interleaved")
     p.add_argument("--threads", type=int, default=None, help="the service's --threads (CPU threads a job; default: all)")
+    p.add_argument("--viewer", action="store_true",
+                   help="also stream with the web viewer open on the session (the first --in-flight value)")
     args = p.parse_args(argv)
-    configs = [(f"this tree, --in-flight {k}", REPO, k) for k in args.in_flight]
+    configs = [(f"this tree, --in-flight {k}", REPO, k, False) for k in args.in_flight]
+    if args.viewer:
+        configs.append((f"this tree, --in-flight {args.in_flight[0]}, viewer open", REPO, args.in_flight[0], True))
     if args.base is not None:
-        configs.append((f"base tree {args.base}", args.base.resolve(), None))
+        configs.append((f"base tree {args.base}", args.base.resolve(), None, False))
     print(machine_summary())
     print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved, service "
           f"--threads {args.threads or 'default'}\n")
     print_table("A frame's body: built by the client, decoded by the service (in process, 10 frames, means)",
                 body_costs(args.data))
-    results: dict[str, list[dict]] = {name: [] for name, _, _ in configs}
+    results: dict[str, list[dict]] = {name: [] for name, *_ in configs}
     for _ in range(args.runs):
-        for name, repo, in_flight in configs:
-            results[name].append(one_run(repo, args.data, args.voxel_size, in_flight, args.threads))
+        for name, repo, in_flight, viewer in configs:
+            results[name].append(one_run(repo, args.data, args.voxel_size, in_flight, args.threads, viewer))
     mb = lambda x: f"{x / 1e6:.3f}"  # noqa: E731
     print_table("`canonical stream` end to end, and disk per frame (MB = 10^6 bytes)", [
         {"configuration": name, "frames": runs[0]["frames"],
