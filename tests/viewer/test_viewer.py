@@ -280,6 +280,23 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
     assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
 
 
+def test_a_fast_stream_is_drawn_at_most_every_fold_gap_and_ends_on_its_last_fold(page, server, client, shelf):
+    session = client.create_session(voxel_size=VOXEL)
+    session.add_frame(**shelf[0])
+    open_viewer(page, server, session.id)
+    opened = page.evaluate("performance.now()")
+    n = 12
+    for k in range(1, n):  # as fast as the service folds them: faster than the gap
+        session.add_frame(**{**shelf[k % len(shelf)], "frame_id": f"again-{k}"})  # folded again, not replayed
+    page.wait_for_function(f"{FULL} && viewer.drawn.frames === {n}", timeout=WAIT_MS)  # the last fold is drawn
+    # when the page asked for its pictures (ms, the browser's clock): a picture per fold would ask every
+    # fold, tens of ms apart; the page asks at most every FOLD_GAP_MS (400)
+    asked = page.evaluate(f"""performance.getEntriesByType('resource')
+        .filter((e) => e.name.includes('/image?') && e.startTime > {opened}).map((e) => e.startTime)""")
+    gaps = np.diff(sorted(asked))
+    assert len(asked) >= 2 and (gaps > 350).all(), gaps
+
+
 def test_a_fold_warning_shows_on_the_open_page(page, server, client, apc_bins_path, shots):
     from canonical_core.datasets import load_dataset
     from client.cli.capture import frame_arrays

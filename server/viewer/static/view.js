@@ -11,6 +11,9 @@ const LOW = 0.5;  // size factor of the images asked for while the pose moves
 const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
 const REST_MS = 180;  // the pose counts as resting this long after its last change
 const SEND_GAP_MS = 40;  // while a picture is out, a newer pose is asked for at most this often
+// while frames stream in, the picture follows them at most this often: each picture is a render the
+// service's cores make instead of folds (a stream's own frames come first, the viewer's last)
+const FOLD_GAP_MS = 400;
 // this page among the service's viewers: its waiting picture is replaced by its newer ones only
 const VIEWER_ID = Math.random().toString(36).slice(2, 12);
 const ORBIT_RAD_PER_PX = 0.006;
@@ -30,7 +33,7 @@ const state = {
   pose: { R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], p: [0, 0, 0] }, distance: 1, up: [0, -1, 0],
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
-  version: 0, changedAt: 0,
+  version: 0, changedAt: 0, foldDrawnAt: -Infinity,  // foldDrawnAt: when a fold last asked for a picture
   inflight: 0, asked: NOT_ASKED, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
   drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
   frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
@@ -305,9 +308,22 @@ function onEvent(name, data) {
   state.foldSeenAt = performance.now();
   $("last-fold").textContent = formatAge(data.time);
   if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
+  followFolds();
+  refreshStats();
+}
+
+// The picture after a fold: at once for the first fold and after a pause, else at most once per
+// FOLD_GAP_MS, always ending on the latest fold (a timer takes the folds that came meanwhile).
+let foldTimer = null;
+function followFolds() {
+  const wait = state.foldDrawnAt + FOLD_GAP_MS - performance.now();
+  if (state.drawn.frames > 0 && wait > 0) {
+    if (foldTimer === null) foldTimer = setTimeout(() => { foldTimer = null; followFolds(); }, wait);
+    return;
+  }
+  state.foldDrawnAt = performance.now();
   if ($("follow").checked || state.selected < 0) snapTo(state.cameras.length - 1);
   else { updateScrubber(); changed(false); }
-  refreshStats();
 }
 
 // -- navigation -----------------------------------------------------------------------------------
