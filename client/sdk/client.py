@@ -13,6 +13,11 @@ from .errors import CanonicalError
 from .session import Session
 
 
+# answers that say the service (or a proxy before it) could not take the request now, not that the
+# request is wrong: the service itself answers a bad request 4xx, and never 500 by design
+RETRIED_SERVER_ERRORS = frozenset({500, 502, 503, 504})
+
+
 def default_url() -> str:
     """The service's base URL when none is given: ``CANONICAL_URL`` from the environment, else the
     address `canonical serve` listens on by default."""
@@ -27,7 +32,10 @@ class Client:
             so that scripts and the CLI find the same service).
         token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
         timeout: seconds per request.
-        max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each).
+        max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each);
+            a frame with a ``frame_id`` is also retried this often, with growing waits, when the service
+            cannot be reached or answers 500, 502, 503 or 504 (a restart, a proxy whose backend died):
+            its ``frame_id`` makes the retry safe, as the service folds one id once.
     """
 
     def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 120.0, max_retries: int = 8,
@@ -39,10 +47,19 @@ class Client:
         self.max_retries, self.max_wait = max_retries, max_wait
         self._limits: dict | None = None
 
-    def _request(self, method: str, path: str, **kwargs) -> httpx.Response:
+    def _request(self, method: str, path: str, idempotent: bool = False, **kwargs) -> httpx.Response:
+        """``method`` on ``path``, 429s retried; with ``idempotent`` (a request the service takes once
+        however often it comes), failures to reach the service and `RETRIED_SERVER_ERRORS` too."""
         for attempt in range(self.max_retries + 1):
-            r = self._http.request(method, path, **kwargs)
-            if r.status_code != 429 or attempt == self.max_retries:
+            try:
+                r = self._http.request(method, path, **kwargs)
+            except httpx.TransportError:
+                if not idempotent or attempt == self.max_retries:
+                    raise
+                time.sleep(min(self.max_wait, 0.25 * 2**attempt))
+                continue
+            again = r.status_code == 429 or (idempotent and r.status_code in RETRIED_SERVER_ERRORS)
+            if not again or attempt == self.max_retries:
                 break
             time.sleep(self._retry_after(r, attempt))
         if r.status_code >= 400:

@@ -128,7 +128,8 @@ class Session:
             if limit is not None:
                 frame["rgb"], frame["K"] = fit_rgb_only(frame["rgb"], frame["K"], limit)
         headers = {"Content-Type": MSGPACK} | ({} if index is None else {"Frame-Index": str(index)})
-        report = self.client._request("POST", f"{self._path}/frames", content=frame_body(**frame), headers=headers).json()
+        report = self.client._request("POST", f"{self._path}/frames", idempotent=frame.get("frame_id") is not None,
+                                      content=frame_body(**frame), headers=headers).json()
         if frame.get("labels") is not None:
             self.label_dim = int(np.shape(frame["labels"])[-1])
         return report

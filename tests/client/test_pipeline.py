@@ -169,3 +169,30 @@ def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_di
     session_id = err.split("continue with --session ")[1].split()[0]
     with Client(service.url) as client:
         assert client.session(session_id).stats()["frames"] == 2
+
+
+def test_frames_with_ids_ride_through_a_kill9_and_restart_of_the_service_and_frames_without_are_not_resent(
+        tmp_path, frames, digests):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_seconds=3600).start()
+    try:
+        client = Client(proc.url, max_retries=10)
+        session = client.create_session(voxel_size=VOXEL)
+        stream = [{**kwargs, "frame_id": f"frame-{k}"} for k, kwargs in enumerate(frames)]
+        for kwargs in stream[:3]:
+            session.add_frame(**kwargs)
+        proc.kill9()
+        # the rest is sent while the service is down: each frame is retried until it is back
+        restart = threading.Timer(1.0, proc.start, kwargs={"same_port": True})
+        restart.start()
+        try:
+            reports = list(session.add_frames(stream[3:], first_index=3))
+        finally:
+            restart.join()
+        assert [r["frame_index"] for r in reports] == list(range(3, len(frames)))
+        assert session.digest()["sha256"] == digests[len(frames)]  # every frame folded once
+
+        proc.kill9()
+        with pytest.raises(httpx.TransportError):  # without an id a resent frame might fold twice: not resent
+            session.add_frame(**{**frames[0], "frame_id": None})
+    finally:
+        proc.kill9()

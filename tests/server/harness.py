@@ -35,11 +35,12 @@ class ServerProcess:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout: float = 300.0) -> "ServerProcess":
-        """Start the service and wait until it answers. The deadline is generous: on a cold numba cache
+    def start(self, timeout: float = 300.0, same_port: bool = False) -> "ServerProcess":
+        """Start the service and wait until it answers (on a new free port, or with ``same_port`` on
+        the last one: a restart its clients find again). The deadline is generous: on a cold numba cache
         the service compiles its start-up kernels first (minutes on two cores shared with another
         test worker); `make test` fills the cache beforehand, so there it starts in seconds."""
-        self.port = free_port()
+        self.port = self.port if same_port and self.port else free_port()
         env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
         env.update({f"CANONICAL_{k.upper()}": str(v) for k, v in self.settings.items()})
         if self.token:
