@@ -1,4 +1,4 @@
-"""Shared pieces of the benchmarks: the machine header and a plain-text table printer."""
+"""Shared pieces of the benchmarks: the machine header, a plain-text table printer, and the evaluation's split of a capture."""
 
 from __future__ import annotations
 
@@ -73,3 +73,14 @@ def print_table(title: str, rows: list[dict]) -> None:
     for r in rows:
         print("| " + " | ".join(str(r.get(c, "")).ljust(width[c]) for c in cols) + " |")
     print()
+
+
+def held_out_split(data, views: list[int]):
+    """A capture (any `load_dataset` layout) under the evaluation's interpolation split for input
+    counts ``views``: (its frames, the split, the held-out frames)."""
+    from canonical_core.datasets import load_dataset
+    from canonical_core.eval.protocol import interpolation_split
+
+    frames = load_dataset(data)
+    split = interpolation_split(len(frames), views)
+    return frames, split, [frames[i] for i in split.heldout]

@@ -24,12 +24,10 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine_summary, print_table  # noqa: E402
+from common import held_out_split, machine_summary, print_table  # noqa: E402
 
-from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.eval.methods import build  # noqa: E402
 from canonical_core.eval.metrics import covered  # noqa: E402
-from canonical_core.eval.protocol import interpolation_split  # noqa: E402
 from canonical_core.eval.report import image_grid  # noqa: E402
 from canonical_core.eval.run import default_voxel_size  # noqa: E402
 
@@ -53,9 +51,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", type=Path, default=None, help="folder for the PNG grids (default: none)")
     args = p.parse_args(argv)
     views = [int(v) for v in args.views.split(",")]
-    frames = load_dataset(args.data)
-    split = interpolation_split(len(frames), views)
-    targets = [frames[i] for i in split.heldout]
+    frames, split, targets = held_out_split(args.data, views)
     voxel = default_voxel_size(frames)
     print(machine_summary())
     rows = []
