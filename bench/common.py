@@ -1,4 +1,5 @@
-"""Shared pieces of the benchmarks: the machine header, a plain-text table printer, and the evaluation's split of a capture."""
+"""Shared pieces of the benchmarks: the machine header, a plain-text table printer, and the
+evaluation's split of a capture."""
 
 from __future__ import annotations
 
