@@ -39,13 +39,15 @@ def solve_soon(jobs: Scheduler, session: Session) -> bool:
 
 def _solve(jobs: Scheduler, ref: weakref.ref) -> None:
     session = ref()
-    if session is None or jobs.frames_held(session.id) or session.deleted:  # a frame's fold queues the next solve
+    if session is None:
         return
     frames = session.scene.frames
 
     def stop() -> bool:  # a frame on its way, or one folded since: its fold queues the next solve
         return session.deleted or jobs.frames_held(session.id) > 0 or session.scene.frames != frames
 
+    if stop():
+        return
     time.sleep(QUIET_S)
     if stop():  # a stream: no time to solve between its frames
         return

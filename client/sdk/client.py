@@ -56,7 +56,7 @@ class Client:
             except httpx.TransportError:
                 if not idempotent or attempt == self.max_retries:
                     raise
-                time.sleep(min(self.max_wait, 0.25 * 2**attempt))
+                time.sleep(self._retry_after(None, attempt))
                 continue
             again = r.status_code == 429 or (idempotent and r.status_code in RETRIED_SERVER_ERRORS)
             if not again or attempt == self.max_retries:
@@ -66,9 +66,11 @@ class Client:
             raise self._error(r)
         return r
 
-    def _retry_after(self, r: httpx.Response, attempt: int) -> float:
+    def _retry_after(self, r: httpx.Response | None, attempt: int) -> float:
+        """Seconds before retry ``attempt``: the answer's Retry-After, else (no answer, or none in it)
+        a wait that doubles with each attempt; at most ``max_wait``."""
         try:
-            wait = float(r.headers.get("Retry-After", ""))
+            wait = float(r.headers.get("Retry-After", "") if r is not None else "")
         except ValueError:
             wait = 0.25 * 2**attempt
         return min(self.max_wait, wait if math.isfinite(wait) and wait >= 0 else 1.0)
