@@ -73,3 +73,5 @@ def add_eval(p: argparse.ArgumentParser) -> None:
 
 def run_eval(args) -> int:
     from canonical_core.eval import cli
+
+    return cli.run_eval(args)
