@@ -34,7 +34,7 @@ from common import machine_summary, print_table, time_each  # noqa: E402
 from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.decode import symmetric_eigh3, symmetric_eigh3_reference  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
-from canonical_core.scene.fields import fields_from_sums, solve_sh, solve_sh_reference, sums_from_means  # noqa: E402
+from canonical_core.scene.fields import fields_from_sums, solve_sh, solve_sh_reference, sums_from_stored  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -127,7 +127,7 @@ def main(argv=None) -> None:
         lapack = median_ms(lambda: symmetric_eigh3_reference(cov), args.repeats)
         eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
                            "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
-        sums = sums_from_means({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in inputs.sums.items()})
+        sums = sums_from_stored({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in inputs.sums.items()})
         system = (sums["r_sum"] + scene.config.research.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
                   scene.config.decoder.sh_regularization)
         fast = median_ms(lambda: solve_sh(*system), args.repeats)

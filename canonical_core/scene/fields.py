@@ -13,7 +13,7 @@ from torch import Tensor
 
 from ..gaussians.container import SH_C0
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
-from .stored import MEANS
+from .stored import SUMS, raw_sums
 
 _SQ_INDEX = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # xx xy xz yy yz zz -> symmetric 3x3
 
@@ -187,14 +187,14 @@ def solve_sh(
     return torch.from_numpy(out)
 
 
-def sums_from_means(t: dict[str, Tensor]) -> dict[str, Tensor]:
-    """A scene's stored sums (`stored`: float16 means over R_scene, a float16 representative feature)
-    as float32 sums: ``mean * R_scene`` in float32, as the fold kernel computes them. Float32 sums
-    (the batch reference's) pass unchanged."""
-    out = dict(t)
-    for stored, name in MEANS.items():
-        if stored in out:
-            out[name] = out.pop(stored).float() * out["r_sum"][:, None]
+def sums_from_stored(t: dict[str, Tensor]) -> dict[str, Tensor]:
+    """A scene's stored fields (`stored`: float16 means and central moments over R_scene, a float16
+    representative feature) as float32 sums, as the fold kernel computes them (`stored.raw_sums`).
+    Float32 sums (the batch reference's) pass unchanged."""
+    half = {k: v.numpy() for k, v in t.items() if k in SUMS or k == "r_sum"}
+    out = dict(t) | {k: torch.from_numpy(v) for k, v in raw_sums(half).items() if k not in t}
+    for name in SUMS:
+        out.pop(name, None)
     if "rep_f" in out:
         out["rep_f"] = out["rep_f"].float()
     return out
@@ -203,7 +203,7 @@ def sums_from_means(t: dict[str, Tensor]) -> dict[str, Tensor]:
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True,
                      positions: bool = True) -> dict[str, Tensor]:
     """Scene fields from raw sums (rows are voxels; local positions in voxel units; a scene's stored
-    means are made sums first, `sums_from_means`). Without
+    means and central moments are made sums first, `sums_from_stored`). Without
     ``positions`` (a decode that takes its shapes from `scene.shapes.voxel_shapes`), the position
     fields are left out and ``sums`` needs no keys, rep_pos, pos_sum or pos_sq; such fields cannot
     be sorted.
@@ -221,7 +221,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     voxel_size, eps = config.voxel_size, config.research.eps
     if sort and not positions:
         raise ValueError("sort: fields without positions have no keys to sort by")
-    t = sums_from_means({k: torch.as_tensor(v) for k, v in sums.items()})
+    t = sums_from_stored({k: torch.as_tensor(v) for k, v in sums.items()})
     t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
         order = torch.argsort(t["keys"], stable=True)

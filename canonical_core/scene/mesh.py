@@ -21,8 +21,12 @@ from ..config import SceneConfig
 from .decoding import decoded_rows
 from .scene import Scene
 from .fields import unpack_keys
+from .stored import HALF_FIELDS, raw_sums
 from .surface import block_distance, blocks_of, pack_cells, tangent_planes, view_direction_sums, voxel_moments
 
+_MESH_FIELDS = ("r_sum", "rep_pos", "pos_sum", "pos_sq", "rgb_sum", "sh_a")
+# what a mesh reads of the sums: keys, the representative's colour, and those fields stored or as sums
+MESH_SUMS = {"keys", "rep_rgb", *_MESH_FIELDS, *(HALF_FIELDS.get(name, name) for name in _MESH_FIELDS)}
 DEFAULT_BLOCK = 32  # cubes per block edge: 33^3 nodes, a few MB of grids per block
 
 
@@ -122,10 +126,11 @@ def surface_mesh(
     chosen = decoded_rows(sums, min_support, config)
     rows = chosen.rows
     empty = Mesh(torch.zeros((0, 3)), torch.zeros((0, 3), dtype=torch.int64), torch.zeros((0, 3), dtype=torch.uint8))
-    view = view_direction_sums(sums["sh_a"][rows])
+    # the fields a mesh reads, as float32 sums (`stored.raw_sums`; a batch reference's sums as they are)
+    picked = raw_sums({name: array[rows] for name, array in sums.items() if name in MESH_SUMS})
+    view = view_direction_sums(picked["sh_a"])
     if not len(rows):
         return empty
-    picked = {name: sums[name][rows] for name in ("keys", "r_sum", "rep_pos", "pos_sum", "pos_sq", "rgb_sum", "rep_rgb")}
     cells = unpack_keys(torch.from_numpy(picked["keys"])).numpy()
     mean, second, colour = voxel_moments(picked, cells, config.voxel_size, config.research.eps)
     # R_scene is the total weight of a voxel's points: weighted by it, pooled moments are the points' own

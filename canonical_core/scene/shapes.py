@@ -1,11 +1,12 @@
-"""Splat shapes straight from a voxel's position sums: the fast path of the decoder's geometry.
+"""Splat shapes straight from a voxel's stored position moments: the fast path of the decoder's geometry.
 
 The reference takes three steps over whole columns: `fields.fields_from_sums` turns the gathered
 sums into the centroid and covariance (float64, then float32), `GaussianDecoder.base_shapes`
 decomposes the covariance (`decode.symmetric_eigh3`), sorts the axes, scales and clamps the stds
 and turns the axes into a quaternion. Each step reads and writes every row, and the gathers and
 temporaries cost more than the arithmetic. `voxel_shapes` does the same per voxel in one numba
-pass, reading the scene's sums in place at the decoded rows, in the same order of operations and
+pass, reading the scene's stored moments in place at the decoded rows (made sums as `stored.raw_sums`
+makes them), in the same order of operations and
 the same precisions (float32 where the reference rounds to float32), so that the two agree to the
 last bit or so; `tests/scene/test_shapes.py` holds it to the reference.
 """
@@ -20,10 +21,16 @@ from torch import Tensor
 from ..decode.decoder import FOOTPRINT_GAIN, GaussianDecoder
 from ..decode.eigen import jacobi3
 from ..config import KEY_BITS, KEY_OFFSET
+from .half import from_half
 
 _CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
-# pos_sq's columns (xx xy xz yy yz zz) at (row, column) of the symmetric 3x3 (as fields._SQ_INDEX)
+# pos_cov's columns (xx xy xz yy yz zz) at (row, column) of the symmetric 3x3 (as fields._SQ_INDEX)
 _SQ = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], np.int64)
+
+
+@numba.njit(inline="always")
+def _mean(pos_mean, row, j):  # a stored mean as a central moment's factor (`stored.column_rules`: scale 1, offset 0)
+    return from_half(pos_mean[row, j]) * np.float32(1.0) + np.float32(0.0)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -31,8 +38,8 @@ def _voxel_shapes_kernel(
     rows,  # [N] int64 scene rows to decode
     keys,  # [V] int64 packed lattice keys
     rep_pos,  # [V, 3] float32 representative positions (world)
-    pos_sum,  # [V, 3] float32 sum W x (local voxel units)
-    pos_sq,  # [V, 6] float32 sum W x x^T, upper triangle
+    pos_mean,  # [V, 3] float16 bits (uint16): sum W x / R_scene (local voxel units)
+    pos_cov,  # [V, 6] float16 bits: the central second moment over R_scene, upper triangle (`stored`)
     r_sum,  # [V] float32 R_scene
     voxel_size, eps, gain, lo_normal, lo_plane, hi,  # float64 | float32 gain and clamps
     centroid,  # [N, 3] float32 out
@@ -55,14 +62,16 @@ def _voxel_shapes_kernel(
             c[0] = float(((key >> (2 * KEY_BITS)) & mask) - KEY_OFFSET) + 0.5
             c[1] = float(((key >> KEY_BITS) & mask) - KEY_OFFSET) + 0.5
             c[2] = float((key & mask) - KEY_OFFSET) + 0.5
-            den = float(np.float32(r_sum[row] + np.float32(eps)))
+            r = r_sum[row]
+            den = float(np.float32(r + np.float32(eps)))
             for j in range(3):
                 rep[j] = float(rep_pos[row, j]) / voxel_size - c[j]
-                m[j] = (float(pos_sum[row, j]) + eps * rep[j]) / den
+                m[j] = (float(from_half(pos_mean[row, j]) * r) + eps * rep[j]) / den  # the sum as `raw_sums` has it
                 centroid[i, j] = np.float32((c[j] + m[j]) * voxel_size)
             for j in range(3):  # covariance: float64, stored as float32, back to voxel units in float32
                 for k in range(3):
-                    second = (float(pos_sq[row, _SQ[j, k]]) + eps * rep[j] * rep[k]) / den
+                    raw = (from_half(pos_cov[row, _SQ[j, k]]) + _mean(pos_mean, row, j) * _mean(pos_mean, row, k)) * r
+                    second = (float(raw) + eps * rep[j] * rep[k]) / den
                     a[li, j, k] = float(np.float32((second - m[j] * m[k]) * voxel_size * voxel_size) / vv)
             for j in range(3):
                 for k in range(j + 1, 3):
@@ -132,7 +141,7 @@ def voxel_shapes(
     if n:
         f32 = np.float32
         _voxel_shapes_kernel(
-            rows, sums["keys"], sums["rep_pos"], sums["pos_sum"], sums["pos_sq"], sums["r_sum"],
+            rows, sums["keys"], sums["rep_pos"], sums["pos_mean"].view(np.uint16), sums["pos_cov"].view(np.uint16), sums["r_sum"],
             float(voxel_size), float(eps), f32(FOOTPRINT_GAIN), f32(decoder.min_thickness), f32(decoder.min_extent),
             f32(decoder.max_extent), centroid, std, quats,
         )  # fmt: skip

@@ -36,9 +36,10 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "copied_parts", "encode", "encode_sn
 FORMAT_NAME = "canonicalgs-scene"
 # 4 adds the per-view observation density (v3 files load with a density of 1); 5 stores the records
 # as the map does (`stored`: the feature sum as a float16 mean; v3 and v4 files hold float32
-# sums, stored on loading as a fold stores them)
-FORMAT_VERSION = 5
-READABLE_VERSIONS = (3, 4, FORMAT_VERSION)
+# sums, stored on loading as a fold stores them); 6 stores the colour and position moments and the SH
+# sums in float16 too, as means and central moments (v5 files hold them as float32 sums)
+FORMAT_VERSION = 6
+READABLE_VERSIONS = (3, 4, 5, FORMAT_VERSION)
 
 
 def state_arrays(scene: Scene, sums: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:

@@ -48,7 +48,7 @@ def view_direction_sums(
 
 
 def voxel_moments(
-    sums: dict[str, np.ndarray],  # a scene's sums (`Scene.sums`), rows already chosen
+    sums: dict[str, np.ndarray],  # float32 sums (`stored.raw_sums` of `Scene.sums`), rows already chosen
     cells: np.ndarray,  # [V, 3] int64 their lattice cells (`fields.unpack_keys`)
     voxel_size: float,
     eps: float,  # `SceneConfig.research.eps`: the representative's share, as `fields_from_sums` gives it

@@ -80,6 +80,11 @@ def test_decoder_gives_the_same_gaussians_on_either_path(shelf_frames):
     assert len(fast) == len(traced) > 10000
     traced.scales.sum().backward()  # the gradient reaches the fields on the reference path
     assert cov.grad is not None  # (the fast path detaches: no gradient would arrive)
-    a, b = covariances_of(fast), covariances_of(traced)
+    # where a voxel's points lie on a line its two thin axes are any pair about it, and which of them the
+    # clamps make thin is up to each eigen solver: compared where the thinnest axis is determined
+    spread = torch.linalg.eigvalsh(fields["position_cov"].double())
+    determined = (spread[:, 1] - spread[:, 0] > 1e-6 * spread[:, 2]).numpy()
+    assert determined.mean() > 0.95
+    a, b = covariances_of(fast)[determined], covariances_of(traced)[determined]
     assert np.abs(a - b).max() < 1e-4 * np.abs(b).max()
     assert torch.allclose(fast.scales, traced.scales.detach(), rtol=1e-5, atol=1e-9)

@@ -9,7 +9,7 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.rendering.sh import sh_basis
 from canonical_core.scene import Scene
-from canonical_core.scene.fields import sh_sum_widths, solve_sh, solve_sh_reference, sums_from_means
+from canonical_core.scene.fields import sh_sum_widths, solve_sh, solve_sh_reference, sums_from_stored
 
 
 def streamed_sums(degree: int, voxels: int, observations: int, seed: int = 0, directions: int | None = None,
@@ -73,7 +73,7 @@ def test_fast_solve_matches_the_reference_on_the_real_capture(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf_frames[:3]:
         scene.fold(frame)
-    s = sums_from_means({k: torch.as_tensor(v) for k, v in scene.sums().items()})
+    s = sums_from_stored({k: torch.as_tensor(v) for k, v in scene.sums().items()})
     args = (s["r_sum"] + 1e-8, s["rgb_sum"], s["sh_a"], s["sh_b"], scene.config.decoder.sh_regularization)
     fast, ref = solve_sh(*args), solve_sh_reference(*args)
     assert len(fast) > 10_000

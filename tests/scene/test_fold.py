@@ -35,11 +35,22 @@ def deviation(stream, batch):
     return rel.median().item(), rel.quantile(0.9).item(), cos.median().item(), cos.quantile(0.1).item()
 
 
-# The map stores the representative's feature and the feature sum as float16 (`scene.stored`);
-# the batch rule keeps float32. So F_scene, and through the representatives' similarity weights
-# R_scene and colour, agree to float16's rounding. Measured (2026-11-29, 10 shelf frames): F_scene
-# 1.1e-3 at most, R_scene 5e-4 relative.
+# The map stores the representative's feature, and the feature, colour and position sums and the SH
+# fit's sums as float16 means and central moments (`scene.stored`); the batch rule keeps float32. So
+# F_scene, and through the representatives' similarity weights R_scene, agree to float16's rounding,
+# and so do the colour (a float16 step below 1 is at most 2^-11), the centroid (a thousandth of a
+# voxel) and the covariance (float16 of a central moment, accumulated fold by fold).
 HALF = dict(rtol=1e-3, atol=2e-3)
+CENTROID = dict(rtol=0.0, atol=1e-3 * VOXEL)
+COVARIANCE = dict(rtol=0.0, atol=5e-4 * VOXEL**2)
+
+
+def assert_sh_close(stream, batch):
+    """The SH fits agree to float16's rounding of their normal equations' central moments: a ridge
+    solve amplifies it where a voxel's few views leave a direction weakly determined, so a few
+    coefficients move by up to a few hundredths (raw float16 sums would move them by tenths)."""
+    err = (stream - batch).abs().amax(dim=(1, 2))
+    assert (err < 2e-3).double().mean() > 0.95 and err.max() < 0.05, (err.median(), err.max())
 
 
 @pytest.mark.realdata
@@ -51,13 +62,13 @@ def test_streaming_equals_batch_when_representatives_never_change(shelf_frames, 
     scene, reports = fold_all(frames, config)
     assert sum(r.representative_switches for r in reports) == 0
     stream, batch = scene.fields(), aggregate_batch(frames, config)
-    for name in ("representative_position", "position_mean"):
-        assert torch.allclose(stream[name], batch[name], rtol=1e-4, atol=1e-6), name
+    assert torch.allclose(stream["representative_position"], batch["representative_position"], rtol=1e-4, atol=1e-6)
+    assert torch.allclose(stream["position_mean"], batch["position_mean"], **CENTROID)
     for name in ("reliability", "features", "colour"):
         assert torch.allclose(stream[name], batch[name], **HALF), name
-    assert torch.allclose(stream["position_cov"], batch["position_cov"], atol=2e-9)
+    assert torch.allclose(stream["position_cov"], batch["position_cov"], **COVARIANCE)
     assert torch.equal(stream["observations"], batch["observations"])
-    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
+    assert_sh_close(stream["sh"], batch["sh"])
     assert torch.allclose(stream["free_space"], batch["free_space"], rtol=1e-4, atol=1e-3)
     assert (batch["free_space"] > 0).sum() > 100  # real captures do see through some voxels
 
@@ -70,10 +81,10 @@ def test_every_sh_degree_streams_like_the_batch_rule(shelf_frames, sh_degree):
     config = SceneConfig(voxel_size=VOXEL, sensor={"edge_weight": 0.0}, sh_degree=sh_degree)
     scene = fold_all(frames, config)[0]
     k = (sh_degree + 1) ** 2
-    assert scene.sums()["sh_a"].shape == (len(scene), k * (k + 1) // 2 - 1)
+    assert scene.sums()["sh_a_central"].shape == (len(scene), k * (k + 1) // 2 - 1)
     stream, batch = scene.fields(), aggregate_batch(frames, config)
     assert stream["sh"].shape == (len(scene), k, 3)
-    assert torch.allclose(stream["sh"], batch["sh"], atol=1e-3)
+    assert_sh_close(stream["sh"], batch["sh"])
     assert len(scene.decode()) > 0
 
 
@@ -88,8 +99,9 @@ def test_a_full_weight_floor_averages_one_frames_observations(shelf_frames):
     # where R_scene is far above the fields' eps (1e-8), which pulls the rest toward the representative
     clear = floored["reliability"] > 1e-4
     assert clear.double().mean() > 0.9
-    for name in ("colour", "position_mean"):
-        assert torch.allclose(floored[name][clear], plain[name][clear], atol=1e-5), name
+    # to the stored precision: the same means, stored from float32 sums that differ in their last bits
+    assert torch.allclose(floored["colour"][clear], plain["colour"][clear], atol=2**-11)
+    assert torch.allclose(floored["position_mean"][clear], plain["position_mean"][clear], **CENTROID)
     assert not torch.allclose(paper["colour"], plain["colour"], atol=1e-5)  # the paper's rule weighs them apart
 
 

@@ -8,6 +8,7 @@ from canonical_core import Camera, Frame, SceneConfig
 from canonical_core.decode import GaussianDecoder
 from canonical_core.scene import Scene, aggregate_batch
 from canonical_core.config import KEY_BITS, KEY_OFFSET
+from canonical_core.gaussians.container import SH_C0
 from canonical_core.scene.free_space import history_free_space_kernel, see_through_map
 
 from ..conftest import make_frame
@@ -63,8 +64,9 @@ def test_streaming_free_space_and_sh_equal_batch_and_ignore_order():
         assert torch.allclose(fields["free_space"], batch["free_space"], rtol=1e-5, atol=1e-4)
         floater = fields["position_mean"][:, 2] < 1.5
         assert floater.sum() >= 4 and (fields["free_space"][floater] > 0).all()
-    # SH sums of a representative-stable set equal the batch's (uniform colour: no switches matter)
-    assert torch.allclose(fields["sh"], batch["sh"], atol=1e-4)
+    # SH sums of a representative-stable set equal the batch's (uniform colour: no switches matter), to
+    # the float16 rounding of the stored colour mean (at most 2^-11), which moves the DC term by it / C0
+    assert torch.allclose(fields["sh"], batch["sh"], atol=2**-11 / SH_C0)
 
 
 @pytest.mark.parametrize("weighting", ["no_reliability", "average"])

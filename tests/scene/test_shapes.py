@@ -72,14 +72,13 @@ def test_awkward_voxels(scene):
     r = np.float32(2.0)
     sums["r_sum"][:] = r
     local = [(0.5, 0.5, 0.5), (0.1, 0.9, 0.5), (0.5, 0.5, 0.5), (0.2, 0.3, 0.4), (0.5, 0.5, 0.5), (0.9, 0.1, 0.1)]
-    sums["pos_sum"][:] = r * np.asarray(local, np.float32)
-    sq = np.zeros((6, 6), np.float32)
-    for i, (x, y, z) in enumerate(local):
-        sq[i] = r * np.array([x * x, x * y, x * z, y * y, y * z, z * z], np.float32)
-    sq[2] += r * np.array([0.01, 0, 0, 0.01, 0, 0.01], np.float32)  # isotropic: every axis ties
-    sq[4] += r * np.array([0.02, 0, 0, 0.02, 0, 0.0], np.float32)  # a flat disc: two axes tie
-    sq[5] += r * np.array([0.01, -0.004, 0.002, 0.02, 0.003, 0.03], np.float32)
-    sums["pos_sq"][:] = sq
+    # stored as the map stores them (`stored`): the mean and the central second moment over R_scene
+    sums["pos_mean"][:] = np.asarray(local, np.float16)
+    cov = np.zeros((6, 6), np.float32)
+    cov[2] = [0.01, 0, 0, 0.01, 0, 0.01]  # isotropic: every axis ties
+    cov[4] = [0.02, 0, 0, 0.02, 0, 0.0]  # a flat disc: two axes tie
+    cov[5] = [0.01, -0.004, 0.002, 0.02, 0.003, 0.03]
+    sums["pos_cov"][:] = cov
     rows = np.arange(6, dtype=np.int64)
     assert_shapes_match(sums, rows, scene.config, GaussianDecoder(scene.config.features.dim))
 

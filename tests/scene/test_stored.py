@@ -1,5 +1,5 @@
 """The voxel records' storage: float16 conversions in the kernels round as numpy does, sums are stored
-as bounded means, and earlier snapshots' float32 sums are stored as a fold stores them."""
+as bounded means and central moments, and earlier snapshots' float32 sums are stored as a fold stores them."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from canonical_core import Scene, SceneConfig
-from canonical_core.scene.fields import sums_from_means
+from canonical_core.rendering.sh import sh_basis
+from canonical_core.scene.fields import solve_sh, sums_from_stored
 from canonical_core.scene.half import floats_of, halves_of
 from canonical_core.scene.voxel_map import VoxelMap
 
@@ -36,35 +37,87 @@ def test_halves_round_as_numpy_does_everywhere():
     assert np.isnan(back[~finite]).all()
 
 
-def float32_sums(voxels: VoxelMap, n: int, scale: float) -> dict[str, np.ndarray]:
-    """Sums as an earlier snapshot holds them (float32 sums, no means), R_scene ``scale`` times the inputs'."""
-    rng = np.random.default_rng(3)
-    sums = {"keys": np.arange(n, dtype=np.int64), "rep_rgb": np.zeros((n, 3), np.uint8),
-            "free": np.zeros(n, np.float32), "n_obs": np.ones(n, np.int32)}
-    for name, (first, shape) in voxels.layout.columns.items():
-        sums[name] = rng.uniform(-1, 1, (n, *shape)).astype(np.float32)
-    sums["r_sum"] = np.full(n, scale, np.float32)
-    sums["r_sum"][0] = 0.0  # no weight: its means are stored as 0
-    for name in ("f_sum", "sh_a", "sh_b"):
-        sums[name] *= np.float32(scale)
-        sums[name][0] = 0.0
-    return sums
+def observed_sums(n: int, scale: float, spread: float, seed: int = 3) -> dict[str, np.ndarray]:
+    """The float32 sums of ``n`` voxels of 12 weighted observations each (R_scene ``scale``), as a
+    fold makes them: points ``spread`` voxels about a spot 0.4 voxels off the centre, seen from
+    directions within a few degrees of one another, their colours changing with the direction."""
+    rng = np.random.default_rng(seed)
+    w = rng.uniform(0.5, 1.5, (n, 12))
+    w *= scale / w.sum(1, keepdims=True)
+    x = 0.4 + spread * rng.standard_normal((n, 12, 3))
+    d = np.array([0.0, 0.0, 1.0]) + 0.05 * rng.standard_normal((n, 12, 3))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    b = sh_basis(torch.from_numpy(d.reshape(-1, 3)), 1).double().numpy().reshape(n, 12, 4)
+    c = np.clip(0.5 + 3.0 * b[:, :, 1:2] + 0.05 * rng.standard_normal((n, 12, 3)), 0, 1)
+    k = np.triu_indices(4)
+    sums = {"keys": np.arange(n, dtype=np.int64), "rep_rgb": np.zeros((n, 3), np.uint8), "free": np.zeros(n),
+            "n_obs": np.full(n, 12, np.int32), "rep_r": np.ones(n), "rep_pos": x[:, 0], "rep_f": np.zeros((n, 4)),
+            "r_sum": w.sum(1), "f_sum": np.einsum("vm,vmf->vf", w, rng.uniform(-1, 1, (n, 12, 4))), "rgb_sum": np.einsum("vm,vmc->vc", w, c),
+            "pos_sum": np.einsum("vm,vmi->vi", w, x),
+            "pos_sq": np.einsum("vm,vmi,vmj->vij", w, x, x)[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]],
+            "sh_a": np.einsum("vm,vmi,vmj->vij", w, b, b)[:, k[0][1:], k[1][1:]],
+            "sh_b": np.einsum("vm,vmi,vmc->vic", w, b[:, :, 1:], c - 0.5).reshape(n, 9)}
+    return {name: v if v.dtype.kind in "iu" else v.astype(np.float32) for name, v in sums.items()}
 
 
-def test_float32_sums_past_float16s_range_are_stored_as_means_and_come_back_as_sums():
+def loaded(sums: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``sums`` stored by a map (as an earlier snapshot's float32 sums are on loading) and read back."""
     voxels = VoxelMap(feature_dim=4, sh_degree=1, initial_capacity=16)
-    sums = float32_sums(voxels, 8, scale=1e6)  # sums far past 65504, float16's largest
     voxels.load_sums(sums)
-    stored = voxels.sums()
-    assert "f_sum" not in stored and stored["f_mean"].dtype == np.float16
-    assert np.isfinite(stored["f_mean"].astype(np.float32)).all()
-    assert not stored["f_mean"][0].any()
-    back = sums_from_means({k: torch.as_tensor(v) for k, v in stored.items()})
-    for name in ("f_sum", "rep_f"):  # float16's rounding of each mean, times R_scene
-        np.testing.assert_allclose(back[name].numpy(), sums[name], rtol=1e-3, atol=1e-3 * np.abs(sums[name]).max(),
-                                   err_msg=name)
-    for name in ("r_sum", "rgb_sum", "pos_sq", "sh_a", "sh_b"):  # float32 fields as they were
-        np.testing.assert_array_equal(stored[name], sums[name], err_msg=name)
+    return voxels.sums()
+
+
+def covariance(sums: dict[str, torch.Tensor]) -> torch.Tensor:  # [V, 6] E[x x^T] - E[x] E[x]^T, float64
+    r = sums["r_sum"].double()[:, None]
+    mean = sums["pos_sum"].double() / r
+    return sums["pos_sq"].double() / r - mean[:, [0, 0, 0, 1, 1, 2]] * mean[:, [0, 1, 2, 1, 2, 2]]
+
+
+def test_float32_sums_past_float16s_range_are_stored_as_means_and_central_moments_and_come_back_as_sums():
+    sums = observed_sums(64, scale=1e6, spread=0.01)  # sums far past 65504, float16's largest
+    stored = loaded(sums)
+    assert not {"f_sum", "rgb_sum", "pos_sum", "pos_sq", "sh_a", "sh_b"} & set(stored)
+    for name in ("f_mean", "rgb_mean", "pos_mean", "pos_cov", "sh_a_central", "sh_b_central", "rep_f"):
+        assert stored[name].dtype == np.float16 and np.isfinite(stored[name].astype(np.float32)).all(), name
+    assert stored["r_sum"].dtype == np.float32
+    back = sums_from_stored({k: torch.as_tensor(v) for k, v in stored.items()})
+    for name in ("rgb_sum", "pos_sum"):  # float16's rounding of each mean, times R_scene
+        np.testing.assert_allclose(back[name].numpy(), sums[name], rtol=1e-3, err_msg=name)
+    # the spread of 0.01 voxels is 2.5e-4 of the raw second moment (0.16): float16's rounding of that
+    # would leave nothing of it; stored as a central moment it keeps float16's relative precision
+    true = covariance({k: torch.as_tensor(v) for k, v in sums.items()})
+    diagonal = [0, 3, 5]
+    assert torch.allclose(covariance(back)[:, diagonal], true[:, diagonal], rtol=5e-3)
+    raw_half = {name: torch.as_tensor((sums[name] / sums["r_sum"][:, None]).astype(np.float16).astype(np.float32)
+                                      * sums["r_sum"][:, None]) for name in ("pos_sum", "pos_sq")}
+    assert not torch.allclose(covariance(raw_half | {"r_sum": torch.as_tensor(sums["r_sum"])})[:, diagonal],
+                              true[:, diagonal], rtol=0.5)
+
+
+def test_a_nonpositive_r_scene_stores_zero_moments():
+    sums = observed_sums(4, scale=2.0, spread=0.05)
+    sums["r_sum"][0] = 0.0
+    stored = loaded(sums)
+    for name in ("f_mean", "rgb_mean", "pos_mean", "pos_cov", "sh_a_central", "sh_b_central"):
+        assert not stored[name][0].any() and stored[name][1:].any(), name
+
+
+def test_the_sh_fit_from_stored_moments_keeps_a_narrow_cone_of_views_where_raw_float16_would_not():
+    # directions within a few degrees: the view-dependent terms are a small difference of raw moments
+    sums = observed_sums(200, scale=3.0, spread=0.05, seed=5)
+    back = sums_from_stored({k: torch.as_tensor(v) for k, v in loaded(sums).items()})
+
+    def fit(s):
+        return solve_sh(torch.as_tensor(s["r_sum"]), torch.as_tensor(s["rgb_sum"]), torch.as_tensor(s["sh_a"]),
+                        torch.as_tensor(s["sh_b"]), 0.003)
+
+    exact = fit(sums)
+    stored_err = (fit(back) - exact).abs().max()
+    r = sums["r_sum"][:, None]
+    raw_half = sums | {name: (sums[name] / r).astype(np.float16).astype(np.float32) * r
+                       for name in ("rgb_sum", "sh_a", "sh_b")}
+    raw_err = (fit(raw_half) - exact).abs().max()
+    assert stored_err < 0.01 and raw_err > 10 * stored_err, (stored_err, raw_err)
 
 
 def test_a_snapshot_stores_the_records_as_they_are_and_loads_them_bit_for_bit(shelf_frames):

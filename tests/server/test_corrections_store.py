@@ -291,7 +291,7 @@ def test_a_correction_while_a_snapshot_is_written_drops_that_snapshot(tmp_path, 
 
 def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restored(tmp_path, shelf, monkeypatch):
     monkeypatch.setattr(session_module, "UNDO_DEPTH", 0)  # no roll-back in place: a correction re-folds a new scene
-    rows, row_bytes = 50_000, 200  # a row of the state is about 300 bytes
+    rows, row_bytes = 50_000, 120  # a row of the state is about 150 bytes
     store = SessionStore(tmp_path, 8)
     store.preallocate_voxels = rows
     store.open()
