@@ -1,8 +1,9 @@
-"""Agg, batch reference: the paper's rule over all observations at once (pure PyTorch).
+"""Agg, batch reference: the aggregation rule over all observations at once (pure PyTorch).
 
 For the observations Omega(v) of voxel v (all frames, in frame order then pixel order):
     representative (i*, m*) = argmax R_view          (first maximum wins)
     W = max(R_view(m) * max(0, cos(F(m), F(m*))), weight_floor * R_view(m*))
+      (F(m*) as the map keeps it: its 8-bit direction, `stored.quantize_direction`)
     R_scene(v) = sum W,   F_scene(v) = sum W F / (R_scene + eps)
 and the same W accumulate colour, position moments and label scores. Ablation modes:
 ``no_reliability`` (R := 1: W = max(0, cos), representative = first observation),
@@ -25,6 +26,7 @@ from ..frame import Frame
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 from .choices import choose_settings
 from .fields import fields_from_sums, unpack_keys
+from .stored import directions_of
 from .free_space import SeeThroughMap, see_through_map
 
 
@@ -101,9 +103,10 @@ def aggregate_batch(
     rep = torch.full((V,), M, dtype=torch.int64).scatter_reduce(
         0, inv, torch.where(r_sel == best[inv], order, torch.full_like(order, M)), "amin")
 
+    rep_dir = torch.from_numpy(directions_of(feat[rep].numpy())).float()  # the representative as kept (`stored`)
     w = r_sel.clone()
     if uses_sim:
-        cos = torch.nn.functional.cosine_similarity(feat, feat[rep][inv], dim=-1, eps=1e-10)
+        cos = torch.nn.functional.cosine_similarity(feat, rep_dir[inv], dim=-1, eps=1e-10)
         w = w * cos.clamp_min(0.0)
     w = torch.maximum(w, config.sensor.weight_floor * best[inv])  # the floor: a share of the voxel's best reliability
     # local positions in voxel units, relative to the voxel centre (as the streaming kernel)
@@ -127,7 +130,7 @@ def aggregate_batch(
     sums = {
         "keys": uniq,
         "rep_r": r_sel[rep],
-        "rep_f": feat[rep],
+        "rep_f": rep_dir,
         "rep_pos": points[rep],
         "rep_rgb": torch.round(rgb[rep] * 255.0).to(torch.uint8),
         "r_sum": wsum(torch.ones(M)),

@@ -188,16 +188,16 @@ def solve_sh(
 
 
 def sums_from_stored(t: dict[str, Tensor]) -> dict[str, Tensor]:
-    """A scene's stored fields (`stored`: float16 means and central moments over R_scene, a float16
-    representative feature) as float32 sums, as the fold kernel computes them (`stored.raw_sums`).
-    Float32 sums (the batch reference's) pass unchanged."""
-    half = {k: v.numpy() for k, v in t.items() if k in SUMS or k == "r_sum"}
-    out = dict(t) | {k: torch.from_numpy(v) for k, v in raw_sums(half).items() if k not in t}
-    for name in SUMS:
-        out.pop(name, None)
-    if "rep_f" in out:
-        out["rep_f"] = out["rep_f"].float()
-    return out
+    """A scene's stored fields (`stored`: float16 means and central moments over R_scene, the
+    representative's 8-bit direction) as float32 sums, as the fold kernel computes them
+    (`stored.raw_sums`). Float32 sums (the batch reference's) pass unchanged."""
+    stored = {k: v.numpy() for k, v in t.items() if k in SUMS or k in ("r_sum", "rep_dir")}
+    out = {k: v for k, v in t.items() if k not in stored or k == "r_sum"}
+    return out | {k: torch.from_numpy(v) for k, v in raw_sums(stored).items() if k != "r_sum"}
+
+
+def _direction(x: Tensor) -> Tensor:  # [V, L] -> [V, L] unit length (0 for a zero vector)
+    return x.float() / x.float().norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True,
@@ -211,7 +211,8 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     Returns a dict of tensors, one row per voxel (sorted by key when ``sort``):
         keys [V] int64, reliability [V] (R_scene = sum W), features [V, L] (F_scene =
         sum W F / (R_scene + eps)), representative_position [V, 3], representative_reliability [V],
-        representative_feature [V, L], representative_colour [V, 3], colour [V, 3] (fused),
+        representative_feature [V, L] (its direction, unit length: only that enters the
+        similarity weight), representative_colour [V, 3], colour [V, 3] (fused),
         position_mean [V, 3], position_cov [V, 3, 3] (world units), observations [V] int64,
         free_space [V] (see-through evidence, in R_scene's unit), sh [V, K, 3] (the solved SH colour
         fit, K = (sh_degree + 1)^2), and labels [V, S] when label scores were fused.
@@ -233,7 +234,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "reliability": r,
         "features": t["f_sum"] / den,
         "representative_reliability": t["rep_r"],
-        "representative_feature": t["rep_f"],
+        "representative_feature": _direction(t["rep_f"]),
         "representative_colour": t["rep_rgb"],
         "colour": color_sum / den,
         "observations": t["n_obs"].to(torch.int64),

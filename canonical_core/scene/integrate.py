@@ -89,9 +89,8 @@ def integrate(
     labels = ev.labels if ev.labels is not None else np.zeros((m, voxels.label_dim), np.float32)
     work = np.empty((numba.config.NUMBA_NUM_THREADS, voxels.layout.width), np.float32)  # a record per thread
     switches = fold_kernel(
-        voxels.table, s["keys"], s["rows"], s["half"], stored.wide_cols, stored.half_cols, stored.half_kind,
-        stored.factor_cols, stored.factor_affine, work,
-        s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(), config.uses_reliability,
+        voxels.table, s["keys"], s["rows"], s["half"], stored.wide_cols, stored.direction, stored.half_cols,
+        stored.half_kind, stored.factor_cols, stored.factor_affine, work, s["rep_rgb"], s["n_obs"], len(voxels), voxels.layout.offsets(), config.uses_reliability,
         config.uses_similarity, np.float32(config.sensor.weight_floor), inv_voxel,
         n_touched, t.touched, new_keys, n_new, t.best, t.head, t.next_obs,
         ev.reliability, ev.features, ev.colors, ev.points, basis, labels, ev.labels is not None,

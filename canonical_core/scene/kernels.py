@@ -21,7 +21,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from .hashing import find_voxel, home_slot
-from .stored import load_row, store_row
+from .stored import load_row, quantize_direction, store_row
 
 # LLVM's prefetch intrinsic takes an opaque pointer from LLVM 15 on, an i8* before
 _PREFETCH = "llvm.prefetch.p0" if llvm_binding.llvm_version_info[0] >= 15 else "llvm.prefetch.p0i8"
@@ -110,8 +110,8 @@ OBS_PREFETCH_AHEAD = 2  # voxels ahead whose observations' evidence it asks for
 def fold_kernel(
     # scene state (rows >= n_voxels are zero): the stored records (`stored.StoredRows`) and, per
     # thread, a float32 working record [threads, width] that each voxel is folded in
-    table, keys, rows, half, wide_cols, half_cols, half_kind, factor_cols, factor_affine, work, rep_rgb, n_obs,
-    n_voxels, offsets, uses_rel, uses_sim, weight_floor, inv_voxel,
+    table, keys, rows, half, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, work, rep_rgb,
+    n_obs, n_voxels, offsets, uses_rel, uses_sim, weight_floor, inv_voxel,
     # phase A's result
     n_touched, touched, new_keys, n_new, best, head, next_obs,
     # the frame's evidence
@@ -177,7 +177,7 @@ def fold_kernel(
         vi = touched[t]
         thread = numba.get_thread_id()  # below NUMBA_NUM_THREADS (the rows of work) in every threading layer
         row = work[thread]
-        load_row(rows, half, vi, wide_cols, half_cols, half_kind, factor_cols, factor_affine, R_SUM, row)
+        load_row(rows, half, vi, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, R_SUM, row)
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
         elif keep_before:
@@ -204,6 +204,7 @@ def fold_kernel(
             row[0] = rb
             for c in range(L):
                 row[REP_F + c] = feat[b, c]
+            quantize_direction(row, REP_F, L)  # what the map keeps of it (`stored`), from now on
             for c in range(3):  # colours are u8 / 255, so this round trip is exact
                 row[REP_POS + c] = points[b, c]
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
@@ -300,5 +301,5 @@ def fold_kernel(
                 row[SH_A + c] += a
             for c, a in enumerate((s1r, s1g, s1b, s2r, s2g, s2b, s3r, s3g, s3b)):
                 row[SH_B + c] += a
-        store_row(row, rows, half, vi, wide_cols, half_cols, half_kind, factor_cols, factor_affine, R_SUM)
+        store_row(row, rows, half, vi, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, R_SUM)
     return switches

@@ -6,13 +6,15 @@ arrays instead:
 
 - ``rows`` [V, width] float32: the representative's reliability and position, R_scene and the
   label sums;
-- ``half`` [V, half_width] float16 (held as uint16 bits, `half`): every other field, as a quantity
-  that stays within its inputs' range however long the stream, where float16 keeps about 3.3
-  significant digits:
-  - the representative's feature as it is;
-  - a first moment as its *mean* over R_scene (``f_mean``, ``rgb_mean``, ``pos_mean``; a sum grows
+- ``half`` [V, half_width] uint16 columns: every other field, as a quantity that stays within its
+  inputs' range however long the stream:
+  - the representative's feature as its direction, 8 bits a channel (two channels a column, the
+    direction scaled to length 127 and rounded: ``rep_dir``). Only its direction enters the fold
+    (the similarity weight is a cosine), and 8 bits move a cosine by about a hundredth at most;
+  - in float16 (held as its bits, `half`), where float16 keeps about 3.3 significant digits:
+    a first moment as its *mean* over R_scene (``f_mean``, ``rgb_mean``, ``pos_mean``; a sum grows
     without bound, and float16 ends at 65504);
-  - a second moment as its *central* moment over R_scene, about the stored means (``pos_cov``, and
+    a second moment as its *central* moment over R_scene, about the stored means (``pos_cov``, and
     the SH fit's normal equations ``sh_a_central``, ``sh_b_central``). A raw second moment is a
     difference away from what its readers need: the covariance E[x x^T] - E[x] E[x]^T, and the SH
     fit's view-dependent terms, whose normal equations reduce to the central moments of the view
@@ -20,11 +22,12 @@ arrays instead:
     the raw moment, and float16's rounding of it would be amplified; the central moment is stored
     at float16's relative precision of itself.
 
-  A representative's replacement rescales every sum and R_scene alike, so it leaves means and
-  central moments as they were.
+    A representative's replacement rescales every sum and R_scene alike, so it leaves means and
+    central moments as they were.
 
 The fold kernel loads each touched voxel's stored record into a float32 working record
-(`load_row`: means times R_scene, central moments plus the product of their means, times R_scene),
+(`load_row`: the direction as its 8-bit values, means times R_scene, central moments plus the
+product of their means, times R_scene),
 folds into that, and stores it back (`store_row`: the central moments about the float32 means
 before they are rounded). Everything else reads the stored fields as views (`StoredRows.field`), the
 float16 ones through numpy's float16, and `raw_sums` turns them back into the float32 sums the
@@ -39,10 +42,10 @@ sum W b_k (c - 1/2), as central moments about the means of b_k and of c - 1/2.
 Example:
     >>> from canonical_core.scene.kernels import VoxelRows
     >>> stored = StoredRows(VoxelRows(feature_dim=4, sh_widths=(9, 9)))
-    >>> stored.width, stored.half_width
-    (5, 38)
+    >>> stored.width, stored.half_width  # 4 feature channels: 2 columns of direction
+    (5, 36)
     >>> sorted(n for n, c in stored.columns.items() if c[0] == "half")
-    ['f_mean', 'pos_cov', 'pos_mean', 'rep_f', 'rgb_mean', 'sh_a_central', 'sh_b_central']
+    ['f_mean', 'pos_cov', 'pos_mean', 'rep_dir', 'rgb_mean', 'sh_a_central', 'sh_b_central']
 """
 
 from __future__ import annotations
@@ -58,12 +61,13 @@ from .half import from_half, to_half
 if TYPE_CHECKING:
     from .kernels import VoxelRows
 
-# how a float16 column is stored: as it is, as a mean over R_scene, as a central moment over R_scene
-AS_IS, MEAN, CENTRAL = 0, 1, 2
-# the working record's fields kept in float16: name -> stored name
-HALF_FIELDS = {"rep_f": "rep_f", "f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean",
-               "pos_sq": "pos_cov", "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
-SUMS = {stored: name for name, stored in HALF_FIELDS.items() if stored != name}  # stored name -> its sum's name
+# how a float16 column is stored: as a mean over R_scene, or as a central moment over R_scene
+MEAN, CENTRAL = 1, 2
+# the working record's moments kept in float16: name -> stored name
+HALF_FIELDS = {"f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean", "pos_sq": "pos_cov",
+               "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
+SUMS = {stored: name for name, stored in HALF_FIELDS.items()}  # stored name -> its sum's name
+DIRECTION_LENGTH = 127  # the stored direction's length: its channels are then int8
 _SQ_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # pos_sq's columns xx xy xz yy yz zz
 
 
@@ -79,10 +83,8 @@ class Factor(NamedTuple):
 
 def column_rules(name: str, width: int, bases: int) -> list[tuple[int, Factor | None, Factor | None]]:
     """How each of the ``width`` columns of the working record's field ``name`` is stored in float16
-    (``bases``: K, the SH bases of the fit): (AS_IS, MEAN or CENTRAL, and for CENTRAL the two means
-    it is about)."""
-    if name == "rep_f":
-        return [(AS_IS, None, None)] * width
+    (``bases``: K, the SH bases of the fit): (MEAN or CENTRAL, and for CENTRAL the two means it is
+    about)."""
     if name in ("f_sum", "rgb_sum", "pos_sum"):
         return [(MEAN, None, None)] * width
     if name == "pos_sq":
@@ -109,42 +111,49 @@ def sh_bases(sh_a_width: int) -> int:
 
 class StoredRows:
     """The stored layout of a `VoxelRows` record (see the module): ``columns`` maps each stored
-    field's name to (array name, first column, field shape); ``wide_cols`` [width] and
-    ``half_cols`` [half_width] are the working record's column of each stored column. For the
-    kernels, per float16 column: ``half_kind`` [half_width] (AS_IS, MEAN, CENTRAL), and for a
-    central moment its two means, ``factor_cols`` [half_width, 4] int64 (their float16 columns, then
-    their working-record columns) and ``factor_affine`` [half_width, 4] float32 (scale and offset of
-    each)."""
+    field's name to (array name, first column, field shape); ``wide_cols`` [width] are the working
+    record's column of each float32 column. The ``half`` array holds the representative's direction
+    first (``direction``: its first working column, its channels and the columns they take), then the
+    moments: ``half_cols`` [moments] are their working columns and, for the kernels, ``half_kind``
+    [moments] whether each is a MEAN or a CENTRAL moment, and for a central moment its two means,
+    ``factor_cols`` [moments, 4] int64 (their ``half`` columns, then their working columns) and
+    ``factor_affine`` [moments, 4] float32 (scale and offset of each)."""
 
     def __init__(self, layout: VoxelRows):
         self.layout = layout
-        self.columns: dict[str, tuple[str, int, tuple[int, ...]]] = {}
+        first, (channels,) = layout.columns["rep_f"]
+        pairs = (channels + 1) // 2
+        self.direction = np.array([first, channels, pairs], np.int64)
+        self.columns: dict[str, tuple[str, int, tuple[int, ...]]] = {"rep_dir": ("half", 0, (channels,))}
         bases = sh_bases(layout.columns["sh_a"][1][0])
         wide, half, rules = [], [], []
         for name, (first, shape) in layout.columns.items():
             cols = list(range(first, first + (shape[0] if shape else 1)))
             if name in HALF_FIELDS:
-                self.columns[HALF_FIELDS[name]] = ("half", len(half), shape)
+                self.columns[HALF_FIELDS[name]] = ("half", pairs + len(half), shape)
                 half += cols
                 rules += column_rules(name, len(cols), bases)
-            else:
+            elif name != "rep_f":
                 self.columns[name] = ("rows", len(wide), shape)
                 wide += cols
         self.wide_cols, self.half_cols = np.array(wide, np.int64), np.array(half, np.int64)
-        self.width, self.half_width = len(wide), len(half)
+        self.width, self.half_width = len(wide), pairs + len(half)
         self.half_kind = np.array([kind for kind, _, _ in rules], np.int64)
         self.factor_cols = np.zeros((len(half), 4), np.int64)
         self.factor_affine = np.zeros((len(half), 4), np.float32)
         for c, (kind, a, b) in enumerate(rules):
             if kind == CENTRAL:
                 work = [layout.columns[f.field][0] + f.column for f in (a, b)]
-                self.factor_cols[c] = [half.index(work[0]), half.index(work[1]), *work]
+                self.factor_cols[c] = [pairs + half.index(work[0]), pairs + half.index(work[1]), *work]
                 self.factor_affine[c] = [a.scale, a.offset, b.scale, b.offset]
 
     def field(self, state: dict[str, np.ndarray], name: str) -> np.ndarray:
         """View of one stored field of ``state``'s ``rows`` / ``half`` ([V] or [V, n]; float16 for
-        the half columns)."""
+        the moments, int8 for the direction)."""
         array, first, shape = self.columns[name]
+        if name == "rep_dir":
+            pairs = int(self.direction[2])
+            return state["half"][:, :pairs].view(np.int8)[:, : shape[0]]
         block = state[array] if array == "rows" else state[array].view(np.float16)
         return block[:, first] if not shape else block[:, first: first + shape[0]]
 
@@ -152,8 +161,14 @@ class StoredRows:
         """Write ``sums`` (stored fields, or float32 sums as earlier snapshots hold them, [n, ...]) into
         the first n rows of ``out``'s ``rows`` and ``half``. A float32 sum is stored as `store_row`
         stores it: divided by R_scene in float32 (0 where R_scene is not positive), a central moment
-        less the product of its unrounded means, then rounded."""
+        less the product of its unrounded means, then rounded; a representative's feature
+        (``rep_f``) as its direction."""
         n = len(sums["r_sum"])
+        rows = {k: v[:n] for k, v in out.items()}
+        if "rep_dir" in sums:
+            self.field(rows, "rep_dir")[...] = sums["rep_dir"]
+        else:
+            self.field(rows, "rep_dir")[...] = directions_of(sums["rep_f"])
         bases = sh_bases(self.layout.columns["sh_a"][1][0])
         r = np.asarray(sums["r_sum"], np.float32)[:, None]
         positive = r > 0
@@ -164,6 +179,8 @@ class StoredRows:
 
         for name in self.columns:
             value = sums.get(name)
+            if name == "rep_dir":
+                continue
             if value is None and name in SUMS:
                 raw = np.asarray(sums[SUMS[name]], np.float32)
                 value = raw / safe
@@ -171,15 +188,18 @@ class StoredRows:
                     if kind == CENTRAL:
                         value[:, c] = value[:, c] - mean(a) * mean(b)
                 value = np.where(positive, value, np.float32(0))
-            self.field({k: v[:n] for k, v in out.items()}, name)[...] = value
+            self.field(rows, name)[...] = value
 
 
 def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A scene's stored fields (`StoredRows.field` views or copies, [V, ...]) with the float16 means
     and central moments present turned back into their float32 sums, as `load_row` computes them:
-    ``mean * R_scene``, ``(central + mean_a * mean_b) * R_scene``. Other fields pass unchanged,
-    float32 sums too (the batch reference's, earlier snapshots')."""
+    ``mean * R_scene``, ``(central + mean_a * mean_b) * R_scene``; the stored direction as the
+    representative's feature (``rep_f``, its 8-bit values). Other fields pass unchanged, float32
+    sums too (the batch reference's, earlier snapshots')."""
     out = dict(stored)
+    if "rep_dir" in out:
+        out["rep_f"] = out.pop("rep_dir").astype(np.float32)
     present = [name for name in SUMS if name in stored]
     if not present:
         return out
@@ -202,45 +222,96 @@ def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 @numba.njit(inline="always")
+def _signed(byte):  # the int8 whose bits are ``byte`` (0..255)
+    return byte - 256 if byte > 127 else byte
+
+
+@numba.njit(inline="always")
+def quantize_direction(x, first, channels):
+    """``x[first: first + channels]``, in place, as the stored direction: scaled to length
+    `DIRECTION_LENGTH` and rounded to integers (a zero vector stays zero). The fold applies it to a
+    representative as it is chosen, so that what it folds against is what the map keeps."""
+    n2 = np.float32(0.0)
+    for c in range(channels):
+        n2 += x[first + c] * x[first + c]
+    scale = np.float32(DIRECTION_LENGTH) / np.sqrt(n2) if n2 > np.float32(1e-20) else np.float32(0.0)
+    for c in range(channels):
+        q = np.floor(x[first + c] * scale + np.float32(0.5))
+        x[first + c] = min(np.float32(DIRECTION_LENGTH), max(np.float32(-DIRECTION_LENGTH), q))
+
+
+@numba.njit(inline="always")
+def _pack_direction(x, first, channels, half, v):  # a quantized direction's integers, two 8-bit values a column
+    for p in range((channels + 1) // 2):
+        bits = 0
+        for k in range(2):
+            c = 2 * p + k
+            if c < channels:
+                bits |= (int(x[first + c]) & 0xFF) << (8 * k)
+        half[v, p] = bits
+
+
+@numba.njit(cache=True)
+def _directions_kernel(
+    features: np.ndarray,  # [n, L] float32, a copy: quantized in place
+    half: np.ndarray,  # [>= n, half_width] uint16: the direction's columns are written
+) -> None:
+    for i in range(features.shape[0]):
+        quantize_direction(features[i], 0, features.shape[1])
+        _pack_direction(features[i], 0, features.shape[1], half, i)
+
+
+def directions_of(features: np.ndarray) -> np.ndarray:  # [n, L] float -> [n, L] int8
+    """The stored direction of each feature (`quantize_direction`)."""
+    features = np.array(features, np.float32)  # a copy, quantized in place
+    channels = features.shape[1]
+    half = np.zeros((len(features), (channels + 1) // 2), np.uint16)
+    _directions_kernel(features, half)
+    return half.view(np.int8)[:, :channels].copy()
+
+
+@numba.njit(inline="always")
 def _factor(half, v, column, scale, offset):  # a stored mean, scaled and offset as a central moment takes it
     return from_half(half[v, column]) * scale + offset
 
 
 @numba.njit(inline="always")
-def load_row(rows, half, v, wide_cols, half_cols, half_kind, factor_cols, factor_affine, r_col, work):
-    """Voxel ``v``'s stored record into the float32 working record ``work``: means become sums again
-    (times R_scene), central moments raw second moments (plus the product of their stored means,
-    times R_scene)."""
+def load_row(rows, half, v, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, r_col, work):
+    """Voxel ``v``'s stored record into the float32 working record ``work``: the direction as its
+    8-bit values, means become sums again (times R_scene), central moments raw second moments (plus
+    the product of their stored means, times R_scene)."""
     for c in range(wide_cols.shape[0]):
         work[wide_cols[c]] = rows[v, c]
+    first, channels = direction[0], direction[1]
+    for c in range(channels):
+        work[first + c] = np.float32(_signed((half[v, c // 2] >> (8 * (c % 2))) & 0xFF))
     r = work[r_col]
+    pairs = direction[2]
     for c in range(half_cols.shape[0]):
-        value = from_half(half[v, c])
-        kind = half_kind[c]
-        if kind == CENTRAL:
+        value = from_half(half[v, pairs + c])
+        if half_kind[c] == CENTRAL:
             value = value + (_factor(half, v, factor_cols[c, 0], factor_affine[c, 0], factor_affine[c, 1])
                              * _factor(half, v, factor_cols[c, 1], factor_affine[c, 2], factor_affine[c, 3]))
-        work[half_cols[c]] = value if kind == AS_IS else value * r
+        work[half_cols[c]] = value * r
 
 
 @numba.njit(inline="always")
-def store_row(work, rows, half, v, wide_cols, half_cols, half_kind, factor_cols, factor_affine, r_col):
-    """`load_row` inverted: the working record into voxel ``v``'s stored one (0 for the means and
-    central moments where R_scene is not positive), rounded to float16. A central moment is taken
-    about the float32 means, before they are rounded."""
+def store_row(work, rows, half, v, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, r_col):
+    """`load_row` inverted: the working record into voxel ``v``'s stored one (its direction already
+    quantized: `quantize_direction`; 0 for the means and central moments where R_scene is not
+    positive), rounded to float16. A central moment is taken about the float32 means, before they
+    are rounded."""
     for c in range(wide_cols.shape[0]):
         rows[v, c] = work[wide_cols[c]]
+    _pack_direction(work, direction[0], direction[1], half, v)
     r = work[r_col]
+    pairs = direction[2]
     for c in range(half_cols.shape[0]):
-        value = work[half_cols[c]]
-        kind = half_kind[c]
-        if kind != AS_IS:
-            if r > np.float32(0.0):
-                value = value / r
-                if kind == CENTRAL:
-                    a = (work[factor_cols[c, 2]] / r) * factor_affine[c, 0] + factor_affine[c, 1]
-                    b = (work[factor_cols[c, 3]] / r) * factor_affine[c, 2] + factor_affine[c, 3]
-                    value = value - a * b
-            else:
-                value = np.float32(0.0)
-        half[v, c] = to_half(value)
+        value = np.float32(0.0)
+        if r > np.float32(0.0):
+            value = work[half_cols[c]] / r
+            if half_kind[c] == CENTRAL:
+                a = (work[factor_cols[c, 2]] / r) * factor_affine[c, 0] + factor_affine[c, 1]
+                b = (work[factor_cols[c, 3]] / r) * factor_affine[c, 2] + factor_affine[c, 3]
+                value = value - a * b
+        half[v, pairs + c] = to_half(value)

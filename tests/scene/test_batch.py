@@ -29,11 +29,15 @@ def cos(a, b):
     return a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
 
 
+def kept(f):  # a representative's feature as the map keeps it: scaled to length 127, rounded
+    return np.floor(f * 127 / np.linalg.norm(f) + 0.5)
+
+
 def expected(mode, weight_floor=0.0):
     R = np.exp(-STD.astype(np.float64))  # U_pos = std / voxel_size, U_app = 0
     rsel = R if mode in ("full", "no_similarity") else np.ones(3)
     rep = int(np.argmax(rsel))
-    sim = np.array([max(0.0, cos(f, FEATS[rep])) for f in FEATS]) if mode in ("full", "no_reliability") else np.ones(3)
+    sim = np.array([max(0.0, cos(f, kept(FEATS[rep]))) for f in FEATS]) if mode in ("full", "no_reliability") else np.ones(3)
     W = np.maximum(rsel * sim, weight_floor * rsel[rep])
     return rep, W.sum(), (W[:, None] * FEATS).sum(0) / (W.sum() + 1e-8), (W[:, None] * RGB / 255.0).sum(0) / W.sum()
 
@@ -47,7 +51,7 @@ def test_batch_rule_matches_hand_computation(mode, weight_floor):
     assert f["reliability"].item() == pytest.approx(r_scene, rel=1e-6)
     assert np.allclose(f["features"][0].numpy(), f_scene, atol=1e-6)
     assert np.allclose(f["colour"][0].numpy(), colour, atol=1e-6)
-    assert np.allclose(f["representative_feature"][0].numpy(), FEATS[rep])
+    assert np.allclose(f["representative_feature"][0].numpy(), kept(FEATS[rep]) / np.linalg.norm(kept(FEATS[rep])))
     assert f["observations"].item() == 3
 
 
@@ -61,8 +65,8 @@ def test_full_rule_by_hand_numbers():
 def test_ablations_change_what_they_should():
     full, no_rel, no_sim, avg = (aggregate_batch([tiny_frame()], config(m)) for m in ("full", "no_reliability", "no_similarity", "average"))
     # no_reliability: representative is the first observation, not the most reliable one
-    assert np.allclose(no_rel["representative_feature"][0].numpy(), FEATS[0])
-    assert np.allclose(full["representative_feature"][0].numpy(), FEATS[2])
+    assert np.allclose(no_rel["representative_feature"][0].numpy(), [1.0, 0.0])
+    assert np.allclose(full["representative_feature"][0].numpy(), FEATS[2] / np.linalg.norm(FEATS[2]), atol=1 / 127)
     # no_similarity: weights are reliabilities alone
     assert no_sim["reliability"].item() == pytest.approx(np.exp(-STD.astype(np.float64)).sum(), rel=1e-6)
     # average: plain mean, weight 1 per observation

@@ -4,6 +4,7 @@ as bounded means and central moments, and earlier snapshots' float32 sums are st
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from canonical_core import Scene, SceneConfig
@@ -77,8 +78,9 @@ def test_float32_sums_past_float16s_range_are_stored_as_means_and_central_moment
     sums = observed_sums(64, scale=1e6, spread=0.01)  # sums far past 65504, float16's largest
     stored = loaded(sums)
     assert not {"f_sum", "rgb_sum", "pos_sum", "pos_sq", "sh_a", "sh_b"} & set(stored)
-    for name in ("f_mean", "rgb_mean", "pos_mean", "pos_cov", "sh_a_central", "sh_b_central", "rep_f"):
+    for name in ("f_mean", "rgb_mean", "pos_mean", "pos_cov", "sh_a_central", "sh_b_central"):
         assert stored[name].dtype == np.float16 and np.isfinite(stored[name].astype(np.float32)).all(), name
+    assert stored["rep_dir"].dtype == np.int8 and "rep_f" not in stored
     assert stored["r_sum"].dtype == np.float32
     back = sums_from_stored({k: torch.as_tensor(v) for k, v in stored.items()})
     for name in ("rgb_sum", "pos_sum"):  # float16's rounding of each mean, times R_scene
@@ -133,3 +135,26 @@ def test_a_snapshot_stores_the_records_as_they_are_and_loads_them_bit_for_bit(sh
     scene.fold(shelf_frames[3])
     again.fold(shelf_frames[3])
     assert again.digest() == scene.digest()
+
+
+@pytest.mark.parametrize("channels", [16, 3])
+def test_the_representative_is_stored_as_its_8_bit_direction(channels):
+    rng = np.random.default_rng(1)
+    features = rng.standard_normal((500, channels)).astype(np.float32) * rng.uniform(0.01, 100, (500, 1)).astype(np.float32)
+    features[0] = 0.0  # no direction: stays zero
+    voxels = VoxelMap(feature_dim=channels, sh_degree=1, initial_capacity=16)
+    sums = observed_sums(500, scale=2.0, spread=0.05)
+    voxels.load_sums({k: v for k, v in sums.items() if k != "f_sum"} | {"rep_f": features, "f_sum": features})
+    direction = voxels.sums()["rep_dir"]
+    assert direction.shape == (500, channels) and direction.dtype == np.int8 and not direction[0].any()
+    length = np.linalg.norm(direction[1:].astype(np.float64), axis=1)
+    assert np.abs(length - 127).max() < 0.5 * np.sqrt(channels)  # each channel within half a step
+    back = sums_from_stored({k: torch.as_tensor(v) for k, v in voxels.sums().items()})["rep_f"].double()
+    exact = torch.from_numpy(features).double()
+    cos = torch.nn.functional.cosine_similarity(back[1:], exact[1:], dim=-1)
+    assert cos.min() > 0.999
+    # a cosine between two stored directions moves by a hundredth at most against the exact one
+    others = torch.from_numpy(rng.standard_normal((500, channels))).double()
+    moved = (torch.nn.functional.cosine_similarity(back[1:], others[1:], dim=-1)
+             - torch.nn.functional.cosine_similarity(exact[1:], others[1:], dim=-1)).abs()
+    assert moved.max() < 0.01

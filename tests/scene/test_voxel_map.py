@@ -23,8 +23,9 @@ def random_sums(voxels: VoxelMap, keys: np.ndarray, seed: int = 0) -> dict[str, 
     n = len(keys)
     sums = {name: rng.integers(0, 100, (n, *shape)).astype(dtype) for name, (dtype, shape) in ARRAYS.items()}
     sums["keys"] = np.asarray(keys, np.int64)
-    sums |= {name: rng.standard_normal((n, *shape)).astype(np.float32 if array == "rows" else np.float16)
-             for name, (array, _, shape) in voxels.stored.columns.items()}
+    dtypes = {name: array.dtype for name, array in voxels.sums().items()}  # float32, float16, int8 (the direction)
+    sums |= {name: (rng.integers(-127, 128, (n, *shape)) if dtypes[name].kind == "i" else rng.standard_normal((n, *shape)))
+             .astype(dtypes[name]) for name, (_, _, shape) in voxels.stored.columns.items()}
     return sums
 
 
