@@ -170,7 +170,7 @@ class DecodeWork(NamedTuple):
     whole: bool  # every voxel that decodes (no level of detail, no support floor)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
 class ColourSolution:
     """The colour solve's last answer: SH offsets of the voxel rows it solved.
 
