@@ -176,8 +176,8 @@ class ColourSolution:
 
     Kept narrow, whatever it is made from (a solve's float32 answer, int64 rows, an earlier
     snapshot's arrays): rows as int32 (a scene's rows fit: its hash table indexes them so, below
-    `config.MAX_VOXELS`) and offsets as float16 (a colour offset's relative precision of 2^-11 is far
-    below one step of 8-bit colour). Every decode shows them so rounded (`at`), so a solution fresh
+    `config.MAX_VOXELS`) and offsets as float16 (their rounding, 2^-11 relative, stays well under one
+    step of 8-bit colour). Every decode shows them so rounded (`at`), so a solution fresh
     from a solve and one read back from a snapshot give the same Gaussians bit for bit."""
 
     rows: np.ndarray  # [M] int32 ascending
