@@ -48,6 +48,15 @@ def shelf_frames(shelf_dir) -> list[Frame]:
     return list(load_tsdf_fusion(shelf_dir))
 
 
+def solved_as_kept(gaussians, views, start=None, **settings):
+    """`decode.solve_colours` of ``gaussians`` (``colour_offsets(gaussians, views, start, **settings)``
+    added), its offsets rounded as a scene keeps them (`scene.decoding.ColourSolution`: float16):
+    what a scene's decode shows of the same solve."""
+    from canonical_core.decode import colour_offsets, with_colour_offsets
+
+    return with_colour_offsets(gaussians, colour_offsets(gaussians, views, start, **settings).half())
+
+
 def folded_scene(frames, voxel_size: float = 0.008, **settings):
     """A `Scene` (``SceneConfig(voxel_size, **settings)``) that has folded ``frames`` in order."""
     from canonical_core import Scene, SceneConfig

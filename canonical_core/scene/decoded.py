@@ -6,7 +6,8 @@ voxel's sums; only its opacity depends on the scene as a whole (the support unit
 cheap to recompute for every voxel. A fold changes the sums of the voxels its observations land in
 (tens of thousands) while the scene holds hundreds of thousands, so the decoder side (`scene.decoding`) keeps each
 decoded row here with the fold stamp of the sums it came from, and reuses it while the row's sums
-still carry that stamp. Stamps are unique per fold, so equal stamps mean equal sums.
+still carry that stamp. Stamps are unique per fold within a stamp epoch (`voxel_map.StampClock`), so
+equal stamps of one epoch mean equal sums; the decoder side starts new decoded rows in a new epoch.
 """
 
 from __future__ import annotations
@@ -76,8 +77,8 @@ class DecodedRows:
 
     Example:
         >>> rows = DecodedRows(key=0)
-        >>> rows.store(np.array([0, 2]), np.array([5, 5]), {"means": torch.ones(2, 3), "labels": None})
-        >>> rows.current(np.array([2, 0, 1]), np.array([5, 6, 5])).tolist()
+        >>> rows.store(np.array([0, 2]), np.array([5, 5], np.int32), {"means": torch.ones(2, 3), "labels": None})
+        >>> rows.current(np.array([2, 0, 1]), np.array([5, 6, 5], np.int32)).tolist()
         [True, False, False]
         >>> rows.gather(np.array([2, 0]))["means"].shape
         torch.Size([2, 3])
@@ -87,13 +88,13 @@ class DecodedRows:
         self.key = key
         self.slot_of = np.full(0, -1, np.int32)  # [rows seen] each row's slot, -1: none
         self.slots = 0  # slots in use
-        self.stamps = np.full(0, -1, np.int64)  # [slot capacity] the stamp each slot was decoded from
+        self.stamps = np.full(0, -1, np.int32)  # [slot capacity] the stamp each slot was decoded from
         self._parts: dict[str, Tensor | None] = {}
 
     def current(
         self,
         rows: np.ndarray,  # [M] scene rows
-        stamps: np.ndarray,  # [M] the fold stamps of their current sums
+        stamps: np.ndarray,  # [M] int32 the fold stamps of their current sums
     ) -> np.ndarray:  # [M] bool: decoded from these very sums
         hit = np.empty(len(rows), np.bool_)
         _current_kernel(self.slot_of, self.stamps, rows, stamps, hit)
@@ -102,7 +103,7 @@ class DecodedRows:
     def store(
         self,
         rows: np.ndarray,  # [M] scene rows
-        stamps: np.ndarray,  # [M] the fold stamps of the sums they were decoded from
+        stamps: np.ndarray,  # [M] int32 the fold stamps of the sums they were decoded from
         parts: dict[str, Tensor | None],  # name -> [M, ...] (or None for an absent part)
     ) -> None:
         if not len(rows):
@@ -117,7 +118,7 @@ class DecodedRows:
         self.slots += len(new)
         if self.slots > len(self.stamps):
             capacity = max(self.slots, len(self.stamps) * 3 // 2)
-            stamps_grown = np.full(capacity, -1, np.int64)
+            stamps_grown = np.full(capacity, -1, np.int32)
             stamps_grown[: len(self.stamps)] = self.stamps
             self.stamps = stamps_grown
             for name, part in parts.items():

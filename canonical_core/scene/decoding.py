@@ -18,6 +18,7 @@ Three things live here, behind one lock (`SceneDecoding.lock`: decodes of one sc
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 from typing import Callable, Literal, NamedTuple
 
 import numba
@@ -147,9 +148,10 @@ class DecodeInputs(NamedTuple):
     gather: Callable[[np.ndarray], dict[str, np.ndarray]]
     observations_per_view: float  # `Scene.observations_per_view`
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)
-    # [V] per row, the stamp of the change that last changed its sums; None: decode every row afresh
+    # [V] int32 per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
     frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve.refresh`)
+    stamp_epoch: int = 0  # the epoch of those stamps (`voxel_map.StampClock`): the decoded rows of another are stale
 
 
 class DecodeWork(NamedTuple):
@@ -159,7 +161,7 @@ class DecodeWork(NamedTuple):
     chosen: DecodedRowSet  # the rows that decode, their support and free-space evidence
     todo: np.ndarray  # [T] int64 rows of them decoded afresh (the decoded rows lack them)
     todo_sums: dict[str, np.ndarray]  # every sum of those rows, [T, ...]
-    todo_stamps: np.ndarray | None  # [T] their change stamps; None: a decode from scratch, not kept
+    todo_stamps: np.ndarray | None  # [T] int32 their change stamps; None: a decode from scratch, not kept
     features: torch.Tensor | None  # [K, L] F_scene of every row that decodes, when some are reused and it is wanted
     wants_features: bool  # the Gaussians carry F_scene (False: features None, and F_scene of reused rows is not read)
     observations_per_view: float
@@ -168,32 +170,43 @@ class DecodeWork(NamedTuple):
     whole: bool  # every voxel that decodes (no level of detail, no support floor)
 
 
-class ColourSolution(NamedTuple):
-    """The colour solve's last answer: SH offsets of the voxel rows it solved."""
+@dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
+class ColourSolution:
+    """The colour solve's last answer: SH offsets of the voxel rows it solved.
 
-    rows: np.ndarray  # [M] int64 ascending
-    offsets: torch.Tensor  # [M, K, 3] float32
+    Kept narrow, whatever it is made from (a solve's float32 answer, int64 rows, an earlier
+    snapshot's arrays): rows as int32 (a scene's rows fit: its hash table indexes them so, below
+    `config.MAX_VOXELS`) and offsets as float16 (their rounding, 2^-11 relative, stays well under one
+    step of 8-bit colour). Every decode shows them so rounded (`at`), so a solution fresh
+    from a solve and one read back from a snapshot give the same Gaussians bit for bit."""
+
+    rows: np.ndarray  # [M] int32 ascending
+    offsets: torch.Tensor  # [M, K, 3] float16
     frames: int  # the scene's frame count when solved
 
-    def at(self, rows: np.ndarray) -> torch.Tensor:  # [N] int64 ascending -> [N, K, 3]: zeros where unsolved
+    def __post_init__(self):
+        object.__setattr__(self, "rows", np.array(self.rows, np.int32))  # its own copy
+        object.__setattr__(self, "offsets", self.offsets.detach().to(torch.float16))
+        object.__setattr__(self, "frames", int(self.frames))
+
+    def at(self, rows: np.ndarray) -> torch.Tensor:  # [N] int64 ascending -> [N, K, 3] float32: zeros where unsolved
         """The offsets of ``rows``; rows it did not solve (decoded since) get none."""
         out = torch.zeros(len(rows), *self.offsets.shape[1:])
         if len(self.rows):
             at = np.minimum(np.searchsorted(self.rows, rows), len(self.rows) - 1)
             hit = self.rows[at] == rows
-            out[torch.from_numpy(hit)] = self.offsets[torch.from_numpy(at[hit])]
+            out[torch.from_numpy(hit)] = self.offsets[torch.from_numpy(at[hit])].float()
         return out
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"rows": self.rows, "offsets": self.offsets.numpy(), "frames": np.asarray(self.frames, np.int64)}
 
     @classmethod
-    def from_arrays(cls, arrays) -> "ColourSolution":
-        return cls(np.asarray(arrays["rows"], np.int64), torch.from_numpy(np.array(arrays["offsets"], np.float32)),
-                   int(arrays["frames"]))
+    def from_arrays(cls, arrays) -> "ColourSolution":  # also an earlier snapshot's int64 rows and float32 offsets
+        return cls(np.asarray(arrays["rows"]), torch.from_numpy(np.array(arrays["offsets"])), int(arrays["frames"]))
 
     def nbytes(self) -> int:
-        return self.rows.nbytes + self.offsets.numel() * 4
+        return self.rows.nbytes + self.offsets.numel() * self.offsets.element_size()
 
 
 class SceneDecoding:
@@ -278,7 +291,8 @@ class SceneDecoding:
             top = torch.sort(torch.argsort(chosen.support, descending=True, stable=True)[:max_gaussians]).values
             chosen = chosen._replace(rows=chosen.rows[top.numpy()], support=chosen.support[top], free=chosen.free[top])
         rows = chosen.rows
-        key = (inputs.sums["label_sum"].shape[1], *self.key())  # label channels change a row's decode too
+        # label channels change a row's decode too; stamps of another epoch may repeat this one's
+        key = (inputs.sums["label_sum"].shape[1], inputs.stamp_epoch, *self.key())
         if self._rows is None or self._rows.key != key:
             self._rows = DecodedRows(key)
         todo, stamps = rows, None
@@ -330,9 +344,10 @@ class SceneDecoding:
             offsets = colour_offsets(gaussians, work.views)
         else:
             offsets = colour_offsets(gaussians, work.views, last, iterations=REFRESH_ITERATIONS)
+        solved = ColourSolution(rows, offsets, work.frames)  # rounded as it is kept, kept or not
         if work.whole:
-            self.solution = ColourSolution(rows.copy(), offsets, work.frames)
-        return offsets
+            self.solution = solved
+        return solved.offsets.float()
 
     def land(self, solution: ColourSolution, epoch: int) -> bool:
         """Keep ``solution`` (of the state at ``epoch``, `Scene.solve_colours`) unless a correction

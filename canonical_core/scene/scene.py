@@ -260,7 +260,7 @@ class Scene:
         changed_at = v.changed_at[: len(v)]
         return DecodeInputs(v.sums_of(state), functools.partial(gathered_sums, state, v.stored),
                             self.observations_per_view(), self._keyframes.frames(),
-                            changed_at if live else changed_at.copy(), self.frames)
+                            changed_at if live else changed_at.copy(), self.frames, v.stamp_epoch)
 
     def decode(self, max_gaussians: int | None = None, min_support: float = 0.0, features: bool = True) -> Gaussians:
         """Gaussians of every voxel with R_scene > ``min_support``; with ``max_gaussians``, the

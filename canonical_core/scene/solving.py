@@ -49,7 +49,7 @@ def solve_colours(scene: Scene, stop: Callable[[], bool] | None = None) -> bool:
         base, epoch = decoding.base(work), decoding.epoch
     offsets = colour_offsets(base, work.views, stop=stop)  # seconds of work: no lock held
     with decoding.lock:
-        if not decoding.land(ColourSolution(work.chosen.rows.copy(), offsets, work.frames), epoch):
+        if not decoding.land(ColourSolution(work.chosen.rows, offsets, work.frames), epoch):
             return False
         with scene._lock:
             decoding.forget()  # the kept Gaussians show the last solution

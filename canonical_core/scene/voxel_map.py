@@ -12,8 +12,10 @@ It knows nothing of frames. It holds, for ``len(map)`` voxels:
   holds every voxel, so no fold pays for rehashing the whole map;
 - per chunk of `free_space.CHUNK` voxels, their keys' bounding box (the free-space kernels skip
   chunks outside a frustum);
-- per voxel, the stamp of the last change of its sums (`changed_at`), which the decoder side uses
-  to decode again only what changed. Stamps are unique in the process.
+- per voxel, the stamp of the last change of its sums (`changed_at`, int32), which the decoder side
+  uses to decode again only what changed. Stamps are unique in the process within a stamp epoch
+  (`StampClock`); a map restamps all its voxels when it first stamps in a new epoch, so equal
+  stamps of one epoch mean equal sums.
 
 Growth never copies the records on the fold path: each per-voxel array is a view of the first
 `capacity` rows of a zeroed block of `RESERVED_ROWS` rows allocated up front. A block that large is
@@ -27,7 +29,7 @@ the stored fields (`sums`, `load_sums`).
 
 from __future__ import annotations
 
-import itertools
+import threading
 
 import numba
 import numpy as np
@@ -57,8 +59,38 @@ ARRAYS = {
     "n_obs": (np.int32, ()),
 }
 
-# change stamps, unique in the process: inputs of one map can never match another map's decoded rows
-_STAMPS = itertools.count(1)
+STAMP_LIMIT = 2**31 - 1  # change stamps are int32 (`VoxelMap.changed_at`, `decoded.DecodedRows.stamps`)
+
+
+class StampClock:
+    """Change stamps, unique in the process within an epoch (so that inputs of one map can never
+    match another map's decoded rows): 1, 2, ... up to ``limit``, then a new epoch from 1 again.
+
+    A stamp of a new epoch may equal one an earlier epoch gave, so what compares stamps compares
+    epochs first: a map restamps every voxel when it first stamps in a new epoch
+    (`VoxelMap.stamp_epoch`), and decoded rows of another epoch are all stale (`SceneDecoding.take`).
+
+    Example:
+        >>> clock = StampClock(limit=2)
+        >>> [clock.next() for _ in range(3)]
+        [(0, 1), (0, 2), (1, 1)]
+    """
+
+    def __init__(self, limit: int = STAMP_LIMIT):
+        self.limit = limit
+        self.epoch, self.last = 0, 0  # the last stamp given, and its epoch
+        self._lock = threading.Lock()  # scenes fold on several threads
+
+    def next(self) -> tuple[int, int]:
+        """A fresh (epoch, stamp)."""
+        with self._lock:
+            if self.last >= self.limit:
+                self.epoch, self.last = self.epoch + 1, 0
+            self.last += 1
+            return self.epoch, self.last
+
+
+STAMPS = StampClock()  # the process's
 
 
 def sums_view(
@@ -140,6 +172,7 @@ class VoxelMap:
         self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         # an `undo.FoldUndo` while a fold keeps one: the integration enters what it is about to overwrite
         self.journal = None
+        self.stamp_epoch = 0  # the `StampClock` epoch of every stamp in `changed_at`
 
     def __len__(self) -> int:
         return self.n
@@ -154,7 +187,7 @@ class VoxelMap:
 
     def _shapes(self) -> dict[str, tuple[type, tuple[int, ...]]]:
         return ARRAYS | {"rows": (np.float32, (self.stored.width,)), "half": (np.uint16, (self.stored.half_width,)),
-                         "changed_at": (np.int64, ())}
+                         "changed_at": (np.int32, ())}
 
     def _reserve(self, capacity: int, rows: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
         """Zeroed blocks of ``rows`` rows (of every array, or of ``names``), fewer (down to
@@ -292,7 +325,7 @@ class VoxelMap:
     def commit(self, touched: np.ndarray, n_new: int) -> None:
         """After integration wrote rows ``touched`` (existing voxels, -1 entries ignored) and ``n_new``
         new voxels after the first `len(self)`: stamp them, extend the chunk boxes, count them in."""
-        stamp = next(_STAMPS)
+        stamp = self._stamp()
         self.changed_at[touched[touched >= 0]] = stamp
         self.changed_at[self.n: self.n + n_new] = stamp
         update_chunk_boxes_kernel(self.state["keys"], self.n, self.n + n_new, self.chunk_lo, self.chunk_hi)
@@ -303,7 +336,16 @@ class VoxelMap:
     def touch(self, rows: np.ndarray) -> None:  # rows: [M] int64 voxel indices below len(self)
         """Stamp voxels ``rows`` as changed (their rows were restored from elsewhere), so that a
         decode redoes them."""
-        self.changed_at[rows] = next(_STAMPS)
+        self.changed_at[rows] = self._stamp()
+
+    def _stamp(self) -> int:
+        """A fresh change stamp; the first of a new epoch restamps every voxel, whose stamps of the
+        last epoch the new one may give again to other sums."""
+        epoch, stamp = STAMPS.next()
+        if epoch != self.stamp_epoch:
+            self.changed_at[: self.n] = stamp
+            self.stamp_epoch = epoch
+        return stamp
 
     # -- reading ------------------------------------------------------------------------------
     def find(self, keys: np.ndarray) -> np.ndarray:  # [M] int64 keys -> [M] int32 voxel indices, -1 absent
@@ -348,7 +390,7 @@ class VoxelMap:
         self.stored.from_sums(sums, self.state)
         self.n = n
         self._written = max(self._written, n)
-        self.changed_at[:n] = next(_STAMPS)
+        self.changed_at[:n] = self._stamp()
         self.rebuild_table()
         update_chunk_boxes_kernel(self.state["keys"], 0, n, self.chunk_lo, self.chunk_hi)
 

@@ -11,12 +11,14 @@ import torch
 from canonical_core import Camera, Frame
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core import SceneConfig
-from canonical_core.decode import GaussianDecoder, solve_colours
+from canonical_core.decode import GaussianDecoder
 from canonical_core.eval.baselines import full_support_opacity
 from canonical_core.eval.methods import METHODS, build, check_methods, configured, parse_method
 from canonical_core.eval.metrics import covered, psnr
 from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available
 from canonical_core.frame import resize_frame
+
+from ..conftest import solved_as_kept
 
 needs_open3d = pytest.mark.skipif(not open3d_available(), reason="needs the bench extra (open3d)")
 
@@ -98,7 +100,7 @@ def test_canonical_solves_its_colours_against_its_inputs_by_default(frames):
     fused, _ = build("canonical:colour_solve.views=0", frames[:2], 0.02)
     canonical, _ = build("canonical", frames[:2], 0.02)
     solved, _ = build("colour_solve", frames[:2], 0.02)
-    expected = solve_colours(fused.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
+    expected = solved_as_kept(fused.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(solved.splats, name)), name
         assert torch.equal(getattr(expected, name), getattr(canonical.splats, name)), name
@@ -110,7 +112,7 @@ def test_completion_solve_is_depth_completion_with_colours_solved():
     completed, _ = build("depth_completion:colour_solve.views=0", holed, 0.02)
     both, _ = build("completion_solve", holed, 0.02)
     assert both.gaussians == completed.gaussians > build("canonical", holed, 0.02)[0].gaussians
-    expected = solve_colours(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])
+    expected = solved_as_kept(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(both.splats, name)), name
 

@@ -13,7 +13,9 @@ from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS, gather_rows
 from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES, decoded_rows, scene_features
+from canonical_core.scene import voxel_map
 from canonical_core.scene.fields import fields_from_sums
+from canonical_core.scene.voxel_map import STAMP_LIMIT, StampClock
 from ..conftest import folded_scene as _folded_scene, make_frame
 
 UNSOLVED = {"views": 0}  # the decoded rows are under test: the colour solve off, whose solutions vary by decode history
@@ -139,6 +141,69 @@ def test_a_loaded_snapshot_decodes_and_folds_on_like_the_original(shelf):
         s.fold(shelf[2])
     assert_same_gaussians(loaded.decode(), scene.decode())
     assert_same_gaussians(loaded.decode(), from_scratch(loaded))
+
+
+def changed_rows(before: dict, after: dict) -> np.ndarray:  # [V before] bool
+    """The rows of ``before`` (`Scene.sums`) whose sums differ in ``after`` (the see-through evidence
+    aside: it is no input of a row's decoded shape and colour, and folds change it far and wide)."""
+    n = len(before["keys"])
+    changed = np.zeros(n, bool)
+    for name, column in before.items():
+        if name != "free":
+            changed |= (after[name][:n] != column).reshape(n, -1).any(1)
+    return changed
+
+
+@pytest.fixture
+def clock(monkeypatch) -> StampClock:
+    """The process's change-stamp clock, fresh for the test: its next stamp is 1, in epoch 0."""
+    fresh = StampClock()
+    monkeypatch.setattr(voxel_map, "STAMPS", fresh)
+    return fresh
+
+
+@pytest.mark.realdata
+def test_stamps_past_the_int32_limit_start_an_epoch_in_which_no_stale_decoded_row_is_reused(shelf, clock):
+    scene = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.008), undo_depth=2)
+    counts = decoded_row_counts(scene)
+    scene.fold(shelf[0])
+    scene.decode()  # decoded rows of stamp 1
+    clock.last = STAMP_LIMIT - 1
+    scene.fold(shelf[1])  # the epoch's last stamp: int32's largest
+    changed_at = scene._voxels.changed_at
+    assert changed_at.dtype == np.int32 and changed_at.max() == STAMP_LIMIT
+    scene.decode()
+    sums, stamps = scene.sums(), changed_at[: len(scene)].copy()
+    scene.fold(shelf[2])  # the clock wraps: a new epoch, whose first stamp is 1 again
+    assert (clock.epoch, clock.last) == (1, 1)
+    # rows decoded from sums of stamp 1 whose new sums carry stamp 1 again
+    assert (changed_rows(sums, scene.sums()) & (stamps == 1)).sum() > 100
+    decoded = scene.decode()
+    assert counts[-1] == len(decoded)  # every row kept from the last epoch was stale: decoded afresh
+    assert_same_gaussians(decoded, from_scratch(scene))
+    scene.rollback(2)  # the rows it restores are restamped in the new epoch; the others are reused
+    decoded = scene.decode()
+    assert 0 < counts[-1] < len(decoded)
+    assert_same_gaussians(decoded, from_scratch(scene))
+
+
+@pytest.mark.realdata
+def test_a_map_restamps_every_voxel_when_it_first_stamps_in_a_new_epoch(shelf, clock):
+    """Voxels no fold touched since the last epoch would carry its stamps into the new one, whose
+    later folds give the same stamps to other sums: the map's first stamp of the epoch replaces them."""
+    clock.last = 2
+    scene = folded_scene(shelf[:1])  # stamp 3
+    first = scene.sums()
+    clock.last = STAMP_LIMIT
+    scene.fold(shelf[1])  # a new epoch, stamp 1
+    assert clock.epoch == 1 and (scene._voxels.changed_at[: len(scene)] == 1).all()
+    scene.fold(shelf[2])  # stamp 2
+    scene.decode()
+    kept = ~changed_rows(first, scene.sums())  # voxels of the first fold untouched since (stamp 3 without the restamp)
+    before = scene.sums()
+    scene.fold(shelf[3])  # stamp 3 again
+    assert (kept & changed_rows(before, scene.sums())[: len(kept)]).sum() > 100
+    assert_same_gaussians(scene.decode(), from_scratch(scene))
 
 
 def test_labels_arriving_after_a_decode_reach_every_voxel():

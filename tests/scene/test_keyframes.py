@@ -1,5 +1,5 @@
 """Keyframes for the colour solve: eviction keeps the stream spread; the scene decodes with them
-as `solve_colours` does, and they travel with the snapshot."""
+as `solve_colours` does (its offsets kept in float16), and they travel with the snapshot."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from canonical_core import SceneConfig
-from canonical_core.decode import colour_offsets, solve_colours, with_colour_offsets
+from canonical_core.decode import colour_offsets, with_colour_offsets
 from canonical_core.frame import resize_frame
 from canonical_core.scene import Scene
 from canonical_core.scene.decoding import REFRESH_ITERATIONS, decoded_rows
 from canonical_core.scene.keyframes import Keyframes
 
-from ..conftest import make_frame
+from ..conftest import make_frame, solved_as_kept
 
 
 def test_eviction_keeps_the_ends_and_an_even_spread():
@@ -81,7 +81,7 @@ def test_decode_solves_colours_against_the_kept_views(small):
         plain.fold(f)
     kept = solving._keyframes.frames()
     assert [k.frame_id for k in kept] == [small[i].frame_id for i in (0, 2, 3)]
-    expected, got = solve_colours(plain.decode(), kept), solving.decode()
+    expected, got = solved_as_kept(plain.decode(), kept), solving.decode()
     for name in ("means", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(got, name)), name
     assert not torch.equal(plain.decode().sh, got.sh)
@@ -159,7 +159,7 @@ def test_decodes_reuse_the_solution_until_refresh_frames_were_folded(small):
     got, base, rows = solving.decode(), plain.decode(), rows_of(solving)
     second = solving._decoding.solution
     assert second.frames == 4 and np.array_equal(second.rows, rows)
-    expected = colour_offsets(base, solving._keyframes.frames(), first.at(rows), iterations=REFRESH_ITERATIONS)
+    expected = colour_offsets(base, solving._keyframes.frames(), first.at(rows), iterations=REFRESH_ITERATIONS).half()
     assert torch.equal(second.offsets, expected) and torch.equal(got.sh, with_colour_offsets(base, expected).sh)
 
 
@@ -193,7 +193,7 @@ def test_the_solution_travels_with_the_snapshot_and_stays_out_of_the_digest(smal
     plain = Scene(SceneConfig(voxel_size=0.008, colour_solve={"views": 0}))
     for f in small[:3]:
         plain.fold(f)
-    assert not torch.equal(loaded.decode().sh, solve_colours(plain.decode(), loaded._keyframes.frames()).sh)
+    assert not torch.equal(loaded.decode().sh, solved_as_kept(plain.decode(), loaded._keyframes.frames()).sh)
     solved = scene._decoding.solution
     scene.rollback(2)  # the solution stays on the voxels that are still there, due for a re-solve
     carried = scene._decoding.solution
@@ -221,6 +221,6 @@ def test_a_correction_carries_the_solution_by_voxel_key_and_the_next_decode_re_s
     assert np.array_equal(carried.rows, np.sort(carried.rows)) and len(carried.rows) > 0.8 * len(before.rows)
     assert all(torch.equal(offset, offsets_of[key]) for key, offset in zip(keys.tolist(), carried.offsets))
     base, rows = scene.decode_from(scene.decode_inputs()._replace(views=[])), rows_of(scene)
-    expected = colour_offsets(base, scene._keyframes.frames(), carried.at(rows), iterations=REFRESH_ITERATIONS)
+    expected = colour_offsets(base, scene._keyframes.frames(), carried.at(rows), iterations=REFRESH_ITERATIONS).half()
     scene.decode()  # due: re-solved from the carried offsets, not from zero
     assert scene._decoding.solution.frames == scene.frames and torch.equal(scene._decoding.solution.offsets, expected)

@@ -10,10 +10,12 @@ import pytest
 import torch
 
 from canonical_core import SceneConfig
-from canonical_core.decode import SolveStopped, solve_colours
+from canonical_core.decode import SolveStopped
 from canonical_core.frame import resize_frame
 from canonical_core.scene import Scene
 from canonical_core.scene.decoding import ColourSolution
+
+from ..conftest import solved_as_kept
 
 VOXEL = 0.008
 
@@ -31,7 +33,7 @@ def folded(frames, undo_depth: int = 0, **settings) -> Scene:
 
 
 def reference(scene: Scene, frames) -> torch.Tensor:  # [N, 16, 3]: the solve of the same fused state, unsolved
-    return solve_colours(folded(frames, colour_solve={"views": 0}).decode(), scene._keyframes.frames()).sh
+    return solved_as_kept(folded(frames, colour_solve={"views": 0}).decode(), scene._keyframes.frames()).sh
 
 
 @pytest.mark.realdata

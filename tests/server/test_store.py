@@ -18,7 +18,6 @@ import torch
 
 from canonical_core import SceneConfig
 from canonical_core.datasets import load_tsdf_fusion
-from canonical_core.decode import solve_colours
 from canonical_core.scene import Scene
 from client.cli.capture import frame_arrays
 from server import framelog, wire
@@ -28,6 +27,7 @@ from server.durability import restore_scene
 from server.session_errors import FrameIdConflict, SessionUnavailable
 from server.store import SessionStore
 
+from ..conftest import solved_as_kept
 from .harness import hold_snapshot_commits, msgpack_frame
 
 
@@ -70,7 +70,7 @@ def test_a_session_serves_its_last_colour_solution_and_solves_off_the_render(sto
     assert label_dim == 0 and len(inputs.views) == 2 and same(g, fused) and session.colour_solve_due()
     assert session.solve_colours() and not session.colour_solve_due()
     g = session.gaussians()[0]
-    assert same(g, solve_colours(fused, inputs.views)) and not same(g, fused) and same(g, session.scene.decode())
+    assert same(g, solved_as_kept(fused, inputs.views)) and not same(g, fused) and same(g, session.scene.decode())
     assert session.gaussians()[0] is g  # cached until the next fold
     assert session.stats()["gaussians"] == len(g)
     fewer, _ = session.gaussians(max_gaussians=len(g) // 2)
@@ -104,7 +104,7 @@ def test_a_fold_goes_on_while_a_colour_solve_runs(store, shelf_frames):
     for frame in shelf_frames[:5]:
         plain.fold(frame)
     assert session.solve_colours()
-    assert same(session.gaussians()[0], solve_colours(plain.decode(), scene._keyframes.frames()))
+    assert same(session.gaussians()[0], solved_as_kept(plain.decode(), scene._keyframes.frames()))
 
 
 @pytest.mark.realdata
