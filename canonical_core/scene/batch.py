@@ -131,7 +131,7 @@ def aggregate_batch(
         "keys": uniq,
         "rep_r": r_sel[rep],
         "rep_f": rep_dir,
-        "rep_pos": points[rep],
+        "rep_pos": local[rep],
         "rep_rgb": torch.round(rgb[rep] * 255.0).to(torch.uint8),
         "r_sum": wsum(torch.ones(M)),
         "f_sum": wsum(feat) if L else torch.zeros(V, 0),

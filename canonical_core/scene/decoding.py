@@ -34,7 +34,7 @@ from .fields import fields_from_sums
 from .half import from_half
 from .shapes import voxel_shapes
 
-POSITION_SUMS = ("keys", "rep_pos", "pos_mean", "pos_cov")  # what `voxel_shapes` reads in place
+POSITION_SUMS = ("keys", "rep_local", "pos_mean", "pos_cov")  # what `voxel_shapes` reads in place
 # conjugate-gradient steps of a colour solve that starts from the last solution (one from zero takes the
 # library's default, 4): from a solution a handful of frames old, two reach about what a solve from zero does
 REFRESH_ITERATIONS = 2

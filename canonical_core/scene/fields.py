@@ -243,13 +243,13 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     }
     if positions:
         centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
-        local_rep = t["rep_pos"].double() / voxel_size - centres  # representative in local voxel units
+        local_rep = t["rep_pos"].double()  # the representative, in local voxel units
         mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
         sq = t["pos_sq"].double()
         second = torch.stack([torch.stack([sq[:, j] for j in row], -1) for row in _SQ_INDEX], -2)
         second = (second + eps * local_rep[:, :, None] * local_rep[:, None, :]) / den.double()[:, :, None]
         cov_local = second - mean_local[:, :, None] * mean_local[:, None, :]
-        out |= {"keys": t["keys"], "representative_position": t["rep_pos"],
+        out |= {"keys": t["keys"], "representative_position": ((centres + local_rep) * voxel_size).float(),
                 "position_mean": ((centres + mean_local) * voxel_size).float(),
                 "position_cov": (cov_local * voxel_size * voxel_size).float()}
     if t["label_sum"].shape[1] > 0:

@@ -118,7 +118,7 @@ def _undo_record(scene: Scene) -> FoldUndo:
 
 
 def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
-    index, points = scene.frames, scene._voxels.representative_points
+    index, points = scene.frames, functools.partial(scene._voxels.representative_points, scene.config.voxel_size)
     prepared = scene._front.prepare(frame, functools.partial(_check_foldable, scene), points)
     counts = (0, 0, 0, 0) if prepared.pending else _integrate(scene, prepared.frame)
     scene._front.commit(prepared)

@@ -55,8 +55,8 @@ class VoxelRows:
     One contiguous row per voxel (instead of one array per field) keeps a touched voxel's whole
     state in a few adjacent cache lines, where one array per field costs a cache miss per field.
 
-    Columns, in order: rep_r, rep_f [L], rep_pos [3] | r_sum, f_sum [L], rgb_sum [3], pos_sum [3],
-    pos_sq [6], sh_a [Wa], sh_b [Wb], and with S label channels label_w, label_sum [S]. Everything
+    Columns, in order: rep_r, rep_f [L], rep_pos [3] (local voxel units) | r_sum, f_sum [L], rgb_sum [3],
+    pos_sum [3], pos_sq [6], sh_a [Wa], sh_b [Wb], and with S label channels label_w, label_sum [S]. Everything
     from r_sum on is a weighted sum (rescaled together when a representative is replaced).
     """
 
@@ -205,8 +205,8 @@ def fold_kernel(
             for c in range(L):
                 row[REP_F + c] = feat[b, c]
             quantize_direction(row, REP_F, L)  # what the map keeps of it (`stored`), from now on
-            for c in range(3):  # colours are u8 / 255, so this round trip is exact
-                row[REP_POS + c] = points[b, c]
+            for c in range(3):  # in local voxel units, as the observations' moments (colours are u8 / 255: exact)
+                row[REP_POS + c] = points[b, c] * inv_voxel - (np.floor(points[b, c] * inv_voxel) + np.float32(0.5))
                 rep_rgb[vi, c] = np.uint8(rgb[b, c] * np.float32(255.0) + np.float32(0.5))
         rep_inv_norm = _inv_norm(row[REP_F: REP_F + L])
         floor_w = weight_floor * row[0]  # no observation weighs less than this share of the representative's

@@ -132,7 +132,7 @@ def surface_mesh(
     if not len(rows):
         return empty
     cells = unpack_keys(torch.from_numpy(picked["keys"])).numpy()
-    mean, second, colour = voxel_moments(picked, cells, config.voxel_size, config.research.eps)
+    mean, second, colour = voxel_moments(picked, config.research.eps)
     # R_scene is the total weight of a voxel's points: weighted by it, pooled moments are the points' own
     weight = chosen.support.numpy().astype(np.float64) + config.research.eps
     normal, point = tangent_planes(cells, weight, mean, second, view, block)

@@ -37,7 +37,7 @@ def _mean(pos_mean, row, j):  # a stored mean as a central moment's factor (`sto
 def _voxel_shapes_kernel(
     rows,  # [N] int64 scene rows to decode
     keys,  # [V] int64 packed lattice keys
-    rep_pos,  # [V, 3] float32 representative positions (world)
+    rep_local,  # [V, 3] float16 bits: representative positions (local voxel units)
     pos_mean,  # [V, 3] float16 bits (uint16): sum W x / R_scene (local voxel units)
     pos_cov,  # [V, 6] float16 bits: the central second moment over R_scene, upper triangle (`stored`)
     r_sum,  # [V] float32 R_scene
@@ -65,7 +65,7 @@ def _voxel_shapes_kernel(
             r = r_sum[row]
             den = float(np.float32(r + np.float32(eps)))
             for j in range(3):
-                rep[j] = float(rep_pos[row, j]) / voxel_size - c[j]
+                rep[j] = float(from_half(rep_local[row, j]))
                 m[j] = (float(from_half(pos_mean[row, j]) * r) + eps * rep[j]) / den  # the sum as `raw_sums` has it
                 centroid[i, j] = np.float32((c[j] + m[j]) * voxel_size)
             for j in range(3):  # covariance: float64, stored as float32, back to voxel units in float32
@@ -141,7 +141,8 @@ def voxel_shapes(
     if n:
         f32 = np.float32
         _voxel_shapes_kernel(
-            rows, sums["keys"], sums["rep_pos"], sums["pos_mean"].view(np.uint16), sums["pos_cov"].view(np.uint16), sums["r_sum"],
+            rows, sums["keys"], sums["rep_local"].view(np.uint16), sums["pos_mean"].view(np.uint16),
+            sums["pos_cov"].view(np.uint16), sums["r_sum"],
             float(voxel_size), float(eps), f32(FOOTPRINT_GAIN), f32(decoder.min_thickness), f32(decoder.min_extent),
             f32(decoder.max_extent), centroid, std, quats,
         )  # fmt: skip

@@ -24,6 +24,7 @@ import torch
 from ..evidence import DepthConsistency
 from ..config import SceneConfig
 from .decoding import ColourSolution
+from .fields import unpack_keys
 from .free_space import SeeThroughHistory
 from .keyframes import Keyframes
 
@@ -37,7 +38,8 @@ FORMAT_NAME = "canonicalgs-scene"
 # 4 adds the per-view observation density (v3 files load with a density of 1); 5 stores the records
 # as the map does (`stored`: the feature sum as a float16 mean; v3 and v4 files hold float32
 # sums, stored on loading as a fold stores them); 6 stores the colour and position moments and the SH
-# sums in float16 too, as means and central moments (v5 files hold them as float32 sums)
+# sums in float16 too, as means and central moments, the representative's position in local voxel
+# units and its feature as its 8-bit direction (v5 files hold float32 sums and world positions)
 FORMAT_VERSION = 6
 READABLE_VERSIONS = (3, 4, 5, FORMAT_VERSION)
 
@@ -125,7 +127,7 @@ def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:
     scene.chosen = dict(header.get("chosen") or scene.chosen)  # why the settings are what they are (`choices`)
     if header["label_dim"]:
         scene._voxels.set_label_dim(int(header["label_dim"]))
-    scene._voxels.load_sums(_prefixed(npz, "state"))
+    scene._voxels.load_sums(_local_representatives(_prefixed(npz, "state"), scene.config.voxel_size))
     scene.frames = int(header["frames"])
     density_sum, density_frames = header.get("density", [0.0, 0])
     scene._density_sum, scene._density_frames = float(density_sum), int(density_frames)
@@ -167,6 +169,16 @@ def read_config(path: str | os.PathLike) -> SceneConfig:
 def load(scene_type: type[Scene], path: str | os.PathLike) -> Scene:
     """The scene the snapshot file ``path`` holds (`Scene.load`, ``scene_type`` its class; see `from_bytes`)."""
     return scene_type.from_bytes(Path(path).read_bytes())
+
+
+def _local_representatives(sums: dict[str, np.ndarray], voxel_size: float | None) -> dict[str, np.ndarray]:
+    """``sums`` with the representatives' positions in local voxel units, as a fold keeps them: files
+    before version 6 hold them as world positions (``rep_pos``)."""
+    if "rep_local" in sums or "rep_pos" not in sums or not len(sums["rep_pos"]):
+        return sums
+    cells = unpack_keys(torch.from_numpy(np.asarray(sums["keys"], np.int64))).numpy()
+    local = np.asarray(sums["rep_pos"], np.float32) * np.float32(1.0 / voxel_size) - (cells + 0.5).astype(np.float32)
+    return sums | {"rep_pos": local}
 
 
 def _prefixed(npz, prefix: str) -> dict[str, np.ndarray]:

@@ -4,14 +4,15 @@ The fold works on the full float32 record (`kernels.VoxelRows`: the representati
 weighted sums). Stored that way it is the bulk of a scene's memory, so the map keeps it in two
 arrays instead:
 
-- ``rows`` [V, width] float32: the representative's reliability and position, R_scene and the
-  label sums;
+- ``rows`` [V, width] float32: the representative's reliability, R_scene and the label sums;
 - ``half`` [V, half_width] uint16 columns: every other field, as a quantity that stays within its
   inputs' range however long the stream:
   - the representative's feature as its direction, 8 bits a channel (two channels a column, the
     direction scaled to length 127 and rounded: ``rep_dir``). Only its direction enters the fold
     (the similarity weight is a cosine), and 8 bits move a cosine by about a hundredth at most;
   - in float16 (held as its bits, `half`), where float16 keeps about 3.3 significant digits:
+    the representative's position in local voxel units (``rep_local``: its offset from the voxel's
+    centre, within 1/2, which float16 holds to 1/8000 of a voxel);
     a first moment as its *mean* over R_scene (``f_mean``, ``rgb_mean``, ``pos_mean``; a sum grows
     without bound, and float16 ends at 65504);
     a second moment as its *central* moment over R_scene, about the stored means (``pos_cov``, and
@@ -43,9 +44,9 @@ Example:
     >>> from canonical_core.scene.kernels import VoxelRows
     >>> stored = StoredRows(VoxelRows(feature_dim=4, sh_widths=(9, 9)))
     >>> stored.width, stored.half_width  # 4 feature channels: 2 columns of direction
-    (5, 36)
+    (2, 39)
     >>> sorted(n for n, c in stored.columns.items() if c[0] == "half")
-    ['f_mean', 'pos_cov', 'pos_mean', 'rep_dir', 'rgb_mean', 'sh_a_central', 'sh_b_central']
+    ['f_mean', 'pos_cov', 'pos_mean', 'rep_dir', 'rep_local', 'rgb_mean', 'sh_a_central', 'sh_b_central']
 """
 
 from __future__ import annotations
@@ -61,11 +62,11 @@ from .half import from_half, to_half
 if TYPE_CHECKING:
     from .kernels import VoxelRows
 
-# how a float16 column is stored: as a mean over R_scene, or as a central moment over R_scene
-MEAN, CENTRAL = 1, 2
-# the working record's moments kept in float16: name -> stored name
-HALF_FIELDS = {"f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean", "pos_sq": "pos_cov",
-               "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
+# how a float16 column is stored: as it is, as a mean over R_scene, or as a central moment over R_scene
+AS_IS, MEAN, CENTRAL = 0, 1, 2
+# the working record's fields kept in float16: name -> stored name
+HALF_FIELDS = {"rep_pos": "rep_local", "f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean",
+               "pos_sq": "pos_cov", "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
 SUMS = {stored: name for name, stored in HALF_FIELDS.items()}  # stored name -> its sum's name
 DIRECTION_LENGTH = 127  # the stored direction's length: its channels are then int8
 _SQ_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # pos_sq's columns xx xy xz yy yz zz
@@ -83,8 +84,10 @@ class Factor(NamedTuple):
 
 def column_rules(name: str, width: int, bases: int) -> list[tuple[int, Factor | None, Factor | None]]:
     """How each of the ``width`` columns of the working record's field ``name`` is stored in float16
-    (``bases``: K, the SH bases of the fit): (MEAN or CENTRAL, and for CENTRAL the two means it is
-    about)."""
+    (``bases``: K, the SH bases of the fit): (AS_IS, MEAN or CENTRAL, and for CENTRAL the two means
+    it is about)."""
+    if name == "rep_pos":  # in local voxel units, within the voxel: float16 as it is
+        return [(AS_IS, None, None)] * width
     if name in ("f_sum", "rgb_sum", "pos_sum"):
         return [(MEAN, None, None)] * width
     if name == "pos_sq":
@@ -183,6 +186,9 @@ class StoredRows:
                 continue
             if value is None and name in SUMS:
                 raw = np.asarray(sums[SUMS[name]], np.float32)
+                if name == "rep_local":
+                    self.field(rows, name)[...] = raw
+                    continue
                 value = raw / safe
                 for c, (kind, a, b) in enumerate(column_rules(SUMS[name], raw.shape[1], bases)):
                     if kind == CENTRAL:
@@ -195,7 +201,7 @@ def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A scene's stored fields (`StoredRows.field` views or copies, [V, ...]) with the float16 means
     and central moments present turned back into their float32 sums, as `load_row` computes them:
     ``mean * R_scene``, ``(central + mean_a * mean_b) * R_scene``; the stored direction as the
-    representative's feature (``rep_f``, its 8-bit values). Other fields pass unchanged, float32
+    representative's feature (``rep_f``, its 8-bit values) and its local position as ``rep_pos``. Other fields pass unchanged, float32
     sums too (the batch reference's, earlier snapshots')."""
     out = dict(stored)
     if "rep_dir" in out:
@@ -216,7 +222,7 @@ def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         for c, (kind, a, b) in enumerate(column_rules(SUMS[name], widths[name], bases)):
             if kind == CENTRAL:
                 value[:, c] = value[:, c] + mean(a) * mean(b)
-        out[SUMS[name]] = value * r
+        out[SUMS[name]] = value if name == "rep_local" else value * r
         del out[name]
     return out
 
@@ -292,7 +298,7 @@ def load_row(rows, half, v, wide_cols, direction, half_cols, half_kind, factor_c
         if half_kind[c] == CENTRAL:
             value = value + (_factor(half, v, factor_cols[c, 0], factor_affine[c, 0], factor_affine[c, 1])
                              * _factor(half, v, factor_cols[c, 1], factor_affine[c, 2], factor_affine[c, 3]))
-        work[half_cols[c]] = value * r
+        work[half_cols[c]] = value if half_kind[c] == AS_IS else value * r
 
 
 @numba.njit(inline="always")
@@ -308,7 +314,9 @@ def store_row(work, rows, half, v, wide_cols, direction, half_cols, half_kind, f
     pairs = direction[2]
     for c in range(half_cols.shape[0]):
         value = np.float32(0.0)
-        if r > np.float32(0.0):
+        if half_kind[c] == AS_IS:
+            value = work[half_cols[c]]
+        elif r > np.float32(0.0):
             value = work[half_cols[c]] / r
             if half_kind[c] == CENTRAL:
                 a = (work[factor_cols[c, 2]] / r) * factor_affine[c, 0] + factor_affine[c, 1]

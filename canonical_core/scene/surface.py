@@ -49,15 +49,13 @@ def view_direction_sums(
 
 def voxel_moments(
     sums: dict[str, np.ndarray],  # float32 sums (`stored.raw_sums` of `Scene.sums`), rows already chosen
-    cells: np.ndarray,  # [V, 3] int64 their lattice cells (`fields.unpack_keys`)
-    voxel_size: float,
     eps: float,  # `SceneConfig.research.eps`: the representative's share, as `fields_from_sums` gives it
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # mean [V, 3], second [V, 3, 3], colour [V, 3]: float64
     """Each voxel's centroid and second moment of its lifted points (voxel units, relative to its
     centre) and its fused colour in [0, 1], with `fields_from_sums`'s fallback to the representative
     where R_scene ~ 0."""
     den = sums["r_sum"].astype(np.float64)[:, None] + eps
-    rep = sums["rep_pos"].astype(np.float64) / voxel_size - (cells + 0.5)
+    rep = sums["rep_pos"].astype(np.float64)  # local voxel units
     mean = (sums["pos_sum"] + eps * rep) / den
     sq = sums["pos_sq"].astype(np.float64)
     second = np.stack([sq[:, row] for row in _SQ_COLUMNS], 1)

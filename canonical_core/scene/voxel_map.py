@@ -33,9 +33,10 @@ import threading
 
 import numba
 import numpy as np
+import torch
 
 from .decoded import gather_rows
-from .fields import sh_sum_widths
+from .fields import sh_sum_widths, unpack_keys
 from .free_space import CHUNK, update_chunk_boxes_kernel
 from .hashing import insert_range_kernel, lookup_kernel, remove_range_kernel
 from .kernels import VoxelRows
@@ -355,12 +356,15 @@ class VoxelMap:
         lookup_kernel(self.table, self.state["keys"], keys, out)
         return out
 
-    def representative_points(self, max_points: int = 20_000) -> np.ndarray | None:  # [<= ~max_points, 3] float32
-        """Representative positions of an evenly strided subset of the voxels (None when empty)."""
+    def representative_points(self, voxel_size: float, max_points: int = 20_000) -> np.ndarray | None:  # [<= ~max_points, 3]
+        """Representative positions (world, float32) of an evenly strided subset of the voxels, for
+        voxels of ``voxel_size`` (None when empty)."""
         if not self.n:
             return None
         step = max(1, self.n // max_points)
-        return self.stored.field({"rows": self.state["rows"][: self.n: step]}, "rep_pos")
+        cells = unpack_keys(torch.from_numpy(self.state["keys"][: self.n: step])).numpy()
+        local = self.stored.field({"half": self.state["half"][: self.n: step]}, "rep_local").astype(np.float64)
+        return ((cells + 0.5 + local) * voxel_size).astype(np.float32)
 
     def sums(self) -> dict[str, np.ndarray]:
         """The stored per-voxel sums (`stored`: contiguous copies, insertion order, spare rows excluded)."""

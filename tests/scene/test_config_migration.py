@@ -43,10 +43,11 @@ def test_flat_snapshot_settings_land_in_their_groups(loaded):
 
 
 # the fixture's state as the map stores it since records keep the representative's feature as its 8-bit
-# direction, and the feature, colour and position sums and the SH sums as float16 means and central
-# moments (`scene.stored`): the file's float32 sums are stored so on loading, and this digest pins that
-# conversion (the file's own digest, in its expected.json, was of the float32 sums)
-STORED_DIGEST = "414a92fcec6735a203460a97fd3950fda1b70e6a1e84a5f08b64c0e12002598c"
+# direction and its position in local voxel units, and the feature, colour and position sums and the SH
+# sums as float16 means and central moments (`scene.stored`): the file's float32 sums and world
+# positions are stored so on loading, and this digest pins that conversion (the file's own digest, in
+# its expected.json, was of the float32 sums)
+STORED_DIGEST = "605984a7d581275e2cb4174ddaadfea1593b8b197450bbd25e163f80b1d1e296"
 # how far its decode may lie from what it decoded to when written: opacities do not move; positions
 # move by float16's rounding of the stored position mean (a thousandth of its 0.15 m voxel at most),
 # F_scene by float16's rounding of the stored feature sums, SH by the colour mean's (2^-11 / C0 at most),

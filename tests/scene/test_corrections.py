@@ -86,9 +86,9 @@ def test_removing_every_frame_that_saw_a_region_empties_it():
     near = [make_frame(np.full((10, 12), 1.0), fx=10.0, c2w=pose(0.02 * k)) for k in range(3)]
     far = [make_frame(np.full((10, 12), 1.0), fx=10.0, c2w=pose(5.0 + 0.02 * k)) for k in range(3)]
     scene = fold([near[0], far[0], near[1], far[1], near[2], far[2]], keep=True)
-    assert (scene.sums()["rep_pos"][:, 0] > 4.0).any()  # world x of each voxel's representative
+    assert (scene.fields()["representative_position"][:, 0] > 4.0).any()  # world x of each voxel's representative
     scene.remove_frames([1, 3, 5])
-    assert len(scene) and not (scene.sums()["rep_pos"][:, 0] > 4.0).any()
+    assert len(scene) and not (scene.fields()["representative_position"][:, 0] > 4.0).any()
     assert scene.digest() == fold(near).digest()
 
 
