@@ -20,7 +20,7 @@ the load average at each run; then this tree over the base. Never asserts timing
   scene): the median of the last 20 folds over the first 20, the slowest fold over the median, and
   after one decode `Scene.memory_bytes` per voxel and the process's resident growth per voxel.
 - ``memory``: the office walk played twice at 1 cm by a scene keeping the undo records of its last
-  4 folds (as a service session with a frame archive does, within half the map's bytes where the
+  folds (the tree's default depth, as a service session with a frame archive does, within half the map's bytes where the
   tree bounds them so), then one decode: bytes a voxel of its
   state (the map), its undo records, its caches (the decoded rows, the colour solve's views and
   solution) and all of them (`Scene.memory_bytes`), and the process's resident growth a voxel.
@@ -135,10 +135,12 @@ def _unsolved(config_class, voxel: float):
 
 
 def measure_memory() -> dict:
-    scene, _, before = _office_walked_twice(4, 0.5)
+    from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH  # the records a session keeps, in each tree
+
+    scene, _, before = _office_walked_twice(DEFAULT_UNDO_DEPTH, 0.5)
     n, all_in, undo = len(scene), scene.memory_bytes(), scene.undo_bytes()
     caches = scene._decoding.nbytes() + scene._keyframes.nbytes()  # both trees keep these parts so
-    return {"voxels": n, "state a voxel": (all_in - undo - caches) / n, "undo a voxel": undo / n,
+    return {"voxels": n, "undo records": len(scene._undo), "state a voxel": (all_in - undo - caches) / n, "undo a voxel": undo / n,
             "caches a voxel": caches / n, "all in a voxel": all_in / n, "resident growth a voxel": (_rss() - before) / n}
 
 

@@ -15,6 +15,7 @@ from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from canonical_core.config import MAX_VOXELS
+from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 
 
 def default_memory_budget() -> int:
@@ -62,10 +63,10 @@ class Settings(BaseSettings):
     correction_background_frames: int = Field(64, ge=0, description=(
         "a pose correction that would re-fold more frames than this re-folds in the background: POST /poses "
         "answers 202 and the client polls its status"))
-    correction_undo_frames: int = Field(4, ge=0, le=1024, description=(
+    correction_undo_frames: int = Field(DEFAULT_UNDO_DEPTH, ge=0, le=1024, description=(
         "a session keeps undo records of its last this many folds, so that a pose correction of them rolls "
         "back in place and re-folds only them; each record costs about the rows its fold touched (megabytes "
-        "at 640x480), counted in the session's memory_bytes; past the newest 4, the oldest are dropped while "
+        "at 640x480), counted in the session's memory_bytes; past the newest 5, the oldest are dropped while "
         "the records hold more than half the bytes of the session's voxel map"))
     preallocate_voxels: int = Field(0, ge=0, le=MAX_VOXELS, description=(
         "each session's scene commits the memory of this many voxels up front (at most its max_voxels; about "

@@ -31,14 +31,14 @@ from .folding import FoldReport
 from .free_space import SeeThroughHistory
 from .integrate import Scratch
 from .keyframes import Keyframes
-from .undo import UndoRing
+from .undo import MIN_KEPT, UndoRing
 from .voxel_map import CapacityError, VoxelMap, gathered_sums
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 
-# folds a scene that keeps its frames can roll back in place: each record holds the stored rows the fold
-# touched and its frustum's see-through evidence, several times the fold's share of the state, so few
-DEFAULT_UNDO_DEPTH = 4
+# folds a scene that keeps its frames can roll back in place: a record costs several times its fold's
+# share of the state, so few: those kept whatever their size (correcting the last 5 frames re-folds 5)
+DEFAULT_UNDO_DEPTH = MIN_KEPT
 
 
 class Scene:

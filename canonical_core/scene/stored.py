@@ -8,7 +8,7 @@ arrays instead:
 - ``half`` [V, half_width] uint16 columns: every other field, as a quantity that stays within its
   inputs' range however long the stream:
   - the representative's feature as its direction, 8 bits a channel (two channels a column, the
-    direction scaled to length 127 and rounded: ``rep_dir``). Only its direction enters the fold
+    direction scaled so that its largest channel is +-127, and rounded: ``rep_dir``). Only its direction enters the fold
     (the similarity weight is a cosine), and 8 bits move a cosine by about a hundredth at most;
   - in float16 (held as its bits, `half`), where float16 keeps about 3.3 significant digits:
     the representative's position in local voxel units (``rep_local``: its offset from the voxel's
@@ -68,7 +68,7 @@ AS_IS, MEAN, CENTRAL = 0, 1, 2
 HALF_FIELDS = {"rep_pos": "rep_local", "f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean",
                "pos_sq": "pos_cov", "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
 SUMS = {stored: name for name, stored in HALF_FIELDS.items()}  # stored name -> its sum's name
-DIRECTION_LENGTH = 127  # the stored direction's length: its channels are then int8
+DIRECTION_STEPS = 127  # the stored direction's largest channel: its channels are then int8
 _SQ_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # pos_sq's columns xx xy xz yy yz zz
 
 
@@ -234,16 +234,17 @@ def _signed(byte):  # the int8 whose bits are ``byte`` (0..255)
 
 @numba.njit(inline="always")
 def quantize_direction(x, first, channels):
-    """``x[first: first + channels]``, in place, as the stored direction: scaled to length
-    `DIRECTION_LENGTH` and rounded to integers (a zero vector stays zero). The fold applies it to a
-    representative as it is chosen, so that what it folds against is what the map keeps."""
-    n2 = np.float32(0.0)
+    """``x[first: first + channels]``, in place, as the stored direction: scaled so that its largest
+    channel is +-`DIRECTION_STEPS` (the whole int8 range for every vector) and rounded to integers
+    (a zero vector stays zero). The fold applies it to a representative as it is chosen, so that
+    what it folds against is what the map keeps."""
+    largest = np.float32(0.0)
     for c in range(channels):
-        n2 += x[first + c] * x[first + c]
-    scale = np.float32(DIRECTION_LENGTH) / np.sqrt(n2) if n2 > np.float32(1e-20) else np.float32(0.0)
+        largest = max(largest, abs(x[first + c]))
+    scale = np.float32(DIRECTION_STEPS) / largest if largest > np.float32(1e-30) else np.float32(0.0)
     for c in range(channels):
         q = np.floor(x[first + c] * scale + np.float32(0.5))
-        x[first + c] = min(np.float32(DIRECTION_LENGTH), max(np.float32(-DIRECTION_LENGTH), q))
+        x[first + c] = min(np.float32(DIRECTION_STEPS), max(np.float32(-DIRECTION_STEPS), q))
 
 
 @numba.njit(inline="always")

@@ -168,7 +168,7 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
 # a deep ring (`undo_depth` up to 1024) costs at most this beside the state, or its newest
 # `MIN_KEPT` records where those alone hold more (a capture whose every frame touches most of the map)
 MAX_UNDO_SHARE = 0.5
-MIN_KEPT = 4  # records kept whatever their size: corrections of the last few frames stay in place
+MIN_KEPT = 5  # records kept whatever their size: corrections of the last few frames stay in place
 
 
 class UndoRing:

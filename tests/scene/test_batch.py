@@ -11,7 +11,7 @@ from ..conftest import make_frame
 
 # One 1x3 frame whose three pixels land in voxel (0, 0, 0) (fx = 10, z = 0.5, voxel 1.0), with
 # client features and per-pixel std, so every observation's F and R are known exactly.
-FEATS = np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 0.5]], np.float32)
+FEATS = np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 0.4]], np.float32)
 STD = np.array([0.5, 0.2, 0.1], np.float32)
 RGB = np.array([[10, 20, 30], [40, 50, 60], [70, 80, 90]], np.uint8)
 
@@ -29,8 +29,8 @@ def cos(a, b):
     return a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
 
 
-def kept(f):  # a representative's feature as the map keeps it: scaled to length 127, rounded
-    return np.floor(f * 127 / np.linalg.norm(f) + 0.5)
+def kept(f):  # a representative's feature as the map keeps it: its largest channel scaled to 127, rounded
+    return np.floor(f * 127 / np.abs(f).max() + 0.5)
 
 
 def expected(mode, weight_floor=0.0):
@@ -56,9 +56,10 @@ def test_batch_rule_matches_hand_computation(mode, weight_floor):
 
 
 def test_full_rule_by_hand_numbers():
-    # written out once, so the reference itself is pinned: rep = pixel 2 (std 0.1)
+    # written out once, so the reference itself is pinned: rep = pixel 2 (std 0.1), its feature (1, 0.4)
+    # kept as (127, 51) (`stored.quantize_direction`), |(127, 51)| = sqrt(18730)
     f = aggregate_batch([tiny_frame()], config())
-    w = [np.exp(-0.5) * 1 / np.sqrt(1.25), np.exp(-0.2) * 1.5 / (np.sqrt(2) * np.sqrt(1.25)), np.exp(-0.1)]
+    w = [np.exp(-0.5) * 127 / np.sqrt(18730), np.exp(-0.2) * 178 / (np.sqrt(2) * np.sqrt(18730)), np.exp(-0.1)]
     assert f["reliability"].item() == pytest.approx(sum(w), rel=1e-6)
 
 

@@ -132,6 +132,17 @@ def test_a_correction_of_recent_frames_refolds_only_them():
     assert scene.undo_floor == 8  # the last 4 folds: 8, 9 (kept) and the two the removal re-folded
 
 
+def test_by_default_a_correction_of_the_last_five_frames_refolds_only_them():
+    frames = stream(12)
+    scene = Scene(CONFIG, keep_frames=True)
+    for frame in frames:
+        scene.fold(frame)
+    scene._kept[6] = drifted(frames)[6]  # were frame 6 re-folded, the digest would show it
+    moved = replace(frames[7], camera=frames[7].camera.with_pose(pose(0.5)))
+    scene.update_poses({"f7": pose(0.5)} | {f"f{k}": frames[k].camera.c2w64() for k in range(8, 12)})
+    assert scene.digest() == fold(frames[:7] + [moved] + frames[8:]).digest()
+
+
 def test_labels_that_widen_the_rows_end_the_records_before_them():
     frames = stream(6)
     labels = np.zeros((20, 24, 2), np.float32)
