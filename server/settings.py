@@ -70,7 +70,7 @@ class Settings(BaseSettings):
         "the records hold more than half the bytes of the session's voxel map"))
     preallocate_voxels: int = Field(0, ge=0, le=MAX_VOXELS, description=(
         "each session's scene commits the memory of this many voxels up front (at most its max_voxels; about "
-        "200 bytes a voxel, counted in its memory_bytes), so that folds growing the map up to that size never "
+        "150 bytes a voxel, counted in its memory_bytes), so that folds growing the map up to that size never "
         "wait for fresh pages: steadier fold times for sessions whose size is known, at that memory per session"))
     snapshot_every_frames: int = Field(50, gt=0, description="snapshot a session after this many frames since its last one")
     snapshot_every_seconds: float = Field(60.0, gt=0, description="... or when its oldest unsnapshotted frame is this old")

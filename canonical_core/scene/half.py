@@ -1,10 +1,13 @@
 """IEEE half precision in numba kernels: float32 <-> float16 bit patterns held as uint16.
 
 numba has no float16 type on the CPU, so the voxel map keeps its half-precision columns as uint16
-and the kernels convert with these integer functions. They round as numpy's ``astype(np.float16)``
-does (to nearest, ties to even; subnormals, infinities and NaN kept), so an array converted in a
-kernel and one converted by numpy hold the same bits, and numpy reads the columns back through a
-zero-copy ``.view(np.float16)``.
+and the kernels convert with `to_half` and `from_half`. Where the CPU converts half precision
+itself (x86 with F16C, arm64) they are its instructions, which LLVM emits for its ``half`` type;
+elsewhere LLVM would call runtime functions that numba's JIT does not provide, and the integer
+conversions below (`half_bits`, `float_bits`) stand in. Both round as numpy's
+``astype(np.float16)`` does (to nearest, ties to even; subnormals, infinities and NaN kept), so an
+array converted in a kernel and one converted by numpy hold the same bits, and numpy reads the
+columns back through a zero-copy ``.view(np.float16)``.
 
 Example:
     >>> import numpy as np
@@ -17,8 +20,11 @@ Example:
 
 from __future__ import annotations
 
+import platform
+
 import numba
 import numpy as np
+from llvmlite import binding as llvm_binding
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
@@ -44,16 +50,65 @@ def _float_of(typingctx, bits):
     return types.float32(types.uint32), codegen
 
 
+@intrinsic
+def _half_of(typingctx, x):
+    """The float16 nearest the float32 ``x``, as bits: LLVM's conversion to ``half``."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
+
+    return types.uint16(types.float32), codegen
+
+
+@intrinsic
+def _float_of_half(typingctx, bits):
+    """The float32 equal to the float16 whose bits are ``bits``: LLVM's conversion from ``half``."""
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+
+    return types.float32(types.uint16), codegen
+
+
+def converts_in_hardware(machine: str | None = None, features: str | None = None) -> bool:
+    """Whether LLVM converts half precision with instructions on this CPU (``machine`` as
+    `platform.machine` names it, ``features`` as LLVM lists the host's: ``+f16c,...``)."""
+    machine = (machine or platform.machine()).lower()
+    if machine in ("x86_64", "amd64"):
+        features = llvm_binding.get_host_cpu_features().flatten() if features is None else features
+        return "+f16c" in features.split(",")
+    return machine in ("arm64", "aarch64")
+
+
+HARDWARE = converts_in_hardware()
+
+
 @numba.njit(inline="always")
-def to_half(x):  # float32 -> float16's bits (uint16)
-    """The float16 nearest ``x`` (ties to even), as bits."""
+def integer_to_half(x):  # float32 -> float16's bits (uint16)
+    """`to_half` in integer operations (any CPU)."""
     return half_bits(_bits_of(np.float32(x)))
 
 
 @numba.njit(inline="always")
-def from_half(h):  # float16's bits (uint16) -> float32
-    """The float32 equal to the float16 whose bits are ``h`` (exact: every half is a float32)."""
+def integer_from_half(h):  # float16's bits (uint16) -> float32
+    """`from_half` in integer operations (any CPU)."""
     return _float_of(float_bits(h))
+
+
+@numba.njit(inline="always")
+def _hardware_to_half(x):
+    return _half_of(np.float32(x))
+
+
+@numba.njit(inline="always")
+def _hardware_from_half(h):
+    return _float_of_half(np.uint16(h))
+
+
+# float32 -> float16's bits (uint16): the float16 nearest x (ties to even), as bits
+to_half = _hardware_to_half if HARDWARE else integer_to_half
+# float16's bits (uint16) -> float32: the float32 equal to the float16 (exact: every half is a float32)
+from_half = _hardware_from_half if HARDWARE else integer_from_half
 
 
 @numba.njit(inline="always")

@@ -201,30 +201,55 @@ def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A scene's stored fields (`StoredRows.field` views or copies, [V, ...]) with the float16 means
     and central moments present turned back into their float32 sums, as `load_row` computes them:
     ``mean * R_scene``, ``(central + mean_a * mean_b) * R_scene``; the stored direction as the
-    representative's feature (``rep_f``, its 8-bit values) and its local position as ``rep_pos``. Other fields pass unchanged, float32
-    sums too (the batch reference's, earlier snapshots')."""
+    representative's feature (``rep_f``, its 8-bit values) and its local position as ``rep_pos``.
+    Other fields pass unchanged, float32 sums too (the batch reference's, earlier snapshots'). Each
+    field is one pass on the numba threads, reading the float16 columns where they are."""
     out = dict(stored)
     if "rep_dir" in out:
         out["rep_f"] = out.pop("rep_dir").astype(np.float32)
     present = [name for name in SUMS if name in stored]
     if not present:
         return out
-    r = np.asarray(stored["r_sum"], np.float32)[:, None]
-    widths = {name: stored[name].shape[1] for name in present}
-    bases = sh_bases(widths.get("sh_a_central", 0))
-
-    def mean(f: Factor) -> np.ndarray:
-        m = stored[HALF_FIELDS[f.field]][:, f.column].astype(np.float32)
-        return m * np.float32(f.scale) + np.float32(f.offset)
-
+    r = np.ascontiguousarray(stored["r_sum"], np.float32)
+    bases = sh_bases(stored["sh_a_central"].shape[1] if "sh_a_central" in stored else 0)
     for name in present:
-        value = stored[name].astype(np.float32)
-        for c, (kind, a, b) in enumerate(column_rules(SUMS[name], widths[name], bases)):
+        x = stored[name]
+        rules = column_rules(SUMS[name], x.shape[1], bases)
+        kinds = np.array([kind for kind, _, _ in rules], np.int64)
+        cols, affine = np.zeros((len(rules), 2), np.int64), np.zeros((len(rules), 4), np.float32)
+        a_source = b_source = x  # a field's central moments take their two means from one stored field each
+        for c, (kind, a, b) in enumerate(rules):
             if kind == CENTRAL:
-                value[:, c] = value[:, c] + mean(a) * mean(b)
-        out[SUMS[name]] = value if name == "rep_local" else value * r
+                a_source, b_source = stored[HALF_FIELDS[a.field]], stored[HALF_FIELDS[b.field]]
+                cols[c], affine[c] = (a.column, b.column), (a.scale, a.offset, b.scale, b.offset)
+        value = np.empty((len(r), x.shape[1]), np.float32)
+        if len(r) and x.shape[1]:
+            _raw_sums_kernel(x.view(np.uint16), r, kinds, a_source.view(np.uint16), b_source.view(np.uint16), cols,
+                             affine, value)
+        out[SUMS[name]] = value
         del out[name]
     return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _raw_sums_kernel(
+    x,  # [V, W] float16 bits of one stored field (a strided view)
+    r,  # [V] float32 R_scene
+    kinds,  # [W] AS_IS, MEAN or CENTRAL
+    a_source, b_source,  # [V, *] float16 bits: the stored means a central moment's two factors read
+    cols,  # [W, 2] the factors' columns in them
+    affine,  # [W, 4] float32 scale and offset of each factor
+    out,  # [V, W] float32
+):
+    for v in numba.prange(x.shape[0]):
+        rv = r[v]
+        for c in range(x.shape[1]):
+            value = from_half(x[v, c])
+            kind = kinds[c]
+            if kind == CENTRAL:
+                value = value + ((from_half(a_source[v, cols[c, 0]]) * affine[c, 0] + affine[c, 1])
+                                 * (from_half(b_source[v, cols[c, 1]]) * affine[c, 2] + affine[c, 3]))
+            out[v, c] = value if kind == AS_IS else value * rv
 
 
 @numba.njit(inline="always")

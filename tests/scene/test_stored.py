@@ -3,6 +3,7 @@ as bounded means and central moments, and earlier snapshots' float32 sums are st
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -10,11 +11,25 @@ import torch
 from canonical_core import Scene, SceneConfig
 from canonical_core.rendering.sh import sh_basis
 from canonical_core.scene.fields import solve_sh, sums_from_stored
-from canonical_core.scene.half import floats_of, halves_of
+from canonical_core.scene.half import converts_in_hardware, floats_of, halves_of, integer_from_half, integer_to_half
 from canonical_core.scene.voxel_map import VoxelMap
 
 
-def test_halves_round_as_numpy_does_everywhere():
+@numba.njit
+def integer_halves(x, out):  # `halves_of` through the integer conversion every CPU has
+    for i in range(x.shape[0]):
+        out[i] = integer_to_half(x[i])
+
+
+@numba.njit
+def integer_floats(h, out):
+    for i in range(h.shape[0]):
+        out[i] = integer_from_half(h[i])
+
+
+@pytest.mark.parametrize("convert", ["in use", "integer"])
+def test_halves_round_as_numpy_does_everywhere(convert):
+    halves, floats = (halves_of, floats_of) if convert == "in use" else (integer_halves, integer_floats)
     rng = np.random.default_rng(0)
     bits = rng.integers(0, 2**32, 200_000, dtype=np.uint64).astype(np.uint32)
     # around each threshold of the conversion: infinity, normal, subnormal, zero; and exact ties
@@ -23,7 +38,7 @@ def test_halves_round_as_numpy_does_everywhere():
     bits = np.concatenate([bits, near, near | np.uint32(0x80000000)])
     x = bits.view(np.float32)
     out = np.empty(len(x), np.uint16)
-    halves_of(x, out)
+    halves(x, out)
     with np.errstate(over="ignore"):
         expected = x.astype(np.float16)
     nan = np.isnan(x)
@@ -31,11 +46,16 @@ def test_halves_round_as_numpy_does_everywhere():
     assert np.isnan(out[nan].view(np.float16)).all()
     every = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16)
     back = np.empty(len(every), np.float32)
-    floats_of(every, back)
+    floats(every, back)
     expected = every.view(np.float16).astype(np.float32)
     finite = ~np.isnan(expected)
     np.testing.assert_array_equal(back.view(np.uint32)[finite], expected.view(np.uint32)[finite])
     assert np.isnan(back[~finite]).all()
+
+
+def test_the_cpu_converts_half_precision_where_llvm_has_its_instructions():
+    assert converts_in_hardware("x86_64", "+sse2,+f16c,+avx") and converts_in_hardware("aarch64", "")
+    assert not converts_in_hardware("x86_64", "+sse2,-f16c") and not converts_in_hardware("ppc64le", "+f16c")
 
 
 def observed_sums(n: int, scale: float, spread: float, seed: int = 3) -> dict[str, np.ndarray]:
