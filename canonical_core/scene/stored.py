@@ -117,10 +117,10 @@ class StoredRows:
     field's name to (array name, first column, field shape); ``wide_cols`` [width] are the working
     record's column of each float32 column. The ``half`` array holds the representative's direction
     first (``direction``: its first working column, its channels and the columns they take), then the
-    moments: ``half_cols`` [moments] are their working columns and, for the kernels, ``half_kind``
-    [moments] whether each is a MEAN or a CENTRAL moment, and for a central moment its two means,
-    ``factor_cols`` [moments, 4] int64 (their ``half`` columns, then their working columns) and
-    ``factor_affine`` [moments, 4] float32 (scale and offset of each)."""
+    float16 columns: ``half_cols`` [H] are their working columns and, for the kernels, ``half_kind``
+    [H] how each is stored (AS_IS, MEAN or CENTRAL), and for a central moment its two means,
+    ``factor_cols`` [H, 4] int64 (their ``half`` columns, then their working columns) and
+    ``factor_affine`` [H, 4] float32 (scale and offset of each)."""
 
     def __init__(self, layout: VoxelRows):
         self.layout = layout
