@@ -1,8 +1,9 @@
 """IEEE half precision in numba kernels: float32 <-> float16 bit patterns held as uint16.
 
 numba has no float16 type on the CPU, so the voxel map keeps its half-precision columns as uint16
-and the kernels convert with `to_half` and `from_half`. Where the CPU converts half precision
-itself (x86 with F16C, arm64) they are its instructions, which LLVM emits for its ``half`` type;
+and the kernels convert with `to_half` and `from_half`. Where the CPU numba compiles for converts
+half precision itself (x86 with F16C, arm64) they are its instructions, which LLVM emits for its
+``half`` type;
 elsewhere LLVM would call runtime functions that numba's JIT does not provide, and the integer
 conversions below (`half_bits`, `float_bits`) stand in. Both round as numpy's
 ``astype(np.float16)`` does (to nearest, ties to even; subnormals, infinities and NaN kept), so an
@@ -71,11 +72,15 @@ def _float_of_half(typingctx, bits):
 
 
 def converts_in_hardware(machine: str | None = None, features: str | None = None) -> bool:
-    """Whether LLVM converts half precision with instructions on this CPU (``machine`` as
-    `platform.machine` names it, ``features`` as LLVM lists the host's: ``+f16c,...``)."""
+    """Whether LLVM converts half precision with instructions on the CPU numba compiles for
+    (``machine`` as `platform.machine` names it, ``features`` as LLVM lists them: ``+f16c,...``).
+    By default the host's features, or those numba is told to target (``NUMBA_CPU_NAME`` other than
+    ``host``, e.g. ``generic`` for a cache shared between machines: then only ``NUMBA_CPU_FEATURES``)."""
     machine = (machine or platform.machine()).lower()
     if machine in ("x86_64", "amd64"):
-        features = llvm_binding.get_host_cpu_features().flatten() if features is None else features
+        if features is None:
+            targeted = numba.config.CPU_NAME not in (None, "host")
+            features = (numba.config.CPU_FEATURES or "") if targeted else llvm_binding.get_host_cpu_features().flatten()
         return "+f16c" in features.split(",")
     return machine in ("arm64", "aarch64")
 

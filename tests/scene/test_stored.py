@@ -3,6 +3,12 @@ as bounded means and central moments, and earlier snapshots' float32 sums are st
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
 import numba
 import numpy as np
 import pytest
@@ -13,6 +19,8 @@ from canonical_core.rendering.sh import sh_basis
 from canonical_core.scene.fields import solve_sh, sums_from_stored
 from canonical_core.scene.half import converts_in_hardware, floats_of, halves_of, integer_from_half, integer_to_half
 from canonical_core.scene.voxel_map import VoxelMap
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 @numba.njit
@@ -56,6 +64,20 @@ def test_halves_round_as_numpy_does_everywhere(convert):
 def test_the_cpu_converts_half_precision_where_llvm_has_its_instructions():
     assert converts_in_hardware("x86_64", "+sse2,+f16c,+avx") and converts_in_hardware("aarch64", "")
     assert not converts_in_hardware("x86_64", "+sse2,-f16c") and not converts_in_hardware("ppc64le", "+f16c")
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="numba's generic x86-64 target")
+def test_kernels_built_for_a_generic_cpu_take_the_integer_conversions(tmp_path):
+    # a cache shared between machines is built for NUMBA_CPU_NAME=generic, whose x86-64 has no F16C:
+    # LLVM's half conversions would then call functions numba's JIT lacks (the process crashed)
+    code = ("import numpy as np\n"
+            "from canonical_core.scene.half import HARDWARE, floats_of, halves_of\n"
+            "h = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16); x = np.empty(len(h), np.float32)\n"
+            "floats_of(h, x); finite = np.isfinite(x); back = np.empty(len(h), np.uint16); halves_of(x, back)\n"
+            "print(HARDWARE, bool((back[finite] == h[finite]).all()))")
+    env = os.environ | {"NUMBA_CPU_NAME": "generic", "NUMBA_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stdout.split() == ["False", "True"], (done.returncode, done.stderr[-2000:])
 
 
 def observed_sums(n: int, scale: float, spread: float, seed: int = 3) -> dict[str, np.ndarray]:
