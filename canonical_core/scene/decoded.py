@@ -6,7 +6,7 @@ voxel's sums; only its opacity depends on the scene as a whole (the support unit
 cheap to recompute for every voxel. A fold changes the sums of the voxels its observations land in
 (tens of thousands) while the scene holds hundreds of thousands, so the decoder side (`scene.decoding`) keeps each
 decoded row here with the fold stamp of the sums it came from, and reuses it while the row's sums
-still carry that stamp. Stamps are unique per fold within a stamp epoch (`voxel_map.StampClock`), so
+still carry that stamp. Stamps are unique per fold within a stamp epoch (`stamps.StampClock`), so
 equal stamps of one epoch mean equal sums; the decoder side starts new decoded rows in a new epoch.
 """
 

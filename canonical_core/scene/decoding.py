@@ -151,7 +151,7 @@ class DecodeInputs(NamedTuple):
     # [V] int32 per row, the stamp of the change that last changed its sums; None: decode every row afresh
     changed_at: np.ndarray | None = None
     frames: int = 0  # `Scene.frames`: when the colour solve is due again (`SceneConfig.colour_solve.refresh`)
-    stamp_epoch: int = 0  # the epoch of those stamps (`voxel_map.StampClock`): the decoded rows of another are stale
+    stamp_epoch: int = 0  # the epoch of those stamps (`stamps.StampClock`): the decoded rows of another are stale
 
 
 class DecodeWork(NamedTuple):

@@ -22,15 +22,11 @@ from ..decode.decoder import FOOTPRINT_GAIN, GaussianDecoder
 from ..decode.eigen import jacobi3
 from ..config import KEY_BITS, KEY_OFFSET
 from .half import from_half
+from .stored import CENTRAL, MEAN, factor, sum_of
 
 _CHUNK = 256  # voxels per parallel task, each with its own small scratch (cache-resident)
 # pos_cov's columns (xx xy xz yy yz zz) at (row, column) of the symmetric 3x3 (as fields._SQ_INDEX)
 _SQ = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], np.int64)
-
-
-@numba.njit(inline="always")
-def _mean(pos_mean, row, j):  # a stored mean as a central moment's factor (`stored.column_rules`: scale 1, offset 0)
-    return from_half(pos_mean[row, j]) * np.float32(1.0) + np.float32(0.0)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -48,6 +44,7 @@ def _voxel_shapes_kernel(
 ):
     mask = (1 << KEY_BITS) - 1
     vv = np.float32(voxel_size * voxel_size)
+    one, zero = np.float32(1.0), np.float32(0.0)  # a position moment's means: scale 1, offset 0 (`stored.column_rules`)
     for chunk in numba.prange(-(-rows.shape[0] // _CHUNK)):  # scratch per chunk: small, cache-resident
         first = chunk * _CHUNK
         a = np.empty((_CHUNK, 3, 3))  # the covariance, diagonalised in place
@@ -66,11 +63,12 @@ def _voxel_shapes_kernel(
             den = float(np.float32(r + np.float32(eps)))
             for j in range(3):
                 rep[j] = float(from_half(rep_local[row, j]))
-                m[j] = (float(from_half(pos_mean[row, j]) * r) + eps * rep[j]) / den  # the sum as `raw_sums` has it
+                m[j] = (float(sum_of(from_half(pos_mean[row, j]), MEAN, one, one, r)) + eps * rep[j]) / den
                 centroid[i, j] = np.float32((c[j] + m[j]) * voxel_size)
             for j in range(3):  # covariance: float64, stored as float32, back to voxel units in float32
                 for k in range(3):
-                    raw = (from_half(pos_cov[row, _SQ[j, k]]) + _mean(pos_mean, row, j) * _mean(pos_mean, row, k)) * r
+                    raw = sum_of(from_half(pos_cov[row, _SQ[j, k]]), CENTRAL, factor(pos_mean, row, j, one, zero),
+                                 factor(pos_mean, row, k, one, zero), r)  # the sums as `stored.raw_sums` has them
                     second = (float(raw) + eps * rep[j] * rep[k]) / den
                     a[li, j, k] = float(np.float32((second - m[j] * m[k]) * voxel_size * voxel_size) / vv)
             for j in range(3):

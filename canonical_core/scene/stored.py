@@ -168,10 +168,7 @@ class StoredRows:
         (``rep_f``) as its direction."""
         n = len(sums["r_sum"])
         rows = {k: v[:n] for k, v in out.items()}
-        if "rep_dir" in sums:
-            self.field(rows, "rep_dir")[...] = sums["rep_dir"]
-        else:
-            self.field(rows, "rep_dir")[...] = directions_of(sums["rep_f"])
+        self.field(rows, "rep_dir")[...] = sums["rep_dir"] if "rep_dir" in sums else directions_of(sums["rep_f"])
         bases = sh_bases(self.layout.columns["sh_a"][1][0])
         r = np.asarray(sums["r_sum"], np.float32)[:, None]
         positive = r > 0
@@ -180,20 +177,16 @@ class StoredRows:
         def mean(f: Factor) -> np.ndarray:
             return (np.asarray(sums[f.field], np.float32)[:, f.column] / safe[:, 0]) * np.float32(f.scale) + np.float32(f.offset)
 
-        for name in self.columns:
+        for name in self.columns.keys() - {"rep_dir"}:
             value = sums.get(name)
-            if name == "rep_dir":
-                continue
             if value is None and name in SUMS:
                 raw = np.asarray(sums[SUMS[name]], np.float32)
-                if name == "rep_local":
-                    self.field(rows, name)[...] = raw
-                    continue
-                value = raw / safe
+                value = raw.copy()
                 for c, (kind, a, b) in enumerate(column_rules(SUMS[name], raw.shape[1], bases)):
+                    if kind != AS_IS:
+                        value[:, c] = np.where(positive[:, 0], raw[:, c] / safe[:, 0], np.float32(0))
                     if kind == CENTRAL:
-                        value[:, c] = value[:, c] - mean(a) * mean(b)
-                value = np.where(positive, value, np.float32(0))
+                        value[:, c] = np.where(positive[:, 0], value[:, c] - mean(a) * mean(b), np.float32(0))
             self.field(rows, name)[...] = value
 
 
@@ -242,14 +235,9 @@ def _raw_sums_kernel(
     out,  # [V, W] float32
 ):
     for v in numba.prange(x.shape[0]):
-        rv = r[v]
         for c in range(x.shape[1]):
-            value = from_half(x[v, c])
-            kind = kinds[c]
-            if kind == CENTRAL:
-                value = value + ((from_half(a_source[v, cols[c, 0]]) * affine[c, 0] + affine[c, 1])
-                                 * (from_half(b_source[v, cols[c, 1]]) * affine[c, 2] + affine[c, 3]))
-            out[v, c] = value if kind == AS_IS else value * rv
+            out[v, c] = sum_of(from_half(x[v, c]), kinds[c], factor(a_source, v, cols[c, 0], affine[c, 0], affine[c, 1]),
+                               factor(b_source, v, cols[c, 1], affine[c, 2], affine[c, 3]), r[v])
 
 
 @numba.njit(inline="always")
@@ -303,8 +291,18 @@ def directions_of(features: np.ndarray) -> np.ndarray:  # [n, L] float -> [n, L]
 
 
 @numba.njit(inline="always")
-def _factor(half, v, column, scale, offset):  # a stored mean, scaled and offset as a central moment takes it
+def factor(half, v, column, scale, offset):  # a stored mean, scaled and offset as a central moment takes it
     return from_half(half[v, column]) * scale + offset
+
+
+@numba.njit(inline="always")
+def sum_of(stored, kind, factor_a, factor_b, r):
+    """The float32 sum of one stored float16 value (as a float32) of ``kind``: as it is, a mean
+    times R_scene ``r``, or a central moment plus the product of its two means (``factor``), times
+    ``r``. Every reader of the stored moments makes its sums here, so they agree bit for bit."""
+    if kind == CENTRAL:
+        stored = stored + factor_a * factor_b
+    return stored if kind == AS_IS else stored * r
 
 
 @numba.njit(inline="always")
@@ -320,11 +318,9 @@ def load_row(rows, half, v, wide_cols, direction, half_cols, half_kind, factor_c
     r = work[r_col]
     pairs = direction[2]
     for c in range(half_cols.shape[0]):
-        value = from_half(half[v, pairs + c])
-        if half_kind[c] == CENTRAL:
-            value = value + (_factor(half, v, factor_cols[c, 0], factor_affine[c, 0], factor_affine[c, 1])
-                             * _factor(half, v, factor_cols[c, 1], factor_affine[c, 2], factor_affine[c, 3]))
-        work[half_cols[c]] = value if half_kind[c] == AS_IS else value * r
+        work[half_cols[c]] = sum_of(from_half(half[v, pairs + c]), half_kind[c],
+                                    factor(half, v, factor_cols[c, 0], factor_affine[c, 0], factor_affine[c, 1]),
+                                    factor(half, v, factor_cols[c, 1], factor_affine[c, 2], factor_affine[c, 3]), r)
 
 
 @numba.njit(inline="always")

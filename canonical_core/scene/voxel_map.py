@@ -14,7 +14,7 @@ It knows nothing of frames. It holds, for ``len(map)`` voxels:
   chunks outside a frustum);
 - per voxel, the stamp of the last change of its sums (`changed_at`, int32), which the decoder side
   uses to decode again only what changed. Stamps are unique in the process within a stamp epoch
-  (`StampClock`); a map restamps all its voxels when it first stamps in a new epoch, so equal
+  (`stamps.StampClock`); a map restamps all its voxels when it first stamps in a new epoch, so equal
   stamps of one epoch mean equal sums.
 
 Growth never copies the records on the fold path: each per-voxel array is a view of the first
@@ -29,12 +29,11 @@ the stored fields (`sums`, `load_sums`).
 
 from __future__ import annotations
 
-import threading
-
 import numba
 import numpy as np
 import torch
 
+from . import stamps
 from .decoded import gather_rows
 from .fields import sh_sum_widths, unpack_keys
 from .free_space import CHUNK, update_chunk_boxes_kernel
@@ -59,39 +58,6 @@ ARRAYS = {
     "free": (np.float32, ()),  # written by the free-space kernels, which scan it with the keys
     "n_obs": (np.int32, ()),
 }
-
-STAMP_LIMIT = 2**31 - 1  # change stamps are int32 (`VoxelMap.changed_at`, `decoded.DecodedRows.stamps`)
-
-
-class StampClock:
-    """Change stamps, unique in the process within an epoch (so that inputs of one map can never
-    match another map's decoded rows): 1, 2, ... up to ``limit``, then a new epoch from 1 again.
-
-    A stamp of a new epoch may equal one an earlier epoch gave, so what compares stamps compares
-    epochs first: a map restamps every voxel when it first stamps in a new epoch
-    (`VoxelMap.stamp_epoch`), and decoded rows of another epoch are all stale (`SceneDecoding.take`).
-
-    Example:
-        >>> clock = StampClock(limit=2)
-        >>> [clock.next() for _ in range(3)]
-        [(0, 1), (0, 2), (1, 1)]
-    """
-
-    def __init__(self, limit: int = STAMP_LIMIT):
-        self.limit = limit
-        self.epoch, self.last = 0, 0  # the last stamp given, and its epoch
-        self._lock = threading.Lock()  # scenes fold on several threads
-
-    def next(self) -> tuple[int, int]:
-        """A fresh (epoch, stamp)."""
-        with self._lock:
-            if self.last >= self.limit:
-                self.epoch, self.last = self.epoch + 1, 0
-            self.last += 1
-            return self.epoch, self.last
-
-
-STAMPS = StampClock()  # the process's
 
 
 def sums_view(
@@ -173,7 +139,7 @@ class VoxelMap:
         self.chunk_hi = np.zeros((self.capacity // CHUNK + 1, 3), np.int64)
         # an `undo.FoldUndo` while a fold keeps one: the integration enters what it is about to overwrite
         self.journal = None
-        self.stamp_epoch = 0  # the `StampClock` epoch of every stamp in `changed_at`
+        self.stamp_epoch = 0  # the `stamps.StampClock` epoch of every stamp in `changed_at`
 
     def __len__(self) -> int:
         return self.n
@@ -342,7 +308,7 @@ class VoxelMap:
     def _stamp(self) -> int:
         """A fresh change stamp; the first of a new epoch restamps every voxel, whose stamps of the
         last epoch the new one may give again to other sums."""
-        epoch, stamp = STAMPS.next()
+        epoch, stamp = stamps.STAMPS.next()
         if epoch != self.stamp_epoch:
             self.changed_at[: self.n] = stamp
             self.stamp_epoch = epoch

@@ -13,9 +13,9 @@ from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS, gather_rows
 from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES, decoded_rows, scene_features
-from canonical_core.scene import voxel_map
 from canonical_core.scene.fields import fields_from_sums
-from canonical_core.scene.voxel_map import STAMP_LIMIT, StampClock
+from canonical_core.scene import stamps as stamp_clock
+from canonical_core.scene.stamps import STAMP_LIMIT, StampClock
 from ..conftest import folded_scene as _folded_scene, make_frame
 
 UNSOLVED = {"views": 0}  # the decoded rows are under test: the colour solve off, whose solutions vary by decode history
@@ -158,7 +158,7 @@ def changed_rows(before: dict, after: dict) -> np.ndarray:  # [V before] bool
 def clock(monkeypatch) -> StampClock:
     """The process's change-stamp clock, fresh for the test: its next stamp is 1, in epoch 0."""
     fresh = StampClock()
-    monkeypatch.setattr(voxel_map, "STAMPS", fresh)
+    monkeypatch.setattr(stamp_clock, "STAMPS", fresh)
     return fresh
 
 
