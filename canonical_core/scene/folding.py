@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import time
 
-import torch
+import numpy as np
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING
 
@@ -183,7 +183,8 @@ def fold_cost(scene: "Scene", frame: Frame) -> int:
         pixels = frame.width * frame.height
     else:
         near, far = scene.config.range.near, scene.config.range.far
-        pixels = int(torch.count_nonzero((frame.depth > near) & (frame.depth < far)))
+        depth = frame.depth.numpy()  # numpy: one thread, where torch would wake its pool for a count
+        pixels = int(np.count_nonzero((depth > near) & (depth < far)))
     per_voxel = scene._voxels.new_voxel_bytes()
     return pixels * (per_voxel * 2 if scene._undo.depth else per_voxel)
 
