@@ -177,10 +177,13 @@ def fold_kernel(
         vi = touched[t]
         thread = numba.get_thread_id()  # below NUMBA_NUM_THREADS (the rows of work) in every threading layer
         row = work[thread]
-        load_row(rows, half, vi, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, R_SUM, row)
         if vi >= n_voxels:  # a new voxel (written first here, in parallel: fresh memory costs a page fault)
+            for c in range(D):  # what loading its all-zero record gives, without converting it column by column
+                row[c] = np.float32(0.0)
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
-        elif keep_before:
+        else:
+            load_row(rows, half, vi, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, R_SUM, row)
+        if vi < n_voxels and keep_before:
             k = before_slot[t]
             before_index[k] = vi
             for c in range(rows.shape[1]):
