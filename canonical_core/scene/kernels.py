@@ -183,16 +183,16 @@ def fold_kernel(
             row[0] = np.float32(-1.0)  # rep_r below any reliability: the first observation takes it
         else:
             load_row(rows, half, vi, wide_cols, direction, half_cols, half_kind, factor_cols, factor_affine, R_SUM, row)
-        if vi < n_voxels and keep_before:
-            k = before_slot[t]
-            before_index[k] = vi
-            for c in range(rows.shape[1]):
-                before_rows[k, c] = rows[vi, c]
-            for c in range(half.shape[1]):
-                before_half[k, c] = half[vi, c]
-            for c in range(3):
-                before_rgb[k, c] = rep_rgb[vi, c]
-            before_n_obs[k] = n_obs[vi]
+            if keep_before:
+                k = before_slot[t]
+                before_index[k] = vi
+                for c in range(rows.shape[1]):
+                    before_rows[k, c] = rows[vi, c]
+                for c in range(half.shape[1]):
+                    before_half[k, c] = half[vi, c]
+                for c in range(3):
+                    before_rgb[k, c] = rep_rgb[vi, c]
+                before_n_obs[k] = n_obs[vi]
         # 1) its representative: a strictly more reliable observation replaces the running one
         b = best[t]
         rb = rel[b] if uses_rel else np.float32(1.0)
