@@ -281,7 +281,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
     app.state.jobs = Scheduler(settings.frame_workers, settings.render_workers, settings.queue_limit, settings.render_nice,
                                init=lambda: configure_thread(settings.threads), solve_workers=settings.solve_workers,
-                               solve_nice=settings.solve_nice)
+                               solve_nice=settings.solve_nice, ingest_workers=settings.ingest_workers,
+                               ingest_nice=settings.ingest_nice)
     app.state.events = FoldEvents(settings.max_event_streams_per_session, settings.max_event_streams)
     app.state.bodies = BodyBytes(settings.max_inflight_body_bytes)
     app.add_middleware(GuardMiddleware, settings=settings, metrics=metrics, bodies=app.state.bodies)

@@ -6,9 +6,11 @@ kind of job, bounded on its own; the workers serve the kinds in priority order a
 the sessions with jobs waiting in turn (round-robin), so one session's load never refuses, and hardly
 delays, another session's frames. The kinds, first served first:
 
-- ``ingest``: reading, decoding and checking a frame's body before it folds. The frame workers run
-  these first and in parallel with the session's fold, so that a client keeping frames in flight has
-  the next frame ready when the fold before it ends.
+- ``ingest``: reading, decoding and checking a frame's body before it folds, on their own workers
+  in parallel with the session's fold, so that a client keeping frames in flight has the next frame
+  ready when the fold before it ends. They run at a slightly lower OS priority (``ingest_nice``):
+  a decode then takes the cores the fold under way leaves, instead of one of its threads (every
+  parallel kernel of a fold waits for its slowest thread), and still goes before renders.
 - ``frame``: folds, pose corrections, creating and deleting sessions: the writes a streaming client
   waits on. The frame workers run them, a session's one at a time and in arrival order (its folds
   take the session lock in turn anyway: a second worker would only wait for it).
@@ -24,8 +26,9 @@ delays, another session's frames. The kinds, first served first:
 
 Work and viewer jobs run on the render workers, whose threads (and the numba and OpenMP threads
 they start, which inherit it) run at a lower OS priority (``nice``, on Linux), so that a fold
-running beside a render gets the cores first. Threads and queued jobs are bounded: ``frame_workers +
-render_workers + solve_workers`` threads, and at most ``queue_limit`` jobs per session and kind.
+running beside a render gets the cores first. Threads and queued jobs are bounded: ``ingest_workers
++ frame_workers + render_workers + solve_workers`` threads, and at most ``queue_limit`` jobs per
+session and kind.
 
 Example:
     >>> import asyncio
@@ -52,10 +55,12 @@ from typing import Any, Callable, Literal, TypeVar
 T = TypeVar("T")
 Kind = Literal["ingest", "frame", "work", "viewer", "solve"]
 KINDS: tuple[Kind, ...] = ("ingest", "frame", "work", "viewer", "solve")  # priority order
-FRAME_KINDS: tuple[Kind, ...] = ("ingest", "frame")  # what the frame workers take, in this order
+FRAME_KINDS: tuple[Kind, ...] = ("ingest", "frame")  # a session's frames: being decoded, or folding
 RENDER_KINDS: tuple[Kind, ...] = ("work", "viewer")  # what the render workers take, in this order
 SERIAL_KINDS: tuple[Kind, ...] = ("frame", "solve")  # a session's jobs of these kinds run one at a time
-SOLVE_NICE = 19  # the solve workers' default OS priority below the service's: the lowest there is
+# the workers' default OS priorities below the service's (the folds'): frames' decoding a little below
+# the folds, renders well below the decoding, background solves the lowest there is
+INGEST_NICE, RENDER_NICE, SOLVE_NICE = 5, 15, 19
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
 
 
@@ -106,18 +111,21 @@ def _settle(future: asyncio.Future, result: Any, error: BaseException | None) ->
 
 
 class Scheduler:
-    """Runs jobs on ``frame_workers`` threads (frames and their decoding), ``render_workers`` threads at OS priority
-    ``render_nice`` (other work, then the viewer's) and ``solve_workers`` threads at ``solve_nice``
-    (background solves); at most ``queue_limit`` jobs running or waiting per session and kind.
+    """Runs jobs on ``frame_workers`` threads (folds and the other frame jobs), ``ingest_workers`` threads
+    at OS priority ``ingest_nice`` (frames' decoding), ``render_workers`` threads at ``render_nice``
+    (other work, then the viewer's) and ``solve_workers`` threads at ``solve_nice`` (background
+    solves); at most ``queue_limit`` jobs running or waiting per session and kind.
     ``init`` runs once in each worker thread before its first job (the service's numba thread count,
     which numba keeps per thread). Threads start with the first job.
     """
 
-    def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = 10,
-                 init: Callable[[], None] | None = None, solve_workers: int = 1, solve_nice: int = SOLVE_NICE):
+    def __init__(self, frame_workers: int, render_workers: int, queue_limit: int, render_nice: int = RENDER_NICE,
+                 init: Callable[[], None] | None = None, solve_workers: int = 1, solve_nice: int = SOLVE_NICE,
+                 ingest_workers: int = 1, ingest_nice: int = INGEST_NICE):
         self.limit, self._init = queue_limit, init
         self._lock = threading.Lock()
-        self._lanes = (_Lane(FRAME_KINDS, frame_workers, 0, threading.Condition(self._lock)),
+        self._lanes = (_Lane(("frame",), frame_workers, 0, threading.Condition(self._lock)),
+                       _Lane(("ingest",), ingest_workers, ingest_nice, threading.Condition(self._lock)),
                        _Lane(RENDER_KINDS, render_workers, render_nice, threading.Condition(self._lock)),
                        _Lane(("solve",), solve_workers, solve_nice, threading.Condition(self._lock)))
         # kind -> session -> its waiting jobs; a session's place in the dict is its turn

@@ -17,6 +17,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from canonical_core.config import MAX_VOXELS
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 
+from .scheduler import INGEST_NICE, RENDER_NICE, SOLVE_NICE
+
 
 def default_memory_budget() -> int:
     """Half the machine's RAM (8 GiB where the system does not say): the rest is the process itself,
@@ -92,15 +94,22 @@ class Settings(BaseSettings):
     frame_workers: int = Field(2, gt=0, description=(
         "threads that fold frames (and run corrections, session creation and deletion): one session's one at a "
         "time, the sessions in turn"))
+    ingest_workers: int = Field(2, gt=0, description=(
+        "threads that read, decode and check frames' bodies, beside the folds: a client's next frames are "
+        "ready when the fold before them ends"))
+    ingest_nice: int = Field(INGEST_NICE, ge=0, le=19, description=(
+        "how much lower the OS priority (nice) of the ingest workers is than the service's, so that a frame's "
+        "decode takes the cores the fold under way leaves rather than one of its threads (its parallel kernels "
+        "wait for their slowest thread); below render_nice, so decodes still go before renders (0: the same)"))
     render_workers: int = Field(2, gt=0, description=(
         "threads that run renders, views, exports, stats and the viewer's pictures, after the frames"))
-    render_nice: int = Field(10, ge=0, le=19, description=(
-        "how much lower the OS priority (nice) of the render workers is than the service's, so that a fold "
-        "running beside a render gets the cores first (0: the same)"))
+    render_nice: int = Field(RENDER_NICE, ge=0, le=19, description=(
+        "how much lower the OS priority (nice) of the render workers is than the service's, so that a fold, and "
+        "a frame's decode (ingest_nice), running beside a render get the cores first (0: the same)"))
     solve_workers: int = Field(1, gt=0, description=(
         "threads that solve the sessions' colours in the background (colour_solve.views), at the lowest OS "
         "priority, while a session has no frame waiting: a session's one at a time, the sessions in turn"))
-    solve_nice: int = Field(19, ge=0, le=19, description=(
+    solve_nice: int = Field(SOLVE_NICE, ge=0, le=19, description=(
         "how much lower the OS priority (nice) of the solve workers is than the service's (19: the lowest, so "
         "that folds and renders get the cores first; on a machine that other work keeps busy a solve then waits "
         "for idle cores, and a lower value trades fold time for solved colours sooner)"))

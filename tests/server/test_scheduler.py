@@ -1,7 +1,8 @@
 """The scheduler on its own threads: frames never wait for renders, work before the viewer's pictures,
 sessions in turn, a session's frames one at a time in order, limits per session and kind, a newer
-viewer picture replacing a waiting one, the render workers' lower OS priority, and the background
-solves: their own lowest lane, a session's one at a time, none while its frames wait.
+viewer picture replacing a waiting one, frames decoded on their own workers beside the folds, the
+ingest and render workers' lower OS priorities, and the background solves: their own lowest lane, a
+session's one at a time, none while its frames wait.
 
 Each test holds a worker inside a job (a `threading.Event`) to line jobs up behind it, so the order
 asserted is the scheduler's choice, never a matter of timing.
@@ -15,7 +16,7 @@ import threading
 
 import pytest
 
-from server.scheduler import SOLVE_NICE, VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
+from server.scheduler import INGEST_NICE, RENDER_NICE, SOLVE_NICE, VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
 
 WAIT_S = 30.0
 
@@ -69,6 +70,17 @@ def test_a_frame_runs_while_the_render_workers_are_busy():
         assert not render.done()  # the frame did not wait for the render
         gate.opened.set()
         assert await render == "render"
+
+    run(body)
+
+
+def test_the_next_frame_is_decoded_while_the_fold_before_it_runs():
+    async def body(s: Scheduler):
+        gate, fold = await held(s, "frame", name="fold")  # the only frame worker is folding
+        assert await s.run(lambda: "decoded", kind="ingest", session="a") == "decoded"
+        assert not fold.done()  # the decode did not wait for the fold
+        gate.opened.set()
+        assert await fold == "fold"
 
     run(body)
 
@@ -194,26 +206,29 @@ def _nice() -> int:
     return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
 
 
-def test_render_workers_run_at_a_lower_os_priority():
+def test_ingest_and_render_workers_run_at_lower_os_priorities():
     async def body(s: Scheduler):
-        return (await s.run(_nice, kind="frame", session="a"), await s.run(_nice, kind="work", session="a"),
-                await s.run(_nice, kind="viewer", session="a"))
+        return (await s.run(_nice, kind="frame", session="a"), await s.run(_nice, kind="ingest", session="a"),
+                await s.run(_nice, kind="work", session="a"), await s.run(_nice, kind="viewer", session="a"))
 
     base = _nice()
-    frame, work, viewer = run(body, render_nice=7)
-    assert frame == base and work == viewer == min(base + 7, 19)
+    frame, ingest, work, viewer = run(body, render_nice=7, ingest_nice=3)
+    assert frame == base and ingest == min(base + 3, 19) and work == viewer == min(base + 7, 19)
+    defaults = run(body)  # the decoding a little below the folds, the renders well below the decoding
+    assert defaults[1:] == (min(base + INGEST_NICE, 19), min(base + RENDER_NICE, 19), min(base + RENDER_NICE, 19))
+    assert 0 < INGEST_NICE < RENDER_NICE < SOLVE_NICE
 
 
 def test_worker_threads_are_bounded_and_stop_on_close():
-    scheduler = Scheduler(frame_workers=2, render_workers=3, queue_limit=8, solve_workers=1)
+    scheduler = Scheduler(frame_workers=2, render_workers=3, queue_limit=8, solve_workers=1, ingest_workers=2)
 
     async def body():
         await asyncio.gather(*[scheduler.run(str, i, kind=kind, session=f"s{i}")
-                               for i, kind in enumerate(["frame", "work", "viewer"] * 4)])
+                               for i, kind in enumerate(["frame", "ingest", "work", "viewer"] * 4)])
 
     before = threading.active_count()
     asyncio.run(body())
-    assert threading.active_count() - before == 6
+    assert threading.active_count() - before == 8
     scheduler.close()
     assert threading.active_count() == before
 
