@@ -126,11 +126,11 @@ def surface_mesh(
     chosen = decoded_rows(sums, min_support, config)
     rows = chosen.rows
     empty = Mesh(torch.zeros((0, 3)), torch.zeros((0, 3), dtype=torch.int64), torch.zeros((0, 3), dtype=torch.uint8))
+    if not len(rows):
+        return empty
     # the fields a mesh reads, as float32 sums (`stored.raw_sums`; a batch reference's sums as they are)
     picked = raw_sums({name: array[rows] for name, array in sums.items() if name in MESH_SUMS})
     view = view_direction_sums(picked["sh_a"])
-    if not len(rows):
-        return empty
     cells = unpack_keys(torch.from_numpy(picked["keys"])).numpy()
     mean, second, colour = voxel_moments(picked, config.research.eps)
     # R_scene is the total weight of a voxel's points: weighted by it, pooled moments are the points' own
