@@ -18,7 +18,10 @@ delays, another session's frames. The kinds, first served first:
 - ``viewer``: the web viewer's pictures and session list. A picture still waiting is replaced by a
   newer one with the same ``coalesce`` key (one viewer page): the older request gets `Superseded`.
   After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
-  turn, so that clients looping renders slow the viewer down but never freeze it.
+  turn, so that clients looping renders slow the viewer down but never freeze it. While frames are
+  held (any session's), a viewer job starts no sooner than ``VIEWER_PAUSE`` times the last one's
+  duration after it ended: a viewer following a stream (each picture decodes the folds since the
+  last) then takes at most a fraction of a core from the folds, however many pages are open.
 - ``solve``: the sessions' colour solves, in the background (`background`: no request waits for
   them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``),
   so that a solve of seconds never holds a render worker; a session's one at a time and at most one
@@ -48,6 +51,7 @@ import logging
 import os
 import sys
 import threading
+import time
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Literal, TypeVar
@@ -62,6 +66,7 @@ SERIAL_KINDS: tuple[Kind, ...] = ("frame", "solve")  # a session's jobs of these
 # the folds, renders well below the decoding, background solves the lowest there is
 INGEST_NICE, RENDER_NICE, SOLVE_NICE = 5, 15, 19
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
+VIEWER_PAUSE = 3.0  # while frames are held, the viewer's jobs take at most 1 / (1 + this) of the time
 
 
 class QueueFull(Exception):
@@ -133,6 +138,7 @@ class Scheduler:
         self._held: Counter[tuple[str, Kind]] = Counter()  # jobs running or waiting per (session, kind)
         self._serial: set[tuple[Kind, str]] = set()  # (kind, session) of the SERIAL_KINDS jobs running
         self._passed_over = 0  # work jobs taken in a row while viewer jobs waited
+        self._viewer_at = 0.0  # monotonic time before which, while frames are held, no viewer job starts
         self._threads: list[threading.Thread] = []
         self._closed = False
         self.active = 0  # jobs running or waiting, all sessions and kinds
@@ -247,7 +253,9 @@ class Scheduler:
         """The lane's next job: its first kind with a job that may run (the viewer's, when its turn
         came), the session whose turn it is."""
         kinds = lane.kinds
-        if "viewer" in kinds and self._waiting["viewer"]:
+        if "viewer" in kinds and self._viewer_paused():
+            kinds = tuple(kind for kind in kinds if kind != "viewer")
+        elif "viewer" in kinds and self._waiting["viewer"]:
             self._passed_over += 1
             if self._passed_over >= VIEWER_TURN or not self._waiting["work"]:
                 self._passed_over, kinds = 0, ("viewer",)
@@ -268,6 +276,13 @@ class Scheduler:
             return job
         return None
 
+    def _viewer_paused(self) -> float:
+        """Seconds until a waiting viewer job may start, while frames are held and the pause after the
+        last viewer job lasts (`VIEWER_PAUSE`); 0 when it may start now or none waits."""
+        if not self._waiting["viewer"] or not any(kind in FRAME_KINDS for _, kind in self._held):
+            return 0.0
+        return max(0.0, self._viewer_at - time.monotonic())
+
     def _work(self, lane: _Lane) -> None:
         if lane.nice and sys.platform == "linux":
             # Linux keeps the nice value per thread (elsewhere it is the whole process's: left alone);
@@ -282,12 +297,16 @@ class Scheduler:
                 while (job := self._next(lane)) is None:
                     if self._closed:
                         return
-                    lane.ready.wait()
+                    lane.ready.wait((self._viewer_paused() if "viewer" in lane.kinds else 0.0) or None)
+            start = time.monotonic()
             try:
                 result, error = job.call(), None
             except BaseException as exc:  # noqa: BLE001 - handed to the request that waits for it
                 result, error = None, exc
             with self._lock:
+                if job.kind == "viewer":
+                    end = time.monotonic()
+                    self._viewer_at = end + VIEWER_PAUSE * (end - start)
                 self._release(job)
                 if job.kind in SERIAL_KINDS:
                     self._serial.discard((job.kind, job.session))

@@ -11,9 +11,17 @@ const LOW = 0.5;  // size factor of the images asked for while the pose moves
 const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
 const REST_MS = 180;  // the pose counts as resting this long after its last change
 const SEND_GAP_MS = 40;  // while a picture is out, a newer pose is asked for at most this often
+// ... and at most this many are out: one rendering, one waiting that a newer one replaces; more would
+// wait in the browser for a connection (six per host), out of the service's reach, and be rendered
+// one after another once they got there, each of a pose already left behind
+const MAX_INFLIGHT = 2;
 // while frames stream in, the picture follows them at most this often: each picture is a render the
 // service's cores make instead of folds (a stream's own frames come first, the viewer's last)
 const FOLD_GAP_MS = 400;
+// ... and while they come faster than that, those pictures are previews (as for a moving pose), with
+// a full one at most this often and as soon as the stream pauses: a full picture costs the service
+// several previews' time, all of it taken from the stream's folds
+const STREAM_FULL_GAP_MS = 2000;
 // this page among the service's viewers: its waiting picture is replaced by its newer ones only
 const VIEWER_ID = Math.random().toString(36).slice(2, 12);
 const ORBIT_RAD_PER_PX = 0.006;
@@ -32,8 +40,9 @@ const state = {
   id: sessionId, width: WIDTH, height: HEIGHT,
   pose: { R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], p: [0, 0, 0] }, distance: 1, up: [0, -1, 0],
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
-  mode: "rgb", cameras: [], selected: -1, frames: 0, labelDim: 0,
+  mode: "rgb", cameras: [], selected: -1, frames: 0, voxels: 0, labelDim: 0,
   version: 0, changedAt: 0, foldDrawnAt: -Infinity,  // foldDrawnAt: when a fold last asked for a picture
+  foldSeenAt: -Infinity, foldGap: Infinity, fullAskedAt: -Infinity,  // the last fold event; ms since the one before
   inflight: 0, asked: NOT_ASKED, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
   drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
   frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
@@ -51,6 +60,18 @@ function changed(moving = true) {
   state.changedAt = moving ? performance.now() : -Infinity;
   drawFrustums();
   pump();
+}
+
+// Whether frames stream in: the last two folds came less than FOLD_GAP_MS apart, the latest one
+// less than that ago.
+function streaming() {
+  return state.foldGap < FOLD_GAP_MS && performance.now() - state.foldSeenAt < FOLD_GAP_MS;
+}
+
+// Whether a full picture may be asked for now, as far as the stream goes: while frames stream in,
+// one every STREAM_FULL_GAP_MS.
+function fullDue() {
+  return !streaming() || performance.now() - state.fullAskedAt >= STREAM_FULL_GAP_MS;
 }
 
 function imageUrl(full) {
@@ -78,17 +99,18 @@ function imageUrl(full) {
 // that arrives after a newer picture was drawn is dropped, so the view never goes back in time. An
 // empty session has nothing to draw: no request until its first fold, which then gets one at once.
 function pump() {
-  showStatus();
+  showText();
   if (!state.info || !state.frames) return;
   const { version, frames } = state;
   if (state.failed === version) return;  // asked and refused: wait for the next change
-  const resting = performance.now() - state.changedAt >= REST_MS;
+  const resting = performance.now() - state.changedAt >= REST_MS && fullDue();
   if (state.drawn.version === version && (state.drawn.full || !resting)) {
     if (!state.drawn.full) setTimeout(pump, REST_MS);
     return;
   }
   const full = resting;
   if (state.asked.version === version && (state.asked.full || !full)) return;  // its answer pumps again
+  if (state.inflight >= MAX_INFLIGHT) return;  // an answer pumps again
   const wait = state.asked.at + SEND_GAP_MS - performance.now();
   if (state.inflight && wait > 0) {
     clearTimeout(state.sendTimer);
@@ -98,6 +120,7 @@ function pump() {
   const mode = state.mode;
   const t0 = performance.now();
   state.asked = { version, full, at: t0 };
+  if (full) state.fullAskedAt = t0;
   state.inflight += 1;
   request(imageUrl(full), { headers: { "X-Canonical-Viewer": VIEWER_ID } })
     .then(async (response) => {
@@ -117,6 +140,7 @@ function pump() {
       state.drawn = { version, full, mode, frames, url: response.url, headers: Object.fromEntries(response.headers) };
       view.dataset.version = version;
       view.dataset.full = full;
+      showStatus();  // "rendering…" ends with the picture, not a text interval later
       showReading(mode, response.headers);
       const centre = Number(response.headers.get("X-Canonical-Centre-Depth"));
       if (state.retarget && full && centre > 0) { state.distance = centre; state.retarget = false; drawFrustums(); }
@@ -135,7 +159,7 @@ function pump() {
       if (state.asked.version === version && state.asked.full === full) state.asked = NOT_ASKED;  // answered
       pump();
     });
-  showStatus();
+  showText();
 }
 
 // The line over the view says what it waits for: the service, the first frame, or a picture of
@@ -263,8 +287,8 @@ function refreshStats() {
   statsTimer = setTimeout(async () => {
     try {
       const s = await json(`/v1/sessions/${encodeURIComponent(sessionId)}`);
+      state.voxels = s.voxels;
       setFrames(s.frames);
-      $("voxels").textContent = s.voxels;
       $("gaussians").textContent = s.gaussians;
       $("memory").textContent = formatBytes(s.memory_bytes);
       const limit = s.inconsistent_depth_below;
@@ -274,11 +298,26 @@ function refreshStats() {
   }, 150);
 }
 
+// The fold counts, the last fold's age and the status line; while frames stream in, written at most
+// every TEXT_GAP_MS (the latest state always): at 30 frames/s, text written at every fold costs the
+// browser a layout and a paint per fold, more than the pictures do.
+const TEXT_GAP_MS = 250;
+let textTimer = null, textAt = -Infinity;
+function showText() {
+  if (textTimer !== null) return;  // the timer writes the latest state
+  const wait = textAt + TEXT_GAP_MS - performance.now();
+  if (streaming() && wait > 0) { textTimer = setTimeout(() => { textTimer = null; showText(); }, wait); return; }
+  textAt = performance.now();
+  $("frames").textContent = state.frames;
+  $("voxels").textContent = state.voxels;
+  $("last-fold").textContent = formatAge(state.lastFold);
+  showStatus();
+}
+
 function setFrames(n) {
   state.frames = n;
-  $("frames").textContent = n;
   if (!n) view.getContext("2d").clearRect(0, 0, WIDTH, HEIGHT);  // every frame removed: nothing to show
-  showStatus();
+  showText();
 }
 
 function setLabels(labelDim) {
@@ -289,9 +328,9 @@ function setLabels(labelDim) {
 function onEvent(name, data) {
   if (name === "state") {
     const missed = !state.frames && data.frames > 0;  // folds between the track's answer and the stream
+    state.voxels = data.voxels;
     setFrames(data.frames);
     if (missed) json(`${base}/cameras`).then(showTrack).catch(showError);
-    $("voxels").textContent = data.voxels;
     setLabels(data.label_dim);
     return;
   }
@@ -302,11 +341,12 @@ function onEvent(name, data) {
     $("warning").textContent = `frame ${data.report.frame_index}: ${warnings.join(" · ")}`;
     $("warning").hidden = false;
   }
-  setFrames(data.frames);
-  $("voxels").textContent = data.voxels;
+  state.frames = data.frames;
+  state.voxels = data.voxels;
   state.lastFold = data.time;
+  state.foldGap = performance.now() - state.foldSeenAt;
   state.foldSeenAt = performance.now();
-  $("last-fold").textContent = formatAge(data.time);
+  showText();
   if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
   followFolds();
   refreshStats();
@@ -317,7 +357,7 @@ function onEvent(name, data) {
 let foldTimer = null;
 function followFolds() {
   const wait = state.foldDrawnAt + FOLD_GAP_MS - performance.now();
-  if (state.drawn.frames > 0 && wait > 0) {
+  if (wait > 0) {
     if (foldTimer === null) foldTimer = setTimeout(() => { foldTimer = null; followFolds(); }, wait);
     return;
   }
@@ -435,9 +475,9 @@ $("splat").addEventListener("click", () => download(`${base}/gaussians.splat`, `
 // The input cameras and the session's counts (`GET .../cameras`); the view goes to the latest camera.
 function showTrack(track) {
   state.cameras = track.cameras;
+  state.lastFold = track.last_fold;
   setFrames(track.frames);
   setLabels(track.label_dim);
-  $("last-fold").textContent = formatAge(track.last_fold);
   if (state.cameras.length) snapTo(state.cameras.length - 1);
   else { updateScrubber(); changed(false); }
 }
@@ -453,7 +493,7 @@ async function start() {
   focusView();  // again: the token form, where it was asked for, had the keyboard
   subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
   refreshStats();
-  setInterval(() => { if (state.lastFold) $("last-fold").textContent = formatAge(state.lastFold); }, 5000);
+  setInterval(showText, 5000);  // the last fold's age
 }
 
 start().catch(showError);
