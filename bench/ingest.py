@@ -17,7 +17,9 @@ snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same s
 warmed), interleaved with this one, so that both see the same load. ``--viewer`` also runs the first
 ``--in-flight`` value with the web viewer open on the session while it streams: headless Debian
 chromium (Playwright, as `bench/viewer.py`) opens the session's page as soon as the CLI prints its id,
-and the page renders each new state as a user's would. Timings on a shared machine are
+and the page renders each new state as a user's would; a second table says what the viewer costs:
+the CPU of the service's render workers and solves (its threads at nice 15 or lower: a run without
+the viewer gives their share without it) and of chromium, and the pictures the page drew. Timings on a shared machine are
 noisy: compare the runs of one invocation, and take the best of several; the CPU time a frame costs
 the service and the client (user + system, all threads; the client's includes its start-up) moves
 less with other work than the wall time does. Never asserts timings.
@@ -36,6 +38,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from statistics import median
 
 import zstandard
 
@@ -49,6 +52,7 @@ from client.cli.launch import free_port, wait_until_healthy  # noqa: E402
 from client.cli.sessions import viewer_url  # noqa: E402
 from client.sdk import frame_body  # noqa: E402
 from server.archive import ZSTD_LEVEL  # noqa: E402
+from server.scheduler import RENDER_NICE  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -94,22 +98,55 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> subprocess.CompletedProcess:
+def low_priority_cpu(pid: int, nice: int = RENDER_NICE) -> float:
+    """CPU seconds so far of the threads of process ``pid`` at OS priority ``nice`` or lower: the
+    service's render workers (renders, the viewer's pictures) and its background solves."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except FileNotFoundError:  # the thread ended meanwhile
+            continue
+        if int(fields[16]) >= nice:
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def chromium_cpu() -> float:
+    """CPU seconds so far of every chromium process on the machine, from /proc."""
+    total = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        name, fields = text.split("(", 1)[1].rsplit(")", 1)
+        if "chrom" in name:
+            fields = fields.split()
+            total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> tuple[subprocess.CompletedProcess, dict]:
     """Run the `canonical stream` command ``cmd`` with the web viewer open on its session from its first
-    frame on (the id the CLI prints on stdout), in headless chromium; its completed process."""
+    frame on (the id the CLI prints on stdout), in headless chromium; its completed process, and
+    chromium's CPU seconds and the pictures the page drew (full and previews) until the stream ended."""
     from playwright.sync_api import sync_playwright
     from viewer import CHROMIUM, CHROMIUM_ARGS
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_context(viewport={"width": 900, "height": 520}).new_page()
+        before = chromium_cpu()
         stream = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         session_id = stream.stdout.readline().strip()
         if session_id:
             page.goto(viewer_url(url, session_id))
         stdout, stderr = stream.communicate()
+        drawn = page.evaluate("window.viewer ? viewer.history.map((t) => t.full) : []")
+        watched = {"chromium_cpu": chromium_cpu() - before, "full": sum(drawn), "previews": len(drawn) - sum(drawn)}
         browser.close()
-    return subprocess.CompletedProcess(cmd, stream.returncode, session_id + "\n" + stdout, stderr)
+    return subprocess.CompletedProcess(cmd, stream.returncode, session_id + "\n" + stdout, stderr), watched
 
 
 def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None,
@@ -132,10 +169,12 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
             sampler.start()
             cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
             service_cpu, client_cpu = cpu_seconds(service.pid), resource.getrusage(resource.RUSAGE_CHILDREN)
+            low_cpu = low_priority_cpu(service.pid)
             cmd += [] if in_flight is None else ["--in-flight", str(in_flight)]
-            stream = (stream_watched(cmd, repo, env, url) if viewer else
-                      subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True))
+            stream, watched = (stream_watched(cmd, repo, env, url) if viewer else
+                               (subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True), None))
             service_cpu = cpu_seconds(service.pid) - service_cpu  # before the graceful stop's snapshot
+            low_cpu = low_priority_cpu(service.pid) - low_cpu
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             client_cpu = after.ru_utime + after.ru_stime - client_cpu.ru_utime - client_cpu.ru_stime
             sampler.stop.set()
@@ -149,8 +188,8 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
         kept, snaps = folder_bytes(data_dir / "sessions")
         n = int(frames)
         return {"frames": n, "seconds": float(seconds), "fps": float(fps), "stopped": kept / n,
-                "service_cpu": service_cpu / n, "client_cpu": client_cpu / n,
-                "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
+                "service_cpu": service_cpu / n, "client_cpu": client_cpu / n, "low_cpu": low_cpu / n,
+                "watched": watched, "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
 
 
 def body_costs(data: Path, frames: int = 10) -> list[dict]:
@@ -218,6 +257,16 @@ def main(argv=None) -> None:
          "peak MB/frame while running, with snapshots": mb(max(r["peak_all"] for r in runs)),
          "snapshot MB/frame": mb(runs[0]["snapshot"])}
         for name, runs in results.items()])
+    if args.viewer:
+        print_table("Where the viewer's cost goes (medians over the runs; CPU ms a frame while the stream ran)", [
+            {"configuration": name,
+             "service, render workers and solves (nice >= 15)": f"{median(r['low_cpu'] for r in runs) * 1000:.1f}",
+             "chromium, all processes": (f"{median(r['watched']['chromium_cpu'] for r in runs) * 1000:.1f}"
+                                         if runs[0]["watched"] else "–"),
+             "pictures drawn, full / previews": (f"{median(r['watched']['full'] for r in runs):g} / "
+                                                 f"{median(r['watched']['previews'] for r in runs):g}"
+                                                 if runs[0]["watched"] else "–")}
+            for name, runs in results.items()])
     best = {name: max(r["fps"] for r in runs) for name, runs in results.items()}
     first = configs[0][0]
     print_table(f"best frames/s against {first!r} (same invocation)", [

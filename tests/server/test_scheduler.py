@@ -1,22 +1,24 @@
 """The scheduler on its own threads: frames never wait for renders, work before the viewer's pictures,
 sessions in turn, a session's frames one at a time in order, limits per session and kind, a newer
-viewer picture replacing a waiting one, frames decoded on their own workers beside the folds, the
-ingest and render workers' lower OS priorities, and the background solves: their own lowest lane, a
-session's one at a time, none while its frames wait.
+viewer picture replacing a waiting one, the viewer's pause while frames are held, frames decoded on
+their own workers beside the folds, the ingest and render workers' lower OS priorities, and the
+background solves: their own lowest lane, a session's one at a time, none while its frames wait.
 
 Each test holds a worker inside a job (a `threading.Event`) to line jobs up behind it, so the order
-asserted is the scheduler's choice, never a matter of timing.
-"""
+asserted is the scheduler's choice, never a matter of timing. The viewer's pause is a time: it is
+asserted as at least its length, and as far below it without frames."""
 
 from __future__ import annotations
 
 import asyncio
 import os
 import threading
+import time
 
 import pytest
 
-from server.scheduler import INGEST_NICE, RENDER_NICE, SOLVE_NICE, VIEWER_TURN, Kind, QueueFull, Scheduler, Superseded
+from server.scheduler import (INGEST_NICE, RENDER_NICE, SOLVE_NICE, VIEWER_PAUSE, VIEWER_TURN, Kind, QueueFull,
+                              Scheduler, Superseded)
 
 WAIT_S = 30.0
 
@@ -116,6 +118,33 @@ def test_looping_work_leaves_the_viewer_a_turn():
     run(body, queue_limit=16)
     # the gated job was taken before the viewer's waited; then VIEWER_TURN - 1 work jobs passed it over
     assert order.index("viewer") == VIEWER_TURN - 1 and len(order) == 8
+
+
+def test_while_frames_are_held_a_viewer_picture_waits_a_multiple_of_the_last_ones_time():
+    started: dict[str, float] = {}
+
+    def picture(name: str, seconds: float) -> float:
+        started[name] = time.monotonic()
+        time.sleep(seconds)
+        return time.monotonic()
+
+    async def pair(s: Scheduler, name: str, seconds: float) -> float:
+        """Seconds from the end of one picture (``seconds`` long) to the start of the next one."""
+        end = await s.run(picture, f"{name} 1", seconds, kind="viewer", session="a", coalesce="page")
+        await s.run(picture, f"{name} 2", 0.0, kind="viewer", session="a", coalesce="page")
+        return started[f"{name} 2"] - end
+
+    async def body(s: Scheduler):
+        quiet = await pair(s, "quiet", 0.5)
+        gate, fold = await held(s, "frame", session="b")  # another session's fold runs meanwhile
+        streaming = await pair(s, "streaming", 0.5)
+        gate.opened.set()
+        await fold
+        return quiet, streaming
+
+    quiet, streaming = run(body)
+    assert streaming >= VIEWER_PAUSE * 0.5  # at least the pause (the picture took at least 0.5 s)
+    assert quiet < VIEWER_PAUSE * 0.5 / 2  # no frames held: no pause
 
 
 def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():

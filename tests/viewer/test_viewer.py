@@ -280,21 +280,41 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
     assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
 
 
-def test_a_fast_stream_is_drawn_at_most_every_fold_gap_and_ends_on_its_last_fold(page, server, client, shelf):
+@pytest.mark.parametrize("opened_on", ["a frame", "an empty session"])
+def test_a_fast_stream_is_drawn_in_previews_two_at_most_out_and_ends_in_full_on_its_last_fold(page, server, client,
+                                                                                              shelf, opened_on):
     session = client.create_session(voxel_size=VOXEL)
-    session.add_frame(**shelf[0])
-    open_viewer(page, server, session.id)
+    if opened_on == "a frame":
+        session.add_frame(**shelf[0])
+        open_viewer(page, server, session.id)
+    else:  # the stream's first folds come before any picture is drawn
+        page.goto(f"{server.url}/sessions/{session.id}/view")
+        page.wait_for_function("viewer.status === 'waiting for the first frame'", timeout=WAIT_MS)
     opened = page.evaluate("performance.now()")
-    n = 12
-    for k in range(1, n):  # as fast as the service folds them: faster than the gap
-        session.add_frame(**{**shelf[k % len(shelf)], "frame_id": f"again-{k}"})  # folded again, not replayed
+    n = 60
+    # as fast as the service folds them, three in flight: folds far less than FOLD_GAP_MS (400) apart
+    first = 1 if opened_on == "a frame" else 0
+    again = ({**shelf[k % len(shelf)], "frame_id": f"again-{k}"} for k in range(first, n))  # folded again, not replayed
+    for _ in session.add_frames(again, in_flight=3):
+        pass
+    streamed = page.evaluate("viewer.foldSeenAt")  # the last fold event (ms, the browser's clock)
     page.wait_for_function(f"{FULL} && viewer.drawn.frames === {n}", timeout=WAIT_MS)  # the last fold is drawn
-    # when the page asked for its pictures (ms, the browser's clock): a picture per fold would ask every
-    # fold, tens of ms apart; the page asks at most every FOLD_GAP_MS (400)
+    # the page's pictures: when asked, when answered (ms) and whether full size; a picture per fold would
+    # ask every fold, tens of ms apart; the page asks at most every FOLD_GAP_MS (400)
     asked = page.evaluate(f"""performance.getEntriesByType('resource')
-        .filter((e) => e.name.includes('/image?') && e.startTime > {opened}).map((e) => e.startTime)""")
-    gaps = np.diff(sorted(asked))
-    assert len(asked) >= 2 and (gaps > 350).all(), gaps
+        .filter((e) => e.name.includes('/image?') && e.startTime > {opened})
+        .map((e) => [e.startTime, e.responseEnd, new URL(e.name).searchParams.get('width') === '512'])""")
+    asked.sort()
+    *fold_asks, last = asked  # the last one: the full picture once the stream paused
+    assert fold_asks and (np.diff([a[0] for a in fold_asks]) > 350).all(), asked
+    # while folds come faster than that, previews, with a full picture at most every 2 s (the first
+    # fold's, not yet part of a stream, is one); the stream's end brings the full picture of its last fold
+    assert not all(full for *_, full in fold_asks), asked
+    assert sum(full for *_, full in fold_asks) <= 1 + (streamed - opened) / 2000 + 1, asked
+    assert last[2], asked
+    # never more than two out at once: a rendering one and a waiting one that a newer one replaces
+    out = max(sum(s <= t < e for s, e, _ in asked) for t, *_ in asked)
+    assert out <= 2, asked
 
 
 def test_a_fold_warning_shows_on_the_open_page(page, server, client, apc_bins_path, shots):

@@ -92,12 +92,13 @@ function imageUrl(full) {
 }
 
 // The newest pose is asked for as soon as it changes (at most one request per SEND_GAP_MS while
-// others are out), even while an older picture is still on its way: the service renders viewer
-// pictures last, one of this page's at a time, and answers a request that still waits when a newer
-// one of this page (VIEWER_ID) arrives with 204 (superseded). So what it renders next is always the
-// newest pose, and a moving view costs one waiting picture, not a queue of stale ones. A response
-// that arrives after a newer picture was drawn is dropped, so the view never goes back in time. An
-// empty session has nothing to draw: no request until its first fold, which then gets one at once.
+// others are out, and at most MAX_INFLIGHT out), even while an older picture is on its way: the
+// service renders viewer pictures last, one of this page's at a time, and answers a request that
+// still waits when a newer one of this page (VIEWER_ID) arrives with 204 (superseded). So what it
+// renders next is always the newest pose, and a moving view costs one waiting picture, not a queue
+// of stale ones. A response that arrives after a newer picture was drawn is dropped, so the view
+// never goes back in time. An empty session has nothing to draw: no request until its first fold,
+// which then gets one at once.
 function pump() {
   showText();
   if (!state.info || !state.frames) return;
@@ -308,9 +309,9 @@ function showText() {
   const wait = textAt + TEXT_GAP_MS - performance.now();
   if (streaming() && wait > 0) { textTimer = setTimeout(() => { textTimer = null; showText(); }, wait); return; }
   textAt = performance.now();
-  $("frames").textContent = state.frames;
-  $("voxels").textContent = state.voxels;
-  $("last-fold").textContent = formatAge(state.lastFold);
+  for (const [id, text] of [["frames", state.frames], ["voxels", state.voxels], ["last-fold", formatAge(state.lastFold)]]) {
+    if ($(id).textContent !== String(text)) $(id).textContent = text;  // an unchanged text is not rewritten
+  }
   showStatus();
 }
 
