@@ -187,6 +187,8 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
             service.wait(timeout=120)
         kept, snaps = folder_bytes(data_dir / "sessions")
         n = int(frames)
+        if watched:
+            watched["chromium_cpu"] /= n
         return {"frames": n, "seconds": float(seconds), "fps": float(fps), "stopped": kept / n,
                 "service_cpu": service_cpu / n, "client_cpu": client_cpu / n, "low_cpu": low_cpu / n,
                 "watched": watched, "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}

@@ -42,7 +42,7 @@ const state = {
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, voxels: 0, labelDim: 0,
   version: 0, changedAt: 0, foldDrawnAt: -Infinity,  // foldDrawnAt: when a fold last asked for a picture
-  foldSeenAt: -Infinity, foldGap: Infinity, fullAskedAt: -Infinity,  // the last fold event; ms since the one before
+  foldSeenAt: -Infinity, foldGap: Infinity, fullAskedAt: -Infinity,  // the last fold event; ms from the fold before
   inflight: 0, asked: NOT_ASKED, superseded: 0,  // requests out; the newest one asked; answers superseded by a newer one
   drawn: { version: -1, full: false, mode: null, frames: 0, headers: {} },
   frustums: { chosen: [], drawn: 0 },  // input cameras given a frustum; how many were in front of the view
@@ -344,8 +344,10 @@ function onEvent(name, data) {
   }
   state.frames = data.frames;
   state.voxels = data.voxels;
+  // the service's clocks of this fold and the one before (the track's latest, for the first event
+  // after the page opened on a stream): the gap the stream has, not the one its events arrive with
+  state.foldGap = state.lastFold == null ? Infinity : 1000 * (data.time - state.lastFold);
   state.lastFold = data.time;
-  state.foldGap = performance.now() - state.foldSeenAt;
   state.foldSeenAt = performance.now();
   showText();
   if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
