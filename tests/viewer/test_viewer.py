@@ -300,13 +300,14 @@ def test_a_fast_stream_is_drawn_in_previews_two_at_most_out_and_ends_in_full_on_
     streamed = page.evaluate("viewer.foldSeenAt")  # the last fold event (ms, the browser's clock)
     page.wait_for_function(f"{FULL} && viewer.drawn.frames === {n}", timeout=WAIT_MS)  # the last fold is drawn
     # the page's pictures: when asked, when answered (ms) and whether full size; a picture per fold would
-    # ask every fold, tens of ms apart; the page asks at most every FOLD_GAP_MS (400)
+    # ask at every fold, tens of ms apart; the page follows the folds at most every FOLD_GAP_MS (400)
+    # (an ask held back while two are out goes when one comes back, so two asks may be closer)
     asked = page.evaluate(f"""performance.getEntriesByType('resource')
         .filter((e) => e.name.includes('/image?') && e.startTime > {opened})
         .map((e) => [e.startTime, e.responseEnd, new URL(e.name).searchParams.get('width') === '512'])""")
     asked.sort()
     *fold_asks, last = asked  # the last one: the full picture once the stream paused
-    assert fold_asks and (np.diff([a[0] for a in fold_asks]) > 350).all(), asked
+    assert fold_asks and len(fold_asks) <= 3 + (streamed - opened) / 400, asked  # the first, the trailing one
     # while folds come faster than that, previews, with a full picture at most every 2 s (the first
     # fold's, not yet part of a stream, is one); the stream's end brings the full picture of its last fold
     assert not all(full for *_, full in fold_asks), asked
