@@ -20,8 +20,9 @@ delays, another session's frames. The kinds, first served first:
   After ``VIEWER_TURN - 1`` work jobs taken in a row while viewer jobs wait, a viewer job gets the next
   turn, so that clients looping renders slow the viewer down but never freeze it. While frames are
   held (any session's), a viewer job starts no sooner than ``VIEWER_PAUSE`` times the last one's
-  duration after it ended: a viewer following a stream (each picture decodes the folds since the
-  last) then takes at most a fraction of a core from the folds, however many pages are open.
+  duration after it ended, or when the last frame ends: a viewer following a stream (each picture
+  decodes the folds since the last) then takes at most a fraction of a core from the folds, however
+  many pages are open.
 - ``solve``: the sessions' colour solves, in the background (`background`: no request waits for
   them). They run on their own ``solve_workers`` threads at the lowest OS priority (``solve_nice``),
   so that a solve of seconds never holds a render worker; a session's one at a time and at most one
@@ -248,6 +249,8 @@ class Scheduler:
         if not self._held[job.session, job.kind]:
             del self._held[job.session, job.kind]
         self.active -= 1
+        if job.kind in FRAME_KINDS and self._waiting["viewer"]:
+            self._lane("viewer").ready.notify()  # the last frame's end lifts the viewer's pause
 
     def _next(self, lane: _Lane) -> _Job | None:
         """The lane's next job: its first kind with a job that may run (the viewer's, when its turn

@@ -138,13 +138,20 @@ def test_while_frames_are_held_a_viewer_picture_waits_a_multiple_of_the_last_one
         quiet = await pair(s, "quiet", 0.5)
         gate, fold = await held(s, "frame", session="b")  # another session's fold runs meanwhile
         streaming = await pair(s, "streaming", 0.5)
+        # a picture waiting out the pause starts when the last frame ends, not when the pause does
+        end = await s.run(picture, "ended 1", 0.5, kind="viewer", session="a", coalesce="page")
+        paused = asyncio.ensure_future(s.run(picture, "ended 2", 0.0, kind="viewer", session="a", coalesce="page"))
+        await asyncio.sleep(0.25)
+        assert not paused.done()
         gate.opened.set()
         await fold
-        return quiet, streaming
+        await paused
+        return quiet, streaming, started["ended 2"] - end
 
-    quiet, streaming = run(body)
+    quiet, streaming, ended = run(body)
     assert streaming >= VIEWER_PAUSE * 0.5  # at least the pause (the picture took at least 0.5 s)
     assert quiet < VIEWER_PAUSE * 0.5 / 2  # no frames held: no pause
+    assert ended < VIEWER_PAUSE * 0.5 * 2 / 3  # the frame's end lifted it (at 0.25 s, of 1.5)
 
 
 def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():
