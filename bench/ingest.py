@@ -19,10 +19,10 @@ warmed), interleaved with this one, so that both see the same load. ``--viewer``
 chromium (Playwright, as `bench/viewer.py`) opens the session's page as soon as the CLI prints its id,
 and the page renders each new state as a user's would; a second table says what the viewer costs:
 the CPU of the service's render workers and solves (its threads at nice 15 or lower: a run without
-the viewer gives their share without it) and of chromium, and the pictures the page drew. Timings on a shared machine are
-noisy: compare the runs of one invocation, and take the best of several; the CPU time a frame costs
-the service and the client (user + system, all threads; the client's includes its start-up) moves
-less with other work than the wall time does. Never asserts timings.
+the viewer gives their share without it) and of chromium, and the pictures the page drew. Timings
+on a shared machine are noisy: compare the runs of one invocation, and take the best of several;
+the CPU time a frame costs the service and the client (user + system, all threads; the client's
+includes its start-up) moves less with other work than the wall time does. Never asserts timings.
 """
 
 from __future__ import annotations
@@ -191,7 +191,8 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
             watched["chromium_cpu"] /= n
         return {"frames": n, "seconds": float(seconds), "fps": float(fps), "stopped": kept / n,
                 "service_cpu": service_cpu / n, "client_cpu": client_cpu / n, "low_cpu": low_cpu / n,
-                "watched": watched, "snapshot": snaps / n, "peak": sampler.peak_kept / n, "peak_all": sampler.peak_all / n}
+                "watched": watched, "snapshot": snaps / n, "peak": sampler.peak_kept / n,
+                "peak_all": sampler.peak_all / n}
 
 
 def body_costs(data: Path, frames: int = 10) -> list[dict]:

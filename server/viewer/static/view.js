@@ -309,7 +309,8 @@ function showText() {
   const wait = textAt + TEXT_GAP_MS - performance.now();
   if (streaming() && wait > 0) { textTimer = setTimeout(() => { textTimer = null; showText(); }, wait); return; }
   textAt = performance.now();
-  for (const [id, text] of [["frames", state.frames], ["voxels", state.voxels], ["last-fold", formatAge(state.lastFold)]]) {
+  const texts = { frames: state.frames, voxels: state.voxels, "last-fold": formatAge(state.lastFold) };
+  for (const [id, text] of Object.entries(texts)) {
     if ($(id).textContent !== String(text)) $(id).textContent = text;  // an unchanged text is not rewritten
   }
   showStatus();
