@@ -92,39 +92,34 @@ class Sampler(threading.Thread):
             time.sleep(self.interval)
 
 
+def proc_stat(path: Path) -> tuple[str, list[str], float] | None:
+    """(command name, the fields after it, user + system CPU seconds) of a /proc ``.../stat`` file;
+    None where its process or thread ended meanwhile."""
+    try:
+        text = path.read_text()
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    name, rest = text.split("(", 1)[1].rsplit(")", 1)
+    fields = rest.split()
+    return name, fields, (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` so far (all its threads), from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return proc_stat(Path(f"/proc/{pid}/stat"))[2]
 
 
 def low_priority_cpu(pid: int, nice: int = RENDER_NICE) -> float:
     """CPU seconds so far of the threads of process ``pid`` at OS priority ``nice`` or lower: the
     service's render workers (renders, the viewer's pictures) and its background solves."""
-    total = 0
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-        except FileNotFoundError:  # the thread ended meanwhile
-            continue
-        if int(fields[16]) >= nice:
-            total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
+    threads = filter(None, map(proc_stat, Path(f"/proc/{pid}/task").glob("*/stat")))
+    return sum(cpu for _, fields, cpu in threads if int(fields[16]) >= nice)
 
 
 def chromium_cpu() -> float:
     """CPU seconds so far of every chromium process on the machine, from /proc."""
-    total = 0
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            text = stat.read_text()
-        except (FileNotFoundError, ProcessLookupError):
-            continue
-        name, fields = text.split("(", 1)[1].rsplit(")", 1)
-        if "chrom" in name:
-            fields = fields.split()
-            total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
+    processes = filter(None, map(proc_stat, Path("/proc").glob("[0-9]*/stat")))
+    return sum(cpu for name, _, cpu in processes if "chrom" in name)
 
 
 def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> tuple[subprocess.CompletedProcess, dict]:
