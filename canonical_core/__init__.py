@@ -9,7 +9,9 @@ Example:
     0
 """
 
+import importlib
 import os
+from typing import TYPE_CHECKING
 
 # Idle OpenMP threads (torch's and numba's, two teams of a thread a core) sleep instead of spinning:
 # where anything else takes a core, spinning threads take turns with the threads that have work,
@@ -17,14 +19,32 @@ import os
 # numba loads it, so it is set before they load; an environment that sets it keeps its own.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from .camera import Camera  # noqa: E402
-from .evidence import estimate_depth  # noqa: E402
-from .frame import Frame  # noqa: E402
-from .gaussians import Gaussians, load_ply, load_splat, save_ply, save_splat  # noqa: E402
-from .rendering import RenderResult, render  # noqa: E402
-from .scene import CapacityError, FoldReport, Scene, SceneConfig, aggregate_batch  # noqa: E402
+# The facade's names load on first use (PEP 562): ``import canonical_core.datasets`` to list a capture,
+# or ``canonical_core.config`` to read settings, does not load torch and the method with them.
+_EXPORTS = {
+    "Camera": "camera", "CapacityError": "scene", "FoldReport": "scene", "Frame": "frame", "Gaussians": "gaussians",
+    "RenderResult": "rendering", "Scene": "scene", "SceneConfig": "scene", "aggregate_batch": "scene",
+    "estimate_depth": "evidence", "load_ply": "gaussians", "load_splat": "gaussians", "render": "rendering",
+    "save_ply": "gaussians", "save_splat": "gaussians",
+}
+__all__ = sorted(_EXPORTS)
 
-__all__ = [
-    "Camera", "CapacityError", "FoldReport", "Frame", "Gaussians", "RenderResult", "Scene", "SceneConfig",
-    "aggregate_batch", "estimate_depth", "load_ply", "load_splat", "render", "save_ply", "save_splat",
-]
+if TYPE_CHECKING:  # what type checkers and editors see: the same names, imported at once
+    from .camera import Camera
+    from .evidence import estimate_depth
+    from .frame import Frame
+    from .gaussians import Gaussians, load_ply, load_splat, save_ply, save_splat
+    from .rendering import RenderResult, render
+    from .scene import CapacityError, FoldReport, Scene, SceneConfig, aggregate_batch
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'canonical_core' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value  # found directly from now on
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

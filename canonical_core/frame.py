@@ -18,7 +18,8 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from .camera import Camera, validate_image_intrinsics
+from .calibration import validate_image_intrinsics
+from .camera import Camera
 
 MAX_IMAGE_PIXELS = 4096 * 4096
 # Frames without depth get it from a plane sweep and wait, whole, in the source window and the

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from canonical_core import Camera
-from canonical_core.camera import OPENGL_TO_OPENCV, quaternion_to_matrix
+from canonical_core.calibration import OPENGL_TO_OPENCV, quaternion_to_matrix
 
 K = [[500.0, 0, 320.0], [0, 480.0, 240.0], [0, 0, 1]]
 

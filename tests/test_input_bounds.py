@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from canonical_core import Camera, Frame, Scene, SceneConfig
-from canonical_core.camera import MAX_FOCAL_PER_SIDE, MAX_PRINCIPAL_OFFSET, MAX_TRANSLATION, MIN_FOCAL_PER_SIDE
+from canonical_core.calibration import MAX_FOCAL_PER_SIDE, MAX_PRINCIPAL_OFFSET, MAX_TRANSLATION, MIN_FOCAL_PER_SIDE
 from canonical_core.frame import (MAX_FEATURE_CHANNELS, MAX_LABEL_CHANNELS, MAX_RGB_ONLY_PIXELS, check_rgb_only,
                                   depth_warnings)
 

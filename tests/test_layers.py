@@ -21,10 +21,10 @@ REPO = Path(__file__).resolve().parents[1]
 ROOT = REPO / "canonical_core"
 
 # the layer order, lowest first: each layer may import the ones before it
-LAYERS = ["settings", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
+LAYERS = ["settings", "calibration", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
           "train"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
-ALLOWED["datasets"] = {"camera", "frame"}  # loaders need cameras and frames, nothing of the method
+ALLOWED["datasets"] = {"calibration", "camera", "frame"}  # loaders need cameras and frames, nothing of the method
 ALLOWED["eval"] |= {"datasets"}
 ALLOWED["train"] |= {"datasets"}
 ALLOWED["canonical_core"] = set(ALLOWED) - {"canonical_core"}  # the package's facade re-exports every layer

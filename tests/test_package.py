@@ -1,7 +1,9 @@
-"""What importing the library does to the process: idle OpenMP threads sleep unless the user says otherwise."""
+"""What importing the library does to the process: idle OpenMP threads sleep unless the user says otherwise, and
+the facade's names load on first use, so that listing a capture or reading settings does not load torch."""
 
 from __future__ import annotations
 
+import ast
 import os
 import subprocess
 import sys
@@ -21,3 +23,26 @@ def test_import_makes_idle_openmp_threads_sleep_unless_the_environment_chose(giv
         env["OMP_WAIT_POLICY"] = given
     out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == [expected]
+
+
+def test_the_facade_loads_its_names_on_first_use():
+    # listing a capture and reading settings load neither torch nor the method; the facade's names
+    # still resolve, and an unknown one is an AttributeError like any module's
+    probe = ("import sys, canonical_core, canonical_core.datasets, canonical_core.config; "
+             "light = 'torch' not in sys.modules and 'canonical_core.scene' not in sys.modules; "
+             "scene = canonical_core.Scene(canonical_core.SceneConfig(voxel_size=0.01)); "
+             "missing = not hasattr(canonical_core, 'NoSuchName'); "
+             "every = all(getattr(canonical_core, name) is not None for name in canonical_core.__all__); "
+             "print(light, type(scene).__name__, set(canonical_core.__all__) <= set(dir(canonical_core)), missing, every)")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "Scene", "True", "True", "True"]
+
+
+def test_the_names_type_checkers_see_are_the_facades():
+    # the facade's lazy table and the imports it shows type checkers name the same things from the same modules
+    import canonical_core
+
+    tree = ast.parse((REPO / "canonical_core" / "__init__.py").read_text())
+    shown = {alias.name: node.module for block in tree.body if isinstance(block, ast.If)
+             for node in block.body if isinstance(node, ast.ImportFrom) for alias in node.names}
+    assert shown == canonical_core._EXPORTS

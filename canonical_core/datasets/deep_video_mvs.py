@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..camera import validate_pose
+from ..calibration import validate_pose
 from .files import parse_floats, posed_images, read_intrinsics_file, read_text
 from .sequence import FrameSequence
 

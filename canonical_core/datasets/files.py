@@ -17,15 +17,17 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Sequence, TypeVar
+from typing import TYPE_CHECKING, Callable, Iterable, Sequence, TypeVar
 
-import numba
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ..camera import Camera, validate_intrinsics
-from ..frame import Frame
+from ..calibration import validate_intrinsics
 from .distortion import undistort_image
+
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from ..frame import Frame
 
 # uint16 depth code for "no measurement" besides 0: 7-Scenes writes 65535 for invalid pixels, and no
 # sensor at a mm (or TUM's 1/5000 m) scale measures 65.5 m (13.1 m), so it is never a real depth.
@@ -133,17 +135,13 @@ def depth_from_uint16(raw: np.ndarray, depth_scale: float) -> np.ndarray:  # [H,
     """Metres = value / depth_scale (divided in float64, then rounded to float32); 0 and 65535 (the
     7-Scenes invalid code) become 0 = missing. One pass: the service converts every 16-bit frame it
     is sent."""
+    from .depth_codes import metres_kernel  # numba loads with the first conversion, not with the loaders
+
     raw = np.ascontiguousarray(raw, dtype=np.uint16)
     metres = np.empty(raw.shape, np.float32)
-    _metres_kernel(raw.reshape(-1), float(depth_scale), metres.reshape(-1))
+    metres_kernel(raw.reshape(-1), float(depth_scale), DEPTH_INVALID_CODE, metres.reshape(-1))
     return metres
 
-
-@numba.njit(cache=True)
-def _metres_kernel(raw, depth_scale, out):
-    for i in range(raw.shape[0]):
-        value = raw[i]
-        out[i] = 0.0 if value == 0 or value == DEPTH_INVALID_CODE else np.float32(np.float64(value) / depth_scale)
 
 
 def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
@@ -317,6 +315,10 @@ class RGBDFile:
     distortion: tuple[float, ...] | None = None
 
     def load(self) -> Frame:
+        # torch loads with the first frame read, not when a capture is listed (`sequence`)
+        from ..camera import Camera
+        from ..frame import Frame
+
         rgb = read_rgb(self.color)
         depth = None if self.depth is None else read_depth(self.depth, self.depth_scale)
         height, width = rgb.shape[:2]

@@ -18,16 +18,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image
 
-from ..camera import Camera, validate_pose
-from ..frame import Frame
+from ..calibration import validate_pose
 from .files import (as_intrinsics, depth_from_uint16, find_one, found_frames, read_depth, read_intrinsics_file,
                     read_matrix, read_rgb, select)
 from .sequence import FrameSequence
 from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
+
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from ..frame import Frame
 
 LABEL_SUFFIXES = (".segm.png", ".mask.png")
 DEPTH_UNITS_PER_METRE = 10000.0
@@ -68,6 +72,10 @@ class LabelledFrameFile:
     label_ids: tuple[int, ...]  # the capture's ids, one label channel each
 
     def load(self) -> Frame:
+        # torch loads with the first frame read, not when a capture is listed (`sequence`)
+        from ..camera import Camera
+        from ..frame import Frame
+
         rgb = read_rgb(self.color)
         stored = read_depth(self.depth, 1.0).astype(np.uint16)  # the raw values (0 and 65535 read as 0)
         depth = depth_from_uint16(unrotate_depth(stored), DEPTH_UNITS_PER_METRE)

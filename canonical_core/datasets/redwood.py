@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..camera import validate_pose
+from ..calibration import validate_pose
 from .files import as_intrinsics, parse_floats, posed_images, read_text
 from .sequence import FrameSequence
 

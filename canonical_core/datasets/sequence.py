@@ -2,6 +2,9 @@
 
 A loader resolves a capture into sources (a frame id and a way to read it) up front, so missing
 files and malformed poses fail at load time; images are read only when a frame is indexed.
+Listing a capture needs numpy alone: the loaders check intrinsics and poses with `calibration`
+and import `Camera` and `Frame` (and with them torch) only when a frame is read, so a client that
+sends a capture's files as they are (`canonical stream`) starts without loading torch.
 
 Example:
     >>> from canonical_core.datasets import synthetic_rgbd
@@ -14,9 +17,10 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Sequence
-from typing import Protocol, overload
+from typing import TYPE_CHECKING, Protocol, overload
 
-from ..frame import Frame
+if TYPE_CHECKING:
+    from ..frame import Frame
 
 
 class FrameSource(Protocol):
@@ -27,7 +31,7 @@ class FrameSource(Protocol):
     def load(self) -> Frame: ...
 
 
-class FrameSequence(Sequence[Frame]):
+class FrameSequence(Sequence["Frame"]):
     """Frames of one capture, read on access.
 
     Args:

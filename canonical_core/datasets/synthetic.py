@@ -17,12 +17,15 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..camera import Camera
-from ..frame import Frame
 from .sequence import FrameSequence
+
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from ..frame import Frame
 
 PATTERNS = ("checker", "stripes", "noise")
 _PALETTE_SIZE = 4096
@@ -182,6 +185,9 @@ class _SyntheticView:
     camera: Camera
 
     def load(self) -> Frame:
+        # torch loads with the first frame read, not when a capture is listed (`sequence`)
+        from ..frame import Frame
+
         rgb, depth = render_rgbd(self.scene, self.camera)
         return Frame(rgb=rgb, camera=self.camera, depth=depth, frame_id=self.frame_id)
 
@@ -203,6 +209,8 @@ def synthetic_rgbd(num_frames: int = 24, width: int = 320, height: int = 240, se
             raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed: expected an integer, got {seed!r}")
+    from ..camera import Camera  # torch loads with the first sample made, not with the loaders (`sequence`)
+
     scene = make_scene(seed)
     K = [[0.8 * width, 0.0, (width - 1) / 2], [0.0, 0.8 * width, (height - 1) / 2], [0.0, 0.0, 1.0]]
     angles = np.linspace(-np.pi / 3, np.pi / 3, num_frames) if num_frames > 1 else np.zeros(1)

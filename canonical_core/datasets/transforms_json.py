@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import OPENGL_TO_OPENCV, validate_pose
+from ..calibration import OPENGL_TO_OPENCV, validate_pose
 from .files import MissingFile, RGBDFile, as_intrinsics, found_frames, image_size, read_text, select
 from .sequence import FrameSequence
 

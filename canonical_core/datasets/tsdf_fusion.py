@@ -25,9 +25,9 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..camera import validate_pose
-from ..frame import Frame
+from ..calibration import validate_pose
 from .files import (
     MissingFile,
     RGBDFile,
@@ -42,6 +42,9 @@ from .files import (
     write_rgb,
 )
 from .sequence import FrameSequence
+
+if TYPE_CHECKING:
+    from ..frame import Frame
 
 POSE_PATTERN = "frame-*.pose.txt"
 INTRINSICS_PATTERNS = ("camera-intrinsics.txt", "intrinsics.K.txt", "*.K.txt")
@@ -141,6 +144,8 @@ def write_tsdf_fusion(frames: Iterable[Frame], path: str | Path, depth_scale: fl
         >>> write_tsdf_fusion(synthetic_rgbd(num_frames=1, width=32, height=24), tempfile.mkdtemp()).is_dir()
         True
     """
+    from ..frame import Frame  # torch: only a writer of frames needs it (`sequence`)
+
     folder = Path(path)
     if not depth_scale > 0:
         raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import quaternion_to_matrix, validate_pose
+from ..calibration import quaternion_to_matrix, validate_pose
 from .files import (MissingFile, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats, read_intrinsics_file,
                     read_text, select)
 from .sequence import FrameSequence

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..camera import quaternion_to_matrix
+from ..calibration import quaternion_to_matrix
 from ..decode import GaussianDecoder, matrix_to_quaternion
 from ..evidence.extract import frame_features, lift_pixels
 from ..evidence.features import sample_client_features

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..camera import quaternion_to_matrix, validate_pose
+from ..calibration import quaternion_to_matrix, validate_pose
 from ..frame import Frame
 
 # An arrival index is an int64; a longer run of digits names no frame (and int() of thousands of

@@ -28,7 +28,7 @@ def add_poses(p: argparse.ArgumentParser) -> None:
 def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
     """A pose file (see ``canonical poses --help``) -> {frame key: validated 4x4 c2w}; '#' comments and
     blank lines skipped. Raises ValueError naming the file and line."""
-    from canonical_core.camera import validate_pose
+    from canonical_core.calibration import validate_pose
     from canonical_core.datasets.files import parse_floats, read_text
     from canonical_core.datasets.tum import tum_pose_to_matrix
 

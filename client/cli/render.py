@@ -68,7 +68,7 @@ def _capture(path: str):
 def view_poses(path: str) -> list[np.ndarray]:
     """The camera-to-world poses of a --pose or --trajectory file, in file order: one 4x4 (or 3x4)
     matrix written over its lines, else one pose a line (`read_pose_file`)."""
-    from canonical_core.camera import validate_pose
+    from canonical_core.calibration import validate_pose
 
     try:
         matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -27,6 +31,18 @@ def test_stream_shows_each_kind_of_fold_warning_once(server, apc_bins_path, caps
     err = capsys.readouterr().err
     shown = [line for line in err.splitlines() if "working range" in line]
     assert len(shown) == 1 and shown[0].startswith("frame ") and "near=0.1" in shown[0]
+
+
+@pytest.mark.realdata
+def test_streaming_a_captures_files_never_loads_torch_or_numba(server, shelf_dir):
+    # the capture's PNGs travel as they are, so the CLI lists them and sends them without torch and numba,
+    # which would take most of its start-up and memory
+    argv = ["stream", str(shelf_dir), "--url", server.url, "--voxel-size", "0.01", "--stride", "25", "--max-frames", "2"]
+    probe = f"import sys; from client import cli; code = cli.main({argv!r}); print(code, {{'torch', 'numba'}} & set(sys.modules))"
+    out = subprocess.run([sys.executable, "-c", probe], cwd=Path(__file__).resolve().parents[2], capture_output=True,
+                         text=True, timeout=120)
+    assert out.stdout.split()[-2:] == ["0", "set()"], out.stderr
+    assert "2 frames in" in out.stderr
 
 
 @pytest.mark.realdata

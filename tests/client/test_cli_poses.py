@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from canonical_core.camera import quaternion_to_matrix
+from canonical_core.calibration import quaternion_to_matrix
 from canonical_core.datasets import load_deep_video_mvs, load_tum
 from client import cli
 from client.cli.poses import read_pose_file

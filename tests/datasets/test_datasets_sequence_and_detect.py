@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +13,21 @@ from PIL import Image
 
 from canonical_core.datasets import FrameSequence, load_dataset, synthetic_rgbd, write_tsdf_fusion
 from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16, read_depth, read_pgm
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("capture", ["realsense_shelf", "apc_bins/bin_labels"])
+def test_a_capture_is_listed_without_torch_and_its_first_frame_loads_it(shelf_dir, capture):
+    # a client that sends a capture's files as they are starts without loading torch (`sequence`)
+    probe = ("import sys; from canonical_core.datasets import load_dataset; "
+             f"seq = load_dataset({str(shelf_dir.parent / capture)!r}); "
+             "source = seq.source(0); before = 'torch' in sys.modules; frame = seq[0]; "
+             "print(len(seq) > 1, source.frame_id == frame.frame_id, before, 'torch' in sys.modules, tuple(frame.rgb.shape))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "True", "False", "True", "(480,", "640,", "3)"]
 
 
 def test_sequence_indexing(tiny_tsdf):

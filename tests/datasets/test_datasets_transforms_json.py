@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.camera import OPENGL_TO_OPENCV
+from canonical_core.calibration import OPENGL_TO_OPENCV
 from canonical_core.datasets import SkippedFrames, load_transforms_json
 from canonical_core.datasets.distortion import distort_points, remap, undistort_image, undistort_points
 from canonical_core.datasets.files import read_depth, read_rgb

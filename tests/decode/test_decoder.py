@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from canonical_core import Camera, Frame, SceneConfig
-from canonical_core.camera import quaternion_to_matrix
+from canonical_core.calibration import quaternion_to_matrix
 from canonical_core.decode import (FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion,
                                    support_unit)
 from canonical_core.decode.decoder import OPACITY_BIAS, OPACITY_SLOPE

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core.camera import quaternion_to_matrix
+from canonical_core.calibration import quaternion_to_matrix
 from canonical_core.decode import GaussianDecoder, symmetric_eigh3, symmetric_eigh3_reference
 
 from ..conftest import folded_scene

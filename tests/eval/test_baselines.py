@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from canonical_core import Camera, Frame, Gaussians
-from canonical_core.camera import quaternion_to_matrix
+from canonical_core.calibration import quaternion_to_matrix
 from canonical_core.decode import GaussianDecoder
 from canonical_core.eval.baselines import (
     SPACING_FRACTION,

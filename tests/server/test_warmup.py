@@ -1,4 +1,4 @@
-"""Start-up warm-up: after it, a fresh process has the fold, free-space, decode and render kernels loaded."""
+"""Start-up warm-up: after it, a fresh process has the kernels of every stage loaded, from depth codes to renders."""
 
 from __future__ import annotations
 
@@ -9,8 +9,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 
-# numba kernels of each stage (fold, free space, undo record and roll-back, SH fit, render), and whether numba has loaded them.
+# numba kernels of each stage (a frame's 16-bit depth, fold, free space, undo record and roll-back, SH fit, render), and
+# whether numba has loaded them.
 PROBE = """
+import canonical_core.datasets.depth_codes as depth_codes
 import canonical_core.scene.hashing as hashing
 import canonical_core.scene.kernels as fold
 import canonical_core.scene.free_space as free_space
@@ -19,7 +21,7 @@ import canonical_core.rendering.cpu_tiles as tiles
 import canonical_core.rendering.splat_geometry as geometry
 import canonical_core.rendering.sh as sh
 kernels = [fold.fold_kernel, hashing.resolve_kernel, hashing.remove_range_kernel, tiles.bin_splats_by_tile,
-           geometry.project_numba, sh._sh_basis_kernel, sh._sh1_colour_kernel]
+           geometry.project_numba, sh._sh_basis_kernel, sh._sh1_colour_kernel, depth_codes.metres_kernel]
 kernels += [free_space._coarse_map_kernel, free_space.frustum_chunks_kernel, free_space.frame_free_space_kernel,
             free_space.history_free_space_kernel, free_space.update_chunk_boxes_kernel, undo._copy_chunks_kernel]
 def loaded():
@@ -36,5 +38,5 @@ def test_warm_up_loads_the_kernels_of_every_stage_in_a_fresh_process():
     env = dict(os.environ, NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR", str(REPO / ".numba_cache")))
     out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, check=True)
     (before, total), (after, _) = (map(int, line.split()) for line in out.stdout.split("\n")[:2])
-    assert before == 0 and total == 13
+    assert before == 0 and total == 14
     assert after == total, out.stdout
