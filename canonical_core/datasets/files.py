@@ -143,7 +143,6 @@ def depth_from_uint16(raw: np.ndarray, depth_scale: float) -> np.ndarray:  # [H,
     return metres
 
 
-
 def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
     """Write uint8 [H, W, 3] as PNG (lossless, so a re-read equals the input)."""
     Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), mode="RGB").save(path, format="PNG")

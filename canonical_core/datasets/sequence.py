@@ -3,8 +3,9 @@
 A loader resolves a capture into sources (a frame id and a way to read it) up front, so missing
 files and malformed poses fail at load time; images are read only when a frame is indexed.
 Listing a capture needs numpy alone: the loaders check intrinsics and poses with `calibration`
-and import `Camera` and `Frame` (and with them torch) only when a frame is read, so a client that
-sends a capture's files as they are (`canonical stream`) starts without loading torch.
+and import `Camera` and `Frame` (and with them torch) only when a frame is read, and numba's depth
+conversion (`depth_codes`) loads with its first use, so a client that sends a capture's files as
+they are (`canonical stream`) starts without loading either.
 
 Example:
     >>> from canonical_core.datasets import synthetic_rgbd
