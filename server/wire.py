@@ -59,7 +59,9 @@ def decode_rgb(data: bytes, field: str = "rgb", max_pixels: int | None = None) -
     image = _open_image(data, field, max_pixels)
     if image.mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr"):
         raise WireError(field, f"expected an 8-bit colour image, got PIL mode {image.mode!r}")
-    return np.array(image if image.mode == "RGB" else image.convert("RGB"))  # no copy of a frame that is RGB
+    # asarray reads the pixels out once (read-only; `Frame` copies such an array into its tensor), where
+    # np.array goes through the image's array interface and copies them again, about ten times slower
+    return np.asarray(image if image.mode == "RGB" else image.convert("RGB"))
 
 
 def decode_depth_png(data: bytes, depth_scale, field: str = "depth", max_pixels: int | None = None) -> np.ndarray:
