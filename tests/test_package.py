@@ -26,8 +26,8 @@ def test_import_makes_idle_openmp_threads_sleep_unless_the_environment_chose(giv
 
 
 def test_the_facade_loads_its_names_on_first_use():
-    # listing a capture and reading settings load neither torch nor the method; the facade's names
-    # still resolve, and an unknown one is an AttributeError like any module's
+    # listing a capture and reading settings load neither torch nor the method; the facade's names and
+    # the submodules still resolve as attributes, and an unknown name is an AttributeError like any module's
     probe = ("import sys, canonical_core, canonical_core.datasets, canonical_core.config; "
              "light = 'torch' not in sys.modules and 'canonical_core.scene' not in sys.modules; "
              "scene = canonical_core.Scene(canonical_core.SceneConfig(voxel_size=0.01)); "
@@ -36,6 +36,10 @@ def test_the_facade_loads_its_names_on_first_use():
              "print(light, type(scene).__name__, set(canonical_core.__all__) <= set(dir(canonical_core)), missing, every)")
     out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["True", "Scene", "True", "True", "True"]
+    # a submodule nothing imported yet, reached as an attribute of the bare package
+    probe = "import canonical_core; print(canonical_core.rendering.render is canonical_core.render)"
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True"]
 
 
 def test_the_names_type_checkers_see_are_the_facades():
