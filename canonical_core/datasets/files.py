@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Sequence, TypeVar
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from ..calibration import validate_intrinsics
+from ..calibration import validate_image_intrinsics, validate_intrinsics
 from .distortion import undistort_image
 
 if TYPE_CHECKING:
@@ -335,6 +335,14 @@ class RGBDFile:
                 depth = undistort_image(depth, self.K, self.distortion, mode="nearest")
         camera = Camera(self.K, self.c2w, width, height)
         return Frame(rgb=rgb, camera=camera, depth=depth, frame_id=self.frame_id)
+
+    def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """`FrameSource.view`: the camera `load` gives the frame (undistortion keeps K and the size)."""
+        width, height = image_size(self.color)
+        if self.size is not None and self.size != (width, height):
+            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
+        validate_image_intrinsics(self.K, width, height)
+        return self.K, self.c2w, width, height
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

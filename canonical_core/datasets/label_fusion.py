@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PIL import Image
 
-from ..calibration import validate_pose
-from .files import (as_intrinsics, depth_from_uint16, find_one, found_frames, read_depth, read_intrinsics_file,
-                    read_matrix, read_rgb, select)
+from ..calibration import validate_image_intrinsics, validate_pose
+from .files import (as_intrinsics, depth_from_uint16, find_one, found_frames, image_size, read_depth,
+                    read_intrinsics_file, read_matrix, read_rgb, select)
 from .sequence import FrameSequence
 from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
 
@@ -88,6 +88,12 @@ class LabelledFrameFile:
             labels = (ids[..., None] == np.array(self.label_ids, np.uint8)).astype(np.float32)
         camera = Camera(self.K, self.c2w, rgb.shape[1], rgb.shape[0])
         return Frame(rgb=rgb, camera=camera, depth=depth, labels=labels, frame_id=self.frame_id)
+
+    def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """`FrameSource.view`: the camera `load` gives the frame."""
+        width, height = image_size(self.color)
+        validate_image_intrinsics(self.K, width, height)
+        return self.K, self.c2w, width, height
 
 
 class LabelledSequence(FrameSequence):

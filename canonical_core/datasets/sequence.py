@@ -20,16 +20,23 @@ import operator
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol, overload
 
+import numpy as np
+
 if TYPE_CHECKING:
     from ..frame import Frame
 
 
 class FrameSource(Protocol):
-    """Anything with a ``frame_id`` and a ``load()`` that returns the `Frame`."""
+    """Anything with a ``frame_id``, a ``load()`` that returns the `Frame`, and a ``view()`` that
+    returns its camera without reading the frame: (K [3, 3], c2w [4, 4], float64, width, height),
+    the image size from the colour file's header and the intrinsics checked against it, no pixel
+    decoded and no torch loaded (a client that asks for a render at a capture's frame)."""
 
     frame_id: str
 
     def load(self) -> Frame: ...
+
+    def view(self) -> tuple[np.ndarray, np.ndarray, int, int]: ...
 
 
 class FrameSequence(Sequence["Frame"]):

@@ -191,6 +191,10 @@ class _SyntheticView:
         rgb, depth = render_rgbd(self.scene, self.camera)
         return Frame(rgb=rgb, camera=self.camera, depth=depth, frame_id=self.frame_id)
 
+    def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """`FrameSource.view` (a made sample holds its `Camera` already)."""
+        return self.camera.K64(), self.camera.c2w64(), self.camera.width, self.camera.height
+
 
 def synthetic_rgbd(num_frames: int = 24, width: int = 320, height: int = 240, seed: int = 0) -> FrameSequence:
     """RGB-D frames of `make_scene(seed)` from a camera on a 120-degree arc (radius 1.2 m, about

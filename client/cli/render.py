@@ -87,7 +87,7 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
     if pose_file is None:
         if args.K or args.size or args.width or args.height:
             raise SystemExit("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
-        return [(c.K64(), c.c2w64(), c.width, c.height) for c in cameras]
+        return cameras
     width, height = args.size or (args.width, args.height)
     if args.K:
         fx, fy, cx, cy = (float(x) for x in args.K.split(","))
@@ -95,9 +95,10 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
         if not (width and height):
             if len(cameras) != 1:
                 raise SystemExit("--K needs --size WxH (or one --frame-like whose image size to take)")
-            width, height = cameras[0].width, cameras[0].height
+            width, height = cameras[0][2:]
     elif len(cameras) == 1:
-        K, width, height = cameras[0].K64(), width or cameras[0].width, height or cameras[0].height
+        K, _, own_width, own_height = cameras[0]
+        width, height = width or own_width, height or own_height
     else:
         raise SystemExit("--pose and --trajectory need --K fx,fy,cx,cy and --size WxH, or one --frame-like "
                          "DATASET:INDEX whose intrinsics and image size to take")
@@ -122,19 +123,20 @@ def output_paths(output: str, count: int) -> list[Path]:
     return [Path(output)]
 
 
-def frame_like_camera(spec: str):
-    """The camera of ``--frame-like DATASET:INDEX``: UsageError for a spec without an index or an index
-    the dataset does not have, ValueError naming the option for a dataset that cannot be read."""
+def frame_like_camera(spec: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The camera of ``--frame-like DATASET:INDEX`` as (K, c2w, width, height), read without decoding
+    the frame (`FrameSource.view`): UsageError for a spec without an index or an index the dataset
+    does not have, ValueError naming the option for a dataset or a frame that cannot be read."""
     path, _, index = spec.rpartition(":")
     if not path or re.fullmatch(r"-?[0-9]{1,18}", index) is None:
         raise UsageError(f"--frame-like: expected DATASET:INDEX (INDEX a frame's number from 0), got {spec!r}")
     try:
         frames = _capture(path)
+        if not 0 <= int(index) < len(frames):
+            raise UsageError(f"--frame-like: {path} has {len(frames)} frames (0..{len(frames) - 1}), got {index}")
+        return frames.source(int(index)).view()
     except (OSError, ValueError) as exc:
         raise ValueError(f"--frame-like: {exc}") from None
-    if not 0 <= int(index) < len(frames):
-        raise UsageError(f"--frame-like: {path} has {len(frames)} frames (0..{len(frames) - 1}), got {index}")
-    return frames[int(index)].camera
 
 
 def run_render(args) -> int:

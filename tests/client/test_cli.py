@@ -34,15 +34,23 @@ def test_stream_shows_each_kind_of_fold_warning_once(server, apc_bins_path, caps
 
 
 @pytest.mark.realdata
-def test_streaming_a_captures_files_never_loads_torch_or_numba(server, shelf_dir):
-    # the capture's PNGs travel as they are, so the CLI lists them and sends them without torch and numba,
-    # which would take most of its start-up and memory
-    argv = ["stream", str(shelf_dir), "--url", server.url, "--voxel-size", "0.01", "--stride", "25", "--max-frames", "2"]
-    probe = f"import sys; from client import cli; code = cli.main({argv!r}); print(code, {{'torch', 'numba'}} & set(sys.modules))"
+def test_streaming_a_capture_and_rendering_at_its_frames_never_load_torch_or_numba(server, shelf_dir, tmp_path):
+    # the capture's PNGs travel as they are and a render at one of its frames needs only its camera, so
+    # the CLI does both without torch and numba, which would take most of its start-up and memory
+    url = ["--url", server.url]
+    stream = ["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "25", "--max-frames", "2"]
+    render = ["render", *url, "--frame-like", f"{shelf_dir}:1", "-o", str(tmp_path / "view.png"), "--session"]
+    probe = ("import contextlib, io, sys\n"
+             "from client import cli\n"
+             "out = io.StringIO()\n"
+             "with contextlib.redirect_stdout(out):\n"
+             f"    streamed = cli.main({stream!r})\n"
+             f"rendered = cli.main({render!r} + [out.getvalue().strip()])\n"
+             "print(streamed, rendered, {'torch', 'numba'} & set(sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", probe], cwd=Path(__file__).resolve().parents[2], capture_output=True,
                          text=True, timeout=120)
-    assert out.stdout.split()[-2:] == ["0", "set()"], out.stderr
-    assert "2 frames in" in out.stderr
+    assert out.stdout.split()[-3:] == ["0", "0", "set()"], out.stderr
+    assert "2 frames in" in out.stderr and Image.open(tmp_path / "view.png").size == (640, 480)
 
 
 @pytest.mark.realdata

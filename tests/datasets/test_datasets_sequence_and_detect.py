@@ -30,6 +30,36 @@ def test_a_capture_is_listed_without_torch_and_its_first_frame_loads_it(shelf_di
     assert out.stdout.split() == ["True", "True", "False", "True", "(480,", "640,", "3)"]
 
 
+def _views_match_loaded_cameras(seq) -> None:
+    for i in (0, len(seq) - 1):
+        K, c2w, width, height = seq.source(i).view()
+        camera = seq[i].camera
+        assert np.array_equal(K, camera.K64()) and np.array_equal(c2w, camera.c2w64())
+        assert (width, height) == (camera.width, camera.height)
+
+
+def test_a_frames_view_is_the_camera_its_load_gives(tiny_tsdf):
+    _views_match_loaded_cameras(load_dataset(tiny_tsdf))
+    _views_match_loaded_cameras(synthetic_rgbd(num_frames=2, width=40, height=30))
+
+
+@pytest.mark.realdata
+def test_a_real_frames_view_is_the_camera_its_load_gives(shelf_path):
+    _views_match_loaded_cameras(load_dataset(shelf_path))
+    _views_match_loaded_cameras(load_dataset(shelf_path.parent / "apc_bins" / "bin_labels"))  # label-fusion frames
+
+
+def test_a_view_checks_the_intrinsics_against_the_image_it_reads(tiny_tsdf, tmp_path):
+    capture = tmp_path / "cap"
+    shutil.copytree(tiny_tsdf, capture)
+    (capture / "camera-intrinsics.txt").write_text("500 0 2000\n0 500 24\n0 0 1\n")  # cx far right of 64 pixels
+    seq = load_dataset(capture)
+    with pytest.raises(ValueError, match="principal point"):
+        seq.source(0).view()
+    with pytest.raises(ValueError, match="principal point"):
+        seq[0]
+
+
 def test_sequence_indexing(tiny_tsdf):
     seq = load_dataset(tiny_tsdf)
     assert len(seq) == 3 and seq[-1].frame_id == seq[2].frame_id == "frame-000002"

@@ -123,6 +123,10 @@ def test_distorted_capture_is_undistorted_on_load(shelf, shelf_path, tmp_path):
     expected = undistort_image(shelf[0].rgb.numpy(), f.camera.K64(), DIST)
     assert np.array_equal(f.rgb.numpy(), expected)
     assert np.isin(f.depth.numpy(), shelf[0].depth.numpy()).all()
+    # the frame's camera without reading it: undistortion keeps K and the image size
+    K, c2w, width, height = load_transforms_json(tmp_path / "ns").source(0).view()
+    assert np.array_equal(K, f.camera.K64()) and np.array_equal(c2w, f.camera.c2w64())
+    assert (width, height) == (f.width, f.height)
 
 
 @pytest.fixture
