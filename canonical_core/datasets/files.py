@@ -326,8 +326,7 @@ class RGBDFile:
                 f"{self.depth}: depth size {depth.shape[1]}x{depth.shape[0]} does not match "
                 f"the colour image {self.color} ({width}x{height})"
             )
-        if self.size is not None and self.size != (width, height):
-            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
+        self._check_size(width, height)
         if self.distortion is not None:
             rgb = undistort_image(rgb, self.K, self.distortion, mode="bilinear")
             if depth is not None:
@@ -339,10 +338,13 @@ class RGBDFile:
     def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         """`FrameSource.view`: the camera `load` gives the frame (undistortion keeps K and the size)."""
         width, height = image_size(self.color)
-        if self.size is not None and self.size != (width, height):
-            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
+        self._check_size(width, height)
         validate_image_intrinsics(self.K, width, height)
         return self.K, self.c2w, width, height
+
+    def _check_size(self, width: int, height: int) -> None:
+        if self.size is not None and self.size != (width, height):
+            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
