@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .calibration import (OPENGL_TO_OPENCV, as_float64, quaternion_to_matrix, validate_image_intrinsics, validate_intrinsics,
-                          validate_pose)
+from .calibration import (OPENGL_TO_OPENCV, as_float64, quaternion_to_matrix, validate_image_intrinsics,
+                          validate_intrinsics, validate_pose)
 
 
 @dataclass(frozen=True, eq=False)

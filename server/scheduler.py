@@ -256,7 +256,7 @@ class Scheduler:
         """The lane's next job: its first kind with a job that may run (the viewer's, when its turn
         came), the session whose turn it is."""
         kinds = lane.kinds
-        if "viewer" in kinds and self._viewer_paused():
+        if "viewer" in kinds and self._viewer_wait():
             kinds = tuple(kind for kind in kinds if kind != "viewer")
         elif "viewer" in kinds and self._waiting["viewer"]:
             self._passed_over += 1
@@ -279,7 +279,7 @@ class Scheduler:
             return job
         return None
 
-    def _viewer_paused(self) -> float:
+    def _viewer_wait(self) -> float:
         """Seconds until a waiting viewer job may start, while frames are held and the pause after the
         last viewer job lasts (`VIEWER_PAUSE`); 0 when it may start now or none waits."""
         if not self._waiting["viewer"] or not any(kind in FRAME_KINDS for _, kind in self._held):
@@ -300,7 +300,7 @@ class Scheduler:
                 while (job := self._next(lane)) is None:
                     if self._closed:
                         return
-                    lane.ready.wait((self._viewer_paused() if "viewer" in lane.kinds else 0.0) or None)
+                    lane.ready.wait((self._viewer_wait() if "viewer" in lane.kinds else 0.0) or None)
             start = time.monotonic()
             try:
                 result, error = job.call(), None

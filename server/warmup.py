@@ -19,10 +19,10 @@ from canonical_core.datasets.files import depth_from_uint16
 
 def warm_up(num_threads: int | None = None) -> float:
     """Fold two small synthetic RGB-D frames of a plane (their depth converted from 16-bit sensor
-    codes, as most frames arrive; the second one moved, so free space runs against the first) into a scene that keeps undo records (as a session with a frame archive
-    does), decode the scene (its colours solved: the background solve's kernels load too), render
-    every map once and roll the second fold back (a correction's first step). Returns the seconds
-    it took.
+    codes, as most frames arrive; the second one moved, so free space runs against the first) into a
+    scene that keeps undo records (as a session with a frame archive does), decode the scene (its
+    colours solved: the background solve's kernels load too), render every map once and roll the
+    second fold back (a correction's first step). Returns the seconds it took.
 
     Example:
         >>> warm_up() > 0
