@@ -119,12 +119,14 @@ PNG_LEVEL = 1
 
 
 def encode_png(rgb: np.ndarray) -> bytes:  # [H, W, 3] uint8 -> PNG bytes
-    """A colour image as a lossless PNG at a fast compression level (`PNG_LEVEL`)."""
-    from PIL import Image
+    """A colour image as a lossless PNG, encoded by libpng (imagecodecs) at a fast compression level
+    (`PNG_LEVEL`) with zlib's run-length strategy and every row's filter "sub": on camera frames that
+    packs as small as Pillow's fastest level in about a third of its time, and the service decodes it
+    faster too."""
+    import imagecodecs
 
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb, np.uint8)).save(buf, format="PNG", compress_level=PNG_LEVEL)
-    return buf.getvalue()
+    return imagecodecs.png_encode(np.ascontiguousarray(rgb, np.uint8), level=PNG_LEVEL,
+                                  strategy=imagecodecs.PNG.STRATEGY.RLE, filter=imagecodecs.PNG.FILTER.SUB)
 
 
 class DownscaledFrame(UserWarning):
