@@ -137,3 +137,19 @@ def test_a_broken_png_fails_as_pillow_says_naming_the_file_or_field(damage, tmp_
     with pytest.raises(WireError, match="corrupt PNG image") as err:
         decode_depth_png(depth, 1000.0)
     assert err.value.field == "depth"
+
+
+def test_the_sdks_and_the_services_png_encoders_round_trip_and_pack_as_small_as_pillows_fast_level():
+    from client.sdk import encode_png as sdk_png
+    from server.wire import encode_png as service_png
+
+    shelf = DATA / "realsense_shelf" / "frames" / "frame-000015.color.png"
+    if not shelf.is_file():
+        pytest.skip(f"{shelf} is not present")
+    frame = read_rgb(shelf)
+    grey = frame[..., 1].copy()
+    for encode in (sdk_png, service_png):
+        data = encode(frame)
+        assert np.array_equal(_pillow(data), frame)  # lossless, a PNG any decoder reads
+        assert len(data) <= 1.05 * len(_png(frame, compress_level=1))
+    assert np.array_equal(_pillow(service_png(grey)), grey)  # feature previews may be single-channel
