@@ -115,6 +115,30 @@ def decoded_rows(
     return DecodedRowSet(*chosen, unit if unit > 1e-6 else 1e-6)
 
 
+def strongest(
+    support: np.ndarray,  # [K] float32
+    count: int,
+) -> np.ndarray:  # [min(count, K)] int64, ascending
+    """The indices of the ``count`` largest values of ``support``, ties going to the lower index, in
+    ascending order: the first ``count`` of a stable descending sort, sorted, found in linear time
+    (the count-th largest value by partition, then every index above it and the first ones equal
+    to it). A picture at a level of detail picks its Gaussians so while the scene's lock is held.
+
+    Example:
+        >>> strongest(np.array([0.5, 2.0, 1.0, 2.0, 1.0], np.float32), 3).tolist()
+        [1, 2, 3]
+    """
+    n = support.shape[0]
+    if count >= n:
+        return np.arange(n)
+    if count <= 0:
+        return np.zeros(0, np.int64)
+    threshold = np.partition(support, n - count)[n - count]
+    picked = support > threshold
+    picked[np.flatnonzero(support == threshold)[: count - int(picked.sum())]] = True
+    return np.flatnonzero(picked)
+
+
 @numba.njit(parallel=True, cache=True)
 def _features_kernel(rows, f_mean, r_sum, eps, out):  # f_mean: [V, L] float16 bits (uint16)
     for i in numba.prange(rows.shape[0]):
@@ -288,8 +312,8 @@ class SceneDecoding:
         whole = min_support == 0  # every voxel that decodes: the scene's colours may be solved and kept
         if max_gaussians is not None and len(chosen.rows) > max_gaussians:
             whole = False
-            top = torch.sort(torch.argsort(chosen.support, descending=True, stable=True)[:max_gaussians]).values
-            chosen = chosen._replace(rows=chosen.rows[top.numpy()], support=chosen.support[top], free=chosen.free[top])
+            top = strongest(chosen.support.numpy(), max_gaussians)
+            chosen = chosen._replace(rows=chosen.rows[top], support=chosen.support[top], free=chosen.free[top])
         rows = chosen.rows
         # label channels change a row's decode too; stamps of another epoch may repeat this one's
         key = (inputs.sums["label_sum"].shape[1], inputs.stamp_epoch, *self.key())
