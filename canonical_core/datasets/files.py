@@ -43,8 +43,8 @@ _LIBPNG_LAYOUTS = {"RGB": (3, np.uint8), "I;16": (0, np.uint16)}
 def png_pixels(image: Image.Image, data: bytes) -> np.ndarray | None:  # [H, W, 3] uint8 or [H, W] uint16
     """The pixels of ``image``, opened from ``data`` with only its header read, decoded by libpng
     (imagecodecs) straight into a numpy array, for the two layouts cameras write: 8-bit RGB and
-    16-bit grey PNG. None for every other image, and for a file libpng refuses: then Pillow decodes
-    it (the reference, and its error names the problem).
+    16-bit grey PNG, not interlaced. None for every other image, and for a file libpng refuses: then
+    Pillow decodes it (the reference, and its error names the problem).
 
     Why not Pillow alone: a service decodes every frame it is sent, and Pillow decodes into its own
     buffer and copies it out, where libpng here writes the array once with faster row filters.
@@ -57,7 +57,7 @@ def png_pixels(image: Image.Image, data: bytes) -> np.ndarray | None:  # [H, W, 
         (2, 3, 3)
     """
     layout = _LIBPNG_LAYOUTS.get(image.mode) if image.format == "PNG" else None
-    if layout is None:
+    if layout is None or image.info.get("interlace"):  # libpng warns on stderr for every interlaced one
         return None
     import imagecodecs  # loaded with the first decode: listing a capture or streaming its files needs none
 

@@ -5,6 +5,8 @@ whichever path decodes them, and their errors for broken files are Pillow's."""
 from __future__ import annotations
 
 import io
+import struct
+import zlib
 from pathlib import Path
 
 import imagecodecs
@@ -74,6 +76,22 @@ def test_the_loaders_and_the_wire_give_pillows_pixels_on_a_real_frame():
     assert read_rgb(color).flags.writeable  # torch warns on read-only arrays
 
 
+# Adam7's passes: (first column, first row, column step, row step)
+ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def _interlaced_png(array: np.ndarray) -> bytes:  # 8-bit RGB or 16-bit grey; Pillow writes no interlaced PNG
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    height, width = array.shape[:2]
+    colour_type, bits = (2, 8) if array.ndim == 3 else (0, 16)
+    samples = array.astype(">u2") if bits == 16 else array
+    rows = b"".join(b"\0" + row.tobytes() for x0, y0, dx, dy in ADAM7 for row in samples[y0::dy, x0::dx] if row.size)
+    header = struct.pack(">IIBBBBB", width, height, bits, colour_type, 0, 0, 1)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b"")
+
+
 rng = np.random.default_rng(0)
 COLOUR = rng.integers(0, 256, (7, 5, 3), dtype=np.uint8)
 LAYOUTS = {  # name -> (PNG bytes, whether libpng takes it)
@@ -85,6 +103,7 @@ LAYOUTS = {  # name -> (PNG bytes, whether libpng takes it)
     "grey and alpha": (_png(np.dstack([COLOUR[..., 0], COLOUR[..., 1]]), ), False),
     "palette": (_png(np.asarray(Image.fromarray(COLOUR).convert("P"))), False),
     "16-bit RGB": (imagecodecs.png_encode(COLOUR.astype(np.uint16) * 257), False),
+    "8-bit RGB, interlaced": (_interlaced_png(COLOUR), False),
 }
 
 
@@ -100,12 +119,14 @@ def test_every_colour_layout_reads_as_pillow_converts_it(layout, tmp_path):
         assert rgb.shape == (7, 5, 3) and rgb.dtype == np.uint8 and np.array_equal(rgb, reference)
 
 
-def test_16_bit_depth_reads_as_pillow_decodes_it(tmp_path):
-    raw = rng.integers(0, 65536, (6, 4), dtype=np.uint16)
+@pytest.mark.parametrize("interlaced", [False, True])
+def test_16_bit_depth_reads_as_pillow_decodes_it(interlaced, tmp_path):
+    raw = rng.integers(0, 65536, (6, 9), dtype=np.uint16)
     raw[0, 0], raw[0, 1] = 0, 65535  # missing, both ways
-    data = _png(raw)
+    data = _interlaced_png(raw) if interlaced else _png(raw)
     image = Image.open(io.BytesIO(data))
-    assert image.mode == "I;16" and png_pixels(image, data) is not None
+    assert image.mode == "I;16" and (png_pixels(image, data) is None) == interlaced
+    assert np.array_equal(_pillow(data), raw)
     path = tmp_path / "d.png"
     path.write_bytes(data)
     expected = np.where((raw == 0) | (raw == 65535), 0.0, raw / 5000.0).astype(np.float32)
