@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from canonical_core import Camera, Frame, Scene, SceneConfig, render
-from canonical_core.datasets.files import depth_from_uint16
+from canonical_core.datasets.images import depth_from_uint16
 
 
 def warm_up(num_threads: int | None = None) -> float:

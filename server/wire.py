@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from canonical_core import Camera, Frame
-from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16, png_pixels
+from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
 from canonical_wire import DTYPES, FLOATS, WireError, array_shape, decode_array, encode_array, is_array, pack, unpack  # noqa: F401
 

@@ -24,8 +24,8 @@ import numpy as np
 from PIL import Image
 
 from ..calibration import validate_image_intrinsics, validate_pose
-from .files import (as_intrinsics, depth_from_uint16, find_one, found_frames, image_size, read_depth,
-                    read_intrinsics_file, read_matrix, read_rgb, select)
+from .files import as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix, select
+from .images import depth_from_uint16, image_size, read_depth, read_rgb
 from .sequence import FrameSequence
 from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
 

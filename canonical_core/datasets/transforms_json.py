@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import OPENGL_TO_OPENCV, validate_pose
-from .files import MissingFile, RGBDFile, as_intrinsics, found_frames, image_size, read_text, select
+from .files import MissingFile, RGBDFile, as_intrinsics, found_frames, read_text, select
+from .images import image_size
 from .sequence import FrameSequence
 
 DEFAULT_DEPTH_UNIT_SCALE_FACTOR = 1e-3

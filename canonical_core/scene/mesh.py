@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..config import SceneConfig
-from .decoding import decoded_rows
+from .selection import decoded_rows
 from .scene import Scene
 from .fields import unpack_keys
 from .stored import HALF_FIELDS, raw_sums
@@ -113,7 +113,7 @@ def surface_mesh(
     block: int = DEFAULT_BLOCK,  # cubes per block edge (>= 4)
 ) -> Mesh:
     """The scene's surface as a coloured triangle mesh (module docstring). The voxels that count are
-    the ones that decode to Gaussians (`decoding.decoded_rows`: support above ``min_support``, not
+    the ones that decode to Gaussians (`selection.decoded_rows`: support above ``min_support``, not
     seen through more than seen); each weighs by its R_scene. An empty scene gives an empty mesh.
 
     Example:

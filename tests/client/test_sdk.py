@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from canonical_core import load_ply, load_splat
-from canonical_core.datasets.files import depth_from_uint16, read_depth, read_rgb
+from canonical_core.datasets.images import depth_from_uint16, read_depth, read_rgb
 from client.cli import build_parser
 from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
                         frame_body, scaled_intrinsics, unpack)

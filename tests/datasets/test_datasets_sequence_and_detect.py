@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from canonical_core.datasets import FrameSequence, load_dataset, synthetic_rgbd, write_tsdf_fusion
-from canonical_core.datasets.files import DEPTH_INVALID_CODE, depth_from_uint16, read_depth, read_pgm
+from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, read_depth, read_pgm
 
 
 REPO = Path(__file__).resolve().parents[2]

@@ -14,7 +14,7 @@ import torch
 from canonical_core.calibration import OPENGL_TO_OPENCV
 from canonical_core.datasets import SkippedFrames, load_transforms_json
 from canonical_core.datasets.distortion import distort_points, remap, undistort_image, undistort_points
-from canonical_core.datasets.files import read_depth, read_rgb
+from canonical_core.datasets.images import read_depth, read_rgb
 
 DIST = (-0.12, 0.03, 0.001, -0.0015)  # k1 k2 p1 p2, a typical consumer-lens distortion
 

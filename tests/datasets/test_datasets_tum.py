@@ -11,7 +11,7 @@ from PIL import Image
 
 from canonical_core import Camera
 from canonical_core.datasets import SkippedFrames, load_tum
-from canonical_core.datasets.files import read_pgm
+from canonical_core.datasets.images import read_pgm
 
 pytestmark = pytest.mark.realdata
 

@@ -14,7 +14,7 @@ import torch
 from canonical_core import Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core.config import FLAT_NAMES, migrate_flat
-from canonical_core.scene.decoding import decoded_rows
+from canonical_core.scene.selection import decoded_rows
 from canonical_core.scene.fields import fields_from_sums
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"

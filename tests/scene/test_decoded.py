@@ -12,7 +12,8 @@ from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
 from canonical_core.scene.decoded import PARTS, gather_rows
-from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES, decoded_rows, scene_features
+from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES
+from canonical_core.scene.selection import decoded_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
 from canonical_core.scene import stamps as stamp_clock
 from canonical_core.scene.stamps import STAMP_LIMIT, StampClock

@@ -11,7 +11,8 @@ from canonical_core import SceneConfig
 from canonical_core.decode import colour_offsets, with_colour_offsets
 from canonical_core.frame import resize_frame
 from canonical_core.scene import Scene
-from canonical_core.scene.decoding import REFRESH_ITERATIONS, decoded_rows
+from canonical_core.scene.decoding import REFRESH_ITERATIONS
+from canonical_core.scene.selection import decoded_rows
 from canonical_core.scene.keyframes import Keyframes
 
 from ..conftest import make_frame, solved_as_kept

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from canonical_core.datasets.files import png_pixels, read_depth, read_rgb
+from canonical_core.datasets.images import png_pixels, read_depth, read_rgb
 from server.wire import WireError, decode_depth_png, decode_rgb
 
-from ..conftest import DATA
+from ..conftest import DATA, require_capture
 
 # every real capture's PNG colour and depth files (a few frames each), with Pillow's mode for them
 CAPTURES = ("realsense_shelf", "sun3d_studyroom", "hololens_office", "apc_bins/bin_labels", "apc_bins/bin_mask",
@@ -25,9 +25,7 @@ CAPTURES = ("realsense_shelf", "sun3d_studyroom", "hololens_office", "apc_bins/b
 
 
 def _capture_pngs(name: str) -> list[Path]:
-    root = DATA / name
-    if not root.is_dir():
-        pytest.skip(f"{root} is not present")
+    root = require_capture(DATA / name)
     files = sorted(root.rglob("*.png"))
     step = max(1, len(files) // 6)
     return files[::step] + files[1::step]  # a dozen a capture: both offsets, where colour and depth files alternate
@@ -60,11 +58,8 @@ def test_libpng_decodes_every_captures_colour_and_depth_as_pillow_does(name):
     assert decoded > 0
 
 
-def test_the_loaders_and_the_wire_give_pillows_pixels_on_a_real_frame():
-    shelf = DATA / "realsense_shelf" / "frames"
-    if not shelf.is_dir():
-        pytest.skip(f"{shelf} is not present")
-    color, depth = shelf / "frame-000015.color.png", shelf / "frame-000015.depth.png"
+def test_the_loaders_and_the_wire_give_pillows_pixels_on_a_real_frame(shelf_path):
+    color, depth = shelf_path / "frames" / "frame-000015.color.png", shelf_path / "frames" / "frame-000015.depth.png"
     reference_rgb = _pillow(color.read_bytes())
     reference_metres = _pillow(depth.read_bytes()).astype(np.float64) / 1000.0
     reference_metres[reference_metres == 65.535] = 0.0
@@ -160,14 +155,11 @@ def test_a_broken_png_fails_as_pillow_says_naming_the_file_or_field(damage, tmp_
     assert err.value.field == "depth"
 
 
-def test_the_sdks_and_the_services_png_encoders_round_trip_and_pack_as_small_as_pillows_fast_level():
+def test_the_sdks_and_the_services_png_encoders_round_trip_and_pack_as_small_as_pillows_fast_level(shelf_path):
     from client.sdk import encode_png as sdk_png
     from server.wire import encode_png as service_png
 
-    shelf = DATA / "realsense_shelf" / "frames" / "frame-000015.color.png"
-    if not shelf.is_file():
-        pytest.skip(f"{shelf} is not present")
-    frame = read_rgb(shelf)
+    frame = read_rgb(shelf_path / "frames" / "frame-000015.color.png")
     grey = frame[..., 1].copy()
     for encode in (sdk_png, service_png):
         data = encode(frame)
