@@ -1,16 +1,10 @@
 """Reading the files that capture layouts are made of besides their images (`images`): text,
-matrices and intrinsics; finding a capture's frames and the files of each (`RGBDFile`).
-
-Every reader raises ``ValueError`` naming the file and the problem, so a loader's error says which
-file of a capture is missing or broken.
+matrices and intrinsics; finding a capture's frames and the files of each (`RGBDFile`). As in
+`images`, a reader's ValueError names the file and the problem.
 
 Example:
-    >>> import tempfile, numpy as np
-    >>> from pathlib import Path
-    >>> p = Path(tempfile.mkdtemp()) / "K.txt"
-    >>> write_matrix(p, np.eye(3))
-    >>> read_matrix(p, 3, 3).tolist()[0]
-    [1.0, 0.0, 0.0]
+    >>> parse_floats(["1", "2.5"], "poses.txt").tolist()
+    [1.0, 2.5]
 """
 
 from __future__ import annotations
