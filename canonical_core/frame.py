@@ -222,6 +222,27 @@ def depth_warnings(
     return []
 
 
+def area_resize(
+    rgb: np.ndarray,  # [H, W, 3] uint8
+    size: tuple[int, int],  # (width, height) of the result
+) -> np.ndarray:  # [height, width, 3] uint8
+    """Colour area-averaged to ``size``. Where ``size`` divides the image's sides by whole factors
+    (half size: the colour solve's kept views), each output pixel is the mean of its block
+    (`Image.reduce`), rounded exactly for power-of-two blocks; Pillow's box filter, used otherwise,
+    weighs in fixed point, and at half size it is off by one in about a third of the values and
+    takes four times as long.
+
+    Example:
+        >>> area_resize(np.array([[[0, 0, 0], [1, 2, 255]], [[2, 2, 0], [2, 3, 255]]], np.uint8), (1, 1))
+        array([[[  1,   2, 128]]], dtype=uint8)
+    """
+    height, width = rgb.shape[:2]
+    image = Image.fromarray(rgb)
+    if width % size[0] == 0 and height % size[1] == 0:
+        return np.array(image.reduce((width // size[0], height // size[1])))
+    return np.array(image.resize(size, Image.BOX))
+
+
 def resize_frame(frame: Frame, scale: float) -> Frame:
     """The frame resized by ``scale``: colour area-averaged, depth nearest (no mixing across
     edges or holes), camera via `Camera.scaled`; client features and labels are dropped."""
@@ -231,7 +252,7 @@ def resize_frame(frame: Frame, scale: float) -> Frame:
         return frame
     camera = frame.camera.scaled(scale)
     size = (camera.width, camera.height)
-    rgb = np.array(Image.fromarray(frame.rgb.numpy()).resize(size, Image.BOX))
+    rgb = area_resize(frame.rgb.numpy(), size)
 
     def nearest(t: Tensor | None) -> np.ndarray | None:
         return None if t is None else np.array(Image.fromarray(t.numpy()).resize(size, Image.NEAREST))
