@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import InitVar, dataclass, field
@@ -27,7 +28,7 @@ from typing import Callable, ClassVar
 
 from canonical_core import Frame, Gaussians, SceneConfig
 from canonical_core.decode import SolveStopped
-from canonical_core.scene import FoldReport, Scene
+from canonical_core.scene import FoldReport, PreparedFrame, Scene
 from canonical_core.scene.folding import fold_cost
 from canonical_core.scene.mesh import Mesh, scene_mesh
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
@@ -49,6 +50,23 @@ log = logging.getLogger("canonical.store")  # the store's logger: one name for a
 # that can fold at a time is enough (a session's appends are ordered by its lock)
 LOG_WRITERS = ThreadPoolExecutor(max_workers=8, thread_name_prefix="frame-log")
 UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll back in place (`Scene.rollback`)
+# frames prepared ahead of their fold (`Session.prepare`) held at once, all sessions together: each
+# holds what its fold would make anyway (its evidence, about 130 bytes a pixel), and more than the
+# ingest workers make while the folds run would save no fold time
+PREPARED_AHEAD = threading.BoundedSemaphore(2)
+
+
+class Ahead:
+    """A frame prepared ahead of its fold (`Scene.prepare`), holding one of `PREPARED_AHEAD`'s slots
+    until `release`, or until it is dropped unreleased (a request cancelled while it was prepared)."""
+
+    def __init__(self, frame: PreparedFrame):
+        self.frame: PreparedFrame | None = frame
+        self._slot = weakref.finalize(self, PREPARED_AHEAD.release)  # runs once: here or when collected
+
+    def release(self) -> None:
+        self.frame = None
+        self._slot()
 
 
 @dataclass(eq=False)
@@ -116,9 +134,25 @@ class Session:
         """`Scene.preallocate` of `preallocate_voxels` voxels, at most the session's ``max_voxels``."""
         scene.preallocate(min(self.preallocate_voxels, self.config.max_voxels or self.preallocate_voxels))
 
+    def prepare(self, frame: Frame) -> Ahead | None:
+        """``frame``'s fold begun now, on the caller's thread without the session's lock, while the
+        frames before it fold (`Scene.prepare`); None where nothing was made or no slot of
+        `PREPARED_AHEAD` is free. Give it to `add_frame`, and `Ahead.release` it after."""
+        if not PREPARED_AHEAD.acquire(blocking=False):
+            return None
+        try:
+            prepared = self.scene.prepare(frame)
+        except BaseException:
+            PREPARED_AHEAD.release()
+            raise
+        if prepared.config is None:
+            PREPARED_AHEAD.release()
+            return None
+        return Ahead(prepared)
+
     # -- writing (callers hold no lock; these take it) ------------------------------------------
     def add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
-                  index: int | None = None) -> tuple[FoldReport, bool]:
+                  index: int | None = None, prepared: PreparedFrame | None = None) -> tuple[FoldReport, bool]:
         """Log (fsynced), fold, maybe snapshot; returns the fold report and whether it is a replay.
 
         A frame whose ``frame_id`` the session already folded is not folded again: its first report
@@ -128,11 +162,12 @@ class Session:
         log record is cut off again and the scene is unchanged (the library validates before it mutates).
 
         A numbered frame (``index``: its place in the stream, its turn awaited with `order`) is folded
-        only in that place, else `FrameOutOfOrder`; its refusal refuses the frames waiting behind it."""
+        only in that place, else `FrameOutOfOrder`; its refusal refuses the frames waiting behind it.
+        ``prepared``: the frame's `prepare`d fold, folded in its place (the same bits)."""
         with self.lock:
             self.check_alive()
             try:
-                result = self._add_frame(payload, frame, snapshot_every_frames, snapshot_every_seconds, index)
+                result = self._add_frame(payload, frame, snapshot_every_frames, snapshot_every_seconds, index, prepared)
             except FrameOutOfOrder:
                 raise
             except Exception as exc:
@@ -142,7 +177,7 @@ class Session:
             return result
 
     def _add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
-                   index: int | None) -> tuple[FoldReport, bool]:
+                   index: int | None, prepared: PreparedFrame | None) -> tuple[FoldReport, bool]:
         """`add_frame` once it is the frame's turn, under the lock."""
         known = self.frame_ids.get(frame.frame_id) if frame.frame_id is not None else None
         if known is not None:
@@ -159,7 +194,7 @@ class Session:
         with self.budget.reserve(fold_cost(self.scene, frame)) if self.budget is not None else nullcontext():
             logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
             try:
-                report = self.scene.fold(frame)
+                report = self.scene.fold(frame if prepared is None or prepared.frame is not frame else prepared)
             except Exception as exc:
                 self._fold_failed(logged, exc)
                 raise

@@ -50,6 +50,19 @@ class Prepared:
     denoised: bool = False
 
 
+def denoised_depth(frame: Frame, config: SceneConfig) -> tuple[Frame, bool]:
+    """``frame`` (with depth) with its depth replaced by the local median where it is far rougher
+    than its noise model (`evidence.denoise`), and whether it was."""
+    c = config
+    depth = frame.depth.numpy()
+    std = None if frame.depth_std is None else frame.depth_std.numpy()
+    smooth, smooth_std = denoise_rough_depth(depth, std, c.depth.denoise_radius, c.sensor.sigma0, c.sensor.sigma2,
+                                             c.sensor.sigma_ref)
+    if smooth is depth:
+        return frame, False
+    return dataclasses.replace(frame, depth=torch.from_numpy(smooth), depth_std=torch.from_numpy(smooth_std)), True
+
+
 class DepthFrontEnd:
     """Depth for each incoming frame (see the module), with the source window and pending frames."""
 
@@ -65,7 +78,7 @@ class DepthFrontEnd:
         not integrate; it runs before any sweep (and before a frame is kept waiting). Changes nothing."""
         if frame.depth is None:
             return self._without_depth(frame, check, points)
-        frame, denoised = self._denoised(frame)
+        frame, denoised = denoised_depth(frame, self.config)
         view, completed = None, 0
         if self.config.depth.completion:
             check(frame)  # before the sweep's cost
@@ -107,18 +120,6 @@ class DepthFrontEnd:
             return Prepared(frame, view, pending=True)
         estimated = self._with_estimated_depth(frame, sources, view, points)
         return Prepared(estimated, view, view_depth=estimated.depth)
-
-    def _denoised(self, frame: Frame) -> tuple[Frame, bool]:
-        """``frame`` with its depth replaced by the local median where it is far rougher than its
-        noise model (`evidence.denoise`), and whether it was."""
-        c = self.config
-        depth = frame.depth.numpy()
-        std = None if frame.depth_std is None else frame.depth_std.numpy()
-        smooth, smooth_std = denoise_rough_depth(depth, std, c.depth.denoise_radius, c.sensor.sigma0, c.sensor.sigma2,
-                                                 c.sensor.sigma_ref)
-        if smooth is depth:
-            return frame, False
-        return dataclasses.replace(frame, depth=torch.from_numpy(smooth), depth_std=torch.from_numpy(smooth_std)), True
 
     def _sources_for(self, camera: Camera) -> list[SourceView]:
         """Source views for a sweep at ``camera`` (never its own view: selection needs a baseline)."""

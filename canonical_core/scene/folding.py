@@ -19,20 +19,22 @@ import time
 
 import numpy as np
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
-from ..evidence import extract_evidence, observation_sh_basis
+from ..evidence import FrameEvidence, extract_evidence, observation_sh_basis
 from ..frame import Frame, depth_warnings
 from ..config import SceneConfig
 from . import snapshot
 from .choices import choose_settings
+from .depth_frontend import Prepared, denoised_depth
 from .integrate import integrate, integrate_free_space
+from .keyframes import kept_view
 from .undo import FoldUndo, history_slot
 
 if TYPE_CHECKING:
     from .scene import Scene
 
-__all__ = ["FoldReport", "fold_cost", "fold_kept"]
+__all__ = ["FoldReport", "PreparedFrame", "fold_cost", "fold_kept", "prepare"]
 
 
 @dataclass(frozen=True)
@@ -71,17 +73,56 @@ class FoldReport:
         return asdict(self)
 
 
-def fold_kept(scene: Scene, frame: Frame, arrival: int, t0: float) -> FoldReport:
+class PreparedFrame(NamedTuple):
+    """A frame with the part of its fold that reads nothing of the scene but its settings done
+    ahead (`prepare`): its depth denoised, its evidence and SH basis, its colour-solve view resized.
+    `Scene.fold` takes it in place of the frame and folds exactly what the frame would fold."""
+
+    frame: Frame
+    config: SceneConfig | None = None  # the settings the parts below were made with (None: nothing made)
+    front: Prepared | None = None  # the depth front end's result: the frame as it is folded
+    evidence: FrameEvidence | None = None
+    basis: np.ndarray | None = None  # [M, (sh_degree + 1)^2] SH basis of each observation's view direction
+    view: Frame | None = None  # the colour solve's view of the frame, resized (None where it keeps none)
+
+
+def prepare(scene: Scene, frame: Frame) -> PreparedFrame:
+    """`Scene.prepare`: ``frame`` with the part of its fold that reads nothing of the scene but its
+    settings made now (`PreparedFrame`: depth denoising, evidence, the colour solve's view), without
+    the scene's lock, so that a caller (the service) overlaps it with the folds of the frames before
+    it; ``fold`` of the result folds the same bits as ``fold(frame)``. Made only for a frame with
+    sensor depth once the scene's settings are chosen (its first frame), without hole completion
+    (which sweeps against the map) and while no learned appearance head weighs the evidence;
+    otherwise, or where the frame would be refused (left to the fold, which refuses it in its
+    turn), nothing is made. Raises ValueError naming ``frame`` if it is not a Frame."""
+    if not isinstance(frame, Frame):
+        raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
+    config = scene.config  # one read: a fold that chooses the settings replaces the object
+    if frame.depth is None or not config.chosen or config.depth.completion or not scene.appearance.is_zero:
+        return PreparedFrame(frame)
+    folded, denoised = denoised_depth(frame, config)
+    try:
+        evidence = extract_evidence(folded, config)
+    except ValueError:
+        return PreparedFrame(frame)
+    basis = observation_sh_basis(evidence, folded.camera, config.sh_degree)
+    view = kept_view(frame, config.colour_solve.scale) if config.colour_solve.views else None
+    return PreparedFrame(frame, config, Prepared(folded, denoised=denoised), evidence, basis, view)
+
+
+def fold_kept(scene: Scene, frame: Frame | PreparedFrame, arrival: int, t0: float) -> FoldReport:
     """`Scene.fold` of ``frame`` (arrival index ``arrival``, started at ``t0``) for a caller that holds
     the scene's lock: the settings the config leaves open chosen (the scene's first frame), the fold
     with its undo record, then the frame kept (with ``keep_frames``) and a checkpoint where one is due."""
+    ahead = frame if isinstance(frame, PreparedFrame) else PreparedFrame(frame)
+    frame = ahead.frame
     before = None if scene.config.chosen else (scene.config, scene.chosen)
     if before is not None:  # what the settings leave to the first frame is chosen now, once (`choices`)
         _set_config(scene, *choose_settings(scene.config, frame))
     # the fold in progress enters what it overwrites in its undo record, the map's journal
     record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth else None
     try:
-        report = _fold(scene, frame, t0)
+        report = _fold(scene, ahead, t0)
     except BaseException:
         if before is not None:  # a refused frame chooses nothing
             _set_config(scene, *before)
@@ -117,12 +158,15 @@ def _undo_record(scene: Scene) -> FoldUndo:
                     (scene._density_sum, scene._density_frames))
 
 
-def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
-    index, points = scene.frames, functools.partial(scene._voxels.representative_points, scene.config.voxel_size)
-    prepared = scene._front.prepare(frame, functools.partial(_check_foldable, scene), points)
-    counts = (0, 0, 0, 0) if prepared.pending else _integrate(scene, prepared.frame)
+def _fold(scene: Scene, ahead: PreparedFrame, t0: float) -> FoldReport:
+    frame, index = ahead.frame, scene.frames
+    points = functools.partial(scene._voxels.representative_points, scene.config.voxel_size)
+    # what `prepare` made holds where it was made with the settings the scene folds with now
+    made = ahead.config is scene.config and scene.appearance.is_zero
+    prepared = ahead.front if made else scene._front.prepare(frame, functools.partial(_check_foldable, scene), points)
+    counts = (0, 0, 0, 0) if prepared.pending else _integrate(scene, prepared.frame, (ahead.evidence, ahead.basis) if made else None)
     scene._front.commit(prepared)
-    scene._keyframes.add(index, frame)  # a waiting frame's colours join the scene once a partner arrives
+    scene._keyframes.add(index, frame, ahead.view if made else None)  # a waiting frame's colours join once a partner arrives
     scene.frames += 1
     also = 0
     if frame.depth is None and not prepared.pending:  # frames that waited for a partner: fold them now, in order
@@ -138,13 +182,14 @@ def _fold(scene: Scene, frame: Frame, t0: float) -> FoldReport:
                       warnings=warnings, sensor=scene.config.sensor.family, sensor_chosen=scene.chosen.get("sensor"))
 
 
-def _integrate(scene: Scene, frame: Frame) -> tuple[int, int, int, int]:
+def _integrate(scene: Scene, frame: Frame, made: tuple[FrameEvidence, np.ndarray] | None = None) -> tuple[int, int, int, int]:
     """Evidence, integration and free space of a frame with depth: (observations, new voxels,
-    updated voxels, representative switches)."""
-    ev = extract_evidence(frame, scene.config, scene.appearance)
+    updated voxels, representative switches); ``made``: its evidence and SH basis, made already."""
+    if made is None:
+        ev = extract_evidence(frame, scene.config, scene.appearance)
+        made = ev, observation_sh_basis(ev, frame.camera, scene.config.sh_degree)
     first_new = len(scene._voxels)
-    done = integrate(scene._voxels, ev, observation_sh_basis(ev, frame.camera, scene.config.sh_degree), scene.config,
-                     scene._scratch)
+    done = integrate(scene._voxels, *made, scene.config, scene._scratch)
     if scene.config.free_space.enabled:
         if scene._voxels.journal is not None:
             scene._voxels.journal.history.append(history_slot(scene._history))

@@ -40,6 +40,11 @@ def view_from_arrays(prefix: str, arrays, **extra) -> Frame:
     return Frame(rgb=rgb.copy(), camera=camera, frame_id=arrays[f"{prefix}.id"].tobytes().decode() or None, **extra)
 
 
+def kept_view(frame: Frame, scale: float) -> Frame:
+    """What a scene keeps of ``frame`` for the colour solve: its colour and camera, resized by ``scale``."""
+    return resize_frame(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id), scale)
+
+
 class Keyframes:
     def __init__(self, capacity: int, scale: float = 1.0):
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 0:
@@ -56,12 +61,13 @@ class Keyframes:
     def frames(self) -> list[Frame]:
         return list(self._frames)
 
-    def add(self, index: int, frame: Frame) -> None:
-        """Keep ``frame``'s colour and camera (stream position ``index``), evicting one if full."""
+    def add(self, index: int, frame: Frame, view: Frame | None = None) -> None:
+        """Keep ``frame``'s colour and camera (stream position ``index``), evicting one if full;
+        ``view``: its `kept_view` at this scale, made already."""
         if self.capacity == 0:
             return
         self.indices.append(index)
-        self._frames.append(resize_frame(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id), self.scale))
+        self._frames.append(view if view is not None else kept_view(frame, self.scale))
         if len(self._frames) > self.capacity:
             if len(self._frames) <= 2:  # capacity 1: the newest view
                 drop = 0

@@ -27,7 +27,7 @@ from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
 from .decoding import Colours, DecodeInputs, SceneDecoding
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
-from .folding import FoldReport
+from .folding import FoldReport, PreparedFrame
 from .free_space import SeeThroughHistory
 from .integrate import Scratch
 from .keyframes import Keyframes
@@ -117,17 +117,19 @@ class Scene:
         return self._voxels.capacity
 
     # -- folding ------------------------------------------------------------------------------
-    def fold(self, frame: Frame) -> FoldReport:
-        """Fold one frame into the scene. Raises ValueError (the scene unchanged) on bad input.
+    def fold(self, frame: Frame | PreparedFrame) -> FoldReport:
+        """Fold one frame (or a `prepare`d one) into the scene. Raises ValueError (the scene unchanged) on bad input.
 
         Frames without depth get it from a plane sweep against the session's recent views (its
         uncertainty becomes the frame's depth std, so reliability follows as with sensor depth).
         """
         t0 = time.perf_counter()
-        if not isinstance(frame, Frame):
+        if not isinstance(frame, (Frame, PreparedFrame)):
             raise ValueError(f"frame: expected a Frame, got {type(frame).__name__}")
         with self._lock:
             return folding.fold_kept(self, frame, self._arrivals[-1] + 1 if self._arrivals else 0, t0)
+
+    prepare = folding.prepare  # a frame's fold begun without the lock, to overlap the folds before it
 
     def keep_undo(self, depth: int, max_share: float | None = None) -> None:
         """Keep undo records of the next ``depth`` folds from now on (0: none), with ``max_share`` only as
@@ -342,8 +344,7 @@ class Scene:
         return snapshot.state_arrays(self, sums)
 
     def digest(self) -> str:
-        """sha256 of the whole fused state (sums, free-space history, frame count): equal iff two
-        scenes would decode and fold on identically."""
+        """sha256 of the whole fused state (sums, free-space history, frame count): equal iff two scenes would decode and fold on identically."""
         with self._lock:
             h = hashlib.sha256(f"frames={self.frames}|labels={self.label_dim}|density={self._density_sum!r},{self._density_frames}|".encode())
             for name, array in sorted(self._snapshot_arrays().items()):
@@ -363,8 +364,7 @@ class Scene:
             return self._undo.nbytes()
 
     def bytes_per_voxel(self) -> float:
-        """State bytes per stored voxel: one row of every per-voxel array plus the hash table's bytes
-        per stored voxel (`memory_bytes` also counts rows written and since rolled back)."""
+        """State bytes per stored voxel: a row of every per-voxel array and the hash table's share (`memory_bytes` also counts rows written and since rolled back)."""
         return self._voxels.bytes_per_voxel()
 
     def stats(self) -> dict:

@@ -110,18 +110,21 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         except ValueError as exc:
             session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
             raise
-        return record, frame
+        return record, frame, session.prepare(frame)  # its fold begun: evidence made while others fold
 
-    t0 = time.perf_counter()
+    t0, ahead = time.perf_counter(), None
     try:
-        record, frame = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
+        record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
         decoded = time.perf_counter() - t0
         if frame_index is not None:  # on the loop, holding no job
             await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
         t0 = time.perf_counter()
         report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
-                                        settings.snapshot_every_seconds, frame_index, kind="frame", session=session.id)
+                                        settings.snapshot_every_seconds, frame_index, ahead and ahead.frame,
+                                        kind="frame", session=session.id)
     finally:  # the colours of what the session holds now, solved while no frame of it waits
+        if ahead is not None:
+            ahead.release()
         solve_soon(jobs, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
