@@ -256,7 +256,8 @@ class Scheduler:
         """The lane's next job: its first kind with a job that may run (the viewer's, when its turn
         came), the session whose turn it is."""
         kinds = lane.kinds
-        if "viewer" in kinds and self._viewer_wait():
+        pause = self._viewer_wait() if "viewer" in kinds else None
+        if pause is not None and pause > 0:
             kinds = tuple(kind for kind in kinds if kind != "viewer")
         elif "viewer" in kinds and self._waiting["viewer"]:
             self._passed_over += 1
@@ -279,12 +280,13 @@ class Scheduler:
             return job
         return None
 
-    def _viewer_wait(self) -> float:
+    def _viewer_wait(self) -> float | None:
         """Seconds until a waiting viewer job may start, while frames are held and the pause after the
-        last viewer job lasts (`VIEWER_PAUSE`); 0 when it may start now or none waits."""
+        last viewer job lasts (`VIEWER_PAUSE`): at most 0 once it may; None when no pause applies
+        (no viewer job waits, or no frame is held)."""
         if not self._waiting["viewer"] or not any(kind in FRAME_KINDS for _, kind in self._held):
-            return 0.0
-        return max(0.0, self._viewer_at - time.monotonic())
+            return None
+        return self._viewer_at - time.monotonic()
 
     def _work(self, lane: _Lane) -> None:
         if lane.nice and sys.platform == "linux":
@@ -300,7 +302,10 @@ class Scheduler:
                 while (job := self._next(lane)) is None:
                     if self._closed:
                         return
-                    lane.ready.wait((self._viewer_wait() if "viewer" in lane.kinds else 0.0) or None)
+                    # until notified, or until the viewer's pause ends: a pause that ended since `_next`
+                    # looked (wait <= 0) is looked at again at once, never waited on without a deadline
+                    pause = self._viewer_wait() if "viewer" in lane.kinds else None
+                    lane.ready.wait(None if pause is None else max(pause, 0.0))
             start = time.monotonic()
             try:
                 result, error = job.call(), None

@@ -154,6 +154,45 @@ def test_while_frames_are_held_a_viewer_picture_waits_a_multiple_of_the_last_one
     assert ended < VIEWER_PAUSE * 0.5 * 2 / 3  # the frame's end lifted it (at 0.25 s, of 1.5)
 
 
+class SteppedClock:
+    """The scheduler's `time.monotonic`, set by the test; once ``step`` is set, each look at it moves it on."""
+
+    def __init__(self, now: float):
+        self.now, self.step = now, 0.0
+
+    def monotonic(self) -> float:
+        now = self.now
+        self.now += self.step
+        return now
+
+
+def test_a_viewer_pause_that_ends_between_two_looks_at_the_clock_is_not_waited_on_forever(monkeypatch):
+    import server.scheduler as scheduler
+
+    clock = SteppedClock(100.0)
+    monkeypatch.setattr(scheduler, "time", clock)  # the scheduler's clock only (not asyncio's or threading's)
+
+    def picture() -> None:  # one second long on the scheduler's clock: a pause until 104
+        clock.now += 1.0
+
+    async def body(s: Scheduler):
+        gate, fold = await held(s, "frame", session="b")
+        await s.run(picture, kind="viewer", session="a", coalesce="page")
+        second = asyncio.ensure_future(s.run(lambda: "second", kind="viewer", session="a", coalesce="page"))
+        await asyncio.sleep(0.2)  # the render worker waits out the pause (3 s on its clock, real seconds)
+        assert not second.done()
+        # the worker's next look finds 0.2 s of the pause left, the look after it none: it must look
+        # again then, not wait for a notification that never comes
+        clock.now, clock.step = 103.8, 0.5
+        with s._lock:
+            s._lane("viewer").ready.notify()
+        assert await asyncio.wait_for(second, 2.0) == "second"
+        gate.opened.set()
+        await fold
+
+    run(body)
+
+
 def test_a_sessions_frames_run_one_at_a_time_in_order_beside_other_sessions():
     order: list[str] = []
 
