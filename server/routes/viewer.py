@@ -108,11 +108,14 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> d
 @router.get("/{session_id}/cameras", responses={c: {"model": ErrorBody} for c in (401, 404)})
 async def input_cameras(request: Request, session: SessionDep) -> dict:
     """The input cameras, oldest first: ``frame_index``, ``width``, ``height``, ``K`` (fx, fy, cx, cy),
-    ``c2w`` (16 numbers, row-major, OpenCV axes): the poses the viewer snaps to and draws."""
+    ``c2w`` (16 numbers, row-major, OpenCV axes): the poses the viewer snaps to and draws. With the
+    last fold's unix time and its age in seconds on the service's clock, so that a page tells a
+    running stream from its own clock's skew."""
     events = request.app.state.events
     cameras = await run_in_threadpool(events.track, session)
-    return {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim,
-            "last_fold": events.last_fold_time(session), "cameras": cameras}
+    last = events.last_fold_time(session)
+    return {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim, "last_fold": last,
+            "last_fold_age": None if last is None else max(0.0, time.time() - last), "cameras": cameras}
 
 
 async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> bytes | None:

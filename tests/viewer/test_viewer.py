@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import base64
 import io
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -278,6 +280,35 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
     assert page.evaluate("viewer.cameras.length") == 3
     page.screenshot(path=shots / "after_fold.png")
     assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
+
+
+def test_a_page_opened_on_a_running_stream_asks_for_previews_until_it_pauses(page, server, client, shelf):
+    session = client.create_session(voxel_size=VOXEL)
+    session.add_frame(**shelf[0])
+    stop = threading.Event()
+
+    def frames():  # as fast as the service folds them until the test has seen the page's first pictures
+        k = 1
+        while not stop.is_set() and k < 5000:
+            yield {**shelf[k % len(shelf)], "frame_id": f"running-{k}"}
+            k += 1
+
+    streaming = threading.Thread(target=lambda: list(session.add_frames(frames(), in_flight=3)))
+    streaming.start()
+    try:
+        while session.stats()["frames"] < 6:
+            time.sleep(0.05)
+        page.goto(f"{server.url}/sessions/{session.id}/view")
+        page.wait_for_function("viewer.history.length >= 2", timeout=WAIT_MS)
+        asked = page.evaluate("""performance.getEntriesByType('resource').filter((e) => e.name.includes('/image?'))
+            .map((e) => [e.startTime, new URL(e.name).searchParams.get('width') === '512'])""")
+    finally:
+        stop.set()
+        streaming.join(WAIT_MS / 1000)
+    # the service's age of the last fold told the page it opened on a stream: no full picture (a decode of
+    # the whole scene at the stream's expense) within its first 2 s while the stream runs
+    assert asked and not any(full for at, full in asked if at < 2000), asked
+    page.wait_for_function(FULL, timeout=WAIT_MS)  # the stream paused: the full picture
 
 
 @pytest.mark.parametrize("opened_on", ["a frame", "an empty session"])
