@@ -223,3 +223,27 @@ class CorrectionStatus(BaseModel):
     total: int = Field(description="frames to re-fold, including those that arrived meanwhile")
     error: str | None = None
     result: Correction | None = Field(None, description="what the correction did, once done")
+
+
+# -- the viewer's data ------------------------------------------------------------------------------
+class InputCamera(BaseModel):
+    """One input camera of a session (`server.events.camera_json`)."""
+
+    frame_index: int = Field(description="the frame's arrival index in the session")
+    width: int = Field(description="image width, pixels")
+    height: int = Field(description="image height, pixels")
+    K: list[float] = Field(description="fx, fy, cx, cy in pixels", min_length=4, max_length=4)
+    c2w: list[float] = Field(description="camera-to-world pose, 16 numbers row-major, OpenCV axes",
+                             min_length=16, max_length=16)
+
+
+class InputCamerasOut(BaseModel):
+    """A session's input cameras, oldest first, and when it last folded."""
+
+    id: str
+    frames: int = Field(description="frames the session holds")
+    label_dim: int = Field(description="its label channels (0: none)")
+    last_fold: float | None = Field(description="unix time of its last fold (null: none known)")
+    last_fold_age: float | None = Field(description="seconds since its last fold on the service's clock, so that "
+                                                    "a client's own clock's skew does not matter (null: none known)")
+    cameras: list[InputCamera]

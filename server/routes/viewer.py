@@ -26,7 +26,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..events import DROPPED, TooManyStreams, sse
 from ..scheduler import Superseded
-from ..schemas import ErrorBody
+from ..schemas import ErrorBody, InputCamerasOut
 from ..session_errors import SessionNotFound
 from . import views
 
@@ -105,8 +105,9 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> d
     return {"sessions": rows}
 
 
-@router.get("/{session_id}/cameras", responses={c: {"model": ErrorBody} for c in (401, 404)})
-async def input_cameras(request: Request, session: SessionDep) -> dict:
+@router.get("/{session_id}/cameras", response_model=InputCamerasOut,
+            responses={c: {"model": ErrorBody} for c in (401, 404)})
+async def input_cameras(request: Request, session: SessionDep) -> InputCamerasOut:
     """The input cameras, oldest first: ``frame_index``, ``width``, ``height``, ``K`` (fx, fy, cx, cy),
     ``c2w`` (16 numbers, row-major, OpenCV axes): the poses the viewer snaps to and draws. With the
     last fold's unix time and its age in seconds on the service's clock, so that a page tells a
@@ -114,8 +115,8 @@ async def input_cameras(request: Request, session: SessionDep) -> dict:
     events = request.app.state.events
     cameras = await run_in_threadpool(events.track, session)
     last = events.last_fold_time(session)
-    return {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim, "last_fold": last,
-            "last_fold_age": None if last is None else max(0.0, time.time() - last), "cameras": cameras}
+    return InputCamerasOut(id=session.id, frames=session.scene.frames, label_dim=session.scene.label_dim, last_fold=last,
+                           last_fold_age=None if last is None else max(0.0, time.time() - last), cameras=cameras)
 
 
 async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> bytes | None:
