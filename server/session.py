@@ -54,6 +54,9 @@ UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll ba
 # holds what its fold would make anyway (its evidence, about 130 bytes a pixel), and more than the
 # ingest workers make while the folds run would save no fold time
 PREPARED_AHEAD = threading.BoundedSemaphore(2)
+# the most a prepared frame may hold while it waits (a 640x480 frame holds at most about 40 MB): a
+# larger frame does that work in its fold, so that waiting frames hold at most twice this
+PREPARED_MAX_BYTES = 128 * 2**20
 
 
 class Ahead:
@@ -136,8 +139,9 @@ class Session:
 
     def prepare(self, frame: Frame) -> Ahead | None:
         """``frame``'s fold begun now, on the caller's thread without the session's lock, while the
-        frames before it fold (`Scene.prepare`); None where nothing was made or no slot of
-        `PREPARED_AHEAD` is free. Give it to `add_frame`, and `Ahead.release` it after."""
+        frames before it fold (`Scene.prepare`); None where nothing was made, no slot of
+        `PREPARED_AHEAD` is free, or what was made is over `PREPARED_MAX_BYTES` (dropped: the fold
+        makes it again). Give it to `add_frame`, and `Ahead.release` it after."""
         if not PREPARED_AHEAD.acquire(blocking=False):
             return None
         try:
@@ -145,7 +149,7 @@ class Session:
         except BaseException:
             PREPARED_AHEAD.release()
             raise
-        if prepared.config is None:
+        if prepared.config is None or prepared.nbytes() > PREPARED_MAX_BYTES:
             PREPARED_AHEAD.release()
             return None
         return Ahead(prepared)

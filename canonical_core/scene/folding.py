@@ -85,6 +85,17 @@ class PreparedFrame(NamedTuple):
     basis: np.ndarray | None = None  # [M, (sh_degree + 1)^2] SH basis of each observation's view direction
     view: Frame | None = None  # the colour solve's view of the frame, resized (None where it keeps none)
 
+    def nbytes(self) -> int:
+        """Bytes of what was made ahead (the evidence, the basis, the view and a denoised depth), which
+        a holder of the prepared frame keeps alive besides the frame itself."""
+        arrays = [] if self.evidence is None else [v for v in vars(self.evidence).values() if isinstance(v, np.ndarray)]
+        arrays += [a for a in (self.basis,) if a is not None]
+        if self.view is not None:
+            arrays.append(self.view.rgb)
+        if self.front is not None and self.front.denoised:
+            arrays += [self.front.frame.depth, self.front.frame.depth_std]
+        return int(sum(a.nbytes for a in arrays if a is not None))
+
 
 def prepare(scene: Scene, frame: Frame) -> PreparedFrame:
     """`Scene.prepare`: ``frame`` with the part of its fold that reads nothing of the scene but its

@@ -33,6 +33,8 @@ def test_frames_prepared_ahead_on_another_thread_fold_the_same_bits(shelf_frames
         for k in range(1, len(frames)):
             prepared = ahead.pop(0).result()
             assert prepared.frame is frames[k] and prepared.config is not None and prepared.evidence is not None
+            made = [prepared.evidence.points, prepared.evidence.features, prepared.basis, prepared.view.rgb]
+            assert prepared.nbytes() > sum(a.nbytes for a in made)  # and rows, columns, colours, U_pos, R
             reports.append(scene.fold(prepared))
             if k + 3 < len(frames):
                 ahead.append(ingest.submit(scene.prepare, frames[k + 3]))
@@ -48,7 +50,7 @@ def test_frames_prepared_ahead_on_another_thread_fold_the_same_bits(shelf_frames
 def test_a_frame_prepared_before_the_settings_are_chosen_is_folded_afresh(shelf_frames):
     scene, plain = Scene(SceneConfig(voxel_size=VOXEL)), Scene(SceneConfig(voxel_size=VOXEL))
     early = [scene.prepare(f) for f in shelf_frames[:3]]  # the first frame has not chosen the sensor family yet
-    assert all(p.config is None and p.evidence is None for p in early)
+    assert all(p.config is None and p.evidence is None and p.nbytes() == 0 for p in early)
     for p, f in zip(early, shelf_frames[:3]):
         scene.fold(p)
         plain.fold(f)

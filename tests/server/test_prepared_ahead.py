@@ -8,6 +8,7 @@ import numpy as np
 
 from canonical_core.scene import PreparedFrame, Scene
 from client.sdk import Client, frame_body
+import server.session
 from server.session import PREPARED_AHEAD
 
 from .harness import in_process_server
@@ -46,4 +47,22 @@ def test_frames_in_flight_fold_as_prepared_and_give_their_slots_back(tmp_path, m
         assert session.stats()["frames"] == 6
     assert made[0] is False  # the first frame chooses the settings left open: nothing is made before
     assert sum(made) >= 2  # frames posted behind it were prepared while it folded
+    assert free_slots() == slots
+
+
+def test_a_frame_that_would_hold_more_than_the_cap_is_folded_without_being_prepared(tmp_path, monkeypatch, frames):
+    made = []
+    fold = Scene.fold
+
+    def recording(self, frame):
+        made.append(isinstance(frame, PreparedFrame))
+        return fold(self, frame)
+
+    monkeypatch.setattr(Scene, "fold", recording)
+    monkeypatch.setattr(server.session, "PREPARED_MAX_BYTES", 1024)  # below any frame's evidence
+    slots = free_slots()
+    with in_process_server(tmp_path / "data") as url, Client(url) as client:
+        session = client.create_session(voxel_size=0.02)
+        assert len(list(session.add_frames(frames[:5], in_flight=3))) == 5
+    assert made == [False] * 5
     assert free_slots() == slots
