@@ -298,6 +298,7 @@ class Scheduler:
         if self._init is not None:
             self._init()
         while True:
+            result = error = None  # an idle worker keeps nothing of its last job: an error's traceback holds its session
             with self._lock:
                 while (job := self._next(lane)) is None:
                     if self._closed:

@@ -55,8 +55,11 @@ UNDO_DEPTH = DEFAULT_UNDO_DEPTH  # folds an archived session's scene can roll ba
 # ingest workers make while the folds run would save no fold time
 PREPARED_AHEAD = threading.BoundedSemaphore(2)
 # the most a prepared frame may hold while it waits (a 640x480 frame holds at most about 40 MB): a
-# larger frame does that work in its fold, so that waiting frames hold at most twice this
+# larger frame does that work in its fold, so that waiting frames hold at most twice this; frames of
+# more pixels than PREPARED_MAX_PIXELS (about a megapixel: 130 bytes a pixel, label channels more)
+# are not prepared at all, so as not to make what would then be dropped
 PREPARED_MAX_BYTES = 128 * 2**20
+PREPARED_MAX_PIXELS = 1280 * 720
 
 
 class Ahead:
@@ -139,10 +142,11 @@ class Session:
 
     def prepare(self, frame: Frame) -> Ahead | None:
         """``frame``'s fold begun now, on the caller's thread without the session's lock, while the
-        frames before it fold (`Scene.prepare`); None where nothing was made, no slot of
-        `PREPARED_AHEAD` is free, or what was made is over `PREPARED_MAX_BYTES` (dropped: the fold
-        makes it again). Give it to `add_frame`, and `Ahead.release` it after."""
-        if not PREPARED_AHEAD.acquire(blocking=False):
+        frames before it fold (`Scene.prepare`); None where nothing was made, the frame has more than
+        `PREPARED_MAX_PIXELS`, no slot of `PREPARED_AHEAD` is free, or what was made is over
+        `PREPARED_MAX_BYTES` (dropped: the fold makes it again). Give it to `add_frame`, and
+        `Ahead.release` it after."""
+        if frame.width * frame.height > PREPARED_MAX_PIXELS or not PREPARED_AHEAD.acquire(blocking=False):
             return None
         try:
             prepared = self.scene.prepare(frame)

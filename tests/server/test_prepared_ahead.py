@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
+import pytest
 
 from canonical_core.scene import PreparedFrame, Scene
 from client.sdk import Client, frame_body
@@ -50,7 +51,8 @@ def test_frames_in_flight_fold_as_prepared_and_give_their_slots_back(tmp_path, m
     assert free_slots() == slots
 
 
-def test_a_frame_that_would_hold_more_than_the_cap_is_folded_without_being_prepared(tmp_path, monkeypatch, frames):
+@pytest.mark.parametrize("cap", ["PREPARED_MAX_BYTES", "PREPARED_MAX_PIXELS"])
+def test_a_frame_over_the_caps_is_folded_without_being_prepared(tmp_path, monkeypatch, frames, cap):
     made = []
     fold = Scene.fold
 
@@ -59,7 +61,7 @@ def test_a_frame_that_would_hold_more_than_the_cap_is_folded_without_being_prepa
         return fold(self, frame)
 
     monkeypatch.setattr(Scene, "fold", recording)
-    monkeypatch.setattr(server.session, "PREPARED_MAX_BYTES", 1024)  # below any frame's evidence
+    monkeypatch.setattr(server.session, cap, 1024)  # below any frame's evidence, and its pixels
     slots = free_slots()
     with in_process_server(tmp_path / "data") as url, Client(url) as client:
         session = client.create_session(voxel_size=0.02)
