@@ -113,12 +113,17 @@ def prepare(scene: Scene, frame: Frame) -> PreparedFrame:
         return PreparedFrame(frame)
     folded, denoised = denoised_depth(frame, config)
     try:
-        evidence = extract_evidence(folded, config)
+        evidence, basis = _evidence(folded, config)
     except ValueError:
         return PreparedFrame(frame)
-    basis = observation_sh_basis(evidence, folded.camera, config.sh_degree)
     view = kept_view(frame, config.colour_solve.scale) if config.colour_solve.views else None
     return PreparedFrame(frame, config, Prepared(folded, denoised=denoised), evidence, basis, view)
+
+
+def _evidence(frame: Frame, config: SceneConfig, appearance=None) -> tuple[FrameEvidence, np.ndarray]:
+    """A frame's evidence and each observation's SH basis, [M, (sh_degree + 1)^2]: what `integrate` takes."""
+    ev = extract_evidence(frame, config, appearance)
+    return ev, observation_sh_basis(ev, frame.camera, config.sh_degree)
 
 
 def fold_kept(scene: Scene, frame: Frame | PreparedFrame, arrival: int, t0: float) -> FoldReport:
@@ -197,8 +202,7 @@ def _integrate(scene: Scene, frame: Frame, made: tuple[FrameEvidence, np.ndarray
     """Evidence, integration and free space of a frame with depth: (observations, new voxels,
     updated voxels, representative switches); ``made``: its evidence and SH basis, made already."""
     if made is None:
-        ev = extract_evidence(frame, scene.config, scene.appearance)
-        made = ev, observation_sh_basis(ev, frame.camera, scene.config.sh_degree)
+        made = _evidence(frame, scene.config, scene.appearance)
     first_new = len(scene._voxels)
     done = integrate(scene._voxels, *made, scene.config, scene._scratch)
     if scene.config.free_space.enabled:
