@@ -29,6 +29,8 @@ from .store import SessionStore, configure_thread
 
 log = logging.getLogger("canonical.server")
 BODIES_RETRY_AFTER_S = 1  # bodies in flight are full: most are answered within a second
+# seconds between looks for deleted sessions that a job held at their deletion and has let go of
+DEPARTED_EVERY_S = 5.0
 
 
 class BodyTimeout(Exception):
@@ -256,7 +258,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.events.close_streams_on_exit()
         log.info("serving %d sessions from %s", len(store), settings.data_dir)
         every = settings.snapshot_every_seconds
-        loops = [asyncio.create_task(_every(min(every, 5.0), "periodic snapshot", store.snapshot_due, every))]
+        loops = [asyncio.create_task(_every(min(every, 5.0), "periodic snapshot", store.snapshot_due, every)),
+                 asyncio.create_task(_every(DEPARTED_EVERY_S, "deleted sessions' memory", store.release_departed))]
         if settings.session_ttl_s is not None or settings.disk_budget_bytes is not None:
             loops.append(asyncio.create_task(_every(settings.retention_every_s, "retention", store.prune,
                                                     settings.session_ttl_s, settings.disk_budget_bytes)))
@@ -296,7 +299,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 async def _every(seconds: float, what: str, job, *args) -> None:
     """Run ``job(*args)`` off the event loop every ``seconds``: the periodic snapshot (sessions whose
-    unsnapshotted frames are older than its setting, idle ones too) and retention."""
+    unsnapshotted frames are older than its setting, idle ones too), the memory of deleted sessions
+    that jobs held at their deletion, and retention."""
     while True:
         await asyncio.sleep(seconds)
         try:

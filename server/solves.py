@@ -46,13 +46,14 @@ def _solve(jobs: Scheduler, ref: weakref.ref) -> None:
     def stop() -> bool:  # a frame on its way, or one folded since: its fold queues the next solve
         return session.deleted or jobs.frames_held(session.id) > 0 or session.scene.frames != frames
 
-    if stop():
-        return
-    time.sleep(QUIET_S)
-    if stop():  # a stream: no time to solve between its frames
-        return
-    solved = session.solve_colours(stop)
-    if session.deleted:  # deleted while it solved: what it and its copy of the state held goes back now
+    solved = False
+    if not stop():
+        time.sleep(QUIET_S)
+        if not stop():  # else a stream: no time to solve between its frames
+            solved = session.solve_colours(stop)
+    if session.deleted:
+        # deleted while this job held it (asleep or solving): what it held goes back now, not at the
+        # next cycle collection (the delete's own release found it still held)
         del session
         release_memory()
     elif solved:

@@ -24,6 +24,7 @@ import secrets
 import shutil
 import threading
 import time
+import weakref
 from pathlib import Path
 from typing import Callable
 
@@ -73,6 +74,9 @@ class SessionStore:
         self.unavailable: dict[str, str] = {}  # session id -> why its files do not add up
         self._lock = threading.Lock()  # guards the dict and the session count
         self._dir_lock: int | None = None
+        # deleted sessions that a job still held when they were deleted (a render, a snapshot's writer):
+        # their memory goes back once it lets go (`release_departed`)
+        self._departed: list[weakref.ref] = []
 
     def lock_dir(self) -> None:
         """Take the data directory's lock (released when the process ends, kill -9 included)."""
@@ -257,9 +261,26 @@ class SessionStore:
                 self._sessions.pop(session_id, None)
         finally:
             session.lock.release()
+        departed = weakref.ref(session)
         del session
         release_memory()
+        if departed() is not None:
+            with self._lock:
+                self._departed.append(departed)
         return True
+
+    def release_departed(self) -> int:
+        """Give back the memory of deleted sessions whose last holder has let go since their deletion
+        (the delete's own release found them held; a session and its snapshots and corrections refer
+        to each other, so only the cycle collector frees it). Run periodically; returns how many are
+        still held. Nothing is collected while no deleted session is pending."""
+        with self._lock:
+            if not self._departed:
+                return 0
+        release_memory()
+        with self._lock:
+            self._departed = [departed for departed in self._departed if departed() is not None]
+            return len(self._departed)
 
     def prune(self, ttl_s: float | None, budget_bytes: int | None, dry_run: bool = False) -> dict:
         """Remove idle sessions by the retention policy (`server.retention`); returns its report."""

@@ -253,6 +253,8 @@ class OwnerStore(SessionStore):
         self.used.pop(session_id, None)
         if isinstance(session, OwnedSession) and session.log.lease is not None:
             session.log.lease.close()
+        session = None  # this function's reference: the delete found the session held by it
+        self.release_departed()
 
     def mine(self) -> list[str]:
         """Ids of the sessions on disk that belong to this owner."""
@@ -330,6 +332,7 @@ class SessionOwner:
             await asyncio.sleep(min(every, 5.0))
             try:
                 await asyncio.to_thread(self.store.snapshot_due, every)
+                await asyncio.to_thread(self.store.release_departed)  # deleted sessions a job held meanwhile
             except Exception:  # keep the loop alive; the next fold or eviction snapshots again
                 log.exception("periodic snapshot failed")
 

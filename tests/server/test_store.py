@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import gc
 import hashlib
 import os
 import re
 import shutil
 import threading
 import time
+import weakref
 
 import pytest
 import torch
@@ -210,3 +212,21 @@ def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_
         restored.log.close()
         assert restored.scene.frames == 3 and restored.scene.digest() == digest
     assert restored.snapshot_frames == 0 and not list(crashed.glob("scene.snap.*.next*"))  # dropped on start
+
+
+def test_a_session_a_job_holds_at_its_deletion_goes_back_at_the_first_release_after_the_job_lets_go(store, shelf_frames):
+    alone = store.create(SceneConfig(voxel_size=0.01)).id
+    fold(store.get(alone), shelf_frames[0])
+    deleted = store.delete(alone)  # outside an assert: pytest's rewriting would hold the session
+    assert deleted and store.release_departed() == 0  # nothing held it: nothing pending
+    held = store.create(SceneConfig(voxel_size=0.01))  # this reference stands for a render in flight
+    fold(held, shelf_frames[0])
+    freed = weakref.ref(held)
+    gc.disable()  # only the store's release may free it: no collection happens by chance
+    try:
+        assert store.delete(held.id)
+        assert store.release_departed() == 1 and freed() is not None  # still held
+        del held
+        assert store.release_departed() == 0 and freed() is None
+    finally:
+        gc.enable()
