@@ -226,6 +226,32 @@ class CorrectionStatus(BaseModel):
 
 
 # -- the viewer's data ------------------------------------------------------------------------------
+class ViewerInfo(BaseModel):
+    """The colours the service draws pictures in, so that the page's scale bar and legend match them."""
+
+    depth_colormap: list[list[int]] = Field(description="[R, G, B] 0-255 per step, near first: the depth pictures' "
+                                                        "colour map")
+    label_palette: list[list[int]] = Field(description="[R, G, B] 0-255: entry k + 1 is label k's colour, entry 0 "
+                                                       "where no label is drawn")
+
+
+class _LastFold(BaseModel):
+    last_fold: float | None = Field(None, description="unix time of its last fold (null: none known, or unavailable)")
+
+
+class ViewerSessionStats(SessionStats, _LastFold):
+    """A served session in the viewer's list."""
+
+
+class ViewerSessionSummary(SessionSummary, _LastFold):
+    """An unavailable session in the viewer's list (no stats: its files need `canonical repair`)."""
+
+
+class ViewerSessionList(BaseModel):
+    sessions: list[ViewerSessionStats | ViewerSessionSummary] = Field(
+        description="served sessions with their stats, then the unavailable ones")
+
+
 class InputCamera(BaseModel):
     """One input camera of a session (`server.events.camera_json`)."""
 

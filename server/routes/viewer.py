@@ -26,7 +26,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..events import DROPPED, TooManyStreams, sse
 from ..scheduler import Superseded
-from ..schemas import ErrorBody, InputCamerasOut
+from ..schemas import ErrorBody, InputCamerasOut, ViewerInfo, ViewerSessionList
 from ..session_errors import SessionNotFound
 from . import views
 
@@ -79,15 +79,15 @@ def is_page(path: str) -> bool:
 
 
 # -- data for the pages ----------------------------------------------------------------------------
-@info_router.get("/info")
-async def viewer_info() -> dict:
+@info_router.get("/info", response_model=ViewerInfo, responses={401: {"model": ErrorBody}})
+async def viewer_info() -> ViewerInfo:
     """The depth colour map (near first) and the label palette (index k + 1 = label k), so the page
     draws the scale bar and the legend in the server's colours."""
-    return {"depth_colormap": viewer.DEPTH_LUT.tolist(), "label_palette": viewer.PALETTE.tolist()}
+    return ViewerInfo(depth_colormap=viewer.DEPTH_LUT.tolist(), label_palette=viewer.PALETTE.tolist())
 
 
-@info_router.get("/sessions")
-async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> dict:
+@info_router.get("/sessions", response_model=ViewerSessionList, responses={401: {"model": ErrorBody}})
+async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> ViewerSessionList:
     """Every session with its stats and the time of its last fold (null when unknown)."""
     events = request.app.state.events
 
@@ -102,7 +102,7 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> d
 
     rows = await jobs.run(job, kind="viewer")
     rows += [{**s, "last_fold": None} for s in store.unavailable_summaries()]
-    return {"sessions": rows}
+    return ViewerSessionList(sessions=rows)
 
 
 @router.get("/{session_id}/cameras", response_model=InputCamerasOut,

@@ -61,6 +61,22 @@ def test_pages_are_open_and_data_needs_the_token(server, walls):
     assert get_image(server, session.id, image_query(frames[-1]), headers={}).status_code == 401
 
 
+def test_the_viewers_list_and_colours_answer_in_their_documented_schemas(server, walls):
+    session, frames = walls
+    rows = httpx.get(f"{server.url}/v1/viewer/sessions", headers=AUTH).json()["sessions"]
+    row, = [r for r in rows if r["id"] == session.id]
+    stats = session.stats()
+    assert {k: row[k] for k in ("frames", "voxels", "gaussians", "label_dim")} == {
+        k: stats[k] for k in ("frames", "voxels", "gaussians", "label_dim")}
+    assert row["frames"] == len(frames) and time.time() - 3600 < row["last_fold"] <= time.time()
+    info = httpx.get(f"{server.url}/v1/viewer/info", headers=AUTH).json()
+    for colours in (info["depth_colormap"], info["label_palette"]):
+        assert len(colours) > 2 and all(len(c) == 3 and all(0 <= v <= 255 for v in c) for c in colours)
+    paths = httpx.get(f"{server.url}/openapi.json", headers=AUTH).json()["paths"]
+    for path, model in (("/v1/viewer/sessions", "ViewerSessionList"), ("/v1/viewer/info", "ViewerInfo")):
+        assert paths[path]["get"]["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith(model)
+
+
 def test_png_image_is_the_render_routes_png_and_jpeg_webp_decode_close_to_it(server, walls):
     session, frames = walls
     reference = png_to_array(session.render_png(frames[-1]["K"], frames[-1]["c2w"], 128, 96))
