@@ -77,7 +77,8 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     ``codec`` "compact" (the default) sends what is lossless and small: an ``rgb`` array as a PNG
     (fast level), integer depth, and float depth that 16-bit sensor units hold exactly
     (`exact_sensor_depth`), as zstandard-compressed uint16 with its ``depth_scale``, other float depth
-    as zstandard-compressed float32. "raw" sends the arrays as they are. PNG/JPEG ``rgb`` bytes and
+    as zstandard-compressed float32, and label scores zstandard-compressed. "raw" sends the arrays as
+    they are. PNG/JPEG ``rgb`` bytes and
     16-bit PNG ``depth`` bytes (with ``depth_scale``) travel untouched either way. The service folds
     the same frame from all of them.
     """
@@ -105,9 +106,12 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     if depth is not None:
         msg["depth"] = encode_array(np.asarray(depth, np.float32), "depth", array_codec)
     for name, value in (("depth_std", depth_std), ("features", features), ("labels", labels)):
-        if value is not None:  # float maps gain little from lossless compression: they travel as they are
+        if value is not None:
             value = np.asarray(value)
-            msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32))
+            # float maps gain little from lossless compression and travel as they are, but label scores
+            # are mostly a class map one-hot encoded: zstandard packs those a few hundred times smaller
+            msg[name] = encode_array(value if value.dtype == np.float16 else value.astype(np.float32), name,
+                                     array_codec if name == "labels" else "raw")
     if frame_id is not None:
         msg["frame_id"] = str(frame_id)
     return pack(msg)

@@ -152,6 +152,13 @@ def test_compact_frames_are_lossless_and_small(shelf_dir):
     Image.fromarray(rgb).save(jpeg, format="JPEG", quality=90)
     msg, frame, _ = decoded(rgb=jpeg.getvalue(), depth=metres)
     assert msg["rgb"] == jpeg.getvalue() and np.array_equal(frame.rgb.numpy(), np.asarray(Image.open(jpeg).convert("RGB")))
+    # label scores (a class map one-hot encoded, as the SDK sends one) travel zstandard-compressed,
+    # and decode to the raw ones bit for bit
+    scores = np.eye(3, dtype=np.float32)[(np.arange(rgb.shape[1]) * 3 // rgb.shape[1])[None, :].repeat(rgb.shape[0], 0)]
+    raw_msg, raw, raw_bytes = decoded(depth=metres, labels=scores, codec="raw")
+    msg, frame, size = decoded(depth=metres, labels=scores)
+    assert msg["labels"]["codec"] == "zstd" and "codec" not in raw_msg["labels"]
+    assert torch.equal(frame.labels, raw.labels) and size < raw_bytes / 8
     with pytest.raises(ValueError, match="^codec: expected one of"):
         frame_body(rgb, K, c2w, codec="png")
 
