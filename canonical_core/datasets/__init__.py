@@ -24,7 +24,7 @@ Example:
 
 from .deep_video_mvs import load_deep_video_mvs
 from .detect import load_dataset
-from .files import SkippedFrames
+from .files import MissingIntrinsics, SkippedFrames
 from .label_fusion import load_label_fusion
 from .redwood import load_redwood
 from .sequence import FrameSequence
@@ -35,6 +35,7 @@ from .tum import load_tum
 
 __all__ = [
     "FrameSequence",
+    "MissingIntrinsics",
     "SkippedFrames",
     "load_dataset",
     "load_deep_video_mvs",

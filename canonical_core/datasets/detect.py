@@ -55,11 +55,18 @@ _LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusi
 # the layouts that list their frames (in a file, or as pose files) and so may list some whose images
 # are missing; the others' frames are the image folder's own files
 _LISTING = {"transforms_json", "tum", "tsdf_fusion", "label_fusion"}
+# the layouts whose intrinsics come from a file (or their loader's default), by their loader's argument
+_INTRINSICS = {"tum": "K", "tsdf_fusion": "intrinsics", "label_fusion": "intrinsics", "redwood": "intrinsics"}
 
 
-def load_dataset(path: str | Path, strict: bool = False, **kwargs) -> FrameSequence:
+def load_dataset(path: str | Path, strict: bool = False, K=None, **kwargs) -> FrameSequence:
     """Load any supported capture: detects the layout (`detect_layout`) and passes ``kwargs`` on
-    (e.g. ``K=`` for TUM, ``intrinsics=`` for 7-Scenes, ``stride=`` / ``max_frames=`` for all).
+    (e.g. ``stride=`` / ``max_frames=`` for all, ``depth_scale=`` for TUM and tsdf-fusion).
+
+    ``K`` (a 3x3 matrix or (fx, fy, cx, cy), pixels) gives the camera's intrinsics to the layouts
+    that read them from a file (TUM, tsdf-fusion / 7-Scenes, label-fusion, Redwood): for a capture
+    without one (its loader raises `MissingIntrinsics`), or in place of its own. A ValueError for the
+    layouts whose frames carry their own (transforms.json, deep-video-mvs).
 
     A frame the capture lists whose image files are missing is left out, with one `SkippedFrames`
     warning that counts such frames; with ``strict`` it is a ValueError naming the file.
@@ -72,4 +79,8 @@ def load_dataset(path: str | Path, strict: bool = False, **kwargs) -> FrameSeque
     layout = detect_layout(path)
     if layout in _LISTING:
         kwargs["strict"] = strict
+    if K is not None:
+        if layout not in _INTRINSICS:
+            raise ValueError(f"K: a {layout} capture's frames carry their own intrinsics; give none")
+        kwargs[_INTRINSICS[layout]] = K
     return _LOADERS[layout](path, **kwargs)

@@ -102,6 +102,10 @@ class MissingFile(ValueError):
     """A file that a capture lists is not there; the message names it and where it is listed."""
 
 
+class MissingIntrinsics(ValueError):
+    """A capture holds no intrinsics file and none were given: its loader cannot place its pixels."""
+
+
 class SkippedFrames(UserWarning):
     """A capture lists frames whose files are missing, and its loader left them out (``strict=False``)."""
 

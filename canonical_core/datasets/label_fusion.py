@@ -24,7 +24,7 @@ import numpy as np
 from PIL import Image
 
 from ..calibration import validate_image_intrinsics, validate_pose
-from .files import as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix, select
+from .files import MissingIntrinsics, as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix, select
 from .images import depth_from_uint16, image_size, read_depth, read_rgb
 from .sequence import FrameSequence
 from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
@@ -133,7 +133,7 @@ def load_label_fusion(
     patterns = ("camera-intrinsics.color.txt", *INTRINSICS_PATTERNS)
     found = None if intrinsics is not None else find_one(list(dict.fromkeys([root, folder])), patterns)
     if intrinsics is None and found is None:
-        raise ValueError(f"{root}: no intrinsics file ({', '.join(patterns)}); pass intrinsics=(fx, fy, cx, cy)")
+        raise MissingIntrinsics(f"{root}: no intrinsics file ({', '.join(patterns)}); pass intrinsics=(fx, fy, cx, cy)")
     K = as_intrinsics(intrinsics) if intrinsics is not None else read_intrinsics_file(found)
     poses = sorted(folder.glob(POSE_PATTERN), key=natural_key)
     label_files = {}

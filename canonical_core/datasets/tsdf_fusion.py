@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..calibration import validate_pose
-from .files import (MissingFile, RGBDFile, as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix,
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix,
                     select, write_matrix)
 from .images import write_depth, write_rgb
 from .sequence import FrameSequence
@@ -107,7 +107,7 @@ def load_tsdf_fusion(
     else:
         found = find_one(list(dict.fromkeys([root, folder])), INTRINSICS_PATTERNS)
         if found is None:
-            raise ValueError(
+            raise MissingIntrinsics(
                 f"{root}: no intrinsics file ({', '.join(INTRINSICS_PATTERNS)}); pass intrinsics=(fx, fy, cx, cy), "
                 "e.g. (585, 585, 320, 240) for 7-Scenes"
             )

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import quaternion_to_matrix, validate_pose
-from .files import (MissingFile, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats, read_intrinsics_file,
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats, read_intrinsics_file,
                     read_text, select)
 from .sequence import FrameSequence
 
@@ -72,7 +72,7 @@ def _resolve_K(root: Path, K) -> np.ndarray:
         return as_intrinsics(K, "K")
     found = find_one([root], INTRINSICS_NAMES)
     if found is None:
-        raise ValueError(
+        raise MissingIntrinsics(
             f"{root}: camera intrinsics are needed: pass K=(fx, fy, cx, cy) or a 3x3 K, or put a 3x3 "
             f"{' / '.join(INTRINSICS_NAMES)} in the folder (TUM freiburg1, e.g.: K=(517.3, 516.5, 318.6, 255.3))"
         )

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import UsageError, add_connection, connect, warnings_on_stderr
+from .common import UsageError, add_connection, connect, intrinsics_arg, warnings_on_stderr
 from .poses import read_pose_file
 
 
@@ -30,7 +30,7 @@ def add_render(p: argparse.ArgumentParser) -> None:
                        help="one view per line: TUM 'timestamp tx ty tz qx qy qz qw' (camera-to-world, quaternion "
                             "scalar last; the timestamp optional) or the 16 numbers of a 4x4 matrix; '#' comments. "
                             "Needs --K and --size, or --frame-like")
-    p.add_argument("--K", help="fx,fy,cx,cy in pixels (with --pose or --trajectory)")
+    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY", help="intrinsics in pixels (with --pose or --trajectory)")
     p.add_argument("--size", type=image_size_arg, metavar="WxH", help="image size (with --K), e.g. 640x480")
     p.add_argument("--width", type=int, help="image width (or --size)")
     p.add_argument("--height", type=int, help="image height (or --size)")
@@ -90,7 +90,7 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
         return cameras
     width, height = args.size or (args.width, args.height)
     if args.K:
-        fx, fy, cx, cy = (float(x) for x in args.K.split(","))
+        fx, fy, cx, cy = args.K
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
         if not (width and height):
             if len(cameras) != 1:

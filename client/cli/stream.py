@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 
 from ..sdk import Client, Session, StreamRefused
 from .capture import capture_frames
-from .common import add_connection, add_json, connect, warnings_on_stderr
+from .common import UsageError, add_connection, add_json, connect, intrinsics_arg, warnings_on_stderr
 
 
 def add_stream(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,9 @@ def add_stream(p: argparse.ArgumentParser) -> None:
                                            "(give the same dataset, --stride and --max-frames to resume)")
     target.add_argument("--voxel-size", type=float, help="a new session's voxel size, metres (default: chosen by the "
                                                          "service from the first frame, 6 pixel footprints at its median depth)")
+    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
+                   help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
+                        "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
     p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
@@ -160,7 +163,7 @@ def stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
 
 
 def run_stream(args) -> int:
-    from canonical_core.datasets import load_dataset
+    from canonical_core.datasets import MissingIntrinsics, load_dataset
     from canonical_core.config import settings_from_pairs
 
     if args.session and args.settings:
@@ -169,8 +172,12 @@ def run_stream(args) -> int:
     if any(name == "voxel_size" for name, _ in args.settings):
         print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
         return 2
-    with warnings_on_stderr():
-        frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict)
+    try:
+        with warnings_on_stderr():
+            frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict,
+                                  K=args.K)
+    except MissingIntrinsics as exc:
+        raise UsageError(f"--K: {exc} (here: --K fx,fy,cx,cy)") from None
 
     def announce(session) -> None:  # the id on stdout as soon as the session holds a frame: S=$(canonical stream ...)
         if not args.json:

@@ -17,6 +17,8 @@ from client.cli import demo
 from client.cli.capture import frame_arrays
 from client.sdk import Client
 
+from ..conftest import DATA, require_capture
+
 
 def test_commands_are_a_registry():
     assert {"serve", "stream", "render", "export", "sessions"} <= set(cli.COMMANDS)
@@ -31,6 +33,20 @@ def test_stream_shows_each_kind_of_fold_warning_once(server, apc_bins_path, caps
     err = capsys.readouterr().err
     shown = [line for line in err.splitlines() if "working range" in line]
     assert len(shown) == 1 and shown[0].startswith("frame ") and "near=0.1" in shown[0]
+
+
+@pytest.mark.realdata
+def test_stream_takes_the_intrinsics_a_capture_lacks_from_K(server, capsys):
+    capture = str(require_capture(DATA / "slambook_rgbd5"))  # a TUM capture without an intrinsics file
+    url = ["--url", server.url, "--voxel-size", "0.02"]
+    assert cli.main(["stream", capture, *url]) == 2
+    assert "error: --K: " in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's own usage error
+        cli.main(["stream", capture, *url, "--K", "518,519,325.5"])
+    assert "argument --K: expected fx,fy,cx,cy" in capsys.readouterr().err
+    assert cli.main(["stream", capture, *url, "--K", "518,519,325.5,253.5"]) == 0
+    out = capsys.readouterr()
+    assert "5 frames in" in out.err and Client(server.url).session(out.out.strip()).stats()["frames"] == 5
 
 
 @pytest.mark.realdata

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from canonical_core.datasets import FrameSequence, load_dataset, synthetic_rgbd, write_tsdf_fusion
+from canonical_core.datasets import FrameSequence, MissingIntrinsics, load_dataset, synthetic_rgbd, write_tsdf_fusion
 from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, read_depth, read_pgm
 
 
@@ -91,6 +91,24 @@ def test_detect_and_dispatch(shelf_path, slambook_path, slambook_K, tiny_tsdf):
     assert load_dataset(shelf_path, max_frames=2).frame_ids == ["frame-000015", "frame-000017"]
     assert load_dataset(slambook_path, K=slambook_K).frame_ids == ["1", "2", "3", "4", "5"]
     assert len(load_dataset(tiny_tsdf, stride=2)) == 2
+
+
+@pytest.mark.realdata
+def test_one_K_gives_the_intrinsics_of_every_layout_that_reads_them(shelf_path, slambook_path, slambook_K, tiny_tsdf,
+                                                                     tmp_path):
+    with pytest.raises(MissingIntrinsics, match="slambook_rgbd5: camera intrinsics are needed"):
+        load_dataset(slambook_path)
+    assert load_dataset(slambook_path, K=slambook_K)[0].camera.fx == slambook_K[0]
+    assert load_dataset(shelf_path, max_frames=1, K=(600, 601, 320, 240))[0].camera.fy == 601  # in place of its own
+    bare = shutil.copytree(tiny_tsdf, tmp_path / "bare")
+    for intrinsics in bare.glob("*intrinsics*"):
+        intrinsics.unlink()
+    with pytest.raises(MissingIntrinsics, match="no intrinsics file"):
+        load_dataset(bare)
+    assert load_dataset(bare, K=np.array([[20.0, 0, 32], [0, 20, 24], [0, 0, 1]]))[0].camera.fx == 20.0
+    (tmp_path / "transforms.json").write_text('{"fl_x": 12.8, "w": 16, "h": 12, "frames": []}')
+    with pytest.raises(ValueError, match="^K: a transforms_json capture's frames carry their own intrinsics"):
+        load_dataset(tmp_path / "transforms.json", K=slambook_K)
 
 
 def test_detect_transforms_json(tmp_path):
