@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..calibration import validate_pose
-from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix,
-                    select, write_matrix)
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames,
+                    read_intrinsics_file, read_matrix, select, write_matrix)
 from .images import write_depth, write_rgb
 from .sequence import FrameSequence
 

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import quaternion_to_matrix, validate_pose
-from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats, read_intrinsics_file,
-                    read_text, select)
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats,
+                    read_intrinsics_file, read_text, select)
 from .sequence import FrameSequence
 
 INTRINSICS_NAMES = ("intrinsics.txt", "camera.txt")

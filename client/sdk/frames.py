@@ -78,9 +78,8 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     (fast level), integer depth, and float depth that 16-bit sensor units hold exactly
     (`exact_sensor_depth`), as zstandard-compressed uint16 with its ``depth_scale``, other float depth
     as zstandard-compressed float32, and label scores zstandard-compressed. "raw" sends the arrays as
-    they are. PNG/JPEG ``rgb`` bytes and
-    16-bit PNG ``depth`` bytes (with ``depth_scale``) travel untouched either way. The service folds
-    the same frame from all of them.
+    they are. PNG/JPEG ``rgb`` bytes and 16-bit PNG ``depth`` bytes (with ``depth_scale``) travel
+    untouched either way. The service folds the same frame from all of them.
     """
     if codec not in FRAME_CODECS:
         raise ValueError(f"codec: expected one of {list(FRAME_CODECS)}, got {codec!r}")
