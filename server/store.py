@@ -273,8 +273,10 @@ class SessionStore:
         """Give back the memory of deleted sessions whose last holder has let go since their deletion
         (the delete's own release found them held; a session and its snapshots and corrections refer
         to each other, so only the cycle collector frees it). Run periodically; returns how many are
-        still held. Nothing is collected while no deleted session is pending."""
+        still held. Nothing is collected while no deleted session is pending (one its holder released
+        itself, as a background solve does, is no longer)."""
         with self._lock:
+            self._departed = [departed for departed in self._departed if departed() is not None]
             if not self._departed:
                 return 0
         release_memory()
