@@ -9,6 +9,8 @@ Example:
 
 from __future__ import annotations
 
+import argparse
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,6 +98,24 @@ def find_one(folders: Sequence[Path], patterns: Sequence[str]) -> Path | None:
 def read_intrinsics_file(path: Path) -> np.ndarray:  # [3, 3] float64
     """Read and validate a 3x3 intrinsics text file."""
     return validate_intrinsics(read_matrix(path, 3, 3), str(path))
+
+
+def intrinsics_arg(text: str) -> tuple[float, float, float, float]:
+    """``fx,fy,cx,cy`` (pixels) -> the four numbers, the focal lengths positive: the command lines'
+    ``--K`` (an argparse type; its error names what was expected).
+
+    Example:
+        >>> intrinsics_arg("517.3,516.5,318.6,255.3")
+        (517.3, 516.5, 318.6, 255.3)
+    """
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(map(math.isfinite, values)) or min(values[:2]) <= 0:
+        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy in pixels (four numbers, positive focal "
+                                         f"lengths, e.g. 517.3,516.5,318.6,255.3), got {text!r}")
+    return values
 
 
 class MissingFile(ValueError):

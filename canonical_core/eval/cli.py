@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import get_args
 
+from ..datasets import MissingIntrinsics, load_dataset
+from ..datasets.files import intrinsics_arg
 from ..rendering import Colour
 from .methods import METHODS
 from .protocol import STABILITY_VIEWS
@@ -36,6 +38,9 @@ def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
 
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("dataset", type=Path, help="capture folder (any layout load_dataset detects: tsdf-fusion/7-Scenes, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
+    parser.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
+                        help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
+                             "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
     parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
     parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
     parser.add_argument("--methods", type=_list(str, "methods"), default=None,
@@ -76,16 +81,18 @@ def run_eval(args: argparse.Namespace) -> int:
     from .segmentation import evaluate_segmentation
 
     try:
+        dataset = args.dataset if args.K is None else load_dataset(args.dataset, K=args.K)
         if args.segmentation:
-            evaluate_segmentation(args.dataset, views=args.views, methods=args.methods or ("canonical", "average", "pixel_aligned"),
+            evaluate_segmentation(dataset if args.K is None else [dataset], views=args.views, methods=args.methods or ("canonical", "average", "pixel_aligned"),
                                   out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size)
         else:
-            evaluate(args.dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise,
+            evaluate(dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise,
                      out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
                      stability_views=args.stability_views, extrapolation=not args.no_extrapolation,
                      colour=args.colour)
     except (ValueError, ImportError) as exc:
-        print(f"canonical eval: error: {exc}", file=sys.stderr)
+        hint = " (here: --K fx,fy,cx,cy)" if isinstance(exc, MissingIntrinsics) else ""
+        print(f"canonical eval: error: {exc}{hint}", file=sys.stderr)
         return 2
     if not args.quiet:
         print((Path(args.out) / "results.md").read_text())

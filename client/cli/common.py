@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import sys
 import warnings
 
@@ -15,23 +14,6 @@ from ..sdk import Client, default_url
 class UsageError(Exception):
     """An option's value that cannot work whatever the files or the service hold; the message names
     the option. `main` prints it on one line and exits with 2, as argparse does for its own errors."""
-
-
-def intrinsics_arg(text: str) -> tuple[float, float, float, float]:
-    """``fx,fy,cx,cy`` (pixels) -> the four numbers, the focal lengths positive.
-
-    Example:
-        >>> intrinsics_arg("517.3,516.5,318.6,255.3")
-        (517.3, 516.5, 318.6, 255.3)
-    """
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 4 or not all(map(math.isfinite, values)) or min(values[:2]) <= 0:
-        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy in pixels (four numbers, positive focal "
-                                         f"lengths, e.g. 517.3,516.5,318.6,255.3), got {text!r}")
-    return values
 
 
 def add_connection(p: argparse.ArgumentParser) -> None:

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import UsageError, add_connection, connect, intrinsics_arg, warnings_on_stderr
+from canonical_core.datasets.files import intrinsics_arg  # the same --K as stream's (imports no torch, no numba)
+
+from .common import UsageError, add_connection, connect, warnings_on_stderr
 from .poses import read_pose_file
 
 

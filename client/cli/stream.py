@@ -12,9 +12,11 @@ import time
 import warnings
 from typing import Callable, Iterator
 
+from canonical_core.datasets.files import intrinsics_arg  # the same --K as render's (imports no torch, no numba)
+
 from ..sdk import Client, Session, StreamRefused
 from .capture import capture_frames
-from .common import UsageError, add_connection, add_json, connect, intrinsics_arg, warnings_on_stderr
+from .common import UsageError, add_connection, add_json, connect, warnings_on_stderr
 
 
 def add_stream(p: argparse.ArgumentParser) -> None:

@@ -35,3 +35,17 @@ def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
     assert "methods" in capsys.readouterr().err
     assert main([str(data), "--views", "2", "--out", str(out), "--mixed-noise", "-1", "--quiet"]) == 2
     assert "mixed_noise" in capsys.readouterr().err
+
+
+def test_a_capture_without_intrinsics_is_evaluated_with_K(tmp_path, capsys):
+    frames = synthetic_rgbd(num_frames=14, width=40, height=30)
+    data = write_tsdf_fusion(frames, tmp_path / "cap")
+    for intrinsics in data.glob("*intrinsics*"):
+        intrinsics.unlink()
+    common = ["--views", "2", "--methods", "canonical", "--voxel-size", "0.05", "--stability-views", "none",
+              "--no-extrapolation", "--quiet"]
+    assert main([str(data), "--out", str(tmp_path / "a"), *common]) == 2
+    assert "no intrinsics file" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    K = frames[0].camera.K64()
+    assert main([str(data), "--out", str(tmp_path / "b"), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", *common]) == 0
+    assert json.loads((tmp_path / "b" / "results.json").read_text())["runs"][0]["method"] == "canonical"
