@@ -263,13 +263,12 @@ class InputCamera(BaseModel):
                              min_length=16, max_length=16)
 
 
-class InputCamerasOut(BaseModel):
+class InputCamerasOut(_LastFold):
     """A session's input cameras, oldest first, and when it last folded."""
 
     id: str
     frames: int = Field(description="frames the session holds")
     label_dim: int = Field(description="its label channels (0: none)")
-    last_fold: float | None = Field(description="unix time of its last fold (null: none known)")
     last_fold_age: float | None = Field(description="seconds since its last fold on the service's clock, so that "
                                                     "a client's own clock's skew does not matter (null: none known)")
     cameras: list[InputCamera]
