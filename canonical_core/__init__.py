@@ -18,6 +18,11 @@ from typing import TYPE_CHECKING
 # and every parallel kernel waits for its slowest thread. OpenMP reads this once, when torch or
 # numba loads it, so it is set before they load; an environment that sets it keeps its own.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# numba's parallel kernels run on OpenMP's team, the one that policy and the thread counts tune (and
+# the one the figures in docs/performance.md were measured on); numba's own order tries Intel TBB
+# first, so a machine with TBB installed would run them on another pool (and an old TBB, such as
+# Open3D's wheel carries, prints a warning on every process). Set before numba loads, as above.
+os.environ.setdefault("NUMBA_THREADING_LAYER_PRIORITY", "omp tbb workqueue")
 
 # The facade's names load on first use (PEP 562): ``import canonical_core.datasets`` to list a capture,
 # or ``canonical_core.config`` to read settings, does not load torch and the method with them.

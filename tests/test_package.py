@@ -1,5 +1,5 @@
-"""What importing the library does to the process: idle OpenMP threads sleep unless the user says otherwise, and
-the facade's names load on first use, so that listing a capture or reading settings does not load torch."""
+"""What importing the library does to the process: idle OpenMP threads sleep unless the user says otherwise,
+numba's kernels run on that OpenMP team, and the facade's names load on first use, so that listing a capture or reading settings does not load torch."""
 
 from __future__ import annotations
 
@@ -23,6 +23,23 @@ def test_import_makes_idle_openmp_threads_sleep_unless_the_environment_chose(giv
         env["OMP_WAIT_POLICY"] = given
     out = subprocess.run([sys.executable, "-c", PROBE], cwd=REPO, env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == [expected]
+
+
+def test_numba_kernels_run_on_the_openmp_team_that_the_policy_tunes():
+    # numba's default order tries TBB first: with Open3D loaded (its wheel carries an old libtbb) that
+    # printed a warning in every evaluation, and a machine with a newer TBB would run the kernels there
+    probe = ("import importlib.util, canonical_core, numba, numpy\n"
+             "if importlib.util.find_spec('open3d'): import open3d\n"
+             "@numba.njit(parallel=True)\n"
+             "def total(a):\n"
+             "    s = 0.0\n"
+             "    for i in numba.prange(a.size): s += a[i]\n"
+             "    return s\n"
+             "print(total(numpy.ones(1000)), numba.threading_layer())")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
+    out = subprocess.run([sys.executable, "-c", probe], cwd=REPO, env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1000.0", "omp"]
+    assert "TBB" not in out.stderr, out.stderr
 
 
 def test_the_facade_loads_its_names_on_first_use():
