@@ -108,6 +108,22 @@ def _channel_map(value, field: str, max_channels: int) -> Tensor:
     return t.contiguous()
 
 
+def _class_map(t: Tensor, num_classes) -> Tensor:  # [H', W'] integer ids -> int16, -1 = none
+    """A class map checked against ``num_classes``: ids 0..K-1, any negative id meaning no class."""
+    if t.is_floating_point() or t.is_complex() or min(t.shape) < 1:
+        raise ValueError(f"labels: a class map [H', W'] holds integer class ids, got {t.dtype} {list(t.shape)}")
+    if isinstance(num_classes, bool) or not isinstance(num_classes, (int, np.integer)):
+        raise ValueError(f"num_classes: required with a class map (labels as integer [H', W']): the number of "
+                         f"classes K, got {num_classes!r}")
+    if not 1 <= num_classes <= MAX_LABEL_CHANNELS:
+        raise ValueError(f"num_classes: expected 1..{MAX_LABEL_CHANNELS} classes, got {num_classes}")
+    top = int(t.max())
+    if top >= num_classes:
+        raise ValueError(f"labels: class {top} does not fit num_classes = {num_classes} (ids 0..{num_classes - 1}; "
+                         "negative: no class)")
+    return t.to(torch.int64).clamp_min(-1).to(torch.int16).contiguous()  # clamped where -1 exists (not in uint8)
+
+
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One posed observation, validated on construction.
@@ -118,8 +134,12 @@ class Frame:
         depth: optional float32 [H, W] z-depth in metres; 0 or non-finite = missing (stored as 0).
         depth_std: optional float32 [H, W] per-pixel depth standard deviation in metres (>= 0).
         features: optional float32 [H', W', C] client-supplied features (resized when used).
-        labels: optional float32 [H', W', S] client-supplied label scores (e.g. class probabilities).
+        labels: optional client-supplied labels: float32 [H', W', S] scores (e.g. class
+            probabilities), or a class map, integer [H', W'] (one class id a pixel, negative for
+            none), kept as int16 and fused as one-hot scores over ``num_classes`` channels (the
+            same scene as its one-hot scores give, without an [H', W', S] array per frame).
         frame_id: optional free-form identifier.
+        num_classes: K of a class map (required with one); with scores, their S if given.
     """
 
     rgb: Tensor  # [H, W, 3] uint8
@@ -127,8 +147,9 @@ class Frame:
     depth: Tensor | None = None  # [H, W] float32
     depth_std: Tensor | None = None  # [H, W] float32
     features: Tensor | None = None  # [H', W', C] float32
-    labels: Tensor | None = None  # [H', W', S] float32
+    labels: Tensor | None = None  # [H', W', S] float32, or [H', W'] int16 class ids
     frame_id: str | None = None
+    num_classes: int | None = None
 
     def __post_init__(self):
         if not isinstance(self.camera, Camera):
@@ -160,8 +181,16 @@ class Frame:
             object.__setattr__(self, "depth_std", std)
         if self.features is not None:
             object.__setattr__(self, "features", _channel_map(self.features, "features", MAX_FEATURE_CHANNELS))
-        if self.labels is not None:
-            labels = _channel_map(self.labels, "labels", MAX_LABEL_CHANNELS)
+        if self.labels is None:
+            if self.num_classes is not None:
+                raise ValueError("num_classes: given without labels")
+        elif (labels := _tensor(self.labels, "labels")).ndim == 2:
+            object.__setattr__(self, "labels", _class_map(labels, self.num_classes))
+            object.__setattr__(self, "num_classes", int(self.num_classes))
+        else:
+            labels = _channel_map(labels, "labels", MAX_LABEL_CHANNELS)
+            if self.num_classes is not None and self.num_classes != labels.shape[-1]:
+                raise ValueError(f"num_classes: {self.num_classes}, but the label scores have {labels.shape[-1]} channels")
             object.__setattr__(self, "labels", labels)
         if self.frame_id is not None:
             if not isinstance(self.frame_id, str):
@@ -181,6 +210,13 @@ class Frame:
     @property
     def has_depth(self) -> bool:
         return self.depth is not None
+
+    @property
+    def label_dim(self) -> int | None:
+        """S, the label channels this frame fuses (a class map's ``num_classes``), or None without labels."""
+        if self.labels is None:
+            return None
+        return self.num_classes if self.labels.ndim == 2 else int(self.labels.shape[-1])
 
     def __repr__(self) -> str:
         extras = [n for n in ("depth", "depth_std", "features", "labels") if getattr(self, n) is not None]

@@ -26,10 +26,12 @@ import msgpack
 import numpy as np
 import zstandard
 
-__all__ = ["CODECS", "DTYPES", "FLOATS", "WireError", "array_shape", "decode_array", "encode_array", "is_array", "pack",
+__all__ = ["CODECS", "DTYPES", "FLOATS", "INTEGERS", "WireError", "array_shape", "decode_array", "encode_array", "is_array", "pack",
            "unpack"]
 
-DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "float16": np.dtype("<f2"), "float32": np.dtype("<f4")}
+DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "int16": np.dtype("<i2"), "float16": np.dtype("<f2"),
+          "float32": np.dtype("<f4")}
+INTEGERS = ("uint8", "uint16", "int16")
 FLOATS = ("float16", "float32")
 Codec = Literal["raw", "zstd"]
 CODECS = ("raw", "zstd")

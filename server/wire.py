@@ -3,8 +3,9 @@
 Arrays travel in the codec of `canonical_wire` (re-exported here), the one the SDK uses. A frame
 message is a msgpack map with ``rgb`` (array or PNG/JPEG bytes), ``K`` [3][3], ``c2w`` [4][4] and
 optional ``depth`` (float array in metres, or a uint16 array / 16-bit
-PNG with ``depth_scale`` units per metre), ``depth_std``, ``features``, ``labels``, ``frame_id``,
-``width``, ``height``.
+PNG with ``depth_scale`` units per metre), ``depth_std``, ``features``, ``labels`` (float scores
+[H', W', K], or a class map: integer [H', W'] ids, negative for none, with ``num_classes`` K),
+``frame_id``, ``width``, ``height``.
 
 Every problem raises `WireError` naming the field; nothing here knows about HTTP.
 """
@@ -22,10 +23,11 @@ from PIL import Image, UnidentifiedImageError
 from canonical_core import Camera, Frame
 from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
-from canonical_wire import DTYPES, FLOATS, WireError, array_shape, decode_array, encode_array, is_array, pack, unpack  # noqa: F401
+from canonical_wire import DTYPES, FLOATS, INTEGERS, WireError, array_shape, decode_array, encode_array, is_array, pack, unpack  # noqa: F401
 
 IMAGE_FORMATS = ("PNG", "JPEG")
-FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "frame_id", "width", "height")
+FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "num_classes", "frame_id",
+                "width", "height")
 NO_LABEL = 65535  # uint16 label maps: pixels that nothing covers
 
 
@@ -133,7 +135,8 @@ class FrameLimits:
 
     ``max_pixels``: image pixels (rgb, depth, and the feature/label maps' H' x W');
     ``max_rgb_only_pixels``: image pixels of a frame without depth (it is plane-swept and kept whole);
-    ``max_label_channels``: label score channels (each one is a float per voxel for the session's life);
+    ``max_label_channels``: label score channels, a class map's ``num_classes`` (each is a float per voxel
+    for the session's life);
     ``max_channel_values``: image pixels x channels of ``features`` and of ``labels`` (both are
     sampled at every image pixel).
     """
@@ -177,11 +180,29 @@ def _check_channels(name: str, shape: list[int] | None, image_pixels: int, limit
         return  # decode_array names the problem
     check_pixels(shape[1], shape[0], name, limits.max_pixels)
     channels = shape[2]
-    if name == "labels" and limits.max_label_channels is not None and channels > limits.max_label_channels:
-        raise WireError(name, f"{channels} label channels exceed the limit of {limits.max_label_channels}", 413, "too_large")
+    if name == "labels":
+        _check_label_channels(channels, name, limits)
     if limits.max_channel_values is not None and image_pixels * channels > limits.max_channel_values:
         raise WireError(name, f"{channels} channels x {image_pixels} image pixels = {image_pixels * channels} values exceed "
                               f"the limit of {limits.max_channel_values}", 413, "too_large")
+
+
+def _check_label_channels(channels: int, field: str, limits: FrameLimits) -> None:
+    if limits.max_label_channels is not None and channels > limits.max_label_channels:
+        raise WireError(field, f"{channels} label channels exceed the limit of {limits.max_label_channels}", 413, "too_large")
+
+
+def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.ndarray, int]:
+    """``labels`` as a class map (integer [H', W']) with its ``num_classes``, checked before decoding.
+    Fused as one-hot scores, so its K counts as that many label channels."""
+    num_classes = msg.get("num_classes")
+    if num_classes is None:
+        raise WireError("num_classes", "required with a class map (labels as integer [H', W']): the number of classes K")
+    if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
+        raise WireError("num_classes", f"expected a positive integer, got {num_classes!r}")
+    _check_label_channels(num_classes, "num_classes", limits)
+    _check_channels("labels", [*array_shape(msg["labels"]), num_classes], image_pixels, limits)
+    return decode_array(msg["labels"], "labels", INTEGERS, ndim=2), num_classes
 
 
 def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLimits | None = None) -> Frame:
@@ -224,8 +245,14 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
     elif scale is not None:
         raise WireError("depth_scale", "given without depth")
     extras = {}
+    labels = msg.get("labels")
+    if labels is not None and is_array(labels) and len(array_shape(labels) or ()) == 2:
+        extras["labels"], extras["num_classes"] = _class_map(msg, width * height, limits)
+    elif msg.get("num_classes") is not None:
+        raise WireError("num_classes", "goes with a class map (labels as integer [H', W']); label scores carry K as "
+                                       "their last axis")
     for name in ("depth_std", "features", "labels"):
-        if msg.get(name) is not None:
+        if msg.get(name) is not None and name not in extras:
             value = msg[name]
             if name == "depth_std":
                 shape = array_shape(value)

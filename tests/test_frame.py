@@ -50,6 +50,12 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(features=np.zeros((4, 5), np.float32)), "features", "shape"),
         (dict(features=np.full((4, 5, 2), np.inf, np.float32)), "features", "NaN"),
         (dict(labels=np.zeros((4, 5, 2), np.int64)), "labels", "float"),
+        (dict(labels=np.zeros((4, 5), np.int64)), "num_classes", "required with a class map"),
+        (dict(labels=np.full((4, 5), 3), num_classes=3), "labels", "class 3 does not fit num_classes = 3"),
+        (dict(labels=np.zeros((4, 5), np.uint8), num_classes=0), "num_classes", "1..256"),
+        (dict(labels=np.zeros((4, 5), np.uint8), num_classes=True), "num_classes", "required"),
+        (dict(labels=np.zeros((4, 5, 2), np.float32), num_classes=3), "num_classes", "2 channels"),
+        (dict(num_classes=3), "num_classes", "without labels"),
         (dict(frame_id=5), "frame_id", "string"),
         (dict(frame_id="x" * 257), "frame_id", "at most 256 bytes"),
         (dict(frame_id="é" * 129), "frame_id", "got 258"),  # bytes of UTF-8, not characters
@@ -60,6 +66,17 @@ def test_validation_names_field_and_problem(kwargs, field, message):
     with pytest.raises(ValueError) as err:
         Frame(**args)
     assert str(err.value).startswith(field) and message in str(err.value)
+
+
+def test_a_class_map_is_kept_as_small_ids_with_its_k():
+    ids = np.array([[0, 2, -1, -7], [1, 1, 0, 2]], np.int64)
+    f = Frame(rgb=RGB, camera=CAM, labels=ids, num_classes=3)
+    assert f.labels.dtype == torch.int16 and f.labels.tolist() == [[0, 2, -1, -1], [1, 1, 0, 2]]  # any negative: none
+    assert f.num_classes == f.label_dim == 3
+    assert Frame(rgb=RGB, camera=CAM, labels=torch.ones(4, 5, 2)).label_dim == 2
+    assert Frame(rgb=RGB, camera=CAM, labels=np.ones((4, 5), bool), num_classes=2).labels.sum() == 20
+    assert Frame(rgb=RGB, camera=CAM, labels=np.array([[0, 2]], np.uint8), num_classes=3).labels.tolist() == [[0, 2]]
+    assert Frame(rgb=RGB, camera=CAM).label_dim is None
 
 
 def test_a_frame_id_of_256_bytes_is_taken():

@@ -5,13 +5,13 @@
 - ``frame-NNNNNN.depth.png``: uint16 in tenths of a millimetre, bit-rotated: the value v holds
   d = ((v >> 3) | (v << 13)) & 0xFFFF (in 32 bits), metres = d / 10000; 0 = missing;
 - ``frame-NNNNNN.segm.png`` (uint8 label id per pixel, 0 = background) or ``frame-NNNNNN.mask.png``
-  (0 or 255): read as one-hot label scores, one channel per id found in the capture's label maps
-  (`Frame.labels`), so that fused scenes carry them (segmentation views).
+  (0 or 255): read as a class map (`Frame.labels`, fused as one-hot label scores), one class per id
+  found in the capture's label maps, so that fused scenes carry them (segmentation views).
 
 Example:
     >>> seq = load_label_fusion("../shared/data/apc_bins/bin_labels")  # doctest: +SKIP
-    >>> seq.label_ids, seq[0].labels.shape  # doctest: +SKIP
-    ((0, 48, 132), torch.Size([480, 640, 3]))
+    >>> seq.label_ids, seq[0].labels.shape, seq[0].num_classes  # doctest: +SKIP
+    ((0, 48, 132), torch.Size([480, 640]), 3)
 """
 
 from __future__ import annotations
@@ -85,9 +85,12 @@ class LabelledFrameFile:
             if ids.shape != depth.shape:
                 raise ValueError(f"{self.labels}: label map {ids.shape[1]}x{ids.shape[0]} does not match the depth "
                                  f"image {self.depth} ({depth.shape[1]}x{depth.shape[0]})")
-            labels = (ids[..., None] == np.array(self.label_ids, np.uint8)).astype(np.float32)
+            channel = np.full(256, -1, np.int16)  # the capture's id -> its label channel
+            channel[list(self.label_ids)] = np.arange(len(self.label_ids))
+            labels = channel[ids]
         camera = Camera(self.K, self.c2w, rgb.shape[1], rgb.shape[0])
-        return Frame(rgb=rgb, camera=camera, depth=depth, labels=labels, frame_id=self.frame_id)
+        return Frame(rgb=rgb, camera=camera, depth=depth, labels=labels, frame_id=self.frame_id,
+                     num_classes=len(self.label_ids) if labels is not None else None)
 
     def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         """`FrameSource.view`: the camera `load` gives the frame."""

@@ -39,7 +39,7 @@ from torch import Tensor
 from ..calibration import quaternion_to_matrix
 from ..decode import GaussianDecoder, matrix_to_quaternion
 from ..evidence.extract import frame_features, lift_pixels
-from ..evidence.features import sample_client_features
+from ..evidence.features import sample_client_labels
 from ..frame import Frame
 from ..gaussians import Gaussians, rgb_to_sh_dc
 from ..scene import SceneConfig
@@ -91,8 +91,7 @@ def pixel_gaussians(frame: Frame, config: SceneConfig, opacity: float, features:
         opacities=torch.full((m,), opacity),
         sh=rgb_to_sh_dc(torch.from_numpy(colors))[:, None, :],
         features=torch.from_numpy(frame_features(frame, rows, cols, config)) if features else None,
-        labels=None if frame.labels is None else torch.from_numpy(
-            sample_client_features(frame.labels.numpy(), rows, cols, (frame.height, frame.width))),
+        labels=None if frame.labels is None else torch.from_numpy(sample_client_labels(frame, rows, cols)),
     )
 
 

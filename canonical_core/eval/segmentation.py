@@ -114,13 +114,13 @@ def scores(confusion: Tensor) -> dict:
 
 
 def label_map(frame: Frame, size: tuple[int, int] | None = None) -> Tensor:  # [H, W] int64
-    """The argmax of ``frame.labels`` at every pixel of a (height, width) image (default the
-    frame's), looked up nearest as fusion samples client maps."""
+    """The class of every pixel of a (height, width) image (default the frame's): a class map's id
+    (-1: none), or the argmax of label scores, looked up nearest as fusion samples client maps."""
     if frame.labels is None:
         raise ValueError(f"labels: frame {frame.frame_id!r} carries no labels")
     H, W = size or (frame.height, frame.width)
     rows, cols = (a.reshape(-1) for a in np.mgrid[0:H, 0:W])
-    ids = frame.labels.argmax(-1).numpy()[..., None]
+    ids = (frame.labels if frame.labels.ndim == 2 else frame.labels.argmax(-1)).numpy()[..., None]
     return torch.from_numpy(sample_client_features(ids, rows, cols, (H, W)).reshape(H, W)).long()
 
 
@@ -231,7 +231,8 @@ def _load(sequence: FrameSequence, positions: Sequence[int], scale: float) -> di
         frame = sequence[p]
         if frame.labels is None:
             raise ValueError(f"labels: frame {frame.frame_id!r} of {sequence.name} carries no labels")
-        frames[p] = replace(resize_frame(frame, scale), labels=frame.labels, features=frame.features)
+        frames[p] = replace(resize_frame(frame, scale), labels=frame.labels, num_classes=frame.num_classes,
+                            features=frame.features)
     return frames
 
 
@@ -256,7 +257,7 @@ def run_bin(sequence: FrameSequence, views: Sequence[int], specs: Sequence[Metho
     label_ids = list(getattr(sequence, "label_ids", ()))
     split = segmentation_split(len(sequence), views, heldout_every)
     frames = _load(sequence, sorted(set(split.heldout).union(*split.inputs.values())), scale)
-    S = {int(f.labels.shape[-1]) for f in frames.values()}
+    S = {f.label_dim for f in frames.values()}
     if len(S) != 1:
         raise ValueError(f"labels: frames of {sequence.name} carry different channel counts {sorted(S)}")
     S = S.pop()

@@ -11,7 +11,8 @@ import torch
 
 from ..frame import Frame
 from ..rendering.sh import sh_basis_at_points  # the renderer's basis: fit and render agree
-from .features import DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features
+from .features import (DEFAULT_FEATURE_DIM, default_features_at, projection_matrix, sample_client_features,
+                       sample_client_labels)
 from .registration import registration_weight
 from .reliability import AppearanceUncertainty, positional_uncertainty
 
@@ -136,9 +137,7 @@ def extract_evidence(
     if appearance is not None and not appearance.is_zero:
         with torch.no_grad():
             log_r = log_r - appearance(torch.from_numpy(features)).numpy()
-    labels = None
-    if frame.labels is not None:
-        labels = np.ascontiguousarray(sample_client_features(frame.labels.numpy(), rows, cols, (frame.height, frame.width)))
+    labels = sample_client_labels(frame, rows, cols)
     return FrameEvidence(
         rows=rows, cols=cols, points=points, colors=colors, features=features, u_pos=u_pos,
         reliability=np.exp(log_r).astype(np.float32), labels=labels,

@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..frame import Frame
+
 DEFAULT_FEATURE_DIM = 16
 RING_RADIUS = 3
 # (dv, du) offsets: the 8-ring at RING_RADIUS, in a fixed order.
@@ -201,3 +203,19 @@ def sample_client_features(
     fr = np.clip(np.floor((rows + 0.5) * (h / H)).astype(np.int64), 0, h - 1)
     fc = np.clip(np.floor((cols + 0.5) * (w / W)).astype(np.int64), 0, w - 1)
     return features[fr, fc]
+
+
+def sample_client_labels(
+    frame: Frame,
+    rows: np.ndarray,  # [M] pixel rows of the full-size image
+    cols: np.ndarray,  # [M] pixel columns
+) -> np.ndarray | None:  # [M, S] float32
+    """A frame's label scores at full-image pixels, looked up nearest as client features are; a class
+    map's as one-hot rows over its ``num_classes`` (all 0 where it has no class). None without labels."""
+    if frame.labels is None:
+        return None
+    size = (frame.height, frame.width)
+    if frame.labels.ndim == 3:
+        return np.ascontiguousarray(sample_client_features(frame.labels.numpy(), rows, cols, size))
+    ids = sample_client_features(frame.labels.numpy()[..., None], rows, cols, size)  # [M, 1]
+    return (ids == np.arange(frame.num_classes, dtype=ids.dtype)).astype(np.float32)

@@ -159,6 +159,8 @@ class DepthFrontEnd:
             arrays |= view_to_arrays(f"pending.{i}", f)
             arrays |= {f"pending.{i}.{name}": getattr(f, name).numpy() for name in ("features", "labels")
                        if getattr(f, name) is not None}
+            if f.num_classes is not None:  # labels as a class map
+                arrays[f"pending.{i}.num_classes"] = np.array(f.num_classes, np.int64)
         return arrays
 
     def load_arrays(self, arrays, pending: int) -> None:
@@ -168,4 +170,6 @@ class DepthFrontEnd:
         for i in range(pending):
             extra = {name: arrays[f"pending.{i}.{name}"].copy() if f"pending.{i}.{name}" in arrays.files else None
                      for name in ("features", "labels")}
+            if f"pending.{i}.num_classes" in arrays.files:
+                extra["num_classes"] = int(arrays[f"pending.{i}.num_classes"])
             self.pending.append((view_from_arrays(f"pending.{i}", arrays, **extra), None))

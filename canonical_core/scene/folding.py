@@ -219,8 +219,8 @@ def _check_foldable(scene: Scene, frame: Frame) -> None:
     """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
     if scene.config.features.backend == "client" and frame.features is None:
         raise ValueError("features: this session uses client-supplied features, but the frame carries none")
-    if frame.labels is not None and scene.label_dim and frame.labels.shape[-1] != scene.label_dim:
-        raise ValueError(f"labels: expected {scene.label_dim} label channels (as earlier frames), got {frame.labels.shape[-1]}")
+    if frame.labels is not None and scene.label_dim and frame.label_dim != scene.label_dim:
+        raise ValueError(f"labels: expected {scene.label_dim} label channels (as earlier frames), got {frame.label_dim}")
 
 
 def fold_cost(scene: "Scene", frame: Frame) -> int:

@@ -36,6 +36,8 @@ def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
             value = getattr(frame, name)
             if value is not None:
                 out[name] = value.numpy()
+        if frame.num_classes is not None:  # labels as a class map
+            out["num_classes"] = frame.num_classes
     return out
 
 

@@ -1,6 +1,6 @@
 """A frame's msgpack body as the SDK sends it, and what is done to a frame before it goes: depth in
 16-bit sensor units where that is lossless, colour as PNG, a frame without depth downscaled to the
-service's limit, a class map as one-hot label scores. Also PNG bytes back to numpy."""
+service's limit, a class map as its ids. Also PNG bytes back to numpy."""
 
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def exact_sensor_depth(depth, scales=(1000.0, 5000.0, 10000.0, 4000.0)) -> tuple
 
 
 def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
-               depth_scale=None, codec: FrameCodec = "compact") -> bytes:
+               depth_scale=None, num_classes=None, codec: FrameCodec = "compact") -> bytes:
     """The msgpack body of one frame as `Session.add_frame` sends it (its arguments, the same checks).
 
     ``codec`` "compact" (the default) sends what is lossless and small: an ``rgb`` array as a PNG
@@ -80,6 +80,9 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     as zstandard-compressed float32, and label scores zstandard-compressed. "raw" sends the arrays as
     they are. PNG/JPEG ``rgb`` bytes and 16-bit PNG ``depth`` bytes (with ``depth_scale``) travel
     untouched either way. The service folds the same frame from all of them.
+
+    ``labels`` as a class map (integer [H', W'], negative for none) travel as int16 ids with their
+    ``num_classes`` (required with one), not one-hot: the service expands each pixel it folds.
     """
     if codec not in FRAME_CODECS:
         raise ValueError(f"codec: expected one of {list(FRAME_CODECS)}, got {codec!r}")
@@ -104,6 +107,18 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
         raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
     if depth is not None:
         msg["depth"] = encode_array(np.asarray(depth, np.float32), "depth", array_codec)
+    if labels is not None and is_class_map(labels):
+        if num_classes is None:
+            raise ValueError("num_classes: required with a class map (labels as integer [H', W'])")
+        ids = np.asarray(labels)
+        if ids.size and (ids.max() >= num_classes or ids.max() > np.iinfo(np.int16).max):
+            raise ValueError(f"labels: class {int(ids.max())} does not fit K = {num_classes} label classes "
+                             f"(ids 0..{num_classes - 1}); a session's K is fixed by its first labelled frame")
+        msg["labels"] = encode_array(np.maximum(ids.astype(np.int64), -1).astype(np.int16), "labels", array_codec)
+        msg["num_classes"], labels = int(num_classes), None
+    elif num_classes is not None:
+        raise ValueError("num_classes: goes with a class map (labels as integer [H', W']); label scores carry K "
+                         "as their last axis")
     for name, value in (("depth_std", depth_std), ("features", features), ("labels", labels)):
         if value is not None:
             value = np.asarray(value)
@@ -188,23 +203,6 @@ def is_class_map(labels) -> bool:
     """Whether ``labels`` is a class map (integer or boolean [H, W]: one class id a pixel), not scores."""
     labels = np.asarray(labels)
     return labels.ndim == 2 and (np.issubdtype(labels.dtype, np.integer) or labels.dtype == np.bool_)
-
-
-def label_scores(class_map, num_classes: int) -> np.ndarray:  # [H, W] ids -> [H, W, K] float16
-    """A class map as the per-pixel label scores the service fuses: one-hot over K = ``num_classes``
-    (a negative id: no class, every score 0). float16 holds 0 and 1 exactly in half the bytes.
-    ValueError naming K when an id does not fit.
-
-    Example:
-        >>> label_scores(np.array([[0, 2], [-1, 1]]), 3)[0].tolist()
-        [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-    """
-    ids = np.asarray(class_map)
-    top = int(ids.max()) if ids.size else -1
-    if top >= num_classes:
-        raise ValueError(f"labels: class {top} does not fit K = {num_classes} label classes (ids 0..{num_classes - 1}); "
-                         "a session's K is fixed by its first labelled frame: pass num_classes= with that frame")
-    return (ids[..., None] == np.arange(num_classes)).astype(np.float16)
 
 
 def png_to_array(data: bytes) -> np.ndarray:

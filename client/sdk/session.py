@@ -18,7 +18,7 @@ import numpy as np
 from canonical_wire import decode_array, unpack
 
 from .errors import CanonicalError, StreamRefused
-from .frames import MSGPACK, FrameCodec, fit_rgb_only, frame_body, is_class_map, label_scores, wire_matrix
+from .frames import MSGPACK, FrameCodec, fit_rgb_only, frame_body, is_class_map, wire_matrix
 
 if TYPE_CHECKING:
     from .client import Client
@@ -71,8 +71,9 @@ class Session:
         "compact": compressed, lossless).
 
         ``labels``: per-pixel label scores, float [H',W',K], or a class map, integer [H',W'] (one
-        class id a pixel, negative for none), sent as one-hot scores over K = ``num_classes``, else
-        the session's label channels, else (its first labelled frame) the map's largest id + 1.
+        class id a pixel, negative for none), fused as one-hot scores over K = ``num_classes``, else
+        the session's label channels, else (its first labelled frame) the map's largest id + 1. A
+        class map travels as its ids (with K), not one-hot.
 
         With ``downscale``, a frame without depth that is over the service's limit for such frames
         (`Client.limits`) is sent downscaled to it, K scaled to match, with a `DownscaledFrame`
@@ -120,9 +121,9 @@ class Session:
     def _post_frame(self, frame: dict, index: int | None = None) -> dict:
         """POST one frame (`add_frame`'s keyword arguments), with its ``Frame-Index`` when given."""
         frame = dict(frame)
-        num_classes, downscale = frame.pop("num_classes", None), frame.pop("downscale", True)
+        downscale = frame.pop("downscale", True)
         if frame.get("labels") is not None:
-            frame["labels"] = self._label_scores(frame["labels"], num_classes)
+            frame["num_classes"] = self._label_classes(frame["labels"], frame.get("num_classes"))
         if frame.get("depth") is None and downscale:
             limit = self.client.limits().get("max_rgb_only_pixels")
             if limit is not None:
@@ -131,11 +132,11 @@ class Session:
         report = self.client._request("POST", f"{self._path}/frames", idempotent=frame.get("frame_id") is not None,
                                       content=frame_body(**frame), headers=headers).json()
         if frame.get("labels") is not None:
-            self.label_dim = int(np.shape(frame["labels"])[-1])
+            self.label_dim = frame["num_classes"] or int(np.shape(frame["labels"])[-1])
         return report
 
-    def _label_scores(self, labels, num_classes: int | None):
-        """``labels`` as scores [H',W',K] (a class map one-hot encoded); ValueError naming K when they
+    def _label_classes(self, labels, num_classes: int | None) -> int | None:
+        """A class map's K (None for scores, which carry theirs); ValueError naming K when the labels
         disagree with the session's K."""
         known = self.label_dim
         if is_class_map(labels):
@@ -145,16 +146,13 @@ class Session:
             if num_classes < 1:
                 raise ValueError("labels: the class map holds no class id (all negative) and K is not known yet: "
                                  "pass num_classes=")
-            limit = self.client.limits().get("max_label_channels")
-            if limit is not None and num_classes > limit:  # before a one-hot of that many channels is built
-                raise ValueError(f"labels: K = {num_classes} label classes exceed the service's limit of {limit} "
-                                 "label channels")
-            labels = label_scores(labels, num_classes)
-        channels = np.shape(labels)[-1] if np.ndim(labels) == 3 else None
+            channels = num_classes
+        else:
+            channels = np.shape(labels)[-1] if np.ndim(labels) == 3 else None
         if known and channels is not None and channels != known:
             raise ValueError(f"labels: {channels} label channels, but this session's labels have K = {known} "
                              "(fixed by its first labelled frame)")
-        return labels
+        return num_classes if is_class_map(labels) else None
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one

@@ -152,13 +152,23 @@ def test_compact_frames_are_lossless_and_small(shelf_dir):
     Image.fromarray(rgb).save(jpeg, format="JPEG", quality=90)
     msg, frame, _ = decoded(rgb=jpeg.getvalue(), depth=metres)
     assert msg["rgb"] == jpeg.getvalue() and np.array_equal(frame.rgb.numpy(), np.asarray(Image.open(jpeg).convert("RGB")))
-    # label scores (a class map one-hot encoded, as the SDK sends one) travel zstandard-compressed,
-    # and decode to the raw ones bit for bit
-    scores = np.eye(3, dtype=np.float32)[(np.arange(rgb.shape[1]) * 3 // rgb.shape[1])[None, :].repeat(rgb.shape[0], 0)]
+    # label scores travel zstandard-compressed and decode to the raw ones bit for bit; a class map
+    # travels as int16 ids with its K, whatever integer type it came in
+    thirds = (np.arange(rgb.shape[1]) * 3 // rgb.shape[1])[None, :].repeat(rgb.shape[0], 0)
+    scores = np.eye(3, dtype=np.float32)[thirds]
     raw_msg, raw, raw_bytes = decoded(depth=metres, labels=scores, codec="raw")
     msg, frame, size = decoded(depth=metres, labels=scores)
     assert msg["labels"]["codec"] == "zstd" and "codec" not in raw_msg["labels"]
     assert torch.equal(frame.labels, raw.labels) and size < raw_bytes / 8
+    ids = np.where(thirds == 1, -5, thirds)  # int64, a negative id: no class
+    for given in (ids, ids.astype(np.int32), thirds.astype(np.uint8)):
+        msg, frame, map_size = decoded(depth=metres, labels=given, num_classes=4)
+        assert msg["labels"]["dtype"] == "int16" and msg["labels"]["codec"] == "zstd" and msg["num_classes"] == 4
+        assert frame.num_classes == 4 and frame.labels.tolist() == np.maximum(given.astype(np.int64), -1).tolist() and map_size < size
+    with pytest.raises(ValueError, match="^num_classes: required with a class map"):
+        frame_body(rgb, K, c2w, labels=thirds)
+    with pytest.raises(ValueError, match="^num_classes: goes with a class map"):
+        frame_body(rgb, K, c2w, labels=scores, num_classes=3)
     with pytest.raises(ValueError, match="^codec: expected one of"):
         frame_body(rgb, K, c2w, codec="png")
 
@@ -260,10 +270,11 @@ def test_frames_without_depth_over_the_limit_are_downscaled_to_it(server, frames
 
 
 @pytest.mark.realdata
-def test_integer_class_maps_are_sent_as_one_hot_scores(server, frames):
+def test_integer_class_maps_fold_as_one_hot_scores(server, frames):
     """A segmentation network's [H, W] class map is the common form of labels: the SDK sends it as
-    one-hot scores over K classes (the session's, else the map's largest id + 1), and says what K
-    is when a map or a score array does not fit it."""
+    ids with K (the session's, else the map's largest id + 1), the service folds it as one-hot scores
+    over K classes (the scene their scores give), and the SDK says what K is when a map or a score
+    array does not fit it."""
     first, second = frames[0], frames[1]
     h, w = first["rgb"].shape[:2]
     classes = np.zeros((h, w), np.uint8)
@@ -289,3 +300,11 @@ def test_integer_class_maps_are_sent_as_one_hot_scores(server, frames):
         wide.add_frame(**first, labels=classes, num_classes=6)
         assert wide.stats()["label_dim"] == 6
         wide.delete()
+
+        digests = []
+        for labels in (classes, np.eye(3, dtype=np.float32)[classes]):  # the map, then its one-hot scores
+            session = client.create_session(voxel_size=VOXEL)
+            session.add_frame(**first, labels=labels)
+            digests.append({k: v for k, v in session.digest().items() if k != "id"})
+            session.delete()
+        assert digests[0] == digests[1]

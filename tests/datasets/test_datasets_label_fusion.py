@@ -29,18 +29,18 @@ def test_a_bin_loads_with_depth_that_warps_onto_the_next_frame_and_labels_as_lab
     assert 0.2 < float(a.depth[a.depth > 0].median()) < 1.0  # a bin seen from about 0.4-0.6 m
     error, compared = reprojection_error(a, b)
     assert compared > 10_000 and error < 0.02  # the capture's README: 5-8 mm
-    labels = a.labels.numpy()
-    assert labels.shape == (480, 640, len(ids)) and set(np.unique(labels)) == {0.0, 1.0}
-    assert (labels.sum(-1) == 1).all()  # one id per pixel
+    labels = a.labels.numpy()  # a class map: one class a pixel, every pixel one of the capture's ids
+    assert labels.shape == (480, 640) and a.num_classes == a.label_dim == len(ids)
+    assert set(np.unique(labels)) == set(range(len(ids)))
     suffix = "segm" if folder == "bin_labels" else "mask"
     stored = np.asarray(Image.open(apc_bins_path / folder / f"frame-000005.{suffix}.png"))
-    assert (np.array(ids)[labels.argmax(-1)] == stored).all()  # channel c is id ids[c]
+    assert (np.array(ids)[labels] == stored).all()  # class c is id ids[c]
 
 
 def test_every_frame_has_the_captures_label_channels_whatever_the_stride(apc_bins_path):
     seq = load_dataset(apc_bins_path / "bin_labels", stride=7)
     assert seq.frame_ids == ["frame-000000", "frame-000007", "frame-000014"]
-    assert {tuple(f.labels.shape[2:]) for f in seq} == {(3,)}
+    assert {f.label_dim for f in seq} == {3}
 
 
 def test_a_malformed_bin_names_the_file(apc_bins_path, tmp_path):

@@ -253,6 +253,24 @@ def test_labels_fuse_with_the_same_weights():
         scene.fold(make_frame(np.full((1, 2), 0.5), labels=np.zeros((1, 2, 4)), fx=10.0))
 
 
+@pytest.mark.realdata
+def test_a_class_map_folds_as_its_one_hot_scores(shelf_frames):
+    """A class map (ids at half the image's size, -1 for no class) gives the scene its one-hot scores
+    give, bit for bit; its K is the frame's num_classes, and a map of another K is refused."""
+    frame = shelf_frames[0]
+    rng = np.random.default_rng(0)
+    ids = rng.integers(-1, 4, (frame.height // 2, frame.width // 2))
+    scores = (ids[..., None] == np.arange(4)).astype(np.float32)
+    by_map, by_scores = Scene(SceneConfig(voxel_size=0.008)), Scene(SceneConfig(voxel_size=0.008))
+    for f in shelf_frames[:2]:
+        by_map.fold(dataclasses.replace(f, labels=ids, num_classes=4))
+        by_scores.fold(dataclasses.replace(f, labels=scores))
+    assert by_map.label_dim == by_scores.label_dim == 4 and by_map.digest() == by_scores.digest()
+    with pytest.raises(ValueError, match="labels: expected 4 label channels .* got 5"):
+        by_map.fold(dataclasses.replace(shelf_frames[2], labels=ids, num_classes=5))
+    assert by_map.frames == 2
+
+
 def test_sparse_index_has_a_fixed_origin_and_is_unbounded():
     scene = Scene(SceneConfig(voxel_size=1.0))
     far_pose = np.eye(4)

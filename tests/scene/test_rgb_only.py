@@ -48,8 +48,12 @@ def test_estimated_geometry_agrees_with_the_sensor(rgb_scene, shelf_frames):
 
 
 @pytest.mark.realdata
-def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_path):
+@pytest.mark.parametrize("labels", [None, "class map"])
+def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_path, labels):
     a, b = rgb_only(shelf_frames[0]), rgb_only(shelf_frames[4])
+    if labels:  # the waiting frame's class map (the image's thirds, at a quarter of its size) waits with it
+        thirds = np.broadcast_to(np.arange(a.width // 4) * 3 // (a.width // 4), (a.height // 4, a.width // 4))
+        a = Frame(rgb=a.rgb, camera=a.camera, frame_id=a.frame_id, labels=thirds.astype(np.int32), num_classes=3)
     straight = Scene(SceneConfig(voxel_size=VOXEL))
     straight.fold(a)
     straight.save(tmp_path / "s.cgs")
@@ -57,6 +61,7 @@ def test_snapshot_with_a_waiting_frame_resumes_identically(shelf_frames, tmp_pat
     assert len(resumed._front.pending) == 1 and resumed.frames == 1
     assert straight.fold(b).also_folded == resumed.fold(b).also_folded == 1
     assert straight.digest() == resumed.digest()
+    assert resumed.label_dim == (3 if labels else 0)
 
 
 def test_a_waiting_frame_is_checked_on_arrival():

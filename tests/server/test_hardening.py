@@ -129,6 +129,10 @@ def test_label_channels_are_capped(hard, sid, frames):
         labels = encode_array(np.zeros((2, 2, channels), np.float32))
         error = assert_error(post_frame(hard, sid, {**msgpack_frame(frames[1]), "labels": labels}), 413, "labels")
         assert f"{channels} label channels exceed the limit of 8" in error["message"]
+    # a class map is fused over num_classes channels: its K is capped alike
+    class_map = {**msgpack_frame(frames[1]), "labels": encode_array(np.zeros((2, 2), np.uint8)), "num_classes": 9}
+    error = assert_error(post_frame(hard, sid, class_map), 413, "num_classes")
+    assert "9 label channels exceed the limit of 8" in error["message"]
     assert digest(hard, sid) == before
 
 
