@@ -1,10 +1,12 @@
-"""``render`` (views of a session at --frame-like cameras, a pose or a trajectory, to PNGs) and
+"""``render`` (views of a session at --frame-like cameras, a pose or a trajectory, to PNGs or .npy:
+colour, depth, labels or features) and
 ``export`` (its Gaussians as .ply or .splat, or its surface mesh)."""
 
 from __future__ import annotations
 
 import argparse
 import functools
+import io
 import os
 import re
 import sys
@@ -41,9 +43,22 @@ def add_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--colour", choices=["normalised", "composited"], default=None,
                    help="normalised (the service's default: each drawn pixel the surface's expected colour, not darkened "
                         "where splats cover it only in part) or composited (the blend over the background)")
+    p.add_argument("--map", choices=MAPS, default="rgb",
+                   help="what to write: rgb (colour), depth (a 16-bit PNG in units of --depth-scale, 0 where nothing "
+                        "is drawn), labels (the fused labels' classes: a palette PNG, index 0 nothing drawn, k + 1 "
+                        "class k) or features (a PCA picture of the feature map). With -o FILE.npy, the map's own "
+                        "values instead: rgb uint8 [H,W,3], depth float32 metres, labels int16 [H,W] (-1 nothing "
+                        "drawn), features float16 [H,W,C]")
+    p.add_argument("--depth-scale", type=float, default=1000.0,
+                   help="--map depth as PNG: units per metre (1000: millimetres, as most depth cameras store them; "
+                        "TUM's captures use 5000)")
     p.add_argument("-o", "--output", required=True,
-                   help="the PNG to write; for several views a pattern with {i}, the view's index (e.g. "
+                   help="the PNG (or .npy: --map) to write; for several views a pattern with {i}, the view's index (e.g. "
                         "'views/{i:03d}.png'), or a folder (DIR/: view_0000.png, ...). The paths written are printed")
+
+
+MAPS = ("rgb", "depth", "labels", "features")
+NO_LABEL = 65535  # the service's uint16 label maps: nothing drawn
 
 
 def image_size_arg(text: str) -> tuple[int, int]:
@@ -145,18 +160,62 @@ def run_render(args) -> int:
     if not (args.frame_like or args.pose or args.trajectory):
         print("render: give the view(s): --frame-like DATASET:INDEX, --pose FILE or --trajectory FILE", file=sys.stderr)
         return 2
+    if args.map != "rgb" and (args.colour or args.background):
+        raise UsageError(f"--{'colour' if args.colour else 'background'}: only with --map rgb (got --map {args.map})")
+    if not (args.depth_scale > 0 and np.isfinite(args.depth_scale)):
+        raise UsageError(f"--depth-scale: expected a positive number of units per metre, got {args.depth_scale:g}")
     with warnings_on_stderr():
         views = render_views(args)
     paths = output_paths(args.output, len(views))
+    suffixes = {path.suffix.lower() for path in paths}
+    if not suffixes <= {".png", ".npy"}:
+        raise UsageError(f"-o: expected .png files (or .npy for the map's own values), got {args.output!r}")
     background = None if args.background is None else [float(x) for x in args.background.split(",")]
     with connect(args) as client:  # one process and one connection for every view
         session = client.session(args.session)
-        for (K, c2w, width, height), path in zip(views, paths):
-            png = session.render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
+        for view, path in zip(views, paths):
+            data = view_file(session, args.map, view, path.suffix.lower() == ".npy", args, background)
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(png)
+            path.write_bytes(data)
             print(path, flush=True)
     return 0
+
+
+def view_file(session, kind: str, view, values: bool, args, background) -> bytes:
+    """The bytes of one view's file: the ``kind`` map (`MAPS`) as a PNG, or with ``values`` as .npy."""
+    K, c2w, width, height = view
+    if kind == "rgb" and not values:
+        return session.render_png(K, c2w, width, height, args.max_gaussians, background, args.colour)
+    if kind == "labels" and not values:
+        return session.segmentation_png(K, c2w, width, height, args.max_gaussians)
+    if kind == "features" and not values:
+        return session.features_preview_png(K, c2w, width, height, args.max_gaussians)
+    if kind in ("rgb", "depth"):
+        maps = session.render(K, c2w, width, height, args.max_gaussians, background, args.colour)
+        if kind == "depth" and not values:
+            return depth_png(maps["depth"], args.depth_scale)
+        array = maps[kind]
+    elif kind == "labels":
+        labels = session.segmentation(K, c2w, width, height, args.max_gaussians)["labels"]
+        array = np.where(labels == NO_LABEL, -1, labels).astype(np.int16)
+    else:
+        array = session.features(K, c2w, width, height, args.max_gaussians)["features"]
+    out = io.BytesIO()
+    np.save(out, array)
+    return out.getvalue()
+
+
+def depth_png(depth: np.ndarray, scale: float) -> bytes:  # float32 [H, W] metres -> 16-bit PNG bytes
+    """Depth in ``scale`` units a metre as a 16-bit greyscale PNG, 0 where nothing is drawn; depth past
+    16 bits of units is written as 0 too (missing, as a depth camera stores it), with a warning."""
+    import imagecodecs
+
+    units = np.rint(np.asarray(depth, np.float64) * scale)
+    over = units >= 65535  # 65535 reads as missing too
+    if over.any():
+        print(f"warning: depth: {int(over.sum())} pixels lie beyond {65534 / scale:g} m, more than 16 bits of "
+              f"--depth-scale {scale:g} units; written as 0 (missing)", file=sys.stderr)
+    return imagecodecs.png_encode(np.where(over, 0, units).astype(np.uint16))
 
 
 # -- export -------------------------------------------------------------------------------------

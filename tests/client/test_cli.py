@@ -115,6 +115,42 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
 
 
 @pytest.mark.realdata
+def test_render_writes_each_map_as_a_png_or_as_its_values(server, apc_bins_path, tmp_path, capsys):
+    """``--map`` depth, labels and features: PNGs a person or another tool reads (16-bit depth in
+    millimetres, a palette label map), or with .npy the map's own values, each the other's twin."""
+    url = ["--url", server.url]
+    assert cli.main(["stream", str(apc_bins_path / "bin_labels"), *url, "--voxel-size", "0.008", "--stride", "4"]) == 0
+    session = capsys.readouterr().out.strip()
+    view = [*url, "--session", session, "--frame-like", f"{apc_bins_path / 'bin_labels'}:6"]
+    for kind in ("depth", "labels", "features"):
+        for suffix in ("png", "npy"):
+            assert cli.main(["render", *view, "--map", kind, "-o", str(tmp_path / f"{kind}.{suffix}")]) == 0
+    capsys.readouterr()
+
+    metres = np.load(tmp_path / "depth.npy")
+    millimetres = np.asarray(Image.open(tmp_path / "depth.png"))
+    assert metres.dtype == np.float32 and metres.shape == millimetres.shape == (480, 640)
+    drawn = metres > 0
+    assert drawn.mean() > 0.5 and 0.2 < np.median(metres[drawn]) < 1.0  # a bin seen from about half a metre
+    assert np.array_equal(millimetres, np.rint(metres * 1000).astype(np.uint16))
+
+    classes = np.load(tmp_path / "labels.npy")
+    palette = np.asarray(Image.open(tmp_path / "labels.png"))  # index 0 nothing drawn, k + 1 class k
+    assert classes.dtype == np.int16 and np.array_equal(palette.astype(np.int16) - 1, classes)
+    assert set(np.unique(classes)) == {-1, 0, 1, 2}  # the bin's three classes, and pixels nothing covers
+
+    features = np.load(tmp_path / "features.npy")
+    assert features.dtype == np.float16 and features.shape[:2] == (480, 640) and features.shape[2] > 1
+    assert Image.open(tmp_path / "features.png").size == (640, 480)
+
+    assert cli.main(["render", *view, "--map", "depth", "--colour", "composited", "-o", str(tmp_path / "x.png")]) == 2
+    assert "--colour: only with --map rgb" in capsys.readouterr().err
+    assert cli.main(["render", *view, "--map", "depth", "-o", str(tmp_path / "x.jpg")]) == 2
+    assert "-o: expected .png files" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "x.jpg").exists()
+
+
+@pytest.mark.realdata
 def test_stream_sets_the_new_sessions_settings(server, shelf_dir, capsys):
     url = ["--url", server.url]
     assert cli.main(["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "20", "--max-frames", "2",
