@@ -4,7 +4,8 @@ Arrays travel in the codec of `canonical_wire` (re-exported here), the one the S
 message is a msgpack map with ``rgb`` (array or PNG/JPEG bytes), ``K`` [3][3], ``c2w`` [4][4] and
 optional ``depth`` (float array in metres, or a uint16 array / 16-bit
 PNG with ``depth_scale`` units per metre), ``depth_std``, ``features``, ``labels`` (float scores
-[H', W', K], or a class map: integer [H', W'] ids, negative for none, with ``num_classes`` K),
+[H', W', K], or a class map with ``num_classes`` K: integer [H', W'] ids, negative for none, or a
+PNG, 0 for none and k + 1 for class k),
 ``frame_id``, ``width``, ``height``.
 
 Every problem raises `WireError` naming the field; nothing here knows about HTTP.
@@ -85,6 +86,17 @@ def decode_depth_png(data: bytes, depth_scale, field: str = "depth", max_pixels:
             raise WireError(field, "depth values do not fit 16 bits")
         raw = raw.astype(np.uint16)
     return depth_from_uint16(raw, depth_scale)
+
+
+def decode_class_png(data: bytes, field: str = "labels", max_pixels: int | None = None) -> np.ndarray:  # [H, W] int32
+    """A class map as an 8- or 16-bit single-channel PNG (grey or palette indices) -> class ids: value
+    0 no class (-1), k + 1 class k, the layout of the service's own label PNGs (and ScanNet's label
+    images). JPEG is refused: its compression changes ids at every edge."""
+    image, pixels = _open_image(data, field, max_pixels, ("L", "P", "I;16", "I;16B", "I;16L", "I"),
+                                "an 8- or 16-bit single-channel class map PNG (0 no class, k + 1 class k)")
+    if image.format != "PNG":
+        raise WireError(field, f"a class map travels as PNG, got {image.format}: lossy compression changes class ids")
+    return (pixels if pixels is not None else np.asarray(image)).astype(np.int32) - 1
 
 
 def encode_png(image: np.ndarray) -> bytes:  # uint8 [H, W, 3] or [H, W] -> PNG bytes
@@ -193,16 +205,22 @@ def _check_label_channels(channels: int, field: str, limits: FrameLimits) -> Non
 
 
 def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.ndarray, int]:
-    """``labels`` as a class map (integer [H', W']) with its ``num_classes``, checked before decoding.
-    Fused as one-hot scores, so its K counts as that many label channels."""
+    """``labels`` as a class map (an integer [H', W'] array, or PNG bytes: `decode_class_png`) with its
+    ``num_classes``, the sizes checked before decoding. Fused as one-hot scores, so its K counts as
+    that many label channels."""
     num_classes = msg.get("num_classes")
     if num_classes is None:
-        raise WireError("num_classes", "required with a class map (labels as integer [H', W']): the number of classes K")
+        raise WireError("num_classes", "required with a class map (labels as integer [H', W'] or a PNG): the number "
+                                       "of classes K")
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise WireError("num_classes", f"expected a positive integer, got {num_classes!r}")
     _check_label_channels(num_classes, "num_classes", limits)
-    _check_channels("labels", [*array_shape(msg["labels"]), num_classes], image_pixels, limits)
-    return decode_array(msg["labels"], "labels", INTEGERS, ndim=2), num_classes
+    labels = msg["labels"]
+    if isinstance(labels, (bytes, bytearray)):
+        _check_channels("labels", [1, 1, num_classes], image_pixels, limits)  # sampled at the frame's pixels
+        return decode_class_png(bytes(labels), "labels", limits.max_pixels), num_classes
+    _check_channels("labels", [*array_shape(labels), num_classes], image_pixels, limits)
+    return decode_array(labels, "labels", INTEGERS, ndim=2), num_classes
 
 
 def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLimits | None = None) -> Frame:
@@ -246,11 +264,11 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
         raise WireError("depth_scale", "given without depth")
     extras = {}
     labels = msg.get("labels")
-    if labels is not None and is_array(labels) and len(array_shape(labels) or ()) == 2:
+    if isinstance(labels, (bytes, bytearray)) or (is_array(labels) and len(array_shape(labels) or ()) == 2):
         extras["labels"], extras["num_classes"] = _class_map(msg, width * height, limits)
     elif msg.get("num_classes") is not None:
-        raise WireError("num_classes", "goes with a class map (labels as integer [H', W']); label scores carry K as "
-                                       "their last axis")
+        raise WireError("num_classes", "goes with a class map (labels as integer [H', W'] or a PNG); label scores "
+                                       "carry K as their last axis")
     for name in ("depth_std", "features", "labels"):
         if msg.get(name) is not None and name not in extras:
             value = msg[name]

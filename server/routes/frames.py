@@ -19,7 +19,7 @@ from ..solves import solve_soon
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
-CAMERA_FIELDS = ("K", "c2w", "depth_scale", "frame_id", "width", "height")
+CAMERA_FIELDS = ("K", "c2w", "depth_scale", "num_classes", "frame_id", "width", "height")
 FrameIndex = Annotated[int | None, Header(alias="Frame-Index", ge=0, description=(
     "the frame's place in the session's stream (0 for its first frame): numbered frames fold in this order"))]
 
@@ -29,15 +29,16 @@ def media_type(request: Request) -> str:
 
 
 def parse_multipart(content_type: str, body: bytes) -> dict:
-    """multipart/form-data with parts ``rgb`` (or ``image``; PNG/JPEG), optional ``depth`` (16-bit PNG)
-    and ``camera`` (JSON: K, c2w, depth_scale, frame_id, width, height) -> a frame message. Each part
-    at most once; JSON values keep their types (a string is not a number)."""
+    """multipart/form-data with parts ``rgb`` (or ``image``; PNG/JPEG), optional ``depth`` (16-bit PNG),
+    optional ``labels`` (a class map PNG: 0 no class, k + 1 class k; with ``num_classes``) and
+    ``camera`` (JSON: K, c2w, depth_scale, num_classes, frame_id, width, height) -> a frame message.
+    Each part at most once; JSON values keep their types (a string is not a number)."""
     out: dict = {}
     seen: set[str] = set()
     for part in parse_form_data(content_type, body):
         name = "rgb" if part.name == "image" else part.name
-        if name not in ("rgb", "depth", "camera"):
-            raise wire.WireError(name, "unknown form part (expected rgb, depth, camera)")
+        if name not in ("rgb", "depth", "labels", "camera"):
+            raise wire.WireError(name, "unknown form part (expected rgb, depth, labels, camera)")
         if name in seen:
             raise wire.WireError(name, "form part given more than once")
         seen.add(name)

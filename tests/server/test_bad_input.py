@@ -102,6 +102,16 @@ def _with_K(K: np.ndarray, **entries) -> list:
     return k.tolist()
 
 
+def _classes(c: Ctx) -> np.ndarray:  # a class map PNG's values: 0 no class, k + 1 class k (3 classes)
+    return (np.arange(c.frame["rgb"].shape[1]) % 4).astype(np.uint8)[None, :].repeat(c.frame["rgb"].shape[0], 0)
+
+
+def _jpeg(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="JPEG")
+    return buf.getvalue()
+
+
 def _depth_png(c: Ctx) -> bytes:
     return png(np.round(c.frame["depth"].astype(np.float64) * 1000).astype(np.uint16))
 
@@ -157,6 +167,12 @@ CASES = [
     ("bad token", lambda c: c.post_frame(c.msg(), headers={**MSGPACK, "Authorization": "Bearer nope"}), 401, "Authorization"),
     ("multipart without camera", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")}, {}), 422, "camera"),
     ("multipart camera not JSON", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")}, {"camera": "{K:"}), 422, "camera"),
+    ("multipart class map without num_classes",
+     lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png"), "labels": ("l.png", png(_classes(c)), "image/png")},
+                           {"camera": json.dumps({"K": c.frame["K"].tolist(), "c2w": c.frame["c2w"].tolist()})}), 422, "num_classes"),
+    ("class map png id over K", lambda c: c.post_frame(c.msg(labels=png(_classes(c) + 3), num_classes=3)), 422, "labels"),
+    ("class map as colour png", lambda c: c.post_frame(c.msg(labels=png(c.frame["rgb"]), num_classes=3)), 422, "labels"),
+    ("class map as jpeg", lambda c: c.post_frame(c.msg(labels=_jpeg(_classes(c)), num_classes=3)), 422, "labels"),
     ("multipart unknown part", lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")},
                                                      {"camera": json.dumps({"K": c.frame["K"].tolist()}), "extra": "1"}), 422, "extra"),
     ("render NaN pose", lambda c: c.view(c2w=_nan_pose(c.frame["c2w"])), 422, "c2w"),

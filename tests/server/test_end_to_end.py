@@ -151,6 +151,29 @@ def test_multipart_frame_equals_msgpack_frame(client, server, frames, reference)
     assert session.digest()["sha256"] == reference[1]["sha256"]
     session.delete()
 
+    # a class map as a PNG part (0 no class, k + 1 class k, K in the camera JSON): the scene its ids give
+    h, w = kwargs["rgb"].shape[:2]
+    classes = np.minimum(np.arange(w) * 3 // w, 2)[None, :].repeat(h, 0)
+    classes[: h // 5] = -1  # the top rows: no class
+    labels_png = io.BytesIO()
+    Image.fromarray((classes + 1).astype(np.uint8)).save(labels_png, format="PNG")
+    digests = []
+    for multipart in (True, False):
+        session = client.create_session(voxel_size=VOXEL)
+        if multipart:
+            r = httpx.post(f"{server.url}/v1/sessions/{session.id}/frames", headers={"Authorization": f"Bearer {TOKEN}"},
+                           files={"rgb": ("c.png", rgb_png.getvalue(), "image/png"),
+                                  "depth": ("d.png", depth_png.getvalue(), "image/png"),
+                                  "labels": ("l.png", labels_png.getvalue(), "image/png")},
+                           data={"camera": json.dumps({**camera, "num_classes": 3})})
+            assert r.status_code == 200, r.text
+        else:
+            session.add_frame(**{**kwargs, "frame_id": "curl"}, labels=classes, num_classes=3)
+        assert session.stats()["label_dim"] == 3
+        digests.append(session.digest()["sha256"])
+        session.delete()
+    assert digests[0] == digests[1]
+
     # encoded images inside msgpack too: JPEG colour (lossy, so only the frame count is compared)
     jpeg = io.BytesIO()
     Image.fromarray(kwargs["rgb"]).save(jpeg, format="JPEG", quality=90)
