@@ -118,15 +118,31 @@ class Camera:
         """The same camera for an image resized by ``factor`` (pixel centres stay consistent)."""
         if not factor > 0:
             raise ValueError(f"factor: expected a positive number, got {factor!r}")
-        K = self._K64.copy()
-        K[0, 0] *= factor
-        K[1, 1] *= factor
-        # pixel centre convention: centre of pixel u is at u, so edges are at -0.5 and W - 0.5.
-        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
         w = max(1, int(round(self.width * factor)))
         h = max(1, int(round(self.height * factor)))
-        return Camera(K, self._c2w64, w, h)
+        return Camera(self._resized_K(factor, factor), self._c2w64, w, h)
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same camera for its image resized to ``width`` x ``height`` (each axis by its own
+        factor; pixel centres stay consistent).
+
+        Example:
+            >>> cam = Camera([[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], np.eye(4), 640, 480)
+            >>> cam.resized(256, 192).K64()[:2].tolist()
+            [[200.0, 0.0, 127.5], [0.0, 200.0, 95.5]]
+        """
+        if min(width, height) < 1:
+            raise ValueError(f"width, height: expected positive sizes, got {width}x{height}")
+        return Camera(self._resized_K(width / self.width, height / self.height), self._c2w64, width, height)
+
+    def _resized_K(self, sx: float, sy: float) -> np.ndarray:  # [3, 3]
+        K = self._K64.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        # pixel centre convention: centre of pixel u is at u, so edges are at -0.5 and W - 0.5
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return K
 
     def with_pose(self, c2w) -> "Camera":
         return Camera(self._K64, c2w, self.width, self.height)

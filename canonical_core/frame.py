@@ -124,6 +124,31 @@ def _class_map(t: Tensor, num_classes) -> Tensor:  # [H', W'] integer ids -> int
     return t.to(torch.int64).clamp_min(-1).to(torch.int16).contiguous()  # clamped where -1 exists (not in uint8)
 
 
+def _map_size(value) -> tuple[int, int] | None:
+    """(rows, columns) of a 2-D array or tensor; None for anything else (its own check names it)."""
+    shape = getattr(value, "shape", None)
+    return (int(shape[0]), int(shape[1])) if shape is not None and len(shape) == 2 else None
+
+
+def _colour_at_depth_size(
+    rgb: Tensor,  # [H, W, 3] uint8
+    camera: Camera,
+    size: tuple[int, int],  # (h, w) of the depth map
+) -> tuple[Tensor, Camera]:  # [h, w, 3] uint8 and the camera of that image
+    """The image area-averaged to a registered depth map of lower resolution, the same field of view
+    (phone LiDAR, time-of-flight cameras: depth at a fraction of the colour's pixels), and its camera.
+    Evidence is made per depth pixel, so each gets the mean colour of its footprint. ValueError
+    naming ``depth`` for depth larger than the image or of another shape (another camera's depth)."""
+    (h, w), (H, W) = size, rgb.shape[:2]
+    if h > H or w > W:
+        raise ValueError(f"depth: {w}x{h} is larger than the rgb image {W}x{H}; send depth at the image's resolution "
+                         "or lower, registered to the colour camera")
+    if h == H or w == W or abs(w * H - h * W) > max(H, W):  # not the image resampled (within a pixel): another view
+        raise ValueError(f"depth: {w}x{h} does not have the shape of the rgb image {W}x{H}; depth at another "
+                         "resolution must cover the image's field of view (registered to the colour camera)")
+    return torch.from_numpy(area_resize(rgb.numpy(), (w, h))), camera.resized(w, h)
+
+
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One posed observation, validated on construction.
@@ -132,6 +157,9 @@ class Frame:
         rgb: uint8 [H, W, 3].
         camera: the frame's `Camera`; its width/height must match the image.
         depth: optional float32 [H, W] z-depth in metres; 0 or non-finite = missing (stored as 0).
+            Depth registered to the colour camera at a lower resolution [h, w] (phone LiDAR, time of
+            flight) is taken too: the frame's rgb becomes the image area-averaged to h x w and its
+            camera that image's (`Camera.resized`), so that evidence is made per depth pixel.
         depth_std: optional float32 [H, W] per-pixel depth standard deviation in metres (>= 0).
         features: optional float32 [H', W', C] client-supplied features (resized when used).
         labels: optional client-supplied labels: float32 [H', W', S] scores (e.g. class
@@ -169,6 +197,11 @@ class Frame:
         # a frame's own principal point lies in its image; outside it, K usually belongs to another
         # image size (e.g. full-resolution K with a downscaled image) and would fuse into the wrong place
         validate_image_intrinsics(self.camera.K64(), W, H, "K", margin=0.0)
+        depth_size = _map_size(self.depth)
+        if depth_size is not None and depth_size != (H, W):
+            rgb, camera = _colour_at_depth_size(rgb, self.camera, depth_size)
+            object.__setattr__(self, "camera", camera)
+            H, W = depth_size
         object.__setattr__(self, "rgb", rgb.contiguous())
         if self.depth is not None:
             object.__setattr__(self, "depth", _depth_map(self.depth, (H, W)))

@@ -42,6 +42,9 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(rgb=np.zeros((10, 16, 3), np.uint8)), "camera", "does not match"),
         (dict(camera="cam"), "camera", "Camera"),
         (dict(depth=np.ones((12, 15), np.float32)), "depth", "shape"),
+        (dict(depth=np.ones((6, 5), np.float32)), "depth", "does not have the shape of the rgb image 16x12"),
+        (dict(depth=np.ones((24, 32), np.float32)), "depth", "larger than the rgb image"),
+        (dict(depth=np.ones((6, 8), np.float32), depth_std=np.ones((12, 16), np.float32)), "depth_std", "shape"),
         (dict(depth=np.ones((12, 16), np.uint16)), "depth", "float"),
         (dict(depth=-np.ones((12, 16), np.float32)), "depth", "negative"),
         (dict(depth=np.ones((12, 16), np.float32), depth_std=np.full((12, 16), np.nan, np.float32)), "depth_std", "NaN"),
@@ -77,6 +80,24 @@ def test_a_class_map_is_kept_as_small_ids_with_its_k():
     assert Frame(rgb=RGB, camera=CAM, labels=np.ones((4, 5), bool), num_classes=2).labels.sum() == 20
     assert Frame(rgb=RGB, camera=CAM, labels=np.array([[0, 2]], np.uint8), num_classes=3).labels.tolist() == [[0, 2]]
     assert Frame(rgb=RGB, camera=CAM).label_dim is None
+
+
+def test_depth_at_a_lower_resolution_takes_the_colour_to_its_pixels():
+    # phone LiDAR and time-of-flight cameras register depth to the colour camera at a fraction of its
+    # pixels: the frame is made at the depth's resolution, each pixel its footprint's mean colour
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    f = Frame(rgb=rgb, camera=CAM, depth=np.ones((6, 8), np.float32), depth_std=np.full((6, 8), 0.01, np.float32))
+    assert f.rgb.shape == (6, 8, 3) and f.depth.shape == f.depth_std.shape == (6, 8)
+    assert np.array_equal(f.rgb.numpy(), area_resize(rgb, (8, 6)))
+    assert (f.camera.width, f.camera.height) == (8, 6) and np.allclose(f.camera.K64(), CAM.scaled(0.5).K64())
+    # a pixel's ray is the same ray: the centre of depth pixel (u, v) sees what the image's 2x2 block around it saw
+    assert np.allclose(f.camera.K64()[:2, 2], [(8 + 0.5) / 2 - 0.5, (6 + 0.5) / 2 - 0.5])
+    # another shape within a pixel of the image's (rounded sizes): taken; the same frame built again is unchanged
+    odd = Frame(rgb=rgb, camera=CAM, depth=np.ones((5, 7), np.float32))
+    assert odd.rgb.shape == (5, 7, 3) and np.allclose(odd.camera.fx, 50 * 7 / 16)
+    again = Frame(rgb=f.rgb, camera=f.camera, depth=f.depth)
+    assert torch.equal(again.rgb, f.rgb) and np.array_equal(again.camera.K64(), f.camera.K64())
 
 
 def test_a_frame_id_of_256_bytes_is_taken():

@@ -271,6 +271,29 @@ def test_a_class_map_folds_as_its_one_hot_scores(shelf_frames):
     assert by_map.frames == 2
 
 
+@pytest.mark.realdata
+def test_depth_at_a_quarter_of_the_pixels_fuses_where_full_depth_does(shelf_frames):
+    """Depth at half the image's width and height (as a phone's LiDAR gives it, registered to the
+    colour camera) with the full-size colour image: the scene lies where the sensor's full depth puts
+    it, and its colours are the image's."""
+    from canonical_core import render
+
+    def half_depth(frame):  # every other depth pixel: the depth a sensor of half the resolution reads
+        return Frame(rgb=frame.rgb, camera=frame.camera, depth=frame.depth[::2, ::2].contiguous())
+
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for f in shelf_frames[:24:4]:
+        scene.fold(half_depth(f))
+    truth = shelf_frames[8]  # an input view at its full size
+    out = render(scene.decode(), truth.camera, outputs=("rgb", "depth", "alpha"), depth_mode="median")
+    both = (out.alpha > 0.5) & (truth.depth > 0)
+    assert both.sum() > 0.95 * (truth.depth > 0).sum()  # the surfaces the sensor saw are drawn
+    # measured with full-resolution depth: 0.5 % relative depth error, 0.061 mean colour error; the
+    # same here (depth on the wrong rays would be off by centimetres)
+    assert ((out.depth[both] - truth.depth[both]).abs() / truth.depth[both]).median() < 0.01
+    assert (out.rgb[both] - truth.rgb[both].float() / 255).abs().mean() < 0.07
+
+
 def test_sparse_index_has_a_fixed_origin_and_is_unbounded():
     scene = Scene(SceneConfig(voxel_size=1.0))
     far_pose = np.eye(4)

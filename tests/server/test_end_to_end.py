@@ -208,6 +208,35 @@ def test_labels_segmentation(client, frames):
     session.delete()
 
 
+@pytest.mark.realdata
+def test_depth_at_half_the_colours_resolution_folds_as_the_colour_brought_to_it(client, frames):
+    """A phone's LiDAR sends depth at a fraction of the colour's pixels: the service takes the full
+    colour image and folds the frame its area average at the depth's size gives (the same scene)."""
+    from canonical_core.camera import Camera
+    from canonical_core.frame import area_resize
+
+    digests = []
+    for fitted_by_client in (False, True):
+        session = client.create_session(voxel_size=VOXEL)
+        for kwargs in frames[:2]:
+            depth = kwargs["depth"][::2, ::2]
+            rgb, K = kwargs["rgb"], kwargs["K"]
+            if fitted_by_client:
+                h, w = depth.shape
+                K = Camera(K, kwargs["c2w"], rgb.shape[1], rgb.shape[0]).resized(w, h).K64()
+                rgb = area_resize(rgb, (w, h))
+            report = session.add_frame(rgb, K, kwargs["c2w"], depth=depth)
+            assert report["new_voxels"] > 0
+        digests.append(session.digest()["sha256"])
+        session.delete()
+    assert digests[0] == digests[1]
+    with pytest.raises(CanonicalError) as err:  # another camera's depth: refused, naming depth
+        session = client.create_session(voxel_size=VOXEL)
+        session.add_frame(frames[0]["rgb"], frames[0]["K"], frames[0]["c2w"], depth=frames[0]["depth"][:, ::3])
+    assert err.value.status == 422 and err.value.field == "depth" and "shape of the rgb image" in str(err.value)
+    session.delete()
+
+
 def test_health_and_metrics(client, server):
     assert httpx.get(f"{server.url}/healthz").json()["status"] == "ok"  # no token needed
     assert httpx.get(f"{server.url}/metrics").status_code == 401
