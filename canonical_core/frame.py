@@ -167,7 +167,7 @@ class Frame:
             none), kept as int16 and fused as one-hot scores over ``num_classes`` channels (the
             same scene as its one-hot scores give, without an [H', W', S] array per frame).
         frame_id: optional free-form identifier.
-        num_classes: K of a class map (required with one); with scores, their S if given.
+        num_classes: K of a class map (required with one; None for scores, whose last axis is S).
     """
 
     rgb: Tensor  # [H, W, 3] uint8
@@ -225,6 +225,7 @@ class Frame:
             if self.num_classes is not None and self.num_classes != labels.shape[-1]:
                 raise ValueError(f"num_classes: {self.num_classes}, but the label scores have {labels.shape[-1]} channels")
             object.__setattr__(self, "labels", labels)
+            object.__setattr__(self, "num_classes", None)  # a class map's K only: scores carry theirs
         if self.frame_id is not None:
             if not isinstance(self.frame_id, str):
                 raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")

@@ -76,7 +76,8 @@ def test_a_class_map_is_kept_as_small_ids_with_its_k():
     f = Frame(rgb=RGB, camera=CAM, labels=ids, num_classes=3)
     assert f.labels.dtype == torch.int16 and f.labels.tolist() == [[0, 2, -1, -1], [1, 1, 0, 2]]  # any negative: none
     assert f.num_classes == f.label_dim == 3
-    assert Frame(rgb=RGB, camera=CAM, labels=torch.ones(4, 5, 2)).label_dim == 2
+    scores = Frame(rgb=RGB, camera=CAM, labels=torch.ones(4, 5, 2), num_classes=2)
+    assert scores.label_dim == 2 and scores.num_classes is None  # scores carry their K: num_classes is a map's
     assert Frame(rgb=RGB, camera=CAM, labels=np.ones((4, 5), bool), num_classes=2).labels.sum() == 20
     assert Frame(rgb=RGB, camera=CAM, labels=np.array([[0, 2]], np.uint8), num_classes=3).labels.tolist() == [[0, 2]]
     assert Frame(rgb=RGB, camera=CAM).label_dim is None
