@@ -196,7 +196,8 @@ class SceneDecoding:
             chosen = chosen._replace(rows=chosen.rows[top], support=chosen.support[top], free=chosen.free[top])
         rows = chosen.rows
         # label channels change a row's decode too; stamps of another epoch may repeat this one's
-        key = (inputs.sums["label_sum"].shape[1], inputs.stamp_epoch, *self.key())
+        labels = inputs.sums.get("label_mean", inputs.sums.get("label_sum"))  # stored as means ([V, 0] without labels)
+        key = (labels.shape[1], inputs.stamp_epoch, *self.key())
         if self._rows is None or self._rows.key != key:
             self._rows = DecodedRows(key)
         todo, stamps = rows, None

@@ -39,9 +39,10 @@ FORMAT_NAME = "canonicalgs-scene"
 # as the map does (`stored`: the feature sum as a float16 mean; v3 and v4 files hold float32
 # sums, stored on loading as a fold stores them); 6 stores the colour and position moments and the SH
 # sums in float16 too, as means and central moments, the representative's position in local voxel
-# units and its feature as its 8-bit direction (v5 files hold float32 sums and world positions)
-FORMAT_VERSION = 6
-READABLE_VERSIONS = (3, 4, 5, FORMAT_VERSION)
+# units and its feature as its 8-bit direction (v5 files hold float32 sums and world positions); 7
+# stores the label scores' sums in float16 too, as means (v6 files hold them as float32 sums)
+FORMAT_VERSION = 7
+READABLE_VERSIONS = (3, 4, 5, 6, FORMAT_VERSION)
 
 
 def state_arrays(scene: Scene, sums: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:

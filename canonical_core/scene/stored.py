@@ -4,7 +4,7 @@ The fold works on the full float32 record (`kernels.VoxelRows`: the representati
 weighted sums). Stored that way it is the bulk of a scene's memory, so the map keeps it in two
 arrays instead:
 
-- ``rows`` [V, width] float32: the representative's reliability, R_scene and the label sums;
+- ``rows`` [V, width] float32: the representative's reliability, R_scene and the label weight;
 - ``half`` [V, half_width] uint16 columns: every other field, as a quantity that stays within its
   inputs' range however long the stream:
   - the representative's feature as its direction, 8 bits a channel (two channels a column, the
@@ -13,8 +13,9 @@ arrays instead:
   - in float16 (held as its bits, `half`), where float16 keeps about 3.3 significant digits:
     the representative's position in local voxel units (``rep_local``: its offset from the voxel's
     centre, within 1/2, which float16 holds to 1/8000 of a voxel);
-    a first moment as its *mean* over R_scene (``f_mean``, ``rgb_mean``, ``pos_mean``; a sum grows
-    without bound, and float16 ends at 65504);
+    a first moment as its *mean* over R_scene (``f_mean``, ``rgb_mean``, ``pos_mean``, and the
+    label scores' ``label_mean``, whose channels take a float a voxel each; a sum grows without
+    bound, and float16 ends at 65504);
     a second moment as its *central* moment over R_scene, about the stored means (``pos_cov``, and
     the SH fit's normal equations ``sh_a_central``, ``sh_b_central``). A raw second moment is a
     difference away from what its readers need: the covariance E[x x^T] - E[x] E[x]^T, and the SH
@@ -66,7 +67,7 @@ if TYPE_CHECKING:
 AS_IS, MEAN, CENTRAL = 0, 1, 2
 # the working record's fields kept in float16: name -> stored name
 HALF_FIELDS = {"rep_pos": "rep_local", "f_sum": "f_mean", "rgb_sum": "rgb_mean", "pos_sum": "pos_mean",
-               "pos_sq": "pos_cov", "sh_a": "sh_a_central", "sh_b": "sh_b_central"}
+               "pos_sq": "pos_cov", "sh_a": "sh_a_central", "sh_b": "sh_b_central", "label_sum": "label_mean"}
 SUMS = {stored: name for name, stored in HALF_FIELDS.items()}  # stored name -> its sum's name
 DIRECTION_STEPS = 127  # the stored direction's largest channel: its channels are then int8
 _SQ_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # pos_sq's columns xx xy xz yy yz zz
@@ -88,7 +89,7 @@ def column_rules(name: str, width: int, bases: int) -> list[tuple[int, Factor | 
     it is about)."""
     if name == "rep_pos":  # in local voxel units, within the voxel: float16 as it is
         return [(AS_IS, None, None)] * width
-    if name in ("f_sum", "rgb_sum", "pos_sum"):
+    if name in ("f_sum", "rgb_sum", "pos_sum", "label_sum"):
         return [(MEAN, None, None)] * width
     if name == "pos_sq":
         return [(CENTRAL, Factor("pos_sum", a, 1.0, 0.0), Factor("pos_sum", b, 1.0, 0.0)) for a, b in _SQ_PAIRS]

@@ -283,10 +283,11 @@ class VoxelMap:
         old = self.stored
         self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
         self.stored = StoredRows(self.layout)
-        narrow = self._backing["rows"]
-        wide = self._reserve(self.capacity, narrow.shape[0], ("rows",))["rows"]
-        wide[: self.n, : old.width] = narrow[: self.n]  # the label columns come last (float32), zero so far
-        self._backing["rows"] = wide
+        for name, width in (("rows", old.width), ("half", old.half_width)):
+            narrow = self._backing[name]
+            wide = self._reserve(self.capacity, narrow.shape[0], (name,))[name]
+            wide[: self.n, :width] = narrow[: self.n]  # the label columns come last in both, zero so far
+            self._backing[name] = wide
         self._provide(self.capacity)
 
     def commit(self, touched: np.ndarray, n_new: int) -> None:

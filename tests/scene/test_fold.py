@@ -245,10 +245,11 @@ def test_labels_fuse_with_the_same_weights():
     scene.fold(make_frame(np.full((1, 2), 0.5), labels=scores, depth_std=[[0.1, 0.5]], fx=10.0))
     labels = scene.fields()["labels"][0].numpy()
     w = np.exp([-0.1, -0.5])
-    assert np.allclose(labels, [w[0] / w.sum(), w[1] / w.sum(), 0], atol=1e-6)
+    # the map keeps the label sums as float16 means over R_scene (`stored`): three significant digits
+    assert np.allclose(labels, [w[0] / w.sum(), w[1] / w.sum(), 0], rtol=0, atol=5e-4)
     # a frame without labels does not dilute them; one with another label count is refused
     scene.fold(make_frame(np.full((1, 2), 0.5), fx=10.0))
-    assert np.allclose(scene.fields()["labels"][0].numpy(), labels, atol=1e-6)
+    assert np.allclose(scene.fields()["labels"][0].numpy(), labels, rtol=0, atol=5e-4)
     with pytest.raises(ValueError, match="labels: expected 3 label channels"):
         scene.fold(make_frame(np.full((1, 2), 0.5), labels=np.zeros((1, 2, 4)), fx=10.0))
 

@@ -119,6 +119,17 @@ def test_a_labelled_scene_saves_loads_and_folds_on_bit_identically(shelf_frames,
     loaded.fold(frames[2])
     assert loaded.digest() == scene.digest()
 
+    # a snapshot of the format before the label sums were stored as float16 means (version 6: float32
+    # sums) loads into the scene the map would have stored from those sums
+    npz = dict(np.load(io.BytesIO(scene.to_bytes())))
+    mean = npz.pop("state.label_mean")
+    npz["state.label_sum"] = mean.astype(np.float32) * npz["state.r_sum"][:, None]
+    npz["header"] = np.frombuffer(json.dumps(json.loads(npz["header"].tobytes()) | {"version": 6}).encode(), np.uint8)
+    assert mean.dtype == np.float16 and mean.shape[1] == 3
+    buf = io.BytesIO()
+    np.savez(buf, **npz)
+    assert Scene.from_bytes(buf.getvalue()).digest() == scene.digest()
+
 
 def test_digest_tracks_the_whole_state(folded, shelf_frames):
     loaded = Scene.from_bytes(folded.to_bytes())
