@@ -139,15 +139,24 @@ def test_error_malformed_pose(capture, text, message):
 def test_error_unreadable_and_mismatched_images(capture):
     (capture / "frame-000000.color.png").write_bytes(b"not a png")
     (capture / "frame-000001.depth.png").unlink()
-    Image.fromarray(np.zeros((24, 32), np.uint16)).save(capture / "frame-000001.depth.png")
+    Image.fromarray(np.zeros((24, 30), np.uint16)).save(capture / "frame-000001.depth.png")
     Image.fromarray(np.zeros((48, 64), np.uint8)).save(capture / "frame-000002.depth.png")
     seq = load_tsdf_fusion(capture)  # listing reads no image
     with pytest.raises(ValueError, match=r"frame-000000\.color\.png: unreadable image"):
         seq[0]
-    with pytest.raises(ValueError, match=r"frame-000001\.depth\.png: depth size 32x24 does not match.*64x48"):
+    with pytest.raises(ValueError, match=r"frame-000001\.depth\.png: depth size 30x24 does not match.*64x48.*: .*field of view"):
         seq[1]
     with pytest.raises(ValueError, match=r"frame-000002\.depth\.png: expected a 16-bit"):
         seq[2]
+
+
+def test_depth_at_a_lower_resolution_loads_at_its_pixels(capture):
+    # a phone's or a time-of-flight camera's depth, registered to the colour camera at half its size
+    depth = np.asarray(Image.open(capture / "frame-000001.depth.png"))
+    Image.fromarray(np.ascontiguousarray(depth[::2, ::2])).save(capture / "frame-000001.depth.png")
+    full, half = load_tsdf_fusion(capture)[0], load_tsdf_fusion(capture)[1]
+    assert half.rgb.shape[:2] == half.depth.shape == (full.height // 2, full.width // 2)
+    assert half.camera.fx == pytest.approx(full.camera.fx / 2)
 
 
 def test_frames_in_subfolder_and_ambiguity(tmp_path, tiny_tsdf):
