@@ -110,8 +110,10 @@ def _channel_map(value, field: str, max_channels: int) -> Tensor:
 
 def _class_map(t: Tensor, num_classes) -> Tensor:  # [H', W'] integer ids -> int16, -1 = none
     """A class map checked against ``num_classes``: ids 0..K-1, any negative id meaning no class."""
-    if t.is_floating_point() or t.is_complex() or min(t.shape) < 1:
-        raise ValueError(f"labels: a class map [H', W'] holds integer class ids, got {t.dtype} {list(t.shape)}")
+    if t.is_floating_point() or t.is_complex():
+        raise ValueError(f"labels: a class map [H', W'] holds integer class ids, got dtype {t.dtype}")
+    if min(t.shape) < 1:
+        raise ValueError(f"labels: a class map must have at least one pixel, got shape {list(t.shape)}")
     if isinstance(num_classes, bool) or not isinstance(num_classes, (int, np.integer)):
         raise ValueError(f"num_classes: required with a class map (labels as integer [H', W']): the number of "
                          f"classes K, got {num_classes!r}")

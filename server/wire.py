@@ -266,7 +266,7 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
     labels = msg.get("labels")
     if isinstance(labels, (bytes, bytearray)) or (is_array(labels) and len(array_shape(labels) or ()) == 2):
         extras["labels"], extras["num_classes"] = _class_map(msg, width * height, limits)
-    elif msg.get("num_classes") is not None:
+    elif msg.get("num_classes") is not None and (labels is None or is_array(labels)):  # else labels' own error first
         raise WireError("num_classes", "goes with a class map (labels as integer [H', W'] or a PNG); label scores "
                                        "carry K as their last axis")
     for name in ("depth_std", "features", "labels"):

@@ -59,6 +59,8 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(labels=np.zeros((4, 5), np.uint8), num_classes=True), "num_classes", "required"),
         (dict(labels=np.zeros((4, 5, 2), np.float32), num_classes=3), "num_classes", "2 channels"),
         (dict(num_classes=3), "num_classes", "without labels"),
+        (dict(labels=np.zeros((0, 5), np.int16), num_classes=3), "labels", "at least one pixel"),
+        (dict(labels=np.zeros((4, 5), np.float32), num_classes=3), "labels", "integer class ids, got dtype torch.float32"),
         (dict(frame_id=5), "frame_id", "string"),
         (dict(frame_id="x" * 257), "frame_id", "at most 256 bytes"),
         (dict(frame_id="é" * 129), "frame_id", "got 258"),  # bytes of UTF-8, not characters

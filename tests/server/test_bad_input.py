@@ -156,6 +156,7 @@ CASES = [
      422, "labels"),
     ("num_classes not a count", lambda c: c.post_frame(c.msg(labels=encode_array(np.zeros((4, 4), np.uint8)), num_classes="3")),
      422, "num_classes"),
+    ("labels not an array, with num_classes", lambda c: c.post_frame(c.msg(labels="abc", num_classes=3)), 422, "labels"),
     ("num_classes with scores", lambda c: c.post_frame(c.msg(labels=encode_array(np.zeros((4, 4, 2), np.float32)), num_classes=2)),
      422, "num_classes"),
     ("oversize body", lambda c: c.post_frame(body=b"\x00" * (5 * 1024 * 1024)), 413, "body"),
