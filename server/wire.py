@@ -191,17 +191,21 @@ def _check_channels(name: str, shape: list[int] | None, image_pixels: int, limit
     if shape is None or len(shape) != 3:
         return  # decode_array names the problem
     check_pixels(shape[1], shape[0], name, limits.max_pixels)
-    channels = shape[2]
     if name == "labels":
-        _check_label_channels(channels, name, limits)
-    if limits.max_channel_values is not None and image_pixels * channels > limits.max_channel_values:
-        raise WireError(name, f"{channels} channels x {image_pixels} image pixels = {image_pixels * channels} values exceed "
-                              f"the limit of {limits.max_channel_values}", 413, "too_large")
+        _check_label_channels(shape[2], name, limits)
+    _check_channel_values(name, shape[2], image_pixels, limits)
 
 
 def _check_label_channels(channels: int, field: str, limits: FrameLimits) -> None:
     if limits.max_label_channels is not None and channels > limits.max_label_channels:
         raise WireError(field, f"{channels} label channels exceed the limit of {limits.max_label_channels}", 413, "too_large")
+
+
+def _check_channel_values(name: str, channels: int, image_pixels: int, limits: FrameLimits) -> None:
+    """A map is sampled at every image pixel: pixels x channels values a frame, bounded."""
+    if limits.max_channel_values is not None and image_pixels * channels > limits.max_channel_values:
+        raise WireError(name, f"{channels} channels x {image_pixels} image pixels = {image_pixels * channels} values exceed "
+                              f"the limit of {limits.max_channel_values}", 413, "too_large")
 
 
 def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.ndarray, int]:
@@ -215,11 +219,12 @@ def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.nd
     if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 1:
         raise WireError("num_classes", f"expected a positive integer, got {num_classes!r}")
     _check_label_channels(num_classes, "num_classes", limits)
+    _check_channel_values("labels", num_classes, image_pixels, limits)
     labels = msg["labels"]
-    if isinstance(labels, (bytes, bytearray)):
-        _check_channels("labels", [1, 1, num_classes], image_pixels, limits)  # sampled at the frame's pixels
+    if isinstance(labels, (bytes, bytearray)):  # its size is checked from its header
         return decode_class_png(bytes(labels), "labels", limits.max_pixels), num_classes
-    _check_channels("labels", [*array_shape(labels), num_classes], image_pixels, limits)
+    shape = array_shape(labels)
+    check_pixels(shape[1], shape[0], "labels", limits.max_pixels)
     return decode_array(labels, "labels", INTEGERS, ndim=2), num_classes
 
 

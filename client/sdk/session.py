@@ -150,11 +150,11 @@ class Session:
                                  "pass num_classes=")
             channels = num_classes
         else:
-            channels = np.shape(labels)[-1] if np.ndim(labels) == 3 else None
+            channels, num_classes = (np.shape(labels)[-1] if np.ndim(labels) == 3 else None), None
         if known and channels is not None and channels != known:
             raise ValueError(f"labels: {channels} label channels, but this session's labels have K = {known} "
                              "(fixed by its first labelled frame)")
-        return num_classes if is_class_map(labels) else None
+        return num_classes
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
