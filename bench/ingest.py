@@ -2,7 +2,7 @@
 CLI's own defaults; frames/s end to end and the disk a session keeps per frame.
 
     python bench/ingest.py [--data ../shared/data/realsense_shelf] [--voxel-size 0.004] [--runs 2]
-                           [--in-flight 1 3] [--base PATH] [--viewer]
+                           [--in-flight 1 3] [--base PATH] [--viewer] [--phone FRAMES]
 
 Each run starts a fresh service (a subprocess, its own temporary data directory), streams the capture
 with the CLI (a subprocess: its summary line gives frames/s), samples the session's folder every
@@ -14,7 +14,11 @@ archive's compression of raw arrays) would cost and gain. Disk per frame counts 
 (``scene.snap`` and one being written); the peak while it runs is given without and with the
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
-warmed), interleaved with this one, so that both see the same load. ``--viewer`` also runs the first
+warmed), interleaved with this one, so that both see the same load. ``--phone`` also streams that
+many phone-style frames (the shelf's colour enlarged to 1920x1440, its depth at 256x192, as an
+iPhone's ARKit gives them) with the SDK into a fresh service, the whole image as PNG (what the SDK
+sent before it fitted the colour to the depth) and the SDK's default in turn (``--in-flight`` with no
+value skips the `canonical stream` runs). ``--viewer`` also runs the first
 ``--in-flight`` value with the web viewer open on the session while it streams: headless Debian
 chromium (Playwright, as `bench/viewer.py`) opens the session's page as soon as the CLI prints its id,
 and the page renders each new state as a user's would; a second table says what the viewer costs:
@@ -40,6 +44,7 @@ import time
 from pathlib import Path
 from statistics import median
 
+import numpy as np
 import zstandard
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -50,7 +55,7 @@ from canonical_core.datasets import load_tsdf_fusion  # noqa: E402
 from client.cli.capture import capture_frames, frame_arrays  # noqa: E402
 from client.cli.launch import free_port, wait_until_healthy  # noqa: E402
 from client.cli.sessions import viewer_url  # noqa: E402
-from client.sdk import frame_body  # noqa: E402
+from client.sdk import encode_png, frame_body, scaled_intrinsics  # noqa: E402
 from server.archive import ZSTD_LEVEL  # noqa: E402
 from server.scheduler import RENDER_NICE  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402
@@ -190,13 +195,72 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
                 "peak_all": sampler.peak_all / n}
 
 
+PHONE_COLOUR, PHONE_DEPTH = (1920, 1440), (256, 192)  # an iPhone's ARKit frame: colour and LiDAR depth
+
+
+def phone_frame(arrays: dict) -> dict:
+    """A capture's frame (`frame_arrays`, depth in sensor units) as a phone gives one: the colour
+    enlarged to `PHONE_COLOUR` (K to match), the depth (nearest) at `PHONE_DEPTH`, registered to it."""
+    from PIL import Image
+
+    h, w = arrays["rgb"].shape[:2]
+    return {**arrays, "rgb": np.asarray(Image.fromarray(arrays["rgb"]).resize(PHONE_COLOUR, Image.BILINEAR)),
+            "K": scaled_intrinsics(arrays["K"], PHONE_COLOUR[0] / w, PHONE_COLOUR[1] / h),
+            "depth": np.asarray(Image.fromarray(arrays["depth"]).resize(PHONE_DEPTH, Image.NEAREST))}
+
+
+def whole_image(frame: dict) -> dict:
+    """A phone-style frame as the SDK sent it before it fitted the colour to the depth: the whole image
+    as PNG (bytes travel untouched: the service fits it)."""
+    return {**frame, "rgb": encode_png(frame["rgb"])}
+
+
+def phone_stream(frames: int, rounds: int) -> list[dict]:
+    """Frames/s of phone-style frames (the shelf's, `phone_frame`) streamed with the SDK's `add_frames`
+    (3 in flight) into a fresh service, each form of the body in turn, ``rounds`` times."""
+    from client.sdk import Client
+
+    capture = load_tsdf_fusion(DEFAULT_DATA, max_frames=frames)
+    phone = [phone_frame(frame_arrays(capture[i], sensor_units=True)) for i in range(len(capture))]
+    forms = {"the whole image as PNG (the SDK before)": whole_image, "fitted to the depth by the SDK (its default)": dict}
+    rates: dict[str, list[float]] = {name: [] for name in forms}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+    env["NUMBA_CACHE_DIR"] = str(REPO / ".numba_cache")
+    with tempfile.TemporaryDirectory() as tmp:
+        port = free_port()
+        url = f"http://127.0.0.1:{port}"
+        service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
+                                    str(Path(tmp) / "data"), "--log-level", "warning"], cwd=REPO, env=env)
+        try:
+            wait_until_healthy(url, service, timeout=600.0)
+            with Client(url) as client:
+                for _ in range(rounds):
+                    for name, form in forms.items():
+                        session = client.create_session(voxel_size=0.004)
+                        t0 = time.perf_counter()
+                        for _report in session.add_frames(form(f) for f in phone):
+                            pass
+                        rates[name].append(len(phone) / (time.perf_counter() - t0))
+                        session.delete()
+        finally:
+            service.send_signal(signal.SIGTERM)
+            service.wait(timeout=120)
+    return [{"body": name, "frames/s (each round)": " / ".join(f"{r:.1f}" for r in runs),
+             "frames/s (median)": f"{median(runs):.1f}"} for name, runs in rates.items()]
+
+
 def body_costs(data: Path, frames: int = 10) -> list[dict]:
     """Per form of a frame's body: ms to build it on the client, ms to decode it on the service, MB."""
     capture = load_tsdf_fusion(data, max_frames=frames)
     arrays = [frame_arrays(capture[i], sensor_units=True) for i in range(len(capture))]
+    phone = [phone_frame(a) for a in arrays]
     forms = {"raw arrays (16-bit depth), the SDK before": lambda k: frame_body(**arrays[k], codec="raw"),
              "compact from arrays: PNG colour, zstandard depth (the SDK's default)": lambda k: frame_body(**arrays[k]),
-             "the capture's own files (canonical stream's default)": lambda k: frame_body(**files[k])}
+             "the capture's own files (canonical stream's default)": lambda k: frame_body(**files[k]),
+             f"phone-style {PHONE_COLOUR[0]}x{PHONE_COLOUR[1]} colour, {PHONE_DEPTH[0]}x{PHONE_DEPTH[1]} depth: "
+             "the whole image as PNG (the SDK before)": lambda k: frame_body(**whole_image(phone[k])),
+             "phone-style: the colour brought to the depth's pixels by the SDK (its default)":
+                 lambda k: frame_body(**phone[k])}
     files = list(capture_frames(capture))
     rows = []
     for name, build in forms.items():
@@ -228,6 +292,8 @@ def main(argv=None) -> None:
     p.add_argument("--threads", type=int, default=None, help="the service's --threads (CPU threads a job; default: all)")
     p.add_argument("--viewer", action="store_true",
                    help="also stream with the web viewer open on the session (the first --in-flight value)")
+    p.add_argument("--phone", type=int, default=0, metavar="FRAMES",
+                   help="also stream this many phone-style frames with the SDK, each body form in turn (--runs rounds)")
     args = p.parse_args(argv)
     configs = [(f"this tree, --in-flight {k}", REPO, k, False) for k in args.in_flight]
     if args.viewer:
@@ -239,6 +305,12 @@ def main(argv=None) -> None:
           f"--threads {args.threads or 'default'}\n")
     print_table("A frame's body: built by the client, decoded by the service (in process, 10 frames, means)",
                 body_costs(args.data))
+    if args.phone:
+        print_table(f"Phone-style frames ({args.phone} of the shelf's at {PHONE_COLOUR[0]}x{PHONE_COLOUR[1]} with "
+                    f"{PHONE_DEPTH[0]}x{PHONE_DEPTH[1]} depth) streamed by the SDK, 3 in flight, into one service",
+                    phone_stream(args.phone, args.runs))
+    if not configs:
+        return
     results: dict[str, list[dict]] = {name: [] for name, *_ in configs}
     for _ in range(args.runs):
         for name, repo, in_flight, viewer in configs:

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from .calibration import (OPENGL_TO_OPENCV, as_float64, quaternion_to_matrix, validate_image_intrinsics,
                           validate_intrinsics, validate_pose)
+from .resample import resized_intrinsics
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,13 +137,7 @@ class Camera:
         return Camera(self._resized_K(width / self.width, height / self.height), self._c2w64, width, height)
 
     def _resized_K(self, sx: float, sy: float) -> np.ndarray:  # [3, 3]
-        K = self._K64.copy()
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        # pixel centre convention: centre of pixel u is at u, so edges are at -0.5 and W - 0.5
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return K
+        return resized_intrinsics(self._K64, sx, sy)  # the rule the SDK applies to a frame it resizes
 
     def with_pose(self, c2w) -> "Camera":
         return Camera(self._K64, c2w, self.width, self.height)

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from .calibration import validate_image_intrinsics
 from .camera import Camera
+from .resample import area_resize, depth_size_problem
 
 MAX_IMAGE_PIXELS = 4096 * 4096
 # Frames without depth get it from a plane sweep and wait, whole, in the source window and the
@@ -142,12 +143,9 @@ def _colour_at_depth_size(
     Evidence is made per depth pixel, so each gets the mean colour of its footprint. ValueError
     naming ``depth`` for depth larger than the image or of another shape (another camera's depth)."""
     (h, w), (H, W) = size, rgb.shape[:2]
-    if h > H or w > W:
-        raise ValueError(f"depth: {w}x{h} is larger than the rgb image {W}x{H}; send depth at the image's resolution "
-                         "or lower, registered to the colour camera")
-    if h == H or w == W or abs(w * H - h * W) > max(H, W):  # not the image resampled (within a pixel): another view
-        raise ValueError(f"depth: {w}x{h} does not have the shape of the rgb image {W}x{H}; depth at another "
-                         "resolution must cover the image's field of view (registered to the colour camera)")
+    problem = depth_size_problem((W, H), (w, h))
+    if problem is not None:
+        raise ValueError(problem)
     return torch.from_numpy(area_resize(rgb.numpy(), (w, h))), camera.resized(w, h)
 
 
@@ -292,27 +290,6 @@ def depth_warnings(
         return [f"depth: no pixel lies within the range {near:g} .. {far:g} m (median {median:g}); "
                 f"is the depth in metres (depth_scale)?"]
     return []
-
-
-def area_resize(
-    rgb: np.ndarray,  # [H, W, 3] uint8
-    size: tuple[int, int],  # (width, height) of the result
-) -> np.ndarray:  # [height, width, 3] uint8
-    """Colour area-averaged to ``size``. Where ``size`` divides the image's sides by whole factors
-    (half size: the colour solve's kept views), each output pixel is the mean of its block
-    (`Image.reduce`), rounded exactly for power-of-two blocks; Pillow's box filter, used otherwise,
-    weighs in fixed point, and at half size it is off by one in about a third of the values and
-    takes four times as long.
-
-    Example:
-        >>> area_resize(np.array([[[0, 0, 0], [1, 2, 255]], [[2, 2, 0], [2, 3, 255]]], np.uint8), (1, 1))
-        array([[[  1,   2, 128]]], dtype=uint8)
-    """
-    height, width = rgb.shape[:2]
-    image = Image.fromarray(rgb)
-    if width % size[0] == 0 and height % size[1] == 0:
-        return np.array(image.reduce((width // size[0], height // size[1])))
-    return np.array(image.resize(size, Image.BOX))
 
 
 def resize_frame(frame: Frame, scale: float) -> Frame:

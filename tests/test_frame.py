@@ -4,7 +4,8 @@ import torch
 
 from canonical_core import Camera, Frame
 from canonical_core.datasets import synthetic_rgbd
-from canonical_core.frame import area_resize, resize_frame
+from canonical_core.frame import resize_frame
+from canonical_core.resample import area_resize
 
 CAM = Camera([[50.0, 0, 8], [0, 50.0, 6], [0, 0, 1]], np.eye(4), 16, 12)
 RGB = np.zeros((12, 16, 3), np.uint8)
@@ -123,27 +124,6 @@ def test_resize_keeps_the_camera_consistent():
     assert resize_frame(frame, 1.0) is frame
     with pytest.raises(ValueError, match="scale"):
         resize_frame(frame, 1.5)
-
-
-@pytest.mark.parametrize("factor, tolerance", [((2, 2), 0), ((4, 4), 0), ((2, 3), 1)])
-def test_area_resize_by_whole_factors_is_the_rounded_block_mean(factor, tolerance):
-    rng = np.random.default_rng(1)
-    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    fx, fy = factor
-    blocks = rgb.astype(np.int64).reshape(48 // fy, fy, 64 // fx, fx, 3).sum(axis=(1, 3))
-    expected = (blocks + fx * fy // 2) // (fx * fy)  # the exact mean, rounded half up
-    error = np.abs(area_resize(rgb, (64 // fx, 48 // fy)).astype(np.int64) - expected)
-    assert error.max() <= tolerance  # exact for power-of-two blocks, else fixed point: within one level
-
-
-def test_area_resize_by_other_factors_stays_an_area_average():
-    rng = np.random.default_rng(2)
-    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    out = area_resize(rgb, (40, 30))  # 1.6x: Pillow's box filter
-    assert out.shape == (30, 40, 3) and out.dtype == np.uint8
-    assert abs(float(out.mean()) - float(rgb.mean())) < 1.0  # the mean colour is kept
-    flat = np.full((48, 64, 3), 77, np.uint8)
-    assert np.array_equal(area_resize(flat, (40, 30)), np.full((30, 40, 3), 77, np.uint8))
 
 
 def test_read_only_arrays_are_accepted_without_a_warning(tmp_path):

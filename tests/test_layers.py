@@ -21,8 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 ROOT = REPO / "canonical_core"
 
 # the layer order, lowest first: each layer may import the ones before it
-LAYERS = ["settings", "calibration", "camera", "frame", "gaussians", "rendering", "evidence", "decode", "scene", "eval",
-          "train"]
+LAYERS = ["settings", "resample", "calibration", "camera", "frame", "gaussians", "rendering", "evidence", "decode",
+          "scene", "eval", "train"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
 ALLOWED["datasets"] = {"calibration", "camera", "frame"}  # loaders need cameras and frames, nothing of the method
 ALLOWED["eval"] |= {"datasets"}

@@ -1,6 +1,7 @@
 """A frame's msgpack body as the SDK sends it, and what is done to a frame before it goes: depth in
-16-bit sensor units where that is lossless, colour as PNG, a frame without depth downscaled to the
-service's limit, a class map as its ids. Also PNG bytes back to numpy."""
+16-bit sensor units where that is lossless, colour as PNG, colour brought to the pixels of depth
+registered at a lower resolution, a frame without depth downscaled to the service's limit, a class
+map as its ids. Also PNG bytes back to numpy."""
 
 from __future__ import annotations
 
@@ -75,7 +76,9 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     """The msgpack body of one frame as `Session.add_frame` sends it (its arguments, the same checks).
 
     ``codec`` "compact" (the default) sends what is lossless and small: an ``rgb`` array as a PNG
-    (fast level), integer depth, and float depth that 16-bit sensor units hold exactly
+    (fast level), brought to the depth's pixels where depth is registered at a lower resolution
+    (`fit_colour_to_depth`: the frame the service would make of the whole image), integer depth,
+    and float depth that 16-bit sensor units hold exactly
     (`exact_sensor_depth`), as zstandard-compressed uint16 with its ``depth_scale``, other float depth
     as zstandard-compressed float32, and label scores zstandard-compressed. "raw" sends the arrays as
     they are. PNG/JPEG ``rgb`` bytes and 16-bit PNG ``depth`` bytes (with ``depth_scale``) travel
@@ -87,6 +90,8 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     if codec not in FRAME_CODECS:
         raise ValueError(f"codec: expected one of {list(FRAME_CODECS)}, got {codec!r}")
     array_codec = "zstd" if codec == "compact" else "raw"
+    if codec == "compact" and depth is not None:
+        rgb, K = fit_colour_to_depth(rgb, K, depth)
     if isinstance(rgb, (bytes, bytearray)):
         rgb = bytes(rgb)
     elif codec == "compact" and np.asarray(rgb).dtype == np.uint8 and np.ndim(rgb) == 3:
@@ -154,49 +159,78 @@ class DownscaledFrame(UserWarning):
 def scaled_intrinsics(K, sx: float, sy: float) -> np.ndarray:  # [3, 3] float64
     """``K`` of the image resized by ``sx`` across and ``sy`` down. Pixel centres sit on integers (the
     convention of `canonical_core.camera`: pixel u spans u - 0.5 .. u + 0.5), so the image's edges
-    stay its edges: c' + 0.5 = (c + 0.5) s, as `Camera.scaled` does with one factor.
+    stay its edges: c' + 0.5 = (c + 0.5) s, the rule of `Camera.resized` (`resized_intrinsics`).
 
     Example:
         >>> scaled_intrinsics([[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], 0.5, 0.5)[:2].tolist()
         [[250.0, 0.0, 159.5], [0.0, 250.0, 119.5]]
     """
-    K = np.array(wire_matrix(K, (3, 3)))
-    K[0] *= sx
-    K[1] *= sy
-    K[0, 2] += 0.5 * sx - 0.5
-    K[1, 2] += 0.5 * sy - 0.5
-    return K
+    from canonical_core.resample import resized_intrinsics  # numpy only (loaded when a frame is resized)
+
+    return resized_intrinsics(np.array(wire_matrix(K, (3, 3))), sx, sy)
 
 
-def _rgb_size(rgb) -> tuple[int, int]:  # (width, height) of an array, or of PNG/JPEG bytes from their header
+def _image_size(image) -> tuple[int, int] | None:
+    """(width, height) of an array or of image bytes (from their header); None for anything else."""
+    if isinstance(image, (bytes, bytearray)):
+        from PIL import Image, UnidentifiedImageError
+
+        try:
+            with Image.open(io.BytesIO(bytes(image))) as opened:
+                return opened.size
+        except (UnidentifiedImageError, OSError):  # not an image: the service names the problem
+            return None
+    shape = np.shape(image)
+    return (shape[1], shape[0]) if len(shape) in (2, 3) else None
+
+
+def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
+    """``(rgb, K)`` of a frame whose depth is registered at a lower resolution than its colour array
+    (a phone's LiDAR: 256x192 depth for a 1920x1440 image): the colour area-averaged to the depth's
+    pixels and K resized to match, the frame the service makes of the whole image
+    (`canonical_core.resample`, the same code: the same scene, bit for bit), sent in a fraction of
+    its bytes. As they are otherwise: colour as image bytes (sent as the client has them), depth at
+    the image's size, or depth of another shape (which the service refuses, naming it).
+
+    Example:
+        >>> rgb, K = fit_colour_to_depth(np.zeros((1440, 1920, 3), np.uint8), np.diag([1500.0, 1500.0, 1.0]),
+        ...                              np.zeros((192, 256), np.float32))
+        >>> rgb.shape, float(K[0, 0])
+        ((192, 256, 3), 200.0)
+    """
     if isinstance(rgb, (bytes, bytearray)):
-        from PIL import Image
+        return rgb, K
+    colour = np.asarray(rgb)
+    image, size = _image_size(colour), _image_size(depth)
+    if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3 or size is None or size == image:
+        return rgb, K
+    # the service's own rule, loaded only here: numpy and Pillow, no torch (`import client.sdk` loads none of it)
+    from canonical_core.resample import area_resize, depth_size_problem
 
-        with Image.open(io.BytesIO(bytes(rgb))) as image:
-            return image.size
-    shape = np.shape(rgb)
-    return (shape[1], shape[0]) if len(shape) == 3 else (0, 0)  # not an image: the service names the problem
+    if depth_size_problem(image, size) is not None:
+        return rgb, K
+    return area_resize(colour, size), scaled_intrinsics(K, size[0] / image[0], size[1] / image[1])
 
 
 def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
     """``(rgb, K)`` of a frame without depth, fitted to ``max_pixels``: as they are when within it,
     else the image area-averaged down to the largest size within it (aspect kept) and K scaled to
     match (`scaled_intrinsics`), with a `DownscaledFrame` warning."""
-    width, height = _rgb_size(rgb)
-    if width * height <= max_pixels:
-        return rgb, K
+    width, height = _image_size(rgb) or (0, 0)
+    if width * height <= max_pixels or not (isinstance(rgb, (bytes, bytearray)) or np.ndim(rgb) == 3):
+        return rgb, K  # within the limit, or not an image (the service names the problem)
     from PIL import Image
+
+    from canonical_core.resample import area_resize  # numpy and Pillow, no torch
 
     factor = math.sqrt(max_pixels / (width * height))
     size = (max(1, int(width * factor)), max(1, int(height * factor)))  # rounded down: within the limit
     if isinstance(rgb, (bytes, bytearray)):
-        image = Image.open(io.BytesIO(bytes(rgb))).convert("RGB")
-    else:
-        image = Image.fromarray(np.ascontiguousarray(rgb, np.uint8))
+        rgb = np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
     warnings.warn(f"rgb: a frame without depth of {width}x{height} pixels is over the service's limit of {max_pixels} "
                   f"pixels for such frames; sent downscaled to {size[0]}x{size[1]}, with K scaled to match (or send "
                   f"depth)", DownscaledFrame, stacklevel=4)  # the caller of `Session.add_frame`
-    return np.asarray(image.resize(size, Image.BOX)), scaled_intrinsics(K, size[0] / width, size[1] / height)
+    return area_resize(np.asarray(rgb, np.uint8), size), scaled_intrinsics(K, size[0] / width, size[1] / height)
 
 
 def is_class_map(labels) -> bool:

@@ -66,8 +66,9 @@ class Session:
         """Fold one frame. ``rgb`` uint8 [H,W,3] array or PNG/JPEG bytes; ``K`` 3x3; ``c2w`` 4x4 OpenCV
         camera-to-world; ``depth`` float [H,W] metres, or a sensor's integer [H,W] depth (0 = missing)
         or its 16-bit PNG bytes, with ``depth_scale`` its units per metre (1000 for millimetres), at
-        the image's resolution or registered to it at a lower one (a phone's LiDAR: the service folds
-        the frame at the depth's pixels, the colour area-averaged to them);
+        the image's resolution or registered to it at a lower one (a phone's LiDAR: the frame is folded
+        at the depth's pixels, the colour area-averaged to them, which the SDK does before it sends an
+        array: a fraction of the bytes);
         ``depth_std`` float [H,W]; ``features`` float [H',W',C]. Returns the fold report
         (frame_index, new_voxels, ...). ``codec``: how arrays travel (`frame_body`; by default
         "compact": compressed, lossless).

@@ -241,6 +241,37 @@ def test_scaled_intrinsics_keep_pixel_centres_on_integers():
 
 
 @pytest.mark.realdata
+def test_colour_over_lower_resolution_depth_travels_at_the_depths_size(frames):
+    """A phone's 1920x1440 colour with its 256x192 LiDAR depth: the SDK sends the colour area-averaged
+    to the depth's pixels, with K resized to match, exactly what the service makes of the whole image
+    (the rule of `canonical_core.resample`), in a small fraction of the bytes. Raw arrays, colour as
+    image bytes and depth of another shape travel as they are."""
+    from canonical_core import Camera
+    from canonical_core.resample import area_resize
+    from client.sdk import encode_png
+
+    kwargs = frames[0]
+    h, w = kwargs["rgb"].shape[:2]
+    big = np.asarray(Image.fromarray(kwargs["rgb"]).resize((1920, 1440), Image.BILINEAR))
+    K = scaled_intrinsics(kwargs["K"], 1920 / w, 1440 / h)
+    depth = np.asarray(Image.fromarray(kwargs["depth"]).resize((256, 192), Image.NEAREST))
+    sent = unpack(frame_body(big, K, kwargs["c2w"], depth=depth))
+    rgb = np.asarray(Image.open(io.BytesIO(sent["rgb"])))
+    assert np.array_equal(rgb, area_resize(big, (256, 192)))
+    assert np.array_equal(np.array(sent["K"]), Camera(K, kwargs["c2w"], 1920, 1440).resized(256, 192).K64())
+    whole = frame_body(encode_png(big), K, kwargs["c2w"], depth=depth)  # what the SDK sent before: the whole image
+    assert len(frame_body(big, K, kwargs["c2w"], depth=depth)) < len(whole) / 20
+    assert np.shape(decode_array(unpack(frame_body(big, K, kwargs["c2w"], depth=depth, codec="raw"))["rgb"])) == big.shape
+    for other in (depth[:, :200], np.zeros((1440, 1920), np.float32)):  # another camera's depth; the image's size
+        assert np.asarray(Image.open(io.BytesIO(unpack(frame_body(big, K, kwargs["c2w"], depth=other))["rgb"]))).shape == big.shape
+    png = Image.fromarray((depth * 1000).astype(np.uint16))  # depth as a sensor's 16-bit PNG bytes: its header's size
+    buf = io.BytesIO()
+    png.save(buf, format="PNG")
+    sent = unpack(frame_body(big, K, kwargs["c2w"], depth=buf.getvalue(), depth_scale=1000))
+    assert np.asarray(Image.open(io.BytesIO(sent["rgb"]))).shape == (192, 256, 3)
+
+
+@pytest.mark.realdata
 def test_frames_without_depth_over_the_limit_are_downscaled_to_it(server, frames):
     """A phone's 1920x1080 frame without depth is over the service's 1.3 MP limit for such frames: the
     SDK sends it downscaled to the limit the service publishes, with K scaled to match, and says so

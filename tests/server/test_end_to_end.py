@@ -210,26 +210,33 @@ def test_labels_segmentation(client, frames):
 
 @pytest.mark.realdata
 def test_depth_at_half_the_colours_resolution_folds_as_the_colour_brought_to_it(client, frames):
-    """A phone's LiDAR sends depth at a fraction of the colour's pixels: the service takes the full
-    colour image and folds the frame its area average at the depth's size gives (the same scene)."""
+    """A phone's LiDAR sends depth at a fraction of the colour's pixels. The service takes the whole
+    colour image (raw arrays, or PNG bytes) and folds the frame its area average at the depth's size
+    gives; the SDK's default sends that average itself (a fraction of the bytes): the same scene."""
     from canonical_core.camera import Camera
-    from canonical_core.frame import area_resize
+    from canonical_core.resample import area_resize
+    from client.sdk import encode_png
 
-    digests = []
-    for fitted_by_client in (False, True):
+    def fitted_by_the_test(rgb, K, depth, c2w):
+        h, w = depth.shape
+        return dict(rgb=area_resize(rgb, (w, h)), K=Camera(K, c2w, rgb.shape[1], rgb.shape[0]).resized(w, h).K64())
+
+    paths = {
+        "whole image, raw arrays: the service fits it": lambda rgb, K, depth, c2w: dict(rgb=rgb, K=K, codec="raw"),
+        "whole image as PNG bytes: the service fits it": lambda rgb, K, depth, c2w: dict(rgb=encode_png(rgb), K=K),
+        "the SDK's default: the SDK fits it": lambda rgb, K, depth, c2w: dict(rgb=rgb, K=K),
+        "fitted by the caller": fitted_by_the_test,
+    }
+    digests = {}
+    for name, path in paths.items():
         session = client.create_session(voxel_size=VOXEL)
         for kwargs in frames[:2]:
             depth = kwargs["depth"][::2, ::2]
-            rgb, K = kwargs["rgb"], kwargs["K"]
-            if fitted_by_client:
-                h, w = depth.shape
-                K = Camera(K, kwargs["c2w"], rgb.shape[1], rgb.shape[0]).resized(w, h).K64()
-                rgb = area_resize(rgb, (w, h))
-            report = session.add_frame(rgb, K, kwargs["c2w"], depth=depth)
+            report = session.add_frame(depth=depth, c2w=kwargs["c2w"], **path(kwargs["rgb"], kwargs["K"], depth, kwargs["c2w"]))
             assert report["new_voxels"] > 0
-        digests.append(session.digest()["sha256"])
+        digests[name] = session.digest()["sha256"]
         session.delete()
-    assert digests[0] == digests[1]
+    assert len(set(digests.values())) == 1, digests
     with pytest.raises(CanonicalError) as err:  # another camera's depth: refused, naming depth
         session = client.create_session(voxel_size=VOXEL)
         session.add_frame(frames[0]["rgb"], frames[0]["K"], frames[0]["c2w"], depth=frames[0]["depth"][:, ::3])
