@@ -4,16 +4,20 @@ refused frame stops the stream with what was acknowledged."""
 
 from __future__ import annotations
 
+import io
+import shutil
 import threading
 import time
 
 import httpx
+import numpy as np
 import pytest
+from PIL import Image
 
 from canonical_core.datasets import load_tsdf_fusion
 from client.cli import main
 from client.cli.capture import capture_frames
-from client.sdk import MSGPACK, Client, StreamRefused, frame_body
+from client.sdk import MSGPACK, Client, StreamRefused, frame_body, unpack
 from tests.conftest import folded_scene
 from tests.server.harness import VOXEL, ServerProcess, small_frames
 
@@ -145,6 +149,31 @@ def test_stream_sends_the_captures_own_files_and_folds_what_the_loader_reads(ser
     with Client(service.url) as client:
         digest = client.session(session_id).digest()
     assert digest["frames"] == 4 and digest["sha256"] == folded_scene(capture, VOXEL).digest()
+
+
+def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colour_fitted(service, shelf_dir, tmp_path,
+                                                                                          capsys):
+    """A phone's capture: depth PNGs at a fraction of the colour's pixels. The stream sends the depth's
+    file as it is and the colour brought to the depth's pixels (not the whole image's file), and the
+    service folds the frames the loader reads."""
+    capture = tmp_path / "capture"
+    shutil.copytree(shelf_dir, capture)
+    for path in sorted(capture.rglob("*.depth.png"))[:20]:
+        depth = np.asarray(Image.open(path))
+        Image.fromarray(np.ascontiguousarray(depth[::2, ::2])).save(path)
+    loaded = load_tsdf_fusion(capture, stride=10, max_frames=2)
+    sent = list(capture_frames(loaded))
+    files = loaded.source(0)
+    assert sent[0]["depth"] == files.depth.read_bytes() and sent[0]["rgb"].shape == (480, 640, 3)
+    body = unpack(frame_body(**sent[0]))
+    assert np.asarray(Image.open(io.BytesIO(body["rgb"]))).shape == (240, 320, 3)
+    assert len(body["rgb"]) < len(files.color.read_bytes()) / 2
+    assert main(["stream", str(capture), "--voxel-size", str(VOXEL), "--stride", "10", "--max-frames", "2",
+                 "--url", service.url]) == 0
+    session_id = capsys.readouterr().out.strip().splitlines()[-1]
+    with Client(service.url) as client:
+        digest = client.session(session_id).digest()
+    assert digest["frames"] == 2 and digest["sha256"] == folded_scene(loaded, VOXEL).digest()
 
 
 def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_dir, tmp_path, capsys):
