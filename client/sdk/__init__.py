@@ -18,11 +18,11 @@ from canonical_wire import decode_array, encode_array, pack, unpack  # the codec
 from .client import Client, default_url
 from .errors import CanonicalError, StreamRefused
 from .frames import (FRAME_CODECS, MSGPACK, PNG_LEVEL, DownscaledFrame, FrameCodec, check_depth_scale, encode_png,
-                     exact_sensor_depth, fit_rgb_only, frame_body, is_class_map, png_to_array,
+                     exact_sensor_depth, fit_colour_to_depth, fit_rgb_only, frame_body, is_class_map, png_to_array,
                      scaled_intrinsics, sensor_depth)
 from .session import Session
 
 __all__ = ["CanonicalError", "Client", "DownscaledFrame", "FRAME_CODECS", "FrameCodec", "MSGPACK", "PNG_LEVEL", "Session",
            "StreamRefused", "check_depth_scale", "decode_array", "default_url", "encode_array", "encode_png",
-           "exact_sensor_depth", "fit_rgb_only", "frame_body", "is_class_map", "pack", "png_to_array",
-           "scaled_intrinsics", "sensor_depth", "unpack"]
+           "exact_sensor_depth", "fit_colour_to_depth", "fit_rgb_only", "frame_body", "is_class_map", "pack",
+           "png_to_array", "scaled_intrinsics", "sensor_depth", "unpack"]
