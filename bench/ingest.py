@@ -32,6 +32,7 @@ includes its start-up) moves less with other work than the wall time does. Never
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import resource
@@ -149,22 +150,34 @@ def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> tuple[subp
     return subprocess.CompletedProcess(cmd, stream.returncode, session_id + "\n" + stdout, stderr), watched
 
 
+@contextlib.contextmanager
+def running_service(repo: Path, data_dir: Path, threads: int | None = None):
+    """`canonical serve` of ``repo`` (``--threads`` when given) on a free port, its data in ``data_dir``,
+    once healthy: (url, process, environment); stopped gracefully (SIGTERM: it snapshots) on exit."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
+    env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
+                                str(data_dir), "--log-level", "warning"] + ([] if threads is None else
+                                                                          ["--threads", str(threads)]),
+                               cwd=repo, env=env)
+    try:
+        wait_until_healthy(url, service, timeout=600.0)
+        yield url, service, env
+    finally:
+        service.send_signal(signal.SIGINT if sys.platform == "win32" else signal.SIGTERM)
+        service.wait(timeout=120)
+
+
 def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None,
             viewer: bool = False) -> dict:
     """One service (``--threads`` when given) and one `canonical stream` of ``repo`` (the CLI's
     defaults, ``--in-flight`` when given; with ``viewer``, watched in the web viewer); frames/s and
     disk per frame."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
-    env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
     with tempfile.TemporaryDirectory() as tmp:
-        port, data_dir = free_port(), Path(tmp) / "data"
-        url = f"http://127.0.0.1:{port}"
-        service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
-                                    str(data_dir), "--log-level", "warning"] + ([] if threads is None else
-                                                                              ["--threads", str(threads)]),
-                                   cwd=repo, env=env)
-        try:
-            wait_until_healthy(url, service, timeout=600.0)
+        data_dir = Path(tmp) / "data"
+        with running_service(repo, data_dir, threads) as (url, service, env):
             sampler = Sampler(data_dir / "sessions")
             sampler.start()
             cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
@@ -182,9 +195,6 @@ def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads
             if stream.returncode != 0:
                 raise SystemExit(f"canonical stream failed ({stream.returncode}):\n{stream.stderr[-2000:]}")
             frames, seconds, fps = SUMMARY.search(stream.stderr).groups()
-        finally:
-            service.send_signal(signal.SIGINT if sys.platform == "win32" else signal.SIGTERM)
-            service.wait(timeout=120)
         kept, snaps = folder_bytes(data_dir / "sessions")
         n = int(frames)
         if watched:
@@ -215,38 +225,31 @@ def whole_image(frame: dict) -> dict:
     return {**frame, "rgb": encode_png(frame["rgb"])}
 
 
-def phone_stream(frames: int, rounds: int) -> list[dict]:
-    """Frames/s of phone-style frames (the shelf's, `phone_frame`) streamed with the SDK's `add_frames`
-    (3 in flight) into a fresh service, each form of the body in turn, ``rounds`` times."""
+def phone_stream(data: Path, voxel: float, frames: int, rounds: int) -> list[dict]:
+    """Frames/s of phone-style frames (the capture's, `phone_frame`) streamed with the SDK's `add_frames`
+    (3 in flight) into a fresh service, each form of the body in turn, ``rounds`` times; the scene's
+    digest of each form (the same frames: the same scene)."""
     from client.sdk import Client
 
-    capture = load_tsdf_fusion(DEFAULT_DATA, max_frames=frames)
+    capture = load_tsdf_fusion(data, max_frames=frames)
     phone = [phone_frame(frame_arrays(capture[i], sensor_units=True)) for i in range(len(capture))]
     forms = {"the whole image as PNG (the SDK before)": whole_image, "fitted to the depth by the SDK (its default)": dict}
     rates: dict[str, list[float]] = {name: [] for name in forms}
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
-    env["NUMBA_CACHE_DIR"] = str(REPO / ".numba_cache")
-    with tempfile.TemporaryDirectory() as tmp:
-        port = free_port()
-        url = f"http://127.0.0.1:{port}"
-        service = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir",
-                                    str(Path(tmp) / "data"), "--log-level", "warning"], cwd=REPO, env=env)
-        try:
-            wait_until_healthy(url, service, timeout=600.0)
-            with Client(url) as client:
-                for _ in range(rounds):
-                    for name, form in forms.items():
-                        session = client.create_session(voxel_size=0.004)
-                        t0 = time.perf_counter()
-                        for _report in session.add_frames(form(f) for f in phone):
-                            pass
-                        rates[name].append(len(phone) / (time.perf_counter() - t0))
-                        session.delete()
-        finally:
-            service.send_signal(signal.SIGTERM)
-            service.wait(timeout=120)
+    digests: dict[str, set[str]] = {name: set() for name in forms}
+    with tempfile.TemporaryDirectory() as tmp, running_service(REPO, Path(tmp) / "data") as (url, _, _), \
+            Client(url) as client:
+        for _ in range(rounds):
+            for name, form in forms.items():
+                session = client.create_session(voxel_size=voxel)
+                t0 = time.perf_counter()
+                for _report in session.add_frames(form(f) for f in phone):
+                    pass
+                rates[name].append(len(phone) / (time.perf_counter() - t0))
+                digests[name].add(session.digest()["sha256"][:12])
+                session.delete()
     return [{"body": name, "frames/s (each round)": " / ".join(f"{r:.1f}" for r in runs),
-             "frames/s (median)": f"{median(runs):.1f}"} for name, runs in rates.items()]
+             "frames/s (median)": f"{median(runs):.1f}", "scene digest": ", ".join(sorted(digests[name]))}
+            for name, runs in rates.items()]
 
 
 def body_costs(data: Path, frames: int = 10) -> list[dict]:
@@ -308,7 +311,7 @@ def main(argv=None) -> None:
     if args.phone:
         print_table(f"Phone-style frames ({args.phone} of the shelf's at {PHONE_COLOUR[0]}x{PHONE_COLOUR[1]} with "
                     f"{PHONE_DEPTH[0]}x{PHONE_DEPTH[1]} depth) streamed by the SDK, 3 in flight, into one service",
-                    phone_stream(args.phone, args.runs))
+                    phone_stream(args.data, args.voxel_size, args.phone, args.runs))
     if not configs:
         return
     results: dict[str, list[dict]] = {name: [] for name, *_ in configs}
