@@ -137,17 +137,23 @@ def test_a_retried_frame_with_its_frame_id_is_a_replay_in_a_pipeline(service, fr
         assert other.status_code == 409 and other.json()["error"]["field"] == "frame_id"
 
 
+def streamed_digest(service, folder, frames: int, capsys) -> dict:
+    """`canonical stream FOLDER` of every 10th frame, ``frames`` of them, into ``service``, with the CLI's
+    defaults: the digest of the session it made."""
+    assert main(["stream", str(folder), "--voxel-size", str(VOXEL), "--stride", "10", "--max-frames", str(frames),
+                 "--url", service.url]) == 0
+    session_id = capsys.readouterr().out.strip().splitlines()[-1]
+    with Client(service.url) as client:
+        return client.session(session_id).digest()
+
+
 def test_stream_sends_the_captures_own_files_and_folds_what_the_loader_reads(service, shelf_dir, capsys):
     capture = load_tsdf_fusion(shelf_dir, stride=10, max_frames=4)
     sent = list(capture_frames(capture))
     files = capture.source(0)
     assert sent[0]["rgb"] == files.color.read_bytes() and sent[0]["depth"] == files.depth.read_bytes()
     assert sent[0]["depth_scale"] == 1000.0 and sent[0]["frame_id"] == "frame-000015"
-    assert main(["stream", str(shelf_dir), "--voxel-size", str(VOXEL), "--stride", "10", "--max-frames", "4",
-                 "--url", service.url]) == 0
-    session_id = capsys.readouterr().out.strip().splitlines()[-1]
-    with Client(service.url) as client:
-        digest = client.session(session_id).digest()
+    digest = streamed_digest(service, shelf_dir, 4, capsys)
     assert digest["frames"] == 4 and digest["sha256"] == folded_scene(capture, VOXEL).digest()
 
 
@@ -168,11 +174,7 @@ def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colou
     body = unpack(frame_body(**sent[0]))
     assert np.asarray(Image.open(io.BytesIO(body["rgb"]))).shape == (240, 320, 3)
     assert len(body["rgb"]) < len(files.color.read_bytes()) / 2
-    assert main(["stream", str(capture), "--voxel-size", str(VOXEL), "--stride", "10", "--max-frames", "2",
-                 "--url", service.url]) == 0
-    session_id = capsys.readouterr().out.strip().splitlines()[-1]
-    with Client(service.url) as client:
-        digest = client.session(session_id).digest()
+    digest = streamed_digest(service, capture, 2, capsys)
     assert digest["frames"] == 2 and digest["sha256"] == folded_scene(loaded, VOXEL).digest()
 
 
