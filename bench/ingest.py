@@ -221,8 +221,9 @@ def phone_frame(arrays: dict) -> dict:
 
 def whole_image(frame: dict) -> dict:
     """A phone-style frame as the SDK sent it before it fitted the colour to the depth: the whole image
-    as PNG (bytes travel untouched: the service fits it)."""
-    return {**frame, "rgb": encode_png(frame["rgb"])}
+    as PNG, for the service to fit (the raw codec sends image bytes untouched; its depth travels
+    uncompressed, 0.1 MB, where the SDK's compressed it)."""
+    return {**frame, "rgb": encode_png(frame["rgb"]), "codec": "raw"}
 
 
 def phone_stream(data: Path, voxel: float, frames: int, rounds: int) -> list[dict]:

@@ -47,14 +47,11 @@ def frame_files(source) -> dict | None:
     is decoded and encoded again (the client's CPU is often the service's), the capture's own
     compression is what travels and what the service keeps, and the service decodes the very frame
     the loader reads. None where the loader changes the images it reads (undistortion, a size to
-    check, depth that is not a PNG): send `frame_arrays` then.
-
-    Where the depth is smaller than the colour (a phone's LiDAR beside its camera's image), the colour
-    is decoded here and travels as an array, which the SDK brings to the depth's pixels before it
-    sends it (`client.sdk.fit_colour_to_depth`), as the service would: the same frame in a fraction of
+    check, depth that is not a PNG): send `frame_arrays` then. Where the depth is smaller than the
+    colour (a phone's LiDAR beside its camera's image), the SDK sends the colour brought to the
+    depth's pixels (`client.sdk.fit_colour_to_depth`), as the service would make it: a fraction of
     the whole image's bytes to send, decode and keep."""
     from canonical_core.datasets.files import IMAGE_SUFFIXES, RGBDFile
-    from canonical_core.datasets.images import image_size, read_rgb
 
     if not isinstance(source, RGBDFile) or source.distortion is not None or source.size is not None:
         return None
@@ -63,12 +60,6 @@ def frame_files(source) -> dict | None:
     out = {"rgb": source.color.read_bytes(), "K": source.K, "c2w": source.c2w, "frame_id": source.frame_id}
     if source.depth is not None:
         out["depth"], out["depth_scale"] = source.depth.read_bytes(), source.depth_scale
-        try:
-            fitted = image_size(source.depth) != image_size(source.color)
-        except ValueError:  # not an image: its bytes go, and the service names the problem
-            fitted = False
-        if fitted:
-            out["rgb"] = read_rgb(source.color)
     return out
 
 

@@ -76,13 +76,13 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     """The msgpack body of one frame as `Session.add_frame` sends it (its arguments, the same checks).
 
     ``codec`` "compact" (the default) sends what is lossless and small: an ``rgb`` array as a PNG
-    (fast level), brought to the depth's pixels where depth is registered at a lower resolution
-    (`fit_colour_to_depth`: the frame the service would make of the whole image), integer depth,
-    and float depth that 16-bit sensor units hold exactly
+    (fast level), integer depth, and float depth that 16-bit sensor units hold exactly
     (`exact_sensor_depth`), as zstandard-compressed uint16 with its ``depth_scale``, other float depth
-    as zstandard-compressed float32, and label scores zstandard-compressed. "raw" sends the arrays as
-    they are. PNG/JPEG ``rgb`` bytes and 16-bit PNG ``depth`` bytes (with ``depth_scale``) travel
-    untouched either way. The service folds the same frame from all of them.
+    as zstandard-compressed float32, and label scores zstandard-compressed; where depth is registered
+    at a lower resolution than the colour (a phone's), the colour brought to the depth's pixels as a
+    PNG (`fit_colour_to_depth`: the frame the service would make of the whole image). "raw" sends the
+    arrays as they are. PNG/JPEG ``rgb`` bytes (but for that fit) and 16-bit PNG ``depth`` bytes (with
+    ``depth_scale``) travel untouched. The service folds the same frame from all of them.
 
     ``labels`` as a class map (integer [H', W'], negative for none) travel as int16 ids with their
     ``num_classes`` (required with one), not one-hot: the service expands each pixel it folds.
@@ -185,12 +185,13 @@ def _image_size(image) -> tuple[int, int] | None:
 
 
 def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
-    """``(rgb, K)`` of a frame whose depth is registered at a lower resolution than its colour array
-    (a phone's LiDAR: 256x192 depth for a 1920x1440 image): the colour area-averaged to the depth's
+    """``(rgb, K)`` of a frame whose depth is registered at a lower resolution than its colour (a
+    phone's LiDAR: 256x192 depth for a 1920x1440 image): the colour area-averaged to the depth's
     pixels and K resized to match, the frame the service makes of the whole image
     (`canonical_core.resample`, the same code: the same scene, bit for bit), sent in a fraction of
-    its bytes. As they are otherwise: colour as image bytes (sent as the client has them), depth at
-    the image's size, or depth of another shape (which the service refuses, naming it).
+    its bytes. Colour given as PNG or JPEG bytes is decoded here first (Pillow, as the service
+    decodes it). As they are otherwise: depth at the image's size, or of another shape (which the
+    service refuses, naming it).
 
     Example:
         >>> rgb, K = fit_colour_to_depth(np.zeros((1440, 1920, 3), np.uint8), np.diag([1500.0, 1500.0, 1.0]),
@@ -198,17 +199,22 @@ def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
         >>> rgb.shape, float(K[0, 0])
         ((192, 256, 3), 200.0)
     """
-    if isinstance(rgb, (bytes, bytearray)):
-        return rgb, K
-    colour = np.asarray(rgb)
-    image, size = _image_size(colour), _image_size(depth)
-    if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3 or size is None or size == image:
+    image, size = _image_size(rgb), _image_size(depth)
+    if image is None or size is None or size == image:
         return rgb, K
     # the service's own rule, loaded only here: numpy and Pillow, no torch (`import client.sdk` loads none of it)
     from canonical_core.resample import area_resize, depth_size_problem
 
     if depth_size_problem(image, size) is not None:
         return rgb, K
+    if isinstance(rgb, (bytes, bytearray)):
+        from PIL import Image
+
+        colour = np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
+    else:
+        colour = np.asarray(rgb)
+        if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3:  # not an image: the service says so
+            return rgb, K
     return area_resize(colour, size), scaled_intrinsics(K, size[0] / image[0], size[1] / image[1])
 
 

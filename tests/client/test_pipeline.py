@@ -160,7 +160,7 @@ def test_stream_sends_the_captures_own_files_and_folds_what_the_loader_reads(ser
 def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colour_fitted(service, shelf_dir, tmp_path,
                                                                                           capsys):
     """A phone's capture: depth PNGs at a fraction of the colour's pixels. The stream sends the depth's
-    file as it is and the colour brought to the depth's pixels (not the whole image's file), and the
+    file as it is and the colour's file brought to the depth's pixels (not the whole image), and the
     service folds the frames the loader reads."""
     capture = tmp_path / "capture"
     shutil.copytree(shelf_dir, capture)
@@ -170,7 +170,7 @@ def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colou
     loaded = load_tsdf_fusion(capture, stride=10, max_frames=2)
     sent = list(capture_frames(loaded))
     files = loaded.source(0)
-    assert sent[0]["depth"] == files.depth.read_bytes() and sent[0]["rgb"].shape == (480, 640, 3)
+    assert sent[0]["depth"] == files.depth.read_bytes() and sent[0]["rgb"] == files.color.read_bytes()
     body = unpack(frame_body(**sent[0]))
     assert np.asarray(Image.open(io.BytesIO(body["rgb"]))).shape == (240, 320, 3)
     assert len(body["rgb"]) < len(files.color.read_bytes()) / 2

@@ -244,8 +244,8 @@ def test_scaled_intrinsics_keep_pixel_centres_on_integers():
 def test_colour_over_lower_resolution_depth_travels_at_the_depths_size(frames):
     """A phone's 1920x1440 colour with its 256x192 LiDAR depth: the SDK sends the colour area-averaged
     to the depth's pixels, with K resized to match, exactly what the service makes of the whole image
-    (the rule of `canonical_core.resample`), in a small fraction of the bytes. Raw arrays, colour as
-    image bytes and depth of another shape travel as they are."""
+    (the rule of `canonical_core.resample`), in a small fraction of the bytes, whether it is given as
+    an array or as image bytes. The raw codec, and depth of another shape, send the image as it is."""
     from canonical_core import Camera
     from canonical_core.resample import area_resize
     from client.sdk import encode_png
@@ -259,8 +259,9 @@ def test_colour_over_lower_resolution_depth_travels_at_the_depths_size(frames):
     rgb = np.asarray(Image.open(io.BytesIO(sent["rgb"])))
     assert np.array_equal(rgb, area_resize(big, (256, 192)))
     assert np.array_equal(np.array(sent["K"]), Camera(K, kwargs["c2w"], 1920, 1440).resized(256, 192).K64())
-    whole = frame_body(encode_png(big), K, kwargs["c2w"], depth=depth)  # what the SDK sent before: the whole image
-    assert len(frame_body(big, K, kwargs["c2w"], depth=depth)) < len(whole) / 20
+    assert len(frame_body(big, K, kwargs["c2w"], depth=depth)) < len(encode_png(big)) / 10  # the whole image's PNG
+    png = unpack(frame_body(encode_png(big), K, kwargs["c2w"], depth=depth))  # image bytes: decoded and fitted too
+    assert png["rgb"] == sent["rgb"] and png["K"] == sent["K"]
     assert np.shape(decode_array(unpack(frame_body(big, K, kwargs["c2w"], depth=depth, codec="raw"))["rgb"])) == big.shape
     for other in (depth[:, :200], np.zeros((1440, 1920), np.float32)):  # another camera's depth; the image's size
         assert np.asarray(Image.open(io.BytesIO(unpack(frame_body(big, K, kwargs["c2w"], depth=other))["rgb"]))).shape == big.shape

@@ -212,7 +212,8 @@ def test_labels_segmentation(client, frames):
 def test_depth_at_half_the_colours_resolution_folds_as_the_colour_brought_to_it(client, frames):
     """A phone's LiDAR sends depth at a fraction of the colour's pixels. The service takes the whole
     colour image (raw arrays, or PNG bytes) and folds the frame its area average at the depth's size
-    gives; the SDK's default sends that average itself (a fraction of the bytes): the same scene."""
+    gives; the SDK's default sends that average itself, from an array or from image bytes (a fraction
+    of the bytes): the same scene."""
     from canonical_core.camera import Camera
     from canonical_core.resample import area_resize
     from client.sdk import encode_png
@@ -223,8 +224,10 @@ def test_depth_at_half_the_colours_resolution_folds_as_the_colour_brought_to_it(
 
     paths = {
         "whole image, raw arrays: the service fits it": lambda rgb, K, depth, c2w: dict(rgb=rgb, K=K, codec="raw"),
-        "whole image as PNG bytes: the service fits it": lambda rgb, K, depth, c2w: dict(rgb=encode_png(rgb), K=K),
+        "whole image as PNG bytes, raw: the service fits it": lambda rgb, K, depth, c2w: dict(rgb=encode_png(rgb), K=K,
+                                                                                               codec="raw"),
         "the SDK's default: the SDK fits it": lambda rgb, K, depth, c2w: dict(rgb=rgb, K=K),
+        "PNG bytes, the SDK's default: the SDK decodes and fits it": lambda rgb, K, depth, c2w: dict(rgb=encode_png(rgb), K=K),
         "fitted by the caller": fitted_by_the_test,
     }
     digests = {}
