@@ -5,7 +5,7 @@ cameras) is folded at the depth's pixels, its colour averaged over each depth pi
 (`canonical_core.frame.Frame`). The SDK applies the same rule before it sends such a frame, so that a
 1920x1440 image for 256x192 depth travels as the 256x192 image the service would have made of it, a
 fiftieth of its pixels. Both ends use this module, so both give the same frame, bit for bit.
-numpy and Pillow only: the SDK imports it without torch.
+numpy and Pillow only: the SDK loads it, when it fits a frame, without torch.
 """
 
 from __future__ import annotations

@@ -67,8 +67,8 @@ class Session:
         camera-to-world; ``depth`` float [H,W] metres, or a sensor's integer [H,W] depth (0 = missing)
         or its 16-bit PNG bytes, with ``depth_scale`` its units per metre (1000 for millimetres), at
         the image's resolution or registered to it at a lower one (a phone's LiDAR: the frame is folded
-        at the depth's pixels, the colour area-averaged to them, which the SDK does before it sends an
-        array: a fraction of the bytes);
+        at the depth's pixels, the colour area-averaged to them, which the SDK does before it sends the
+        colour, array or image bytes: a fraction of the bytes);
         ``depth_std`` float [H,W]; ``features`` float [H',W',C]. Returns the fold report
         (frame_index, new_voxels, ...). ``codec``: how arrays travel (`frame_body`; by default
         "compact": compressed, lossless).
