@@ -26,8 +26,8 @@ import msgpack
 import numpy as np
 import zstandard
 
-__all__ = ["CODECS", "DTYPES", "FLOATS", "INTEGERS", "WireError", "array_shape", "decode_array", "encode_array", "is_array", "pack",
-           "unpack"]
+__all__ = ["CODECS", "DTYPES", "FLOATS", "INTEGERS", "NO_LABEL", "WireError", "array_shape", "decode_array", "encode_array",
+           "is_array", "pack", "unpack"]
 
 DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "int16": np.dtype("<i2"), "float16": np.dtype("<f2"),
           "float32": np.dtype("<f4")}
@@ -36,6 +36,7 @@ FLOATS = ("float16", "float32")
 Codec = Literal["raw", "zstd"]
 CODECS = ("raw", "zstd")
 _KEYS = frozenset({"dtype", "shape", "data"})
+NO_LABEL = 65535  # a rendered uint16 label map's pixels that nothing covers (the service writes them, clients read them)
 # zstandard's level 1: depth maps pack about as small as at level 3, in less time (the client's CPU
 # is often the service's too)
 ZSTD_LEVEL = 1

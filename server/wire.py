@@ -24,12 +24,12 @@ from PIL import Image, UnidentifiedImageError
 from canonical_core import Camera, Frame
 from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
-from canonical_wire import DTYPES, FLOATS, INTEGERS, WireError, array_shape, decode_array, encode_array, is_array, pack, unpack  # noqa: F401
+from canonical_wire import (DTYPES, FLOATS, INTEGERS, NO_LABEL, WireError, array_shape, decode_array,  # noqa: F401
+                            encode_array, is_array, pack, unpack)
 
 IMAGE_FORMATS = ("PNG", "JPEG")
 FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "num_classes", "frame_id",
                 "width", "height")
-NO_LABEL = 65535  # uint16 label maps: pixels that nothing covers
 
 
 # -- images -------------------------------------------------------------------------------------

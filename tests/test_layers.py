@@ -24,7 +24,7 @@ ROOT = REPO / "canonical_core"
 LAYERS = ["settings", "resample", "calibration", "camera", "frame", "gaussians", "rendering", "evidence", "decode",
           "scene", "eval", "train"]
 ALLOWED = {layer: set(LAYERS[:i]) for i, layer in enumerate(LAYERS)}
-ALLOWED["datasets"] = {"calibration", "camera", "frame"}  # loaders need cameras and frames, nothing of the method
+ALLOWED["datasets"] = {"resample", "calibration", "camera", "frame"}  # loaders need cameras and frames, nothing of the method
 ALLOWED["eval"] |= {"datasets"}
 ALLOWED["train"] |= {"datasets"}
 ALLOWED["canonical_core"] = set(ALLOWED) - {"canonical_core"}  # the package's facade re-exports every layer

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
 from ..calibration import validate_image_intrinsics, validate_intrinsics
+from ..resample import depth_size_problem
 from .distortion import undistort_image
 from .images import image_size, read_depth, read_rgb
 
@@ -202,13 +203,14 @@ class RGBDFile:
         rgb = read_rgb(self.color)
         depth = None if self.depth is None else read_depth(self.depth, self.depth_scale)
         height, width = rgb.shape[:2]
-        resampled = depth is not None and depth.shape != (height, width)  # a lower resolution's registered depth?
-        mismatch = (f"{self.depth}: depth size {depth.shape[1]}x{depth.shape[0]} does not match the colour image "
-                    f"{self.color} ({width}x{height})") if resampled else ""
-        if resampled and self.distortion is not None:
-            raise ValueError(f"{mismatch}; undistortion needs them at one size")
-        if resampled and (depth.shape[0] > height or depth.shape[1] > width):
-            raise ValueError(f"{mismatch}: depth larger than the image it belongs to")
+        if depth is not None and depth.shape != (height, width):  # a lower resolution's registered depth?
+            mismatch = (f"{self.depth}: depth size {depth.shape[1]}x{depth.shape[0]} does not match the colour image "
+                        f"{self.color} ({width}x{height})")
+            if self.distortion is not None:
+                raise ValueError(f"{mismatch}; undistortion needs them at one size")
+            problem = depth_size_problem((width, height), (depth.shape[1], depth.shape[0]))  # `Frame`'s own check
+            if problem is not None:
+                raise ValueError(f"{mismatch}: {problem.removeprefix('depth: ')}")
         self._check_size(width, height)
         if self.distortion is not None:
             rgb = undistort_image(rgb, self.K, self.distortion, mode="bilinear")
@@ -216,12 +218,8 @@ class RGBDFile:
                 # nearest: interpolating across a depth edge would invent surfaces between objects
                 depth = undistort_image(depth, self.K, self.distortion, mode="nearest")
         camera = Camera(self.K, self.c2w, width, height)
-        try:  # depth at a lower resolution, the image's field of view: the frame is made at its pixels (`Frame`)
-            return Frame(rgb=rgb, camera=camera, depth=depth, frame_id=self.frame_id)
-        except ValueError as exc:
-            if resampled and str(exc).startswith("depth: "):
-                raise ValueError(f"{mismatch}: {str(exc)[len('depth: '):]}") from None
-            raise
+        # depth at a lower resolution: the frame is made at its pixels (`Frame`)
+        return Frame(rgb=rgb, camera=camera, depth=depth, frame_id=self.frame_id)
 
     def view(self) -> tuple[np.ndarray, np.ndarray, int, int]:
         """`FrameSource.view`: the colour camera, the camera `load` gives the frame (undistortion keeps K

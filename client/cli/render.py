@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from canonical_core.datasets.files import intrinsics_arg  # the same --K as stream's (imports no torch, no numba)
+from canonical_core.datasets.images import DEPTH_INVALID_CODE
+from canonical_wire import NO_LABEL
 
 from .common import UsageError, add_connection, connect, warnings_on_stderr
 from .poses import read_pose_file
@@ -58,7 +60,6 @@ def add_render(p: argparse.ArgumentParser) -> None:
 
 
 MAPS = ("rgb", "depth", "labels", "features")
-NO_LABEL = 65535  # the service's uint16 label maps: nothing drawn
 
 
 def image_size_arg(text: str) -> tuple[int, int]:
@@ -211,9 +212,9 @@ def depth_png(depth: np.ndarray, scale: float) -> bytes:  # float32 [H, W] metre
     import imagecodecs
 
     units = np.rint(np.asarray(depth, np.float64) * scale)
-    over = units >= 65535  # 65535 reads as missing too
+    over = units >= DEPTH_INVALID_CODE  # reads as missing too
     if over.any():
-        print(f"warning: depth: {int(over.sum())} pixels lie beyond {65534 / scale:g} m, more than 16 bits of "
+        print(f"warning: depth: {int(over.sum())} pixels lie beyond {(DEPTH_INVALID_CODE - 1) / scale:g} m, more than 16 bits of "
               f"--depth-scale {scale:g} units; written as 0 (missing)", file=sys.stderr)
     return imagecodecs.png_encode(np.where(over, 0, units).astype(np.uint16))
 

@@ -184,6 +184,15 @@ def _image_size(image) -> tuple[int, int] | None:
     return (shape[1], shape[0]) if len(shape) in (2, 3) else None
 
 
+def _colour_array(rgb) -> np.ndarray:
+    """``rgb`` as an array: image bytes decoded to uint8 [H, W, 3] (Pillow, as the service decodes them)."""
+    if isinstance(rgb, (bytes, bytearray)):
+        from PIL import Image
+
+        return np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
+    return np.asarray(rgb)
+
+
 def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
     """``(rgb, K)`` of a frame whose depth is registered at a lower resolution than its colour (a
     phone's LiDAR: 256x192 depth for a 1920x1440 image): the colour area-averaged to the depth's
@@ -207,14 +216,9 @@ def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
 
     if depth_size_problem(image, size) is not None:
         return rgb, K
-    if isinstance(rgb, (bytes, bytearray)):
-        from PIL import Image
-
-        colour = np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
-    else:
-        colour = np.asarray(rgb)
-        if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3:  # not an image: the service says so
-            return rgb, K
+    colour = _colour_array(rgb)
+    if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3:  # not an image: the service says so
+        return rgb, K
     return area_resize(colour, size), scaled_intrinsics(K, size[0] / image[0], size[1] / image[1])
 
 
@@ -225,18 +229,14 @@ def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
     width, height = _image_size(rgb) or (0, 0)
     if width * height <= max_pixels or not (isinstance(rgb, (bytes, bytearray)) or np.ndim(rgb) == 3):
         return rgb, K  # within the limit, or not an image (the service names the problem)
-    from PIL import Image
-
     from canonical_core.resample import area_resize  # numpy and Pillow, no torch
 
     factor = math.sqrt(max_pixels / (width * height))
     size = (max(1, int(width * factor)), max(1, int(height * factor)))  # rounded down: within the limit
-    if isinstance(rgb, (bytes, bytearray)):
-        rgb = np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
     warnings.warn(f"rgb: a frame without depth of {width}x{height} pixels is over the service's limit of {max_pixels} "
                   f"pixels for such frames; sent downscaled to {size[0]}x{size[1]}, with K scaled to match (or send "
                   f"depth)", DownscaledFrame, stacklevel=4)  # the caller of `Session.add_frame`
-    return area_resize(np.asarray(rgb, np.uint8), size), scaled_intrinsics(K, size[0] / width, size[1] / height)
+    return area_resize(_colour_array(rgb), size), scaled_intrinsics(K, size[0] / width, size[1] / height)
 
 
 def is_class_map(labels) -> bool:
