@@ -12,7 +12,8 @@ the part of it that holds the scene's lock (which folds wait for: the rows that 
 of what the decode reads of them); and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
-ratio, and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
+ratio, and the decode's own kernel over every decoded voxel (`scene.shapes.voxel_shapes`: the moments
+to stds and rotations, the Jacobi rotations inside), and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
 kernel, against `solve_sh_reference`, assembled [V, K, K] systems and `torch.linalg.solve`).
 Prints tables and the machine; asserts nothing.
 """
@@ -35,6 +36,8 @@ from canonical_core.datasets import load_dataset  # noqa: E402
 from canonical_core.decode import symmetric_eigh3, symmetric_eigh3_reference  # noqa: E402
 from canonical_core.scene import Scene, SceneConfig  # noqa: E402
 from canonical_core.scene.fields import fields_from_sums, solve_sh, solve_sh_reference, sums_from_stored  # noqa: E402
+from canonical_core.scene.selection import decoded_rows  # noqa: E402
+from canonical_core.scene.shapes import voxel_shapes  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "realsense_shelf"
 
@@ -125,8 +128,12 @@ def main(argv=None) -> None:
         cov = fields_from_sums(inputs.sums, scene.config, sort=False)["position_cov"] / args.voxel**2
         fast = median_ms(lambda: symmetric_eigh3(cov), args.repeats)
         lapack = median_ms(lambda: symmetric_eigh3_reference(cov), args.repeats)
+        rows = decoded_rows(inputs.sums, 0.0, scene.config).rows
+        shapes = median_ms(lambda: voxel_shapes(inputs.sums, rows, args.voxel, scene.config.research.eps,
+                                                scene.decoder), args.repeats)
         eigen_rows.append({"frames": n, "matrices": len(cov), "numba Jacobi ms": f"{fast:.1f}",
-                           "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x"})
+                           "torch.linalg.eigh ms": f"{lapack:.1f}", "ratio": f"{lapack / fast:.1f}x",
+                           "the decode's shapes kernel, decoded voxels ms": f"{len(rows)}: {shapes:.1f}"})
         sums = sums_from_stored({k: torch.as_tensor(np.ascontiguousarray(v)) for k, v in inputs.sums.items()})
         system = (sums["r_sum"] + scene.config.research.eps, sums["rgb_sum"], sums["sh_a"], sums["sh_b"],
                   scene.config.decoder.sh_regularization)

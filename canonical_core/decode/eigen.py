@@ -1,7 +1,7 @@
 """Eigen-decomposition of many symmetric 3x3 matrices (the decoder's per-voxel covariances).
 
 ``symmetric_eigh3_reference`` is ``torch.linalg.eigh`` in float64. ``symmetric_eigh3`` is the fast
-path: cyclic Jacobi rotations in a numba kernel, one matrix per thread step, since a batched
+path: cyclic Jacobi rotations in a numba kernel, 16 matrices at a time in vector lanes, since a batched
 LAPACK call over every decoded voxel would dominate a decode (`bench/decode.py` times both).
 Both return eigenvalues in ascending order with
 orthonormal eigenvectors as columns; eigenvectors are defined up to sign (and, for repeated
@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 # Stop when the off-diagonal energy is below this share of the diagonal's (float64 round-off);
-# cyclic Jacobi converges quadratically, so a 3x3 takes 4-6 sweeps, and the cap is never reached.
+# cyclic Jacobi converges quadratically, so a 3x3 takes a few sweeps, and the cap is never reached.
 _RELATIVE_TOLERANCE = 1e-30
 _MAX_SWEEPS = 50
 
@@ -42,57 +42,90 @@ def symmetric_eigh3_reference(
     return torch.linalg.eigh(cov.double())
 
 
+# Matrices diagonalised side by side, one per vector lane: a Jacobi rotation is a chain of dependent
+# square roots and divisions, so one matrix at a time waits on their latency, while the same rotation
+# of 16 matrices at once is vector arithmetic (the loops over lanes vectorise).
+LANES = 16
+
+
 @numba.njit(cache=True, parallel=True)
 def _jacobi_kernel(
     a: np.ndarray,  # [N, 3, 3] float64 symmetric, diagonalised in place (its diagonal: the eigenvalues)
     v: np.ndarray,  # [N, 3, 3] float64, out: the rotations' product, eigenvectors as columns
 ) -> None:
-    for n in numba.prange(a.shape[0]):
-        jacobi3(a, v, n)
+    n = a.shape[0]
+    for group in numba.prange(-(-n // LANES)):
+        first = group * LANES
+        jacobi3(a, v, first, min(LANES, n - first))
 
 
 @numba.njit(inline="always")
-def _rotate(app, aqq, apq, arp, arq, v0p, v0q, v1p, v1q, v2p, v2q):
-    """One Jacobi rotation (p, q) of the symmetric entries (r: the third index) and of V's columns
-    p and q: the rotation's t = tan, c = cos, s = sin zero a_pq."""
-    # t is the smaller root of t^2 + 2 theta t - 1 = 0 (the smaller angle: stable convergence)
-    theta = (aqq - app) / (2.0 * apq)
-    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-    if theta < 0.0:
-        t = -t
-    c = 1.0 / np.sqrt(t * t + 1.0)
-    s = t * c
-    return (app - t * apq, aqq + t * apq, 0.0, c * arp - s * arq, s * arp + c * arq,
-            c * v0p - s * v0q, s * v0p + c * v0q, c * v1p - s * v1q, s * v1p + c * v1q, c * v2p - s * v2q, s * v2p + c * v2q)
+def _rotate(active, app, aqq, apq, arp, arq, vp0, vq0, vp1, vq1, vp2, vq2):
+    """One Jacobi rotation (p, q) of each active lane (`LANES` of them): of the symmetric entries
+    (r: the third index) and of V's columns p and q (rows 0-2). The rotation's t = tan, c = cos,
+    s = sin zero a_pq; a lane that is not active, or whose a_pq is already 0, stays as it is (t = 0)."""
+    for lane in range(LANES):
+        x = apq[lane]
+        live = active[lane] & (x != 0.0)
+        # t is the smaller root of t^2 + 2 theta t - 1 = 0 (the smaller angle: stable convergence)
+        theta = (aqq[lane] - app[lane]) / (2.0 * (x if live else 1.0))
+        t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+        t = (-t if theta < 0.0 else t) if live else 0.0
+        c = 1.0 / np.sqrt(t * t + 1.0)
+        s = t * c
+        app[lane] -= t * x
+        aqq[lane] += t * x
+        apq[lane] = 0.0 if live else x
+        rp, rq = arp[lane], arq[lane]
+        arp[lane], arq[lane] = c * rp - s * rq, s * rp + c * rq
+        p0, q0, p1, q1, p2, q2 = vp0[lane], vq0[lane], vp1[lane], vq1[lane], vp2[lane], vq2[lane]
+        vp0[lane], vq0[lane] = c * p0 - s * q0, s * p0 + c * q0
+        vp1[lane], vq1[lane] = c * p1 - s * q1, s * p1 + c * q1
+        vp2[lane], vq2[lane] = c * p2 - s * q2, s * p2 + c * q2
 
 
 @numba.njit(inline="always")
-def jacobi3(a, v, n):
-    """Diagonalise a[n] in place by cyclic Jacobi rotations, their product into v[n] (eigenvectors
-    as columns); inlined into the kernels that decompose one matrix per voxel. The six distinct
-    entries and the nine of V stay in registers; each rotation J (J_pp = J_qq = c, J_pq = s,
-    J_qp = -s) updates A <- J^T A J by the symmetric formulas (a_pq becomes exactly 0)."""
-    a00, a01, a02, a11, a12, a22 = a[n, 0, 0], a[n, 0, 1], a[n, 0, 2], a[n, 1, 1], a[n, 1, 2], a[n, 2, 2]
-    v00, v01, v02, v10, v11, v12, v20, v21, v22 = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
-    for _ in range(_MAX_SWEEPS):
-        off = a01 * a01 + a02 * a02 + a12 * a12
-        diag = a00 * a00 + a11 * a11 + a22 * a22
-        if off <= _RELATIVE_TOLERANCE * diag or off == 0.0:
-            break
-        # each rotation (p, q), with r the third index and V's columns p and q
-        if a01 != 0.0:  # (p, q) = (0, 1), r = 2
-            a00, a11, a01, a02, a12, v00, v01, v10, v11, v20, v21 = _rotate(a00, a11, a01, a02, a12, v00, v01, v10, v11, v20, v21)
-        if a02 != 0.0:  # (p, q) = (0, 2), r = 1
-            a00, a22, a02, a01, a12, v00, v02, v10, v12, v20, v22 = _rotate(a00, a22, a02, a01, a12, v00, v02, v10, v12, v20, v22)
-        if a12 != 0.0:  # (p, q) = (1, 2), r = 0
-            a11, a22, a12, a01, a02, v01, v02, v11, v12, v21, v22 = _rotate(a11, a22, a12, a01, a02, v01, v02, v11, v12, v21, v22)
-    a[n, 0, 0], a[n, 1, 1], a[n, 2, 2] = a00, a11, a22
-    a[n, 0, 1] = a[n, 1, 0] = a01
-    a[n, 0, 2] = a[n, 2, 0] = a02
-    a[n, 1, 2] = a[n, 2, 1] = a12
-    v[n, 0, 0], v[n, 0, 1], v[n, 0, 2] = v00, v01, v02
-    v[n, 1, 0], v[n, 1, 1], v[n, 1, 2] = v10, v11, v12
-    v[n, 2, 0], v[n, 2, 1], v[n, 2, 2] = v20, v21, v22
+def jacobi3(a, v, first, count):
+    """Diagonalise a[first:first + count] in place by cyclic Jacobi rotations, their products into
+    v[first:first + count] (eigenvectors as columns); inlined into the kernels that decompose one
+    matrix per voxel (inlined, the loops over lanes vectorise). `LANES` matrices go side by side,
+    their sweeps in step until each has converged; one that has stops turning, so that each gets the
+    rotations it would get alone, whatever matrices share its lanes: a voxel decodes to the same bits
+    in any decode. Each rotation J (J_pp = J_qq = c, J_pq = s, J_qp = -s) updates A <- J^T A J by the
+    symmetric formulas (a_pq becomes exactly 0)."""
+    m = np.empty((6, LANES))  # a00 a01 a02 a11 a12 a22 of each lane
+    r = np.empty((9, LANES))  # V, row-major
+    active = np.empty(LANES, np.bool_)  # the lanes not yet converged
+    for start in range(first, first + count, LANES):
+        n = min(LANES, first + count - start)
+        m[:] = 0.0  # spare lanes: the zero matrix, converged from the start
+        r[:] = 0.0
+        r[0], r[4], r[8] = 1.0, 1.0, 1.0
+        for lane in range(n):
+            i = start + lane
+            m[0, lane], m[1, lane], m[2, lane] = a[i, 0, 0], a[i, 0, 1], a[i, 0, 2]
+            m[3, lane], m[4, lane], m[5, lane] = a[i, 1, 1], a[i, 1, 2], a[i, 2, 2]
+        for _ in range(_MAX_SWEEPS):
+            converged = True
+            for lane in range(LANES):
+                off = m[1, lane] * m[1, lane] + m[2, lane] * m[2, lane] + m[4, lane] * m[4, lane]
+                diag = m[0, lane] * m[0, lane] + m[3, lane] * m[3, lane] + m[5, lane] * m[5, lane]
+                active[lane] = not (off <= _RELATIVE_TOLERANCE * diag or off == 0.0)
+                converged &= not active[lane]
+            if converged:
+                break
+            _rotate(active, m[0], m[3], m[1], m[2], m[4], r[0], r[1], r[3], r[4], r[6], r[7])  # (p, q) = (0, 1), r = 2
+            _rotate(active, m[0], m[5], m[2], m[1], m[4], r[0], r[2], r[3], r[5], r[6], r[8])  # (0, 2), r = 1
+            _rotate(active, m[3], m[5], m[4], m[1], m[2], r[1], r[2], r[4], r[5], r[7], r[8])  # (1, 2), r = 0
+        for lane in range(n):
+            i = start + lane
+            a[i, 0, 0], a[i, 1, 1], a[i, 2, 2] = m[0, lane], m[3, lane], m[5, lane]
+            a[i, 0, 1] = a[i, 1, 0] = m[1, lane]
+            a[i, 0, 2] = a[i, 2, 0] = m[2, lane]
+            a[i, 1, 2] = a[i, 2, 1] = m[4, lane]
+            for j in range(3):
+                for k in range(3):
+                    v[i, j, k] = r[3 * j + k, lane]
 
 
 def symmetric_eigh3(

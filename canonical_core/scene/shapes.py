@@ -51,7 +51,8 @@ def _voxel_shapes_kernel(
         vec = np.empty((_CHUNK, 3, 3))  # its eigenvectors
         work = np.empty((_CHUNK, 3, 3))  # voxel centre, representative, centroid (local units)
         rotations = np.empty((_CHUNK, 3, 3), np.float32)
-        for i in range(first, min(rows.shape[0], first + _CHUNK)):
+        last = min(rows.shape[0], first + _CHUNK)
+        for i in range(first, last):  # the chunk's covariances
             li = i - first
             row = rows[i]
             key = keys[row]
@@ -76,7 +77,9 @@ def _voxel_shapes_kernel(
                     sym = float(np.float32(0.5) * (np.float32(a[li, j, k]) + np.float32(a[li, k, j])))
                     a[li, j, k] = sym
                     a[li, k, j] = sym
-            jacobi3(a, vec, li)
+        jacobi3(a, vec, 0, last - first)  # diagonalised together (in vector lanes)
+        for i in range(first, last):  # their axes, stds and quaternions
+            li = i - first
             # ascending eigenvalues, stable (as torch.sort(stable=True))
             d0, d1, d2 = a[li, 0, 0], a[li, 1, 1], a[li, 2, 2]
             o0, o1, o2 = 0, 1, 2

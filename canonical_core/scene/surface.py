@@ -144,7 +144,7 @@ def _tangent_planes_kernel(members, starts, origins, cells, block, weight, mean,
             for i in range(3):
                 for j in range(3):
                     s[i, j] = s[i, j] / w - mm[i] * mm[j]
-            jacobi3(a, vec, 0)
+            jacobi3(a, vec, 0, 1)
             d = (s[0, 0], s[1, 1], s[2, 2])
             low = 0 if d[0] <= d[1] and d[0] <= d[2] else (1 if d[1] <= d[2] else 2)
             middle = max(min(d[(low + 1) % 3], d[(low + 2) % 3]), 0.0)

@@ -45,6 +45,19 @@ def test_fast_path_matches_the_reference_decomposition():
     assert ((v[apart] * v_ref[apart]).sum(1).abs() - 1).abs().max() < 1e-8
 
 
+def test_a_matrix_decomposes_to_the_same_bits_whatever_shares_its_lanes():
+    # matrices go through the kernel side by side; a voxel's Gaussian must not depend on which other
+    # voxels a decode takes with it (a decode after a fold, from scratch, a level of detail)
+    cov = random_covariances(400, seed=2)
+    w, v = symmetric_eigh3(cov)
+    order = torch.randperm(400, generator=torch.Generator().manual_seed(3))
+    w_shuffled, v_shuffled = symmetric_eigh3(cov[order])
+    assert torch.equal(w_shuffled, w[order]) and torch.equal(v_shuffled, v[order])
+    for i in (0, 57, 399):
+        w_alone, v_alone = symmetric_eigh3(cov[i:i + 1])
+        assert torch.equal(w_alone[0], w[i]) and torch.equal(v_alone[0], v[i])
+
+
 def test_symmetric_part_is_used_and_empty_input_is_fine():
     cov = random_covariances(64, seed=1)
     skew = torch.randn(64, 3, 3, dtype=torch.float64)
