@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .half import from_half
+
 # the parts of a decoded row that are kept, in `GaussianDecoder.shapes_and_colours`' names; the
 # features (F_scene, 64 bytes a voxel at 16 channels) are recomputed from the sums instead
 PARTS = ("means", "scales", "quats", "sh", "labels")
@@ -39,22 +41,32 @@ def _gather_kernel(source, rows, out):  # out[i] = source[rows[i]], [V, C] -> [N
             out[i, j] = source[rows[i], j]
 
 
+@numba.njit(parallel=True, cache=True)
+def _gather_widened_kernel(source, rows, out):  # out[i] = source[rows[i]] as float32: float16 bits [V, C] -> [N, C]
+    for i in numba.prange(rows.shape[0]):
+        for j in range(source.shape[1]):
+            out[i, j] = from_half(source[rows[i], j])
+
+
 def gather_rows(
     source: np.ndarray,  # [V] or [V, ...], e.g. a column of the scene's sums (often strided: a view of its rows)
     rows: np.ndarray,  # [N] int64
+    widen: bool = False,  # float16 comes out as float32 (exactly: every float16 is a float32)
 ) -> torch.Tensor:  # [N] or [N, ...], contiguous
     """``source[rows]`` on the numba threads: over a strided view this is several times faster than
     torch's index_select or numpy's fancy indexing, which copy element by element, and over a
     contiguous one it still splits the copy between the threads. Float16 is copied as its bits
-    (numba has no float16)."""
+    (numba has no float16), or with ``widen`` converted to float32 in the same pass, which saves
+    reading and writing the copy again to convert it."""
     dtype = source.dtype
+    widened = widen and dtype == np.float16
     if dtype == np.float16:
         source = source.view(np.uint16)
     width = int(np.prod(source.shape[1:]))  # not -1: an empty scene's columns have no size to infer it from
-    out = np.empty((len(rows), width), source.dtype)
+    out = np.empty((len(rows), width), np.float32 if widened else source.dtype)
     if len(rows) and width:
-        _gather_kernel(source.reshape(len(source), width), rows, out)
-    return torch.from_numpy(out.view(dtype).reshape(len(rows), *source.shape[1:]))
+        (_gather_widened_kernel if widened else _gather_kernel)(source.reshape(len(source), width), rows, out)
+    return torch.from_numpy((out if widened else out.view(dtype)).reshape(len(rows), *source.shape[1:]))
 
 
 @numba.njit(cache=True)
@@ -140,7 +152,7 @@ class DecodedRows:
 
     def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...] float32
         slots = self.slot_of[rows].astype(np.int64)
-        return {name: None if part is None else gather_rows(part.numpy(), slots).float()
+        return {name: None if part is None else gather_rows(part.numpy(), slots, widen=True).float()
                 for name, part in self._parts.items()}
 
     def nbytes(self) -> int:

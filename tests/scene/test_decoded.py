@@ -405,6 +405,23 @@ def test_gather_rows_equals_fancy_indexing_on_the_scenes_columns():
     assert gather_rows(sums["f_mean"], np.empty(0, np.int64)).shape == (0, sums["f_mean"].shape[1])
 
 
+def test_gather_rows_widens_float16_to_the_same_float32_as_numpy():
+    # every float16 bit pattern but NaN's payloads: normals, subnormals, both zeros, both infinities
+    bits = np.arange(0, 1 << 16, dtype=np.uint32).astype(np.uint16)
+    halves = bits.view(np.float16)
+    halves = halves[~np.isnan(halves)].reshape(-1, 5)[:, ::-1]  # [V, 5] (63490 of them), a strided view
+    rows = np.r_[np.random.default_rng(0).permutation(len(halves)), 7]  # every row, one twice
+    widened = gather_rows(halves, rows, widen=True)
+    assert widened.dtype == torch.float32 and widened.shape == (len(halves) + 1, 5)
+    np.testing.assert_array_equal(widened.numpy().view(np.uint32), halves[rows].astype(np.float32).view(np.uint32))
+    assert gather_rows(halves, rows).dtype == torch.float16  # without widen: as stored
+    nan = np.full((2, 3), np.nan, np.float16)
+    assert torch.isnan(gather_rows(nan, np.array([1, 0]), widen=True)).all()
+    assert gather_rows(halves, np.empty(0, np.int64), widen=True).shape == (0, 5)
+    floats = np.arange(12, dtype=np.float32).reshape(4, 3)  # other dtypes: copied as they are
+    assert torch.equal(gather_rows(floats, np.array([2]), widen=True), torch.from_numpy(floats[[2]]))
+
+
 def test_an_empty_scene_decodes_to_no_gaussians():
     scene = Scene(SceneConfig(colour_solve=UNSOLVED, voxel_size=0.05))
     assert len(scene.decode()) == 0 and len(scene.decode_from(scene.decode_inputs())) == 0
