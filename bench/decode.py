@@ -12,9 +12,10 @@ the part of it that holds the scene's lock (which folds wait for: the rows that 
 of what the decode reads of them); and, on the decoded
 covariances, the decoder's eigen-decomposition on both paths: the numba Jacobi kernel
 (`decode.symmetric_eigh3`) against its reference, LAPACK's batched `torch.linalg.eigh`, with their
-ratio, and the decode's own kernel over every decoded voxel (`scene.shapes.voxel_shapes`: the moments
-to stds and rotations, the Jacobi rotations inside), and the same for the per-voxel SH colour fit (`scene.fields.solve_sh`, a numba Cholesky
-kernel, against `solve_sh_reference`, assembled [V, K, K] systems and `torch.linalg.solve`).
+ratio, and the decode's own kernel over every decoded voxel (`scene.shapes.voxel_shapes`: the
+moments to stds and rotations, the Jacobi rotations inside); and the same for the per-voxel SH
+colour fit (`scene.fields.solve_sh`, a numba Cholesky kernel, against `solve_sh_reference`,
+assembled [V, K, K] systems and `torch.linalg.solve`).
 Prints tables and the machine; asserts nothing.
 """
 
