@@ -63,25 +63,30 @@ def _jacobi_kernel(
 def _rotate(active, app, aqq, apq, arp, arq, vp0, vq0, vp1, vq1, vp2, vq2):
     """One Jacobi rotation (p, q) of each active lane (`LANES` of them): of the symmetric entries
     (r: the third index) and of V's columns p and q (rows 0-2). The rotation's t = tan, c = cos,
-    s = sin zero a_pq; a lane that is not active, or whose a_pq is already 0, stays as it is (t = 0)."""
+    s = sin zero a_pq; a lane that is not active, or whose a_pq is already 0, keeps every bit (its
+    entries are selected, not multiplied by a rotation of angle 0, which could turn a -0.0 into 0.0)."""
     for lane in range(LANES):
         x = apq[lane]
         live = active[lane] & (x != 0.0)
         # t is the smaller root of t^2 + 2 theta t - 1 = 0 (the smaller angle: stable convergence)
         theta = (aqq[lane] - app[lane]) / (2.0 * (x if live else 1.0))
         t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-        t = (-t if theta < 0.0 else t) if live else 0.0
+        t = -t if theta < 0.0 else t
         c = 1.0 / np.sqrt(t * t + 1.0)
         s = t * c
-        app[lane] -= t * x
-        aqq[lane] += t * x
+        app[lane] = app[lane] - t * x if live else app[lane]
+        aqq[lane] = aqq[lane] + t * x if live else aqq[lane]
         apq[lane] = 0.0 if live else x
         rp, rq = arp[lane], arq[lane]
-        arp[lane], arq[lane] = c * rp - s * rq, s * rp + c * rq
+        arp[lane] = c * rp - s * rq if live else rp
+        arq[lane] = s * rp + c * rq if live else rq
         p0, q0, p1, q1, p2, q2 = vp0[lane], vq0[lane], vp1[lane], vq1[lane], vp2[lane], vq2[lane]
-        vp0[lane], vq0[lane] = c * p0 - s * q0, s * p0 + c * q0
-        vp1[lane], vq1[lane] = c * p1 - s * q1, s * p1 + c * q1
-        vp2[lane], vq2[lane] = c * p2 - s * q2, s * p2 + c * q2
+        vp0[lane] = c * p0 - s * q0 if live else p0
+        vq0[lane] = s * p0 + c * q0 if live else q0
+        vp1[lane] = c * p1 - s * q1 if live else p1
+        vq1[lane] = s * p1 + c * q1 if live else q1
+        vp2[lane] = c * p2 - s * q2 if live else p2
+        vq2[lane] = s * p2 + c * q2 if live else q2
 
 
 @numba.njit(inline="always")
