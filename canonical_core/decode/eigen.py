@@ -48,6 +48,13 @@ def symmetric_eigh3_reference(
 LANES = 16
 
 
+@numba.njit(inline="always")
+def lane_scratch():
+    """The working arrays of `jacobi3`, which a kernel makes once for many calls (a block or chunk
+    of matrices), not once a matrix."""
+    return np.empty((6, LANES)), np.empty((9, LANES)), np.empty(LANES, np.bool_)
+
+
 @numba.njit(cache=True, parallel=True)
 def _jacobi_kernel(
     a: np.ndarray,  # [N, 3, 3] float64 symmetric, diagonalised in place (its diagonal: the eigenvalues)
@@ -56,7 +63,7 @@ def _jacobi_kernel(
     n = a.shape[0]
     for group in numba.prange(-(-n // LANES)):
         first = group * LANES
-        jacobi3(a, v, first, min(LANES, n - first))
+        jacobi3(a, v, first, min(LANES, n - first), lane_scratch())
 
 
 @numba.njit(inline="always")
@@ -90,17 +97,16 @@ def _rotate(active, app, aqq, apq, arp, arq, vp0, vq0, vp1, vq1, vp2, vq2):
 
 
 @numba.njit(inline="always")
-def jacobi3(a, v, first, count):
+def jacobi3(a, v, first, count, scratch):
     """Diagonalise a[first:first + count] in place by cyclic Jacobi rotations, their products into
     v[first:first + count] (eigenvectors as columns); inlined into the kernels that decompose one
     matrix per voxel (inlined, the loops over lanes vectorise). `LANES` matrices go side by side,
     their sweeps in step until each has converged; one that has stops turning, so that each gets the
     rotations it would get alone, whatever matrices share its lanes: a voxel decodes to the same bits
     in any decode. Each rotation J (J_pp = J_qq = c, J_pq = s, J_qp = -s) updates A <- J^T A J by the
-    symmetric formulas (a_pq becomes exactly 0)."""
-    m = np.empty((6, LANES))  # a00 a01 a02 a11 a12 a22 of each lane
-    r = np.empty((9, LANES))  # V, row-major
-    active = np.empty(LANES, np.bool_)  # the lanes not yet converged
+    symmetric formulas (a_pq becomes exactly 0). ``scratch``: `lane_scratch()`."""
+    # a00 a01 a02 a11 a12 a22 of each lane; V, row-major; the lanes not yet converged
+    m, r, active = scratch
     for start in range(first, first + count, LANES):
         n = min(LANES, first + count - start)
         m[:] = 0.0  # spare lanes: the zero matrix, converged from the start

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ..decode.decoder import FOOTPRINT_GAIN, GaussianDecoder
-from ..decode.eigen import jacobi3
+from ..decode.eigen import jacobi3, lane_scratch
 from ..config import KEY_BITS, KEY_OFFSET
 from .half import from_half
 from .stored import CENTRAL, MEAN, factor, sum_of
@@ -51,6 +51,7 @@ def _voxel_shapes_kernel(
         vec = np.empty((_CHUNK, 3, 3))  # its eigenvectors
         work = np.empty((_CHUNK, 3, 3))  # voxel centre, representative, centroid (local units)
         rotations = np.empty((_CHUNK, 3, 3), np.float32)
+        lanes = lane_scratch()
         last = min(rows.shape[0], first + _CHUNK)
         for i in range(first, last):  # the chunk's covariances
             li = i - first
@@ -77,7 +78,7 @@ def _voxel_shapes_kernel(
                     sym = float(np.float32(0.5) * (np.float32(a[li, j, k]) + np.float32(a[li, k, j])))
                     a[li, j, k] = sym
                     a[li, k, j] = sym
-        jacobi3(a, vec, 0, last - first)  # diagonalised together (in vector lanes)
+        jacobi3(a, vec, 0, last - first, lanes)  # diagonalised together (in vector lanes)
         for i in range(first, last):  # their axes, stds and quaternions
             li = i - first
             # ascending eigenvalues, stable (as torch.sort(stable=True))

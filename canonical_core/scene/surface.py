@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from ..config import KEY_BITS, KEY_OFFSET
-from ..decode.eigen import jacobi3
+from ..decode.eigen import jacobi3, lane_scratch
 
 NORMAL_REACH = 2  # cells each side of a voxel whose moments its normal pools (5x5x5)
 FLAT = 1e-3  # voxels^2: a pooled spread below this in two axes is a line or a point, which fixes no plane
@@ -112,8 +112,12 @@ def _tangent_planes_kernel(members, starts, origins, cells, block, weight, mean,
         for t in range(starts[g], starts[g + 1]):
             u = members[t]
             grid[cells[u, 0] - o0, cells[u, 1] - o1, cells[u, 2] - o2] = u
-        a = np.empty((1, 3, 3))  # the pooled covariance, diagonalised in place
-        vec = np.empty((1, 3, 3))
+        count = starts[g + 1] - starts[g]
+        a = np.empty((count, 3, 3))  # the pooled covariances, diagonalised in place together
+        vec = np.empty((count, 3, 3))
+        looks = np.empty((count, 3))  # the pooled view directions
+        inner = np.empty(count, np.int64)  # the block's own voxels (not its margin's)
+        k = 0
         for t in range(starts[g], starts[g + 1]):
             v = members[t]
             x, y, z = cells[v, 0] - o0, cells[v, 1] - o1, cells[v, 2] - o2
@@ -121,7 +125,7 @@ def _tangent_planes_kernel(members, starts, origins, cells, block, weight, mean,
                 continue  # a margin voxel: its own block does it
             w = m0 = m1 = m2 = l0 = l1 = l2 = 0.0
             pw = p0 = p1 = p2 = 0.0
-            s = a[0]
+            s = a[k]
             s[:] = 0.0
             for dx in range(-reach, reach + 1):
                 for dy in range(-reach, reach + 1):
@@ -144,17 +148,23 @@ def _tangent_planes_kernel(members, starts, origins, cells, block, weight, mean,
             for i in range(3):
                 for j in range(3):
                     s[i, j] = s[i, j] / w - mm[i] * mm[j]
-            jacobi3(a, vec, 0, 1)
-            d = (s[0, 0], s[1, 1], s[2, 2])
+            looks[k, 0], looks[k, 1], looks[k, 2] = l0, l1, l2
+            point[v, 0], point[v, 1], point[v, 2] = p0 / pw, p1 / pw, p2 / pw
+            inner[k] = v
+            k += 1
+        jacobi3(a, vec, 0, k, lane_scratch())  # the block's covariances together (in vector lanes)
+        for q in range(k):
+            v = inner[q]
+            l0, l1, l2 = looks[q, 0], looks[q, 1], looks[q, 2]
+            d = (a[q, 0, 0], a[q, 1, 1], a[q, 2, 2])
             low = 0 if d[0] <= d[1] and d[0] <= d[2] else (1 if d[1] <= d[2] else 2)
             middle = max(min(d[(low + 1) % 3], d[(low + 2) % 3]), 0.0)
-            n0, n1, n2 = vec[0, 0, low], vec[0, 1, low], vec[0, 2, low]
+            n0, n1, n2 = vec[q, 0, low], vec[q, 1, low], vec[q, 2, low]
             look = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
             if middle < flat and look > 0.0:  # no plane: face the cameras straight on
                 n0, n1, n2 = -l0 / look, -l1 / look, -l2 / look
             sign = -1.0 if n0 * l0 + n1 * l1 + n2 * l2 > 0.0 else 1.0
             normal[v, 0], normal[v, 1], normal[v, 2] = sign * n0, sign * n1, sign * n2
-            point[v, 0], point[v, 1], point[v, 2] = p0 / pw, p1 / pw, p2 / pw
 
 
 def tangent_planes(
