@@ -19,9 +19,14 @@ many phone-style frames (the shelf's colour enlarged to 1920x1440, its depth at 
 iPhone's ARKit gives them) with the SDK into a fresh service, the whole image as PNG (what the SDK
 sent before it fitted the colour to the depth) and the SDK's default in turn (``--in-flight`` with no
 value skips the `canonical stream` runs). ``--viewer`` also runs the first
-``--in-flight`` value with the web viewer open on the session while it streams: headless Debian
-chromium (Playwright, as `bench/viewer.py`) opens the session's page as soon as the CLI prints its id,
-and the page renders each new state as a user's would; a second table says what the viewer costs:
+``--in-flight`` value twice more with the web viewer open on the session, in headless Debian chromium
+(Playwright, as `bench/viewer.py`): once with the page opened as soon as the CLI prints the session's
+id, so that the page's loading (a browser tab's start, its scripts, its first picture) falls inside
+the stream, and once with the page open before the first frame, as a long stream's viewer is for
+nearly all of its frames (the session made with the SDK, its page loaded and subscribed to its
+events, then `canonical stream --session ID`: the CLI's clock then starts after the session exists,
+a few milliseconds earlier in the stream than with ``--voxel-size``). The page renders each new state
+as a user's would; a second table says what the viewer costs:
 the CPU of the service's render workers and solves (its threads at nice 15 or lower: a run without
 the viewer gives their share without it) and of chromium, and the pictures the page drew. Timings
 on a shared machine are noisy: compare the runs of one invocation, and take the best of several;
@@ -44,6 +49,7 @@ import threading
 import time
 from pathlib import Path
 from statistics import median
+from typing import Literal
 
 import numpy as np
 import zstandard
@@ -128,26 +134,50 @@ def chromium_cpu() -> float:
     return sum(cpu for name, _, cpu in processes if "chrom" in name)
 
 
-def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str) -> tuple[subprocess.CompletedProcess, dict]:
-    """Run the `canonical stream` command ``cmd`` with the web viewer open on its session from its first
-    frame on (the id the CLI prints on stdout), in headless chromium; its completed process, and
-    chromium's CPU seconds and the pictures the page drew (full and previews) until the stream ended."""
+Watch = Literal["opened", "waiting"]  # the viewer opened as the stream starts; open before its first frame
+
+
+def client_seconds() -> float:
+    """User + system CPU seconds of this process's waited-for children so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str, voxel: float, viewer: Watch) -> tuple[subprocess.CompletedProcess, dict]:
+    """Run the `canonical stream` command ``cmd`` (without a session or voxel size: this adds them)
+    with the web viewer open on its session in headless chromium: ``viewer`` "opened" opens the page
+    when the CLI prints the new session's id (``--voxel-size``), "waiting" makes the session first
+    (the SDK) and streams into it (``--session``) once its page is loaded and subscribed to its
+    events. Its completed process, and chromium's CPU seconds, the stream client's (not the browser's
+    or its driver's) and the pictures the page drew (full and previews) while the stream ran."""
     from playwright.sync_api import sync_playwright
     from viewer import CHROMIUM, CHROMIUM_ARGS
+
+    from client.sdk import Client
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_context(viewport={"width": 900, "height": 520}).new_page()
-        before = chromium_cpu()
-        stream = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        session_id = stream.stdout.readline().strip()
-        if session_id:
+        if viewer == "waiting":
+            with Client(url) as client:
+                session_id = client.create_session(voxel_size=voxel).id
             page.goto(viewer_url(url, session_id))
+            page.wait_for_function("window.viewer && viewer.info && document.getElementById('live').textContent === 'live'")
+            cmd = cmd + ["--session", session_id]
+        else:
+            cmd = cmd + ["--voxel-size", str(voxel)]
+        before, client = chromium_cpu(), client_seconds()
+        stream = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        printed = stream.stdout.readline().strip()
+        if viewer == "opened" and printed:
+            page.goto(viewer_url(url, printed))
         stdout, stderr = stream.communicate()
+        client = client_seconds() - client  # the stream's process alone: the browser is not waited for yet
         drawn = page.evaluate("window.viewer ? viewer.history.map((t) => t.full) : []")
-        watched = {"chromium_cpu": chromium_cpu() - before, "full": sum(drawn), "previews": len(drawn) - sum(drawn)}
+        watched = {"chromium_cpu": chromium_cpu() - before, "client_cpu": client, "full": sum(drawn),
+                   "previews": len(drawn) - sum(drawn)}
         browser.close()
-    return subprocess.CompletedProcess(cmd, stream.returncode, session_id + "\n" + stdout, stderr), watched
+    return subprocess.CompletedProcess(cmd, stream.returncode, printed + "\n" + stdout, stderr), watched
 
 
 @contextlib.contextmanager
@@ -171,25 +201,25 @@ def running_service(repo: Path, data_dir: Path, threads: int | None = None):
 
 
 def one_run(repo: Path, data: Path, voxel: float, in_flight: int | None, threads: int | None = None,
-            viewer: bool = False) -> dict:
+            viewer: Watch | None = None) -> dict:
     """One service (``--threads`` when given) and one `canonical stream` of ``repo`` (the CLI's
-    defaults, ``--in-flight`` when given; with ``viewer``, watched in the web viewer); frames/s and
-    disk per frame."""
+    defaults, ``--in-flight`` when given; with ``viewer``, watched in the web viewer as
+    `stream_watched` says); frames/s and disk per frame."""
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = Path(tmp) / "data"
         with running_service(repo, data_dir, threads) as (url, service, env):
             sampler = Sampler(data_dir / "sessions")
             sampler.start()
-            cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--voxel-size", str(voxel), "--url", url]
-            service_cpu, client_cpu = cpu_seconds(service.pid), resource.getrusage(resource.RUSAGE_CHILDREN)
+            cmd = [sys.executable, "-m", "client.cli", "stream", str(data), "--url", url]
+            service_cpu, client_cpu = cpu_seconds(service.pid), client_seconds()
             low_cpu = low_priority_cpu(service.pid)
             cmd += [] if in_flight is None else ["--in-flight", str(in_flight)]
-            stream, watched = (stream_watched(cmd, repo, env, url) if viewer else
-                               (subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True), None))
+            stream, watched = (stream_watched(cmd, repo, env, url, voxel, viewer) if viewer else
+                               (subprocess.run(cmd + ["--voxel-size", str(voxel)], cwd=repo, env=env,
+                                               capture_output=True, text=True), None))
             service_cpu = cpu_seconds(service.pid) - service_cpu  # before the graceful stop's snapshot
             low_cpu = low_priority_cpu(service.pid) - low_cpu
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            client_cpu = after.ru_utime + after.ru_stime - client_cpu.ru_utime - client_cpu.ru_stime
+            client_cpu = watched["client_cpu"] if watched else client_seconds() - client_cpu
             sampler.stop.set()
             sampler.join()
             if stream.returncode != 0:
@@ -295,15 +325,17 @@ def main(argv=None) -> None:
     p.add_argument("--base", type=Path, default=None, help="also run this checkout (its own CLI defaults), interleaved")
     p.add_argument("--threads", type=int, default=None, help="the service's --threads (CPU threads a job; default: all)")
     p.add_argument("--viewer", action="store_true",
-                   help="also stream with the web viewer open on the session (the first --in-flight value)")
+                   help="also stream with the web viewer opened on the session as it starts, and open on it "
+                        "before its first frame (the first --in-flight value)")
     p.add_argument("--phone", type=int, default=0, metavar="FRAMES",
                    help="also stream this many phone-style frames with the SDK, each body form in turn (--runs rounds)")
     args = p.parse_args(argv)
-    configs = [(f"this tree, --in-flight {k}", REPO, k, False) for k in args.in_flight]
+    configs = [(f"this tree, --in-flight {k}", REPO, k, None) for k in args.in_flight]
     if args.viewer:
-        configs.append((f"this tree, --in-flight {args.in_flight[0]}, viewer open", REPO, args.in_flight[0], True))
+        configs += [(f"this tree, --in-flight {args.in_flight[0]}, viewer {what}", REPO, args.in_flight[0], viewer)
+                    for what, viewer in (("opened as the stream starts", "opened"), ("open before the first frame", "waiting"))]
     if args.base is not None:
-        configs.append((f"base tree {args.base}", args.base.resolve(), None, False))
+        configs.append((f"base tree {args.base}", args.base.resolve(), None, None))
     print(machine_summary())
     print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved, service "
           f"--threads {args.threads or 'default'}\n")
