@@ -29,11 +29,10 @@ from ..frame import Frame
 from ..gaussians import Gaussians
 from ..config import SceneConfig
 from .decoded import PARTS, DecodedRows, rounded
-from .fields import fields_from_sums
+from .fields import decoder_fields
 from .selection import DecodedRowSet, decoded_rows, scene_features, strongest
 from .shapes import voxel_shapes
 
-POSITION_SUMS = ("keys", "rep_local", "pos_mean", "pos_cov")  # what `voxel_shapes` reads in place
 # conjugate-gradient steps of a colour solve that starts from the last solution (one from zero takes the
 # library's default, 4): from a solution a handful of frames old, two reach about what a solve from zero does
 REFRESH_ITERATIONS = 2
@@ -266,8 +265,7 @@ class SceneDecoding:
         """`GaussianDecoder.shapes_and_colours` of the rows that decode: decoded from the work's sums
         for the rows the decoded rows lack (then kept there), reused for the rest."""
         todo, sums = work.todo, work.todo_sums
-        f = fields_from_sums({k: v for k, v in sums.items() if k not in POSITION_SUMS}, self.config, sort=False,
-                             positions=False)
+        f = decoder_fields(sums, self.config)
         base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
             fresh = rounded(self.decoder.shapes_and_colours(f, self.config.voxel_size, base))

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from ..gaussians.container import SH_C0
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
+from .selection import scene_features
 from .stored import SUMS, raw_sums
 
 _SQ_INDEX = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # xx xy xz yy yz zz -> symmetric 3x3
@@ -200,13 +201,21 @@ def _direction(x: Tensor) -> Tensor:  # [V, L] -> [V, L] unit length (0 for a ze
     return x.float() / x.float().norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True,
-                     positions: bool = True) -> dict[str, Tensor]:
+def _colour_and_sh(t: dict[str, Tensor], config: SceneConfig) -> tuple[Tensor, Tensor]:
+    """(colour sum [V, 3], solved SH [V, K, 3]) of float32 sums ``t`` (r_sum, rgb_sum, rep_rgb in
+    [0, 1], sh_a, sh_b): the colour sum falls back to the representative's where R_scene ~ 0."""
+    r, eps = t["r_sum"], config.research.eps
+    color_sum = t["rgb_sum"] + eps * t["rep_rgb"]
+    return color_sum, solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization)
+
+
+def _labels(t: dict[str, Tensor], eps: float) -> Tensor:  # [V, S] label scores from their sums
+    return t["label_sum"] / (t["label_w"] + eps)[:, None]
+
+
+def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True) -> dict[str, Tensor]:
     """Scene fields from raw sums (rows are voxels; local positions in voxel units; a scene's stored
-    means and central moments are made sums first, `sums_from_stored`). Without
-    ``positions`` (a decode that takes its shapes from `scene.shapes.voxel_shapes`), the position
-    fields are left out and ``sums`` needs no keys, rep_pos, pos_sum or pos_sq; such fields cannot
-    be sorted.
+    means and central moments are made sums first, `sums_from_stored`).
 
     Returns a dict of tensors, one row per voxel (sorted by key when ``sort``):
         keys [V] int64, reliability [V] (R_scene = sum W), features [V, L] (F_scene =
@@ -218,10 +227,9 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         fit, K = (sh_degree + 1)^2), and labels [V, S] when label scores were fused.
     Colour and position fall back smoothly to the representative's where R_scene ~ 0
     (``(sum W x + eps x_rep) / (R_scene + eps)``), so no voxel decodes to black or to the origin.
+    A decode reads only some of them: `decoder_fields`.
     """
     voxel_size, eps = config.voxel_size, config.research.eps
-    if sort and not positions:
-        raise ValueError("sort: fields without positions have no keys to sort by")
     t = sums_from_stored({k: torch.as_tensor(v) for k, v in sums.items()})
     t["rep_rgb"] = t["rep_rgb"].float() / 255.0  # stored as the 8-bit input colour
     if sort:
@@ -229,29 +237,48 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         t = {k: v[order] for k, v in t.items()}
     r = t["r_sum"]
     den = (r + eps)[:, None]
-    color_sum = t["rgb_sum"] + eps * t["rep_rgb"]
+    color_sum, sh = _colour_and_sh(t, config)
+    centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
+    local_rep = t["rep_pos"].double()  # the representative, in local voxel units
+    mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
+    sq = t["pos_sq"].double()
+    second = torch.stack([torch.stack([sq[:, j] for j in row], -1) for row in _SQ_INDEX], -2)
+    second = (second + eps * local_rep[:, :, None] * local_rep[:, None, :]) / den.double()[:, :, None]
+    cov_local = second - mean_local[:, :, None] * mean_local[:, None, :]
     out = {
+        "keys": t["keys"],
         "reliability": r,
         "features": t["f_sum"] / den,
+        "representative_position": ((centres + local_rep) * voxel_size).float(),
         "representative_reliability": t["rep_r"],
         "representative_feature": _direction(t["rep_f"]),
         "representative_colour": t["rep_rgb"],
         "colour": color_sum / den,
+        "position_mean": ((centres + mean_local) * voxel_size).float(),
+        "position_cov": (cov_local * voxel_size * voxel_size).float(),
         "observations": t["n_obs"].to(torch.int64),
         "free_space": t["free"],
-        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
+        "sh": sh,
     }
-    if positions:
-        centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
-        local_rep = t["rep_pos"].double()  # the representative, in local voxel units
-        mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
-        sq = t["pos_sq"].double()
-        second = torch.stack([torch.stack([sq[:, j] for j in row], -1) for row in _SQ_INDEX], -2)
-        second = (second + eps * local_rep[:, :, None] * local_rep[:, None, :]) / den.double()[:, :, None]
-        cov_local = second - mean_local[:, :, None] * mean_local[:, None, :]
-        out |= {"keys": t["keys"], "representative_position": ((centres + local_rep) * voxel_size).float(),
-                "position_mean": ((centres + mean_local) * voxel_size).float(),
-                "position_cov": (cov_local * voxel_size * voxel_size).float()}
     if t["label_sum"].shape[1] > 0:
-        out["labels"] = t["label_sum"] / (t["label_w"] + eps)[:, None]
+        out["labels"] = _labels(t, eps)
+    return out
+
+
+_DECODER_SUMS = ("r_sum", "rgb_mean", "sh_a_central", "sh_b_central", "label_mean", "label_sum", "label_w")
+
+
+def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig) -> dict[str, Tensor]:
+    """The fields a decode reads besides the positions (`GaussianDecoder.shapes_and_colours`, its base
+    shapes from `scene.shapes.voxel_shapes`), each the same as `fields_from_sums`'s, unsorted:
+    features [V, L], sh [V, K, 3], and labels [V, S] when label scores were fused. From a scene's
+    stored sums (`Scene.sums`: F_scene from its stored mean in one pass, `selection.scene_features`),
+    without the fields no decode reads (the representative's, the fused colour, the counts), each a
+    pass over every voxel that decodes."""
+    eps = config.research.eps
+    t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in _DECODER_SUMS if k in sums}).items()}
+    t["rep_rgb"] = torch.as_tensor(sums["rep_rgb"]).float() / 255.0
+    out = {"features": scene_features(sums, np.arange(len(t["r_sum"])), eps), "sh": _colour_and_sh(t, config)[1]}
+    if t["label_sum"].shape[1] > 0:
+        out["labels"] = _labels(t, eps)
     return out

@@ -9,7 +9,9 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.rendering.sh import sh_basis
 from canonical_core.scene import Scene
-from canonical_core.scene.fields import sh_sum_widths, solve_sh, solve_sh_reference, sums_from_stored
+from canonical_core.datasets import load_dataset
+from canonical_core.scene.fields import (decoder_fields, fields_from_sums, sh_sum_widths, solve_sh, solve_sh_reference,
+                                          sums_from_stored)
 
 
 def streamed_sums(degree: int, voxels: int, observations: int, seed: int = 0, directions: int | None = None,
@@ -66,6 +68,22 @@ def test_an_unobserved_direction_with_no_ridge_gives_a_finite_fit_that_reproduce
     seen = 0.5 + torch.einsum("vk,vkc->vc", b, sh)
     mean = (w[:, :, None] * colours).sum(1) / w.sum(1, keepdim=True)
     assert torch.allclose(seen, mean, atol=1e-6)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("capture", ["realsense_shelf", "apc_bins/bin_labels"])
+def test_the_decoders_fields_are_the_scene_fields_bit_for_bit(capture, shelf_dir, apc_bins_path):
+    # read as a decode reads them: strided views of the scene's records, labels where they were fused
+    frames = load_dataset(shelf_dir if capture == "realsense_shelf" else apc_bins_path / "bin_labels", max_frames=4)
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for frame in frames:
+        scene.fold(frame)
+    sums = scene.decode_inputs().sums
+    fields, decoded = fields_from_sums(sums, scene.config, sort=False), decoder_fields(sums, scene.config)
+    assert set(decoded) == {"features", "sh"} | ({"labels"} if capture != "realsense_shelf" else set())
+    assert len(decoded["features"]) > 10_000
+    for name, value in decoded.items():
+        assert value.dtype == fields[name].dtype and torch.equal(value, fields[name]), name
 
 
 @pytest.mark.realdata
