@@ -126,7 +126,8 @@ class DecodedRows:
             grown[: len(self.slot_of)] = self.slot_of
             self.slot_of = grown
         new = rows[self.slot_of[rows] < 0]
-        self.slot_of[new] = np.arange(self.slots, self.slots + len(new), dtype=np.int32)
+        first = self.slots  # new rows take the next slots, in their order
+        self.slot_of[new] = np.arange(first, first + len(new), dtype=np.int32)
         self.slots += len(new)
         if self.slots > len(self.stamps):
             capacity = max(self.slots, len(self.stamps) * 3 // 2)
@@ -139,15 +140,21 @@ class DecodedRows:
                     self._parts[name] = None
                     continue
                 dtype = torch.float16 if name in HALF_PARTS else part.dtype
-                grown_part = torch.zeros((capacity, *part.shape[1:]), dtype=dtype)
+                # slots past the old ones are written below before any is read (they are the new rows')
+                grown_part = torch.empty((capacity, *part.shape[1:]), dtype=dtype)
                 if old is not None:
                     grown_part[: len(old)] = old
                 self._parts[name] = grown_part
         slots = self.slot_of[rows]
         index = torch.from_numpy(slots.astype(np.int64))
         for name, part in parts.items():
-            if part is not None:
-                self._parts[name].index_copy_(0, index, part.detach().to(self._parts[name].dtype))
+            if part is None:
+                continue
+            kept = self._parts[name]
+            if len(new) == len(rows):  # all new (a decode from scratch): one run of slots, converted as copied
+                kept[first: first + len(rows)].copy_(part.detach())
+            else:
+                kept.index_copy_(0, index, part.detach().to(kept.dtype))
         self.stamps[slots] = stamps
 
     def gather(self, rows: np.ndarray) -> dict[str, Tensor | None]:  # [M] rows -> name -> [M, ...] float32
