@@ -146,12 +146,13 @@ class DecodedRows:
                     grown_part[: len(old)] = old
                 self._parts[name] = grown_part
         slots = self.slot_of[rows]
-        index = torch.from_numpy(slots.astype(np.int64))
+        run = len(new) == len(rows)  # all new (a decode from scratch): one run of slots, converted as copied
+        index = None if run else torch.from_numpy(slots.astype(np.int64))
         for name, part in parts.items():
             if part is None:
                 continue
             kept = self._parts[name]
-            if len(new) == len(rows):  # all new (a decode from scratch): one run of slots, converted as copied
+            if run:
                 kept[first: first + len(rows)].copy_(part.detach())
             else:
                 kept.index_copy_(0, index, part.detach().to(kept.dtype))

@@ -11,7 +11,7 @@ import torch
 from canonical_core import SceneConfig
 from canonical_core.scene import Scene
 from canonical_core.decode import support_unit
-from canonical_core.scene.decoded import PARTS, gather_rows
+from canonical_core.scene.decoded import HALF_PARTS, PARTS, DecodedRows, gather_rows
 from canonical_core.scene.decoding import DECODE_CACHE_ENTRIES
 from canonical_core.scene.selection import decoded_rows, scene_features
 from canonical_core.scene.fields import fields_from_sums
@@ -428,3 +428,25 @@ def test_an_empty_scene_decodes_to_no_gaussians():
     empty = scene.decode_inputs().sums
     for name, column in empty.items():
         assert gather_rows(column, np.empty(0, np.int64)).shape == column.shape, name
+
+
+def test_decoded_rows_give_back_each_rows_latest_parts_whether_stored_new_or_over_old_ones():
+    # all new (one run of slots), then old and new rows mixed (an indexed copy), then new rows again
+    # after the parts grew (a run that starts past the first slots): every row reads back what was
+    # stored for it last, float16 parts rounded so
+    g = torch.Generator().manual_seed(3)
+    kept, latest = DecodedRows(("key",)), {}
+    for rows in (np.array([4, 9, 2, 7]), np.array([9, 11, 4, 0]), np.arange(20, 31)):
+        parts = {"means": torch.randn(len(rows), 3, generator=g), "scales": torch.rand(len(rows), 3, generator=g),
+                 "quats": torch.randn(len(rows), 4, generator=g), "sh": torch.randn(len(rows), 4, 3, generator=g),
+                 "labels": None}
+        kept.store(rows, np.full(len(rows), len(latest), np.int32), parts)
+        for i, row in enumerate(rows):
+            latest[int(row)] = {k: v[i] for k, v in parts.items() if v is not None}
+    rows = np.array(sorted(latest))
+    back = kept.gather(rows)
+    assert back["labels"] is None
+    for name in ("means", "scales", "quats", "sh"):
+        expected = torch.stack([latest[int(r)][name] for r in rows])
+        expected = expected.half().float() if name in HALF_PARTS else expected
+        assert back[name].dtype == torch.float32 and torch.equal(back[name], expected), name
