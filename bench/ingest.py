@@ -143,7 +143,8 @@ def client_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str, voxel: float, viewer: Watch) -> tuple[subprocess.CompletedProcess, dict]:
+def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str, voxel: float,
+                   viewer: Watch) -> tuple[subprocess.CompletedProcess, dict]:
     """Run the `canonical stream` command ``cmd`` (without a session or voxel size: this adds them)
     with the web viewer open on its session in headless chromium: ``viewer`` "opened" opens the page
     when the CLI prints the new session's id (``--voxel-size``), "waiting" makes the session first
@@ -332,8 +333,9 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     configs = [(f"this tree, --in-flight {k}", REPO, k, None) for k in args.in_flight]
     if args.viewer:
+        watches = (("opened as the stream starts", "opened"), ("open before the first frame", "waiting"))
         configs += [(f"this tree, --in-flight {args.in_flight[0]}, viewer {what}", REPO, args.in_flight[0], viewer)
-                    for what, viewer in (("opened as the stream starts", "opened"), ("open before the first frame", "waiting"))]
+                    for what, viewer in watches]
     if args.base is not None:
         configs.append((f"base tree {args.base}", args.base.resolve(), None, None))
     print(machine_summary())

@@ -14,7 +14,7 @@ from torch import Tensor
 from ..gaussians.container import SH_C0
 from ..config import KEY_BITS, KEY_OFFSET, SceneConfig
 from .selection import scene_features
-from .stored import SUMS, raw_sums
+from .stored import SUMS, raw_sum, raw_sums, sh_bases, sum_rules
 
 _SQ_INDEX = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # xx xy xz yy yz zz -> symmetric 3x3
 
@@ -93,18 +93,19 @@ def _solve_sh_kernel(
         # the degrees in use get K as a constant (inlined), so their loops are unrolled; the same code
         if k == 4:
             for n in range(first * chunk, stop):
-                _solve_sh_voxel(n, 4, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+                _solve_sh_voxel(n, n, 4, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
         elif k == 1:
             for n in range(first * chunk, stop):
-                _solve_sh_voxel(n, 1, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+                _solve_sh_voxel(n, n, 1, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
         else:
             for n in range(first * chunk, stop):
-                _solve_sh_voxel(n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
+                _solve_sh_voxel(n, n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse)
 
 
 @numba.njit(inline="always")
-def _solve_sh_voxel(n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse):
-    """Voxel ``n``'s K x K normal equations, assembled into ``a``, ``b`` and solved into ``out[n]``."""
+def _solve_sh_voxel(n, m, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, inverse):
+    """The K x K normal equations of row ``n`` of the sums, assembled into ``a``, ``b`` and solved
+    into ``out[m]``."""
     rn = np.float64(r[n])
     column = 0
     for i in range(k):  # the upper triangle, row by row, as `sh_sum_widths` lays it out
@@ -156,7 +157,64 @@ def _solve_sh_voxel(n, k, r, color_sum, sh_a, sh_b, regularization, out, a, b, i
                 s -= a[p, i] * b[p, c]
             b[i, c] = s * inverse[i]
         for i in range(k):
-            out[n, i, c] = b[i, c]
+            out[m, i, c] = b[i, c]
+
+
+@numba.njit(cache=True, parallel=True)
+def _solve_sh_stored_kernel(
+    r_sum: np.ndarray,  # [V] float32 R_scene
+    rep_rgb: np.ndarray,  # [V, 3] uint8, the representative's colour
+    rgb: tuple,  # `stored.sum_rules` of rgb_mean, sh_a_central and sh_b_central
+    sh_a: tuple,
+    sh_b: tuple,
+    eps: np.float32,  # `SceneConfig.research.eps`
+    regularization: float,
+    out: np.ndarray,  # [V, K, 3] float32, the solution
+) -> None:
+    k, V = out.shape[1], r_sum.shape[0]
+    chunk = 4096  # scratch is allocated once per chunk of voxels, not per voxel
+    for first in numba.prange((V + chunk - 1) // chunk):
+        a = np.empty((k, k))
+        b = np.empty((k, 3))
+        inverse = np.empty(k)
+        # one voxel's sums, made as `stored.raw_sums` and `fields_from_sums` make them (float32)
+        r = np.empty(1, np.float32)
+        color_sum = np.empty((1, 3), np.float32)
+        sums_a = np.empty((1, sh_a[0].shape[1]), np.float32)
+        sums_b = np.empty((1, sh_b[0].shape[1]), np.float32)
+        stop = min(V, (first + 1) * chunk)
+        for n in range(first * chunk, stop):
+            rn = r_sum[n]
+            for c in range(3):
+                color_sum[0, c] = raw_sum(rgb, n, c, rn) + eps * (np.float32(rep_rgb[n, c]) / np.float32(255.0))
+            for c in range(sums_a.shape[1]):
+                sums_a[0, c] = raw_sum(sh_a, n, c, rn)
+            for c in range(sums_b.shape[1]):
+                sums_b[0, c] = raw_sum(sh_b, n, c, rn)
+            r[0] = rn + eps
+            if k == 4:  # the degrees in use get K as a constant, as in `_solve_sh_kernel`
+                _solve_sh_voxel(0, n, 4, r, color_sum, sums_a, sums_b, regularization, out, a, b, inverse)
+            elif k == 1:
+                _solve_sh_voxel(0, n, 1, r, color_sum, sums_a, sums_b, regularization, out, a, b, inverse)
+            else:
+                _solve_sh_voxel(0, n, k, r, color_sum, sums_a, sums_b, regularization, out, a, b, inverse)
+
+
+def solve_sh_stored(
+    sums: dict[str, np.ndarray],  # a scene's stored sums (`Scene.sums`), [V, ...]: r_sum, rep_rgb and the colour's
+    config: SceneConfig,
+) -> Tensor:  # [V, K, 3] float32
+    """`solve_sh` of the colour sums `fields_from_sums` makes (the same bits), solved per voxel from the
+    stored float16 means and central moments as they are: each voxel's sums are made in the solve's
+    own pass, never written out as [V, ...] float32 columns and read back."""
+    r = np.ascontiguousarray(sums["r_sum"], np.float32)
+    bases = sh_bases(sums["sh_a_central"].shape[1])
+    out = np.empty((len(r), bases, 3), np.float32)
+    if len(r):
+        rules = [sum_rules(sums, name, bases) for name in ("rgb_mean", "sh_a_central", "sh_b_central")]
+        _solve_sh_stored_kernel(r, sums["rep_rgb"], *rules, np.float32(config.research.eps),
+                                float(config.decoder.sh_regularization), out)
+    return torch.from_numpy(out)
 
 
 def solve_sh(
@@ -201,14 +259,6 @@ def _direction(x: Tensor) -> Tensor:  # [V, L] -> [V, L] unit length (0 for a ze
     return x.float() / x.float().norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def _colour_and_sh(t: dict[str, Tensor], config: SceneConfig) -> tuple[Tensor, Tensor]:
-    """(colour sum [V, 3], solved SH [V, K, 3]) of float32 sums ``t`` (r_sum, rgb_sum, rep_rgb in
-    [0, 1], sh_a, sh_b): the colour sum falls back to the representative's where R_scene ~ 0."""
-    r, eps = t["r_sum"], config.research.eps
-    color_sum = t["rgb_sum"] + eps * t["rep_rgb"]
-    return color_sum, solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization)
-
-
 def _labels(t: dict[str, Tensor], eps: float) -> Tensor:  # [V, S] label scores from their sums
     return t["label_sum"] / (t["label_w"] + eps)[:, None]
 
@@ -237,7 +287,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         t = {k: v[order] for k, v in t.items()}
     r = t["r_sum"]
     den = (r + eps)[:, None]
-    color_sum, sh = _colour_and_sh(t, config)
+    color_sum = t["rgb_sum"] + eps * t["rep_rgb"]
     centres = (unpack_keys(t["keys"]).to(torch.float64) + 0.5)
     local_rep = t["rep_pos"].double()  # the representative, in local voxel units
     mean_local = (t["pos_sum"].double() + eps * local_rep) / den.double()
@@ -258,27 +308,25 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "position_cov": (cov_local * voxel_size * voxel_size).float(),
         "observations": t["n_obs"].to(torch.int64),
         "free_space": t["free"],
-        "sh": sh,
+        "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
     }
     if t["label_sum"].shape[1] > 0:
         out["labels"] = _labels(t, eps)
     return out
 
 
-_DECODER_SUMS = ("r_sum", "rgb_mean", "sh_a_central", "sh_b_central", "label_mean", "label_sum", "label_w")
-
-
 def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig) -> dict[str, Tensor]:
     """The fields a decode reads besides the positions (`GaussianDecoder.shapes_and_colours`, its base
     shapes from `scene.shapes.voxel_shapes`), each the same as `fields_from_sums`'s, unsorted:
     features [V, L], sh [V, K, 3], and labels [V, S] when label scores were fused. From a scene's
-    stored sums (`Scene.sums`: F_scene from its stored mean in one pass, `selection.scene_features`),
-    without the fields no decode reads (the representative's, the fused colour, the counts), each a
-    pass over every voxel that decodes."""
-    eps = config.research.eps
-    t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in _DECODER_SUMS if k in sums}).items()}
-    t["rep_rgb"] = torch.as_tensor(sums["rep_rgb"]).float() / 255.0
-    out = {"features": scene_features(sums, np.arange(len(t["r_sum"])), eps), "sh": _colour_and_sh(t, config)[1]}
-    if t["label_sum"].shape[1] > 0:
-        out["labels"] = _labels(t, eps)
+    stored sums (`Scene.sums`: F_scene from its stored mean in one pass, `selection.scene_features`;
+    the SH fit from the stored moments in another, `solve_sh_stored`), without the fields no decode
+    reads (the representative's, the fused colour, the counts), each a pass over every voxel that
+    decodes."""
+    eps, rows = config.research.eps, np.arange(len(sums["r_sum"]))
+    out = {"features": scene_features(sums, rows, eps), "sh": solve_sh_stored(sums, config)}
+    if "label_mean" in sums:
+        t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in ("r_sum", "label_mean", "label_w")}).items()}
+        if t["label_sum"].shape[1] > 0:
+            out["labels"] = _labels(t, eps)
     return out

@@ -207,38 +207,49 @@ def raw_sums(stored: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     r = np.ascontiguousarray(stored["r_sum"], np.float32)
     bases = sh_bases(stored["sh_a_central"].shape[1] if "sh_a_central" in stored else 0)
     for name in present:
-        x = stored[name]
-        rules = column_rules(SUMS[name], x.shape[1], bases)
-        kinds = np.array([kind for kind, _, _ in rules], np.int64)
-        cols, affine = np.zeros((len(rules), 2), np.int64), np.zeros((len(rules), 4), np.float32)
-        a_source = b_source = x  # a field's central moments take their two means from one stored field each
-        for c, (kind, a, b) in enumerate(rules):
-            if kind == CENTRAL:
-                a_source, b_source = stored[HALF_FIELDS[a.field]], stored[HALF_FIELDS[b.field]]
-                cols[c], affine[c] = (a.column, b.column), (a.scale, a.offset, b.scale, b.offset)
-        value = np.empty((len(r), x.shape[1]), np.float32)
-        if len(r) and x.shape[1]:
-            _raw_sums_kernel(x.view(np.uint16), r, kinds, a_source.view(np.uint16), b_source.view(np.uint16), cols,
-                             affine, value)
+        value = np.empty((len(r), stored[name].shape[1]), np.float32)
+        if len(r) and value.shape[1]:
+            _raw_sums_kernel(sum_rules(stored, name, bases), r, value)
         out[SUMS[name]] = value
         del out[name]
     return out
 
 
+def sum_rules(stored: dict[str, np.ndarray], name: str, bases: int) -> tuple[np.ndarray, ...]:
+    """How `raw_sum` makes the float32 sums of the stored field ``name`` of ``stored`` (``bases``: K,
+    `sh_bases`), as a tuple a numba kernel takes: (its float16 bits [V, W], each column's kind [W]
+    (AS_IS, MEAN or CENTRAL), the float16 bits of the stored means a central moment's two factors
+    read [V, *] (a field's central moments take theirs from one stored field each), the factors'
+    columns in them [W, 2], their float32 scales and offsets [W, 4])."""
+    x = stored[name]
+    rules = column_rules(SUMS[name], x.shape[1], bases)
+    kinds = np.array([kind for kind, _, _ in rules], np.int64)
+    cols, affine = np.zeros((len(rules), 2), np.int64), np.zeros((len(rules), 4), np.float32)
+    a_source = b_source = x
+    for c, (kind, a, b) in enumerate(rules):
+        if kind == CENTRAL:
+            a_source, b_source = stored[HALF_FIELDS[a.field]], stored[HALF_FIELDS[b.field]]
+            cols[c], affine[c] = (a.column, b.column), (a.scale, a.offset, b.scale, b.offset)
+    return x.view(np.uint16), kinds, a_source.view(np.uint16), b_source.view(np.uint16), cols, affine
+
+
+@numba.njit(inline="always")
+def raw_sum(rules, v, c, r):
+    """The float32 sum of column ``c`` of voxel ``v`` of a stored field (`sum_rules`; R_scene ``r``)."""
+    x, kinds, a_source, b_source, cols, affine = rules
+    return sum_of(from_half(x[v, c]), kinds[c], factor(a_source, v, cols[c, 0], affine[c, 0], affine[c, 1]),
+                  factor(b_source, v, cols[c, 1], affine[c, 2], affine[c, 3]), r)
+
+
 @numba.njit(parallel=True, cache=True)
 def _raw_sums_kernel(
-    x,  # [V, W] float16 bits of one stored field (a strided view)
+    rules,  # `sum_rules` of one stored field, [V, W]
     r,  # [V] float32 R_scene
-    kinds,  # [W] AS_IS, MEAN or CENTRAL
-    a_source, b_source,  # [V, *] float16 bits: the stored means a central moment's two factors read
-    cols,  # [W, 2] the factors' columns in them
-    affine,  # [W, 4] float32 scale and offset of each factor
     out,  # [V, W] float32
 ):
-    for v in numba.prange(x.shape[0]):
-        for c in range(x.shape[1]):
-            out[v, c] = sum_of(from_half(x[v, c]), kinds[c], factor(a_source, v, cols[c, 0], affine[c, 0], affine[c, 1]),
-                               factor(b_source, v, cols[c, 1], affine[c, 2], affine[c, 3]), r[v])
+    for v in numba.prange(out.shape[0]):
+        for c in range(out.shape[1]):
+            out[v, c] = raw_sum(rules, v, c, r[v])
 
 
 @numba.njit(inline="always")

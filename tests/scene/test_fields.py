@@ -87,6 +87,18 @@ def test_the_decoders_fields_are_the_scene_fields_bit_for_bit(capture, shelf_dir
 
 
 @pytest.mark.realdata
+@pytest.mark.parametrize("degree", [0, 2])
+def test_the_decoders_sh_fit_is_the_scene_fields_at_every_sh_degree(degree, shelf_frames):
+    scene = Scene(SceneConfig(voxel_size=0.01, sh_degree=degree))
+    for frame in shelf_frames[:3]:
+        scene.fold(frame)
+    sums = scene.decode_inputs().sums
+    fit = decoder_fields(sums, scene.config)["sh"]
+    assert fit.shape == (len(scene), (degree + 1) ** 2, 3)
+    assert torch.equal(fit, fields_from_sums(sums, scene.config, sort=False)["sh"])
+
+
+@pytest.mark.realdata
 def test_fast_solve_matches_the_reference_on_the_real_capture(shelf_frames):
     scene = Scene(SceneConfig(voxel_size=0.008))
     for frame in shelf_frames[:3]:
