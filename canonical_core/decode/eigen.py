@@ -46,6 +46,7 @@ def symmetric_eigh3_reference(
 # square roots and divisions, so one matrix at a time waits on their latency, while the same rotation
 # of 16 matrices at once is vector arithmetic (the loops over lanes vectorise).
 LANES = 16
+_CHUNK = 16 * LANES  # matrices a parallel task diagonalises
 
 
 @numba.njit(inline="always")
@@ -61,9 +62,9 @@ def _jacobi_kernel(
     v: np.ndarray,  # [N, 3, 3] float64, out: the rotations' product, eigenvectors as columns
 ) -> None:
     n = a.shape[0]
-    for group in numba.prange(-(-n // LANES)):
-        first = group * LANES
-        jacobi3(a, v, first, min(LANES, n - first), lane_scratch())
+    for chunk in numba.prange(-(-n // _CHUNK)):  # a chunk's groups of LANES matrices share one scratch
+        first = chunk * _CHUNK
+        jacobi3(a, v, first, min(_CHUNK, n - first), lane_scratch())
 
 
 @numba.njit(inline="always")
