@@ -14,9 +14,11 @@ import pytest
 from PIL import Image
 
 from canonical_core.datasets import load_tsdf_fusion
+from client.sdk import Client
 from tests.client.test_cli_errors import canonical
 from tests.client.test_cli_poses import matrix_to_tum
 from tests.datasets.test_datasets_transforms_json import _write_capture
+from tests.server.harness import colours_solved
 
 SESSION_ID = re.compile(r"^[0-9a-f]{32}$")
 SMALL = ["--stride", "20", "--max-frames", "2", "--scale", "0.25", "--voxel-size", "0.02"]
@@ -54,6 +56,10 @@ def test_a_stream_whose_first_frame_is_refused_leaves_no_session(server, shelf_d
 
 def test_sessions_lists_size_memory_disk_and_age(server, shelf_dir):
     session_id = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL).stdout.strip()
+    # the session's background colour solve lands once the stream is idle and adds its solution to
+    # the memory: the listing and the stats below must read the same state
+    with Client(server.url) as client:
+        assert colours_solved(client.session(session_id))
     table = canonical("sessions", "--url", server.url)
     assert table.returncode == 0, table.stderr
     header, *rows = table.stdout.splitlines()
