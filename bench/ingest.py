@@ -14,7 +14,8 @@ archive's compression of raw arrays) would cost and gain. Disk per frame counts 
 (``scene.snap`` and one being written); the peak while it runs is given without and with the
 snapshots. ``--in-flight`` lists the CLI's ``--in-flight`` values to run (same service settings);
 ``--base`` also runs another checkout of the project (e.g. the tree before a change, its numba cache
-warmed), interleaved with this one, so that both see the same load. ``--phone`` also streams that
+warmed), interleaved with this one, so that both see the same load (with ``--viewer``, its viewer
+runs too, each tree's judged against its own run without the viewer). ``--phone`` also streams that
 many phone-style frames (the shelf's colour enlarged to 1920x1440, its depth at 256x192, as an
 iPhone's ARKit gives them) with the SDK into a fresh service, the whole image as PNG (what the SDK
 sent before it fitted the colour to the depth) and the SDK's default in turn (``--in-flight`` with no
@@ -332,12 +333,13 @@ def main(argv=None) -> None:
                    help="also stream this many phone-style frames with the SDK, each body form in turn (--runs rounds)")
     args = p.parse_args(argv)
     configs = [(f"this tree, --in-flight {k}", REPO, k, None) for k in args.in_flight]
-    if args.viewer:
-        watches = (("opened as the stream starts", "opened"), ("open before the first frame", "waiting"))
-        configs += [(f"this tree, --in-flight {args.in_flight[0]}, viewer {what}", REPO, args.in_flight[0], viewer)
-                    for what, viewer in watches]
     if args.base is not None:
         configs.append((f"base tree {args.base}", args.base.resolve(), None, None))
+    if args.viewer:  # each tree's viewer runs, judged against that tree's first run
+        watches = (("opened as the stream starts", "opened"), ("open before the first frame", "waiting"))
+        trees = [("this tree", REPO)] + ([] if args.base is None else [(f"base tree {args.base}", args.base.resolve())])
+        configs += [(f"{tree}, --in-flight {args.in_flight[0]}, viewer {what}", repo, args.in_flight[0], viewer)
+                    for tree, repo in trees for what, viewer in watches]
     print(machine_summary())
     print(f"data: {args.data}, voxel {args.voxel_size * 1000:g} mm, {args.runs} runs each, interleaved, service "
           f"--threads {args.threads or 'default'}\n")
@@ -376,10 +378,12 @@ def main(argv=None) -> None:
                                                  if runs[0]["watched"] else "–")}
             for name, runs in results.items()])
     best = {name: max(r["fps"] for r in runs) for name, runs in results.items()}
-    first = configs[0][0]
-    print_table(f"best frames/s against {first!r} (same invocation)", [
-        {"configuration": name, "ratio": f"{best[name] / best[first]:.2f}"} for name in best if name != first])
-
+    # a viewer's run against its own tree's first run; the base tree's first against this tree's
+    quiet = {repo: name for name, repo, _, viewer in reversed(configs) if viewer is None}
+    against = {name: quiet[repo] if name != quiet[repo] else configs[0][0] for name, repo, _, _ in configs}
+    print_table("best frames/s against another run (same invocation)", [
+        {"configuration": name, "against": ref, "ratio": f"{best[name] / best[ref]:.2f}"}
+        for name, ref in against.items() if name != ref])
 
 if __name__ == "__main__":
     main()

@@ -5,7 +5,9 @@ acknowledged, and every open event stream of that session gets the event (frame 
 report, the frame's camera), encoded once for all of them. Publishing never waits on a subscriber:
 each has a bounded queue, and one whose queue is full has fallen behind and is dropped (its stream
 ends with a ``dropped`` event; the viewer reconnects and gets the latest state). Open streams are
-capped per session and per service, so the fan-out a fold pays for is bounded.
+capped per session and per service, so the fan-out a fold pays for is bounded. A stream may ask for
+at most one event per interval (`FoldBatch`): a page that redraws a few times a second has no use
+for each of a 30 Hz stream's folds, and every event costs the browser a wake-up and a parse.
 
 The input cameras of a session (what the viewer draws as frustums and snaps to) are appended to
 ``cameras.f64`` in the session's folder, one row of `CAMERA_COLUMNS` float64 per acknowledged frame,
@@ -22,6 +24,7 @@ import signal
 import time
 from collections import defaultdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -56,12 +59,65 @@ def read_track(path: Path, frames: int) -> np.ndarray:  # [N, CAMERA_COLUMNS] fl
     return rows[rows[:, 0] < frames]
 
 
-DROPPED = b"event: dropped\ndata: {\"reason\":\"the stream fell behind\"}\n\n"  # a stream's last event
-
-
 def sse(event: str, data: dict) -> bytes:
     """One Server-Sent Event."""
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
+
+
+class Published(NamedTuple):
+    """An event on a stream's queue: its fields (None for `DROPPED`) and its encoding, made once for
+    every stream that sends it as it is."""
+
+    event: dict | None
+    data: bytes
+
+
+DROPPED = Published(None, sse("dropped", {"reason": "the stream fell behind"}))  # a stream's last event
+
+
+class FoldBatch:
+    """The fold events a stream has not sent yet, merged into one (a stream with at most one event
+    per interval): the latest fold's fields, plus ``folds`` (how many folds it stands for),
+    ``cameras`` (theirs, oldest first, so no input camera is missed), ``previous_time`` (the time of
+    the fold before the latest, sent or not: the gap the stream of frames has, not the interval's;
+    None before the first) and ``warned`` (the latest of them whose report had warnings, as
+    ``{"frame_index", "warnings"}``, else None: advice is not lost with the folds it came with).
+
+    Example:
+        >>> batch = FoldBatch()
+        >>> for k, warnings in enumerate([[], ["depth under the working range"], []]):
+        ...     batch.add({"type": "fold", "time": 10.0 + k, "frames": k + 1, "camera": {"frame_index": k},
+        ...                "report": {"frame_index": k, "warnings": warnings}})
+        >>> event = batch.take()
+        >>> event["frames"], event["folds"], [c["frame_index"] for c in event["cameras"]], event["previous_time"]
+        (3, 3, [0, 1, 2], 11.0)
+        >>> event["warned"]
+        {'frame_index': 1, 'warnings': ['depth under the working range']}
+        >>> batch.take() is None
+        True
+    """
+
+    def __init__(self) -> None:
+        self._pending: dict | None = None
+        self._last_time: float | None = None  # of the last fold added, taken or not
+
+    def add(self, fold: dict) -> None:
+        pending = self._pending
+        warnings = fold["report"].get("warnings")
+        self._pending = {
+            **fold,
+            "folds": 1 + (pending["folds"] if pending else 0),
+            "cameras": [*(pending["cameras"] if pending else ()), fold["camera"]],
+            "previous_time": self._last_time,
+            "warned": {"frame_index": fold["report"]["frame_index"], "warnings": warnings} if warnings
+            else pending["warned"] if pending else None,
+        }
+        self._last_time = fold["time"]
+
+    def take(self) -> dict | None:
+        """The merged event of the folds added since the last take; None if there are none."""
+        event, self._pending = self._pending, None
+        return event
 
 
 class TooManyStreams(Exception):
@@ -119,7 +175,7 @@ class FoldEvents:
                 return
 
     def subscribe(self, session_id: str) -> asyncio.Queue:
-        """A new stream's queue of encoded events; `TooManyStreams` over a cap."""
+        """A new stream's queue of `Published` events; `TooManyStreams` over a cap."""
         if self._open[session_id] >= self.per_session:
             raise TooManyStreams(f"events: session {session_id} has {self._open[session_id]} open event streams, "
                                  "the limit (max_event_streams_per_session)", "max_event_streams_per_session")
@@ -155,7 +211,7 @@ class FoldEvents:
     def publish(self, session_id: str, event: dict) -> None:
         """Put ``event`` (encoded once) on every subscriber's queue; a subscriber whose queue is full is
         dropped: its queue then holds only `DROPPED`, and no fold publishes to it again."""
-        data = sse(event["type"], event)
+        data = Published(event, sse(event["type"], event))
         for queue in list(self._subscribers.get(session_id, ())):
             if queue.full():
                 self._drop(session_id, queue)

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import io
+import math
 import mimetypes
 import time
+from contextlib import aclosing
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, Query, Request
@@ -24,7 +26,7 @@ from canonical_core.rendering.preview import feature_preview
 from .. import viewer, wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
-from ..events import DROPPED, TooManyStreams, sse
+from ..events import DROPPED, FoldBatch, Published, TooManyStreams, sse
 from ..scheduler import Superseded
 from ..schemas import ErrorBody, InputCamerasOut, ViewerInfo, ViewerSessionList
 from ..session_errors import SessionNotFound
@@ -119,7 +121,7 @@ async def input_cameras(request: Request, session: SessionDep) -> InputCamerasOu
                            last_fold_age=None if last is None else max(0.0, time.time() - last), cameras=cameras)
 
 
-async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> bytes | None:
+async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> Published | None:
     """The next event of ``queue``; None after ``timeout`` seconds or once ``closing`` is set."""
     getter, stop = asyncio.ensure_future(queue.get()), asyncio.ensure_future(closing.wait())
     try:
@@ -131,34 +133,75 @@ async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: flo
 
 
 @router.get("/{session_id}/events", responses={200: {"content": {"text/event-stream": {}}},
-                                               **{c: {"model": ErrorBody} for c in (401, 404, 429)}})
-async def fold_events(request: Request, session: SessionDep) -> StreamingResponse:
+                                               **{c: {"model": ErrorBody} for c in (401, 404, 422, 429)}})
+async def fold_events(
+    request: Request,
+    session: SessionDep,
+    every: Annotated[float | None, Query(gt=0, le=60, description=(
+        "seconds: at most one fold event per this interval, standing for the folds since the last "
+        "(their count, cameras and latest warnings); absent: one event per fold"))] = None,
+) -> StreamingResponse:
     """Server-Sent Events: ``state`` at once (frames, voxels), then ``fold`` after each acknowledged
-    fold (frames, voxels, the fold report, the frame's camera); a comment every 15 s when idle; the
-    stream ends when the session is deleted, the service stops, or the client falls behind by more
-    than the stream's queue (a last ``dropped`` event; reconnect for the latest state). Open streams
-    are capped per session and per service: 429 over a cap, naming its setting."""
+    fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most one per
+    interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when the
+    interval is up); a comment every 15 s when idle; the stream ends when the session is deleted,
+    the service stops, or the client falls behind by more than the stream's queue (a last
+    ``dropped`` event; reconnect for the latest state). Open streams are capped per session and per
+    service: 429 over a cap, naming its setting."""
     events = request.app.state.events
     try:
         queue = events.subscribe(session.id)
     except TooManyStreams as exc:
         raise ApiError(429, "busy", str(exc), exc.setting, {"Retry-After": str(STREAM_RETRY_AFTER_S)}) from None
 
+    def idle() -> bytes | None:
+        """What a stream sends after a quiet wait: its end if the session was deleted, else a keep-alive."""
+        if session.deleted:
+            return sse("deleted", {"id": session.id})
+        return None if events.closing.is_set() else b": keep-alive\n\n"
+
+    async def each_fold():
+        while not events.closing.is_set():
+            item = await _next_event(queue, events.closing, KEEPALIVE_S)
+            if item is None:
+                if (quiet := idle()) is not None:
+                    yield quiet
+                if session.deleted:
+                    return
+                continue
+            yield item.data
+            if item is DROPPED:
+                return
+
+    async def batched(interval: float):
+        loop, batch, sent_at, waiting = asyncio.get_running_loop(), FoldBatch(), -math.inf, False
+        while not events.closing.is_set():
+            wait = sent_at + interval - loop.time() if waiting else KEEPALIVE_S
+            item = await _next_event(queue, events.closing, wait) if wait > 0 else None
+            if item is DROPPED:
+                yield item.data
+                return
+            if item is not None:
+                batch.add(item.event)
+                waiting = True
+                if loop.time() < sent_at + interval:
+                    continue
+            if waiting:  # a fold after a quiet interval, or the interval is up: the batch goes out
+                yield sse("fold", batch.take())
+                sent_at, waiting = loop.time(), False
+                continue
+            if (quiet := idle()) is not None:
+                yield quiet
+            if session.deleted:
+                return
+
     async def stream():
         try:
             yield sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
                                 "label_dim": session.scene.label_dim})
-            while not events.closing.is_set():
-                event = await _next_event(queue, events.closing, KEEPALIVE_S)
-                if event is not None:
-                    yield event
-                    if event is DROPPED:
-                        return
-                elif session.deleted:
-                    yield sse("deleted", {"id": session.id})
-                    return
-                elif not events.closing.is_set():
-                    yield b": keep-alive\n\n"
+            async with aclosing(each_fold() if every is None else batched(every)) as sent:  # closed with the stream
+                async for data in sent:
+                    yield data
         finally:
             events.unsubscribe(session.id, queue)
 

@@ -136,7 +136,7 @@ def test_a_subscriber_that_never_reads_is_dropped_and_never_holds_a_fold():
         for k in range(8):  # each publish is a fold's: it returns at once, whoever reads or not
             events.publish("s", {"type": "fold", "frames": k + 1})
             received.append(live.get_nowait())
-        assert len(received) == 8 and b'"frames":8' in received[-1]
+        assert len(received) == 8 and received[-1].event["frames"] == 8 and b'"frames":8' in received[-1].data
         # the slow one fell behind after its queue filled: dropped, told so, no longer sent to
         assert slow.qsize() == 1 and slow.get_nowait() is DROPPED
         assert events.subscribers("s") == 1 and events.dropped == 1

@@ -181,6 +181,42 @@ def test_event_stream_sends_state_then_one_fold_per_frame_with_its_camera(server
     assert [c["frame_index"] for c in track["cameras"]] == [0, 1] and track["frames"] == 2
 
 
+def test_an_event_stream_with_every_stands_one_event_for_the_folds_of_an_interval(server, client):
+    session = client.create_session(voxel_size=0.02)
+    walls = wall_frames()[0]
+    steps = 6
+    with httpx.stream("GET", f"{server.url}/v1/sessions/{session.id}/events", params={"every": 2.0},
+                      headers=AUTH, timeout=60) as r:
+        lines = r.iter_lines()
+        assert read_events(lines, 1)[0][0] == "state"
+        reports = [session.add_frame(**walls)]
+        (name, first), = read_events(lines, 1)  # the first fold after a quiet interval comes at once
+        assert name == "fold" and first["folds"] == 1 and first["report"] == reports[0]
+        assert first["previous_time"] is None and first["warned"] is None
+        assert [c["frame_index"] for c in first["cameras"]] == [0] and first["camera"] == first["cameras"][0]
+        for k in range(1, steps):  # five more well inside the interval: one event stands for them
+            c2w = np.array(walls["c2w"], dtype=float)
+            c2w[0, 3] = 0.005 * k
+            reports.append(session.add_frame(**{**walls, "c2w": c2w}))
+        received = [first]
+        while received[-1]["frames"] < steps:
+            received.append(read_events(lines, 1)[0][1])
+    assert len(received) < steps
+    assert sum(e["folds"] for e in received) == steps
+    assert [c["frame_index"] for e in received for c in e["cameras"]] == list(range(steps))
+    last = received[-1]
+    assert last["report"] == reports[-1] and last["camera"] == last["cameras"][-1]
+    assert last["voxels"] == session.stats()["voxels"] and last["warned"] is None
+    assert received[-2]["time"] <= last["previous_time"] < last["time"]
+
+
+@pytest.mark.parametrize("every", ["0", "-1", "61", "soon"])
+def test_an_event_stream_with_a_bad_every_is_refused_naming_it(server, walls, every):
+    session, _ = walls
+    r = httpx.get(f"{server.url}/v1/sessions/{session.id}/events", params={"every": every}, headers=AUTH, timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "every"
+
+
 def test_cameras_outlive_a_restart_and_an_open_stream_does_not_hold_up_shutdown(tmp_path):
     proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_frames=1, warm_up=False)
     proc.start()

@@ -330,6 +330,8 @@ def test_a_fast_stream_is_drawn_in_previews_two_at_most_out_and_ends_in_full_on_
         pass
     streamed = page.evaluate("viewer.foldSeenAt")  # the last fold event (ms, the browser's clock)
     page.wait_for_function(f"{FULL} && viewer.drawn.frames === {n}", timeout=WAIT_MS)  # the last fold is drawn
+    # each fold event stands for the folds of an interval and brings every one of their cameras
+    assert page.evaluate("viewer.cameras.map((c) => c.frame_index)") == list(range(n))
     # the page's pictures: when asked, when answered (ms) and whether full size; a picture per fold would
     # ask at every fold, tens of ms apart; the page follows the folds at most every FOLD_GAP_MS (400)
     # (an ask held back while two are out goes when one comes back, so two asks may be closer)

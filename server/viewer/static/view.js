@@ -22,6 +22,12 @@ const FOLD_GAP_MS = 400;
 // a full one at most this often and as soon as the stream pauses: a full picture costs the service
 // several previews' time, all of it taken from the stream's folds
 const STREAM_FULL_GAP_MS = 2000;
+// fold events at most this often (seconds, the stream's `?every=`): the page draws a few times a
+// second, and each event of a 30 Hz stream would cost the browser a wake-up and a parse
+const EVENT_EVERY_S = 0.2;
+// no fold event for this long: the stream has paused for FOLD_GAP_MS (a fold's event may come up to
+// an interval after it)
+const PAUSE_MS = FOLD_GAP_MS + 1000 * EVENT_EVERY_S;
 // this page among the service's viewers: its waiting picture is replaced by its newer ones only
 const VIEWER_ID = Math.random().toString(36).slice(2, 12);
 const ORBIT_RAD_PER_PX = 0.006;
@@ -65,10 +71,10 @@ function changed(moving = true) {
   pump();
 }
 
-// Whether frames stream in: the last two folds came less than FOLD_GAP_MS apart, the latest one
-// less than that ago.
+// Whether frames stream in: the last two folds came less than FOLD_GAP_MS apart, the latest one's
+// event less than PAUSE_MS ago.
 function streaming() {
-  return state.foldGap < FOLD_GAP_MS && performance.now() - state.foldSeenAt < FOLD_GAP_MS;
+  return state.foldGap < FOLD_GAP_MS && performance.now() - state.foldSeenAt < PAUSE_MS;
 }
 
 // Whether a full picture may be asked for now, as far as the stream goes: while frames stream in,
@@ -285,6 +291,9 @@ function snapTo(k) {
 }
 
 // -- stats -------------------------------------------------------------------------------------
+// The session's figures once its folds pause (no event for PAUSE_MS), not while frames stream in:
+// the service counts the Gaussians by decoding the scene, which during a stream takes the cores of
+// its folds.
 let statsTimer = null;
 function refreshStats() {
   clearTimeout(statsTimer);
@@ -299,7 +308,7 @@ function refreshStats() {
       $("near-limit").textContent = limit == null ? "–" : `${limit.toFixed(2)} m`;
       setLabels(s.label_dim);
     } catch (error) { showError(error); }
-  }, 150);
+  }, PAUSE_MS);
 }
 
 // The fold counts, the last fold's age and the status line; while frames stream in, written at most
@@ -341,20 +350,24 @@ function onEvent(name, data) {
   }
   if (name === "deleted") { showError("this session was deleted"); return; }
   if (name !== "fold") return;
-  const warnings = data.report.warnings || [];
-  if (warnings.length) {  // the stream's latest advice stays up until newer advice replaces it
-    $("warning").textContent = `frame ${data.report.frame_index}: ${warnings.join(" · ")}`;
+  // one event stands for the folds of the last EVENT_EVERY_S (`?every=`): the latest fold's counts,
+  // every camera of them, and the latest advice among them
+  if (data.warned) {  // the stream's latest advice stays up until newer advice replaces it
+    $("warning").textContent = `frame ${data.warned.frame_index}: ${data.warned.warnings.join(" · ")}`;
     $("warning").hidden = false;
   }
   state.frames = data.frames;
   state.voxels = data.voxels;
-  // the service's clocks of this fold and the one before (the track's latest, for the first event
-  // after the page opened on a stream): the gap the stream has, not the one its events arrive with
-  state.foldGap = state.lastFold == null ? Infinity : 1000 * (data.time - state.lastFold);
+  // the service's clocks of the latest fold and the one before (the track's latest, for the first
+  // event after the page opened on a stream): the gap the stream has, not the one events come with
+  const before = data.previous_time ?? state.lastFold;
+  state.foldGap = before == null ? Infinity : 1000 * (data.time - before);
   state.lastFold = data.time;
   state.foldSeenAt = performance.now();
   showText();
-  if (!state.cameras.some((c) => c.frame_index === data.camera.frame_index)) state.cameras.push(data.camera);
+  for (const camera of data.cameras) {
+    if (!state.cameras.some((c) => c.frame_index === camera.frame_index)) state.cameras.push(camera);
+  }
   followFolds();
   refreshStats();
 }
@@ -503,7 +516,7 @@ async function start() {
   drawScaleBar();
   showTrack(track);
   focusView();  // again: the token form, where it was asked for, had the keyboard
-  subscribe(`${base}/events`, onEvent, (s) => { $("live").textContent = s; });
+  subscribe(`${base}/events?every=${EVENT_EVERY_S}`, onEvent, (s) => { $("live").textContent = s; });
   refreshStats();
   setInterval(showText, 5000);  // the last fold's age
 }
