@@ -1,10 +1,11 @@
 """`Session`: one session of a `Client`: frames in (one, or a stream with several in flight), pose
-corrections, renders, features, segmentation and exports out."""
+corrections, renders, features, segmentation, exports and live fold events out."""
 
 from __future__ import annotations
 
 import collections
 import itertools
+import json
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -245,6 +246,29 @@ class Session:
     def _export(self, suffix: str, path, max_gaussians) -> Path:
         params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
         return _write(path, self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content)
+
+    def events(self, every: float | None = None) -> Iterator[tuple[str, dict]]:
+        """The session's live events as (name, fields), read from its Server-Sent Events stream:
+        ``"state"`` at once (frames, voxels, label_dim), then ``"fold"`` after each acknowledged fold
+        (frames, voxels, the fold report, the frame's camera) or, with ``every`` seconds, at most one
+        per interval standing for the folds since the last (with ``folds``, ``cameras``,
+        ``previous_time`` and ``warned``: docs/api.md, "Fold events"); the stream's last event is
+        ``"deleted"`` or ``"dropped"`` (it read too slowly: open a new one for the latest state). It
+        ends when the service stops or the iterator is closed. Raises `CanonicalError` when the
+        service refuses the stream (e.g. 429 over its cap of open streams, 422 for a bad ``every``)."""
+        params = {} if every is None else {"every": every}
+        with self.client._http.stream("GET", f"{self._path}/events", params=params,
+                                      headers={"Accept": "text/event-stream"}) as r:
+            if r.status_code >= 400:
+                r.read()
+                raise self.client._error(r)
+            name = "message"
+            for line in r.iter_lines():
+                if line.startswith("event:"):
+                    name = line[6:].strip()
+                elif line.startswith("data:"):
+                    yield name, json.loads(line[5:])
+                    name = "message"
 
     def stats(self) -> dict:
         return self.client._request("GET", self._path).json()

@@ -40,6 +40,7 @@ Mode = Literal["rgb", "depth", "alpha", "features", "labels"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
 KEEPALIVE_S = 15.0  # an SSE comment this often keeps proxies from closing an idle stream
+DELETED_CHECK_S = 1.0  # an open stream looks this often whether its session was deleted (it then ends)
 STREAM_RETRY_AFTER_S = 5  # a stream refused over a cap: streams end when viewers leave, not at once
 PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"}
 MIN_DEPTH_SPAN = 1e-6  # metres: the narrowest depth_range a depth picture is coloured over
@@ -144,8 +145,8 @@ async def fold_events(
     """Server-Sent Events: ``state`` at once (frames, voxels), then ``fold`` after each acknowledged
     fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most one per
     interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when the
-    interval is up); a comment every 15 s when idle; the stream ends when the session is deleted,
-    the service stops, or the client falls behind by more than the stream's queue (a last
+    interval is up); a comment every 15 s when idle; the stream ends when the session is deleted
+    (with a ``deleted`` event, within `DELETED_CHECK_S`), the service stops, or the client falls behind by more than the stream's queue (a last
     ``dropped`` event; reconnect for the latest state). Open streams are capped per session and per
     service: 429 over a cap, naming its setting."""
     events = request.app.state.events
@@ -154,54 +155,64 @@ async def fold_events(
     except TooManyStreams as exc:
         raise ApiError(429, "busy", str(exc), exc.setting, {"Retry-After": str(STREAM_RETRY_AFTER_S)}) from None
 
-    def idle() -> bytes | None:
-        """What a stream sends after a quiet wait: its end if the session was deleted, else a keep-alive."""
+    loop = asyncio.get_running_loop()
+    last_sent = loop.time()  # when the stream last sent anything, keep-alives included
+
+    def after_wait() -> tuple[bytes | None, bool]:
+        """What a stream sends after a wait with no fold to send, and whether it ends there: the end
+        if the session was deleted (by any route or the retention policy), a keep-alive once it has
+        been quiet for KEEPALIVE_S."""
         if session.deleted:
-            return sse("deleted", {"id": session.id})
-        return None if events.closing.is_set() else b": keep-alive\n\n"
+            return sse("deleted", {"id": session.id}), True
+        if events.closing.is_set() or loop.time() - last_sent < KEEPALIVE_S:
+            return None, False
+        return b": keep-alive\n\n", False
 
     async def each_fold():
         while not events.closing.is_set():
-            item = await _next_event(queue, events.closing, KEEPALIVE_S)
-            if item is None:
-                if (quiet := idle()) is not None:
-                    yield quiet
-                if session.deleted:
+            item = await _next_event(queue, events.closing, DELETED_CHECK_S)
+            if item is not None:
+                yield item.data
+                if item is DROPPED:
                     return
                 continue
-            yield item.data
-            if item is DROPPED:
+            data, end = after_wait()
+            if data is not None:
+                yield data
+            if end:
                 return
 
     async def batched(interval: float):
-        loop, batch, sent_at, waiting = asyncio.get_running_loop(), FoldBatch(), -math.inf, False
+        batch, batch_sent_at, waiting = FoldBatch(), -math.inf, False
         while not events.closing.is_set():
-            wait = sent_at + interval - loop.time() if waiting else KEEPALIVE_S
-            item = await _next_event(queue, events.closing, wait) if wait > 0 else None
+            wait = batch_sent_at + interval - loop.time() if waiting else DELETED_CHECK_S
+            item = await _next_event(queue, events.closing, min(wait, DELETED_CHECK_S)) if wait > 0 else None
             if item is DROPPED:
                 yield item.data
                 return
             if item is not None:
                 batch.add(item.event)
                 waiting = True
-                if loop.time() < sent_at + interval:
-                    continue
-            if waiting:  # a fold after a quiet interval, or the interval is up: the batch goes out
+            if waiting and loop.time() >= batch_sent_at + interval:  # a fold after a quiet interval, or the interval is up
                 yield sse("fold", batch.take())
-                sent_at, waiting = loop.time(), False
+                batch_sent_at, waiting = loop.time(), False
                 continue
-            if (quiet := idle()) is not None:
-                yield quiet
-            if session.deleted:
-                return
+            if item is None:
+                data, end = after_wait()
+                if data is not None:
+                    yield data
+                if end:
+                    return
 
     async def stream():
+        nonlocal last_sent
         try:
             yield sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
                                 "label_dim": session.scene.label_dim})
             async with aclosing(each_fold() if every is None else batched(every)) as sent:  # closed with the stream
                 async for data in sent:
                     yield data
+                    last_sent = loop.time()
         finally:
             events.unsubscribe(session.id, queue)
 

@@ -40,6 +40,26 @@ def test_without_a_url_the_sdk_and_the_cli_find_the_service_at_canonical_url(ser
     assert build_parser().parse_args(["sessions"]).url == "http://127.0.0.1:8000"
 
 
+def test_session_events_read_the_folds_as_they_come_batched_or_not_and_end_on_delete(server, frames):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        each, batched = session.events(), session.events(every=30.0)
+        assert next(each) == next(batched) == ("state", {"frames": 0, "voxels": 0, "label_dim": 0})
+        reports = [session.add_frame(**kwargs) for kwargs in frames[:3]]
+        folds = [next(each) for _ in reports]
+        assert [name for name, _ in folds] == ["fold"] * 3 and [e["report"] for _, e in folds] == reports
+        # every 30 s: the first fold at once, the next two within the interval not yet
+        name, first = next(batched)
+        assert name == "fold" and first["folds"] == 1 and first["report"] == reports[0]
+        session.delete()
+        assert next(each) == ("deleted", {"id": session.id})  # the stream's last event
+        assert list(each) == []
+        batched.close()  # a reader may leave at any time: the service frees the stream's slot
+        with pytest.raises(CanonicalError) as err:
+            next(client.create_session(voxel_size=VOXEL).events(every=0))
+        assert (err.value.status, err.value.field) == (422, "every")
+
+
 @pytest.mark.realdata
 def test_session_roundtrip(server, frames, tmp_path):
     with Client(server.url) as client:
