@@ -146,9 +146,9 @@ async def fold_events(
     fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most one per
     interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when the
     interval is up); a comment every 15 s when idle; the stream ends when the session is deleted
-    (with a ``deleted`` event, within `DELETED_CHECK_S`), the service stops, or the client falls behind by more than the stream's queue (a last
-    ``dropped`` event; reconnect for the latest state). Open streams are capped per session and per
-    service: 429 over a cap, naming its setting."""
+    (with a ``deleted`` event, within `DELETED_CHECK_S`), the service stops, or the client falls
+    behind by more than the stream's queue (a last ``dropped`` event; reconnect for the latest
+    state). Open streams are capped per session and per service: 429 over a cap, naming its setting."""
     events = request.app.state.events
     try:
         queue = events.subscribe(session.id)
