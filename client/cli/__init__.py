@@ -7,6 +7,7 @@
     canonical export --url URL --session ID --mesh -o surface.ply
     canonical sessions --url URL [--json] [--prune [--dry-run]]
     canonical view --url URL --session ID [--no-browser]   (print the web viewer's URL, open a browser)
+    canonical watch --url URL --session ID [--every S] [--json]   (a line per interval of folds, until it is deleted)
     canonical demo [DATASET] [--out DIR]   (start a service, stream a sample, write a render and a PLY)
     canonical eval DATASET --views 2,4,8,16 --out DIR [--methods ...] [--noise ...]
     canonical depth DATASET --out DIR [--sources 2]   (plane-sweep depth + uncertainty pictures)
@@ -24,7 +25,7 @@ canonical_core.datasets.
 
 For scripts, the commands that talk to a service print their result alone on stdout: ``stream`` the
 session's id (``S=$(canonical stream ...)``), ``render`` and ``export`` the paths they wrote, one a
-line, ``view`` the page's URL, ``sessions`` its table (``--prune``: a line per removed session); ``--json`` (stream, sessions, poses) prints a
+line, ``view`` the page's URL, ``watch`` a line per event (``--json``: an object per event), ``sessions`` its table (``--prune``: a line per removed session); ``--json`` (stream, sessions, poses) prints a
 JSON result instead. Progress, warnings and summaries go to stderr.
 """
 
@@ -57,6 +58,7 @@ COMMANDS: dict[str, Command] = {
     "export": Command(render.add_export, render.run_export, "download a session's Gaussians as .ply or .splat, or with --mesh its surface mesh"),
     "sessions": Command(sessions.add_sessions, sessions.run_sessions, "list sessions"),
     "view": Command(sessions.add_view, sessions.run_view, "print a session's web viewer URL and open it in a browser"),
+    "watch": Command(sessions.add_watch, sessions.run_watch, "print a session's folds as they come, until it is deleted"),
     "poses": Command(poses.add_poses, poses.run_poses, "correct a session's frame poses from a pose file (a loop closure), or remove frames"),
     "demo": Command(demo.add_demo, demo.run_demo, "start a service, stream a sample capture, write a render and a PLY"),
     "depth": Command(offline.add_depth, offline.run_depth, "estimate depth + uncertainty of a dataset's frames by plane sweep, write pictures"),

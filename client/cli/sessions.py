@@ -1,5 +1,5 @@
-"""``sessions`` (the service's sessions as a table or JSON; ``--prune`` applies its retention policy)
-and ``view`` (a session's web viewer page)."""
+"""``sessions`` (the service's sessions as a table or JSON; ``--prune`` applies its retention policy),
+``view`` (a session's web viewer page) and ``watch`` (a session's folds as they come, in a terminal)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 import sys
 import time
 
-from .common import add_connection, add_json, connect
+from .common import UsageError, add_connection, add_json, connect
 
 
 # -- sessions -----------------------------------------------------------------------------------
@@ -119,4 +119,48 @@ def run_view(args) -> int:
         import webbrowser
 
         webbrowser.open(url)
+    return 0
+
+
+# -- watch ------------------------------------------------------------------------------------------
+def add_watch(p: argparse.ArgumentParser) -> None:
+    add_connection(p)
+    p.add_argument("--session", required=True, help="session id")
+    p.add_argument("--every", type=float, default=1.0, help=(
+        "seconds: at most one line per interval, standing for the folds since the last (default 1; 0: a line "
+        "for every fold)"))
+    add_json(p, "each event (its name and fields, one JSON object a line)")
+
+
+def watch_line(name: str, event: dict) -> str:
+    """One event of a session's stream for people: ``fold`` as its counts and the latest warnings."""
+    if name == "state":
+        return f"{event['frames']} frames, {event['voxels']} voxels: waiting for folds"
+    if name != "fold":
+        return f"{name}: {json.dumps(event)}"
+    folds = event.get("folds", 1)
+    text = (f"frame {event['report']['frame_index']}: {event['frames']} frames, {event['voxels']} voxels"
+            + (f" ({folds} folds)" if folds > 1 else ""))
+    warned = event.get("warned") or ({"frame_index": event["report"]["frame_index"], "warnings": event["report"]["warnings"]}
+                                     if event["report"].get("warnings") else None)
+    if warned:
+        text += f"; frame {warned['frame_index']}: {' · '.join(warned['warnings'])}"
+    return text
+
+
+def run_watch(args) -> int:
+    """Print the session's events until it is deleted (exit 0) or the stream falls behind (exit 1);
+    Ctrl-C stops it."""
+    if args.every < 0:
+        raise UsageError(f"--every: {args.every} is negative; give seconds, or 0 for every fold")
+    with connect(args) as client:
+        try:
+            for name, event in client.session(args.session).events(every=args.every or None):
+                print(json.dumps({"event": name, **event}) if args.json else watch_line(name, event), flush=True)
+                if name == "dropped":
+                    print("error: the stream fell behind (this terminal read too slowly); run watch again",
+                          file=sys.stderr)
+                    return 1
+        except KeyboardInterrupt:
+            pass
     return 0

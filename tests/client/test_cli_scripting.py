@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import subprocess
+import sys
 
 import httpx
 import numpy as np
@@ -14,8 +16,9 @@ import pytest
 from PIL import Image
 
 from canonical_core.datasets import load_tsdf_fusion
+from client.cli.sessions import watch_line
 from client.sdk import Client
-from tests.client.test_cli_errors import canonical
+from tests.client.test_cli_errors import REPO, assert_one_line_error, canonical
 from tests.client.test_cli_poses import matrix_to_tum
 from tests.datasets.test_datasets_transforms_json import _write_capture
 from tests.server.harness import colours_solved
@@ -154,3 +157,35 @@ def test_stream_downscales_frames_without_depth_to_the_services_limit(server, pa
     assert len(told) == 1 and "1920x1080" in told[0]
     cameras = httpx.get(f"{server.url}/v1/sessions/{streamed.stdout.strip()}/cameras").json()["cameras"]
     assert [(c["width"], c["height"]) for c in cameras] == [(1526, 858)] * 2
+
+
+def test_watch_prints_each_fold_as_it_comes_and_ends_when_the_session_is_deleted(server, frames):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=0.02)
+        watch = subprocess.Popen([sys.executable, "-m", "client.cli", "watch", "--url", server.url, "--session", session.id,
+                                  "--every", "0", "--json"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True)
+        try:
+            assert json.loads(watch.stdout.readline()) == {"event": "state", "frames": 0, "voxels": 0, "label_dim": 0}
+            reports = [session.add_frame(**kwargs) for kwargs in frames[:2]]
+            session.delete()
+            out, err = watch.communicate(timeout=60)
+        finally:
+            watch.kill()
+    assert watch.returncode == 0, err
+    events = [json.loads(line) for line in out.splitlines()]
+    assert [e["event"] for e in events] == ["fold", "fold", "deleted"]
+    assert [e["report"] for e in events[:2]] == reports and events[1]["frames"] == 2
+
+
+def test_watch_lines_say_the_fold_its_counts_and_the_latest_warning():
+    fold = {"frames": 7, "voxels": 1200, "report": {"frame_index": 6, "warnings": []}}
+    assert watch_line("fold", fold) == "frame 6: 7 frames, 1200 voxels"
+    batched = {**fold, "folds": 3, "warned": {"frame_index": 5, "warnings": ["depth under the working range"]}}
+    assert watch_line("fold", batched) == "frame 6: 7 frames, 1200 voxels (3 folds); frame 5: depth under the working range"
+    assert watch_line("state", {"frames": 0, "voxels": 0}) == "0 frames, 0 voxels: waiting for folds"
+
+
+def test_watch_refuses_a_negative_interval_and_an_unknown_session(server):
+    assert_one_line_error(canonical("watch", "--url", server.url, "--session", "nope", "--every", "-1"), 2, "--every")
+    assert_one_line_error(canonical("watch", "--url", server.url, "--session", "nope"), 1, "session")
