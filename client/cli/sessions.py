@@ -134,13 +134,17 @@ def add_watch(p: argparse.ArgumentParser) -> None:
 
 def watch_line(name: str, event: dict) -> str:
     """One event of a session's stream for people: ``fold`` as its counts and the latest warnings."""
+    def counts(e: dict) -> str:
+        return f"{e['frames']} frame{'' if e['frames'] == 1 else 's'}, {e['voxels']} voxels"
+
     if name == "state":
-        return f"{event['frames']} frames, {event['voxels']} voxels: waiting for folds"
+        return f"{counts(event)}: waiting for folds"
+    if name == "deleted":
+        return f"session {event['id']} deleted"
     if name != "fold":
         return f"{name}: {json.dumps(event)}"
     folds = event.get("folds", 1)
-    text = (f"frame {event['report']['frame_index']}: {event['frames']} frames, {event['voxels']} voxels"
-            + (f" ({folds} folds)" if folds > 1 else ""))
+    text = f"frame {event['report']['frame_index']}: {counts(event)}" + (f" ({folds} folds)" if folds > 1 else "")
     warned = event.get("warned") or ({"frame_index": event["report"]["frame_index"], "warnings": event["report"]["warnings"]}
                                      if event["report"].get("warnings") else None)
     if warned:

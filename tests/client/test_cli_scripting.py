@@ -184,6 +184,8 @@ def test_watch_lines_say_the_fold_its_counts_and_the_latest_warning():
     batched = {**fold, "folds": 3, "warned": {"frame_index": 5, "warnings": ["depth under the working range"]}}
     assert watch_line("fold", batched) == "frame 6: 7 frames, 1200 voxels (3 folds); frame 5: depth under the working range"
     assert watch_line("state", {"frames": 0, "voxels": 0}) == "0 frames, 0 voxels: waiting for folds"
+    assert watch_line("fold", {**fold, "frames": 1}) == "frame 6: 1 frame, 1200 voxels"
+    assert watch_line("deleted", {"id": "abc"}) == "session abc deleted"
 
 
 def test_watch_refuses_a_negative_interval_and_an_unknown_session(server):
