@@ -80,8 +80,9 @@ class FoldBatch:
     per interval): the latest fold's fields, plus ``folds`` (how many folds it stands for),
     ``cameras`` (theirs, oldest first, so no input camera is missed), ``previous_time`` (the time of
     the fold before the latest, sent or not: the gap the stream of frames has, not the interval's;
-    None before the first) and ``warned`` (the latest of them whose report had warnings, as
-    ``{"frame_index", "warnings"}``, else None: advice is not lost with the folds it came with).
+    None for the first fold the stream sees) and ``warned`` (the latest of them whose report had
+    warnings, as ``{"frame_index", "warnings"}``, else None: advice is not lost with the folds it
+    came with).
 
     Example:
         >>> batch = FoldBatch()
