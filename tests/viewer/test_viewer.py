@@ -328,8 +328,10 @@ def test_a_fast_stream_is_drawn_in_previews_two_at_most_out_and_ends_in_full_on_
     again = ({**shelf[k % len(shelf)], "frame_id": f"again-{k}"} for k in range(first, n))  # folded again, not replayed
     for _ in session.add_frames(again, in_flight=3):
         pass
-    streamed = page.evaluate("viewer.foldSeenAt")  # the last fold event (ms, the browser's clock)
     page.wait_for_function(f"{FULL} && viewer.drawn.frames === {n}", timeout=WAIT_MS)  # the last fold is drawn
+    # the last fold event (ms, the browser's clock): read once the last fold is drawn, since an event
+    # stands for the folds of an interval (`?every=`) and may come that long after its last fold
+    streamed = page.evaluate("viewer.foldSeenAt")
     # each fold event stands for the folds of an interval and brings every one of their cameras
     assert page.evaluate("viewer.cameras.map((c) => c.frame_index)") == list(range(n))
     # the page's pictures: when asked, when answered (ms) and whether full size; a picture per fold would
