@@ -102,16 +102,20 @@ class FoldBatch:
         self._pending: dict | None = None
         self._last_time: float | None = None  # of the last fold added, taken or not
 
+    @property
+    def pending(self) -> bool:
+        """Whether folds were added since the last take."""
+        return self._pending is not None
+
     def add(self, fold: dict) -> None:
-        pending = self._pending
+        pending = self._pending or {"folds": 0, "cameras": [], "warned": None}
         warnings = fold["report"].get("warnings")
         self._pending = {
             **fold,
-            "folds": 1 + (pending["folds"] if pending else 0),
-            "cameras": [*(pending["cameras"] if pending else ()), fold["camera"]],
+            "folds": pending["folds"] + 1,
+            "cameras": [*pending["cameras"], fold["camera"]],
             "previous_time": self._last_time,
-            "warned": {"frame_index": fold["report"]["frame_index"], "warnings": warnings} if warnings
-            else pending["warned"] if pending else None,
+            "warned": {"frame_index": fold["report"]["frame_index"], "warnings": warnings} if warnings else pending["warned"],
         }
         self._last_time = fold["time"]
 

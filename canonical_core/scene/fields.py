@@ -325,8 +325,7 @@ def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig) -> dict[str
     decodes."""
     eps, rows = config.research.eps, np.arange(len(sums["r_sum"]))
     out = {"features": scene_features(sums, rows, eps), "sh": solve_sh_stored(sums, config)}
-    if "label_mean" in sums:
+    if "label_mean" in sums:  # stored only with label channels (without them, label_sum is [V, 0])
         t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in ("r_sum", "label_mean", "label_w")}).items()}
-        if t["label_sum"].shape[1] > 0:
-            out["labels"] = _labels(t, eps)
+        out["labels"] = _labels(t, eps)
     return out

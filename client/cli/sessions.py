@@ -145,8 +145,8 @@ def watch_line(name: str, event: dict) -> str:
         return f"{name}: {json.dumps(event)}"
     folds = event.get("folds", 1)
     text = f"frame {event['report']['frame_index']}: {counts(event)}" + (f" ({folds} folds)" if folds > 1 else "")
-    warned = event.get("warned") or ({"frame_index": event["report"]["frame_index"], "warnings": event["report"]["warnings"]}
-                                     if event["report"].get("warnings") else None)
+    # a batched event names the latest warning among its folds; a fold's own event, its report's
+    warned = event.get("warned") if "warned" in event else (event["report"] if event["report"].get("warnings") else None)
     if warned:
         text += f"; frame {warned['frame_index']}: {' · '.join(warned['warnings'])}"
     return text

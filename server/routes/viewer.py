@@ -183,19 +183,18 @@ async def fold_events(
                 return
 
     async def batched(interval: float):
-        batch, batch_sent_at, waiting = FoldBatch(), -math.inf, False
+        batch, batch_sent_at = FoldBatch(), -math.inf
         while not events.closing.is_set():
-            wait = batch_sent_at + interval - loop.time() if waiting else DELETED_CHECK_S
+            wait = batch_sent_at + interval - loop.time() if batch.pending else DELETED_CHECK_S
             item = await _next_event(queue, events.closing, min(wait, DELETED_CHECK_S)) if wait > 0 else None
             if item is DROPPED:
                 yield item.data
                 return
             if item is not None:
                 batch.add(item.event)
-                waiting = True
-            if waiting and loop.time() >= batch_sent_at + interval:  # a fold after a quiet interval, or the interval is up
+            if batch.pending and loop.time() >= batch_sent_at + interval:  # a fold after a quiet interval, or the interval is up
                 yield sse("fold", batch.take())
-                batch_sent_at, waiting = loop.time(), False
+                batch_sent_at = loop.time()
                 continue
             if item is None:
                 data, end = after_wait()
