@@ -3,8 +3,9 @@ grids (Pillow).
 
 Files in the output folder:
 - ``results.json``: the results dict (non-finite numbers written as null);
-- ``results.md``: protocol, main table, PSNR pivots (all / covered, common pixels), noise tables,
-  mixed-quality inputs, extrapolation, stability;
+- ``results.md``: protocol, main table, PSNR pivots (all / covered, common pixels), the first method's
+  leads over the others, each method's worst step as views are added, noise tables, mixed-quality
+  inputs, extrapolation, stability;
 - ``psnr_vs_views.png``: PSNR (all pixels, covered pixels, common pixels, common pixels near depth
   edges and elsewhere, extrapolation) vs input views per method;
 - ``noise_psnr.png``: PSNR vs depth-noise level per method, one panel per N (with --noise);
@@ -117,6 +118,48 @@ def ablation_order(runs: Sequence[dict]) -> list[list[str]]:
     return rows
 
 
+def _difference(a, b, digits: int) -> str:
+    a, b = _finite(a), _finite(b)
+    return "-" if a is None or b is None else f"{a - b:+.{digits}f}"
+
+
+# a method's lead over a peer: (the run's key, its column, digits)
+LEAD_METRICS = (("psnr_common", "PSNR common dB", 2), ("ssim", "SSIM", 3), ("psnr", "PSNR dB", 2),
+                ("psnr_covered", "PSNR covered dB", 2), ("depth_agreement", "depth agree", 3))
+
+
+def leads(runs: Sequence[dict], methods: Sequence[str]) -> list[list[str]]:
+    """Rows (peer, N, the lead of ``methods[0]`` over the peer in each of `LEAD_METRICS`) for every
+    other method of ``runs`` (one condition) and every N both ran: positive where the first method is
+    ahead. What a comparison with a peer is read on, without subtracting columns by hand."""
+    by_key = {(r["method"], r["views"]): r for r in runs}
+    first = methods[0]
+    return [[peer, str(n), *(_difference(by_key[first, n].get(key), by_key[peer, n].get(key), digits)
+                             for key, _, digits in LEAD_METRICS)]
+            for peer in methods[1:] for n in sorted({r["views"] for r in runs})
+            if (first, n) in by_key and (peer, n) in by_key]
+
+
+def view_steps(runs: Sequence[dict], methods: Sequence[str]) -> list[list[str]]:
+    """Rows (method, the worst step of PSNR on all pixels and on covered pixels from one N to the next,
+    depth agreement at the smallest N -> at the largest) over ``runs`` of one condition: whether more
+    views make each method better. A step is the next N's value minus this N's, the worst the lowest:
+    negative where some N falls below the one before."""
+    rows = []
+    for m in methods:
+        mine = sorted((r for r in runs if r["method"] == m), key=lambda r: r["views"])
+        if len(mine) < 2:
+            continue
+        steps = []
+        for key in ("psnr", "psnr_covered"):
+            values = [_finite(r.get(key)) for r in mine]
+            diffs = [b - a for a, b in zip(values, values[1:]) if a is not None and b is not None]
+            steps.append(f"{min(diffs):+.2f}" if diffs else "-")
+        agree = f"{_num(_finite(mine[0].get('depth_agreement')), 3)} -> {_num(_finite(mine[-1].get('depth_agreement')), 3)}"
+        rows.append([m, *steps, agree])
+    return rows
+
+
 def markdown(results: Mapping) -> str:
     """results.md: the protocol and every table."""
     views = sorted(int(k) for k in results["inputs"])
@@ -165,6 +208,18 @@ def markdown(results: Mapping) -> str:
                   "", *_table(["method", *(f"N={n} ({_num(edge_share[n], 3)} edge)" for n in views)],
                               [[m, *(f"{_num(by_key[m, n, 0.0]['psnr_edge'])} / {_num(by_key[m, n, 0.0]['psnr_flat'])}"
                                      for n in views)] for m in methods])]
+    lead_rows = leads(clean, methods)
+    if lead_rows:
+        lines += ["", f"## {methods[0]} against the other methods, clean depth", "",
+                  f"The lead of {methods[0]} over each other method at each N (its value minus the other's: positive where "
+                  f"{methods[0]} is ahead).", "", *_table(["method", "N", *(label for _, label, _ in LEAD_METRICS)], lead_rows)]
+    step_rows = view_steps(clean, methods)
+    if step_rows:
+        lines += ["", "## More views: the worst step from one N to the next, clean depth", "",
+                  "Each method's PSNR at the next N minus at this N, the lowest over the steps (negative: some N falls "
+                  "below the one before), and its depth agreement at the smallest and the largest N.", "",
+                  *_table(["method", "PSNR dB, worst step", "PSNR covered dB, worst step",
+                           f"depth agree, N={views[0]} -> N={views[-1]}"], step_rows)]
     lines += ["", "## PSNR on the pixels the smallest N covers (dB) vs input views", "",
               f"Each method on the pixels its own N={views[0]} scene covered (those still covered): whether more views "
               "make the scene better where it was already drawn. Covered PSNR also counts the pixels that added views "

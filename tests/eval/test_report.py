@@ -1,5 +1,5 @@
 from canonical_core.eval.methods import METHODS
-from canonical_core.eval.report import _method_colours, _pyplot, ablation_order
+from canonical_core.eval.report import _method_colours, _pyplot, ablation_order, leads, view_steps
 
 
 def test_every_method_has_its_own_colour_in_the_plots():
@@ -41,3 +41,32 @@ def test_each_settings_group_of_the_four_rules_is_ranked_on_its_own():
     assert rows["model=ckpt", "PSNR"] == ["canonical > no_reliability > no_similarity > average", "1 of 4", "4 of 4"]
     # a group with a rule missing has no rows; a method outside the four is ignored
     assert {s for s, *_ in ablation_order(plain + trained[1:] + [_run("pixel_aligned", 4, 20.0)])} == {"defaults"}
+
+
+def _scored(method, views, common, ssim, psnr, covered, agree):
+    return {"method": method, "views": views, "noise": 0.0, "psnr_common": common, "ssim": ssim, "psnr": psnr,
+            "psnr_covered": covered, "depth_agreement": agree}
+
+
+def test_the_first_method_leads_each_other_by_its_value_minus_theirs_at_every_n_both_ran():
+    runs = [_scored("canonical", 2, 21.53, 0.644, 18.94, 21.43, 0.787), _scored("open3d_tsdf", 2, 21.11, 0.618, 17.01, 21.07, 0.771),
+            _scored("canonical", 4, 22.02, 0.668, 19.64, 21.99, 0.776), _scored("open3d_tsdf", 4, 21.69, 0.648, 17.76, 21.68, float("nan")),
+            _scored("pixel_aligned", 4, 20.27, 0.700, 17.58, 20.24, 0.762)]  # pixel_aligned without N = 2: no row for it
+    assert leads(runs, ["canonical", "open3d_tsdf", "pixel_aligned"]) == [
+        ["open3d_tsdf", "2", "+0.42", "+0.026", "+1.93", "+0.36", "+0.016"],
+        ["open3d_tsdf", "4", "+0.33", "+0.020", "+1.88", "+0.31", "-"],  # a metric the peer lacks: no lead
+        ["pixel_aligned", "4", "+1.75", "-0.032", "+2.06", "+1.75", "+0.014"],  # behind: negative
+    ]
+    assert leads(runs, ["canonical"]) == []
+
+
+def test_the_worst_step_as_views_are_added_is_the_lowest_difference_from_one_n_to_the_next():
+    psnr = {2: 13.0, 4: 14.0, 8: 13.5, 16: 15.0}
+    covered = {2: 20.0, 4: 20.5, 8: 21.5, 16: 21.0}
+    runs = [_scored("canonical", n, 0.0, 0.5, psnr[n], covered[n], 0.70 + n / 100) for n in (16, 2, 8, 4)]  # any order
+    runs += [_scored("average", 4, 0.0, 0.5, 12.0, float("nan"), 0.6), _scored("average", 8, 0.0, 0.5, 12.5, 19.0, 0.61),
+             _scored("pixel_aligned", 4, 0.0, 0.5, 11.0, 18.0, 0.5)]  # one N: nothing to step
+    assert view_steps(runs, ["canonical", "average", "pixel_aligned"]) == [
+        ["canonical", "-0.50", "-0.50", "0.720 -> 0.860"],  # 14.0 -> 13.5 and 21.5 -> 21.0
+        ["average", "+0.50", "-", "0.600 -> 0.610"],  # a missing value makes no step
+    ]

@@ -96,6 +96,13 @@ def test_synthetic_sample_end_to_end(tmp_path):
     # the grid holds ground truth plus one column per method, three held-out frames
     with Image.open(tmp_path / "grid_N4.png") as grid:
         assert grid.width == 48 * (1 + len(methods))
+    # results.md reads canonical's lead over each other method off the runs: its value minus theirs
+    report = (tmp_path / "results.md").read_text()
+    clean = {(r["method"], r["views"]): r for r in results["runs"] if r["noise"] == 0}
+    lead = clean["canonical", 4]["psnr_common"] - clean["pixel_aligned", 4]["psnr_common"]
+    assert "## canonical against the other methods, clean depth" in report
+    assert f"| pixel_aligned | 4 | {lead:+.2f} |" in report
+    assert "## More views: the worst step from one N to the next, clean depth" in report
 
 
 def test_a_method_with_settings_runs_under_its_label(tmp_path):
