@@ -281,3 +281,72 @@ def test_fold_time_error_leaves_log_unchanged(client, frames):
     session.add_frame(**frames[1], features=feats)
     assert session.stats()["frames"] == 2
     session.delete()
+
+
+# values of every kind a field may be given by mistake: wrong types, out of range, non-finite, empty
+_WRONG = [None, "x", "", 0, -1, 1.5, float("nan"), float("inf"), 2**63 - 1, True, [], {}, [[]], [[1, 2], [3]], b"",
+          b"\x89PNG\r\n\x1a\n", [[float("nan")] * 3] * 3, [[0.0] * 3] * 3, {"dtype": "float32", "shape": [-1], "data": b""},
+          {"dtype": "float32", "shape": [2**31, 2**31], "data": b""},
+          {"dtype": "float32", "shape": [3, 3], "data": b"\x28\xb5\x2f\xfd" + b"\xff" * 20, "codec": "zstd"}]
+
+
+def _mutated(rnd, base: dict) -> dict:
+    """``base`` with one to three of its fields (or an optional or unknown one) set wrong, removed,
+    given another image, cut short, or with bytes overwritten."""
+    m = copy.deepcopy(base)
+    for _ in range(rnd.randint(1, 3)):
+        key = rnd.choice([*m, "depth_scale", "depth_std", "features", "labels", "num_classes", "frame_id", "extra"])
+        value, op = m.get(key), rnd.random()
+        if op < 0.4:
+            m[key] = copy.deepcopy(rnd.choice(_WRONG))
+        elif op < 0.5:
+            m.pop(key, None)
+        elif isinstance(value, (bytes, bytearray)) and value:
+            data = bytearray(value)
+            if op < 0.75:
+                data = data[: rnd.randrange(len(data))]
+            else:
+                for _ in range(rnd.randint(1, 20)):
+                    data[rnd.randrange(len(data))] = rnd.randrange(256)
+            m[key] = bytes(data)
+        elif isinstance(value, dict):
+            value[rnd.choice(["dtype", "shape", "data", "codec"])] = copy.deepcopy(rnd.choice(_WRONG + [[240, 320], "uint16"]))
+        elif key in ("K", "c2w") and isinstance(value, list) and value and all(isinstance(r, list) and r for r in value):
+            row = value[rnd.randrange(len(value))]
+            row[rnd.randrange(len(row))] = rnd.choice([0.0, -1.0, 1e9, float("nan"), 5.0])
+        else:
+            m[key] = rnd.choice([1e-300, 1e300, 1000.0, 65535, "id" * rnd.randint(1, 200)])
+    return m
+
+
+@pytest.mark.realdata
+def test_mutated_frames_are_refused_naming_a_field_or_folded_and_refusals_change_nothing(server, client, frames):
+    """Seeded random mutations of a real frame message (the SDK's, compact: PNG colour, zstd depth):
+    every answer is a fold or a 4xx naming a field, never a 5xx; and the refused ones leave nothing:
+    the session ends as a second one fed only the accepted messages, bit for bit."""
+    import random
+
+    from client.sdk.frames import frame_body
+
+    rnd = random.Random(0)
+    fuzzed, accepted_only = client.create_session(voxel_size=VOXEL), client.create_session(voxel_size=VOXEL)
+    try:
+        base = msgpack.unpackb(frame_body(**{k: frames[0][k] for k in ("rgb", "K", "c2w", "depth")}), raw=False)
+        accepted = []
+        for _ in range(120):
+            body = msgpack.packb(_mutated(rnd, base), use_bin_type=True)
+            r = httpx.post(f"{server.url}/v1/sessions/{fuzzed.id}/frames", content=body, headers=MSGPACK, timeout=60)
+            assert r.status_code < 500, r.text
+            if r.status_code == 200:
+                accepted.append(body)
+            else:
+                assert 400 <= r.status_code < 500 and r.json()["error"]["field"], r.text
+        assert 0 < len(accepted) < 120  # both kinds of answer were exercised
+        for body in accepted:
+            r = httpx.post(f"{server.url}/v1/sessions/{accepted_only.id}/frames", content=body, headers=MSGPACK, timeout=60)
+            assert r.status_code == 200, r.text
+        assert fuzzed.stats()["frames"] == len(accepted)
+        assert fuzzed.digest()["sha256"] == accepted_only.digest()["sha256"]
+    finally:
+        fuzzed.delete()
+        accepted_only.delete()
