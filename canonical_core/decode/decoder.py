@@ -173,16 +173,27 @@ class GaussianDecoder(nn.Module):
         rot = torch.where((torch.linalg.det(rot) < 0)[:, None, None], rot * torch.tensor([1.0, 1.0, -1.0], device=rot.device), rot)
         return fields["position_mean"], std, matrix_to_quaternion(rot)
 
+    def heads_add_nothing(self) -> bool:
+        """Whether the heads on F_scene are all zero (the training-free decoder's, as initialised) and
+        no gradient is wanted: then they leave the base shapes and the fused colours as they are, and
+        a decode skips them, and F_scene where the Gaussians do not carry it."""
+        return not torch.is_grad_enabled() and not any(
+            bool(p.any()) for head in (self.offset, self.log_scale_delta, self.color_delta) for p in head.parameters())
+
     def shapes_and_colours(self, fields: dict[str, Tensor], voxel_size: float,
                            base: tuple[Tensor, Tensor, Tensor] | None = None) -> dict[str, Tensor]:
         """Every Gaussian field but opacity (means, scales, quats, sh, features, labels), each a
         function of its own voxel's fields alone; ``base`` is `base_shapes` where the caller has it
-        (then ``fields`` needs no positions)."""
-        feats = fields["features"]
+        (then ``fields`` needs no positions). ``fields`` may lack F_scene when `heads_add_nothing`
+        (then the Gaussians carry none)."""
         centroid, std, quats = self.base_shapes(fields, voxel_size) if base is None else base
+        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["colour"])[:, None, :]
+        if self.heads_add_nothing():  # the same values as below, whose heads add zeros, without their passes
+            return {"means": centroid, "scales": voxel_size * std, "quats": quats, "sh": sh,
+                    "features": fields.get("features"), "labels": fields.get("labels")}
+        feats = fields["features"]
         means = centroid + voxel_size * self.offset(feats)
         scales = voxel_size * std * torch.exp(self.log_scale_delta(feats))
-        sh = fields["sh"] if "sh" in fields else rgb_to_sh_dc(fields["colour"])[:, None, :]
         sh = torch.cat([sh[:, :1] + self.color_delta(feats)[:, None] / SH_C0, sh[:, 1:]], 1)
         return {"means": means, "scales": scales, "quats": quats, "sh": sh, "features": feats,
                 "labels": fields.get("labels")}

@@ -265,9 +265,10 @@ class SceneDecoding:
         """`GaussianDecoder.shapes_and_colours` of the rows that decode: decoded from the work's sums
         for the rows the decoded rows lack (then kept there), reused for the rest."""
         todo, sums = work.todo, work.todo_sums
-        f = decoder_fields(sums, self.config)
-        base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
         with torch.no_grad():
+            # F_scene only where the Gaussians carry it or the decoder's heads read it
+            f = decoder_fields(sums, self.config, work.wants_features or not self.decoder.heads_add_nothing())
+            base = voxel_shapes(sums, np.arange(len(todo)), self.config.voxel_size, self.config.research.eps, self.decoder)
             fresh = rounded(self.decoder.shapes_and_colours(f, self.config.voxel_size, base))
         if not work.wants_features:
             fresh["features"] = None

@@ -315,16 +315,17 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
     return out
 
 
-def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig) -> dict[str, Tensor]:
+def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig, features: bool = True) -> dict[str, Tensor]:
     """The fields a decode reads besides the positions (`GaussianDecoder.shapes_and_colours`, its base
     shapes from `scene.shapes.voxel_shapes`), each the same as `fields_from_sums`'s, unsorted:
-    features [V, L], sh [V, K, 3], and labels [V, S] when label scores were fused. From a scene's
+    features [V, L] (unless ``features`` is false), sh [V, K, 3], and labels [V, S] when label scores
+    were fused. From a scene's
     stored sums (`Scene.sums`: F_scene from its stored mean in one pass, `selection.scene_features`;
     the SH fit from the stored moments in another, `solve_sh_stored`), without the fields no decode
     reads (the representative's, the fused colour, the counts), each a pass over every voxel that
     decodes."""
     eps, rows = config.research.eps, np.arange(len(sums["r_sum"]))
-    out = {"features": scene_features(sums, rows, eps), "sh": solve_sh_stored(sums, config)}
+    out = {"sh": solve_sh_stored(sums, config)} | ({"features": scene_features(sums, rows, eps)} if features else {})
     if "label_mean" in sums:  # stored only with label channels (without them, label_sum is [V, 0])
         t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in ("r_sum", "label_mean", "label_w")}).items()}
         out["labels"] = _labels(t, eps)

@@ -9,6 +9,7 @@ from canonical_core.calibration import quaternion_to_matrix
 from canonical_core.decode import (FOOTPRINT_GAIN, FULL_VOXEL_EXTENT, GaussianDecoder, MonotoneOpacity, matrix_to_quaternion,
                                    support_unit)
 from canonical_core.decode.decoder import OPACITY_BIAS, OPACITY_SLOPE
+from canonical_core.gaussians.container import SH_C0
 from canonical_core.scene import Scene
 
 
@@ -84,6 +85,30 @@ def test_analytic_initialisation():
     assert g.scales[0].min().item() == pytest.approx(0.05 * 0.1, rel=1e-5)
     assert math.sqrt(cov[0, 0]) * FOOTPRINT_GAIN < FULL_VOXEL_EXTENT
     assert sorted(g.scales[0].tolist())[1:] == pytest.approx([0.1 * FULL_VOXEL_EXTENT] * 2, rel=1e-4)
+
+
+def test_zero_heads_are_skipped_without_a_gradient_and_give_the_same_gaussians():
+    # the training-free decoder's heads add zeros: a decode skips them (and F_scene, which only they
+    # and the features read) for the same values; with a gradient, or once a head is not zero, they run
+    dec = GaussianDecoder(feature_dim=4)
+    torch.manual_seed(0)
+    n = 64
+    cov = torch.randn(n, 3, 3) * 0.001
+    fields = {"features": torch.randn(n, 4), "position_mean": torch.randn(n, 3), "position_cov": cov @ cov.transpose(1, 2),
+              "sh": torch.randn(n, 4, 3), "labels": None}
+    with_heads = dec.shapes_and_colours(fields, 0.02)  # gradients on: the heads run
+    with torch.no_grad():
+        assert dec.heads_add_nothing()
+        skipped = dec.shapes_and_colours({k: v for k, v in fields.items() if k != "features"}, 0.02)
+    for key in ("means", "scales", "quats", "sh"):
+        assert torch.equal(skipped[key], with_heads[key]), key
+    assert skipped["features"] is None
+    assert not dec.heads_add_nothing()  # a gradient is wanted here: training starts from zero heads
+    with torch.no_grad():
+        dec.color_delta.bias[0] = 0.1
+        assert not dec.heads_add_nothing()
+        moved = dec.shapes_and_colours(fields, 0.02)
+    assert torch.allclose(moved["sh"][:, 0, 0], with_heads["sh"][:, 0, 0] + 0.1 / SH_C0)
 
 
 def test_decoded_means_average_the_depth_noise_of_every_fold():
