@@ -81,6 +81,8 @@ def test_sessions_lists_size_memory_disk_and_age(server, shelf_dir):
 def test_render_draws_many_views_in_one_call(server, shelf_dir, tmp_path):
     session_id = canonical("stream", str(shelf_dir), "--url", server.url, *SMALL).stdout.strip()
     url = ["--url", server.url, "--session", session_id]
+    with Client(server.url) as client:  # renders below compare one state: the one after its background solve
+        assert colours_solved(client.session(session_id))
 
     liked = canonical("render", *url, "--frame-like", f"{shelf_dir}:0", "--frame-like", f"{shelf_dir}:20",
                       "-o", str(tmp_path / "like_{i}.png"))
