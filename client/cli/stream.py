@@ -166,7 +166,6 @@ def stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
 
 def run_stream(args) -> int:
     from canonical_core.datasets import MissingIntrinsics, load_dataset
-    from canonical_core.config import settings_from_pairs
 
     if args.session and args.settings:
         print("--set: settings belong to a new session (without --session), not to an existing one", file=sys.stderr)
@@ -196,8 +195,12 @@ def run_stream(args) -> int:
             print(f"session {target.id}: resuming after its {start} frames", file=sys.stderr)
             announce(target)
         else:
-            voxel = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
-            target = FirstFrameSession(client, {**voxel, **settings_from_pairs(args.settings)}, created=announce)
+            settings = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
+            if args.settings:  # the settings' definitions (pydantic models) take a fifth of a second to import
+                from canonical_core.config import settings_from_pairs
+
+                settings |= settings_from_pairs(args.settings)
+            target = FirstFrameSession(client, settings, created=announce)
         interrupted, refused = False, None
         t0 = time.perf_counter()
         try:

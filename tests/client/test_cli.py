@@ -52,7 +52,8 @@ def test_stream_takes_the_intrinsics_a_capture_lacks_from_K(server, capsys):
 @pytest.mark.realdata
 def test_streaming_a_capture_and_rendering_at_its_frames_never_load_torch_or_numba(server, shelf_dir, tmp_path):
     # the capture's PNGs travel as they are and a render at one of its frames needs only its camera, so
-    # the CLI does both without torch and numba, which would take most of its start-up and memory
+    # the CLI does both without torch and numba, which would take most of its start-up and memory; nor
+    # without --set the settings' definitions (pydantic models, a fifth of a second to import)
     url = ["--url", server.url]
     stream = ["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "25", "--max-frames", "2"]
     render = ["render", *url, "--frame-like", f"{shelf_dir}:1", "-o", str(tmp_path / "view.png"), "--session"]
@@ -62,7 +63,7 @@ def test_streaming_a_capture_and_rendering_at_its_frames_never_load_torch_or_num
              "with contextlib.redirect_stdout(out):\n"
              f"    streamed = cli.main({stream!r})\n"
              f"rendered = cli.main({render!r} + [out.getvalue().strip()])\n"
-             "print(streamed, rendered, {'torch', 'numba'} & set(sys.modules))\n")
+             "print(streamed, rendered, {'torch', 'numba', 'pydantic'} & set(sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", probe], cwd=Path(__file__).resolve().parents[2], capture_output=True,
                          text=True, timeout=120)
     assert out.stdout.split()[-3:] == ["0", "0", "set()"], out.stderr
