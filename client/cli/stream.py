@@ -196,7 +196,7 @@ def run_stream(args) -> int:
             announce(target)
         else:
             settings = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
-            if args.settings:  # the settings' definitions (pydantic models) take a fifth of a second to import
+            if args.settings:  # the settings' definitions (pydantic models) are slow to import: only when needed
                 from canonical_core.config import settings_from_pairs
 
                 settings |= settings_from_pairs(args.settings)

@@ -53,7 +53,7 @@ def test_stream_takes_the_intrinsics_a_capture_lacks_from_K(server, capsys):
 def test_streaming_a_capture_and_rendering_at_its_frames_never_load_torch_or_numba(server, shelf_dir, tmp_path):
     # the capture's PNGs travel as they are and a render at one of its frames needs only its camera, so
     # the CLI does both without torch and numba, which would take most of its start-up and memory; nor
-    # without --set the settings' definitions (pydantic models, a fifth of a second to import)
+    # without --set the settings' definitions (pydantic models, slow to import)
     url = ["--url", server.url]
     stream = ["stream", str(shelf_dir), *url, "--voxel-size", "0.01", "--stride", "25", "--max-frames", "2"]
     render = ["render", *url, "--frame-like", f"{shelf_dir}:1", "-o", str(tmp_path / "view.png"), "--session"]
