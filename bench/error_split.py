@@ -28,7 +28,7 @@ from common import held_out_split, machine_summary, print_table  # noqa: E402
 
 from canonical_core.eval.methods import build  # noqa: E402
 from canonical_core.eval.metrics import covered, depth_edge_band  # noqa: E402
-from canonical_core.eval.report import image_grid  # noqa: E402
+from canonical_core.eval.figures import image_grid  # noqa: E402
 from canonical_core.eval.run import default_voxel_size  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "sun3d_studyroom"

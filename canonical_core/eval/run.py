@@ -47,7 +47,8 @@ from ..scene.choices import default_voxel_size
 from .methods import METHODS, Model, build, check_methods, parse_method
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edge_band, psnr, ssim
 from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
-from .report import require_matplotlib, write_report
+from .figures import require_matplotlib
+from .report import write_report
 
 
 def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:

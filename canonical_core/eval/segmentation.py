@@ -59,7 +59,8 @@ from .methods import MethodSpec, SceneBuilder, SplatModel, parse_method
 from .metrics import covered
 from .probe import PROBE_STEPS, PROBE_WEIGHT_DECAY, fit_probe
 from .protocol import Split, spread
-from .report import _num, require_matplotlib
+from .figures import require_matplotlib
+from .report import _num
 from .segmentation_report import write_segmentation_report
 
 HELDOUT_EVERY = 3

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .report import _finite, _method_colours, _num, _pyplot, _save, _table, image_grid
+from .figures import _method_colours, _pyplot, _save, image_grid
+from .report import _finite, _num, _table
 
 TABLE_COLUMNS = (("fusion_miou", "label mIoU"), ("fusion_miou_covered", "label mIoU covered"),
                  ("fusion_accuracy", "label acc."), ("fusion_accuracy_covered", "label acc. covered"),
