@@ -23,6 +23,7 @@ from .memory import MemoryBudget, trim_heap
 from .metrics import Metrics
 from .routes import exports, frames, health, poses, sessions, viewer, views
 from .scheduler import Scheduler
+from .solves import solve_soon
 from .session_errors import DataDirLocked
 from .settings import Settings
 from .store import SessionStore, configure_thread
@@ -255,6 +256,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             seconds = await run_in_threadpool(warm_up, settings.threads)
             log.info("kernels loaded in %.2f s", seconds)
         await run_in_threadpool(store.open)
+        for session in store.list():  # restored colours are solved again (from the frames) while the service idles
+            solve_soon(app.state.jobs, session)
         app.state.events.close_streams_on_exit()
         log.info("serving %d sessions from %s", len(store), settings.data_dir)
         every = settings.snapshot_every_seconds

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,10 @@ def run_demo(args) -> int:
             sent, elapsed = stream_frames(new_session, frames)
             session = new_session.session
             print(stream_summary(sent, elapsed, session, session.stats()))
+            t0 = time.perf_counter()  # what the service shows once a stream pauses: its colours solved
+            solved = session.wait_for_colours()
+            if solved["colours_solved_frames"] == solved["frames"]:
+                print(f"colours solved in the background {time.perf_counter() - t0:.1f} s after the last frame")
             view = frames[len(frames) // 2]
             cam = view.camera
             rendered = session.render(cam.K64(), cam.c2w64(), cam.width, cam.height)

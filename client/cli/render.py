@@ -54,12 +54,61 @@ def add_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-scale", type=float, default=1000.0,
                    help="--map depth as PNG: units per metre (1000: millimetres, as most depth cameras store them; "
                         "TUM's captures use 5000)")
+    add_wait_solved(p, "renders")
     p.add_argument("-o", "--output", required=True,
                    help="the PNG (or .npy: --map) to write; for several views a pattern with {i}, the view's index (e.g. "
                         "'views/{i:03d}.png'), or a folder (DIR/: view_0000.png, ...). The paths written are printed")
 
 
 MAPS = ("rgb", "depth", "labels", "features")
+
+
+def add_wait_solved(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--wait-solved", type=seconds_arg, default=120.0, metavar="SECONDS",
+                   help=f"wait up to SECONDS for the colours of a session whose stream has paused to be solved (the "
+                        f"service solves them in the background; {what} before then show the fused colours); 0: at once. "
+                        "A session that is still taking frames is not waited for (default: 120)")
+
+
+def seconds_arg(text: str) -> float:
+    """A number of seconds, at least 0.
+
+    Example:
+        >>> seconds_arg("2.5")
+        2.5
+    """
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not (0 <= seconds < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+    return seconds
+
+
+def wait_solved(session, seconds: float) -> None:
+    """Wait up to ``seconds`` for ``session``'s solved colours (`Session.wait_for_colours`), saying
+    on stderr that it waits, and how it ended."""
+    if seconds == 0:
+        return
+    waited = []
+
+    def progress(stats):
+        if not waited:
+            print(f"waiting for the colours of {stats['frames']} frames to be solved (--wait-solved 0: not to wait)",
+                  file=sys.stderr, flush=True)
+        waited.append(stats)
+
+    stats = session.wait_for_colours(seconds, progress=progress)
+    if not waited:
+        return
+    if stats["colours_solved_frames"] == stats["frames"]:
+        note = "colours solved"
+    elif stats["frames"] != waited[0]["frames"]:
+        note = "the session is taking frames: its colours as they are (solved once its stream pauses)"
+    else:
+        note = f"colours not solved within {seconds:g} s: its colours as they are"
+    print(note, file=sys.stderr, flush=True)
 
 
 def image_size_arg(text: str) -> tuple[int, int]:
@@ -174,6 +223,8 @@ def run_render(args) -> int:
     background = None if args.background is None else [float(x) for x in args.background.split(",")]
     with connect(args) as client:  # one process and one connection for every view
         session = client.session(args.session)
+        if args.map == "rgb":  # the other maps do not depend on the colours
+            wait_solved(session, args.wait_solved)
         for view, path in zip(views, paths):
             data = view_file(session, args.map, view, path.suffix.lower() == ".npy", args, background)
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -226,6 +277,7 @@ def add_export(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--mesh", action="store_true",
                    help="the surface as a coloured triangle mesh (PLY: vertex colours and faces) instead of the Gaussians")
+    add_wait_solved(p, "exports of the Gaussians")
     p.add_argument("-o", "--output", required=True, help="file ending in .ply or .splat (.ply with --mesh)")
 
 
@@ -237,9 +289,10 @@ def run_export(args) -> int:
         raise SystemExit("--max-gaussians: a level of detail of the Gaussians; --mesh exports the surface")
     with connect(args) as client:
         session = client.session(args.session)
-        if args.mesh:
+        if args.mesh:  # its colours are the fused ones
             path = session.export_mesh(args.output)
         else:
+            wait_solved(session, args.wait_solved)
             path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
     print(path)
     return 0

@@ -273,6 +273,27 @@ class Session:
     def stats(self) -> dict:
         return self.client._request("GET", self._path).json()
 
+    def wait_for_colours(self, timeout: float = 120.0, poll: float = 0.25, progress=None) -> dict:
+        """Wait until renders and exports of this session show colours solved for every frame it
+        holds, and return its stats (`stats`). The service solves a session's colours in the
+        background once its stream pauses (stats: ``colours_solved_frames`` reaches ``frames``); a
+        render or an export made before then shows the fused colours. Returns at once when there is
+        nothing to wait for (the solve is off: ``colour_solve.views`` 0, or no frame yet), as soon as
+        a frame arrives meanwhile (a live stream: its colours are solved once it pauses), or after
+        ``timeout`` seconds: the stats returned say whether the colours were solved. ``progress(stats)``
+        is called before each wait of ``poll`` seconds."""
+        stats, deadline = self.stats(), time.monotonic() + timeout
+        frames = stats["frames"]
+        while (frames and stats["config"]["colour_solve"]["views"] and stats["colours_solved_frames"] != frames
+               and time.monotonic() < deadline):
+            if progress is not None:
+                progress(stats)
+            time.sleep(poll)
+            stats = self.stats()
+            if stats["frames"] != frames:
+                break
+        return stats
+
     def digest(self) -> dict:
         return self.client._request("GET", f"{self._path}/digest").json()
 

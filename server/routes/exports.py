@@ -13,6 +13,7 @@ from canonical_core.scene.mesh import mesh_ply_bytes
 from ..deps import JobsDep, SessionDep
 from ..errors import ApiError
 from ..schemas import ErrorBody
+from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["exports"],
                    responses={c: {"model": ErrorBody} for c in (401, 404, 422, 429)})
@@ -27,6 +28,7 @@ async def _export(session, jobs, max_gaussians, encode, suffix: str, features: b
         return encode(gaussians), len(gaussians)
 
     data, n = await jobs.run(job, kind="work", session=session.id)
+    solve_soon(jobs, session)  # as a render does: a session whose colours are due gets them solved
     return Response(data, media_type="application/octet-stream", headers={
         "Content-Disposition": f'attachment; filename="{session.id}{suffix}"', "X-Canonical-Gaussians": str(n)})
 

@@ -43,6 +43,9 @@ BAD_ARGUMENTS = [
     ("intrinsics not four numbers", ["render", "--session", "x", "--pose", "p", "--K", "1,two,3,4", "-o", "a.png"], "--K"),
     ("intrinsics of a stream", ["stream", "somewhere", "--K", "518,519,325"], "fx,fy,cx,cy"),
     ("unknown option", ["sessions", "--colour", "red"], "unrecognized"),
+    ("negative wait for solved colours", ["export", "--session", "x", "-o", "a.ply", "--wait-solved", "-1"], "--wait-solved"),
+    ("endless wait for solved colours", ["render", "--session", "x", "--frame-like", "a:0", "-o", "a.png",
+                                         "--wait-solved", "inf"], "--wait-solved"),
 ]
 
 

@@ -16,6 +16,7 @@ import pytest
 from PIL import Image
 
 from canonical_core.datasets import load_tsdf_fusion
+from client.cli.render import frame_like_camera
 from client.cli.sessions import watch_line
 from client.sdk import Client
 from tests.client.test_cli_errors import REPO, assert_one_line_error, canonical
@@ -47,6 +48,24 @@ def test_stream_prints_the_session_id_alone_on_stdout(server, shelf_dir, tmp_pat
 
     exported = canonical("export", "--url", server.url, "--session", session_id, "-o", str(tmp_path / "scene.ply"))
     assert exported.returncode == 0 and exported.stdout == f"{tmp_path / 'scene.ply'}\n", exported.stderr
+
+
+def test_export_and_render_straight_after_a_stream_show_its_solved_colours(server, shelf_dir, tmp_path):
+    # full-size frames: their solve takes longer than the commands below take to start
+    session_id = canonical("stream", str(shelf_dir), "--url", server.url, "--stride", "10", "--max-frames", "5",
+                           "--voxel-size", "0.006").stdout.strip()
+    # at once, as a script does: each waits (by default) for the colours the service solves once the stream pauses
+    exported = canonical("export", "--url", server.url, "--session", session_id, "-o", str(tmp_path / "cli.ply"))
+    view = f"{shelf_dir}:20"
+    rendered = canonical("render", "--url", server.url, "--session", session_id, "--frame-like", view,
+                         "-o", str(tmp_path / "cli.png"))
+    assert exported.returncode == 0 and rendered.returncode == 0, (exported.stderr, rendered.stderr)
+    with Client(server.url) as client:
+        session = client.session(session_id)
+        stats = session.wait_for_colours(0)  # no wait: as the service holds it now
+        assert stats["colours_solved_frames"] == stats["frames"] == 5
+        assert (tmp_path / "cli.ply").read_bytes() == session.export_ply(tmp_path / "solved.ply").read_bytes()
+        assert (tmp_path / "cli.png").read_bytes() == session.render_png(*frame_like_camera(view))
 
 
 def test_a_stream_whose_first_frame_is_refused_leaves_no_session(server, shelf_dir):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import itertools
 import threading
 
 import httpx
@@ -16,7 +17,7 @@ from canonical_core.datasets.images import depth_from_uint16, read_depth, read_r
 from client.cli import build_parser
 from client.sdk import (CanonicalError, Client, DownscaledFrame, Session, decode_array, encode_array, exact_sensor_depth,
                         frame_body, scaled_intrinsics, unpack)
-from tests.server.harness import colours_solved
+from tests.server.harness import SOLVE_WAIT_S, colours_solved
 
 VOXEL = 0.008
 
@@ -99,6 +100,44 @@ def test_session_roundtrip(server, frames, tmp_path):
         with pytest.raises(CanonicalError) as err:
             client.session(session.id)
         assert err.value.status == 404 and err.value.field == "session_id"
+
+
+def test_waiting_for_colours_ends_once_solved_at_once_with_none_due_and_when_frames_keep_coming(server, frames):
+    with Client(server.url) as client:
+        waits = []
+        empty = client.create_session(voxel_size=VOXEL)
+        assert empty.wait_for_colours(progress=waits.append)["frames"] == 0 and waits == []  # nothing to solve
+        off = client.create_session(voxel_size=VOXEL, colour_solve={"views": 0})
+        off.add_frame(**frames[0])
+        assert off.wait_for_colours(progress=waits.append)["colours_solved_frames"] is None and waits == []  # solve off
+
+        session = client.create_session(voxel_size=VOXEL)
+        for kwargs in frames:
+            session.add_frame(**kwargs)
+        stats = session.wait_for_colours(SOLVE_WAIT_S)  # nobody renders: the pause alone gets them solved
+        assert stats["colours_solved_frames"] == stats["frames"] == len(frames)
+        assert session.wait_for_colours(progress=waits.append) == session.stats() and waits == []  # solved: no wait
+
+        streaming, stop = threading.Event(), threading.Event()
+
+        def stream():  # frames back to back, with no pause for a solve to begin in
+            for i in itertools.count():
+                if stop.is_set():
+                    return
+                session.add_frame(**{**frames[i % len(frames)], "frame_id": f"live-{i}"})  # an id sent again is that frame again
+                streaming.set()
+        sender = threading.Thread(target=stream)
+        sender.start()
+        try:
+            assert streaming.wait(60)
+            stats = session.wait_for_colours(SOLVE_WAIT_S, progress=waits.append)
+        finally:
+            stop.set()
+            sender.join()
+        # a live stream is not waited for: it returned at its first look after a frame came
+        assert len(waits) == 1 and stats["frames"] > waits[0]["frames"] > len(frames)
+        assert stats["colours_solved_frames"] == len(frames)
+        session.delete(), off.delete(), empty.delete()
 
 
 @pytest.mark.realdata
