@@ -109,6 +109,11 @@ def arrived_compressed(payload: bytes) -> bool:
                                                   or (isinstance(depth, dict) and depth.get("codec") == "zstd"))
 
 
+class ArchiveClosed(Exception):
+    """The archive was closed (its session deleted, or the service stopping) while something still
+    read it: a background re-fold then stops."""
+
+
 class DamagedFrame(Exception):
     """An archived frame's message does not decompress (or no longer matches its digest): the archive's
     file was damaged."""
@@ -171,6 +176,9 @@ class SessionArchive:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
         self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
         self._fd = os.open(path, os.O_RDONLY)  # reads of archived messages
+        # held by each read and by `close`: a read never sees the descriptor closed under it, nor its
+        # number reused by another file
+        self._reading = threading.Lock()
         self._queue: queue.Queue = queue.Queue()  # frames deferred to the writer: (frame_id, digest, payload)
         self._writer: threading.Thread | None = None
         if found.torn:
@@ -211,7 +219,7 @@ class SessionArchive:
     def messages(self, entries: list[Entry]) -> Iterator[dict | None]:
         """The wire messages of ``entries`` in order, each with its current pose (None where not kept)."""
         for e in entries:
-            yield None if not e.kept else self._message(e, decompress_message(os.pread(self._fd, e.length, e.offset), e.digest))
+            yield None if not e.kept else self._message(e, decompress_message(self._read(e.length, e.offset), e.digest))
 
     def payloads(self, entries: list[Entry]) -> Iterator[bytes | None]:
         """The wire payloads of ``entries`` in order (None where not kept), as the frame log holds them: as
@@ -221,8 +229,14 @@ class SessionArchive:
             if not e.kept:
                 yield None
                 continue
-            payload = decompress_payload(os.pread(self._fd, e.length, e.offset), e.digest)
+            payload = decompress_payload(self._read(e.length, e.offset), e.digest)
             yield payload if e.arrival not in self.poses else wire.pack(self._message(e, wire.unpack(payload)))
+
+    def _read(self, length: int, offset: int) -> bytes:
+        with self._reading:
+            if self._fd < 0:
+                raise ArchiveClosed(f"{ARCHIVE}: closed (its session was deleted, or the service is stopping)")
+            return os.pread(self._fd, length, offset)
 
     def _message(self, e: Entry, msg: dict) -> dict:
         if e.arrival in self.poses:
@@ -313,7 +327,7 @@ class SessionArchive:
             raise ValueError(f"archive: the last {frames} records are not all frames")
         offset = records[0][0]
         if aside is not None:
-            aside(os.pread(self._fd, self._log.size() - offset, offset))
+            aside(self._read(self._log.size() - offset, offset))
         self._log.truncate(offset)
         del self._records[-frames:]
         self.next_arrival = self.entries[-frames].arrival
@@ -349,6 +363,7 @@ class SessionArchive:
             self._writer.join()
             self._writer = None
         self._log.close()
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
+        with self._reading:
+            if self._fd >= 0:
+                os.close(self._fd)
+                self._fd = -1

@@ -20,10 +20,11 @@ from canonical_core.scene.corrections import check_poses, corrected_stream, reso
 from canonical_core.scene.undo import MAX_UNDO_SHARE
 
 from . import wire
-from .archive import SessionArchive
+from .archive import ArchiveClosed, SessionArchive
 from .durability import LOG, SNAPSHOT, archived_frame_ids
 from .framelog import scan, write_atomic
 from .session_errors import CorrectionRefused, SessionUnavailable
+from .track import correct_track
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
 
@@ -102,9 +103,10 @@ class Corrections:
         keys or poses raise ValueError naming ``poses.<key>`` or ``frames.<key>``, nothing changed.
 
         A correction that would re-fold more than ``background_frames`` frames, or any with ``wait``
-        False, is archived and answered at once (``state`` "pending", a ``correction_id``), and
-        re-folds in the background (`_refold_in_background`); the old scene is served and takes
-        frames meanwhile. Another correction that arrives then is `CorrectionRefused` (409)."""
+        False, is archived and answered at once (``state`` "pending", a ``correction_id``, and its
+        ``status`` as accepted), and re-folds in the background (`_refold_in_background`); the old
+        scene is served and takes frames meanwhile. Another correction that arrives then is
+        `CorrectionRefused` (409)."""
         session = self.session
         with session.lock:
             session.check_alive()
@@ -126,6 +128,7 @@ class Corrections:
             short = len(entries) - first <= session.background_frames
             if wait and short and first >= session.scene.undo_floor and all(e.kept for e in entries[first:]):
                 self._correct_in_place(archive, entries, changed, removed | dropped, first)
+                self._renumbered(done["frames_before"], changed, removed | dropped)
                 return {**done, "frames": session.scene.frames}
             bases = self._bases(archive, first)
             appearance = session.scene.appearance
@@ -135,11 +138,16 @@ class Corrections:
                 job = CorrectionJob(secrets.token_hex(8), len(entries) - len(removed | dropped) - start)
                 self._commit(archive, entries, changed, removed | dropped, first, job.id)
                 self.background = self.jobs[job.id] = job
-                answer = {**done, "frames": session.scene.frames, "state": job.state, "correction_id": job.id}
-                threading.Thread(target=self._refold_in_background, args=(job, archive, bases, appearance, done),
-                                 name=f"correction-{job.id}", daemon=True).start()
+                answer = {**done, "frames": session.scene.frames, "state": job.state, "correction_id": job.id,
+                          "status": job.status()}  # the 202 answer: accepted, its re-fold not begun
+                threading.Thread(target=self._refold_in_background,
+                                 args=(job, archive, bases, appearance, done, changed, removed | dropped), name=f"correction-{job.id}", daemon=True).start()
                 return answer
-        scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
+        try:
+            scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)
+        except ArchiveClosed:
+            session.check_alive()  # deleted while it re-folded: 404
+            raise
         with session.lock:
             session.check_alive()
             if session.version != version:
@@ -148,6 +156,7 @@ class Corrections:
             self._commit(archive, entries, changed, removed | dropped, first)
             scene.carry_colour_solution(session.scene)
             session.scene = scene
+            self._renumbered(done["frames_before"], changed, removed | dropped)
             self._persist()
             self._keep_base(checkpoints)
             return {**done, "frames": scene.frames}
@@ -170,7 +179,7 @@ class Corrections:
                                                   "status (GET .../corrections/{id}) says done")
 
     def _refold_in_background(self, job: CorrectionJob, archive: SessionArchive, bases: list[tuple[int, Path]],
-                              appearance, done: dict) -> None:
+                              appearance, done: dict, changed: dict, removed: set) -> None:
         """Re-fold the archived (corrected) stream from the latest valid saved state, then catch up on
         the frames that arrived meanwhile, in arrival order, and swap the scene in under the lock once
         none is left: the result equals the corrected stream folded afresh. A failure leaves the old
@@ -186,7 +195,7 @@ class Corrections:
                     session.check_alive()
                     arrived = archive.entries[len(entries):]
                     if not arrived:
-                        self._swap_in(scene, checkpoints, archive)
+                        self._swap_in(scene, checkpoints, archive, changed, removed)
                         job.result = {**done, "frames": scene.frames, "state": "done", "correction_id": job.id}
                         job.state, self.background = "done", None
                         return
@@ -196,21 +205,39 @@ class Corrections:
                     job.refolded += 1
                 entries += arrived
         except Exception as exc:  # noqa: BLE001 - recorded in the status and the session's state
+            if session.deleted or isinstance(exc, ArchiveClosed):
+                # deleted (nothing left to correct), or the service stopping (the archive holds the
+                # correction: the restart re-folds it): an end, not a failure of the re-fold
+                why = "the session was deleted" if session.deleted else "the service stopped"
+                job.state, job.error, self.background = "failed", f"stopped: {why}", None
+                log.info("session %s: background correction %s stopped: %s", session.id, job.id, why)
+                return
             log.exception("session %s: background correction %s failed", session.id, job.id)
             with session.lock:
                 job.state, job.error, self.background = "failed", f"{type(exc).__name__}: {exc}", None
                 session.wedged = (f"correction {job.id} failed while re-folding ({job.error}); it is in the archive, "
                                   "so a restart retries it")
 
-    def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive) -> None:
+    def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive, changed: dict,
+                 removed: set) -> None:
         """The background re-fold's scene becomes the served one (the caller holds the lock)."""
         session = self.session
         scene.carry_colour_solution(session.scene)
+        before = session.scene.frames
         session.scene, session.version = scene, session.version + 1
+        self._renumbered(before, changed, removed)
         session.frame_ids = archived_frame_ids(archive, session.frame_ids)
         self.background = None
         self._persist()
         self._keep_base(checkpoints)
+
+    def _renumbered(self, frames_before: int, changed: dict, removed: set) -> None:
+        """What follows the served scene's change (under the lock): numbered frames in flight learn
+        the new count (`FrameOrder.recounted`), and the camera track takes the corrected poses and
+        loses the removed frames (``changed``, ``removed``: stream positions before the correction;
+        frames folded since into the old scene are renumbered with the rest)."""
+        self.session.order.recounted(frames_before, self.session.scene.frames)
+        correct_track(self.session.path, changed, removed)
 
     def status(self, correction_id: str) -> dict:
         """The status of a background correction; one this process did not start but the archive holds

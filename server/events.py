@@ -9,54 +9,22 @@ capped per session and per service, so the fan-out a fold pays for is bounded. A
 at most one event per interval (`FoldBatch`): a page that redraws a few times a second has no use
 for each of a 30 Hz stream's folds, and every event costs the browser a wake-up and a parse.
 
-The input cameras of a session (what the viewer draws as frustums and snaps to) are appended to
-``cameras.f64`` in the session's folder, one row of `CAMERA_COLUMNS` float64 per acknowledged frame,
-so they outlive a restart. They are a view aid, not scene state: a missing or short file only means
-fewer frustums.
+The input cameras a stream shows are the session's camera track (`track`): each fold event
+carries its frame's camera, and `FoldEvents.track` reads the whole track for a page that opens.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
-import logging
 import signal
 import time
 from collections import defaultdict
-from pathlib import Path
 from typing import NamedTuple
-
-import numpy as np
 
 from canonical_core import Camera
 
-log = logging.getLogger("canonical.events")
-
-CAMERAS_FILE = "cameras.f64"
-# frame_index, width, height, fx, fy, cx, cy, then c2w row-major (16)
-CAMERA_COLUMNS = 23
-
-
-def camera_row(frame_index: int, camera: Camera) -> np.ndarray:  # [CAMERA_COLUMNS] float64
-    K, c2w = camera.K64(), camera.c2w64()
-    return np.concatenate([[frame_index, camera.width, camera.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2]], c2w.ravel()])
-
-
-def camera_json(row: np.ndarray) -> dict:
-    """One track row -> ``{"frame_index", "width", "height", "K": [fx, fy, cx, cy], "c2w": 16 numbers}``."""
-    return {"frame_index": int(row[0]), "width": int(row[1]), "height": int(row[2]),
-            "K": [float(x) for x in row[3:7]], "c2w": [float(x) for x in row[7:23]]}
-
-
-def read_track(path: Path, frames: int) -> np.ndarray:  # [N, CAMERA_COLUMNS] float64
-    """The rows of ``path`` for frames the session holds (frame_index < ``frames``); a torn last row
-    (a crash mid-append) and rows of frames no longer in the session are left out."""
-    try:
-        data = np.fromfile(path, np.float64)
-    except (OSError, ValueError):
-        return np.zeros((0, CAMERA_COLUMNS))
-    rows = data[: len(data) // CAMERA_COLUMNS * CAMERA_COLUMNS].reshape(-1, CAMERA_COLUMNS)
-    return rows[rows[:, 0] < frames]
+from .track import CAMERAS_FILE, camera_json, camera_row, read_track
 
 
 def sse(event: str, data: dict) -> bytes:
@@ -228,17 +196,13 @@ class FoldEvents:
                 queue.put_nowait(data)
 
     def folded(self, session, camera: Camera, report) -> None:
-        """After an acknowledged fold: record the camera, then tell the session's subscribers."""
+        """After an acknowledged fold (the session has added its camera to its track): tell the
+        session's subscribers."""
         now = time.time()
         self.last_fold[session.id] = now
-        row = camera_row(report.frame_index, camera)
-        try:
-            with open(session.path / CAMERAS_FILE, "ab") as f:
-                f.write(row.tobytes())
-        except OSError as exc:  # a view aid: the fold stands, the frustum is missing
-            log.warning("session %s: camera %d not recorded (%s)", session.id, report.frame_index, exc)
+        camera = camera_json(camera_row(report.frame_index, camera))
         self.publish(session.id, {"type": "fold", "time": now, "frames": session.scene.frames,
-                                  "voxels": len(session.scene), "report": report.to_dict(), "camera": camera_json(row)})
+                                  "voxels": len(session.scene), "report": report.to_dict(), "camera": camera})
 
     def track(self, session) -> list[dict]:
         """The session's input cameras, oldest first."""

@@ -253,7 +253,7 @@ class ViewerSessionList(BaseModel):
 
 
 class InputCamera(BaseModel):
-    """One input camera of a session (`server.events.camera_json`)."""
+    """One input camera of a session (`server.track.camera_json`)."""
 
     frame_index: int = Field(description="the frame's arrival index in the session")
     width: int = Field(description="image width, pixels")

@@ -43,6 +43,7 @@ from .ordering import FrameOrder
 from .retention import folder_usage
 from .session_errors import FrameIdConflict, FrameOutOfOrder, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
+from .track import append_camera
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
 
@@ -193,6 +194,7 @@ class Session:
                 raise FrameIdConflict(f"frame_id: {frame.frame_id!r} was folded as frame {known.index} with other content")
             report = known.report or {"frame_index": known.index, "observations": 0, "new_voxels": 0,
                                       "updated_voxels": 0, "representative_switches": 0, "ms": 0.0}
+            append_camera(self.path, known.index, frame.camera)  # its row, had a crash come before it
             return FoldReport(**report), True
         if index is not None:
             self.order.check_turn(index, self.scene.frames)
@@ -211,6 +213,7 @@ class Session:
         except StorageError as exc:
             self._append_failed(exc, frames)
             raise
+        append_camera(self.path, report.frame_index, frame.camera)
         if self.archive is not None:
             refolding = self.corrections.background is not None  # the re-fold catches up on the archive
             self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)

@@ -20,6 +20,7 @@ router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 CAMERA_FIELDS = ("K", "c2w", "depth_scale", "num_classes", "frame_id", "width", "height")
+STOPPING_RETRY_AFTER_S = 5  # a first resend soon: while the service is down, the SDK backs off on its own
 FrameIndex = Annotated[int | None, Header(alias="Frame-Index", ge=0, description=(
     "the frame's place in the session's stream (0 for its first frame): numbered frames fold in this order"))]
 
@@ -77,6 +78,17 @@ def check_session_accepts(frame, config) -> None:
                                          f"with features.backend='client'")
 
 
+def still_wanted(request: Request, session, index: int) -> None:
+    """Raise where a frame waiting for its turn will not get it: its session was deleted (404), or the
+    service is stopping (503: not folded, so a client sends it again once the service is back)."""
+    session.check_alive()
+    if request.app.state.events.closing.is_set():  # set on SIGTERM / SIGINT, before the graceful wait
+        raise ApiError(503, "unavailable", f"Frame-Index: the service is stopping, and frame {index} still waited "
+                                           f"for frame {session.scene.frames}: it was not folded; send it again once "
+                                           "the service is back", "Frame-Index",
+                       {"Retry-After": str(STOPPING_RETRY_AFTER_S)})
+
+
 @router.post("/{session_id}/frames", response_model=FoldReportOut,
              responses={c: {"model": ErrorBody} for c in (400, 401, 404, 409, 413, 415, 422, 429, 503, 507)},
              openapi_extra={"requestBody": {"content": {"application/msgpack": {}, "multipart/form-data": {}}}})
@@ -91,7 +103,8 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     Header ``Frame-Index`` (optional): the frame's place in the session's stream, for clients that
     keep several frames in flight. The frame is validated at once, then folded once the session
     holds the frames before it, in that order whatever order they arrive in; 409 when one of those
-    was refused, or when they do not come within ``frame_order_wait_s``."""
+    was refused, when a correction removed frames while it was in flight, or when they do not come
+    within ``frame_order_wait_s``; 404 once its session is deleted, 503 once the service stops."""
     kind = media_type(request)
     if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
         raise ApiError(415, "unsupported_media_type",
@@ -118,7 +131,8 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
         decoded = time.perf_counter() - t0
         if frame_index is not None:  # on the loop, holding no job
-            await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s)
+            await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s,
+                                          lambda: still_wanted(request, session, frame_index))
         t0 = time.perf_counter()
         report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
                                         settings.snapshot_every_seconds, frame_index, ahead and ahead.frame,

@@ -22,8 +22,8 @@ async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list, w
         raise ApiError(409, "correction_refused", str(exc), exc.field) from None
     if done["state"] == "done":
         return Correction(**done)
-    status = CorrectionStatus(**session.corrections.status(done["correction_id"]))
-    return JSONResponse(status.model_dump(), status_code=202)
+    # its status as accepted ("pending"), not as its re-fold may have begun since: GET .../corrections/{id}
+    return JSONResponse(CorrectionStatus(**done["status"]).model_dump(), status_code=202)
 
 
 @router.post("/{session_id}/poses", response_model=Correction, responses={202: {"model": CorrectionStatus}})
@@ -33,20 +33,23 @@ async def correct_poses(body: PosesRequest, session: SessionDep, jobs: JobsDep):
     The scene becomes the re-fold of the session's archived frames, in arrival order, with the new
     poses: equal (digest) to a session streamed the corrected frames. A correction of recent frames
     re-folds only them and answers 200 when done. A long one (or any with ``"wait": false``) is
-    archived, answered 202 with a ``correction_id``, and re-folds in the background: the old scene is
-    served and takes frames meanwhile, which the re-fold catches up on before it swaps the corrected
-    scene in; ``GET .../corrections/{correction_id}`` tells its progress. The correction is durable
-    before it is answered. An unknown frame key, a pose that is not a rigid transform or holds NaN:
-    422 naming ``poses.<key>`` (``frames.<key>`` for removals); a session without a frame archive, a
-    frame folded while a short correction was computed, or a correction while a background one
-    runs: 409. Nothing changes then."""
+    archived, answered 202 with its status (``state`` pending, a ``correction_id``), and re-folds in
+    the background: the old scene is served and takes frames meanwhile, which the re-fold catches up
+    on before it swaps the corrected scene in; ``GET .../corrections/{correction_id}`` tells its
+    progress. The correction is durable before it is answered. An unknown frame key, a pose that is
+    not a rigid transform or holds NaN: 422 naming ``poses.<key>`` (``frames.<key>`` for removals);
+    a session without a frame archive, a frame folded while a short correction was computed, or a
+    correction while a background one runs: 409. Nothing changes then."""
     return await _correct(session, jobs, dict(body.poses), list(body.remove), body.wait)
 
 
-@router.delete("/{session_id}/frames/{frame_id}", response_model=Correction, responses={202: {"model": CorrectionStatus}})
+# ``path``: a frame_id may hold '/' (sent as is or as %2F), which a plain parameter stops at
+@router.delete("/{session_id}/frames/{frame_id:path}", response_model=Correction,
+               responses={202: {"model": CorrectionStatus}})
 async def remove_frame(frame_id: str, session: SessionDep, jobs: JobsDep):
-    """Remove one frame (its ``frame_id``, or its arrival index): the scene becomes that of the
-    session streamed without it. Answers and errors as for ``POST .../poses``."""
+    """Remove one frame (its ``frame_id``, any characters, percent-encoded; or its arrival index):
+    the scene becomes that of the session streamed without it. Answers and errors as for
+    ``POST .../poses``."""
     return await _correct(session, jobs, {}, [frame_id])
 
 

@@ -39,6 +39,7 @@ info_router = APIRouter(prefix="/v1/viewer", tags=["viewer"])
 Mode = Literal["rgb", "depth", "alpha", "features", "labels"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
+MAX_SIDE = {"jpeg": 65500, "webp": 16383}  # pixels a side the format can hold (PNG: more than a view may have)
 KEEPALIVE_S = 15.0  # an SSE comment this often keeps proxies from closing an idle stream
 DELETED_CHECK_S = 1.0  # an open stream looks this often whether its session was deleted (it then ends)
 STREAM_RETRY_AFTER_S = 5  # a stream refused over a cap: streams end when viewers leave, not at once
@@ -229,6 +230,16 @@ def encode_image(rgb, fmt: ImageFormat, quality: int) -> bytes:
     return buf.getvalue()
 
 
+def check_format_size(view, fmt: ImageFormat) -> None:
+    """422 naming ``width`` or ``height`` where the picture would be larger than ``fmt`` can hold:
+    checked before rendering, as the encoder would refuse it only after."""
+    limit = MAX_SIDE.get(fmt)
+    for field, size in (("width", view.width), ("height", view.height)):
+        if limit is not None and size > limit:
+            raise ApiError(422, "invalid_value", f"{field}: a {fmt} picture is at most {limit} pixels a side, got "
+                                                 f"{size}; ask for a smaller view or format=png", field)
+
+
 def picture(mode: Mode, maps: dict, fixed_range: tuple[float, float] | None) -> tuple:
     """The maps of one view -> (uint8 [H, W, 3] picture, response headers saying how to read it)."""
     if "depth" in maps:  # the viewer orbits about the surface in the middle of the view
@@ -271,7 +282,8 @@ async def view_image(
     view: views.QueryView, session: SessionDep, settings: SettingsDep, jobs: JobsDep, metrics: MetricsDep,
     mode: Annotated[Mode, Query(description="rgb (with `colour`), depth (colour-mapped), alpha (coverage), "
                                             "features (PCA to RGB), labels (palette colours)")] = "rgb",
-    format: Annotated[ImageFormat, Query(description="png (lossless), jpeg or webp (smaller, faster to send)")] = "png",
+    format: Annotated[ImageFormat, Query(description="png (lossless), jpeg or webp (smaller, faster to send; at "
+                                                    "most 65500 and 16383 pixels a side)")] = "png",
     quality: Annotated[int, Query(ge=1, le=100, description="jpeg/webp quality")] = 80,
     depth_range: Annotated[str | None, Query(description="depth mode: near,far in metres (default: "
                                                          "the 2nd-98th percentile of the view)")] = None,
@@ -291,6 +303,7 @@ async def view_image(
     a picture still waiting when a newer one of the same viewer (``X-Canonical-Viewer``; without it,
     of the same session) arrives is answered 204 with ``X-Canonical-Superseded: true``, so a viewer
     that moves faster than the service renders costs one waiting picture, not a queue of stale ones."""
+    check_format_size(view, format)
     fixed = _range(depth_range)
     kind = {"features": "features", "labels": "segmentation"}.get(mode, "render")
     timing: dict = {}

@@ -60,10 +60,10 @@ class Ctx:
         body = {"K": self.frame["K"].tolist(), "c2w": self.frame["c2w"].tolist(), "width": w, "height": h, **changes}
         return {k: v for k, v in body.items() if v is not None}
 
-    def get_view(self, **params):
-        """GET .../render with an identity pose, a 32x24 view and ``params`` over them."""
+    def get_view(self, route: str = "render", **params):
+        """GET .../render (or another view route) with an identity pose, a 32x24 view and ``params`` over them."""
         params = {"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120", "width": 32, "height": 24, **params}
-        return httpx.get(f"{self.url}/v1/sessions/{self.sid}/render", params=params, headers=AUTH, timeout=60)
+        return httpx.get(f"{self.url}/v1/sessions/{self.sid}/{route}", params=params, headers=AUTH, timeout=60)
 
     def view(self, route: str = "render", **changes):
         body = json.dumps(self.view_body(**changes))  # NaN passes as the (non-standard) NaN token
@@ -74,6 +74,9 @@ class Ctx:
         if content is not None:
             return httpx.post(f"{self.url}/v1/sessions", content=content, headers={**AUTH, "Content-Type": "application/json"})
         return httpx.post(f"{self.url}/v1/sessions", json=body, headers=AUTH)
+
+
+EYE = ",".join(map(str, np.eye(4).ravel()))  # an identity pose, GET's form
 
 
 def _rotated(c2w: np.ndarray, scale: float) -> list:
@@ -194,6 +197,11 @@ CASES = [
     ("features bad preview", lambda c: httpx.post(f"{c.url}/v1/sessions/{c.sid}/features?preview=jpg",
                                                   json=c.view_body(), headers=AUTH), 422, "preview"),
     ("render GET bad pose", lambda c: c.get_view(pose="1,0,0"), 422, "pose"),
+    # valid views within max_image_pixels, over what the picture's format holds a side
+    ("image jpeg wider than JPEG holds", lambda c: c.get_view("image", format="jpeg", width=65501, height=1, pose=EYE,
+                                                              K="300,300,32750,0.5"), 422, "width"),
+    ("image webp taller than WebP holds", lambda c: c.get_view("image", format="webp", width=1, height=16384, pose=EYE,
+                                                               K="300,300,0.5,8192"), 422, "height"),
     ("segmentation without labels", lambda c: c.view("segmentation"), 409, "labels"),
     ("create unknown setting", lambda c: c.create({"voxel_size": 0.01, "voxle_size": 0.02}), 422, "voxle_size"),
     ("create voxel_size zero", lambda c: c.create({"voxel_size": 0}), 422, "voxel_size"),

@@ -10,7 +10,7 @@ from PIL import Image
 
 from canonical_core import Camera
 from server import wire
-from server.events import CAMERA_COLUMNS, camera_json, camera_row, read_track
+from server.track import CAMERA_COLUMNS, camera_json, camera_row, read_track
 from server.viewer import (COVERED, DEPTH_LUT, PALETTE, UNCOVERED, centre_depth, coverage_picture, depth_picture,
                            depth_range, label_picture, visible_labels)
 
