@@ -64,15 +64,30 @@ def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
     return cols
 
 
-def _atomic_write(path: str | os.PathLike, payload: list[bytes]) -> None:
+def atomic_write(path: str | os.PathLike, payload: list[bytes], sync_folder: bool = False) -> None:
+    """``payload``'s chunks to ``path`` atomically: a temporary file beside it, fsync, rename, and with
+    ``sync_folder`` an fsync of the folder (so the rename itself survives a crash). A failed write
+    (``path`` a folder, a full disk, Ctrl-C) removes the temporary file, and its OSError names ``path``."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        for chunk in payload:
-            f.write(chunk)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            for chunk in payload:
+                f.write(chunk)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename == str(tmp) and exc.errno is not None:
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from None  # the caller's path, not ours
+        raise
+    if sync_folder:
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
 
 
 def ply_bytes(g: Gaussians) -> bytes:
@@ -89,7 +104,7 @@ def ply_bytes(g: Gaussians) -> bytes:
 
 def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
     """Write ``g`` in the standard 3DGS PLY layout (atomically: temp file, fsync, rename)."""
-    _atomic_write(path, [ply_bytes(g)])
+    atomic_write(path, [ply_bytes(g)])
 
 
 def _parse_ply(data: bytes) -> dict[str, np.ndarray]:
@@ -180,7 +195,7 @@ def splat_bytes(g: Gaussians) -> bytes:
 
 def save_splat(g: Gaussians, path: str | os.PathLike) -> None:
     """Write the antimatter15 `.splat` layout (atomically). View-dependent SH is dropped (DC only)."""
-    _atomic_write(path, [splat_bytes(g)])
+    atomic_write(path, [splat_bytes(g)])
 
 
 def load_splat(path: str | os.PathLike) -> Gaussians:

@@ -23,6 +23,7 @@ import torch
 
 from ..evidence import DepthConsistency
 from ..config import SceneConfig
+from ..gaussians.io import atomic_write
 from .decoding import ColourSolution
 from .fields import unpack_keys
 from .free_space import SeeThroughHistory
@@ -101,19 +102,9 @@ def model_arrays(scene: Scene) -> dict[str, np.ndarray]:
 
 
 def save(scene: Scene, path: str | os.PathLike) -> None:
-    """`Scene.save`: ``scene.to_bytes()`` written atomically (temp file, fsync, rename, fsync of the folder)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(scene.to_bytes())
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    folder = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(folder)  # the rename itself must survive a crash
-    finally:
-        os.close(folder)
+    """`Scene.save`: ``scene.to_bytes()`` written atomically (temp file, fsync, rename, fsync of the
+    folder: `atomic_write`, which leaves no temporary file when the write fails)."""
+    atomic_write(path, [scene.to_bytes()], sync_folder=True)
 
 
 def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:

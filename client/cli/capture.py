@@ -11,33 +11,34 @@ from ..sdk import exact_sensor_depth
 
 
 def frame_arrays(frame, scale: float = 1.0, sensor_units: bool = False) -> dict:
-    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized.
+    """A canonical_core Frame -> keyword arguments of `Session.add_frame` (numpy), optionally resized:
+    the colour bilinear, depth and its ``depth_std`` nearest (averaging depth across edges invents
+    surfaces). Client features and labels travel at their own resolution whatever the scale: a frame
+    takes them at any [H', W'] and looks them up nearest at its pixels, so class ids stay ids.
 
     With ``sensor_units``, depth that 16-bit sensor units hold exactly (depth read from a 16-bit depth
     image) travels as those units and their ``depth_scale``: half the depth's bytes, and the service
     folds the same float32 metres."""
     camera = frame.camera
     rgb = frame.rgb.numpy()
-    depth = None if frame.depth is None else frame.depth.numpy()
+    depth, depth_std = (None if t is None else t.numpy() for t in (frame.depth, frame.depth_std))
     if scale != 1.0:
         from PIL import Image
 
         camera = camera.scaled(scale)
         size = (camera.width, camera.height)
         rgb = np.array(Image.fromarray(rgb).resize(size, Image.BILINEAR))
-        if depth is not None:  # nearest: averaging depth across edges invents surfaces
-            depth = np.array(Image.fromarray(np.ascontiguousarray(depth, np.float32)).resize(size, Image.NEAREST))
+        depth, depth_std = (None if m is None else np.array(Image.fromarray(np.ascontiguousarray(m, np.float32))
+                                                             .resize(size, Image.NEAREST)) for m in (depth, depth_std))
     out = {"rgb": rgb, "K": camera.K64(), "c2w": camera.c2w64(), "depth": depth, "frame_id": frame.frame_id}
     sensor = exact_sensor_depth(depth) if sensor_units and depth is not None else None
     if sensor is not None:
         out["depth"], out["depth_scale"] = sensor
-    if scale == 1.0:
-        for name in ("depth_std", "features", "labels"):
-            value = getattr(frame, name)
-            if value is not None:
-                out[name] = value.numpy()
-        if frame.num_classes is not None:  # labels as a class map
-            out["num_classes"] = frame.num_classes
+    for name, value in (("depth_std", depth_std), ("features", frame.features), ("labels", frame.labels)):
+        if value is not None:
+            out[name] = value if isinstance(value, np.ndarray) else value.numpy()
+    if frame.num_classes is not None:  # labels as a class map
+        out["num_classes"] = frame.num_classes
     return out
 
 

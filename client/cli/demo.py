@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sdk import Client
+from .common import positive_number
 from .launch import free_port, start_service
 from .stream import FirstFrameSession, stream_frames, stream_summary
 
@@ -20,7 +21,9 @@ def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", nargs="?", default=None,
                    help="a capture to fuse (default: ../shared/data/realsense_shelf, else a generated sample)")
     p.add_argument("--out", default="out/demo", help="folder for the render, comparison, PLY and the service's data")
-    p.add_argument("--voxel-size", type=float, default=None, help="default: 4 mm for the shelf, 2 cm for the sample")
+    p.add_argument("--voxel-size", type=positive_number, default=None,
+                   help="default: 4 mm for the shelf, 2 cm for the sample; for a DATASET given, chosen by the service "
+                        "from its first frame (as `canonical stream` does)")
     p.add_argument("--port", type=int, default=0, help="port of the embedded service (default: a free one)")
 
 
@@ -30,22 +33,23 @@ def run_demo(args) -> int:
     from canonical_core.datasets import load_dataset, synthetic_rgbd, write_tsdf_fusion
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.dataset:
-        path, voxel = Path(args.dataset), args.voxel_size or 0.004
+    if args.dataset:  # any capture, room-scale too: the service's rule fits the voxel to its depth
+        path, voxel = Path(args.dataset), args.voxel_size
     elif SHARED_SHELF.is_dir():
         path, voxel = SHARED_SHELF, args.voxel_size or 0.004
     else:  # no data on this machine: generate a small RGB-D sequence (textured boxes, exact depth)
         path, voxel = out / "sample", args.voxel_size or 0.02
         if not path.is_dir():
             write_tsdf_fusion(synthetic_rgbd(num_frames=24, width=320, height=240), path)
-    frames = load_dataset(path)
+    frames = load_dataset(path)  # before --out is created: a mistyped capture leaves nothing behind
+    out.mkdir(parents=True, exist_ok=True)
     port = args.port or free_port()
-    print(f"demo: fusing {len(frames)} frames of {path} at {voxel * 1000:g} mm voxels through a service on port {port}")
+    size = "the voxel size the service chooses from the first frame" if voxel is None else f"{voxel * 1000:g} mm voxels"
+    print(f"demo: fusing {len(frames)} frames of {path} at {size} through a service on port {port}")
     service = start_service(port, out / "data")
     try:
         with Client(f"http://127.0.0.1:{port}") as client:
-            new_session = FirstFrameSession(client, {"voxel_size": voxel})
+            new_session = FirstFrameSession(client, {} if voxel is None else {"voxel_size": voxel})
             sent, elapsed = stream_frames(new_session, frames)
             session = new_session.session
             print(stream_summary(sent, elapsed, session, session.stats()))

@@ -57,9 +57,11 @@ def wait_until_healthy(url: str, proc, timeout: float) -> None:
 
 
 def start_service(port: int, data_dir: Path):
-    """The service as a child process (the same `canonical serve` a user runs); waits for /healthz."""
+    """The service as a child process (the same `canonical serve` a user runs); waits for /healthz.
+    A relative ``data_dir`` is the caller's: it is resolved here, as the child runs in the project's folder."""
     import subprocess
 
+    data_dir = Path(data_dir).resolve()
     proc = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port", str(port), "--data-dir", str(data_dir),
                              "--log-level", "warning"], cwd=Path(__file__).resolve().parents[2])
     try:

@@ -4,19 +4,20 @@ and uncertainty pictures), ``train`` (the decoder's heads) and ``eval`` (methods
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from .common import UsageError, positive_int
 
 
 # -- depth --------------------------------------------------------------------------------------
 def add_depth(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (its depth, if any, is only compared against)")
     p.add_argument("--out", required=True, help="folder for <frame>.depth.png and <frame>.uncertainty.png")
-    p.add_argument("--sources", type=int, default=2, help="source views per frame (default 2)")
-    p.add_argument("--stride", type=int, default=1)
-    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--sources", type=positive_int, default=2, help="source views per frame (default 2)")
+    p.add_argument("--stride", type=positive_int, default=1)
+    p.add_argument("--max-frames", type=positive_int, default=None)
 
 
 def run_depth(args) -> int:
@@ -54,8 +55,7 @@ def run_train(args) -> int:
         settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width,
                                  device=args.device, coverage_weight=args.coverage_weight, **heads)
     except ValueError as exc:
-        print(f"canonical train: {exc}", file=sys.stderr)
-        return 2
+        raise UsageError(str(exc)) from None
     result = run_training(args.captures, args.out, settings)
     report = Path(args.out).with_name(Path(args.out).stem + "_report")
     print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")

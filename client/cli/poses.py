@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import add_connection, add_json, connect
+from .common import UsageError, add_connection, add_json, connect, session_id
 
 
 def add_poses(p: argparse.ArgumentParser) -> None:
@@ -19,21 +19,36 @@ def add_poses(p: argparse.ArgumentParser) -> None:
                                             "matrix, either optionally after the frame's key (frame_id or TUM timestamp); "
                                             "a line without a key names the frame of that arrival index (line k = frame k)")
     add_connection(p)
-    p.add_argument("--session", required=True, help="the session whose frames get the poses")
+    p.add_argument("--session", type=session_id, required=True, help="the session whose frames get the poses")
     p.add_argument("--remove", action="append", default=[], metavar="KEY",
                    help="also remove this frame (frame_id or arrival index); repeatable")
     add_json(p, "what the correction did (the service's answer)")
 
 
-def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
-    """A pose file (see ``canonical poses --help``) -> {frame key: validated 4x4 c2w}; '#' comments and
-    blank lines skipped. Raises ValueError naming the file and line."""
+def pose_text(path: str | Path) -> str:
+    """A pose file's text; ValueError naming the file when it is missing or not text. Besides files,
+    what reads as one: /dev/null (no poses), a pipe (``<(...)``)."""
+    from canonical_core.datasets.files import read_text
+
+    path = Path(path)
+    if not path.exists() or path.is_file() or path.is_dir():
+        return read_text(path)  # its messages: "file not found", "unreadable text file"
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable text file ({exc})") from None
+
+
+def read_pose_file(path: str | Path, text: str | None = None) -> dict[str, np.ndarray]:
+    """A pose file (see ``canonical poses --help``; ``text`` its text where it was read already) ->
+    {frame key: validated 4x4 c2w}; '#' comments and blank lines skipped. Raises ValueError naming the
+    file and line."""
     from canonical_core.calibration import validate_pose
-    from canonical_core.datasets.files import parse_floats, read_text
+    from canonical_core.datasets.files import parse_floats
     from canonical_core.datasets.tum import tum_pose_to_matrix
 
     poses: dict[str, np.ndarray] = {}
-    for number, line in enumerate(read_text(path).splitlines(), start=1):
+    for number, line in enumerate((pose_text(path) if text is None else text).splitlines(), start=1):
         words = line.split("#", 1)[0].split()
         if not words:
             continue
@@ -54,8 +69,7 @@ def read_pose_file(path: str | Path) -> dict[str, np.ndarray]:
 
 def run_poses(args) -> int:
     if args.poses is None and not args.remove:
-        print("poses: give a pose file, --remove, or both", file=sys.stderr)
-        return 2
+        raise UsageError("give a pose file, --remove, or both")
     poses = read_pose_file(args.poses) if args.poses else {}
     def progress(status: dict) -> None:  # a long re-fold runs in the service's background: show how far it is
         print(f"correction {status['correction_id']}: {status['state']}, {status['refolded']} of {status['total']} "

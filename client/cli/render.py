@@ -18,14 +18,15 @@ from canonical_core.datasets.files import intrinsics_arg  # the same --K as stre
 from canonical_core.datasets.images import DEPTH_INVALID_CODE
 from canonical_wire import NO_LABEL
 
-from .common import UsageError, add_connection, connect, warnings_on_stderr
-from .poses import read_pose_file
+from .common import (UsageError, add_connection, colour_arg, connect, seconds_arg, session_id, warnings_on_stderr,
+                     writing)
+from .poses import pose_text, read_pose_file
 
 
 # -- render -------------------------------------------------------------------------------------
 def add_render(p: argparse.ArgumentParser) -> None:
     add_connection(p)
-    p.add_argument("--session", required=True)
+    p.add_argument("--session", type=session_id, required=True)
     p.add_argument("--frame-like", metavar="DATASET:INDEX", action="append", default=[],
                    help="a view at the camera of frame INDEX of DATASET; repeatable, one view each. With --pose or "
                         "--trajectory, only its intrinsics and image size are taken")
@@ -41,7 +42,7 @@ def add_render(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, help="image width (or --size)")
     p.add_argument("--height", type=int, help="image height (or --size)")
     p.add_argument("--max-gaussians", type=int, default=None)
-    p.add_argument("--background", default=None, help="r,g,b in [0, 1]")
+    p.add_argument("--background", type=colour_arg, default=None, help="r,g,b in [0, 1]")
     p.add_argument("--colour", choices=["normalised", "composited"], default=None,
                    help="normalised (the service's default: each drawn pixel the surface's expected colour, not darkened "
                         "where splats cover it only in part) or composited (the blend over the background)")
@@ -68,22 +69,6 @@ def add_wait_solved(p: argparse.ArgumentParser, what: str) -> None:
                    help=f"wait up to SECONDS for the colours of a session whose stream has paused to be solved (the "
                         f"service solves them in the background; {what} before then show the fused colours); 0: at once. "
                         "A session that is still taking frames is not waited for (default: 120)")
-
-
-def seconds_arg(text: str) -> float:
-    """A number of seconds, at least 0.
-
-    Example:
-        >>> seconds_arg("2.5")
-        2.5
-    """
-    try:
-        seconds = float(text)
-    except ValueError:
-        seconds = float("nan")
-    if not (0 <= seconds < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
-    return seconds
 
 
 def wait_solved(session, seconds: float) -> None:
@@ -132,28 +117,35 @@ def _capture(path: str):
     return load_dataset(path)
 
 
-def view_poses(path: str) -> list[np.ndarray]:
-    """The camera-to-world poses of a --pose or --trajectory file, in file order: one 4x4 (or 3x4)
-    matrix written over its lines, else one pose a line (`read_pose_file`)."""
+def view_poses(path: str, option: str) -> list[np.ndarray]:
+    """The camera-to-world poses of a --pose or --trajectory file (``option``), in file order: one 4x4
+    (or 3x4) matrix written over its lines, else one pose a line (`read_pose_file`). ValueError naming
+    ``option`` and the file for a file without a pose (only comments, empty) or one that cannot be read."""
     from canonical_core.calibration import validate_pose
 
     try:
-        matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError:  # not one block of numbers: pose lines with keys, or malformed (read_pose_file says where)
-        matrix = None
-    if matrix is not None and matrix.shape in ((4, 4), (3, 4)):
-        return [validate_pose(matrix, str(path))]
-    return list(read_pose_file(path).values())
+        text = pose_text(path)
+        if not any(line.split("#", 1)[0].strip() for line in text.splitlines()):
+            raise ValueError(f"no poses in {path}")
+        try:
+            matrix = np.loadtxt(io.StringIO(text), dtype=np.float64, ndmin=2)
+        except ValueError:  # not one block of numbers: pose lines with keys, or malformed (read_pose_file says where)
+            matrix = None
+        if matrix is not None and matrix.shape in ((4, 4), (3, 4)):
+            return [validate_pose(matrix, str(path))]
+        return list(read_pose_file(path, text).values())
+    except ValueError as exc:
+        raise ValueError(f"{option}: {exc}") from None
 
 
 def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
     """(K, c2w, width, height) of each view the arguments name, in order: each --frame-like's camera,
     or each pose of --pose / --trajectory with --K and --size (else the --frame-like camera's)."""
-    cameras = [frame_like_camera(spec) for spec in args.frame_like]
     pose_file = args.pose or args.trajectory
+    if pose_file is None and (args.K or args.size or args.width or args.height):
+        raise UsageError("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
+    cameras = [frame_like_camera(spec) for spec in args.frame_like]
     if pose_file is None:
-        if args.K or args.size or args.width or args.height:
-            raise SystemExit("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
         return cameras
     width, height = args.size or (args.width, args.height)
     if args.K:
@@ -161,15 +153,15 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
         if not (width and height):
             if len(cameras) != 1:
-                raise SystemExit("--K needs --size WxH (or one --frame-like whose image size to take)")
+                raise UsageError("--K needs --size WxH (or one --frame-like whose image size to take)")
             width, height = cameras[0][2:]
     elif len(cameras) == 1:
         K, _, own_width, own_height = cameras[0]
         width, height = width or own_width, height or own_height
     else:
-        raise SystemExit("--pose and --trajectory need --K fx,fy,cx,cy and --size WxH, or one --frame-like "
+        raise UsageError("--pose and --trajectory need --K fx,fy,cx,cy and --size WxH, or one --frame-like "
                          "DATASET:INDEX whose intrinsics and image size to take")
-    return [(K, c2w, width, height) for c2w in view_poses(pose_file)]
+    return [(K, c2w, width, height) for c2w in view_poses(pose_file, "--pose" if args.pose else "--trajectory")]
 
 
 def output_paths(output: str, count: int) -> list[Path]:
@@ -179,14 +171,14 @@ def output_paths(output: str, count: int) -> list[Path]:
         try:
             paths = [Path(output.format(i=i)) for i in range(count)]
         except (KeyError, IndexError, ValueError) as exc:
-            raise SystemExit(f"-o: expected a pattern with {{i}} (e.g. view_{{i:03d}}.png), got {output!r} ({exc!r})") from None
+            raise UsageError(f"-o: expected a pattern with {{i}} (e.g. view_{{i:03d}}.png), got {output!r} ({exc!r})") from None
         if len(set(paths)) < count:
-            raise SystemExit(f"-o: {output!r} names one file for several views; put {{i}} in it")
+            raise UsageError(f"-o: {output!r} names one file for several views; put {{i}} in it")
         return paths
     if output.endswith(("/", os.sep)) or Path(output).is_dir():
         return [Path(output) / f"view_{i:04d}.png" for i in range(count)]
     if count > 1:
-        raise SystemExit(f"-o: {count} views need a pattern with {{i}} (e.g. view_{{i:03d}}.png) or a folder, got {output!r}")
+        raise UsageError(f"-o: {count} views need a pattern with {{i}} (e.g. view_{{i:03d}}.png) or a folder, got {output!r}")
     return [Path(output)]
 
 
@@ -208,8 +200,7 @@ def frame_like_camera(spec: str) -> tuple[np.ndarray, np.ndarray, int, int]:
 
 def run_render(args) -> int:
     if not (args.frame_like or args.pose or args.trajectory):
-        print("render: give the view(s): --frame-like DATASET:INDEX, --pose FILE or --trajectory FILE", file=sys.stderr)
-        return 2
+        raise UsageError("give the view(s): --frame-like DATASET:INDEX, --pose FILE or --trajectory FILE")
     if args.map != "rgb" and (args.colour or args.background):
         raise UsageError(f"--{'colour' if args.colour else 'background'}: only with --map rgb (got --map {args.map})")
     if not (args.depth_scale > 0 and np.isfinite(args.depth_scale)):
@@ -220,15 +211,15 @@ def run_render(args) -> int:
     suffixes = {path.suffix.lower() for path in paths}
     if not suffixes <= {".png", ".npy"}:
         raise UsageError(f"-o: expected .png files (or .npy for the map's own values), got {args.output!r}")
-    background = None if args.background is None else [float(x) for x in args.background.split(",")]
     with connect(args) as client:  # one process and one connection for every view
         session = client.session(args.session)
         if args.map == "rgb":  # the other maps do not depend on the colours
             wait_solved(session, args.wait_solved)
         for view, path in zip(views, paths):
-            data = view_file(session, args.map, view, path.suffix.lower() == ".npy", args, background)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(data)
+            data = view_file(session, args.map, view, path.suffix.lower() == ".npy", args, args.background)
+            with writing("-o", path):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(data)
             print(path, flush=True)
     return 0
 
@@ -273,7 +264,7 @@ def depth_png(depth: np.ndarray, scale: float) -> bytes:  # float32 [H, W] metre
 # -- export -------------------------------------------------------------------------------------
 def add_export(p: argparse.ArgumentParser) -> None:
     add_connection(p)
-    p.add_argument("--session", required=True)
+    p.add_argument("--session", type=session_id, required=True)
     p.add_argument("--max-gaussians", type=int, default=None)
     p.add_argument("--mesh", action="store_true",
                    help="the surface as a coloured triangle mesh (PLY: vertex colours and faces) instead of the Gaussians")
@@ -284,15 +275,17 @@ def add_export(p: argparse.ArgumentParser) -> None:
 def run_export(args) -> int:
     suffix = Path(args.output).suffix.lower()
     if suffix not in ((".ply",) if args.mesh else (".ply", ".splat")):
-        raise SystemExit(f"-o: expected a {'.ply' if args.mesh else '.ply or .splat'} file name, got {args.output!r}")
+        raise UsageError(f"-o: expected a {'.ply' if args.mesh else '.ply or .splat'} file name, got {args.output!r}")
     if args.mesh and args.max_gaussians is not None:
-        raise SystemExit("--max-gaussians: a level of detail of the Gaussians; --mesh exports the surface")
+        raise UsageError("--max-gaussians: a level of detail of the Gaussians; --mesh exports the surface")
     with connect(args) as client:
         session = client.session(args.session)
-        if args.mesh:  # its colours are the fused ones
-            path = session.export_mesh(args.output)
-        else:
+        if not args.mesh:  # the mesh's colours are the fused ones
             wait_solved(session, args.wait_solved)
-            path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
+        with writing("-o", args.output):  # missing folders are created, as render does
+            if args.mesh:
+                path = session.export_mesh(args.output)
+            else:
+                path = (session.export_ply if suffix == ".ply" else session.export_splat)(args.output, args.max_gaussians)
     print(path)
     return 0

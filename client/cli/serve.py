@@ -7,16 +7,20 @@ import argparse
 import os
 import sys
 
-from .common import UsageError
+from .common import UsageError, session_id
 
 
 # -- serve --------------------------------------------------------------------------------------
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")  # uvicorn's (uvicorn.config.LOG_LEVELS)
+
+
 def add_serve(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default=None, help="bind address (default: $CANONICAL_HOST or 127.0.0.1)")
     p.add_argument("--port", type=int, default=None, help="port (default: $CANONICAL_PORT or 8000)")
     p.add_argument("--data-dir", default=None, help="session storage (default: $CANONICAL_DATA_DIR or ./data)")
     p.add_argument("--threads", type=int, default=None, help="CPU threads per job (default: $CANONICAL_THREADS or all)")
-    p.add_argument("--log-level", default="info")
+    p.add_argument("--log-level", default="info", type=str.lower, choices=LOG_LEVELS,
+                   help="uvicorn's log level (default: info)")
     p.add_argument("--cluster", action="store_true",
                    help="run on Ray Serve (needs the [cluster] extra): start a local Ray cluster, or join --address; "
                         "--data-dir must then be a folder every node mounts")
@@ -102,7 +106,7 @@ def serve_settings(args):
 def add_repair(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-dir", default=None, help="the service's data directory (default: $CANONICAL_DATA_DIR or "
                                                     "./data); the service must be stopped")
-    p.add_argument("--session", default=None, help="the session to repair (default: list the sessions that need it)")
+    p.add_argument("--session", type=session_id, default=None, help="the session to repair (default: list the sessions that need it)")
     p.add_argument("--action", choices=["truncate", "skip"], default=None,
                    help="truncate: keep the frames logged before the damage; skip: keep every intact frame "
                         "(the log as it was stays in the session's quarantine/ folder)")
@@ -123,8 +127,8 @@ def run_repair(args) -> int:
     try:
         if args.session is None:
             store.open()
-            for session_id, problem in sorted(store.unavailable.items()):
-                print(f"{session_id}: {problem}")
+            for name, problem in sorted(store.unavailable.items()):
+                print(f"{name}: {problem}")
             print(f"{len(store.unavailable)} of {len(store) + len(store.unavailable)} sessions need repair")
         else:
             print(store.repair(args.session, args.action))

@@ -9,7 +9,8 @@ import os
 import sys
 import time
 
-from .common import UsageError, add_connection, add_json, connect
+from ..sdk.session import path_segment
+from .common import UsageError, add_connection, add_json, connect, seconds_arg, session_id
 
 
 # -- sessions -----------------------------------------------------------------------------------
@@ -48,7 +49,7 @@ def human_age(seconds: float) -> str:
 
 def run_sessions(args) -> int:
     if args.dry_run and not args.prune:
-        raise SystemExit("--dry-run goes with --prune")
+        raise UsageError("--dry-run goes with --prune")
     if args.prune:
         return run_prune(args)
     with connect(args) as client:
@@ -94,13 +95,13 @@ def run_prune(args) -> int:
 # -- view ---------------------------------------------------------------------------------------
 def add_view(p: argparse.ArgumentParser) -> None:
     add_connection(p)
-    p.add_argument("--session", required=True, help="session id")
+    p.add_argument("--session", type=session_id, required=True, help="session id")
     p.add_argument("--no-browser", action="store_true", help="only print the URL")
 
 
 def viewer_url(base: str, session_id: str) -> str:
     """The web viewer's page of a session (the token never goes into it: the page asks for it)."""
-    return f"{base.rstrip('/')}/sessions/{session_id}/view"
+    return f"{base.rstrip('/')}/sessions/{path_segment(session_id, 'session_id')}/view"
 
 
 def has_display() -> bool:
@@ -125,8 +126,8 @@ def run_view(args) -> int:
 # -- watch ------------------------------------------------------------------------------------------
 def add_watch(p: argparse.ArgumentParser) -> None:
     add_connection(p)
-    p.add_argument("--session", required=True, help="session id")
-    p.add_argument("--every", type=float, default=1.0, help=(
+    p.add_argument("--session", type=session_id, required=True, help="session id")
+    p.add_argument("--every", type=seconds_arg, default=1.0, help=(
         "seconds: at most one line per interval, standing for the folds since the last (default 1; 0: a line "
         "for every fold)"))
     add_json(p, "each event (its name and fields, one JSON object a line)")
@@ -155,8 +156,6 @@ def watch_line(name: str, event: dict) -> str:
 def run_watch(args) -> int:
     """Print the session's events until it is deleted (exit 0) or the stream falls behind (exit 1);
     Ctrl-C stops it."""
-    if args.every < 0:
-        raise UsageError(f"--every: {args.every} is negative; give seconds, or 0 for every fold")
     with connect(args) as client:
         try:
             for name, event in client.session(args.session).events(every=args.every or None):

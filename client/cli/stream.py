@@ -16,25 +16,26 @@ from canonical_core.datasets.files import intrinsics_arg  # the same --K as rend
 
 from ..sdk import Client, Session, StreamRefused
 from .capture import capture_frames
-from .common import UsageError, add_connection, add_json, connect, warnings_on_stderr
+from .common import (UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id,
+                     warnings_on_stderr)
 
 
 def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", help="a capture canonical_core.datasets.load_dataset reads (tsdf-fusion, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
     add_connection(p)
     target = p.add_mutually_exclusive_group()
-    target.add_argument("--session", help="stream into this existing session, after the frames it already has "
+    target.add_argument("--session", type=session_id, help="stream into this existing session, after the frames it already has "
                                            "(give the same dataset, --stride and --max-frames to resume)")
-    target.add_argument("--voxel-size", type=float, help="a new session's voxel size, metres (default: chosen by the "
+    target.add_argument("--voxel-size", type=positive_number, help="a new session's voxel size, metres (default: chosen by the "
                                                          "service from the first frame, 6 pixel footprints at its median depth)")
     p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
                    help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
                         "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
-    p.add_argument("--stride", type=int, default=1, help="keep every k-th frame")
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--scale", type=float, default=1.0, help="resize frames by this factor before sending (e.g. 0.5); "
-                                                             "frames without depth over the service's limit for them "
-                                                             "are downscaled to it anyway")
+    p.add_argument("--stride", type=positive_int, default=1, help="keep every k-th frame")
+    p.add_argument("--max-frames", type=positive_int, default=None)
+    p.add_argument("--scale", type=positive_number, default=1.0,
+                   help="resize frames by this factor before sending (e.g. 0.5; labels and features go at their own "
+                        "resolution); frames without depth over the service's limit for them are downscaled to it anyway")
     p.add_argument("--in-flight", type=positive_int, default=IN_FLIGHT, help="frames posted at once (the service "
                                                                               "folds them in order; 1: one at a time)")
     p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
@@ -43,17 +44,6 @@ def add_stream(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="settings", action="append", default=[], type=session_setting, metavar="PATH=VALUE",
                    help="a setting of the new session (a public SceneConfig field, groups with a dot, VALUE read as "
                         "the field's type), e.g. --set colour_solve.views=16 --set free_space.margin=3; repeatable")
-
-
-def positive_int(text: str) -> int:
-    """An argument that must be a whole number of at least 1 (a usage error otherwise)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def session_setting(text: str) -> tuple[str, object]:
@@ -168,11 +158,9 @@ def run_stream(args) -> int:
     from canonical_core.datasets import MissingIntrinsics, load_dataset
 
     if args.session and args.settings:
-        print("--set: settings belong to a new session (without --session), not to an existing one", file=sys.stderr)
-        return 2
+        raise UsageError("--set: settings belong to a new session (without --session), not to an existing one")
     if any(name == "voxel_size" for name, _ in args.settings):
-        print("--set: voxel_size is set by --voxel-size", file=sys.stderr)
-        return 2
+        raise UsageError("--set: voxel_size is set by --voxel-size")
     try:
         with warnings_on_stderr():
             frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict,
@@ -188,11 +176,14 @@ def run_stream(args) -> int:
             sys.stdout.flush()
 
     with connect(args) as client:
-        start = 0
+        start = held = 0
         if args.session:
             target = client.session(args.session)
-            start = min(target.stats()["frames"], len(frames))  # resume after the frames it already has
-            print(f"session {target.id}: resuming after its {start} frames", file=sys.stderr)
+            held = target.stats()["frames"]
+            # resume after as many of the capture's frames as it holds; where some were removed since, the
+            # frames after them that it holds are answered as held (by frame_id) and skipped
+            start = min(held, len(frames))
+            print(f"session {target.id}: resuming after its {held} frames", file=sys.stderr)
             announce(target)
         else:
             settings = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
@@ -208,15 +199,21 @@ def run_stream(args) -> int:
         except StreamInterrupted as stop:
             sent, elapsed, interrupted = stop.sent, stop.elapsed, True
         except StreamRefused as exc:
-            sent, elapsed, refused = exc.index - start, time.perf_counter() - t0, exc
+            sent, elapsed, refused = exc.index - held, time.perf_counter() - t0, exc
         session = target.session if isinstance(target, FirstFrameSession) else target
         if session is None:  # no frame went in: no session was made
             print(("interrupted" if interrupted else f"{frames.name}: no frames to stream")
                   + "; no session was created", file=sys.stderr)
             return 130 if interrupted else 1
         stats = session.stats()
+        skipped = 0
         if interrupted:  # the frames in flight at Ctrl-C were folded too
-            sent = stats["frames"] - start
+            sent = stats["frames"] - held
+        elif args.session and not refused:
+            sent, skipped = stats["frames"] - held, sent - (stats["frames"] - held)
+        if skipped > 0:
+            print(f"{skipped} frames of {frames.name} from frame {start} on were in the session already: not folded again",
+                  file=sys.stderr)
         summary = stream_summary(sent, elapsed, session, stats)
         if interrupted or refused:
             summary = f"{'interrupted' if interrupted else 'stopped'}: {summary}; continue with --session {session.id}"

@@ -10,7 +10,7 @@ import time
 import httpx
 
 from .errors import CanonicalError
-from .session import Session
+from .session import Session, path_segment
 
 
 # answers that say the service (or a proxy before it) could not take the request now, not that the
@@ -22,6 +22,19 @@ def default_url() -> str:
     """The service's base URL when none is given: ``CANONICAL_URL`` from the environment, else the
     address `canonical serve` listens on by default."""
     return os.environ.get("CANONICAL_URL") or "http://127.0.0.1:8000"
+
+
+def _check_finite(value, name: str) -> None:
+    """ValueError naming the setting (``range.near``) where ``value`` holds a NaN or an infinity, which
+    JSON cannot carry (the service would never see it to name it)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _check_finite(item, f"{name}.{key}")
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            _check_finite(item, name)
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
 
 
 class Client:
@@ -88,12 +101,15 @@ class Client:
         max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, sensor={"family": "hololens"}``).
         Without ``voxel_size`` the service chooses it from the first frame with depth (its stats say which)."""
         body = settings if voxel_size is None else {"voxel_size": voxel_size, **settings}
+        for name, value in body.items():
+            _check_finite(value, name)
         r = self._request("POST", "/v1/sessions", json=body)
         return Session(self, r.json()["id"], label_dim=0)
 
     def session(self, session_id: str) -> Session:
-        """An existing session (checked: raises CanonicalError 404 when unknown)."""
-        stats = self._request("GET", f"/v1/sessions/{session_id}").json()
+        """An existing session (checked: raises CanonicalError 404 when unknown, ValueError naming
+        session_id when it is empty)."""
+        stats = self._request("GET", f"/v1/sessions/{path_segment(session_id, 'session_id')}").json()
         return Session(self, session_id, label_dim=stats.get("label_dim"))
 
     def limits(self) -> dict:

@@ -20,12 +20,21 @@ FrameCodec = Literal["compact", "raw"]
 FRAME_CODECS = get_args(FrameCodec)
 
 
-def wire_matrix(m, shape: tuple[int, int]) -> list:
-    """``m`` as the nested lists of floats a body carries (msgpack or JSON); ValueError unless its
-    shape is ``shape``, before anything is sent."""
-    a = np.asarray(m, dtype=np.float64)
+def wire_matrix(m, shape: tuple[int, int], name: str) -> list:
+    """``m`` as the nested lists of floats a body carries (msgpack or JSON); ValueError naming the
+    argument ``name`` unless it is numbers of shape ``shape``, before anything is sent.
+
+    Example:
+        >>> wire_matrix(np.eye(4), (3, 3), "K")
+        Traceback (most recent call last):
+        ValueError: K: expected a 3x3 matrix, got shape [4, 4]
+    """
+    try:
+        a = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: expected a {shape[0]}x{shape[1]} matrix of numbers ({exc})") from None
     if a.shape != shape:
-        raise ValueError(f"expected a {shape[0]}x{shape[1]} matrix, got shape {list(a.shape)}")
+        raise ValueError(f"{name}: expected a {shape[0]}x{shape[1]} matrix, got shape {list(a.shape)}")
     return a.tolist()
 
 
@@ -98,7 +107,7 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
         rgb = encode_png(np.asarray(rgb))
     else:
         rgb = encode_array(rgb)
-    msg: dict = {"rgb": rgb, "K": wire_matrix(K, (3, 3)), "c2w": wire_matrix(c2w, (4, 4))}
+    msg: dict = {"rgb": rgb, "K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w")}
     if depth is not None and depth_scale is None and codec == "compact" and np.issubdtype(np.asarray(depth).dtype, np.floating):
         depth, depth_scale = exact_sensor_depth(depth) or (depth, None)
     if isinstance(depth, (bytes, bytearray)):  # a 16-bit depth PNG, as a depth camera's files hold it
@@ -167,7 +176,7 @@ def scaled_intrinsics(K, sx: float, sy: float) -> np.ndarray:  # [3, 3] float64
     """
     from canonical_core.resample import resized_intrinsics  # numpy only (loaded when a frame is resized)
 
-    return resized_intrinsics(np.array(wire_matrix(K, (3, 3))), sx, sy)
+    return resized_intrinsics(np.array(wire_matrix(K, (3, 3), "K")), sx, sy)
 
 
 def _image_size(image) -> tuple[int, int] | None:

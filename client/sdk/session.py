@@ -27,7 +27,8 @@ if TYPE_CHECKING:
 
 def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None,
           depth: str | None = None) -> dict:
-    body = {"K": wire_matrix(K, (3, 3)), "c2w": wire_matrix(c2w, (4, 4)), "width": int(width), "height": int(height)}
+    body = {"K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w"), "width": int(width),
+            "height": int(height)}
     if colour is not None:
         body["colour"] = colour
     if depth is not None:
@@ -39,12 +40,37 @@ def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background
     return body
 
 
+def path_segment(value, name: str) -> str:
+    """``value`` (a session, frame or correction id) as one segment of a request's path: percent-encoded
+    whole, so a '/' or '?' in it stays in it, and the dot segments '.' and '..' as %2E, which the HTTP
+    client would otherwise resolve against the path before them (``..`` naming the session itself).
+    ValueError naming ``name`` for an empty id, which names no resource.
+
+    Example:
+        >>> path_segment("a/b", "frame_id"), path_segment("..", "frame_id")
+        ('a%2Fb', '%2E%2E')
+    """
+    text = str(value)
+    if not text:
+        raise ValueError(f"{name}: expected an id, got an empty string")
+    return "%2E" * len(text) if text in (".", "..") else quote(text, safe="")
+
+
 def _write(path: str | os.PathLike, data: bytes) -> Path:
-    """``data`` to ``path`` by way of a temporary file beside it, so a failed download leaves no half file."""
+    """``data`` to ``path`` by way of a temporary file beside it, so a failed download leaves no half
+    file; the temporary file is removed if the write fails, and the error names ``path``, not it.
+    Missing parent folders are created."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except BaseException as exc:  # Ctrl-C too: no half file of the download's size left behind
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename in (str(tmp), tmp) and exc.errno is not None:
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from None
+        raise
     return path
 
 
@@ -59,7 +85,7 @@ class Session:
 
     @property
     def _path(self) -> str:
-        return f"/v1/sessions/{self.id}"
+        return f"/v1/sessions/{path_segment(self.id, 'session_id')}"
 
     def add_frame(self, rgb, K, c2w, depth=None, depth_std=None, features=None, labels=None, frame_id=None,
                   depth_scale=None, num_classes: int | None = None, downscale: bool = True,
@@ -95,28 +121,38 @@ class Session:
         Each frame carries its place in the session's stream (header ``Frame-Index``: ``first_index``,
         by default the session's frame count, then one more a frame), and the service folds them in
         that order whatever order they arrive in, so the scene is the one that posting them one by
-        one gives. A refused frame stops the stream: `StreamRefused` (the refusal's status, code and
-        field) says which frame it was and how many were acknowledged (the reports yielded); the
-        frames posted after it are not folded. ``frames`` is read lazily, ``in_flight`` ahead."""
+        one gives. A frame whose ``frame_id`` the session holds already is answered with its report
+        (its ``frame_index`` the place it holds) and takes no new place: the frames from the first go
+        alone until one takes a new place, so a stream resumed from a point before the last frame the
+        session holds skips those it holds. A refused frame stops the stream: `StreamRefused` (the
+        refusal's status, code and field) says which frame it was and how many were acknowledged (the
+        reports yielded); the frames posted after it are not folded. ``frames`` is read lazily,
+        ``in_flight`` ahead."""
         if isinstance(in_flight, bool) or not isinstance(in_flight, int) or in_flight < 1:
             raise ValueError(f"in_flight: expected a positive integer, got {in_flight!r}")
         index = self.stats()["frames"] if first_index is None else int(first_index)
         pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="canonical-frames")
-        pending: collections.deque = collections.deque()
-        acknowledged = 0
+        pending: collections.deque = collections.deque()  # (future, its Frame-Index)
+        acknowledged, alone = 0, True
         try:
-            for position, frame in enumerate(itertools.chain(frames, [None])):
+            for frame in itertools.chain(frames, [None]):
                 if frame is not None:
-                    pending.append(pool.submit(self._post_frame, frame, index + position))
-                # the first frame goes alone: where an earlier stream's frame was refused, the frames
-                # after it are refused until a frame takes its place
-                while pending and (frame is None or len(pending) >= (in_flight if position else 1)):
+                    pending.append((pool.submit(self._post_frame, frame, index), index))
+                    index += 1
+                # alone: where an earlier stream's frame was refused, the frames after it are refused
+                # until a frame takes its place; and a frame the session holds takes none
+                while pending and (frame is None or len(pending) >= (1 if alone else in_flight)):
+                    future, place = pending[0]
                     try:
-                        report = pending[0].result()
+                        report = future.result()
                     except CanonicalError as exc:
-                        raise StreamRefused(exc, index + acknowledged, acknowledged) from exc
+                        raise StreamRefused(exc, place, acknowledged) from exc
                     pending.popleft()
                     acknowledged += 1
+                    if alone and report.get("frame_index", place) < place:  # held already: its place is free again
+                        index -= 1
+                    else:
+                        alone = False
                     yield report
         finally:
             # frames not yet posted are dropped; posted ones finish (the service answers them, in order)
@@ -167,8 +203,8 @@ class Session:
         status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
         without, the service answers at once and this returns the status (``correction_id``, ``state``;
         see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
-        body = {"poses": {str(k): wire_matrix(c2w, (4, 4)) for k, c2w in poses.items()}, "remove": [str(k) for k in remove],
-                "wait": bool(wait)}
+        body = {"poses": {str(k): wire_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items()},
+                "remove": [str(k) for k in remove], "wait": bool(wait)}
         for k, c2w in body["poses"].items():
             if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
                 raise ValueError(f"poses.{k}: contains NaN or inf")
@@ -177,13 +213,13 @@ class Session:
     def remove_frame(self, frame_id, wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Remove one frame (its ``frame_id`` or arrival index) from the session's scene (``wait``,
         ``progress``, ``poll``: as for `update_poses`)."""
-        r = self.client._request("DELETE", f"{self._path}/frames/{quote(str(frame_id), safe='')}")
+        r = self.client._request("DELETE", f"{self._path}/frames/{path_segment(frame_id, 'frame_id')}")
         return self._finished(r, wait, progress, poll)
 
     def correction(self, correction_id: str) -> dict:
         """A background correction's status: ``state`` (pending, running, done, failed), ``refolded``
         of ``total`` frames, and once done its ``result``."""
-        return self.client._request("GET", f"{self._path}/corrections/{quote(correction_id, safe='')}").json()
+        return self.client._request("GET", f"{self._path}/corrections/{path_segment(correction_id, 'correction_id')}").json()
 
     def _finished(self, r: httpx.Response, wait: bool, progress, poll: float) -> dict:
         """A correction's answer: as it came (200, or 202 without ``wait``), else its polled result."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,14 +11,17 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from canonical_core import load_ply
-from canonical_core.datasets import load_tsdf_fusion
+from canonical_core import Camera, Frame, load_ply
+from canonical_core.datasets import load_tsdf_fusion, synthetic_rgbd, write_tsdf_fusion
 from client import cli
 from client.cli import demo
 from client.cli.capture import frame_arrays
+from client.cli.launch import free_port, start_service
 from client.sdk import Client
 
 from ..conftest import DATA, require_capture
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_commands_are_a_registry():
@@ -113,6 +117,31 @@ def test_stream_render_export_sessions(server, shelf_dir, tmp_path, capsys):
 
     assert cli.main(["export", *url, "--session", "no-such-session", "-o", str(ply)]) == 1
     assert "404" in capsys.readouterr().err
+
+
+@pytest.mark.realdata
+def test_scaled_frames_keep_their_labels_features_and_depth_std():
+    """--scale: depth_std resized as its depth is (nearest), labels and features sent at their own
+    resolution, which a frame takes at any size (class ids stay ids)."""
+    camera = Camera(np.array([[8.0, 0, 3.5], [0, 8, 3.5], [0, 0, 1]]), np.eye(4), 8, 8)
+    depth = np.arange(1, 65, dtype=np.float32).reshape(8, 8) / 32
+    classes = np.arange(64, dtype=np.int64).reshape(8, 8) % 3
+    frame = Frame(rgb=np.zeros((8, 8, 3), np.uint8), camera=camera, depth=depth, depth_std=depth / 100,
+                  features=np.ones((4, 4, 2), np.float32), labels=classes, num_classes=3, frame_id="f")
+    sent = frame_arrays(frame, 0.5)
+    assert sent["rgb"].shape == (4, 4, 3) and sent["depth"].shape == sent["depth_std"].shape == (4, 4)
+    assert np.array_equal(sent["depth_std"], sent["depth"] / 100)  # the same pixels as the depth's
+    assert np.array_equal(sent["labels"], classes) and sent["num_classes"] == 3
+    assert sent["features"].shape == (4, 4, 2)
+
+
+@pytest.mark.realdata
+def test_a_scaled_stream_fuses_the_captures_labels(server, apc_bins_path):
+    streamed = subprocess.run([sys.executable, "-m", "client.cli", "stream", str(apc_bins_path / "bin_labels"), "--url",
+                               server.url, "--voxel-size", "0.01", "--stride", "5", "--scale", "0.5", "--json"],
+                              cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert streamed.returncode == 0, streamed.stderr
+    assert json.loads(streamed.stdout)["label_dim"] == 3
 
 
 @pytest.mark.realdata
@@ -231,6 +260,34 @@ def test_demo_without_shared_data_fuses_a_generated_sample(tmp_path, monkeypatch
     assert Image.open(out / "render.png").size == (320, 240)
     assert Image.open(out / "comparison.png").size == (640, 240)
     assert len(load_ply(out / "scene.ply")) > 1000
+
+
+def test_demo_of_a_capture_given_lets_the_service_choose_the_voxel_size(tmp_path, capsys):
+    """Any capture, room-scale too: not the shelf's 4 mm, but the voxel the service's rule fits to its depth."""
+    capture = write_tsdf_fusion(synthetic_rgbd(num_frames=3, width=160, height=120), tmp_path / "capture")
+    assert cli.main(["demo", str(capture), "--out", str(tmp_path / "demo")]) == 0
+    printed = capsys.readouterr().out
+    assert "at the voxel size the service chooses from the first frame" in printed
+    assert float(printed.split(" voxels of ")[1].split(" mm")[0]) > 4 * 2
+
+
+def test_demo_of_a_missing_capture_creates_nothing(tmp_path, capsys):
+    assert cli.main(["demo", str(tmp_path / "no-such-capture"), "--out", str(tmp_path / "demo")]) == 1
+    assert "no-such-capture" in capsys.readouterr().err and not (tmp_path / "demo").exists()
+
+
+def test_a_service_started_with_a_relative_data_dir_keeps_its_data_under_the_callers_folder(tmp_path, monkeypatch):
+    """`demo --out RELDIR` run elsewhere than the project: the service (a child in the project's folder)
+    writes under RELDIR where it was run, not under the project."""
+    monkeypatch.chdir(tmp_path)
+    name = f"rel-{tmp_path.name}"
+    service = start_service(free_port(), Path(name) / "data")
+    try:
+        assert (tmp_path / name / "data").is_dir()
+        assert not (REPO / name).exists()
+    finally:
+        service.terminate()
+        service.wait(timeout=60)
 
 
 @pytest.mark.realdata

@@ -12,7 +12,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from client.cli import build_parser
 from client.cli.launch import free_port
+from client.sdk import Client
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -46,12 +48,66 @@ BAD_ARGUMENTS = [
     ("negative wait for solved colours", ["export", "--session", "x", "-o", "a.ply", "--wait-solved", "-1"], "--wait-solved"),
     ("endless wait for solved colours", ["render", "--session", "x", "--frame-like", "a:0", "-o", "a.png",
                                          "--wait-solved", "inf"], "--wait-solved"),
+    ("a log level uvicorn lacks", ["serve", "--log-level", "loud"], "--log-level"),
+    ("an empty session id", ["view", "--session", ""], "--session"),
+    ("no view to render", ["render", "--session", "x", "-o", "a.png"], "give the view(s)"),
+    ("intrinsics without a pose", ["render", "--session", "x", "--frame-like", "a:0", "--K", "1,2,3,4", "-o", "a.png"],
+     "--K and --size go with --pose"),
+    ("intrinsics without a size", ["render", "--session", "x", "--pose", "p", "--K", "1,2,3,4", "-o", "a.png"],
+     "--K needs --size"),
+    ("a pose without intrinsics", ["render", "--session", "x", "--pose", "p", "-o", "a.png"], "--pose and --trajectory need"),
+    ("export to a text file", ["export", "--session", "x", "-o", "a.txt"], "-o: expected a .ply"),
+    ("a mesh's level of detail", ["export", "--session", "x", "--mesh", "--max-gaussians", "9", "-o", "a.ply"],
+     "--max-gaussians"),
+    ("a dry run without prune", ["sessions", "--dry-run"], "--dry-run goes with --prune"),
+    ("poses without poses", ["poses", "--session", "x"], "give a pose file, --remove"),
+    ("settings of an existing session", ["stream", "somewhere", "--session", "x", "--set", "colour_solve.views=16"],
+     "--set: settings belong to a new session"),
+    ("the voxel size as a setting", ["stream", "somewhere", "--set", "voxel_size=0.01"], "--set: voxel_size"),
+    ("a stride of 0", ["stream", "somewhere", "--stride", "0"], "argument --stride: expected a positive integer"),
+    ("no frames", ["stream", "somewhere", "--max-frames", "0"], "argument --max-frames: expected a positive integer"),
+    ("a scale of 0", ["stream", "somewhere", "--scale", "0"], "argument --scale: expected a positive number"),
+    ("a voxel size not a number", ["stream", "somewhere", "--voxel-size", "nan"], "argument --voxel-size: expected a positive"),
+    ("an endless voxel", ["demo", "somewhere", "--voxel-size", "inf"], "argument --voxel-size: expected a positive"),
+    ("no source views", ["depth", "somewhere", "--out", "x", "--sources", "0"], "argument --sources: expected a positive"),
+    ("a background by name", ["render", "--session", "x", "--frame-like", "a:0", "--background", "red", "-o", "a.png"],
+     "argument --background: expected r,g,b"),
+    ("a background past 1", ["render", "--session", "x", "--frame-like", "a:0", "--background", "1,2,0", "-o", "a.png"],
+     "argument --background: expected r,g,b"),
+    ("an interval not a number", ["watch", "--session", "x", "--every", "nan"], "argument --every: expected a number"),
 ]
 
 
 @pytest.mark.parametrize("argv, word", [c[1:] for c in BAD_ARGUMENTS], ids=[c[0] for c in BAD_ARGUMENTS])
 def test_bad_arguments_are_one_line(argv, word):
-    assert_one_line_error(canonical(*argv), 2, word)
+    url = ["--url", f"http://127.0.0.1:{free_port()}"] if argv and argv[0] not in ("serve", "frobnicate", "demo", "depth") \
+        else []
+    assert_one_line_error(canonical(*argv, *url), 2, "error: ", word)
+
+
+@pytest.mark.parametrize("output, words", [
+    ("a.png", ["-o: 2 views need a pattern with {i}"]),
+    ("a_{j}.png", ["-o: expected a pattern with {i}"]),
+    ("a_{{i}}.png", ["names one file for several views"]),
+], ids=["one file", "no {i}", "one name"])
+def test_an_output_that_cannot_hold_the_views_is_a_usage_error(shelf_dir, tmp_path, output, words):
+    result = canonical("render", "--url", f"http://127.0.0.1:{free_port()}", "--session", "x", "--frame-like",
+                       f"{shelf_dir}:0", "--frame-like", f"{shelf_dir}:1", "-o", str(tmp_path / output))
+    assert_one_line_error(result, 2, "error: ", *words)
+
+
+@pytest.mark.parametrize("option", ["--trajectory", "--pose"])
+def test_a_pose_file_without_poses_is_one_line_naming_the_option(tmp_path, option):
+    (tmp_path / "comments.txt").write_text("# timestamp tx ty tz qx qy qz qw\n\n  # no pose yet\n")
+    for path in (str(tmp_path / "comments.txt"), "/dev/null"):
+        result = canonical("render", "--url", f"http://127.0.0.1:{free_port()}", "--session", "x", option, path,
+                           "--K", "8,8,4,4", "--size", "8x8", "-o", str(tmp_path / "v_{i}.png"))
+        assert_one_line_error(result, 1, f"{option}: no poses in {path}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["comments.txt"]
+
+
+def test_log_levels_are_read_in_any_case():
+    assert build_parser().parse_args(["serve", "--log-level", "WARNING"]).log_level == "warning"
 
 
 def test_unreachable_server_is_one_line():
@@ -138,6 +194,21 @@ def test_stream_resumes_after_the_frames_the_session_has(server, shelf_dir):
     assert "resuming after its 2 frames" in again.stderr and "2 frames in" in again.stderr
     stats = httpx.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert stats["frames"] == 4  # frames 0-1 once, then 2-3: none sent twice
+
+
+def test_stream_resumes_past_the_frames_the_session_holds_after_one_was_removed(server, shelf_dir):
+    common = [str(shelf_dir), "--url", server.url, "--stride", "10", "--scale", "0.25"]
+    first = canonical("stream", *common, "--voxel-size", "0.02", "--max-frames", "3")
+    assert first.returncode == 0, first.stderr
+    session_id = first.stdout.strip()
+    with Client(server.url) as client:
+        assert client.session(session_id).remove_frame("frame-000035")["frames"] == 2  # the capture's frame 1
+    again = canonical("stream", *common, "--session", session_id, "--max-frames", "5", timeout=60)
+    assert again.returncode == 0, again.stderr
+    assert "resuming after its 2 frames" in again.stderr and "1 frames of realsense_shelf from frame 2 on were in the " \
+        "session already" in again.stderr and "2 frames in" in again.stderr
+    # frames 0 and 2 held, 3 and 4 new; the removed frame 1 stays removed
+    assert httpx.get(f"{server.url}/v1/sessions/{session_id}").json()["frames"] == 4
 
 
 def frames_of(server, session_id: str) -> int:

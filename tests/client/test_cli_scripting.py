@@ -132,7 +132,8 @@ def test_render_draws_many_views_in_one_call(server, shelf_dir, tmp_path):
 
     several = canonical("render", *url, "--trajectory", str(trajectory), "--K", "150,150,79.5,59.5", "--size", "160x120",
                         "-o", str(tmp_path / "one.png"))
-    assert several.returncode == 1 and "{i}" in several.stderr and not (tmp_path / "one.png").exists()
+    assert several.returncode == 2 and "error: -o: 3 views need a pattern with {i}" in several.stderr
+    assert not (tmp_path / "one.png").exists()
 
 
 @pytest.fixture
@@ -148,6 +149,7 @@ def test_stream_skips_listed_frames_whose_images_are_missing(server, partial_cap
     assert streamed.returncode == 0, streamed.stderr
     warned = [line for line in streamed.stderr.splitlines() if line.startswith("warning: ")]
     assert len(warned) == 1 and "skipped 1 of 4 listed frames" in warned[0] and "--strict" not in streamed.stdout
+    assert "--strict refuses such a capture" in warned[0] and "strict=True" not in warned[0]  # the CLI's option
     stats = httpx.get(f"{server.url}/v1/sessions/{streamed.stdout.strip()}").json()
     assert stats["frames"] == 3
 

@@ -123,3 +123,15 @@ def test_container_validates_shapes():
     with pytest.raises(ValueError, match="sh: expected 1, 4, 9 or 16"):
         Gaussians(means=g.means, scales=g.scales, quats=g.quats, opacities=g.opacities, sh=torch.zeros(4, 5, 3))
     assert len(g.index(torch.tensor([0, 2]))) == 2
+
+
+@pytest.mark.parametrize("save", [save_ply, save_splat], ids=["ply", "splat"])
+def test_a_failed_save_leaves_no_temporary_file_and_names_the_path_given(save, tmp_path):
+    (tmp_path / "a.ply").mkdir()  # a folder where the file should go: the rename fails after the write
+    with pytest.raises(IsADirectoryError) as err:
+        save(random_gaussians(5), tmp_path / "a.ply")
+    assert err.value.filename == str(tmp_path / "a.ply")
+    with pytest.raises(FileNotFoundError) as err:  # a missing folder: the temporary file cannot be opened
+        save(random_gaussians(5), tmp_path / "missing" / "b.ply")
+    assert err.value.filename == str(tmp_path / "missing" / "b.ply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply"]

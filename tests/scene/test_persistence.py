@@ -136,3 +136,11 @@ def test_digest_tracks_the_whole_state(folded, shelf_frames):
     assert loaded.digest() == folded.digest()
     loaded.fold(shelf_frames[10])
     assert loaded.digest() != folded.digest()
+
+
+def test_a_failed_save_leaves_no_temporary_file_and_names_the_path_given(tmp_path):
+    (tmp_path / "scene.cgs").mkdir()
+    with pytest.raises(IsADirectoryError) as err:
+        Scene(SceneConfig(voxel_size=0.01)).save(tmp_path / "scene.cgs")
+    assert err.value.filename == str(tmp_path / "scene.cgs")
+    assert [p.name for p in tmp_path.iterdir()] == ["scene.cgs"]
