@@ -164,7 +164,8 @@ class SessionArchive:
         self.poses: dict[int, list[float]] = {}  # arrival -> corrected c2w (16 numbers)
         self.corrections = 0
         self.firsts: list[int] = []  # per correction: the stream position of the first frame it touched
-        self.correction_ids: set[str] = set()  # of the background corrections archived
+        # of the background corrections archived: what each did (its answer's counts), for its status
+        self.corrections_done: dict[str, dict] = {}
         self.next_arrival = 0
         self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
         self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
@@ -200,8 +201,9 @@ class SessionArchive:
         self.entries = [e for e in self.entries if e.arrival not in gone]
         self.poses = {a: p for a, p in self.poses.items() if a not in gone} | {int(a): p for a, p in body["poses"].items()}
         self.firsts.append(body.get("first", 0))
-        if body.get("id") is not None:
-            self.correction_ids.add(body["id"])
+        if body.get("id") is not None:  # archives written before the counts were kept: those of the record
+            self.corrections_done[body["id"]] = body.get("summary") or {
+                "corrected": len(set(body["poses"]) - gone), "removed": len(gone), "dropped": 0}
         self.corrections += 1
 
     def refs(self) -> list[FrameRef]:
@@ -299,12 +301,13 @@ class SessionArchive:
                 self._queue.task_done()
 
     def append_correction(self, poses: dict[int, np.ndarray], removed: list[int], first: int = 0,
-                          correction_id: str | None = None) -> None:
+                          correction_id: str | None = None, summary: dict | None = None) -> None:
         """Archive a correction (fsynced): the commit point of `Corrections.correct`. ``first``: the stream
         position of the first frame it touches (the states of the frames before it stay valid);
-        ``correction_id``: a background correction's id, by which a restart knows it done."""
+        ``correction_id``: a background correction's id, by which a restart knows it done, and
+        ``summary`` the counts its answer gives (corrected, removed, dropped, frames_before)."""
         body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},
-                "removed": sorted(removed), "first": first, "id": correction_id}
+                "removed": sorted(removed), "first": first, "id": correction_id, "summary": summary}
         self._append(msgpack.packb(body))
 
     def _append(self, payload: bytes) -> None:

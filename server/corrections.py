@@ -136,7 +136,8 @@ class Corrections:
             # retention "keyframes" re-folds in the request: a frame it does not keep cannot be caught up on
             if archive.retention == "all" and (not wait or len(entries) - start > session.background_frames):
                 job = CorrectionJob(secrets.token_hex(8), len(entries) - len(removed | dropped) - start)
-                self._commit(archive, entries, changed, removed | dropped, first, job.id)
+                self._commit(archive, entries, changed, removed | dropped, first, job.id,
+                             {k: done[k] for k in ("corrected", "removed", "dropped", "frames_before")})
                 self.background = self.jobs[job.id] = job
                 answer = {**done, "frames": session.scene.frames, "state": job.state, "correction_id": job.id,
                           "status": job.status()}  # the 202 answer: accepted, its re-fold not begun
@@ -162,11 +163,11 @@ class Corrections:
             return {**done, "frames": scene.frames}
 
     def _commit(self, archive: SessionArchive, entries: list, changed: dict, removed: set, first: int,
-                job: str | None = None) -> None:
+                job: str | None = None, summary: dict | None = None) -> None:
         """Archive the correction (fsynced: the commit point), and what follows from it in memory (for a
-        background correction ``job``, at its swap)."""
+        background correction ``job``, at its swap; ``summary``: its answer's counts, for its status)."""
         archive.append_correction({entries[k].arrival: c2w for k, c2w in changed.items()},
-                                  [entries[k].arrival for k in removed], first, job)
+                                  [entries[k].arrival for k in removed], first, job, summary)
         self.session.version += 1
         if job is None:
             self.session.frame_ids = archived_frame_ids(archive, self.session.frame_ids)
@@ -241,14 +242,19 @@ class Corrections:
 
     def status(self, correction_id: str) -> dict:
         """The status of a background correction; one this process did not start but the archive holds
-        was finished by the restart that replayed it. Raises KeyError for an unknown id."""
+        was finished by the restart that replayed it (its result: the counts it was answered with, and
+        the frames the session holds now). Raises KeyError for an unknown id."""
         job = self.jobs.get(correction_id)
         if job is not None:
             return job.status()
         archive = self.session.archive
-        if archive is not None and correction_id in archive.correction_ids:
+        if archive is not None and correction_id in archive.corrections_done:
+            counts = archive.corrections_done[correction_id]
+            result = {"frames_before": self.session.scene.frames + counts["removed"] + counts["dropped"], **counts,
+                      "id": self.session.id, "frames": self.session.scene.frames, "state": "done",
+                      "correction_id": correction_id}
             return {"correction_id": correction_id, "state": "done", "refolded": 0, "total": 0, "error": None,
-                    "result": None}
+                    "result": result}
         raise KeyError(correction_id)
 
     def _correct_in_place(self, archive: SessionArchive, entries: list, changed: dict, removed: set,

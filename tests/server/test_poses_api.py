@@ -323,6 +323,9 @@ def test_long_corrections_refold_in_the_background_and_a_restart_finishes_them(t
         with Client(proc.url) as c:
             session = c.session(killed.id)
             assert session.digest()["sha256"] == clean
-            assert session.correction(status["correction_id"])["state"] == "done"
+            after = session.correction(status["correction_id"])  # what a client polling through the restart reads
+            assert after["state"] == "done" and after["result"] == {
+                "id": killed.id, "frames": len(few), "frames_before": len(few), "corrected": len(few), "removed": 0,
+                "dropped": 0, "state": "done", "correction_id": status["correction_id"]}
     finally:
         proc.kill9()
