@@ -150,14 +150,15 @@ def _first_difference(given: dict, made: dict, prefix: str = "") -> tuple[str, o
     raise ValueError("the settings do not differ")
 
 
-def restore_session(path: Path, config: SceneConfig, retention: Retention) -> tuple[Restored, SessionArchive | None]:
-    """`restore_scene`, with the session's frame archive. When the archive holds a correction that the
+def restore_session(path: Path, config: SceneConfig, retention: Retention,
+                    chosen: dict | None = None) -> tuple[Restored, SessionArchive | None]:
+    """`restore_scene` (``chosen`` as it takes it), with the session's frame archive. When the archive holds a correction that the
     snapshot does not (a crash between archiving a correction and snapshotting its scene), the scene is
     re-folded from the archive and snapshotted, so a restart gives the corrected scene, never a mixture."""
     archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
     if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
         try:
-            restored = restore_scene(path, config, archive)
+            restored = restore_scene(path, config, archive, chosen)
         except BaseException:
             if archive is not None:
                 archive.close()
@@ -270,8 +271,11 @@ def _restore_from_archive(path: Path, data: bytes, found: Scan, archive: Session
     return rebuilt
 
 
-def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | None = None) -> Restored:
-    """Load the snapshot (if any) and replay the log after it. With the session's frame ``archive``, the
+def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | None = None,
+                  chosen: dict | None = None) -> Restored:
+    """Load the snapshot (if any) and replay the log after it, the scene saying why its settings are
+    what they are as meta.json records it (``chosen``, `Scene.chosen`): the replayed frames' reports
+    are then those of their first folds (but for the fold time). With the session's frame ``archive``, the
     acknowledged frames that the log lacks or holds damaged are restored from it first
     (`_restore_from_archive`). Raises `Unrestorable` when the files do not add up: a damaged log, or one
     that lacks acknowledged frames, that the archive cannot make whole (quarantined first), a missing
@@ -286,6 +290,8 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
         scene = Scene.load(snap) if snap.exists() else Scene(config)
     except ValueError as exc:
         raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup") from None
+    if chosen and scene.config == config:  # settings chosen from the first frame, and kept in meta.json
+        scene.chosen = dict(chosen)
     data = (path / LOG).read_bytes()
     found = scan(data)
     acknowledged = _acknowledged(found, archive)

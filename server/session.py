@@ -263,7 +263,7 @@ class Session:
     def _reload(self) -> None:
         self.snapshots.cancel()
         self.log.close()
-        self.scene, self.log, self.snapshots.frames, self.frame_ids = restore_scene(self.path, self.config)
+        self.scene, self.log, self.snapshots.frames, self.frame_ids = restore_scene(self.path, self.config, chosen=self.chosen)
         self._prepare_scene()
 
     def snapshot(self, background: bool = False) -> None:

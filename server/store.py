@@ -116,7 +116,8 @@ class SessionStore:
             t0 = time.perf_counter()
             try:
                 meta, config = session_meta(path)
-                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
+                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"),
+                                                     meta.get("chosen"))
             except Unrestorable as exc:
                 self._unavailable(path.name, str(exc))
                 continue

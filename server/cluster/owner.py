@@ -180,7 +180,8 @@ class OwnerStore(SessionStore):
         try:
             with lease.take():
                 meta, config = session_meta(path)
-                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"))
+                restored, archive = restore_session(path, config, meta.get("archive_retention", "all"),
+                                                     meta.get("chosen"))
         except Unrestorable as exc:
             lease.close()
             self._unavailable(session_id, str(exc))
