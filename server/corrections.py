@@ -234,11 +234,13 @@ class Corrections:
 
     def _renumbered(self, frames_before: int, changed: dict, removed: set) -> None:
         """What follows the served scene's change (under the lock): numbered frames in flight learn
-        the new count (`FrameOrder.recounted`), and the camera track takes the corrected poses and
-        loses the removed frames (``changed``, ``removed``: stream positions before the correction;
-        frames folded since into the old scene are renumbered with the rest)."""
+        the new count (`FrameOrder.recounted`), the camera track takes the corrected poses and loses
+        the removed frames (``changed``, ``removed``: stream positions before the correction; frames
+        folded since into the old scene are renumbered with the rest), and the open event streams
+        send a ``corrected`` event (`Session.corrected`)."""
         self.session.order.recounted(frames_before, self.session.scene.frames)
         correct_track(self.session.path, changed, removed)
+        self.session.corrected += 1
 
     def status(self, correction_id: str) -> dict:
         """The status of a background correction; one this process did not start but the archive holds

@@ -94,6 +94,7 @@ class Session:
     wedged: str | None = None  # why the log cannot take appends until a restart (its tail is unknown)
     archive: SessionArchive | None = None  # the kept frames (None: retention "none")
     version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
+    corrected: int = 0  # corrections that changed the served scene (its open event streams tell their pages)
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)

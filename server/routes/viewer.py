@@ -143,10 +143,11 @@ async def fold_events(
         "seconds: at most one fold event per this interval, standing for the folds since the last "
         "(their count, cameras and latest warnings); absent: one event per fold"))] = None,
 ) -> StreamingResponse:
-    """Server-Sent Events: ``state`` at once (frames, voxels), then ``fold`` after each acknowledged
-    fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most one per
-    interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when the
-    interval is up); a comment every 15 s when idle; the stream ends when the session is deleted
+    """Server-Sent Events: ``state`` at once (frames, voxels, label_dim), then ``fold`` after each
+    acknowledged fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most
+    one per interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when
+    the interval is up); ``corrected`` (as ``state``) once a pose correction or a frame removal has
+    changed the scene, within `DELETED_CHECK_S`; a comment every 15 s when idle; the stream ends when the session is deleted
     (with a ``deleted`` event, within `DELETED_CHECK_S`), the service stops, or the client falls
     behind by more than the stream's queue (a last ``dropped`` event; reconnect for the latest
     state). Open streams are capped per session and per service: 429 over a cap, naming its setting."""
@@ -158,6 +159,20 @@ async def fold_events(
 
     loop = asyncio.get_running_loop()
     last_sent = loop.time()  # when the stream last sent anything, keep-alives included
+
+    seen_corrections = session.corrected
+
+    def corrected() -> bytes | None:
+        """A ``corrected`` event once a correction changed the served scene since the stream last
+        looked (the page then reads the track again and redraws), else None."""
+        nonlocal seen_corrections
+        if session.corrected == seen_corrections:
+            return None
+        seen_corrections = session.corrected
+        return sse("corrected", state())
+
+    def state() -> dict:
+        return {"frames": session.scene.frames, "voxels": len(session.scene), "label_dim": session.scene.label_dim}
 
     def after_wait() -> tuple[bytes | None, bool]:
         """What a stream sends after a wait with no fold to send, and whether it ends there: the end
@@ -172,6 +187,8 @@ async def fold_events(
     async def each_fold():
         while not events.closing.is_set():
             item = await _next_event(queue, events.closing, DELETED_CHECK_S)
+            if (news := corrected()) is not None:
+                yield news
             if item is not None:
                 yield item.data
                 if item is DROPPED:
@@ -193,6 +210,11 @@ async def fold_events(
                 return
             if item is not None:
                 batch.add(item.event)
+            if (news := corrected()) is not None:  # after the folds before it
+                if batch.pending:
+                    yield sse("fold", batch.take())
+                    batch_sent_at = loop.time()
+                yield news
             if batch.pending and loop.time() >= batch_sent_at + interval:  # a fold after a quiet interval, or the interval is up
                 yield sse("fold", batch.take())
                 batch_sent_at = loop.time()
@@ -207,8 +229,7 @@ async def fold_events(
     async def stream():
         nonlocal last_sent
         try:
-            yield sse("state", {"frames": session.scene.frames, "voxels": len(session.scene),
-                                "label_dim": session.scene.label_dim})
+            yield sse("state", state())
             async with aclosing(each_fold() if every is None else batched(every)) as sent:  # closed with the stream
                 async for data in sent:
                     yield data

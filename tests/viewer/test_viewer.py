@@ -282,6 +282,40 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
     assert np.abs(canvas(page).astype(int) - before).mean() > 1.0
 
 
+def test_a_correction_and_a_deletion_reach_the_open_page(page, server, client, shelf, shots):
+    session = client.create_session(voxel_size=VOXEL)
+    for kwargs in shelf[:4]:
+        session.add_frame(**kwargs)
+    open_viewer(page, server, session.id)
+    page.evaluate("window.notReloaded = true")
+    version = page.evaluate("viewer.version")
+    session.remove_frame(shelf[3]["frame_id"])  # the page draws the scene without it, at the same pose
+    page.wait_for_function("document.getElementById('frames').textContent === '3' && viewer.cameras.length === 3",
+                           timeout=WAIT_MS)
+    wait_new_image(page, version)
+    assert page.evaluate("window.notReloaded === true")
+    page.screenshot(path=shots / "after_removal.png")
+    session.delete()
+    page.wait_for_function("!document.getElementById('error').hidden", timeout=WAIT_MS)
+    assert page.locator("#error").inner_text() == "this session was deleted"
+
+
+@pytest.mark.parametrize("width, height", [(1280, 720), (1400, 420), (700, 900)])
+def test_the_picture_keeps_its_aspect_in_any_window(browser, server, shelf_session, width, height):
+    context = browser.new_context(viewport={"width": width, "height": height})
+    context.add_init_script(f"sessionStorage.setItem('canonical.token', {TOKEN!r})")
+    page = context.new_page()
+    try:
+        open_viewer(page, server, shelf_session.id)
+        stage, panel = page.locator("#stage").bounding_box(), page.locator("main").bounding_box()
+        view = page.evaluate("[viewer.width, viewer.height]")
+        assert stage["width"] / stage["height"] == pytest.approx(view[0] / view[1], rel=0.01)
+        assert stage["width"] <= panel["width"] + 1 and stage["height"] <= panel["height"] + 1
+        assert max(stage["width"] / panel["width"], stage["height"] / panel["height"]) > 0.99  # as large as fits
+    finally:
+        context.close()
+
+
 def test_a_page_opened_on_a_running_stream_asks_for_previews_until_it_pauses(page, server, client, shelf):
     session = client.create_session(voxel_size=VOXEL)
     session.add_frame(**shelf[0])

@@ -27,7 +27,9 @@ export async function request(path, options = {}) {
     let message = `${response.status}`;
     try {
       const body = await response.json();
-      message = body.error ? `${body.error.field ?? ""}: ${body.error.message}` : message;
+      // the service's messages begin with the field they name; the few that do not get it in front
+      const { field, message: said } = body.error ?? {};
+      if (said) message = !field || said.startsWith(`${field}:`) ? said : `${field}: ${said}`;
     } catch (_) { /* not JSON */ }
     const error = new Error(message);
     error.status = response.status;

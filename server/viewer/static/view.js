@@ -39,6 +39,7 @@ const $ = (id) => document.getElementById(id);
 const view = $("view"), overlay = $("overlay"), stage = $("stage");
 for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
 stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
+stage.style.width = `min(100cqw, calc(100cqh * ${WIDTH} / ${HEIGHT}))`;
 
 const NOT_ASKED = { version: -1, full: false, at: -Infinity };
 // Everything a test (or the console) may want to read is on window.viewer.
@@ -348,7 +349,19 @@ function onEvent(name, data) {
     setLabels(data.label_dim);
     return;
   }
-  if (name === "deleted") { showError("this session was deleted"); return; }
+  if (name === "corrected") {  // poses corrected or frames removed: the track and the picture change
+    state.voxels = data.voxels;
+    setFrames(data.frames);
+    setLabels(data.label_dim);
+    json(`${base}/cameras`).then((track) => {
+      state.cameras = track.cameras;
+      state.selected = Math.min(state.selected, state.cameras.length - 1);
+      updateScrubber();
+      changed(false);  // the same pose, the corrected scene
+    }).catch(showError);
+    return;
+  }
+  if (name === "deleted") { showError(new Error("this session was deleted")); return; }
   if (name !== "fold") return;
   // one event stands for the folds of the last EVENT_EVERY_S (`?every=`): the latest fold's counts,
   // every camera of them, and the latest advice among them
