@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from client.sdk import png_to_array
+from canonical_core.resample import resized_intrinsics
+from client.sdk import Client, png_to_array
 
-from ..server.harness import TOKEN, VOXEL, RenderLoop, colours_solved, small_frames
+from ..server.harness import TOKEN, VOXEL, RenderLoop, ServerProcess, colours_solved, small_frames
 from .walls import FAR, LABELS, NEAR, wall_frames
 
 pytestmark = pytest.mark.slow
@@ -97,6 +98,15 @@ def test_first_image_is_the_render_api_png_at_the_same_pose(page, server, shelf_
     assert drawn.shape == reference.shape == (384, 512, 3)
     assert (drawn.max(axis=2) > 20).mean() > 0.5 and drawn.std() > 20  # not blank
     assert psnr(drawn, reference) > 40.0
+
+
+def test_a_view_snapped_to_an_input_camera_has_its_intrinsics(page, server, shelf_session, shelf):
+    open_viewer(page, server, shelf_session.id)  # the page opens snapped to the last input camera
+    K, _, width, height = view_camera(page)
+    own = shelf[3]
+    scale = width / own["rgb"].shape[1]
+    assert height / own["rgb"].shape[0] == pytest.approx(scale)  # the same aspect: the same image, scaled
+    np.testing.assert_allclose(K, resized_intrinsics(own["K"], scale, scale), rtol=1e-9)  # its principal point too
 
 
 def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shots):
@@ -460,6 +470,35 @@ def test_every_mode_draws_what_it_should(page, server, client, shots):
         for b in names[i + 1 :]:
             if {a, b} != {"rgb", "composited"}:
                 assert np.abs(images[a].astype(int) - images[b]).mean() > 5, (a, b)
+
+
+def test_an_open_page_comes_back_after_a_restart_and_asks_again_for_a_changed_token(browser, shelf, tmp_path):
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", token=TOKEN, snapshot_every_seconds=3600,
+                         warm_up="false").start()
+    context = browser.new_context(viewport={"width": 900, "height": 520})
+    context.add_init_script(f"sessionStorage.setItem('canonical.token', {TOKEN!r})")
+    page = context.new_page()
+    try:
+        with Client(proc.url, token=TOKEN) as client:
+            session = client.create_session(voxel_size=VOXEL)
+            for kwargs in shelf[:2]:
+                session.add_frame(**kwargs)
+        open_viewer(page, proc, session.id)
+        proc.kill9()
+        version = page.evaluate("viewer.version")
+        page.select_option("#mode", "depth")  # asked while the service is down: refused
+        page.wait_for_function("!document.getElementById('error').hidden", timeout=WAIT_MS)
+        proc.token = "another-token"
+        proc.start(same_port=True)
+        form = page.locator("#token-form")
+        form.wait_for(state="visible", timeout=WAIT_MS)  # the events stream came back refused: asked again
+        form.locator("input").fill("another-token")
+        form.locator("button").click()
+        wait_new_image(page, version, "depth")  # the page picks up where it was, no reload, no move
+        assert page.locator("#error").is_hidden()
+    finally:
+        context.close()
+        proc.kill9()
 
 
 def test_with_a_token_set_no_data_without_it_and_the_page_works_with_it(browser, server, shelf_session, shots):

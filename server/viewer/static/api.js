@@ -124,7 +124,12 @@ export function subscribe(path, onEvent, onStatus = () => {}) {
         }
       } catch (error) {
         if (stopped) return;
-        if (error instanceof Unauthorized) { onStatus("unauthorized"); return; }
+        if (error instanceof Unauthorized) {  // a token set or changed since the page opened: ask again
+          onStatus("unauthorized");
+          setToken(null);
+          await askToken();
+          continue;
+        }
         if (error.status === 404) { onStatus("gone"); return; }
       }
       if (stopped) return;

@@ -88,9 +88,13 @@ export function frustum(camera, depth) {
   return [pose.p, ...lifted];
 }
 
-// Intrinsics of a width x height view with the field of view of an input camera (or ~60 degrees).
+// Intrinsics of a width x height view with the field of view of an input camera (or ~60 degrees),
+// its principal point where the camera has it (relative to the image's middle, at the view's scale;
+// pixel centres on integers, as canonical_core.resample has them): a view snapped to an input
+// camera then draws what that camera saw.
 export function viewIntrinsics(camera, width, height) {
   if (!camera) return [0.85 * width, 0.85 * width, width / 2, height / 2];
-  const fx = camera.K[0] * width / camera.width;
-  return [fx, fx * camera.K[1] / camera.K[0], width / 2, height / 2];
+  const s = width / camera.width;
+  const [fx, fy, cx, cy] = camera.K;
+  return [fx * s, fy * s, (cx + 0.5) * s - 0.5, height / 2 + (cy + 0.5 - camera.height / 2) * s - 0.5];
 }

@@ -48,6 +48,7 @@ const state = {
   pose: { R: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], p: [0, 0, 0] }, distance: 1, up: [0, -1, 0],
   K: cam.viewIntrinsics(null, WIDTH, HEIGHT),
   mode: "rgb", cameras: [], selected: -1, frames: 0, voxels: 0, labelDim: 0,
+  streamOpened: false,  // the fold events' first state came: a later one is a reconnect
   version: 0, changedAt: 0, foldDrawnAt: -Infinity,  // foldDrawnAt: when a fold last asked for a picture
   foldSeenAt: -Infinity, foldGap: Infinity,  // the last fold event; ms from the fold before
   // when a full picture was last asked for: the page's opening counts as one, so a page opened on a
@@ -335,30 +336,34 @@ function setFrames(n) {
   showText();
 }
 
+// The input cameras read again and the picture redrawn, the view where it is.
+function refreshTrack() {
+  json(`${base}/cameras`).then((track) => {
+    state.cameras = track.cameras;
+    state.selected = Math.min(state.selected, state.cameras.length - 1);
+    state.failed = null;  // a picture refused before (the service down) is asked for again
+    updateScrubber();
+    changed(false);
+  }).catch(showError);
+}
+
 function setLabels(labelDim) {
   state.labelDim = labelDim;
   $("mode").querySelector("option[value=labels]").disabled = labelDim === 0;
 }
 
 function onEvent(name, data) {
-  if (name === "state") {
+  if (name === "state" || name === "corrected") {
     const missed = !state.frames && data.frames > 0;  // folds between the track's answer and the stream
+    // a stream opened again (the service restarted, the connection dropped), or poses corrected and
+    // frames removed: what the page shows may be stale
+    const stale = name === "corrected" || state.streamOpened;
+    state.streamOpened = true;
     state.voxels = data.voxels;
     setFrames(data.frames);
+    setLabels(data.label_dim);
     if (missed) json(`${base}/cameras`).then(showTrack).catch(showError);
-    setLabels(data.label_dim);
-    return;
-  }
-  if (name === "corrected") {  // poses corrected or frames removed: the track and the picture change
-    state.voxels = data.voxels;
-    setFrames(data.frames);
-    setLabels(data.label_dim);
-    json(`${base}/cameras`).then((track) => {
-      state.cameras = track.cameras;
-      state.selected = Math.min(state.selected, state.cameras.length - 1);
-      updateScrubber();
-      changed(false);  // the same pose, the corrected scene
-    }).catch(showError);
+    else if (stale) refreshTrack();
     return;
   }
   if (name === "deleted") { showError(new Error("this session was deleted")); return; }
