@@ -109,6 +109,14 @@ def test_a_view_snapped_to_an_input_camera_has_its_intrinsics(page, server, shel
     np.testing.assert_allclose(K, resized_intrinsics(own["K"], scale, scale), rtol=1e-9)  # its principal point too
 
 
+def test_a_view_size_the_page_cannot_use_is_said_and_the_default_drawn(page, server, shelf_session):
+    page.goto(f"{server.url}/sessions/{shelf_session.id}/view?width=-5&height=2.5")
+    page.wait_for_function(FULL, timeout=WAIT_MS)
+    assert page.evaluate("[viewer.width, viewer.height]") == [512, 384] and canvas(page).shape == (384, 512, 3)
+    assert page.locator("#warning").inner_text() == ("?width=-5: expected a whole number from 16 to 4096; 512 used · "
+                                                     "?height=2.5: expected a whole number from 16 to 4096; 384 used")
+
+
 def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shots):
     open_viewer(page, server, shelf_session.id)
     before_image, (_, before_pose, _, _) = canvas(page), view_camera(page)

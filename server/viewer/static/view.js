@@ -4,11 +4,20 @@ import { download, formatAge, formatBytes, json, request, subscribe, withToken }
 import * as cam from "./camera.js";
 
 const params = new URLSearchParams(location.search);
-const WIDTH = Number(params.get("width")) || 512;  // full-quality view size (pixels)
-const HEIGHT = Number(params.get("height")) || 384;
+const badParams = [];
+// a whole number from the page's query, within [low, high]; else the default, and the page says so
+function countParam(name, fallback, low, high) {
+  if (!params.has(name)) return fallback;
+  const value = Number(params.get(name));
+  if (Number.isInteger(value) && value >= low && value <= high) return value;
+  badParams.push(`?${name}=${params.get(name)}: expected a whole number from ${low} to ${high}; ${fallback} used`);
+  return fallback;
+}
+const WIDTH = countParam("width", 512, 16, 4096);  // full-quality view size (pixels)
+const HEIGHT = countParam("height", 384, 16, 4096);
 const LOW = 0.5;  // size factor of the images asked for while the pose moves
 // ... and their level of detail: the best-supported N Gaussians (rendering time grows with N)
-const PREVIEW_GAUSSIANS = Number(params.get("preview_gaussians")) || 60000;
+const PREVIEW_GAUSSIANS = countParam("preview_gaussians", 60000, 1, 1e9);
 const REST_MS = 180;  // the pose counts as resting this long after its last change
 const SEND_GAP_MS = 40;  // while a picture is out, a newer pose is asked for at most this often
 // ... and at most this many are out: one rendering, one waiting that a newer one replaces; more would
@@ -528,6 +537,7 @@ function showTrack(track) {
 async function start() {
   $("title").textContent = sessionId;
   document.title = `CanonicalGS Fusion · ${sessionId.slice(0, 8)}`;
+  if (badParams.length) { $("warning").textContent = badParams.join(" · "); $("warning").hidden = false; }
   focusView();
   const [info, track] = await withToken(() => Promise.all([json("/v1/viewer/info"), json(`${base}/cameras`)]));
   state.info = info;
