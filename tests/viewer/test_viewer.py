@@ -500,6 +500,8 @@ def test_an_open_page_comes_back_after_a_restart_and_asks_again_for_a_changed_to
         proc.start(same_port=True)
         form = page.locator("#token-form")
         form.wait_for(state="visible", timeout=WAIT_MS)  # the events stream came back refused: asked again
+        assert form.locator("label").inner_text().startswith("The service refused that token")
+        assert form.locator("input").input_value() == ""
         form.locator("input").fill("another-token")
         form.locator("button").click()
         wait_new_image(page, version, "depth")  # the page picks up where it was, no reload, no move
@@ -520,6 +522,7 @@ def test_with_a_token_set_no_data_without_it_and_the_page_works_with_it(browser,
         page.goto(f"{server.url}/sessions/{shelf_session.id}/view")
         form = page.locator("#token-form")
         form.wait_for(state="visible", timeout=WAIT_MS)
+        assert form.locator("label").inner_text().startswith("This service needs its API token")
         page.screenshot(path=shots / "token_asked.png")
         page.mouse.move(*center(page))  # the pointer over the view does not take the keyboard from the form
         assert page.evaluate("document.activeElement === document.querySelector('#token-form input')")

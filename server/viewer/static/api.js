@@ -54,9 +54,13 @@ function tokenForm() {
   return form;
 }
 
-// Show the token form and resolve once the user submitted a token.
-export function askToken() {
+// Show the token form and resolve once the user submitted a token; ``refused``: the token the tab
+// held was turned down (a wrong one, or one the service no longer takes), which the form says.
+export function askToken(refused = false) {
   const form = tokenForm();
+  form.querySelector("label").firstChild.textContent = refused
+    ? "The service refused that token: its API token " : "This service needs its API token ";
+  form.querySelector("input").value = "";
   form.hidden = false;
   form.querySelector("input").focus();
   return new Promise((resolve) => {
@@ -76,8 +80,9 @@ export async function withToken(fn) {
       return await fn();
     } catch (error) {
       if (!(error instanceof Unauthorized)) throw error;
+      const refused = token() !== null;
       setToken(null);
-      await askToken();
+      await askToken(refused);
     }
   }
 }
@@ -126,8 +131,9 @@ export function subscribe(path, onEvent, onStatus = () => {}) {
         if (stopped) return;
         if (error instanceof Unauthorized) {  // a token set or changed since the page opened: ask again
           onStatus("unauthorized");
+          const refused = token() !== null;
           setToken(null);
-          await askToken();
+          await askToken(refused);
           continue;
         }
         if (error.status === 404) { onStatus("gone"); return; }
