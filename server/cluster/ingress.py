@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import secrets
 from typing import Protocol
 
 from fastapi import FastAPI
 from fastapi.encoders import jsonable_encoder
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from starlette.middleware import Middleware
 
 from ..app import create_app
@@ -107,6 +108,8 @@ class ClusterRouter:
             return await self.app(scope, receive, send)  # liveness alone: the count is for the token's holders
         elif method == "GET" and path in ("/v1/sessions", "/metrics", "/healthz"):
             return await (await self._gathered(path))(scope, receive, send)
+        elif method == "GET" and path == "/v1/viewer/sessions":
+            return await (await self._viewer_sessions(scope["headers"]))(scope, receive, send)
         else:
             return await self.app(scope, receive, send)
         body = await read_body(receive)
@@ -169,6 +172,25 @@ class ClusterRouter:
         held = sorted((s for a in answers for s in a[0]), key=lambda s: s["created"])
         unavailable = sorted((s for a in answers for s in a[1]), key=lambda s: s["id"])
         return JSONResponse(jsonable_encoder(SessionList(sessions=[SessionSummary(**s) for s in held + unavailable])))
+
+
+    async def _viewer_sessions(self, headers: list):
+        """The web viewer's session list: each owner's (its sessions' stats and last folds), merged as
+        the single-process service orders them (served by creation, then the unavailable ones)."""
+        answers = await asyncio.gather(*(self._call(k, "handle", "GET", "/v1/viewer/sessions", b"", headers, b"")
+                                         for k in range(self.owners.count)), return_exceptions=True)
+        rows = []
+        for answer in answers:
+            if isinstance(answer, OwnerUnreachable):
+                return owner_busy(str(answer))
+            if isinstance(answer, BaseException):
+                raise answer
+            status, _, content = answer
+            if status != 200:  # the owner's own refusal (401 ...): as it is
+                return Response(content, status_code=status, media_type="application/json")
+            rows += json.loads(content)["sessions"]
+        rows.sort(key=lambda s: (s["state"] == "unavailable", s["created"] if s["state"] != "unavailable" else 0.0, s["id"]))
+        return JSONResponse({"sessions": rows})
 
 
 @contextlib.asynccontextmanager

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import json
 import logging
 import os
 import re
@@ -278,6 +279,12 @@ class OwnerStore(SessionStore):
         return held + [s for i, s in self.evicted.items() if i not in listed], self.unavailable_summaries()
 
 
+# the answer of an owner that is stopping, as the single-process service answers then: try again soon
+STOPPING = (503, [(b"content-type", b"application/json"), (b"retry-after", b"5")], json.dumps(
+    {"error": {"code": "unavailable", "message": "the service is stopping; send the request again once it is back",
+               "field": None}}).encode())
+
+
 class SessionOwner:
     """Shard ``shard`` of ``settings.owners``: an `OwnerStore` behind the service's FastAPI app, answering
     forwarded requests (`handle`) exactly as the single-process service does."""
@@ -297,9 +304,12 @@ class SessionOwner:
         self._snapshotter: asyncio.Task | None = None
         self._rate = (time.monotonic(), 0)  # (when, frames) at the last `report`, for folds/s
         self.node = os.environ.get("CANONICAL_NODE") or socket.gethostname()
+        self.closed = False
 
     async def handle(self, method: str, path: str, query: bytes, headers: list, body: bytes) -> tuple[int, list, bytes]:
-        """One HTTP request through the app: (status, headers, body)."""
+        """One HTTP request through the app: (status, headers, body); 503 once the owner is closed."""
+        if self.closed:
+            return STOPPING
         if self._snapshotter is None:
             self._snapshotter = asyncio.create_task(self._snapshot_loop())
         session_id = session_of(path)
@@ -362,8 +372,14 @@ class SessionOwner:
     def pid(self) -> int:
         return os.getpid()
 
+    def settings_json(self) -> str:
+        """The settings this owner runs with: a service that starts with others replaces it."""
+        return self.settings.model_dump_json()
+
     async def close(self) -> None:
-        """Snapshot the sessions held and close their files (a graceful stop)."""
+        """Snapshot the sessions held and close their files (a graceful stop); requests that still
+        come are answered 503 (`handle`), not folded into closed files."""
+        self.closed = True
         if self._snapshotter is not None:
             self._snapshotter.cancel()
         await asyncio.to_thread(self.store.close)

@@ -106,9 +106,65 @@ def node_cpus() -> list[float]:
     return [node["Resources"].get("CPU", 0.0) for node in ray.nodes() if node["Alive"]]
 
 
+def running_owners(namespace: str) -> dict[int, object]:
+    """The owners running in ``namespace`` (detached: they outlive the service that started them on a
+    cluster it joined), by shard."""
+    names = {a["name"] for a in ray.util.list_named_actors(all_namespaces=True) if a.get("namespace") == namespace}
+    return {shard: ray.get_actor(name, namespace=namespace) for name in names
+            if (shard := _shard_of_name(name)) is not None}
+
+
+def _shard_of_name(name: str) -> int | None:
+    prefix = owner_name(0)[:-1]
+    return int(name[len(prefix):]) if name.startswith(prefix) and name[len(prefix):].isdigit() else None
+
+
+def _settings_of(actor) -> str | None:
+    try:
+        return ray.get(actor.settings_json.remote(), timeout=60)
+    except Exception:  # noqa: BLE001 - an owner of an earlier version, or one that does not answer
+        return None
+
+
+def owners_to_replace(found: dict[int, str | None], settings: ClusterSettings) -> list[int]:
+    """The shards of the running owners (``found``: shard -> the settings it runs with, as JSON; None
+    where it did not say) that a service with ``settings`` must replace: those past its count of owners,
+    and those with other settings.
+
+    Example:
+        >>> from server.cluster.settings import ClusterSettings
+        >>> ours = ClusterSettings(data_dir="/data", owners=2)
+        >>> owners_to_replace({0: ours.model_dump_json(), 1: None, 2: ours.model_dump_json()}, ours)
+        [1, 2]
+    """
+    ours = settings.model_dump_json()
+    return sorted(shard for shard, theirs in found.items() if shard >= settings.owners or theirs != ours)
+
+
+def stop_owners(owners: dict[int, object], why: str) -> None:
+    """Kill these owners (their sessions' files stay: a new owner restores them) and wait until their
+    names are free."""
+    for shard, actor in owners.items():
+        log.warning("stopping owner %d: %s", shard, why)
+        ray.kill(actor, no_restart=True)
+    for shard, actor in owners.items():
+        try:
+            ray.get(actor.pid.remote(), timeout=60)
+        except Exception:  # noqa: BLE001 - dead, as asked
+            pass
+
+
 def start_owners(settings: ClusterSettings, report_every_s: float = 30.0) -> None:
-    """Start every owner (or find it running) and wait until each answers, before the ingress takes
-    requests, so that no session's first request waits for its owner's start."""
+    """Start every owner and wait until each answers, before the ingress takes requests, so that no
+    session's first request waits for its owner's start. Owners found running with other settings
+    (a service started before on this cluster with another data directory, another count of owners...)
+    or of a shard past ``settings.owners`` are replaced: each session must have the owner its settings
+    say, reading the data directory they name."""
+    running = running_owners(settings.namespace)
+    found = {shard: _settings_of(actor) for shard, actor in running.items()}
+    stale = {shard: running[shard] for shard in owners_to_replace(found, settings)}
+    if stale:
+        stop_owners(stale, "it runs with other settings than this service's")
     pending = {owner_actor(settings, shard).pid.remote(): shard for shard in range(settings.owners)}
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=report_every_s)
@@ -165,8 +221,10 @@ def serve_forever(settings: ClusterSettings, address: str | None = None) -> int:
     # wakes up, which an untimed wait never does (SIGTERM, Docker's and Kubernetes' stop, went unanswered)
     while not stop.wait(0.5):
         pass
+    serve.delete(APP_NAME)  # first no new requests (those in flight finish), then the owners' snapshots
     close_owners(settings)
-    serve.delete(APP_NAME)
+    # detached owners outlive this process on a cluster it joined: a stopped service leaves none behind
+    stop_owners(running_owners(settings.namespace), "the service stopped")
     ray.shutdown()
     return 0
 

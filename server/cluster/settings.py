@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 
 from ..settings import Settings
 
@@ -28,3 +28,11 @@ class ClusterSettings(Settings):
                                         "for CPUs) is waited for this long before its request gets 429; a request whose "
                                         "owner died gets its 429 once the restarted owner answers, or after this long")
     namespace: str = Field("canonical", description="Ray namespace of the owners' named actors")
+
+    @field_validator("ingress_max_replicas")
+    @classmethod
+    def _at_least_the_fewest(cls, most: int, info: ValidationInfo) -> int:
+        fewest = info.data.get("ingress_min_replicas")
+        if fewest is not None and most < fewest:
+            raise ValueError(f"at least ingress_min_replicas ({fewest}): Serve cannot autoscale between them")
+        return most

@@ -145,6 +145,39 @@ def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_o
     run(scenario())
 
 
+def test_the_viewers_session_list_gathers_every_owners_sessions_and_a_closed_owner_answers_503(tmp_path, frames):
+    parts, client = cluster_client(tmp_path, owners=3)
+
+    async def scenario():
+        async with client:
+            made = []
+            for _ in range(4):
+                made.append((await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"])
+            r = await client.post(f"/v1/sessions/{made[0]}/frames", content=frame_body(frames[0]), headers=MSGPACK)
+            assert r.status_code == 200
+            listed = (await client.get("/v1/viewer/sessions")).json()["sessions"]
+            assert [s["id"] for s in listed] == made  # every owner's, by creation, as one service lists them
+            assert listed[0]["frames"] == 1 and listed[0]["last_fold"] is not None and listed[1]["last_fold"] is None
+            assert (await client.get("/v1/viewer/sessions", headers={"Authorization": "Bearer wrong"})).status_code == 401
+            owner = parts[shard_of(made[0], 3)]
+            await owner.close()  # a graceful stop: requests that still reach it are not folded into closed files
+            r = await client.post(f"/v1/sessions/{made[0]}/frames", content=frame_body(frames[1]), headers=MSGPACK)
+            assert r.status_code == 503 and r.headers["Retry-After"] and r.json()["error"]["code"] == "unavailable"
+
+    run(scenario())
+
+
+def test_owners_found_running_with_other_settings_or_past_the_count_are_replaced(tmp_path):
+    serve = pytest.importorskip("server.cluster.serve")  # imports Ray
+    ours = settings(tmp_path, owners=2)
+    other_dir, fewer = settings(tmp_path / "other", owners=2), settings(tmp_path, owners=1)
+    assert serve.owners_to_replace({0: ours.model_dump_json(), 1: ours.model_dump_json()}, ours) == []
+    assert serve.owners_to_replace({0: other_dir.model_dump_json(), 1: ours.model_dump_json()}, ours) == [0]
+    assert serve.owners_to_replace({0: ours.model_dump_json(), 1: None}, ours) == [1]  # an earlier version's
+    assert serve.owners_to_replace({0: ours.model_dump_json(), 1: ours.model_dump_json()}, fewer) == [0, 1]
+    assert serve.owners_to_replace({0: fewer.model_dump_json(), 1: fewer.model_dump_json(), 2: None}, fewer) == [1, 2]
+
+
 def test_a_request_for_an_owner_not_running_is_never_sent_and_gets_429_after_the_restart_wait(tmp_path):
     """Ray holds a call to an actor that it cannot place (too few CPUs) for as long as that lasts: the
     ingress asks an owner it has not seen running for its pid first, and answers 429 once
