@@ -283,12 +283,18 @@ def test_download_buttons_save_the_sessions_ply_and_splat(page, server, shelf_se
     assert len(saved[".splat"]) == 32 * gaussians
 
 
-def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):
+def open_on_a_new_session(page, server, client, frames: list[dict]):
+    """A session of ``frames``, and the page open on it, marked so that a reload would show."""
     session = client.create_session(voxel_size=VOXEL)
-    for kwargs in shelf[:2]:
+    for kwargs in frames:
         session.add_frame(**kwargs)
     open_viewer(page, server, session.id)
     page.evaluate("window.notReloaded = true")
+    return session
+
+
+def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots):
+    session = open_on_a_new_session(page, server, client, shelf[:2])
     assert page.locator("#frames").inner_text() == "2"
     before, version = canvas(page), page.evaluate("viewer.version")
     session.add_frame(**shelf[4])
@@ -301,11 +307,7 @@ def test_a_posted_frame_updates_the_open_page(page, server, client, shelf, shots
 
 
 def test_a_correction_and_a_deletion_reach_the_open_page(page, server, client, shelf, shots):
-    session = client.create_session(voxel_size=VOXEL)
-    for kwargs in shelf[:4]:
-        session.add_frame(**kwargs)
-    open_viewer(page, server, session.id)
-    page.evaluate("window.notReloaded = true")
+    session = open_on_a_new_session(page, server, client, shelf[:4])
     version = page.evaluate("viewer.version")
     session.remove_frame(shelf[3]["frame_id"])  # the page draws the scene without it, at the same pose
     page.wait_for_function("document.getElementById('frames').textContent === '3' && viewer.cameras.length === 3",
