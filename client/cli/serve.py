@@ -47,7 +47,14 @@ def run_serve(args) -> int:
     # others (set OMP_WAIT_POLICY to choose otherwise; it must be set before torch or numba loads).
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     settings = serve_settings(args)
+    _check_port(args, settings.host, settings.port)
     if args.cluster:
+        try:  # the driver's node mounts the data directory as every node does: a wrong one is one line here
+            settings.data_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
+                  f"{exc.strerror or exc}", file=sys.stderr)
+            return 1
         from server.cluster.claims import ClaimsDoNotFit
         from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
 
@@ -76,6 +83,19 @@ def run_serve(args) -> int:
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
                 http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
+
+
+def _check_port(args, host: str, port: int) -> None:
+    """UsageError naming the port's option when another process listens there already, before the
+    service starts anything (uvicorn, or Ray, would say so only after a start-up and in many lines)."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers bind: a closed socket's TIME_WAIT is no owner
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise UsageError(f"{_setting_source(args, 'port')}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
 
 
 def _setting_source(args, name: str) -> str:

@@ -242,3 +242,18 @@ def test_ctrl_c_stops_cleanly_with_a_summary(server, shelf_dir):
     frames = frames_of(server, session_id)
     assert out == "" and "interrupted: " in err and f"session {session_id}: {frames} frames" in err
     assert f"--session {session_id}" in err and 1 <= frames < 50
+
+
+def test_a_port_taken_or_a_data_dir_that_cannot_be_made_is_one_line_before_anything_starts(tmp_path):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        for cluster in ([], ["--cluster"]):
+            result = canonical("serve", *cluster, "--port", str(port), "--data-dir", str(tmp_path / "data"))
+            assert_one_line_error(result, 2, "--port", f"127.0.0.1:{port}")
+    # the cluster's data directory is made before Ray starts
+    result = canonical("serve", "--cluster", "--port", str(free_port()), "--data-dir", "/proc/no-such/data")
+    assert_one_line_error(result, 1, "--data-dir: cannot create", "/proc/no-such")
