@@ -50,7 +50,7 @@ def run_serve(args) -> int:
     _check_port(args, settings.host, settings.port)
     if args.cluster:
         try:  # the driver's node mounts the data directory as every node does: a wrong one is one line here
-            settings.data_dir.mkdir(parents=True, exist_ok=True)
+            _probe_folder(settings.data_dir)
         except OSError as exc:
             print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
                   f"{exc.strerror or exc}", file=sys.stderr)
@@ -83,6 +83,18 @@ def run_serve(args) -> int:
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
                 http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
+
+
+def _probe_folder(path) -> None:
+    """OSError where the folder ``path`` cannot be made; the folders made to find out are removed again
+    (a start refused later, its claims not fitting say, leaves nothing behind)."""
+    from pathlib import Path
+
+    path = Path(path).absolute()
+    missing = [p for p in (path, *path.parents) if not p.exists()]
+    path.mkdir(parents=True, exist_ok=True)
+    for folder in missing:  # the deepest first
+        folder.rmdir()
 
 
 def _check_port(args, host: str, port: int) -> None:
