@@ -117,6 +117,19 @@ def test_a_view_size_the_page_cannot_use_is_said_and_the_default_drawn(page, ser
                                                      "?height=2.5: expected a whole number from 16 to 4096; 384 used")
 
 
+def test_the_view_shows_a_focus_outline_only_when_reached_by_tab(page, server, shelf_session):
+    open_viewer(page, server, shelf_session.id)
+    outline = "getComputedStyle(document.getElementById('view')).outlineStyle"
+    page.mouse.click(*center(page))
+    assert page.evaluate("document.activeElement.id") == "view" and page.evaluate(outline) == "none"
+    page.locator("#mode").focus()
+    for _ in range(40):  # on through the panel's controls to the view, by keyboard
+        page.keyboard.press("Tab")
+        if page.evaluate("document.activeElement.id") == "view":
+            break
+    assert page.evaluate("document.activeElement.id") == "view" and page.evaluate(outline) != "none"
+
+
 def test_a_drag_changes_the_pose_and_the_image(page, server, shelf_session, shots):
     open_viewer(page, server, shelf_session.id)
     before_image, (_, before_pose, _, _) = canvas(page), view_camera(page)

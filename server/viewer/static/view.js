@@ -423,13 +423,13 @@ const TYPING = new Set(["text", "password", "search", "email", "url", "tel", "nu
 function focusView() {
   const a = document.activeElement;
   const typing = a && (a.isContentEditable || a.tagName === "TEXTAREA" || (a.tagName === "INPUT" && TYPING.has(a.type)));
-  if (!typing) view.focus({ preventScroll: true });
+  if (!typing) view.focus({ preventScroll: true, focusVisible: false });  // the outline marks a Tab's focus only
 }
 stage.addEventListener("pointerenter", focusView);
 
 stage.addEventListener("pointerdown", (e) => {
   stage.setPointerCapture(e.pointerId);
-  view.focus({ preventScroll: true });
+  view.focus({ preventScroll: true, focusVisible: false });
   pointers.set(e.pointerId, [e.clientX, e.clientY]);
   gesture = { pan: e.button === 2 || e.shiftKey };
 });
