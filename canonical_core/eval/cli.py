@@ -74,12 +74,24 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
+def _not_for_segmentation(args: argparse.Namespace) -> list[str]:
+    """The options given that the segmentation experiment does not use (it would ignore them)."""
+    given = {"--noise": bool(args.noise), "--mixed-noise": args.mixed_noise is not None,
+             "--stability-views": args.stability_views != list(STABILITY_VIEWS),
+             "--no-extrapolation": args.no_extrapolation, "--colour": args.colour != "normalised"}
+    return [option for option, set_ in given.items() if set_]
+
+
 def run_eval(args: argparse.Namespace) -> int:
     """Run `evaluate` (`evaluate_segmentation` with --segmentation) with the parsed arguments; prints
     results.md unless --quiet. Returns 0, or 2 (with the message on stderr) for invalid arguments."""
     from .run import evaluate
     from .segmentation import evaluate_segmentation
 
+    if args.segmentation and (unused := _not_for_segmentation(args)):
+        print(f"canonical eval: error: {', '.join(unused)}: not used by --segmentation (it scores fused labels, "
+              "clean depth, held-out views between the inputs)", file=sys.stderr)
+        return 2
     try:
         dataset = args.dataset if args.K is None else load_dataset(args.dataset, K=args.K)
         if args.segmentation:

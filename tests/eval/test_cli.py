@@ -35,6 +35,11 @@ def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
     assert "methods" in capsys.readouterr().err
     assert main([str(data), "--views", "2", "--out", str(out), "--mixed-noise", "-1", "--quiet"]) == 2
     assert "mixed_noise" in capsys.readouterr().err
+    # the segmentation experiment would ignore them: said, and nothing runs
+    assert main([str(data), "--segmentation", "--out", str(tmp_path / "seg"), "--noise", "0.1", "--no-extrapolation",
+                 "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith("canonical eval: error: --noise, --no-extrapolation: not used by "
+                                              "--segmentation") and not (tmp_path / "seg").exists()
 
 
 def test_a_capture_without_intrinsics_is_evaluated_with_K(tmp_path, capsys):
