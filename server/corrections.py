@@ -141,8 +141,8 @@ class Corrections:
                 self.background = self.jobs[job.id] = job
                 answer = {**done, "frames": session.scene.frames, "state": job.state, "correction_id": job.id,
                           "status": job.status()}  # the 202 answer: accepted, its re-fold not begun
-                threading.Thread(target=self._refold_in_background,
-                                 args=(job, archive, bases, appearance, done, changed, removed | dropped), name=f"correction-{job.id}", daemon=True).start()
+                threading.Thread(target=self._refold_in_background, name=f"correction-{job.id}", daemon=True,
+                                 args=(job, archive, bases, appearance, done, changed, removed | dropped)).start()
                 return answer
         try:
             scene, checkpoints = self._refolded(archive, entries, changed, removed | dropped, appearance, bases)

@@ -120,8 +120,6 @@ class Session:
         if self.archive is not None:
             self.scene.keep_undo(self.undo_depth, MAX_UNDO_SHARE)
         self.preallocate(self.scene)
-        if self.chosen and self.scene.config == self.config:  # a scene rebuilt from meta.json's settings
-            self.scene.chosen = dict(self.chosen)
         self._keep_chosen()
 
     def _keep_chosen(self) -> None:

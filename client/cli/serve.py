@@ -103,11 +103,13 @@ def _check_port(args, host: str, port: int) -> None:
     import socket
 
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers bind: a closed socket's TIME_WAIT is no owner
+        # as the servers bind: a closed socket's TIME_WAIT owns no port
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise UsageError(f"{_setting_source(args, 'port')}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+            raise UsageError(f"{_setting_source(args, 'port')}: cannot listen on {host}:{port}: "
+                             f"{exc.strerror or exc}") from None
 
 
 def _setting_source(args, name: str) -> str:

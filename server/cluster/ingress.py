@@ -173,7 +173,6 @@ class ClusterRouter:
         unavailable = sorted((s for a in answers for s in a[1]), key=lambda s: s["id"])
         return JSONResponse(jsonable_encoder(SessionList(sessions=[SessionSummary(**s) for s in held + unavailable])))
 
-
     async def _viewer_sessions(self, headers: list):
         """The web viewer's session list: each owner's (its sessions' stats and last folds), merged as
         the single-process service orders them (served by creation, then the unavailable ones)."""
@@ -189,8 +188,10 @@ class ClusterRouter:
             if status != 200:  # the owner's own refusal (401 ...): as it is
                 return Response(content, status_code=status, media_type="application/json")
             rows += json.loads(content)["sessions"]
-        rows.sort(key=lambda s: (s["state"] == "unavailable", s["created"] if s["state"] != "unavailable" else 0.0, s["id"]))
-        return JSONResponse({"sessions": rows})
+        served = [s for s in rows if s["state"] != "unavailable"]
+        unavailable = [s for s in rows if s["state"] == "unavailable"]
+        return JSONResponse({"sessions": sorted(served, key=lambda s: s["created"])
+                             + sorted(unavailable, key=lambda s: s["id"])})
 
 
 @contextlib.asynccontextmanager

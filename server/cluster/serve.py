@@ -37,8 +37,11 @@ REPO = Path(__file__).resolve().parents[2]
 OwnerActor = ray.remote(SessionOwner)
 
 
+OWNER_PREFIX = "canonical-owner-"  # the owners' actor names: the prefix and the shard
+
+
 def owner_name(shard: int) -> str:
-    return f"canonical-owner-{shard}"
+    return f"{OWNER_PREFIX}{shard}"
 
 
 def owner_actor(settings: ClusterSettings, shard: int):
@@ -115,8 +118,8 @@ def running_owners(namespace: str) -> dict[int, object]:
 
 
 def _shard_of_name(name: str) -> int | None:
-    prefix = owner_name(0)[:-1]
-    return int(name[len(prefix):]) if name.startswith(prefix) and name[len(prefix):].isdigit() else None
+    shard = name.removeprefix(OWNER_PREFIX)
+    return int(shard) if shard != name and shard.isdigit() else None
 
 
 def _settings_of(actor) -> str | None:
