@@ -59,8 +59,11 @@ def decoder_tensors(decoder: GaussianDecoder, heads: tuple[str, ...] = TRAINED_H
 
 def save_checkpoint(path: str | os.PathLike, decoder: GaussianDecoder, settings: dict,
                     heads: tuple[str, ...] = TRAINED_HEADS) -> Path:
-    """Write ``decoder``'s ``heads`` and the training ``settings`` (JSON-serialisable) to ``path``."""
-    from safetensors.torch import save_file
+    """Write ``decoder``'s ``heads`` and the training ``settings`` (JSON-serialisable) to ``path``,
+    atomically (a failed write leaves no file, and its OSError names ``path``)."""
+    from safetensors.torch import save
+
+    from ..gaussians.io import atomic_write
 
     unknown = [h for h in heads if h not in TRAINED_HEADS]
     if unknown or not heads:
@@ -69,7 +72,7 @@ def save_checkpoint(path: str | os.PathLike, decoder: GaussianDecoder, settings:
     path.parent.mkdir(parents=True, exist_ok=True)
     metadata = {"format": CHECKPOINT_FORMAT, "version": str(CHECKPOINT_VERSION), "feature_dim": str(decoder.feature_dim),
                 "heads": json.dumps(list(heads)), "settings": json.dumps(settings, sort_keys=True)}
-    save_file(decoder_tensors(decoder, heads), str(path), metadata=metadata)
+    atomic_write(path, [save(decoder_tensors(decoder, heads), metadata=metadata)])
     return path
 
 

@@ -21,7 +21,6 @@ from ..datasets import MissingIntrinsics, load_dataset
 from ..datasets.files import intrinsics_arg
 from ..rendering import Colour
 from .methods import METHODS
-from .protocol import STABILITY_VIEWS
 
 
 def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
@@ -52,8 +51,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
                         help="also run with depth noise at LEVEL on every other input view only (uneven evidence; default off)")
     parser.add_argument("--scale", type=float, default=1.0, help="image downscale factor in (0, 1] (default 1)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel edge in metres (default: 6 pixel footprints at the median depth)")
-    parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=list(STABILITY_VIEWS),
-                        help="input counts of the feature-stability curve, the largest is the reference (default 2..12; 'none' skips)")
+    parser.add_argument("--stability-views", type=_list(int, "stability-views"), default=None,
+                        help="input counts of the feature-stability curve, the largest is the reference (default: those of "
+                             "2..12 the capture has frames for; 'none' skips)")
     parser.add_argument("--no-extrapolation", action="store_true", help="skip the extrapolation split")
     parser.add_argument("--colour", choices=list(get_args(Colour)), default="normalised",
                         help="how Gaussians are rendered for scoring (rendering.render's colour modes; default normalised)")
@@ -77,7 +77,7 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 def _not_for_segmentation(args: argparse.Namespace) -> list[str]:
     """The options given that the segmentation experiment does not use (it would ignore them)."""
     given = {"--noise": bool(args.noise), "--mixed-noise": args.mixed_noise is not None,
-             "--stability-views": args.stability_views != list(STABILITY_VIEWS),
+             "--stability-views": args.stability_views is not None,
              "--no-extrapolation": args.no_extrapolation, "--colour": args.colour != "normalised"}
     return [option for option, set_ in given.items() if set_]
 

@@ -116,8 +116,14 @@ def extrapolation_split(n: int, views: Sequence[int], heldout: Sequence[int], ra
     return Split(heldout=tuple(sorted(heldout)), inputs=inputs)
 
 
-def stability_inputs(n: int, heldout: Sequence[int], views: Sequence[int] = STABILITY_VIEWS) -> dict[int, tuple[int, ...]]:
+def stability_inputs(n: int, heldout: Sequence[int], views: Sequence[int] | None = None) -> dict[int, tuple[int, ...]]:
     """Input positions for the feature-stability curve: evenly spread, snapped around the held-out
-    frames. Counts that do not fit in the n - len(heldout) free frames are left out."""
+    frames. ``views`` None: the counts of `STABILITY_VIEWS` that fit in the n - len(heldout) free
+    frames; counts given must all fit (ValueError naming the ones that do not)."""
     free = n - len(set(heldout))
-    return {v: tuple(sorted(nearest_free(spread(n, v), heldout, n))) for v in sorted(set(views)) if 1 <= v <= free}
+    if views is None:
+        views = [v for v in STABILITY_VIEWS if v <= free]
+    elif misfits := sorted({v for v in views if not 1 <= v <= free}):
+        raise ValueError(f"stability_views: {misfits} do not fit: each count must be between 1 and the {free} frames "
+                         f"that are not held out")
+    return {v: tuple(sorted(nearest_free(spread(n, v), heldout, n))) for v in sorted(set(views))}

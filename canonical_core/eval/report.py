@@ -279,4 +279,12 @@ def write_report(results: Mapping, grids: Mapping[int, Mapping[str, Sequence[np.
     for n, columns in grids.items():
         written.append(out_dir / f"grid_N{n}.png")
         image_grid(columns).save(written[-1])
+    remove_stale(out_dir, ["noise_psnr.png", "stability.png", "grid_N*.png"], written)
     return written
+
+
+def remove_stale(out_dir: Path, patterns: Sequence[str], written: Sequence[Path]) -> None:
+    """Remove the files matching ``patterns`` that an earlier report into ``out_dir`` wrote and this
+    one did not (a grid of an N not run now), so that the folder shows this run only."""
+    for path in {p for pattern in patterns for p in out_dir.glob(pattern)} - set(written):
+        path.unlink()

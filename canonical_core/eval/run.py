@@ -46,7 +46,7 @@ from ..rendering import Colour
 from ..scene.choices import default_voxel_size
 from .methods import METHODS, Model, build, check_methods, parse_method
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edge_band, psnr, ssim
-from .protocol import STABILITY_VIEWS, Split, extrapolation_split, interpolation_split, stability_inputs
+from .protocol import Split, extrapolation_split, interpolation_split, stability_inputs
 from .figures import require_matplotlib
 from .report import write_report
 
@@ -199,7 +199,7 @@ def evaluate(
     progress: bool = True,
     scale: float = 1.0,
     voxel_size: float | None = None,
-    stability_views: Sequence[int] = STABILITY_VIEWS,
+    stability_views: Sequence[int] | None = None,
     extrapolation: bool = True,
     colour: Colour = "normalised",
 ) -> dict:
@@ -217,7 +217,8 @@ def evaluate(
             clean (evidence of uneven quality, which reliability weighting is for); None skips it.
         scale: image downscale factor in (0, 1] (for quick runs).
         voxel_size: voxel edge in the scene's unit; default `default_voxel_size` of the inputs.
-        stability_views: input counts of the feature-stability curve (empty: skip it).
+        stability_views: input counts of the feature-stability curve (empty: skip it; None: those
+            of `protocol.STABILITY_VIEWS` that the sequence has frames for). Counts given must fit (ValueError).
         extrapolation: also run the extrapolation split (when the sequence allows it).
         colour: how Gaussians' renders are scored, "normalised" or "composited" (`rendering.render`).
     """
@@ -238,7 +239,8 @@ def evaluate(
     skipped = {m: reason for m in methods if (reason := resolved[m].unavailable())}
     runnable = [m for m in methods if m not in skipped]
     feature_methods = [m for m in runnable if resolved[m].features]
-    stab = stability_inputs(n, split.heldout, stability_views) if feature_methods else {}
+    stab = stability_inputs(n, split.heldout, stability_views)  # checked even when no method has features
+    stab = stab if feature_methods else {}
     stab_methods = feature_methods if stab else []
 
     input_sets = [*split.inputs.values(), *(extra.inputs.values() if extra else ()), *stab.values()]

@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -264,6 +265,19 @@ def _settings_dict(settings: TrainSettings) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(settings).items()}
 
 
+def _check_writable(out: Path) -> None:
+    """ValueError naming ``out`` unless its folder can be made and written, before the captures are
+    loaded and trained on (minutes that a late failure to save would waste)."""
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as exc:
+        raise ValueError(f"out: cannot write {out}: {exc.strerror or exc}") from None
+    if out.is_dir():
+        raise ValueError(f"out: {out} is a folder; expected a .safetensors file to write")
+
+
 def run_training(capture_paths: Sequence[str | Path], out: str | Path, settings: TrainSettings = TrainSettings(),
                  progress: bool = True) -> TrainResult:
     """``canonical train``: load the captures, train, write the checkpoint at ``out`` and the report
@@ -271,6 +285,7 @@ def run_training(capture_paths: Sequence[str | Path], out: str | Path, settings:
     out = Path(out)
     if out.suffix != ".safetensors":
         raise ValueError(f"out: expected a path ending in .safetensors, got {str(out)!r}")
+    _check_writable(out)
     captures = load_captures(capture_paths, settings.width)
     result = train(captures, settings, progress=progress)
     names = [c.name for c in captures]

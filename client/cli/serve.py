@@ -55,6 +55,7 @@ def run_serve(args) -> int:
             print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
                   f"{exc.strerror or exc}", file=sys.stderr)
             return 1
+        _check_ray_address(args.address)
         from server.cluster.claims import ClaimsDoNotFit
         from server.cluster.serve import serve_forever  # imports Ray: only in cluster mode
 
@@ -110,6 +111,32 @@ def _check_port(args, host: str, port: int) -> None:
         except OSError as exc:
             raise UsageError(f"{_setting_source(args, 'port')}: cannot listen on {host}:{port}: "
                              f"{exc.strerror or exc}") from None
+
+
+def _check_ray_address(address: str | None) -> None:
+    """UsageError naming --address (or RAY_ADDRESS) when nothing answers at the Ray cluster's address,
+    before Ray is asked to join it (it would retry for minutes in many lines). "auto" and "local" are
+    Ray's to resolve."""
+    import socket
+    from urllib.parse import urlsplit
+
+    source = "--address" if address else "RAY_ADDRESS"
+    address = address or os.environ.get("RAY_ADDRESS", "")
+    if address in ("", "auto", "local"):
+        return
+    # host:port (the head's GCS, port 6379 by default) or ray://host:port (Ray Client, 10001)
+    client = address.startswith("ray://")
+    try:
+        where = urlsplit(address if "://" in address else f"gcs://{address}")
+        host, port = where.hostname, where.port or (10001 if client else 6379)
+    except ValueError as exc:
+        raise UsageError(f"{source}: {address!r} is not HOST:PORT or ray://HOST:PORT ({exc})") from None
+    if not host:
+        raise UsageError(f"{source}: {address!r} is not HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host, port), timeout=5).close()
+    except OSError as exc:
+        raise UsageError(f"{source}: no Ray cluster answers at {host}:{port}: {exc.strerror or exc}") from None
 
 
 def _setting_source(args, name: str) -> str:

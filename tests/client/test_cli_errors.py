@@ -70,6 +70,7 @@ BAD_ARGUMENTS = [
     ("a voxel size not a number", ["stream", "somewhere", "--voxel-size", "nan"], "argument --voxel-size: expected a positive"),
     ("an endless voxel", ["demo", "somewhere", "--voxel-size", "inf"], "argument --voxel-size: expected a positive"),
     ("no source views", ["depth", "somewhere", "--out", "x", "--sources", "0"], "argument --sources: expected a positive"),
+    ("no capture to preview", ["depth", "somewhere", "--out", "x"], "somewhere: not a folder"),
     ("a background by name", ["render", "--session", "x", "--frame-like", "a:0", "--background", "red", "-o", "a.png"],
      "argument --background: expected r,g,b"),
     ("a background past 1", ["render", "--session", "x", "--frame-like", "a:0", "--background", "1,2,0", "-o", "a.png"],
@@ -257,3 +258,17 @@ def test_a_port_taken_or_a_data_dir_that_cannot_be_made_is_one_line_before_anyth
     # the cluster's data directory is made before Ray starts
     result = canonical("serve", "--cluster", "--port", str(free_port()), "--data-dir", "/proc/no-such/data")
     assert_one_line_error(result, 1, "--data-dir: cannot create", "/proc/no-such")
+
+
+@pytest.mark.parametrize("address, env, words", [
+    (["--address", "127.0.0.1:{port}"], {}, ["--address: no Ray cluster answers at 127.0.0.1:{port}", "refused"]),
+    (["--address", "ray://127.0.0.1:{port}"], {}, ["--address: no Ray cluster answers at 127.0.0.1:{port}"]),
+    ([], {"RAY_ADDRESS": "127.0.0.1:{port}"}, ["RAY_ADDRESS: no Ray cluster answers at 127.0.0.1:{port}"]),
+    (["--address", "127.0.0.1:port"], {}, ["--address: '127.0.0.1:port' is not HOST:PORT"]),
+], ids=["a head's address", "a Ray Client address", "from the environment", "no port number"])
+def test_a_ray_cluster_that_does_not_answer_is_one_line_at_once(tmp_path, address, env, words):
+    port = free_port()  # nothing listens there
+    result = canonical("serve", "--cluster", "--port", str(free_port()), "--data-dir", str(tmp_path / "data"),
+                       *(a.format(port=port) for a in address), env={k: v.format(port=port) for k, v in env.items()},
+                       timeout=60)
+    assert_one_line_error(result, 2, *(w.format(port=port) for w in words))

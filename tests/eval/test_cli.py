@@ -16,7 +16,7 @@ def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
                               "--methods", "canonical,open3d_tsdf", "--noise", "0.05,0.1,0.25,0.5"])
     assert args.func is run_eval
     assert args.views == [2, 4, 8, 16] and args.methods == ["canonical", "open3d_tsdf"]
-    assert args.noise == [0.05, 0.1, 0.25, 0.5] and args.scale == 1.0 and args.stability_views == list(range(2, 13))
+    assert args.noise == [0.05, 0.1, 0.25, 0.5] and args.scale == 1.0 and args.stability_views is None
     assert args.mixed_noise is None
     assert parser.parse_args(["eval", "x", "--out", "o", "--stability-views", "none"]).stability_views == []
     assert parser.parse_args(["eval", "x", "--out", "o", "--mixed-noise", "0.25"]).mixed_noise == 0.25
@@ -27,14 +27,22 @@ def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
 def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
     data = write_tsdf_fusion(synthetic_rgbd(num_frames=14, width=40, height=30), tmp_path / "cap")
     out = tmp_path / "out"
+    out.mkdir()
+    for name in ("grid_N16.png", "stability.png", "notes.png"):  # an earlier run's figures, and a user's file
+        (out / name).write_bytes(b"")
     assert main([str(data), "--views", "2", "--out", str(out), "--methods", "canonical", "--voxel-size", "0.05",
                  "--stability-views", "none", "--no-extrapolation"]) == 0
     assert "## Held-out views, clean depth" in capsys.readouterr().out
+    assert sorted(p.name for p in out.glob("*.png")) == ["grid_N2.png", "notes.png", "psnr_vs_views.png"]
     assert json.loads((out / "results.json").read_text())["runs"][0]["method"] == "canonical"
     assert main([str(data), "--views", "2", "--out", str(out), "--methods", "nerf", "--quiet"]) == 2
     assert "methods" in capsys.readouterr().err
     assert main([str(data), "--views", "2", "--out", str(out), "--mixed-noise", "-1", "--quiet"]) == 2
     assert "mixed_noise" in capsys.readouterr().err
+    # counts the capture has no frames for are refused, where they were left out silently
+    assert main([str(data), "--views", "2", "--out", str(out), "--methods", "canonical", "--stability-views", "2,9",
+                 "--quiet"]) == 2
+    assert "stability_views: [9] do not fit" in capsys.readouterr().err
     # the segmentation experiment would ignore them: said, and nothing runs
     assert main([str(data), "--segmentation", "--out", str(tmp_path / "seg"), "--noise", "0.1", "--no-extrapolation",
                  "--quiet"]) == 2

@@ -75,3 +75,13 @@ def test_stability_inputs_avoid_heldout_frames():
     for v, positions in inputs.items():
         assert len(set(positions)) == v and not set(positions) & set(split.heldout)
     assert inputs[4] == split.inputs[4] and inputs[8] == split.inputs[8]
+
+
+def test_stability_counts_given_must_fit_and_the_default_keeps_those_that_do():
+    heldout = interpolation_split(14, [2]).heldout  # 10 held out, 4 frames free
+    assert sorted(stability_inputs(14, heldout)) == [2, 3, 4]
+    assert sorted(stability_inputs(14, heldout, [3, 2])) == [2, 3]
+    with pytest.raises(ValueError, match=r"stability_views: \[5\] do not fit"):
+        stability_inputs(14, heldout, [2, 5])
+    with pytest.raises(ValueError, match=r"stability_views: \[0\] do not fit"):
+        stability_inputs(14, heldout, [0, 2])

@@ -246,8 +246,11 @@ def small_bin(source: Path, dest: Path, count: int = 6) -> Path:
 def test_cli_segmentation_runs_end_to_end_on_a_small_real_bin(tmp_path, apc_bins_path, capsys):
     data = small_bin(apc_bins_path / "bin_labels", tmp_path / "bin_labels")
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "grid_bin_labels_N8.png").write_bytes(b"")  # an earlier run's grid: not this run's, so removed
     assert main([str(data), "--segmentation", "--views", "2", "--methods", "canonical", "--scale", "0.25",
                  "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.glob("grid_*.png")) == ["grid_bin_labels_N2.png"]
     printed = capsys.readouterr().out
     assert "| bin_labels | canonical | 2 |" in printed
     results = json.loads((out / "results.json").read_text())

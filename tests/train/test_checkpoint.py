@@ -192,3 +192,11 @@ def test_a_session_whose_model_cannot_load_is_refused_and_leaves_no_files(tmp_pa
         assert session.scene.model_sha256 == load_checkpoint(path).sha256
     finally:
         store.close()
+
+
+def test_a_checkpoint_that_cannot_be_written_leaves_no_file_and_names_the_path(tmp_path):
+    target = tmp_path / "m.safetensors"
+    target.mkdir()  # a folder where the file would go
+    with pytest.raises(IsADirectoryError, match="m.safetensors"):
+        save_checkpoint(target, GaussianDecoder(16), {})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.safetensors"]
