@@ -128,7 +128,6 @@ class Corrections:
             short = len(entries) - first <= session.background_frames
             if wait and short and first >= session.scene.undo_floor and all(e.kept for e in entries[first:]):
                 self._correct_in_place(archive, entries, changed, removed | dropped, first)
-                self._renumbered(done["frames_before"], changed, removed | dropped)
                 return {**done, "frames": session.scene.frames}
             bases = self._bases(archive, first)
             appearance = session.scene.appearance
@@ -262,10 +261,12 @@ class Corrections:
     def _correct_in_place(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
                           first: int) -> None:
         """`correct` for frames among the last folds, under the session's lock: roll the scene back to
-        ``first`` frames, fold the corrected frames after it, then archive the correction. If a fold
+        ``first`` frames, fold the corrected frames after it, archive the correction, then what follows
+        (`_renumbered`) and the files (the log or a snapshot). If a fold
         or the archive write fails, the scene is rolled back again and the old frames re-folded (they
         folded before), and the error is raised: nothing changed."""
         scene = self.session.scene
+        frames_before = scene.frames
 
         def fold_from_first(frames) -> None:
             scene.rollback(first)
@@ -280,6 +281,7 @@ class Corrections:
         except BaseException:
             fold_from_first(list(archive.frames(tail)))
             raise
+        self._renumbered(frames_before, changed, removed)  # before the files catch up (`server.track`)
         if first >= self.session.snapshots.frames:
             self._rewrite_log(archive, first)
         else:

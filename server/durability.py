@@ -47,6 +47,7 @@ from . import wire
 from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive, payload_digest
 from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
 from .session_errors import Unrestorable
+from .track import tracked, write_track
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
 
@@ -60,9 +61,7 @@ class FoldedFrame:
 
     index: int
     digest: str  # of its log record's payload
-    # the fold report it got; None where a crash between a snapshot and the log's restart left only
-    # the frame's record (its report is then not known: the retry gets zero counts)
-    report: dict | None
+    report: dict | None  # its fold's; None where a crash left only its record (a retry gets zero counts)
 
 
 class Restored(NamedTuple):
@@ -152,9 +151,9 @@ def _first_difference(given: dict, made: dict, prefix: str = "") -> tuple[str, o
 
 def restore_session(path: Path, config: SceneConfig, retention: Retention,
                     chosen: dict | None = None) -> tuple[Restored, SessionArchive | None]:
-    """`restore_scene` (``chosen`` as it takes it), with the session's frame archive. When the archive holds a correction that the
-    snapshot does not (a crash between archiving a correction and snapshotting its scene), the scene is
-    re-folded from the archive and snapshotted, so a restart gives the corrected scene, never a mixture."""
+    """`restore_scene` (``chosen`` as it takes it) with the session's archive. An archived correction the
+    snapshot lacks (a crash before the files caught up) re-folds the archive, snapshotted, and remakes
+    the camera track: a restart gives the corrected scene, never a mixture."""
     archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
     if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
         try:
@@ -170,7 +169,10 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention,
     scene = Scene.load(snap) if snap.exists() else Scene(config)
     entries = list(archive.entries)
     dropped = {k for k, e in enumerate(entries) if not e.kept}
-    scene.adopt(Scene.refolded(scene.config, corrected_stream(archive.frames(entries), {}, dropped), scene.appearance))
+    cameras: list = []  # the re-folded frames' track (the file may predate the correction)
+    scene.adopt(Scene.refolded(scene.config, corrected_stream(tracked(archive.frames(entries), cameras), {}, dropped),
+                               scene.appearance))
+    write_track(path, cameras)
     if dropped:
         archive.append_correction({}, [entries[k].arrival for k in dropped], min(dropped))
     frame_ids = archived_frame_ids(archive, {})

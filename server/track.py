@@ -3,7 +3,9 @@
 ``cameras.f64`` in the session's folder holds one row of `CAMERA_COLUMNS` float64 per frame the
 session holds, so that the track outlives a restart. The session appends a frame's row under its
 lock once the frame is durable (before it is acknowledged), and a pose correction rewrites the file
-with the corrected poses and without the removed frames, renumbered as the scene now numbers them.
+with the corrected poses and without the removed frames, renumbered as the scene now numbers them,
+before the session's files catch up with the correction: a restart that finds the correction in the
+archive only re-folds the archive's frames and writes the track from their cameras (`write_track`).
 The track is a view aid, not scene state: a missing or short file only means fewer frustums.
 """
 
@@ -11,11 +13,12 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from canonical_core import Camera
+from canonical_core import Camera, Frame
 
 log = logging.getLogger("canonical.track")
 
@@ -69,8 +72,7 @@ def correct_track(folder: Path, poses: dict[int, np.ndarray], removed: set[int])
     (c2w [4, 4]), the frames in ``removed`` leave it, and the others are renumbered as the scene
     numbers them after the removal (k minus the removed frames before it). Keys are stream positions
     before the correction. Replaces the file whole (no reader sees half of it); never raises."""
-    path = folder / CAMERAS_FILE
-    rows = read_track(path, frames=np.iinfo(np.int64).max)
+    rows = read_track(folder / CAMERAS_FILE, frames=np.iinfo(np.int64).max)
     by_index = {int(row[0]): row.copy() for row in rows}  # a frame's last row, should it hold two
     gone = np.array(sorted(removed), np.int64)
     kept = []
@@ -80,9 +82,28 @@ def correct_track(folder: Path, poses: dict[int, np.ndarray], removed: set[int])
             row[7:23] = np.asarray(poses[index], np.float64).reshape(16)
         row[0] = index - np.searchsorted(gone, index)
         kept.append(row)
+    _replace(folder, kept)
+
+
+def write_track(folder: Path, cameras: list[Camera]) -> None:
+    """The track in ``folder`` made anew: frame k's row from ``cameras[k]``; never raises."""
+    _replace(folder, [camera_row(k, camera) for k, camera in enumerate(cameras)])
+
+
+def tracked(frames: Iterable[Frame | None], cameras: list[Camera]) -> Iterator[Frame | None]:
+    """``frames`` passed on as they are read, the camera of each (None: not kept) appended to ``cameras``."""
+    for frame in frames:
+        if frame is not None:
+            cameras.append(frame.camera)
+        yield frame
+
+
+def _replace(folder: Path, rows: list[np.ndarray]) -> None:
+    """The track file replaced whole by ``rows`` (no reader sees half of it); a failure is logged."""
+    path = folder / CAMERAS_FILE
     temporary = path.with_suffix(".tmp")
     try:
-        temporary.write_bytes(b"".join(row.tobytes() for row in kept))
+        temporary.write_bytes(b"".join(row.tobytes() for row in rows))
         os.replace(temporary, path)
     except OSError as exc:
-        log.warning("%s: the camera track was not corrected (%s)", folder.name, exc)
+        log.warning("%s: the camera track was not rewritten (%s)", folder.name, exc)

@@ -17,6 +17,7 @@ from server import session as session_module
 from server.archive import ARCHIVE, DamagedFrame
 from server.corrections import BASE
 from server.session_errors import CorrectionRefused
+from server.track import CAMERAS_FILE, read_track
 from server.store import SessionStore
 
 from .harness import hold_snapshot_commits
@@ -138,6 +139,34 @@ def test_a_correction_of_recent_frames_rolls_back_in_place_and_survives_a_restar
         report, replay = restored.add_frame(*payload(retry, shift @ retry["c2w"]), 1000, 3600)
         assert replay and report.frame_index == (k - 1 if k > touch else k)
         assert restored.digest()["sha256"] == digest
+    finally:
+        again.close()
+
+
+@pytest.mark.parametrize("touch", [5, 1], ids=["recent frames, in place", "a re-fold"])
+def test_a_kill_after_a_correction_is_archived_restores_its_camera_track_too(tmp_path, shelf, monkeypatch, touch):
+    """The correction archived, then the process dies before the track and the files caught up: the
+    restart re-folds the archive, and the viewer's track shows the corrected poses without the removed frame."""
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    session = streamed(store, shelf)
+    cameras = read_track(session.path / CAMERAS_FILE, len(shelf))
+    monkeypatch.setattr(corrections, "correct_track", lambda *args: None)  # killed before any of them
+    monkeypatch.setattr(corrections.Corrections, "_rewrite_log", lambda *args: None)
+    monkeypatch.setattr(corrections.Corrections, "_persist", lambda *args: None)
+    moved = shelf[touch + 1]["c2w"].copy()
+    moved[:3, 3] += 0.02
+    session.corrections.correct({shelf[touch + 1]["frame_id"]: moved}, [shelf[touch]["frame_id"]])
+    assert np.array_equal(read_track(session.path / CAMERAS_FILE, len(shelf)), cameras)  # stale, as a kill leaves it
+    monkeypatch.undo()
+    again = reopened(store, tmp_path)
+    try:
+        restored = again.get(session.id)
+        track = read_track(restored.path / CAMERAS_FILE, restored.scene.frames)
+        expected = np.delete(cameras, touch, axis=0)
+        expected[:, 0] = np.arange(len(shelf) - 1)
+        expected[touch, 7:] = moved.reshape(16)
+        assert restored.scene.frames == len(shelf) - 1 and np.allclose(track, expected)
     finally:
         again.close()
 
