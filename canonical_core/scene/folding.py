@@ -29,7 +29,7 @@ from .choices import choose_settings
 from .depth_frontend import Prepared, denoised_depth
 from .integrate import integrate, integrate_free_space
 from .keyframes import kept_view
-from .undo import FoldUndo, history_slot
+from .undo import FoldUndo, history_slot, undo_folds
 
 if TYPE_CHECKING:
     from .scene import Scene
@@ -135,11 +135,16 @@ def fold_kept(scene: Scene, frame: Frame | PreparedFrame, arrival: int, t0: floa
     before = None if scene.config.chosen else (scene.config, scene.chosen)
     if before is not None:  # what the settings leave to the first frame is chosen now, once (`choices`)
         _set_config(scene, *choose_settings(scene.config, frame))
-    # the fold in progress enters what it overwrites in its undo record, the map's journal
-    record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth else None
+    # the fold in progress enters what it overwrites in its undo record, the map's journal; a frame
+    # without depth folds the frames that wait for it too, and a refusal of one of those (its labels,
+    # the voxel cap) comes after the frame's own integration: the record undoes that
+    waiting = frame.depth is None and bool(scene._front.pending)
+    record = scene._voxels.journal = _undo_record(scene) if scene._undo.depth or waiting else None
     try:
         report = _fold(scene, ahead, t0)
     except BaseException:
+        if waiting:
+            _undo_failed_fold(scene, record)
         if before is not None:  # a refused frame chooses nothing
             _set_config(scene, *before)
         raise
@@ -147,7 +152,7 @@ def fold_kept(scene: Scene, frame: Frame | PreparedFrame, arrival: int, t0: floa
         scene._voxels.journal = None
         scene._generation += 1
         scene._decoding.forget()
-    if record is not None:
+    if record is not None and scene._undo.depth:
         if scene.label_dim != record.label_dim:  # rows were widened: earlier records no longer fit
             scene._undo.clear()
         else:
@@ -158,6 +163,13 @@ def fold_kept(scene: Scene, frame: Frame | PreparedFrame, arrival: int, t0: floa
         if scene.checkpoint_every and scene.frames % scene.checkpoint_every == 0:
             scene._checkpoints[scene.frames] = snapshot.encode(scene, *snapshot.snapshot_parts(scene))
     return report
+
+
+def _undo_failed_fold(scene: Scene, record: FoldUndo) -> None:
+    """The state before a fold that failed part way (``record``: its undo record, entered as it went)."""
+    undo_folds(scene, [record])
+    if scene.label_dim != record.label_dim:  # it widened the rows for its labels: narrowed again
+        scene._voxels.set_label_dim(record.label_dim)
 
 
 def _set_config(scene: Scene, config: SceneConfig, chosen: dict[str, str]) -> None:
@@ -176,6 +188,7 @@ def _undo_record(scene: Scene) -> FoldUndo:
 
 def _fold(scene: Scene, ahead: PreparedFrame, t0: float) -> FoldReport:
     frame, index = ahead.frame, scene.frames
+    _check_labels(scene, frame)
     points = functools.partial(scene._voxels.representative_points, scene.config.voxel_size)
     # what `prepare` made holds where it was made with the settings the scene folds with now
     made = ahead.config is scene.config and scene.appearance.is_zero
@@ -219,8 +232,15 @@ def _check_foldable(scene: Scene, frame: Frame) -> None:
     """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
     if scene.config.features.backend == "client" and frame.features is None:
         raise ValueError("features: this session uses client-supplied features, but the frame carries none")
-    if frame.labels is not None and scene.label_dim and frame.label_dim != scene.label_dim:
-        raise ValueError(f"labels: expected {scene.label_dim} label channels (as earlier frames), got {frame.label_dim}")
+    _check_labels(scene, frame)
+
+
+def _check_labels(scene: Scene, frame: Frame) -> None:
+    """Label channels as the scene's, or as a waiting frame's before the scene has any: a frame that
+    set them otherwise would leave the waiting frame to fail, and every frame after it."""
+    expected = scene.label_dim or next((f.label_dim for f, _ in scene._front.pending if f.labels is not None), 0)
+    if frame.labels is not None and expected and frame.label_dim != expected:
+        raise ValueError(f"labels: expected {expected} label channels (as earlier frames), got {frame.label_dim}")
 
 
 def fold_cost(scene: "Scene", frame: Frame) -> int:

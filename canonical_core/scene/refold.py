@@ -27,7 +27,7 @@ from ..config import SceneConfig
 from .corrections import corrected_stream
 from .decoding import ColourSolution
 from .folding import fold_kept
-from .undo import UndoRing, restore_history, restore_voxels
+from .undo import UndoRing, undo_folds
 
 if TYPE_CHECKING:
     from .scene import Scene
@@ -41,17 +41,9 @@ def roll_back(scene: Scene, frames: int) -> None:
     undone = scene._undo.take(frames, scene.frames)
     if not undone:
         return
-    target = undone[-1]
     carried = solution_by_key(scene)
-    restore_voxels(scene._voxels, undone)
-    for record in undone:  # newest first: each push's slot back as it was
-        for slot in reversed(record.history):
-            restore_history(scene._history, slot)
-    scene._front.window.views, scene._front.pending = list(target.window), list(target.pending)
-    scene._keyframes.indices, scene._keyframes._frames = list(target.keyframes[0]), list(target.keyframes[1])
-    scene._density_sum, scene._density_frames = target.density
+    undo_folds(scene, undone)
     scene._consistency.forget_previous()  # its counts describe the sensor, which the rollback does not undo
-    scene.frames = target.frames
     if scene._kept is not None:
         del scene._kept[frames:], scene._arrivals[frames:]
     scene._checkpoints = {c: b for c, b in scene._checkpoints.items() if c <= frames}

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -39,6 +40,9 @@ import numpy as np
 from .free_space import CHUNK, SeeThroughHistory
 from .stored import StoredRows
 from .voxel_map import VoxelMap
+
+if TYPE_CHECKING:
+    from .scene import Scene
 
 __all__ = ["FoldUndo", "FreeBefore", "RowsBefore", "UndoRing"]
 
@@ -169,6 +173,19 @@ def restore_voxels(voxels: VoxelMap, undone: list[FoldUndo]) -> None:
 # `MIN_KEPT` records where those alone hold more (a capture whose every frame touches most of the map)
 MAX_UNDO_SHARE = 0.5
 MIN_KEPT = 5  # records kept whatever their size: corrections of the last few frames stay in place
+
+
+def undo_folds(scene: Scene, undone: list[FoldUndo]) -> None:
+    """The fused state as it was before the folds of ``undone`` (their undo records, newest first)."""
+    target = undone[-1]
+    restore_voxels(scene._voxels, undone)
+    for record in undone:  # newest first: each push's slot back as it was
+        for slot in reversed(record.history):
+            restore_history(scene._history, slot)
+    scene._front.window.views, scene._front.pending = list(target.window), list(target.pending)
+    scene._keyframes.indices, scene._keyframes._frames = list(target.keyframes[0]), list(target.keyframes[1])
+    scene._density_sum, scene._density_frames = target.density
+    scene.frames = target.frames
 
 
 class UndoRing:

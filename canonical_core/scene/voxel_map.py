@@ -279,15 +279,16 @@ class VoxelMap:
         update_chunk_boxes_kernel(self.state["keys"], first * CHUNK, n, self.chunk_lo, self.chunk_hi)
 
     def set_label_dim(self, label_dim: int) -> None:
-        """Widen every row by the label columns (zero so far) once the first frame with labels arrives."""
+        """Widen every row by the label columns (zero so far) once the first frame with labels arrives;
+        or narrow them away again (0), where a fold that widened them is undone."""
         old = self.stored
         self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
         self.stored = StoredRows(self.layout)
-        for name, width in (("rows", old.width), ("half", old.half_width)):
-            narrow = self._backing[name]
-            wide = self._reserve(self.capacity, narrow.shape[0], (name,))[name]
-            wide[: self.n, :width] = narrow[: self.n]  # the label columns come last in both, zero so far
-            self._backing[name] = wide
+        for name, width in (("rows", min(old.width, self.stored.width)), ("half", min(old.half_width, self.stored.half_width))):
+            before = self._backing[name]
+            after = self._reserve(self.capacity, before.shape[0], (name,))[name]
+            after[: self.n, :width] = before[: self.n, :width]  # the label columns come last in both
+            self._backing[name] = after
         self._provide(self.capacity)
 
     def commit(self, touched: np.ndarray, n_new: int) -> None:

@@ -72,3 +72,46 @@ def test_a_waiting_frame_is_checked_on_arrival():
     with pytest.raises(ValueError, match="features: this session uses client-supplied features"):
         scene.fold(Frame(rgb=torch.zeros(24, 32, 3, dtype=torch.uint8), camera=cam))
     assert scene.frames == 0 and not scene._front.pending
+
+
+def synthetic_start(max_voxels: int | None = None) -> tuple[Scene, list[Frame]]:
+    """A scene of a synthetic frame with depth, then one without that waits for a partner."""
+    from canonical_core.datasets import synthetic_rgbd
+
+    seq = synthetic_rgbd(num_frames=12, width=64, height=48)  # its first four frames: a partner for frame 1 by frame 3
+    scene = Scene(SceneConfig(voxel_size=0.02, max_voxels=max_voxels))
+    scene.fold(seq[0])
+    return scene, seq
+
+
+def test_a_frame_refused_because_of_the_frame_waiting_for_it_changes_nothing():
+    """A frame without depth folds the frames that waited for it after itself: the voxel cap refusing a
+    waiting one comes after the frame's own integration, which is undone (rows widened for its labels too)."""
+    for labels in (None, np.zeros((4, 4), np.int64)):
+        scene, seq = synthetic_start(max_voxels=8000)
+        waits = scene.fold(Frame(seq[1].rgb, seq[1].camera))
+        scene.fold(seq[2])
+        assert waits.pending and scene.label_dim == 0
+        digest, pending = scene.digest(), len(scene._front.pending)
+        partner = Frame(seq[3].rgb, seq[3].camera, labels=labels, num_classes=None if labels is None else 2)
+        with pytest.raises(ValueError, match="max_voxels: folding this frame would grow the scene"):
+            scene.fold(partner)
+        assert scene.digest() == digest and len(scene._front.pending) == pending and scene.label_dim == 0
+        scene.fold(seq[3])  # and the scene goes on as if the refused frame had not come
+        fresh, _ = synthetic_start(max_voxels=8000)
+        for frame in (Frame(seq[1].rgb, seq[1].camera), seq[2], seq[3]):
+            fresh.fold(frame)
+        assert scene.digest() == fresh.digest()
+
+
+def test_label_channels_are_checked_against_a_waiting_frames_before_the_scene_has_any():
+    scene, seq = synthetic_start()
+    scene.fold(Frame(seq[1].rgb, seq[1].camera, labels=np.zeros((4, 4), np.int64), num_classes=2))
+    digest = scene.digest()
+    three = np.zeros((4, 4), np.int64)
+    with pytest.raises(ValueError, match="labels: expected 2 label channels"):  # it would leave the waiting one unfoldable
+        scene.fold(Frame(seq[2].rgb, seq[2].camera, seq[2].depth, labels=three, num_classes=3))
+    assert scene.digest() == digest
+    scene.fold(Frame(seq[2].rgb, seq[2].camera, seq[2].depth, labels=np.zeros((4, 4), np.int64), num_classes=2))
+    report = scene.fold(Frame(seq[3].rgb, seq[3].camera))  # a partner: the waiting frame folds after it
+    assert report.also_folded == 1 and scene.label_dim == 2
