@@ -10,6 +10,7 @@ from ..deps import JobsDep, SessionDep, SettingsDep, StoreDep
 from ..errors import ApiError
 from ..schemas import (Deleted, Digest, ErrorBody, PruneReport, SessionCreate, SessionCreated, SessionList, SessionStats,
                        SessionSummary)
+from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 422: {"model": ErrorBody}})
@@ -58,8 +59,11 @@ async def prune_sessions(store: StoreDep, jobs: JobsDep, service: SettingsDep,  
 
 @router.get("/{session_id}", response_model=SessionStats)
 async def session_stats(session: SessionDep, jobs: JobsDep) -> SessionStats:
-    """Frames, voxels, Gaussians (decodes if the cache is cold), bytes in memory and on disk."""
-    return SessionStats(**await jobs.run(session.stats, kind="work", session=session.id))
+    """Frames, voxels, Gaussians (decodes if the cache is cold), bytes in memory and on disk. Queues
+    the colour solve when one is due: a client that waits for solved colours polls this."""
+    stats = SessionStats(**await jobs.run(session.stats, kind="work", session=session.id))
+    solve_soon(jobs, session)
+    return stats
 
 
 @router.get("/{session_id}/digest", response_model=Digest)

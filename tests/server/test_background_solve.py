@@ -68,6 +68,14 @@ def test_a_paused_stream_shows_the_librarys_solved_colours_and_a_restart_keeps_t
         # nobody renders: the service solves its restored sessions' colours again as it starts
         assert session.wait_for_colours(SOLVE_WAIT_S)["colours_solved_frames"] == len(streamed), session.stats()
         assert np.array_equal(session.render(*view)["rgb"], expected)
+
+        # nobody renders: a correction's scene gets its colours solved, answered at once or in the background
+        session.remove_frame(streamed[4]["frame_id"])
+        assert session.wait_for_colours(SOLVE_WAIT_S)["colours_solved_frames"] == 4, session.stats()
+        status = session.update_poses({}, remove=[streamed[3]["frame_id"]], wait=False)
+        assert wait_for(lambda: session.correction(status["correction_id"])["state"] == "done", SOLVE_WAIT_S)
+        assert session.wait_for_colours(SOLVE_WAIT_S)["colours_solved_frames"] == 3, session.stats()
+        assert np.array_equal(session.render(*view)["rgb"], library_rgb(streamed[:3], view))
     finally:
         proc.kill9()
 
