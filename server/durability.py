@@ -1,27 +1,25 @@
-"""A session's files, and how they are read back: restore, repair, quarantine. No locks here: a
-session is restored before it is served, and repaired while no server runs on its directory.
+"""A session's files, and how they are read back: restore, repair, quarantine. No locks here: a session is
+restored before it is served, and repaired while no server runs on its directory.
 
-- ``frames.log``: the append-only frame log (`server.framelog`). A frame is appended and fsynced
-  before it is acknowledged; the append runs on a writer thread while the frame folds (the fsync is
-  a wait on the disk, the fold is compute), and the acknowledgement waits for both. An append that
-  fails (a full disk) is cut off at once and the fold is undone (the scene rolled back, or rebuilt
-  from disk); a record whose fold fails is cut off again. A render in that moment may show a frame
-  that is not yet acknowledged; it never loses one that is. On start a torn tail (a crash
-  mid-append: never acknowledged) is cut off; damage anywhere else is never cut. The frame archive is
-  the log's second copy: it takes a frame only once its log record is fsynced, so every frame it holds
-  was acknowledged, and a log that lacks one of them (damaged, or cut short: a cut into the last
-  record looks like a torn tail to the log alone) gets them back from it. Otherwise the log is copied to
-  ``quarantine/`` and the session is not served until ``canonical repair`` decides.
+- ``frames.log``: the append-only frame log (`server.framelog`). A frame is appended and fsynced before it is
+  acknowledged; the append runs on a writer thread while the frame folds (the fsync is a wait on the disk, the
+  fold is compute), and the acknowledgement waits for both. An append that fails (a full disk) is cut off at
+  once and the fold is undone (the scene rolled back, or rebuilt from disk); a record whose fold fails is cut
+  off again. A render in that moment may show a frame that is not yet acknowledged; it never loses one that
+  is. On start a torn tail (a crash mid-append: never acknowledged) is cut off; damage anywhere else is never
+  cut. The frame archive is the log's second copy: it takes a frame only once its log record is fsynced, so
+  every frame it holds was acknowledged, and a log that lacks one of them (damaged, or cut short: a cut into
+  the last record looks like a torn tail to the log alone) gets them back from it. Otherwise the log is copied
+  to ``quarantine/`` and the session is not served until ``canonical repair`` decides.
 - ``scene.snap``: `Scene.to_bytes` snapshot (atomic), holding ``scene.frames`` frames. Due every
-  ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and written on shutdown; after it
-  the log is replaced by one checkpoint record (the frames the snapshot holds and the frame-id
-  table) and the records of the frames after them. A due snapshot is written off the acknowledged
-  path (`server.snapshots`); a crash before it is committed leaves the previous snapshot and the
-  whole log (its ``scene.snap.<n>.next`` file is removed on start).
-  Restart = load snapshot, replay records whose index >= the snapshot's frame count. Folding is
-  deterministic, so the replayed scene equals the uninterrupted one bit for bit. A snapshot that
-  cannot be written is not an error of the request that triggered it: that frame is already durable
-  in the log; the failure shows in the session's stats and in /metrics.
+  ``snapshot_every_frames`` frames or ``snapshot_every_seconds``, and written on shutdown; after it the log is
+  replaced by one checkpoint record (the frames the snapshot holds and the frame-id table) and the records of
+  the frames after them. A due snapshot is written off the acknowledged path (`server.snapshots`); a crash
+  before it is committed leaves the previous snapshot and the whole log (its ``scene.snap.<n>.next`` file is
+  removed on start). Restart = load snapshot, replay records whose index >= the snapshot's frame count.
+  Folding is deterministic, so the replayed scene equals the uninterrupted one bit for bit. A snapshot that
+  cannot be written is not an error of the request that triggered it: that frame is already durable in the
+  log; the failure shows in the session's stats and in /metrics.
 """
 
 from __future__ import annotations
@@ -47,7 +45,7 @@ from . import wire
 from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive, payload_digest
 from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
 from .session_errors import Unrestorable
-from .track import tracked, write_track
+from .track import append_camera, tracked, write_track
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
 
@@ -320,8 +318,9 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
             if record.index > scene.frames:
                 raise ValueError(f"log: record for frame {record.index} follows frame {scene.frames - 1}")
             msg = wire.unpack(record.payload)
+            frame = wire.frame_from_message(msg)
             # a record the snapshot holds already (a crash between snapshot and log restart) only adds its id
-            report = scene.fold(wire.frame_from_message(msg)).to_dict() if record.index == scene.frames else None
+            report = scene.fold(frame).to_dict() if record.index == scene.frames else None
         except ValueError as exc:
             if k != len(records) - 1 or record.index < acknowledged:
                 # Records after it exist (or the archive holds it), so this one was folded and acknowledged
@@ -332,6 +331,7 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
             log.warning("%s: dropping the unacknowledged last log record (frame %d): %s", path, record.index, exc)
             frame_log.truncate(record.offset)
             break
+        append_camera(path, record.index, frame.camera)  # its row, had the crash come before the frame's answer
         if msg.get("frame_id") is not None:  # a frame the checkpoint names was rewritten by a correction: its digest stays
             known = frame_ids.get(msg["frame_id"])
             digest = known.digest if known is not None else payload_digest(record.payload)

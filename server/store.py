@@ -16,6 +16,7 @@ before it where both are held (a deletion).
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import logging
@@ -35,7 +36,8 @@ from canonical_core.scene import Scene
 
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .corrections import BACKGROUND_FRAMES
-from .durability import LOG, META, config_digest, repair, restore_session, restored_frames, session_meta
+from .durability import (LOG, META, config_digest, remove_quietly, repair, restore_session, restored_frames,
+                         session_meta)
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
 from .memory import MemoryBudget, release_memory
 from .retention import prune as prune_idle
@@ -106,6 +108,8 @@ class SessionStore:
             if path.name.startswith(TOMBSTONE):
                 shutil.rmtree(path, ignore_errors=True)
                 continue
+            for stale in path.glob("*.tmp"):  # an atomic write's temporary file, left by a crash mid-write
+                remove_quietly(stale)
             if not (path / META).is_file():
                 if {p.name for p in path.iterdir()} <= {LOG, ARCHIVE} and not any(p.stat().st_size for p in path.iterdir()):
                     log.warning("%s: no %s and nothing logged (creation never completed); removing it", path, META)
@@ -253,13 +257,14 @@ class SessionStore:
             session.check_alive()
             if keep_if is not None and keep_if(session):
                 return False
+            tomb = self._entomb(session.path)  # files first: a session gone from the listing is gone from disk
             session.deleted = True
             session.log.close()
             if session.archive is not None:
                 session.archive.close()
-            self._bury(session.path)  # files first: a session gone from the listing is gone from disk
             with self._lock:
                 self._sessions.pop(session_id, None)
+            shutil.rmtree(tomb, ignore_errors=True)
         finally:
             session.lock.release()
         departed = weakref.ref(session)
@@ -290,10 +295,19 @@ class SessionStore:
         return prune_idle(self, ttl_s, budget_bytes, dry_run)
 
     def _bury(self, path: Path) -> None:
+        shutil.rmtree(self._entomb(path), ignore_errors=True)
+
+    def _entomb(self, path: Path) -> Path:
+        """``path`` renamed to its tombstone (atomic: a crash from here on leaves only a tombstone, which
+        the next start removes); `StorageError` where it cannot be, with nothing changed."""
         tomb = self.root / f"{TOMBSTONE}{path.name}"
-        os.replace(path, tomb)  # atomic: a crash from here on leaves only a tombstone
-        fsync_dir(self.root)
-        shutil.rmtree(tomb, ignore_errors=True)
+        try:
+            os.replace(path, tomb)
+        except OSError as exc:
+            raise StorageError(f"{path.name}: cannot delete its files", exc) from None
+        with contextlib.suppress(OSError):  # the rename stands; only its durability through a power cut is in doubt
+            fsync_dir(self.root)
+        return tomb
 
     def snapshot_due(self, every_seconds: float) -> int:
         """Snapshot sessions whose oldest unsnapshotted frame is older than ``every_seconds``."""

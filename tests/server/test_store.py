@@ -28,6 +28,7 @@ from server.archive import payload_digest
 from server.durability import restore_scene
 from server.session_errors import FrameIdConflict, SessionUnavailable
 from server.store import SessionStore
+from server.track import CAMERAS_FILE, ROW_BYTES, read_track
 
 from ..conftest import solved_as_kept
 from .harness import hold_snapshot_commits, msgpack_frame
@@ -200,6 +201,8 @@ def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_
     assert session.snapshots.frames == 0 and session.scene.frames == 3
     crashed = tmp_path / "crashed" / session.id
     shutil.copytree(session.path, crashed)  # the files as a kill -9 now would leave them
+    with open(crashed / CAMERAS_FILE, "r+b") as track:  # and the kill came before the last frame's camera row
+        track.truncate(2 * ROW_BYTES)
     release.set()
     session.snapshots.wait()
     assert session.snapshots.frames == 2 and session.snapshots.error is None
@@ -212,6 +215,7 @@ def test_a_due_snapshot_is_written_off_the_acknowledged_path_and_a_crash_before_
         restored.log.close()
         assert restored.scene.frames == 3 and restored.scene.digest() == digest
     assert restored.snapshot_frames == 0 and not list(crashed.glob("scene.snap.*.next*"))  # dropped on start
+    assert read_track(crashed / CAMERAS_FILE, 3)[:, 0].tolist() == [0, 1, 2]  # the replay wrote the missing row
 
 
 def test_a_session_a_job_holds_at_its_deletion_goes_back_at_the_first_release_after_the_job_lets_go(store, shelf_frames):

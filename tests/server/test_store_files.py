@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from canonical_core import SceneConfig
+from server.framelog import StorageError
 from server.session_errors import DataDirLocked
 from server.store import SessionStore
 
@@ -32,14 +33,37 @@ def test_an_interrupted_delete_or_create_leaves_nothing_and_a_folder_with_data_i
     (sessions / ".deleted-abc" / "frames.log").write_bytes(b"x")
     (sessions / "half").mkdir()  # a crash before meta.json was written: an empty log only
     (sessions / "half" / "frames.log").write_bytes(b"")
+    (sessions / "halfway").mkdir()  # a crash while meta.json was written: empty logs and its temporary file
+    for name, data in (("frames.log", b""), ("archive.log", b""), ("meta.json.tmp", b'{"id": "hal')):
+        (sessions / "halfway" / name).write_bytes(data)
+    (sessions / kept / "scene.snap.tmp").write_bytes(b"\0" * 4096)  # a crash while a snapshot was written
     (sessions / "orphan").mkdir()  # meta.json lost, but a log with bytes in it: may hold frames
     (sessions / "orphan" / "frames.log").write_bytes(b"CGF1 something")
     store = opened(tmp_path)
     try:
         assert sorted(p.name for p in sessions.iterdir()) == sorted([kept, "orphan"])
+        assert not list(sessions.glob("*/*.tmp"))
         assert [s.id for s in store.list()] == [kept]
         assert "meta.json is missing" in store.unavailable["orphan"]
         assert (sessions / "orphan" / "frames.log").read_bytes() == b"CGF1 something"
+    finally:
+        store.close()
+
+
+def test_a_delete_whose_files_cannot_be_moved_changes_nothing(tmp_path, monkeypatch):
+    store = opened(tmp_path)
+    try:
+        session = store.create(SceneConfig(voxel_size=0.01))
+
+        def refused(*args):
+            raise PermissionError(13, "Permission denied")
+
+        monkeypatch.setattr("server.store.os.replace", refused)
+        with pytest.raises(StorageError, match="cannot delete its files: Permission denied"):
+            store.delete(session.id)
+        assert store.get(session.id) is session and not session.deleted and session.path.is_dir()
+        monkeypatch.undo()
+        assert store.delete(session.id) and not session.path.exists()  # and it can be deleted once it can be
     finally:
         store.close()
 
