@@ -14,6 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from canonical_core.config.migration import FLAT_NAMES
 from canonical_core.scene import CapacityError
 from canonical_core.scene.corrections import FieldError
 
@@ -121,7 +122,9 @@ def install_error_handlers(app: FastAPI) -> None:
         field = _validation_field(first.get("loc", ()))
         msg = first.get("msg", "invalid value")
         if first.get("type") == "extra_forbidden":
-            msg = "unknown field"
+            # a session's settings under their old flat name (as sessions stored them once): where it is now
+            moved = FLAT_NAMES.get(field) if request.url.path.rstrip("/") == "/v1/sessions" else None
+            msg = "unknown field" + (f" (it is {moved} now)" if moved else "")
         elif first.get("type") == "missing":
             msg = "required field is missing"
         elif first.get("type") == "value_error" and field_of(own := msg.removeprefix("Value error, ")):
