@@ -217,7 +217,7 @@ def _integrate(scene: Scene, frame: Frame, made: tuple[FrameEvidence, np.ndarray
     if made is None:
         made = _evidence(frame, scene.config, scene.appearance)
     first_new = len(scene._voxels)
-    done = integrate(scene._voxels, *made, scene.config, scene._scratch)
+    done = integrate(scene._voxels, *made, scene.config)
     if scene.config.free_space.enabled:
         if scene._voxels.journal is not None:
             scene._voxels.journal.history.append(history_slot(scene._history))

@@ -14,6 +14,7 @@ to float tolerance; elsewhere the tests bound the deviation.
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple
 
 import numba
@@ -40,7 +41,9 @@ class Integrated(NamedTuple):
 
 
 class Scratch:
-    """Per-observation work arrays of `integrate`, grown to the largest frame seen and reused."""
+    """Per-observation work arrays of `integrate`, grown to the largest frame seen and reused: one
+    per thread that folds (`thread_scratch`), whatever the scene, so that a process holding many
+    scenes (the service) keeps a set of them per fold thread, not per scene."""
 
     def __init__(self):
         self.size = 0
@@ -57,20 +60,30 @@ class Scratch:
             self.tables = np.empty(resolve_tables_size(self.size, parts), np.int32)
 
 
+_THREAD = threading.local()
+
+
+def thread_scratch() -> Scratch:
+    """This thread's `Scratch` (folds on one thread run one at a time)."""
+    scratch = getattr(_THREAD, "scratch", None)
+    if scratch is None:
+        scratch = _THREAD.scratch = Scratch()
+    return scratch
+
+
 def integrate(
     voxels: VoxelMap,
     ev: FrameEvidence,
     basis: np.ndarray,  # [M, (sh_degree + 1)^2] SH basis of each observation's view direction
     config: SceneConfig,
-    scratch: Scratch,
 ) -> Integrated:
     """Fold ``ev`` into ``voxels`` (the aggregation rule). Raises ValueError (a `CapacityError` past
     ``config.max_voxels``, or label channels unlike earlier frames') before changing anything."""
     if ev.labels is not None and voxels.label_dim and ev.labels.shape[1] != voxels.label_dim:
         raise ValueError(f"labels: expected {voxels.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
     m, parts = len(ev), numba.get_num_threads()
-    scratch.reserve(m, parts)
-    t = scratch
+    t = thread_scratch()
+    t.reserve(m, parts)
     obs_keys, new_keys = t.obs_keys[:m], t.new_keys[:m]
     inv_voxel = np.float32(1.0 / config.voxel_size)
     voxel_keys_kernel(ev.points, inv_voxel, obs_keys)

@@ -120,7 +120,7 @@ def refolded(scene_type: type[Scene], config: SceneConfig, frames, appearance: A
 def adopt(scene: Scene, other: Scene) -> None:
     """`Scene.adopt`: ``other``'s fused state in ``scene``, whose decoder, appearance module and kept
     frames stay; the decoded rows are dropped (they describe the old state)."""
-    scene.frames, scene._voxels, scene._scratch = other.frames, other._voxels, other._scratch
+    scene.frames, scene._voxels = other.frames, other._voxels
     scene._front, scene._history, scene._keyframes = other._front, other._history, other._keyframes
     scene._density_sum, scene._density_frames = other._density_sum, other._density_frames
     scene._consistency = other._consistency

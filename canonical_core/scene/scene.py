@@ -29,7 +29,6 @@ from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
 from .folding import FoldReport, PreparedFrame
 from .free_space import SeeThroughHistory
-from .integrate import Scratch
 from .keyframes import Keyframes
 from .undo import MIN_KEPT, UndoRing
 from .voxel_map import CapacityError, VoxelMap, gathered_sums
@@ -81,7 +80,6 @@ class Scene:
         self.appearance = AppearanceUncertainty(config.features.dim)
         self.frames = 0
         self._voxels = VoxelMap(config.features.dim, config.sh_degree, initial_capacity, config.max_voxels)
-        self._scratch = Scratch()
         self._front = DepthFrontEnd(config)
         self._history = SeeThroughHistory(config.free_space.history)
         self._keyframes = Keyframes(config.colour_solve.views, config.colour_solve.scale)  # the colour solve's views

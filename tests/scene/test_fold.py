@@ -323,3 +323,20 @@ def test_a_frame_without_depth_is_priced_at_every_pixel():
     no_depth = Frame(rgb=frame.rgb, camera=frame.camera)
     assert fold_cost(scene, no_depth) == 48 * scene._voxels.new_voxel_bytes()
     assert fold_cost(scene, frame) == fold_cost(scene, no_depth)  # every pixel of this frame lies in range
+
+
+def test_scenes_folded_at_once_on_two_threads_equal_those_folded_one_after_the_other():
+    """The integration's work arrays are a thread's (`integrate.thread_scratch`), shared by the scenes
+    it folds: folds of two scenes at the same time on two threads must not share them."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from canonical_core.datasets import synthetic_rgbd
+
+    streams = [synthetic_rgbd(num_frames=6, width=64, height=48, seed=seed) for seed in (0, 1)]
+    def digest(frames) -> str:
+        return fold_all(list(frames), SceneConfig(voxel_size=0.02))[0].digest()
+
+    alone = [digest(frames) for frames in streams]
+    with ThreadPoolExecutor(2) as pool:
+        together = list(pool.map(digest, streams))
+    assert together == alone and alone[0] != alone[1]
