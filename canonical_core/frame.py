@@ -31,6 +31,12 @@ MAX_RGB_ONLY_PIXELS = 2048 * 2048
 # values per frame), and label scores add one float per channel to every voxel of the scene.
 MAX_FEATURE_CHANNELS = 512
 MAX_LABEL_CHANNELS = 256
+# A scene stores its feature and label-score means in float16 (`scene.stored`), which ends at this
+# value: a larger mean would be stored as inf, and would poison its voxel for good. A mean stays within
+# the range of what it averages, so values up to this are safe. Client features may be projected to
+# the session's feature channels (orthonormally), which mixes a pixel's channels: each projected
+# channel is then bounded by the norm of the pixel's feature vector, not by its largest value.
+MAX_STORED_VALUE = float(np.finfo(np.float16).max)
 MIN_RGB_ONLY_SIDE = 8  # the plane sweep matches at half resolution and needs a few pixels a side
 # A frame's id is kept in memory, in the log and in every snapshot: a name, not a payload.
 MAX_FRAME_ID_BYTES = 256
@@ -95,7 +101,9 @@ def _depth_map(value, shape: tuple[int, int]) -> Tensor:
     return torch.from_numpy(cleaned)
 
 
-def _channel_map(value, field: str, max_channels: int) -> Tensor:
+def _channel_map(value, field: str, max_channels: int, mixed: bool = False) -> Tensor:
+    """A float map [H', W', C] as float32, its values within what a scene stores (`MAX_STORED_VALUE`);
+    ``mixed``: its channels may be mixed (a projection), so each pixel's vector norm is bounded too."""
     t = _tensor(value, field)
     if t.ndim != 3 or min(t.shape) < 1:
         raise ValueError(f"{field}: expected shape [H', W', C], got {list(t.shape)}")
@@ -103,9 +111,19 @@ def _channel_map(value, field: str, max_channels: int) -> Tensor:
         raise ValueError(f"{field}: {t.shape[-1]} channels exceed the limit of {max_channels}")
     if not t.is_floating_point():
         raise ValueError(f"{field}: expected a float array, got dtype {t.dtype}")
-    t = t.to(torch.float32)
     if not torch.isfinite(t).all():
         raise ValueError(f"{field}: contains NaN or inf")
+    top = float(t.abs().max())  # before float32: a float64 value beyond float32 is named as it was given
+    if top > MAX_STORED_VALUE:
+        raise ValueError(f"{field}: largest magnitude {top:.6g} exceeds {MAX_STORED_VALUE:g}, the largest value "
+                         "a scene stores (float16); scale the values down")
+    t = t.to(torch.float32)
+    if mixed and top * t.shape[-1] ** 0.5 > MAX_STORED_VALUE:  # else no pixel's norm can exceed it
+        norm = float(torch.linalg.vector_norm(t, dim=-1).max())  # squares of values <= 65504 fit float32
+        if norm > MAX_STORED_VALUE:
+            raise ValueError(f"{field}: a pixel's feature vector has norm {norm:.6g}, above {MAX_STORED_VALUE:g}, "
+                             "the largest value a scene stores (float16), which a projection of its channels "
+                             "may reach; scale the values down")
     return t.contiguous()
 
 
@@ -120,11 +138,14 @@ def _class_map(t: Tensor, num_classes) -> Tensor:  # [H', W'] integer ids -> int
                          f"classes K, got {num_classes!r}")
     if not 1 <= num_classes <= MAX_LABEL_CHANNELS:
         raise ValueError(f"num_classes: expected 1..{MAX_LABEL_CHANNELS} classes, got {num_classes}")
-    top = int(t.max())
+    # numpy's max: torch has none for uint16/32/64 (16-bit label PNGs), and it keeps a uint64 above
+    # int64's range exact (refused below as any id >= num_classes is)
+    top = int(t.numpy().max())
     if top >= num_classes:
         raise ValueError(f"labels: class {top} does not fit num_classes = {num_classes} (ids 0..{num_classes - 1}; "
                          "negative: no class)")
-    return t.to(torch.int64).clamp_min(-1).to(torch.int16).contiguous()  # clamped where -1 exists (not in uint8)
+    # every id is below num_classes now: any integer type converts to int64 exactly; clamped where -1 exists
+    return t.to(torch.int64).clamp_min(-1).to(torch.int16).contiguous()
 
 
 def _map_size(value) -> tuple[int, int] | None:
@@ -161,11 +182,13 @@ class Frame:
             flight) is taken too: the frame's rgb becomes the image area-averaged to h x w and its
             camera that image's (`Camera.resized`), so that evidence is made per depth pixel.
         depth_std: optional float32 [H, W] per-pixel depth standard deviation in metres (>= 0).
-        features: optional float32 [H', W', C] client-supplied features (resized when used).
+        features: optional float32 [H', W', C] client-supplied features (resized when used); each
+            pixel's feature vector of norm at most `MAX_STORED_VALUE` (float16's largest value).
         labels: optional client-supplied labels: float32 [H', W', S] scores (e.g. class
-            probabilities), or a class map, integer [H', W'] (one class id a pixel, negative for
-            none), kept as int16 and fused as one-hot scores over ``num_classes`` channels (the
-            same scene as its one-hot scores give, without an [H', W', S] array per frame).
+            probabilities, each of magnitude at most `MAX_STORED_VALUE`), or a class map, integer
+            [H', W'] of any integer type (one class id a pixel, negative for none), kept as int16 and
+            fused as one-hot scores over ``num_classes`` channels (the same scene as its one-hot
+            scores give, without an [H', W', S] array per frame).
         frame_id: optional free-form identifier.
         num_classes: K of a class map (required with one; None for scores, whose last axis is S).
     """
@@ -213,7 +236,8 @@ class Frame:
                 raise ValueError("depth_std: negative standard deviations")
             object.__setattr__(self, "depth_std", std)
         if self.features is not None:
-            object.__setattr__(self, "features", _channel_map(self.features, "features", MAX_FEATURE_CHANNELS))
+            features = _channel_map(self.features, "features", MAX_FEATURE_CHANNELS, mixed=True)
+            object.__setattr__(self, "features", features)
         if self.labels is None:
             if self.num_classes is not None:
                 raise ValueError("num_classes: given without labels")

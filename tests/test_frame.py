@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core import Camera, Frame
+from canonical_core import Camera, Frame, Scene, SceneConfig
 from canonical_core.datasets import synthetic_rgbd
 from canonical_core.frame import resize_frame
 from canonical_core.resample import area_resize
@@ -53,6 +53,13 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(depth_std=np.ones((12, 16), np.float32)), "depth_std", "without depth"),
         (dict(features=np.zeros((4, 5), np.float32)), "features", "shape"),
         (dict(features=np.full((4, 5, 2), np.inf, np.float32)), "features", "NaN"),
+        # a scene stores feature and label means in float16, which ends at 65504
+        (dict(features=np.full((4, 5, 2), -1e5, np.float32)), "features", "largest magnitude 100000 exceeds 65504"),
+        (dict(features=np.full((4, 5, 2), 1e300)), "features", "largest magnitude 1e+300 exceeds 65504"),
+        (dict(features=np.full((4, 5, 4), 4e4, np.float32)), "features", "has norm 80000, above 65504"),
+        (dict(labels=np.full((4, 5, 2), 7e4, np.float32)), "labels", "largest magnitude 70000 exceeds 65504"),
+        (dict(labels=np.full((4, 5), 2**63, np.uint64), num_classes=3), "labels",
+         "class 9223372036854775808 does not fit num_classes = 3"),
         (dict(labels=np.zeros((4, 5, 2), np.int64)), "labels", "float"),
         (dict(labels=np.zeros((4, 5), np.int64)), "num_classes", "required with a class map"),
         (dict(labels=np.full((4, 5), 3), num_classes=3), "labels", "class 3 does not fit num_classes = 3"),
@@ -84,6 +91,31 @@ def test_a_class_map_is_kept_as_small_ids_with_its_k():
     assert Frame(rgb=RGB, camera=CAM, labels=np.ones((4, 5), bool), num_classes=2).labels.sum() == 20
     assert Frame(rgb=RGB, camera=CAM, labels=np.array([[0, 2]], np.uint8), num_classes=3).labels.tolist() == [[0, 2]]
     assert Frame(rgb=RGB, camera=CAM).label_dim is None
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.uint32, np.uint64, np.int8, np.int16, np.int32, np.int64,
+                                   torch.uint16, torch.uint32, torch.uint64])
+def test_a_class_map_of_any_integer_type_is_taken(dtype):
+    # 16-bit label PNGs arrive as uint16; torch has no max of its unsigned types but uint8
+    ids = [[0, 2, 1], [2, 2, 0]]
+    labels = torch.tensor(ids).to(dtype) if isinstance(dtype, torch.dtype) else np.array(ids, dtype)
+    f = Frame(rgb=RGB, camera=CAM, labels=labels, num_classes=3)
+    assert f.labels.dtype == torch.int16 and f.labels.tolist() == ids and f.num_classes == 3
+    with pytest.raises(ValueError, match="^labels: class 3 does not fit num_classes = 3"):
+        Frame(rgb=RGB, camera=CAM, labels=labels + 1 if isinstance(labels, np.ndarray) else labels.to(torch.int64) + 1,
+              num_classes=3)
+
+
+def test_features_and_label_scores_up_to_the_float16_limit_fold_to_finite_means():
+    frames = synthetic_rgbd(num_frames=2, width=64, height=48)
+    scene = Scene(SceneConfig(voxel_size=0.02, features={"backend": "client", "dim": 4}))
+    signs = np.where(np.arange(4 * 4 * 4).reshape(4, 4, 4) % 3, 1, -1).astype(np.float32)
+    for frame in frames:  # each pixel's feature vector has norm 65504 exactly: the largest taken
+        scene.fold(Frame(frame.rgb, frame.camera, frame.depth, features=signs * 32752,
+                         labels=np.full((4, 4, 2), 65504, np.float32)))
+    g = scene.decode()
+    assert len(g) and torch.isfinite(g.features).all() and torch.isfinite(g.labels).all()
+    assert g.labels.abs().max() >= 65000 and g.features.abs().max() > 30000
 
 
 def test_depth_at_a_lower_resolution_takes_the_colour_to_its_pixels():

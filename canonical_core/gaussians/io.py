@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .container import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb, sh_degree_from_bases
+from .container import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
               "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "ushort": "<u2"}
@@ -107,10 +107,11 @@ def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
     atomic_write(path, [ply_bytes(g)])
 
 
-def _parse_ply(data: bytes) -> dict[str, np.ndarray]:
+def _parse_ply(data: bytes, name: str) -> dict[str, np.ndarray]:
+    """The vertex properties of a binary little-endian PLY (``name``: the file, for the messages)."""
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply") or end < 0:
-        raise ValueError("ply: not a PLY file (missing 'ply' magic or 'end_header')")
+        raise ValueError(f"{name}: not a PLY file (missing 'ply' magic or 'end_header')")
     lines = data[:end].decode("ascii", errors="replace").splitlines()
     fmt, count, props, in_vertex = None, None, [], False
     for line in lines:
@@ -118,25 +119,42 @@ def _parse_ply(data: bytes) -> dict[str, np.ndarray]:
         if not parts:
             continue
         if parts[0] == "format":
+            if len(parts) != 3:
+                raise ValueError(f"{name}: malformed header line {line!r} (expected 'format <type> <version>')")
             fmt = parts[1]
         elif parts[0] == "element":
+            if len(parts) != 3:
+                raise ValueError(f"{name}: malformed header line {line!r} (expected 'element <name> <count>')")
+            if not parts[2].isdigit():  # digits alone: a negative count would read the whole body
+                raise ValueError(f"{name}: element {parts[1]!r} has count {parts[2]!r}, expected a non-negative "
+                                 "integer")
             in_vertex = parts[1] == "vertex"
             if in_vertex:
+                if count is not None:
+                    raise ValueError(f"{name}: a second vertex element")
                 count = int(parts[2])
+            elif count is None and int(parts[2]) > 0:  # its rows would come first in the body
+                raise ValueError(f"{name}: element {parts[1]!r} comes before the vertices; only files whose "
+                                 "first element is vertex are read")
         elif parts[0] == "property" and in_vertex:
-            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
-                raise ValueError(f"ply: unsupported vertex property type {' '.join(parts[1:-1])!r}")
-            props.append((parts[-1], _PLY_TYPES[parts[1]]))
+            if len(parts) >= 2 and (parts[1] == "list" or parts[1] not in _PLY_TYPES):
+                raise ValueError(f"{name}: unsupported vertex property type {' '.join(parts[1:-1])!r}")
+            if len(parts) != 3:
+                raise ValueError(f"{name}: malformed header line {line!r} (expected 'property <type> <name>')")
+            if parts[2] in dict(props):
+                raise ValueError(f"{name}: vertex property {parts[2]!r} appears twice")
+            props.append((parts[2], _PLY_TYPES[parts[1]]))
     if fmt != "binary_little_endian":
-        raise ValueError(f"ply: only binary_little_endian is supported, got {fmt!r}")
+        raise ValueError(f"{name}: only binary_little_endian is supported, got {fmt!r}")
     if count is None:
-        raise ValueError("ply: no vertex element")
+        raise ValueError(f"{name}: no vertex element")
     dtype = np.dtype(props)
     body = data[end + len(b"end_header\n"):]
     if len(body) < dtype.itemsize * count:
-        raise ValueError(f"ply: body holds {len(body)} bytes, expected {dtype.itemsize * count} for {count} vertices")
+        raise ValueError(f"{name}: body holds {len(body)} bytes, expected {dtype.itemsize * count} for {count} "
+                         "vertices")
     arr = np.frombuffer(body, dtype=dtype, count=count)
-    return {name: arr[name].astype(np.float32) for name in dtype.names}
+    return {prop: arr[prop].astype(np.float32) for prop in dtype.names}
 
 
 def _stack(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray | None:
@@ -146,26 +164,33 @@ def _stack(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray | None:
     return np.stack([cols[n] for n in names], 1)
 
 
+# every column of a Gaussian: a file without one would be read with a made-up value (a grey colour
+# from f_dc_0 alone, a flat scale)
+_REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3")
+
+
 def load_ply(path: str | os.PathLike) -> Gaussians:
-    """Read a 3DGS-layout PLY (as written by `save_ply` or 3DGS training code)."""
-    cols = _parse_ply(Path(path).read_bytes())
-    missing = [n for n in ("x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0") if n not in cols]
+    """Read a 3DGS-layout PLY (as written by `save_ply` or 3DGS training code). Raises ValueError
+    naming the file for one that is not such a PLY."""
+    cols = _parse_ply(Path(path).read_bytes(), str(path))
+    missing = [n for n in _REQUIRED if n not in cols]
     if missing:
-        raise ValueError(f"ply: missing 3DGS properties {missing}")
+        raise ValueError(f"{path}: missing 3DGS properties {missing}")
     n = len(cols["x"])
-    dc = _stack(cols, "f_dc_")
     rest = _stack(cols, "f_rest_")
     k = 1 + (0 if rest is None else rest.shape[1] // 3)
-    sh_degree_from_bases(k)
+    if rest is not None and (rest.shape[1] % 3 or k not in (4, 9, 16)):
+        raise ValueError(f"{path}: {rest.shape[1]} f_rest_* properties, expected 9, 24 or 45 (SH degree 1, 2 or 3)")
     sh = np.zeros((n, k, 3), np.float32)
-    sh[:, 0] = dc
+    sh[:, 0] = np.stack([cols[f"f_dc_{c}"] for c in range(3)], 1)
     if rest is not None:
         sh[:, 1:] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
     feats, labels = _stack(cols, "feat_"), _stack(cols, "label_")
     return Gaussians(
         means=torch.from_numpy(np.stack([cols["x"], cols["y"], cols["z"]], 1)),
-        scales=torch.from_numpy(np.exp(_stack(cols, "scale_"))),
-        quats=torch.from_numpy(_stack(cols, "rot_")),
+        scales=torch.from_numpy(np.exp(np.stack([cols[f"scale_{i}"] for i in range(3)], 1))),
+        quats=torch.from_numpy(np.stack([cols[f"rot_{i}"] for i in range(4)], 1)),
         opacities=torch.sigmoid(torch.from_numpy(cols["opacity"])),
         sh=torch.from_numpy(sh),
         features=None if feats is None else torch.from_numpy(feats),

@@ -56,9 +56,14 @@ def _check_outputs(outputs: Sequence[str], gaussians: Gaussians) -> tuple[str, .
 def _background(background) -> Tensor:  # [3] float64
     if background is None:
         return torch.zeros(3, dtype=torch.float64)
-    background = torch.as_tensor(background, dtype=torch.float64)
+    try:
+        background = torch.as_tensor(background, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"background: expected an rgb colour of 3 numbers, got {background!r}") from None
     if background.shape != (3,):
         raise ValueError(f"background: expected an rgb colour of shape [3], got {list(background.shape)}")
+    if not torch.isfinite(background).all():  # NaN or inf would reach every pixel the Gaussians leave uncovered
+        raise ValueError(f"background: expected finite values, got {background.tolist()}")
     return background
 
 

@@ -112,6 +112,18 @@ class ColourSolution:
         return self.rows.nbytes + self.offsets.numel() * self.offsets.element_size()
 
 
+def check_decode_arguments(max_gaussians, min_support) -> None:
+    """Raise ValueError naming ``max_gaussians`` unless it is None or an integer >= 0, and naming
+    ``min_support`` unless it is a number >= 0 (infinity included: nothing decodes; NaN is refused,
+    which every comparison would take as no support at all)."""
+    integer = not isinstance(max_gaussians, bool) and isinstance(max_gaussians, (int, np.integer))
+    if max_gaussians is not None and not (integer and max_gaussians >= 0):
+        raise ValueError(f"max_gaussians: expected a non-negative integer or None, got {max_gaussians!r}")
+    if (isinstance(min_support, bool) or not isinstance(min_support, (int, float, np.integer, np.floating))
+            or not min_support >= 0):
+        raise ValueError(f"min_support: expected >= 0 (a number), got {min_support!r}")
+
+
 class SceneDecoding:
     """The decoder, its decoded rows and the decoded Gaussians of one scene (see the module)."""
 
@@ -181,10 +193,7 @@ class SceneDecoding:
         Without ``features`` the Gaussians carry no F_scene (features None), for callers that draw
         colour, depth or labels only: F_scene of the reused rows is then not read, which is most of
         what a decode after a fold reads of the scene (16 floats of every decoded row)."""
-        if max_gaussians is not None and max_gaussians < 0:
-            raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
-        if min_support < 0:
-            raise ValueError(f"min_support: expected >= 0, got {min_support}")
+        check_decode_arguments(max_gaussians, min_support)
         # which voxels decode is known from the raw sums (R_scene, free space): the fields, and the
         # per-voxel SH solve among them, are then computed for those rows alone
         chosen = decoded_rows(inputs.sums, min_support, self.config)

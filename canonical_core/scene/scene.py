@@ -24,7 +24,7 @@ from ..decode.checkpoint import load_model as _load_model
 from . import choices, folding, refold, snapshot, solving
 from ..config import SceneConfig
 from .corrections import FrameKey, FrameRef, check_poses, resolve_frames
-from .decoding import Colours, DecodeInputs, SceneDecoding
+from .decoding import Colours, DecodeInputs, SceneDecoding, check_decode_arguments
 from .depth_frontend import DepthFrontEnd
 from .fields import fields_from_sums
 from .folding import FoldReport, PreparedFrame
@@ -144,8 +144,9 @@ class Scene:
         and zero fresh pages (dear on a virtual machine, where a page's first touch goes through the
         hypervisor). The memory counts in `memory_bytes` from now on. A snapshot does not keep it, nor
         does the state a re-fold brings (`update_poses` and `remove_frames` past the undo records,
-        `adopt`): call this again after `load` or those. Raises ValueError for a negative count or
-        one above ``max_voxels``; the scene and its results are unchanged.
+        `adopt`): call this again after `load` or those. Raises ValueError naming ``voxels`` for a
+        negative count, one above ``max_voxels`` or `config.MAX_VOXELS`, or one whose memory the
+        system refuses; the scene and its results are unchanged.
 
         Example:
             >>> scene = Scene(SceneConfig(voxel_size=0.01))
@@ -333,8 +334,7 @@ class Scene:
 
     def _lod(self, max_gaussians: int | None) -> int | None:
         """The level of detail ``max_gaussians`` means now: None when it leaves out nothing."""
-        if max_gaussians is not None and max_gaussians < 0:
-            raise ValueError(f"max_gaussians: expected a non-negative integer, got {max_gaussians}")
+        check_decode_arguments(max_gaussians, 0.0)
         return None if max_gaussians is not None and max_gaussians >= len(self) else max_gaussians
 
     def _snapshot_arrays(self, sums: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:

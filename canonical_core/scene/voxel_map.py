@@ -33,6 +33,7 @@ import numba
 import numpy as np
 import torch
 
+from ..config import MAX_VOXELS
 from . import stamps
 from .decoded import gather_rows
 from .fields import sh_sum_widths, unpack_keys
@@ -221,16 +222,23 @@ class VoxelMap:
             raise ValueError(f"voxels: expected a non-negative integer, got {n_voxels!r}")
         if self.max_voxels is not None and n_voxels > self.max_voxels:
             raise ValueError(f"voxels: {n_voxels} is above max_voxels ({self.max_voxels})")
+        if n_voxels > MAX_VOXELS:
+            raise ValueError(f"voxels: {n_voxels} is above the most a scene holds ({MAX_VOXELS})")
         n_voxels = int(n_voxels)
-        if n_voxels > self._written:
-            self.reserve(n_voxels)
-            for array in (*self.state.values(), self.changed_at):
-                array[self.n: n_voxels] = 0  # rows past len(self) are zero: written, their pages are committed
-            self._written = n_voxels
-        size = next_pow2(int(n_voxels / NEXT_TABLE_LOAD) + 1)
-        if size > self.table.shape[0]:
-            self.table = np.empty(size, np.int32)
-            self.rebuild_table()
+        try:
+            if n_voxels > self._written:
+                self.reserve(n_voxels)
+                for array in (*self.state.values(), self.changed_at):
+                    array[self.n: n_voxels] = 0  # rows past len(self) are zero: written, their pages are committed
+                self._written = n_voxels
+            size = next_pow2(int(n_voxels / NEXT_TABLE_LOAD) + 1)
+            if size > self.table.shape[0]:
+                self.table = np.empty(size, np.int32)
+                self.rebuild_table()
+        except MemoryError:  # a refused allocation replaces nothing: the voxels and their table are as they were
+            asked = n_voxels * self.new_voxel_bytes() / 2**30
+            raise ValueError(f"voxels: {n_voxels} voxels ask for about {asked:.3g} GiB, more memory than the "
+                             "system grants") from None
 
     def _fill_next_table(self) -> None:
         """One fold's share of the successor table (started at `NEXT_TABLE_LOAD`): a slice of it

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -109,11 +111,43 @@ def test_splat_round_trip_is_quantised(tmp_path):
 
 def test_load_ply_rejects_garbage(tmp_path):
     (tmp_path / "x.ply").write_bytes(b"not a ply")
-    with pytest.raises(ValueError, match="ply: not a PLY"):
+    with pytest.raises(ValueError, match=f"^{re.escape(str(tmp_path / 'x.ply'))}: not a PLY"):
         load_ply(tmp_path / "x.ply")
     (tmp_path / "y.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
     with pytest.raises(ValueError, match="binary_little_endian"):
         load_ply(tmp_path / "y.ply")
+
+
+def _edited_header(data: bytes, old: bytes, new: bytes) -> bytes:
+    header, body = data.split(b"end_header\n", 1)
+    assert old in header
+    return header.replace(old, new, 1) + b"end_header\n" + body
+
+
+@pytest.mark.parametrize(
+    "old, new, message",
+    [
+        (b"format binary_little_endian 1.0", b"format", "malformed header line 'format'"),
+        (b"element vertex 6", b"element vertex", "malformed header line 'element vertex'"),
+        (b"element vertex 6", b"element vertex -1", "element 'vertex' has count '-1', expected a non-negative"),
+        (b"element vertex 6", b"element vertex abc", "element 'vertex' has count 'abc'"),
+        (b"property float nx", b"property", "malformed header line 'property'"),
+        (b"property float nx", b"property float", "malformed header line 'property float'"),
+        (b"property float nx", b"property float x", "vertex property 'x' appears twice"),
+        (b"element vertex 6", b"element camera 1\nproperty float q\nelement vertex 6",
+         "element 'camera' comes before the vertices"),  # its rows would be read as vertices
+        # a file with one DC channel would be read as grey (the others zero)
+        (b"property float f_dc_1\nproperty float f_dc_2", b"property float g_dc_1\nproperty float g_dc_2",
+         r"missing 3DGS properties \['f_dc_1', 'f_dc_2'\]"),
+        (b"property float scale_2", b"property float size_2", r"missing 3DGS properties \['scale_2'\]"),
+        (b"property float f_rest_8", b"property float g_rest_8", "8 f_rest_\\* properties, expected 9, 24 or 45"),
+    ],
+)
+def test_a_malformed_ply_is_refused_naming_the_file_and_the_problem(tmp_path, old, new, message):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(_edited_header(ply_bytes(random_gaussians(6, degree=1, features=0, labels=0)), old, new))
+    with pytest.raises(ValueError, match=f"^{re.escape(str(path))}: {message}"):
+        load_ply(path)
 
 
 def test_container_validates_shapes():

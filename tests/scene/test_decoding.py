@@ -76,3 +76,45 @@ def test_a_snapshot_that_kept_the_solution_wider_loads_it_narrowed():
     again = Scene.from_bytes(scene.to_bytes())  # written narrow now, read back the same
     assert np.array_equal(again._decoding.solution.rows, solution.rows)
     assert torch.equal(again._decoding.solution.offsets, solution.offsets)
+
+
+@pytest.fixture(scope="module")
+def folded():
+    from canonical_core.datasets import synthetic_rgbd
+
+    scene = Scene(SceneConfig(voxel_size=0.02))
+    scene.fold(synthetic_rgbd(num_frames=1, width=64, height=48)[0])
+    return scene
+
+
+BAD_DECODE_ARGUMENTS = [
+    (dict(max_gaussians=1.5), r"^max_gaussians: expected a non-negative integer or None, got 1\.5$"),
+    (dict(max_gaussians="10"), r"^max_gaussians: expected a non-negative integer or None, got '10'$"),
+    (dict(max_gaussians=True), r"^max_gaussians: .*got True$"),
+    (dict(max_gaussians=-1), r"^max_gaussians: .*got -1$"),
+    (dict(min_support=float("nan")), r"^min_support: expected >= 0 \(a number\), got nan$"),
+    (dict(min_support="0.5"), r"^min_support: expected >= 0 \(a number\), got '0.5'$"),
+]
+
+
+@pytest.mark.parametrize("kwargs, message", BAD_DECODE_ARGUMENTS)
+def test_bad_decode_arguments_are_refused_naming_them(folded, kwargs, message):
+    digest = folded.digest()
+    with pytest.raises(ValueError, match=message):
+        folded.decode(**kwargs)
+    assert folded.digest() == digest
+
+
+LEVELS_OF_DETAIL = [(kwargs, message) for kwargs, message in BAD_DECODE_ARGUMENTS if "max_gaussians" in kwargs]
+
+
+@pytest.mark.parametrize("kwargs, message", LEVELS_OF_DETAIL)
+def test_a_bad_level_of_detail_is_refused_by_gaussians_too(folded, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        folded.gaussians(**kwargs)
+
+
+def test_decode_takes_numpy_integers_and_an_infinite_support_floor(folded):
+    assert len(folded.decode(max_gaussians=np.int64(10))) == 10
+    assert len(folded.decode(min_support=np.float32(0.0))) == len(folded.decode())
+    assert len(folded.decode(min_support=float("inf"))) == 0  # no voxel has more support than that
