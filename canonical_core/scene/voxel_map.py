@@ -29,6 +29,9 @@ the stored fields (`sums`, `load_sums`).
 
 from __future__ import annotations
 
+import math
+import mmap
+
 import numba
 import numpy as np
 import torch
@@ -103,6 +106,23 @@ def next_pow2(n: int) -> int:
     return 1 << max(4, int(n - 1).bit_length())
 
 
+def lazy_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """A zeroed array whose pages become memory only as they are written: an anonymous mapping of its
+    own. ``np.zeros`` gives that only while malloc maps the block afresh; glibc raises its threshold
+    for that (up to 32 MiB) as a process frees large blocks, and then zeroes a block from its heap by
+    writing every page, so that a map's reserved rows would all be memory from the start (a service
+    making and deleting sessions held a session's whole reserve for each). No huge pages: a small
+    map would take one for each of its arrays, and a large one folds no faster with them
+    (`docs/experiments.md`). MemoryError where the system refuses the address space."""
+    count = math.prod(shape)
+    nbytes = max(count * np.dtype(dtype).itemsize, 1)
+    try:
+        block = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    except OSError as exc:  # an overcommit limit, ``ulimit -v``
+        raise MemoryError(f"{nbytes} bytes of address space: {exc.strerror or exc}") from None
+    return np.frombuffer(block, dtype, count=count).reshape(shape)
+
+
 def table_size(n_voxels: int) -> int:
     """Hash-table slots for ``n_voxels`` at a load of at most `MAX_TABLE_LOAD`."""
     return next_pow2(int(n_voxels / MAX_TABLE_LOAD) + 1)
@@ -164,7 +184,7 @@ class VoxelMap:
         shapes = {k: v for k, v in self._shapes().items() if names is None or k in names}
         while True:
             try:
-                return {name: np.zeros((rows, *shape), dtype) for name, (dtype, shape) in shapes.items()}
+                return {name: lazy_zeros((rows, *shape), dtype) for name, (dtype, shape) in shapes.items()}
             except MemoryError:
                 if rows == capacity:
                     raise
