@@ -218,7 +218,7 @@ class FrameLog:
                     self.truncate(offset)
                 except OSError as again:
                     raise LogWedged(f"{self.path}: cannot cut a failed append back ({again.strerror or again})") from exc
-                raise StorageError(f"{self.path.name}: cannot append the frame", exc) from exc
+                raise StorageError(f"{self.path.name}: cannot append a record", exc) from exc  # a frame, checkpoint or correction
             return offset
 
     def fenced(self) -> contextlib.AbstractContextManager:
