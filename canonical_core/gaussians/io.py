@@ -177,6 +177,8 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     missing = [n for n in _REQUIRED if n not in cols]
     if missing:
         raise ValueError(f"{path}: missing 3DGS properties {missing}")
+    if bad := [name for name, values in cols.items() if values.dtype.kind == "f" and not np.isfinite(values).all()]:
+        raise ValueError(f"{path}: NaN or inf in the properties {bad}")  # every render would carry them
     n = len(cols["x"])
     rest = _stack(cols, "f_rest_")
     k = 1 + (0 if rest is None else rest.shape[1] // 3)

@@ -150,6 +150,15 @@ def test_a_malformed_ply_is_refused_naming_the_file_and_the_problem(tmp_path, ol
         load_ply(path)
 
 
+def test_a_ply_holding_nan_is_refused_naming_the_property(tmp_path):
+    g = random_gaussians(6, degree=1, features=0, labels=0)
+    g.means[2, 1] = float("nan")
+    path = tmp_path / "nan.ply"
+    path.write_bytes(ply_bytes(g))
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: NaN or inf in the properties \['y'\]"):
+        load_ply(path)
+
+
 def test_container_validates_shapes():
     g = random_gaussians(4)
     with pytest.raises(ValueError, match=r"scales: expected shape \[4, 3\]"):
