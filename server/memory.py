@@ -17,6 +17,8 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from canonical_core.scene import release_scratch
+
 from .session_errors import MemoryBudgetExceeded
 
 
@@ -62,9 +64,11 @@ def _size(nbytes: int) -> str:
 
 def release_memory() -> None:
     """Return what dropped sessions held: collect the cycles that keep a session alive (it and its
-    snapshots and corrections refer to each other), then ask glibc to give its freed heap back
-    (it keeps it for reuse otherwise, so the process's resident memory never falls)."""
+    snapshots and corrections refer to each other), drop the folds' spare work arrays (sized for the
+    largest frame folded so far; the next fold makes its own), then ask glibc to give its freed heap
+    back (it keeps it for reuse otherwise, so the process's resident memory never falls)."""
     gc.collect()
+    release_scratch()
     trim_heap()
 
 

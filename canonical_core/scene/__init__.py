@@ -4,6 +4,8 @@ voxel map (`voxel_map`), integration (`integrate`, `free_space`) and the decoder
 
 from .batch import aggregate_batch
 from ..config import SceneConfig
+from .integrate import release_scratch
 from .scene import CapacityError, DecodeInputs, FoldReport, PreparedFrame, Scene
 
-__all__ = ["CapacityError", "DecodeInputs", "FoldReport", "PreparedFrame", "Scene", "SceneConfig", "aggregate_batch"]
+__all__ = ["CapacityError", "DecodeInputs", "FoldReport", "PreparedFrame", "Scene", "SceneConfig", "aggregate_batch",
+           "release_scratch"]

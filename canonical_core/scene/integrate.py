@@ -15,6 +15,8 @@ to float tolerance; elsewhere the tests bound the deviation.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import NamedTuple
 
 import numba
@@ -41,9 +43,9 @@ class Integrated(NamedTuple):
 
 
 class Scratch:
-    """Per-observation work arrays of `integrate`, grown to the largest frame seen and reused: one
-    per thread that folds (`thread_scratch`), whatever the scene, so that a process holding many
-    scenes (the service) keeps a set of them per fold thread, not per scene."""
+    """Per-observation work arrays of `integrate`, grown to the largest frame seen and reused. Lent
+    to one fold at a time from a pool (`SCRATCH`), whatever the scene: a process holding many scenes
+    (the service) keeps as many sets as folds run at once, not one a scene."""
 
     def __init__(self):
         self.size = 0
@@ -60,15 +62,37 @@ class Scratch:
             self.tables = np.empty(resolve_tables_size(self.size, parts), np.int32)
 
 
-_THREAD = threading.local()
+class ScratchPool:
+    """The `Scratch` sets no fold is using, lent one a fold (`lend`) and dropped on request (`clear`)."""
+
+    def __init__(self):
+        self._spare: list[Scratch] = []
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def lend(self) -> Iterator[Scratch]:
+        with self._lock:
+            scratch = self._spare.pop() if self._spare else Scratch()
+        try:
+            yield scratch
+        finally:
+            with self._lock:
+                self._spare.append(scratch)
+
+    def clear(self) -> int:
+        """Drop the spare sets (those in use stay with their folds); returns how many."""
+        with self._lock:
+            dropped, self._spare = len(self._spare), []
+        return dropped
 
 
-def thread_scratch() -> Scratch:
-    """This thread's `Scratch` (folds on one thread run one at a time)."""
-    scratch = getattr(_THREAD, "scratch", None)
-    if scratch is None:
-        scratch = _THREAD.scratch = Scratch()
-    return scratch
+SCRATCH = ScratchPool()
+
+
+def release_scratch() -> int:
+    """Free the integration's spare work arrays (sized for the largest frame folded so far): what a
+    process that dropped its scenes calls to give their memory back. Returns how many sets it freed."""
+    return SCRATCH.clear()
 
 
 def integrate(
@@ -82,7 +106,12 @@ def integrate(
     if ev.labels is not None and voxels.label_dim and ev.labels.shape[1] != voxels.label_dim:
         raise ValueError(f"labels: expected {voxels.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
     m, parts = len(ev), numba.get_num_threads()
-    t = thread_scratch()
+    with SCRATCH.lend() as t:
+        return _integrate_with(voxels, ev, basis, config, t, m, parts)
+
+
+def _integrate_with(voxels: VoxelMap, ev: FrameEvidence, basis: np.ndarray, config: SceneConfig, t: Scratch, m: int,
+                    parts: int) -> Integrated:
     t.reserve(m, parts)
     obs_keys, new_keys = t.obs_keys[:m], t.new_keys[:m]
     inv_voxel = np.float32(1.0 / config.voxel_size)

@@ -312,7 +312,8 @@ class VoxelMap:
         old = self.stored
         self.layout = VoxelRows(self.feature_dim, sh_sum_widths(self.sh_degree), label_dim)
         self.stored = StoredRows(self.layout)
-        for name, width in (("rows", min(old.width, self.stored.width)), ("half", min(old.half_width, self.stored.half_width))):
+        kept = {"rows": min(old.width, self.stored.width), "half": min(old.half_width, self.stored.half_width)}
+        for name, width in kept.items():
             before = self._backing[name]
             after = self._reserve(self.capacity, before.shape[0], (name,))[name]
             after[: self.n, :width] = before[: self.n, :width]  # the label columns come last in both

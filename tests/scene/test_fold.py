@@ -326,8 +326,8 @@ def test_a_frame_without_depth_is_priced_at_every_pixel():
 
 
 def test_scenes_folded_at_once_on_two_threads_equal_those_folded_one_after_the_other():
-    """The integration's work arrays are a thread's (`integrate.thread_scratch`), shared by the scenes
-    it folds: folds of two scenes at the same time on two threads must not share them."""
+    """The integration's work arrays are lent from a pool shared by every scene (`integrate.SCRATCH`):
+    folds of two scenes at the same time on two threads must not share a set."""
     from concurrent.futures import ThreadPoolExecutor
 
     from canonical_core.datasets import synthetic_rgbd
@@ -340,3 +340,15 @@ def test_scenes_folded_at_once_on_two_threads_equal_those_folded_one_after_the_o
     with ThreadPoolExecutor(2) as pool:
         together = list(pool.map(digest, streams))
     assert together == alone and alone[0] != alone[1]
+
+
+def test_the_spare_work_arrays_are_dropped_on_request_and_a_fold_after_makes_its_own():
+    from canonical_core.datasets import synthetic_rgbd
+    from canonical_core.scene import release_scratch
+
+    frames = list(synthetic_rgbd(num_frames=2, width=64, height=48))
+    scene = Scene(SceneConfig(voxel_size=0.02))
+    scene.fold(frames[0])
+    assert release_scratch() >= 1 and release_scratch() == 0  # the fold gave its set back; dropped once
+    scene.fold(frames[1])
+    assert scene.digest() == fold_all(frames, SceneConfig(voxel_size=0.02))[0].digest()
