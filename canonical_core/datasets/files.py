@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -237,17 +238,23 @@ class RGBDFile:
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
+def natural_key(path: Path) -> list:
+    """A file name's sort key with its numbers as numbers: frame numbers are usually zero-padded, but
+    unpadded ones (``2.png`` before ``10.png``) keep their order too, as Open3D's own tools sort them."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
 def posed_images(images: Path, depth: Path, K: np.ndarray, poses: Sequence[np.ndarray], depth_scale: float,
                  stride: int, max_frames: int | None, pose_file: Path) -> list[RGBDFile]:
-    """One `RGBDFile` per kept colour image of ``images`` (file-name order), the k-th taking
+    """One `RGBDFile` per kept colour image of ``images`` (file-name order, `natural_key`), the k-th taking
     ``poses[k]`` and, where it exists, the depth image of the same stem (``.png``) in ``depth``
     (else the frame is RGB-only). Layouts whose poses are listed in image order share this."""
     if not depth_scale > 0:
         raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
-    files = sorted(p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = sorted((p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
     if len(poses) != len(files):
         raise ValueError(f"{pose_file}: {len(poses)} poses for {len(files)} images in {images} "
-                         "(one per image, in sorted file-name order)")
+                         "(one per image, in file-name order, numbers as numbers)")
     out = []
     for k in select(range(len(files)), stride, max_frames):
         d = depth / (files[k].stem + ".png")

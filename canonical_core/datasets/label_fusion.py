@@ -3,7 +3,8 @@
 - ``frame-NNNNNN.color.png``: 8-bit RGB; ``frame-NNNNNN.pose.txt``: 4x4 camera-to-world, OpenCV axes;
   ``camera-intrinsics.color.txt`` (or any tsdf-fusion intrinsics file) at the folder root;
 - ``frame-NNNNNN.depth.png``: uint16 in tenths of a millimetre, bit-rotated: the value v holds
-  d = ((v >> 3) | (v << 13)) & 0xFFFF (in 32 bits), metres = d / 10000; 0 = missing;
+  d = ((v >> 3) | (v << 13)) & 0xFFFF (in 32 bits), metres = d / 10000; 0 = missing (or, a
+  tsdf-fusion capture with label maps added, millimetres: told apart by `rotated_depth_code`);
 - ``frame-NNNNNN.segm.png`` (uint8 label id per pixel, 0 = background) or ``frame-NNNNNN.mask.png``
   (0 or 255): read as a class map (`Frame.labels`, fused as one-hot label scores), one class per id
   found in the capture's label maps, so that fused scenes carry them (segmentation views).
@@ -24,10 +25,11 @@ import numpy as np
 from PIL import Image
 
 from ..calibration import validate_image_intrinsics, validate_pose
-from .files import MissingIntrinsics, as_intrinsics, find_one, found_frames, read_intrinsics_file, read_matrix, select
+from .files import (MissingIntrinsics, as_intrinsics, find_one, found_frames, natural_key, read_intrinsics_file,
+                    read_matrix, select)
 from .images import depth_from_uint16, image_size, read_depth, read_rgb
 from .sequence import FrameSequence
-from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, natural_key, pose_frame_files
+from .tsdf_fusion import INTRINSICS_PATTERNS, POSE_PATTERN, find_frames_folder, pose_frame_files
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -35,6 +37,7 @@ if TYPE_CHECKING:
 
 LABEL_SUFFIXES = (".segm.png", ".mask.png")
 DEPTH_UNITS_PER_METRE = 10000.0
+TSDF_FUSION_UNITS_PER_METRE = 1000.0  # millimetres, the tsdf-fusion layout's depth
 
 
 def has_label_maps(folder: Path) -> bool:
@@ -50,6 +53,30 @@ def unrotate_depth(raw: np.ndarray) -> np.ndarray:  # [H, W] uint16 as stored ->
     """
     v = raw.astype(np.uint32)
     return (((v >> 3) | (v << 13)) & 0xFFFF).astype(np.uint16)
+
+
+def rotated_depth_code(raw: np.ndarray) -> bool:  # [H, W] uint16 as stored
+    """Whether a depth image is in label-fusion's code (bit-rotated tenths of a millimetre) rather than
+    tsdf-fusion's millimetres, by which decoding is a surface: the wrong one scatters neighbouring
+    pixels by multiples of 0.8 m (a stored value's low bits become the depth's high ones). A
+    tsdf-fusion capture with label maps beside its frames is read in millimetres so.
+
+    Example:
+        >>> ramp = np.linspace(400, 900, 64).astype(np.uint16)[None].repeat(8, 0)  # millimetres
+        >>> rotated_depth_code(ramp)
+        False
+    """
+    return _roughness(depth_from_uint16(unrotate_depth(raw), DEPTH_UNITS_PER_METRE)) < _roughness(
+        depth_from_uint16(raw, TSDF_FUSION_UNITS_PER_METRE))
+
+
+def _roughness(depth: np.ndarray) -> float:
+    """The median jump between horizontal neighbours with depth, over the median depth (inf: none)."""
+    left, right = depth[:, :-1], depth[:, 1:]
+    both = (left > 0) & (right > 0)
+    if not both.any():
+        return float("inf")
+    return float(np.median(np.abs(left[both] - right[both])) / np.median(left[both]))
 
 
 def read_label_map(path: Path) -> np.ndarray:  # [H, W] uint8 label ids
@@ -70,6 +97,7 @@ class LabelledFrameFile:
     K: np.ndarray  # [3, 3] float64
     c2w: np.ndarray  # [4, 4] float64
     label_ids: tuple[int, ...]  # the capture's ids, one label channel each
+    rotated: bool = True  # label-fusion's depth code, else tsdf-fusion's millimetres (`rotated_depth_code`)
 
     def load(self) -> Frame:
         # torch loads with the first frame read, not when a capture is listed (`sequence`)
@@ -78,7 +106,8 @@ class LabelledFrameFile:
 
         rgb = read_rgb(self.color)
         stored = read_depth(self.depth, 1.0).astype(np.uint16)  # the raw values (0 and 65535 read as 0)
-        depth = depth_from_uint16(unrotate_depth(stored), DEPTH_UNITS_PER_METRE)
+        depth = (depth_from_uint16(unrotate_depth(stored), DEPTH_UNITS_PER_METRE) if self.rotated
+                 else depth_from_uint16(stored, TSDF_FUSION_UNITS_PER_METRE))
         labels = None
         if self.labels is not None:
             ids = read_label_map(self.labels)
@@ -144,8 +173,10 @@ def load_label_fusion(
         stem = pose.name[: -len(".pose.txt")]
         label_files[stem] = next((folder / (stem + s) for s in LABEL_SUFFIXES if (folder / (stem + s)).is_file()), None)
     ids = sorted(set().union(*(np.unique(read_label_map(p)).tolist() for p in label_files.values() if p is not None)))
-    sources = []
+    sources, rotated = [], None
     for stem, pose, color, depth in select(found_frames(poses, pose_frame_files, folder, strict), stride, max_frames):
         c2w = validate_pose(read_matrix(pose, 4, 4), str(pose))
-        sources.append(LabelledFrameFile(stem, color, depth, label_files[stem], K, c2w, tuple(ids)))
+        if rotated is None:  # the capture's depth code, from its first depth image
+            rotated = rotated_depth_code(read_depth(depth, 1.0).astype(np.uint16))
+        sources.append(LabelledFrameFile(stem, color, depth, label_files[stem], K, c2w, tuple(ids), rotated))
     return LabelledSequence(root.name, sources, tuple(ids))

@@ -22,13 +22,12 @@ Example:
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..calibration import validate_pose
-from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames,
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, natural_key,
                     read_intrinsics_file, read_matrix, select, write_matrix)
 from .images import write_depth, write_rgb
 from .sequence import FrameSequence
@@ -39,11 +38,6 @@ if TYPE_CHECKING:
 POSE_PATTERN = "frame-*.pose.txt"
 INTRINSICS_PATTERNS = ("camera-intrinsics.txt", "intrinsics.K.txt", "*.K.txt")
 _COLOR_SUFFIXES = (".color.png", ".color.jpg")
-
-
-def natural_key(path: Path) -> list:
-    # frame numbers are usually zero-padded, but a natural sort keeps unpadded ones in order too
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
 
 
 def find_frames_folder(root: Path) -> Path | None:

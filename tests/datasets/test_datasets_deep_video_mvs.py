@@ -66,3 +66,13 @@ def test_malformed_folders_name_the_file_and_the_problem(small_copy, tmp_path):
     (small_copy / "poses.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(ValueError, match="depth_scale: expected a positive number"):
         load_deep_video_mvs(small_copy, depth_scale=0)
+
+
+def test_images_named_without_zero_padding_take_their_poses_in_numeric_order(small_copy):
+    for k, name in enumerate(sorted(p.name for p in (small_copy / "images").iterdir()), start=1):
+        for folder in ("images", "depth"):  # 00003.png ... -> 1.png, 2.png, then 10.png last
+            (small_copy / folder / name).rename(small_copy / folder / f"{10 if k == 3 else k}.png")
+    seq = load_deep_video_mvs(small_copy)
+    poses = (small_copy / "poses.txt").read_text().splitlines()
+    assert seq.frame_ids == ["1", "2", "10"]  # not "1", "10", "2": pose k belongs to the k-th image
+    assert np.allclose(seq[2].camera.c2w64(), np.array(poses[2].split(), float).reshape(4, 4))

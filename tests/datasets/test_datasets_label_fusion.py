@@ -61,3 +61,17 @@ def test_a_malformed_bin_names_the_file(apc_bins_path, tmp_path):
         p.unlink()
     with pytest.raises(ValueError, match="not a label-fusion folder"):
         load_label_fusion(bin_)
+
+
+def test_a_tsdf_fusion_capture_with_masks_beside_its_frames_keeps_its_millimetres(tmp_path):
+    """Label maps added to a tsdf-fusion capture make it a label-fusion folder; its depth is still
+    millimetres, not label-fusion's bit-rotated code (the decoding that is a surface wins)."""
+    from canonical_core.datasets import load_tsdf_fusion, synthetic_rgbd, write_tsdf_fusion
+
+    root = write_tsdf_fusion(synthetic_rgbd(num_frames=3, width=64, height=48), tmp_path / "cap")
+    plain = load_tsdf_fusion(root)
+    for color in root.rglob("frame-*.color.png"):
+        Image.fromarray(np.full((48, 64), 255, np.uint8)).save(color.with_name(color.name.replace(".color.", ".mask.")))
+    assert detect_layout(root) == "label_fusion"
+    masked = load_label_fusion(root)
+    assert np.array_equal(masked[1].depth.numpy(), plain[1].depth.numpy()) and masked[1].num_classes == 1
