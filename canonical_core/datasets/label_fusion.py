@@ -58,25 +58,26 @@ def unrotate_depth(raw: np.ndarray) -> np.ndarray:  # [H, W] uint16 as stored ->
 def rotated_depth_code(raw: np.ndarray) -> bool:  # [H, W] uint16 as stored
     """Whether a depth image is in label-fusion's code (bit-rotated tenths of a millimetre) rather than
     tsdf-fusion's millimetres, by which decoding is a surface: the wrong one scatters neighbouring
-    pixels by multiples of 0.8 m (a stored value's low bits become the depth's high ones). A
-    tsdf-fusion capture with label maps beside its frames is read in millimetres so.
+    pixels by multiples of 0.8 m (a stored value's low bits, which differ from pixel to pixel on any
+    measured surface, become the depth's high ones). A tsdf-fusion capture with label maps beside its
+    frames is read in millimetres so.
 
     Example:
-        >>> ramp = np.linspace(400, 900, 64).astype(np.uint16)[None].repeat(8, 0)  # millimetres
-        >>> rotated_depth_code(ramp)
+        >>> plane = 600 + np.random.default_rng(0).integers(-2, 3, (8, 64))  # millimetres, a sensor's noise
+        >>> rotated_depth_code(plane.astype(np.uint16))
         False
+        >>> rotated_depth_code(((plane * 10 << 3) | (plane * 10 >> 13)).astype(np.uint16))  # label-fusion's
+        True
     """
     return _roughness(depth_from_uint16(unrotate_depth(raw), DEPTH_UNITS_PER_METRE)) < _roughness(
         depth_from_uint16(raw, TSDF_FUSION_UNITS_PER_METRE))
 
 
 def _roughness(depth: np.ndarray) -> float:
-    """The median jump between horizontal neighbours with depth, over the median depth (inf: none)."""
+    """The median jump in metres between horizontal neighbours with depth (inf: none)."""
     left, right = depth[:, :-1], depth[:, 1:]
     both = (left > 0) & (right > 0)
-    if not both.any():
-        return float("inf")
-    return float(np.median(np.abs(left[both] - right[both])) / np.median(left[both]))
+    return float(np.median(np.abs(left[both] - right[both]))) if both.any() else float("inf")
 
 
 def read_label_map(path: Path) -> np.ndarray:  # [H, W] uint8 label ids
