@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -142,6 +143,10 @@ def load_transforms_json(
         depth = _image_path(root, frame["depth_file_path"], where, "depth_file_path") if "depth_file_path" in frame else None
         return where, frame, color, depth
 
+    # a frame's id is its image's name, or where two cameras' images share names (images/0001.png and
+    # images_cam2/0001.png), its path in the capture: ids name one frame each
+    stems = [Path(str(f.get("file_path", ""))).stem for f in meta["frames"] if isinstance(f, dict)]
+    by_path = len(set(stems)) < len(stems)
     sources = []
     listed = found_frames(enumerate(meta["frames"]), files, json_path, strict)
     for where, frame, color, depth in select(listed, stride, max_frames):
@@ -153,5 +158,6 @@ def load_transforms_json(
         except (TypeError, ValueError):
             raise ValueError(f"{where}.transform_matrix: expected a 4x4 array of numbers") from None
         c2w = validate_pose(c2w_gl, f"{where}.transform_matrix") @ OPENGL_TO_OPENCV
-        sources.append(RGBDFile(color.stem, color, depth, K, c2w, 1.0 / factor, size, distortion))
+        frame_id = os.path.relpath(color.with_suffix(""), root).replace(os.sep, "/") if by_path else color.stem
+        sources.append(RGBDFile(frame_id, color, depth, K, c2w, 1.0 / factor, size, distortion))
     return FrameSequence(json_path.parent.name, sources)

@@ -57,6 +57,17 @@ def test_matches_tsdf_fusion_frames(shelf, shelf_path, tmp_path):
 
 
 @pytest.mark.realdata
+def test_two_cameras_whose_images_share_names_give_frames_ids_of_their_paths(shelf, shelf_path, tmp_path):
+    frames = _write_capture(shelf, shelf_path, tmp_path / "ns", count=2)
+    shutil.copytree(tmp_path / "ns" / "images", tmp_path / "ns" / "images_cam2")
+    meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
+    meta["frames"] += [{**f, "file_path": f["file_path"].replace("images/", "images_cam2/")} for f in meta["frames"]]
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    ids = load_transforms_json(tmp_path / "ns").frame_ids
+    assert ids == [f"{folder}/{f.frame_id}" for folder in ("images", "images_cam2") for f in frames]
+
+
+@pytest.mark.realdata
 def test_depth_unit_scale_factor(shelf, shelf_path, tmp_path):
     _write_capture(shelf, shelf_path, tmp_path / "ns", count=1, depth_unit_scale_factor=0.002)
     reference = shelf[0].depth
