@@ -24,13 +24,14 @@ Example:
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..calibration import quaternion_to_matrix, validate_pose
-from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, parse_floats,
-                    read_intrinsics_file, read_text, select)
+from .files import (MissingFile, MissingIntrinsics, RGBDFile, SkippedFrames, as_intrinsics, find_one, found_frames,
+                    parse_floats, read_intrinsics_file, read_text, select)
 from .sequence import FrameSequence
 
 INTRINSICS_NAMES = ("intrinsics.txt", "camera.txt")
@@ -123,6 +124,12 @@ def _tum_sources(root: Path, K: np.ndarray, depth_scale: float, max_dt: float, s
                   if d >= 0 and p >= 0]
     if not associated:
         raise ValueError(f"{root}: no colour image has both a depth image and a pose within {max_dt} s")
+    if len(associated) < len(rgb):  # as TUM's associate.py leaves them out; said, as missing files are
+        unmatched = f"{len(rgb) - len(associated)} of {len(rgb)} colour images, which have no depth image or pose within {max_dt} s"
+        if strict:
+            raise ValueError(f"{root / 'rgb.txt'}: {unmatched} (strict)")
+        warnings.warn(f"{root / 'rgb.txt'}: skipped {unmatched}; strict=True refuses such a capture", SkippedFrames,
+                      stacklevel=4)
 
     def frame(association) -> RGBDFile:
         (location, (stamp, color)), d, p = association

@@ -97,7 +97,10 @@ def tum_layout(tmp_path, slambook_path):
 
 
 def test_tum_timestamp_layout(tum_layout, slambook, slambook_K):
-    seq = load_tum(tum_layout, K=slambook_K)
+    with pytest.warns(SkippedFrames, match=r"rgb\.txt: skipped 1 of 6 colour images, which have no depth image or pose"):
+        seq = load_tum(tum_layout, K=slambook_K)
+    with pytest.raises(ValueError, match=r"rgb\.txt: 1 of 6 colour images, which have no depth image or pose .*strict"):
+        load_tum(tum_layout, K=slambook_K, strict=True)
     assert seq.frame_ids == [f"{1305031102.0 + k * 0.5:.6f}" for k in range(1, 6)]  # 6th dropped: no depth
     for a, b in zip(seq, slambook):
         assert np.array_equal(a.rgb.numpy(), b.rgb.numpy())
@@ -116,6 +119,8 @@ def test_tum_errors(tum_layout, slambook_K):
     with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected finite values and a non-zero quaternion"):
         load_tum(tum_layout, K=slambook_K)
     (tum_layout / "groundtruth.txt").write_text("\n".join(lines))
+    colour = (tum_layout / "rgb.txt").read_text().splitlines()
+    (tum_layout / "rgb.txt").write_text("\n".join(colour[:-1]) + "\n")  # without the 6th: strict would refuse it
     next((tum_layout / "depth").iterdir()).unlink()
     with pytest.raises(ValueError, match=r"\.png: file not found \(listed at .*depth\.txt:\d+\)"):
         load_tum(tum_layout, K=slambook_K, strict=True)
