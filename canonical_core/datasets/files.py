@@ -259,5 +259,10 @@ def posed_images(images: Path, depth: Path, K: np.ndarray, poses: Sequence[np.nd
     for k in select(range(len(files)), stride, max_frames):
         d = depth / (files[k].stem + ".png")
         out.append(RGBDFile(files[k].stem, files[k], d if d.is_file() else None, K, poses[k], depth_scale))
+    # a depth folder that lacks some images' depth: a copy that lost files, more often than not (a
+    # capture without one is colour-only by design)
+    if (without := [f.frame_id for f in out if f.depth is None]) and depth.is_dir():
+        warnings.warn(f"{depth}: {len(without)} of {len(out)} images have no depth image of their name (the first: "
+                      f"{without[0]}); they fold as colour-only frames, their depth estimated", stacklevel=3)
     return out
 

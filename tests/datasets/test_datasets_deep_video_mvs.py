@@ -44,7 +44,8 @@ def small_copy(hololens_path, tmp_path):
 
 def test_a_frame_without_its_depth_file_is_rgb_only(small_copy):
     (small_copy / "depth" / "00005.png").unlink()
-    seq = load_deep_video_mvs(small_copy)
+    with pytest.warns(UserWarning, match=r"depth: 1 of 3 images have no depth image of their name \(the first: 00005\)"):
+        seq = load_deep_video_mvs(small_copy)
     assert [f.depth is None for f in seq] == [False, True, False]
 
 
