@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..calibration import validate_pose
-from .files import parse_floats, posed_images, read_intrinsics_file, read_text
+from .files import one_size, parse_floats, posed_images, read_intrinsics_file, read_text
 from .sequence import FrameSequence
 
 
@@ -51,4 +51,4 @@ def load_deep_video_mvs(
         poses.append(validate_pose(parse_floats(line, where).reshape(4, 4), where))
     sources = posed_images(root / "images", root / "depth", read_intrinsics_file(root / "K.txt"), poses, depth_scale,
                            stride, max_frames, root / "poses.txt")
-    return FrameSequence(root.name, sources)
+    return FrameSequence(root.name, one_size(sources))

@@ -13,7 +13,7 @@ import argparse
 import math
 import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterable, Sequence, TypeVar
 
@@ -232,7 +232,17 @@ class RGBDFile:
 
     def _check_size(self, width: int, height: int) -> None:
         if self.size is not None and self.size != (width, height):
-            raise ValueError(f"{self.color}: image is {width}x{height}, the layout says {self.size[0]}x{self.size[1]}")
+            raise ValueError(f"{self.color}: image is {width}x{height}, the capture's are {self.size[0]}x{self.size[1]} "
+                             "(its layout's size, or its first frame's: intrinsics are for one image size)")
+
+
+def one_size(sources: list[RGBDFile]) -> list[RGBDFile]:
+    """``sources`` expecting the first one's image size where the layout states none: a capture's
+    intrinsics are for one size, and a frame of another would be read with the wrong camera."""
+    if not sources or sources[0].size is not None:
+        return sources
+    size = image_size(sources[0].color)
+    return [replace(source, size=size) for source in sources]
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

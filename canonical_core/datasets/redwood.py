@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..calibration import validate_pose
-from .files import as_intrinsics, parse_floats, posed_images, read_text
+from .files import as_intrinsics, one_size, parse_floats, posed_images, read_text
 from .sequence import FrameSequence
 
 PRIMESENSE_DEFAULT = (525.0, 525.0, 319.5, 239.5)
@@ -67,4 +67,4 @@ def load_redwood(
     sources = posed_images(root / "image", root / "depth", as_intrinsics(intrinsics),
                            read_trajectory_log(root / "trajectory.log"), depth_scale, stride, max_frames,
                            root / "trajectory.log")
-    return FrameSequence(root.name, sources)
+    return FrameSequence(root.name, one_size(sources))

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 from ..calibration import validate_pose
 from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, natural_key,
-                    read_intrinsics_file, read_matrix, select, write_matrix)
+                    one_size, read_intrinsics_file, read_matrix, select, write_matrix)
 from .images import write_depth, write_rgb
 from .sequence import FrameSequence
 
@@ -111,7 +111,7 @@ def load_tsdf_fusion(
     for stem, pose_path, color, depth in select(listed, stride, max_frames):
         c2w = validate_pose(read_matrix(pose_path, 4, 4), str(pose_path))
         sources.append(RGBDFile(stem, color, depth, K, c2w, depth_scale))
-    return FrameSequence(root.name, sources)
+    return FrameSequence(root.name, one_size(sources))
 
 
 def write_tsdf_fusion(frames: Iterable[Frame], path: str | Path, depth_scale: float = 1000.0) -> Path:

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..calibration import quaternion_to_matrix, validate_pose
 from .files import (MissingFile, MissingIntrinsics, RGBDFile, SkippedFrames, as_intrinsics, find_one, found_frames,
-                    parse_floats, read_intrinsics_file, read_text, select)
+                    one_size, parse_floats, read_intrinsics_file, read_text, select)
 from .sequence import FrameSequence
 
 INTRINSICS_NAMES = ("intrinsics.txt", "camera.txt")
@@ -184,4 +184,4 @@ def load_tum(
         sources = _slambook_sources(root, _resolve_K(root, K), depth_scale or SLAMBOOK_DEPTH_SCALE, strict)
     else:
         raise ValueError(f"{root}: neither groundtruth.txt (TUM RGB-D) nor pose.txt (slambook layout) found")
-    return FrameSequence(root.name, select(sources, stride, max_frames))
+    return FrameSequence(root.name, select(one_size(sources), stride, max_frames))

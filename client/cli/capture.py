@@ -47,17 +47,18 @@ def frame_files(source) -> dict | None:
     carry its files' own bytes: PNG or JPEG colour, 16-bit PNG depth with its ``depth_scale``. Nothing
     is decoded and encoded again (the client's CPU is often the service's), the capture's own
     compression is what travels and what the service keeps, and the service decodes the very frame
-    the loader reads. None where the loader changes the images it reads (undistortion, a size to
-    check, depth that is not a PNG): send `frame_arrays` then. Where the depth is smaller than the
+    the loader reads. None where the loader changes the images it reads (undistortion, depth that is
+    not a PNG): send `frame_arrays` then. Where the depth is smaller than the
     colour (a phone's LiDAR beside its camera's image), the SDK sends the colour brought to the
     depth's pixels (`client.sdk.fit_colour_to_depth`), as the service would make it: a fraction of
     the whole image's bytes to send, decode and keep."""
     from canonical_core.datasets.files import IMAGE_SUFFIXES, RGBDFile
 
-    if not isinstance(source, RGBDFile) or source.distortion is not None or source.size is not None:
+    if not isinstance(source, RGBDFile) or source.distortion is not None:
         return None
     if source.color.suffix.lower() not in IMAGE_SUFFIXES or (source.depth is not None and source.depth.suffix.lower() != ".png"):
         return None
+    source.view()  # the image's size from its header against the capture's (ValueError naming the file)
     out = {"rgb": source.color.read_bytes(), "K": source.K, "c2w": source.c2w, "frame_id": source.frame_id}
     if source.depth is not None:
         out["depth"], out["depth_scale"] = source.depth.read_bytes(), source.depth_scale

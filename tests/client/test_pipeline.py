@@ -157,6 +157,15 @@ def test_stream_sends_the_captures_own_files_and_folds_what_the_loader_reads(ser
     assert digest["frames"] == 4 and digest["sha256"] == folded_scene(capture, VOXEL).digest()
 
 
+def test_a_frame_of_another_size_than_the_captures_is_refused_naming_its_file(shelf_dir, tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(shelf_dir, capture)
+    odd = sorted(capture.rglob("*.color.png"))[10]
+    Image.open(odd).resize((1280, 960)).save(odd)  # the capture's intrinsics are for 640x480
+    with pytest.raises(ValueError, match=rf"{odd.name}: image is 1280x960, the capture's are 640x480"):
+        list(capture_frames(load_tsdf_fusion(capture, stride=10, max_frames=2)))
+
+
 def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colour_fitted(service, shelf_dir, tmp_path,
                                                                                           capsys):
     """A phone's capture: depth PNGs at a fraction of the colour's pixels. The stream sends the depth's

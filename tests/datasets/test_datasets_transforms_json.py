@@ -210,5 +210,5 @@ def test_size_mismatch_and_extensionless_paths(capture):
     _edit(capture, lambda m: (m.update(w=320), m["frames"][0].update(file_path=m["frames"][0]["file_path"][:-4])))
     seq = load_transforms_json(capture)  # "images/frame-000015" resolves to the .png, as instant-ngp allows
     for read in (lambda: seq[0], seq.source(0).view):  # the frame, and its camera alone
-        with pytest.raises(ValueError, match=r"frame-000015\.png: image is 640x480, the layout says 320x480"):
+        with pytest.raises(ValueError, match=r"frame-000015\.png: image is 640x480, the capture's are 320x480"):
             read()

@@ -141,9 +141,13 @@ def test_error_unreadable_and_mismatched_images(capture):
     (capture / "frame-000001.depth.png").unlink()
     Image.fromarray(np.zeros((24, 30), np.uint16)).save(capture / "frame-000001.depth.png")
     Image.fromarray(np.zeros((48, 64), np.uint8)).save(capture / "frame-000002.depth.png")
-    seq = load_tsdf_fusion(capture)  # listing reads no image
     with pytest.raises(ValueError, match=r"frame-000000\.color\.png: unreadable image"):
-        seq[0]
+        load_tsdf_fusion(capture)  # listing reads the first frame's image header: the capture's size
+    Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(capture / "frame-000000.color.png")
+    seq = load_tsdf_fusion(capture)
+    Image.fromarray(np.zeros((50, 64, 3), np.uint8)).save(capture / "frame-000000.color.png")
+    with pytest.raises(ValueError, match=r"frame-000000\.color\.png: image is 64x50, the capture's are 64x48"):
+        seq.source(0).view()  # a frame of another size than the first: the intrinsics are not this image's
     with pytest.raises(ValueError, match=r"frame-000001\.depth\.png: depth size 30x24 does not match.*64x48.*: .*field of view"):
         seq[1]
     with pytest.raises(ValueError, match=r"frame-000002\.depth\.png: expected a 16-bit"):
