@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from .metrics import Metrics
-from .scheduler import Scheduler
+from .scheduler import RENDER_KINDS, Kind, Scheduler
 from .session import Session
 from .settings import Settings
 from .store import SessionStore
@@ -24,8 +24,22 @@ async def get_store(request: Request) -> SessionStore:
     return request.app.state.store
 
 
-async def get_jobs(request: Request) -> Scheduler:
-    return request.app.state.jobs
+class RequestJobs:
+    """The scheduler as one request uses it: its render and work jobs watch the request's client, and
+    one that waits when the client has gone is dropped (`Scheduler.run`'s ``gone``): a client that gave
+    up on a large render holds no place in its session's queue. Frames are not: a frame's fold goes
+    through once sent (its retry is answered from it)."""
+
+    def __init__(self, scheduler: Scheduler, request: Request):
+        self.scheduler, self._request = scheduler, request  # the scheduler itself for what outlives the request
+
+    async def run(self, fn, *args, kind: Kind, **kwargs):
+        gone = self._request.is_disconnected if kind in RENDER_KINDS else None
+        return await self.scheduler.run(fn, *args, kind=kind, gone=gone, **kwargs)
+
+
+async def get_jobs(request: Request) -> RequestJobs:
+    return RequestJobs(request.app.state.jobs, request)
 
 
 async def get_metrics(request: Request) -> Metrics:
@@ -34,7 +48,7 @@ async def get_metrics(request: Request) -> Metrics:
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 StoreDep = Annotated[SessionStore, Depends(get_store)]
-JobsDep = Annotated[Scheduler, Depends(get_jobs)]
+JobsDep = Annotated[RequestJobs, Depends(get_jobs)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 

@@ -19,7 +19,7 @@ from canonical_core.scene import CapacityError
 from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
-from .scheduler import QueueFull
+from .scheduler import ClientGone, QueueFull
 from .session_errors import FrameIdConflict, FrameOutOfOrder, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
 from .wire import WireError
 
@@ -106,6 +106,12 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(MemoryBudgetExceeded)
     async def _over_budget(request: Request, exc: MemoryBudgetExceeded):
         return error_response(413, "too_large", str(exc), "frame")
+
+    @app.exception_handler(ClientGone)
+    async def _client_gone(request: Request, exc: ClientGone):
+        # nginx's code for it: nobody reads this answer, but a log line or a proxy may
+        return error_response(499, "client_closed_request", "the client closed the connection before the answer",
+                              "request")
 
     @app.exception_handler(QueueFull)
     async def _queue_full(request: Request, exc: QueueFull):

@@ -55,6 +55,7 @@ import threading
 import time
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
+from collections.abc import Awaitable
 from typing import Any, Callable, Literal, TypeVar
 
 T = TypeVar("T")
@@ -68,6 +69,7 @@ SERIAL_KINDS: tuple[Kind, ...] = ("frame", "solve")  # a session's jobs of these
 INGEST_NICE, RENDER_NICE, SOLVE_NICE = 5, 15, 19
 VIEWER_TURN = 5  # waiting viewer jobs get at least one in this many of the render workers' jobs
 VIEWER_PAUSE = 3.0  # while frames are held, the viewer's jobs take at most 1 / (1 + this) of the time
+GONE_CHECK_S = 0.5  # how often a waiting request looks whether its client is still there
 
 
 class QueueFull(Exception):
@@ -82,6 +84,10 @@ class QueueFull(Exception):
 
 class Superseded(Exception):
     """A viewer job replaced, while it waited, by a newer one with the same coalesce key."""
+
+
+class ClientGone(Exception):
+    """The client of a request left while its job waited or ran (nobody reads the answer)."""
 
 
 @dataclass(eq=False)
@@ -148,10 +154,12 @@ class Scheduler:
         self.background_done = 0  # background jobs finished (or failed) since the start
 
     async def run(self, fn: Callable[..., T], *args, kind: Kind, session: str = "", coalesce: str | None = None,
-                  **kwargs) -> T:
+                  gone: Callable[[], Awaitable[bool]] | None = None, **kwargs) -> T:
         """``fn(*args, **kwargs)`` on a worker, for ``session`` ("" for the service's own jobs).
         Raises `QueueFull` at once when the session's ``kind`` queue is full, `Superseded` when a newer
-        viewer job with the same ``coalesce`` key replaced this one while it waited."""
+        viewer job with the same ``coalesce`` key replaced this one while it waited, `ClientGone` when
+        ``gone()`` (asked every `GONE_CHECK_S`) says the requester left: a job still waiting is dropped
+        then, so that a client that gave up holds no place in its session's queue."""
         loop = asyncio.get_running_loop()
         call = functools.partial(contextvars.copy_context().run, fn, *args, **kwargs)
         job = _Job(call, kind, session, coalesce, loop.create_future(), loop)
@@ -169,8 +177,12 @@ class Scheduler:
                 self._start()
             self._lane(kind).ready.notify()
         try:
+            while gone is not None and not job.future.done():
+                await asyncio.wait({job.future}, timeout=GONE_CHECK_S)
+                if not job.future.done() and await gone():
+                    raise ClientGone(session)
             return await job.future
-        except asyncio.CancelledError:
+        except (asyncio.CancelledError, ClientGone):
             with self._lock:
                 self._forget(job)
             raise

@@ -28,7 +28,7 @@ async def _export(session, jobs, max_gaussians, encode, suffix: str, features: b
         return encode(gaussians), len(gaussians)
 
     data, n = await jobs.run(job, kind="work", session=session.id)
-    solve_soon(jobs, session)  # as a render does: a session whose colours are due gets them solved
+    solve_soon(jobs.scheduler, session)  # as a render does: a session whose colours are due gets them solved
     return Response(data, media_type="application/octet-stream", headers={
         "Content-Disposition": f'attachment; filename="{session.id}{suffix}"', "X-Canonical-Gaussians": str(n)})
 

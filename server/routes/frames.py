@@ -140,7 +140,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     finally:  # the colours of what the session holds now, solved while no frame of it waits
         if ahead is not None:
             ahead.release()
-        solve_soon(jobs, session)
+        solve_soon(jobs.scheduler, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"
     else:

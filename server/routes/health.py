@@ -22,7 +22,7 @@ async def healthz(request: Request, store: StoreDep) -> Health:
 async def metrics(request: Request, store: StoreDep, jobs: JobsDep, metrics: MetricsDep) -> PlainTextResponse:
     """Prometheus text format: fold/view latency histograms, frames, sessions, voxels, queue, request
     bodies and event streams."""
-    totals = store.totals()
+    totals, jobs = store.totals(), jobs.scheduler
     events = request.app.state.events
     gauges = {
         "canonical_sessions": ("Sessions held.", totals["sessions"]),

@@ -22,7 +22,7 @@ async def _correct(session: Session, jobs: JobsDep, poses: dict, remove: list, w
     except CorrectionRefused as exc:
         raise ApiError(409, "correction_refused", str(exc), exc.field) from None
     if done["state"] == "done":
-        solve_soon(jobs, session)  # the corrected scene's colours (a background one's: at the next stats read)
+        solve_soon(jobs.scheduler, session)  # the corrected scene's colours (a background one's: at the next stats read)
         return Correction(**done)
     # its status as accepted ("pending"), not as its re-fold may have begun since: GET .../corrections/{id}
     return JSONResponse(CorrectionStatus(**done["status"]).model_dump(), status_code=202)

@@ -62,7 +62,7 @@ async def session_stats(session: SessionDep, jobs: JobsDep) -> SessionStats:
     """Frames, voxels, Gaussians (decodes if the cache is cold), bytes in memory and on disk. Queues
     the colour solve when one is due: a client that waits for solved colours polls this."""
     stats = SessionStats(**await jobs.run(session.stats, kind="work", session=session.id))
-    solve_soon(jobs, session)
+    solve_soon(jobs.scheduler, session)
     return stats
 
 

@@ -129,7 +129,7 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
 
     t0 = time.perf_counter()
     (content, media), n = await jobs.run(job, kind=lane, session=session.id, coalesce=coalesce)
-    solve_soon(jobs, session)  # a session restored with colours to solve gets them solved
+    solve_soon(jobs.scheduler, session)  # a session restored with colours to solve gets them solved
     metrics.view_seconds[kind].observe(time.perf_counter() - t0)
     return Response(content, media_type=media, headers={"X-Canonical-Gaussians": str(n)})
 

@@ -17,8 +17,8 @@ import time
 
 import pytest
 
-from server.scheduler import (INGEST_NICE, RENDER_NICE, SOLVE_NICE, VIEWER_PAUSE, VIEWER_TURN, Kind, QueueFull,
-                              Scheduler, Superseded)
+from server.scheduler import (INGEST_NICE, RENDER_NICE, SOLVE_NICE, VIEWER_PAUSE, VIEWER_TURN, ClientGone, Kind,
+                              QueueFull, Scheduler, Superseded)
 
 WAIT_S = 30.0
 
@@ -260,6 +260,28 @@ def test_a_cancelled_waiting_job_leaves_its_queue():
         gate.opened.set()
         await first
         assert await s.run(lambda: "next", kind="work", session="a") == "next"
+
+    run(body)
+
+
+def test_a_waiting_job_whose_client_left_leaves_its_queue():
+    async def body(s: Scheduler):
+        gate, first = await held(s)
+        left = asyncio.Event()
+
+        async def gone() -> bool:
+            return left.is_set()
+
+        waiting = asyncio.ensure_future(s.run(pytest.fail, "a job nobody waits for ran", kind="work", session="a",
+                                              gone=gone))
+        await queued(s, 2)
+        left.set()
+        with pytest.raises(ClientGone):
+            await waiting  # within a look or two (GONE_CHECK_S)
+        assert s.active == 1  # its place is free while the first still runs
+        gate.opened.set()
+        await first
+        assert await s.run(lambda: "next", kind="work", session="a", gone=gone) == "next"  # done at once: no look
 
     run(body)
 
