@@ -200,14 +200,18 @@ def run_stream(args) -> int:
             sent, elapsed, interrupted = stop.sent, stop.elapsed, True
         except StreamRefused as exc:
             sent, elapsed, refused = exc.index - held, time.perf_counter() - t0, exc
+        except ValueError as exc:  # a frame the capture cannot give (an unreadable image): the stream stops there
+            sent, elapsed, refused = None, time.perf_counter() - t0, exc
         session = target.session if isinstance(target, FirstFrameSession) else target
         if session is None:  # no frame went in: no session was made
-            print(("interrupted" if interrupted else f"{frames.name}: no frames to stream")
-                  + "; no session was created", file=sys.stderr)
+            if refused is not None:
+                print(f"error: {refused}", file=sys.stderr)
+            print(("interrupted" if interrupted else f"{frames.name}: no frames streamed" if refused else
+                   f"{frames.name}: no frames to stream") + "; no session was created", file=sys.stderr)
             return 130 if interrupted else 1
         stats = session.stats()
         skipped = 0
-        if interrupted:  # the frames in flight at Ctrl-C were folded too
+        if interrupted or sent is None:  # the frames in flight at Ctrl-C, or before the unreadable one, were folded too
             sent = stats["frames"] - held
         elif args.session and not refused:
             sent, skipped = stats["frames"] - held, sent - (stats["frames"] - held)

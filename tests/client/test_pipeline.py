@@ -187,7 +187,12 @@ def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colou
     assert digest["frames"] == 2 and digest["sha256"] == folded_scene(loaded, VOXEL).digest()
 
 
-def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_dir, tmp_path, capsys):
+@pytest.mark.parametrize("damage, error", [
+    ("depth.png", "error: 422 invalid_value: frame 2 refused (the session holds the 2 frames before it): depth: "
+                  "expected a 16-bit"),  # the service's refusal
+    ("color.png", "frame-000002.color.png: unreadable image"),  # the client's, reading the capture
+], ids=["refused by the service", "unreadable here"])
+def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_dir, tmp_path, capsys, damage, error):
     capture = tmp_path / "capture"
     capture.mkdir()
     (capture / "intrinsics.K.txt").write_bytes((shelf_dir / "intrinsics.K.txt").read_bytes())
@@ -200,11 +205,14 @@ def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_di
                 target.write_bytes(path.read_bytes())
             else:
                 target.write_text("\n".join(" ".join(f"{x:.9g}" for x in row) for row in source.c2w))
-    (capture / "frame-000002.color.png").write_bytes((shelf_dir / "intrinsics.K.txt").read_bytes())  # not an image
+    if damage == "depth.png":  # an 8-bit depth image: sent as it is, refused by the service
+        Image.fromarray(np.zeros((480, 640), np.uint8)).save(capture / "frame-000002.depth.png")
+    else:  # not an image at all
+        (capture / "frame-000002.color.png").write_bytes((shelf_dir / "intrinsics.K.txt").read_bytes())
     code = main(["stream", str(capture), "--voxel-size", str(VOXEL), "--url", service.url])
     err = capsys.readouterr().err
     assert code == 1
-    assert "error: 422 invalid_value: frame 2 refused (the session holds the 2 frames before it): rgb: not a PNG" in err
+    assert error in err
     assert "stopped: 2 frames in" in err
     session_id = err.split("continue with --session ")[1].split()[0]
     with Client(service.url) as client:
