@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from collections.abc import Awaitable
 from typing import Callable
 
 from .session_errors import FrameOutOfOrder
@@ -39,17 +40,21 @@ class FrameOrder:
         self._refused: dict[int, str] = {}
 
     async def wait_turn(self, index: int, frames: Callable[[], int], wait_s: float,
-                        check: Callable[[], None] = lambda: None) -> None:
+                        check: Callable[[], None] = lambda: None,
+                        left: Callable[[], Awaitable[None]] | None = None) -> None:
         """Return once ``frames()`` (the session's frame count) is ``index`` or more; raise
         `FrameOutOfOrder` when the place before it will not be filled (the frame there was refused,
         or a correction took frames out of the session), or when no frame is folded for ``wait_s``
         (a long pipeline that moves on keeps its frames waiting). ``check()`` raises where the frame
-        is no longer wanted (its session deleted, the service stopping); it runs at each wake and
-        every `CHECK_S`, as nothing wakes a waiter for those."""
+        is no longer wanted (its session deleted, the service stopping), and ``left()`` where its
+        client closed the connection (the frame was never answered: it holds no place then); they run
+        at each wake and every `CHECK_S`, as nothing wakes a waiter for those."""
         loop = asyncio.get_running_loop()
         deadline, last = time.monotonic() + wait_s, frames()
         while (held := frames()) < index:
             check()
+            if left is not None:
+                await left()
             if held != last:
                 deadline, last = time.monotonic() + wait_s, held
             woken = loop.create_future()

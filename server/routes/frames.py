@@ -14,6 +14,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError, unparsable
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
+from ..scheduler import ClientGone
 from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
@@ -126,13 +127,17 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             raise
         return record, frame, session.prepare(frame)  # its fold begun: evidence made while others fold
 
+    async def left() -> None:  # a numbered frame whose client went while it waited: never answered, never folded
+        if await request.is_disconnected():
+            raise ClientGone(session.id)
+
     t0, ahead = time.perf_counter(), None
     try:
         record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
         decoded = time.perf_counter() - t0
         if frame_index is not None:  # on the loop, holding no job
             await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s,
-                                          lambda: still_wanted(request, session, frame_index))
+                                          lambda: still_wanted(request, session, frame_index), left)
         t0 = time.perf_counter()
         report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
                                         settings.snapshot_every_seconds, frame_index, ahead and ahead.frame,

@@ -1,6 +1,6 @@
 """Requests in flight when their session changes under them, on a real service: a numbered frame
 (``Frame-Index``) waiting for its turn ends at once when its session is deleted, when the service
-stops, or when a correction removes frames (saying so); a background correction of a deleted
+stops, when its client leaves, or when a correction removes frames (saying so); a background correction of a deleted
 session stops without an error."""
 
 from __future__ import annotations
@@ -65,6 +65,21 @@ def test_a_frame_waiting_for_its_turn_ends_with_404_when_its_session_is_deleted(
         r, seconds = waiting.result()
     assert r.status_code == 404 and r.json()["error"]["field"] == "session_id", r.text
     assert seconds < PROMPT_S
+
+
+def test_a_frame_waiting_for_its_turn_whose_client_left_is_dropped(service, frames):
+    """Its client gave up (a timeout, a killed process): it was never answered, so it is not folded when
+    its turn would come, and it holds neither its body nor its place meanwhile."""
+    with Client(service.url) as client:
+        session = streamed(client, frames[:1])
+        body = frame_body(**frames[2])
+        with pytest.raises(httpx.ReadTimeout):  # frame 1 never comes while this client waits
+            httpx.post(f"{service.url}/v1/sessions/{session.id}/frames", content=body,
+                       headers={"Content-Type": MSGPACK, "Frame-Index": "2"}, timeout=2.0)
+        assert wait_for(lambda: held_bytes(service.url) == 0, PROMPT_S)  # well before WAIT_S
+        session.add_frame(**frames[1])
+        time.sleep(1.0)  # where the dropped frame 2 would fold now
+        assert session.stats()["frames"] == 2
 
 
 def test_a_correction_that_removes_frames_refuses_the_numbered_frames_in_flight_at_once(service, frames):
