@@ -154,6 +154,16 @@ def stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
             f"{stats['gaussians']} Gaussians{sensor}")
 
 
+def refused_files(frames, position: int) -> str:
+    """`` (files: ...)``: the files of the capture's frame at ``position`` (the one the service refused),
+    where its loader reads files, so that the user knows which to look at."""
+    if not 0 <= position < len(frames):
+        return ""
+    source = frames.source(position)
+    files = [str(path) for path in (getattr(source, "color", None), getattr(source, "depth", None)) if path is not None]
+    return f" (files: {', '.join(files)})" if files else ""
+
+
 def run_stream(args) -> int:
     from canonical_core.datasets import MissingIntrinsics, load_dataset
 
@@ -222,7 +232,8 @@ def run_stream(args) -> int:
         if interrupted or refused:
             summary = f"{'interrupted' if interrupted else 'stopped'}: {summary}; continue with --session {session.id}"
         if refused:
-            print(f"error: {refused}", file=sys.stderr)
+            print(f"error: {refused}{refused_files(frames, start + sent) if isinstance(refused, StreamRefused) else ''}",
+                  file=sys.stderr)
             print(summary, file=sys.stderr)
             return 1
         print(summary, file=sys.stderr)

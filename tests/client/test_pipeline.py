@@ -189,7 +189,7 @@ def test_stream_of_a_capture_with_depth_at_half_the_colours_size_sends_the_colou
 
 @pytest.mark.parametrize("damage, error", [
     ("depth.png", "error: 422 invalid_value: frame 2 refused (the session holds the 2 frames before it): depth: "
-                  "expected a 16-bit"),  # the service's refusal
+                  "expected a 16-bit"),  # the service's refusal, its files named after it
     ("color.png", "frame-000002.color.png: unreadable image"),  # the client's, reading the capture
 ], ids=["refused by the service", "unreadable here"])
 def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_dir, tmp_path, capsys, damage, error):
@@ -213,6 +213,8 @@ def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_di
     err = capsys.readouterr().err
     assert code == 1
     assert error in err
+    if damage == "depth.png":
+        assert f"(files: {capture / 'frame-000002.color.png'}, {capture / 'frame-000002.depth.png'})" in err
     assert "stopped: 2 frames in" in err
     session_id = err.split("continue with --session ")[1].split()[0]
     with Client(service.url) as client:
