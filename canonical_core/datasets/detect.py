@@ -6,6 +6,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -55,13 +56,21 @@ _LOADERS = {"transforms_json": load_transforms_json, "tum": load_tum, "tsdf_fusi
 # the layouts that list their frames (in a file, or as pose files) and so may list some whose images
 # are missing; the others' frames are the image folder's own files
 _LISTING = {"transforms_json", "tum", "tsdf_fusion", "label_fusion"}
+# the layouts whose depth images' units are the layout's (their loaders' ``depth_scale``)
+_DEPTH_SCALED = {"tum", "tsdf_fusion", "deep_video_mvs", "redwood"}
 # the layouts whose intrinsics come from a file (or their loader's default), by their loader's argument
 _INTRINSICS = {"tum": "K", "tsdf_fusion": "intrinsics", "label_fusion": "intrinsics", "redwood": "intrinsics"}
 
 
-def load_dataset(path: str | Path, strict: bool = False, K=None, **kwargs) -> FrameSequence:
+def load_dataset(path: str | Path, strict: bool = False, K=None, depth_scale: float | None = None,
+                 **kwargs) -> FrameSequence:
     """Load any supported capture: detects the layout (`detect_layout`) and passes ``kwargs`` on
-    (e.g. ``stride=`` / ``max_frames=`` for all, ``depth_scale=`` for TUM and tsdf-fusion).
+    (e.g. ``stride=`` / ``max_frames=`` for all).
+
+    ``depth_scale`` (raw depth units per metre: 1000 for millimetres, 5000 for TUM's own) replaces the
+    layout's for the layouts whose depth images carry no scale of their own (TUM, tsdf-fusion / 7-Scenes,
+    deep-video-mvs, Redwood): a capture written in other units than its layout's. A ValueError for
+    the others (transforms.json states its own; label-fusion's code is fixed).
 
     ``K`` (a 3x3 matrix or (fx, fy, cx, cy), pixels) gives the camera's intrinsics to the layouts
     that read them from a file (TUM, tsdf-fusion / 7-Scenes, label-fusion, Redwood): for a capture
@@ -83,4 +92,10 @@ def load_dataset(path: str | Path, strict: bool = False, K=None, **kwargs) -> Fr
         if layout not in _INTRINSICS:
             raise ValueError(f"K: a {layout} capture's frames carry their own intrinsics; give none")
         kwargs[_INTRINSICS[layout]] = K
+    if depth_scale is not None:
+        if layout not in _DEPTH_SCALED:
+            raise ValueError(f"depth_scale: a {layout} capture's depth carries its own scale; give none")
+        if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+            raise ValueError(f"depth_scale: expected a positive number of depth units per metre, got {depth_scale!r}")
+        kwargs["depth_scale"] = float(depth_scale)
     return _LOADERS[layout](path, **kwargs)

@@ -40,6 +40,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser
     parser.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
                         help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
                              "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
+    parser.add_argument("--depth-scale", type=float, default=None, metavar="UNITS",
+                        help="depth units per metre of the capture's depth images, where they are not its layout's "
+                             "(e.g. 1000 for a TUM-layout capture written in millimetres)")
     parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
     parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
     parser.add_argument("--methods", type=_list(str, "methods"), default=None,
@@ -93,9 +96,10 @@ def run_eval(args: argparse.Namespace) -> int:
               "clean depth, held-out views between the inputs)", file=sys.stderr)
         return 2
     try:
-        dataset = args.dataset if args.K is None else load_dataset(args.dataset, K=args.K)
+        own = args.K is None and args.depth_scale is None
+        dataset = args.dataset if own else load_dataset(args.dataset, K=args.K, depth_scale=args.depth_scale)
         if args.segmentation:
-            evaluate_segmentation(dataset if args.K is None else [dataset], views=args.views, methods=args.methods or ("canonical", "average", "pixel_aligned"),
+            evaluate_segmentation(dataset if own else [dataset], views=args.views, methods=args.methods or ("canonical", "average", "pixel_aligned"),
                                   out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size)
         else:
             evaluate(dataset, views=args.views, methods=args.methods, noise=args.noise, mixed_noise=args.mixed_noise,

@@ -38,6 +38,9 @@ def add_stream(p: argparse.ArgumentParser) -> None:
                         "resolution); frames without depth over the service's limit for them are downscaled to it anyway")
     p.add_argument("--in-flight", type=positive_int, default=IN_FLIGHT, help="frames posted at once (the service "
                                                                               "folds them in order; 1: one at a time)")
+    p.add_argument("--depth-scale", type=positive_number, default=None, metavar="UNITS",
+                   help="depth units per metre of the capture's depth images, where they are not its layout's (e.g. "
+                        "1000 for a TUM-layout capture written in millimetres; default: the layout's)")
     p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
                                                          "(default: skip them, with a warning that counts them)")
     add_json(p, "the session's stats when the stream ends, with the frames sent and the seconds taken")
@@ -174,7 +177,7 @@ def run_stream(args) -> int:
     try:
         with warnings_on_stderr():
             frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict,
-                                  K=args.K)
+                                  K=args.K, depth_scale=args.depth_scale)
     except MissingIntrinsics as exc:
         raise UsageError(f"--K: {exc} (here: --K fx,fy,cx,cy)") from None
 

@@ -67,6 +67,7 @@ BAD_ARGUMENTS = [
     ("a stride of 0", ["stream", "somewhere", "--stride", "0"], "argument --stride: expected a positive integer"),
     ("no frames", ["stream", "somewhere", "--max-frames", "0"], "argument --max-frames: expected a positive integer"),
     ("a scale of 0", ["stream", "somewhere", "--scale", "0"], "argument --scale: expected a positive number"),
+    ("a depth scale of 0", ["stream", "somewhere", "--depth-scale", "0"], "argument --depth-scale: expected a positive"),
     ("a voxel size not a number", ["stream", "somewhere", "--voxel-size", "nan"], "argument --voxel-size: expected a positive"),
     ("an endless voxel", ["demo", "somewhere", "--voxel-size", "inf"], "argument --voxel-size: expected a positive"),
     ("no source views", ["depth", "somewhere", "--out", "x", "--sources", "0"], "argument --sources: expected a positive"),

@@ -20,7 +20,8 @@ def test_add_eval_parser_hooks_into_a_parent_parser(tmp_path):
     assert args.mixed_noise is None
     assert parser.parse_args(["eval", "x", "--out", "o", "--stability-views", "none"]).stability_views == []
     assert parser.parse_args(["eval", "x", "--out", "o", "--mixed-noise", "0.25"]).mixed_noise == 0.25
-    assert args.colour == "normalised"
+    assert args.colour == "normalised" and args.depth_scale is None
+    assert parser.parse_args(["eval", "x", "--out", "o", "--depth-scale", "1000"]).depth_scale == 1000.0
     assert parser.parse_args(["eval", "x", "--out", "o", "--colour", "composited"]).colour == "composited"
 
 
