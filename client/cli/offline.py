@@ -24,10 +24,7 @@ def run_depth(args) -> int:
     from canonical_core.datasets import load_dataset
     from canonical_core.eval.mvs_preview import write_depth_previews
 
-    try:
-        frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
-    except ValueError as exc:  # the dataset argument's: no capture there, no intrinsics
-        raise UsageError(str(exc)) from None
+    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
     rows = write_depth_previews(frames, args.out, num_sources=args.sources)
     errors = [r["median_abs_rel"] for r in rows if r.get("median_abs_rel") is not None]
     summary = f"; median AbsRel vs the sensor {np.median(errors):.4f}" if errors else ""
@@ -57,9 +54,9 @@ def run_train(args) -> int:
     try:
         settings = TrainSettings(seed=args.seed, steps=args.steps, minutes=args.minutes, width=args.width,
                                  device=args.device, coverage_weight=args.coverage_weight, **heads)
-        result = run_training(args.captures, args.out, settings)
-    except ValueError as exc:  # the arguments': the captures, --out or a setting
+    except ValueError as exc:
         raise UsageError(str(exc)) from None
+    result = run_training(args.captures, args.out, settings)  # the captures' or --out's errors: 1, as the stream's
     report = Path(args.out).with_name(Path(args.out).stem + "_report")
     print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")
     print((report / "report.md").read_text())

@@ -180,6 +180,11 @@ def run_stream(args) -> int:
                                   K=args.K, depth_scale=args.depth_scale)
     except MissingIntrinsics as exc:
         raise UsageError(f"--K: {exc} (here: --K fx,fy,cx,cy)") from None
+    except ValueError as exc:  # an option the capture's layout does not take is a usage error (the capture's own: 1)
+        for field, option in (("K: ", "--K"), ("depth_scale: ", "--depth-scale")):
+            if str(exc).startswith(field):
+                raise UsageError(f"{option}: {str(exc).removeprefix(field)}") from None
+        raise
 
     def announce(session) -> None:  # the id on stdout as soon as the session holds a frame: S=$(canonical stream ...)
         if not args.json:

@@ -71,7 +71,6 @@ BAD_ARGUMENTS = [
     ("a voxel size not a number", ["stream", "somewhere", "--voxel-size", "nan"], "argument --voxel-size: expected a positive"),
     ("an endless voxel", ["demo", "somewhere", "--voxel-size", "inf"], "argument --voxel-size: expected a positive"),
     ("no source views", ["depth", "somewhere", "--out", "x", "--sources", "0"], "argument --sources: expected a positive"),
-    ("no capture to preview", ["depth", "somewhere", "--out", "x"], "somewhere: not a folder"),
     ("a background by name", ["render", "--session", "x", "--frame-like", "a:0", "--background", "red", "-o", "a.png"],
      "argument --background: expected r,g,b"),
     ("a background past 1", ["render", "--session", "x", "--frame-like", "a:0", "--background", "1,2,0", "-o", "a.png"],
@@ -182,6 +181,8 @@ def test_bad_values_after_parsing_are_one_line(server, tmp_path):
                                      "--K", "1,2,3,4", "--width", "8", "--height", "8", "-o", str(tmp_path / "a.png")), 1, "missing.txt")
     assert_one_line_error(canonical("stream", str(tmp_path / "no-such-dataset"), "--url", server.url, "--voxel-size", "0.01"),
                           1, "no-such-dataset")
+    assert_one_line_error(canonical("depth", str(tmp_path / "no-such-dataset"), "--out", str(tmp_path / "d")), 1,
+                          "no-such-dataset: not a folder")
     assert_one_line_error(canonical("export", "--url", server.url, "--session", "no-such", "-o", str(tmp_path / "a.ply")),
                           1, "404")
 
