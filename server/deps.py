@@ -27,8 +27,9 @@ async def get_store(request: Request) -> SessionStore:
 class RequestJobs:
     """The scheduler as one request uses it: its render and work jobs watch the request's client, and
     one that waits when the client has gone is dropped (`Scheduler.run`'s ``gone``): a client that gave
-    up on a large render holds no place in its session's queue. Frames are not: a frame's fold goes
-    through once sent (its retry is answered from it)."""
+    up on a large render holds no place in its session's queue. A frame's jobs are not: once queued,
+    its fold goes through (its retry is answered from it); a numbered frame still waiting for its turn
+    is dropped by its route (`ordering.FrameOrder.wait_turn`'s ``left``)."""
 
     def __init__(self, scheduler: Scheduler, request: Request):
         self.scheduler, self._request = scheduler, request  # the scheduler itself for what outlives the request

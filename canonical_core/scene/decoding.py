@@ -47,7 +47,7 @@ class DecodeInputs(NamedTuple):
     state that `SceneDecoding.take` reads under the scene's lock (`Scene.gaussians`)."""
 
     sums: dict[str, np.ndarray]  # `Scene.sums`, as views into one copy of the scene's state (or into the state, live)
-    # the sums of some rows ([N] int64) copied, whole records at a time (`voxel_map.gathered_sums`)
+    # the sums of some rows ([N] int64) copied, whole records at a time (`sums.gathered_sums`)
     gather: Callable[[np.ndarray], dict[str, np.ndarray]]
     observations_per_view: float  # `Scene.observations_per_view`
     views: list[Frame]  # the colour solve's kept input views (empty when it is off)

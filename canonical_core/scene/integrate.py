@@ -103,15 +103,15 @@ def integrate(
 ) -> Integrated:
     """Fold ``ev`` into ``voxels`` (the aggregation rule). Raises ValueError (a `CapacityError` past
     ``config.max_voxels``, or label channels unlike earlier frames') before changing anything."""
+    with SCRATCH.lend() as scratch:
+        return _integrate_with(voxels, ev, basis, config, scratch)
+
+
+def _integrate_with(voxels: VoxelMap, ev: FrameEvidence, basis: np.ndarray, config: SceneConfig,
+                    t: Scratch) -> Integrated:
     if ev.labels is not None and voxels.label_dim and ev.labels.shape[1] != voxels.label_dim:
         raise ValueError(f"labels: expected {voxels.label_dim} label channels (as earlier frames), got {ev.labels.shape[1]}")
     m, parts = len(ev), numba.get_num_threads()
-    with SCRATCH.lend() as t:
-        return _integrate_with(voxels, ev, basis, config, t, m, parts)
-
-
-def _integrate_with(voxels: VoxelMap, ev: FrameEvidence, basis: np.ndarray, config: SceneConfig, t: Scratch, m: int,
-                    parts: int) -> Integrated:
     t.reserve(m, parts)
     obs_keys, new_keys = t.obs_keys[:m], t.new_keys[:m]
     inv_voxel = np.float32(1.0 / config.voxel_size)

@@ -31,7 +31,8 @@ from .folding import FoldReport, PreparedFrame
 from .free_space import SeeThroughHistory
 from .keyframes import Keyframes
 from .undo import MIN_KEPT, UndoRing
-from .voxel_map import CapacityError, VoxelMap, gathered_sums
+from .sums import gathered_sums
+from .voxel_map import CapacityError, VoxelMap
 
 __all__ = ["CapacityError", "DecodeInputs", "FoldReport", "Scene"]
 

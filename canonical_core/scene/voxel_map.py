@@ -32,18 +32,17 @@ from __future__ import annotations
 import math
 import mmap
 
-import numba
 import numpy as np
 import torch
 
 from ..config import MAX_VOXELS
 from . import stamps
-from .decoded import gather_rows
 from .fields import sh_sum_widths, unpack_keys
 from .free_space import CHUNK, update_chunk_boxes_kernel
 from .hashing import insert_range_kernel, lookup_kernel, remove_range_kernel
 from .kernels import VoxelRows
 from .stored import StoredRows
+from .sums import copy_bytes, sums_view
 
 MAX_TABLE_LOAD = 0.7  # the table's largest load: linear probing stays short below it
 # rows reserved per array up front (about 5 GB of address space with the default layout, none of
@@ -62,39 +61,6 @@ ARRAYS = {
     "free": (np.float32, ()),  # written by the free-space kernels, which scan it with the keys
     "n_obs": (np.int32, ()),
 }
-
-
-def sums_view(
-    state: dict[str, np.ndarray],  # a map's arrays (`VoxelMap.state`) or a copy of some of their rows
-    stored: StoredRows,  # the stored layout of its records
-    n: int,  # rows to view
-) -> dict[str, np.ndarray]:
-    """The sums of the first ``n`` rows of ``state``, as views: each stored field of the records a
-    column (float16 means for the half-precision ones, `stored`)."""
-    records = {name: state[name][:n] for name in ("rows", "half")}
-    out = {k: v[:n] for k, v in state.items() if k not in records}
-    out |= {name: stored.field(records, name) for name in stored.columns}
-    if not stored.layout.label_dim:  # the fields' contract: label_sum is [V, 0] without labels
-        out["label_sum"] = np.zeros((n, 0), np.float32)
-    return out
-
-
-def gathered_sums(
-    state: dict[str, np.ndarray],  # as `sums_view`'s
-    stored: StoredRows,
-    rows: np.ndarray,  # [N] int64 rows of it
-) -> dict[str, np.ndarray]:  # name -> [N, ...]
-    """The sums of ``rows`` of ``state``, copied: a gather of whole records (on the numba threads),
-    where a gather per column would read each record once per field."""
-    return sums_view({k: gather_rows(v, rows).numpy() for k, v in state.items()}, stored, len(rows))
-
-
-@numba.njit(parallel=True, cache=True)
-def _copy_bytes(source, out):  # out[:] = source, [B] uint8, in 64 parts on the numba threads
-    n = source.shape[0]
-    for part in numba.prange(64):
-        lo, hi = part * n // 64, (part + 1) * n // 64
-        out[lo:hi] = source[lo:hi]
 
 
 class CapacityError(ValueError):
@@ -374,7 +340,7 @@ class VoxelMap:
         for name, array in self.state.items():
             rows = array[: self.n]
             out[name] = np.empty_like(rows)
-            _copy_bytes(rows.reshape(-1).view(np.uint8), out[name].reshape(-1).view(np.uint8))
+            copy_bytes(rows.reshape(-1).view(np.uint8), out[name].reshape(-1).view(np.uint8))
         return out
 
     def sums_of(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
