@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..sdk import Client
-from .common import positive_number
+from .capture import add_capture_options, load_capture
+from .common import UsageError, positive_number
 from .launch import free_port, start_service
 from .stream import FirstFrameSession, stream_frames, stream_summary
 
@@ -24,15 +25,19 @@ def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel-size", type=positive_number, default=None,
                    help="default: 4 mm for the shelf, 2 cm for the sample; for a DATASET given, chosen by the service "
                         "from its first frame (as `canonical stream` does)")
+    add_capture_options(p)
     p.add_argument("--port", type=int, default=0, help="port of the embedded service (default: a free one)")
 
 
 def run_demo(args) -> int:
     from PIL import Image
 
-    from canonical_core.datasets import load_dataset, synthetic_rgbd, write_tsdf_fusion
+    from canonical_core.datasets import synthetic_rgbd, write_tsdf_fusion
 
     out = Path(args.out)
+    if not args.dataset and (args.K is not None or args.depth_scale is not None):
+        raise UsageError(f"{'--K' if args.K is not None else '--depth-scale'}: only for a DATASET given (the sample's "
+                         "files say their own)")
     if args.dataset:  # any capture, room-scale too: the service's rule fits the voxel to its depth
         path, voxel = Path(args.dataset), args.voxel_size
     elif SHARED_SHELF.is_dir():
@@ -41,7 +46,7 @@ def run_demo(args) -> int:
         path, voxel = out / "sample", args.voxel_size or 0.02
         if not path.is_dir():
             write_tsdf_fusion(synthetic_rgbd(num_frames=24, width=320, height=240), path)
-    frames = load_dataset(path)  # before --out is created: a mistyped capture leaves nothing behind
+    frames = load_capture(path, args)  # before --out is created: a mistyped capture leaves nothing behind
     out.mkdir(parents=True, exist_ok=True)
     port = args.port or free_port()
     size = "the voxel size the service chooses from the first frame" if voxel is None else f"{voxel * 1000:g} mm voxels"

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .capture import add_capture_options, load_capture
 from .common import UsageError, positive_int
 
 
@@ -18,13 +19,13 @@ def add_depth(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sources", type=positive_int, default=2, help="source views per frame (default 2)")
     p.add_argument("--stride", type=positive_int, default=1)
     p.add_argument("--max-frames", type=positive_int, default=None)
+    add_capture_options(p)
 
 
 def run_depth(args) -> int:
-    from canonical_core.datasets import load_dataset
     from canonical_core.eval.mvs_preview import write_depth_previews
 
-    frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames)
+    frames = load_capture(args.dataset, args, stride=args.stride, max_frames=args.max_frames)
     rows = write_depth_previews(frames, args.out, num_sources=args.sources)
     errors = [r["median_abs_rel"] for r in rows if r.get("median_abs_rel") is not None]
     summary = f"; median AbsRel vs the sensor {np.median(errors):.4f}" if errors else ""

@@ -12,12 +12,9 @@ import time
 import warnings
 from typing import Callable, Iterator
 
-from canonical_core.datasets.files import intrinsics_arg  # the same --K as render's (imports no torch, no numba)
-
 from ..sdk import Client, Session, StreamRefused
-from .capture import capture_frames
-from .common import (UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id,
-                     warnings_on_stderr)
+from .capture import add_capture_options, capture_frames, load_capture
+from .common import UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id
 
 
 def add_stream(p: argparse.ArgumentParser) -> None:
@@ -28,9 +25,7 @@ def add_stream(p: argparse.ArgumentParser) -> None:
                                            "(give the same dataset, --stride and --max-frames to resume)")
     target.add_argument("--voxel-size", type=positive_number, help="a new session's voxel size, metres (default: chosen by the "
                                                          "service from the first frame, 6 pixel footprints at its median depth)")
-    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
-                   help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
-                        "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
+    add_capture_options(p)
     p.add_argument("--stride", type=positive_int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=positive_int, default=None)
     p.add_argument("--scale", type=positive_number, default=1.0,
@@ -38,9 +33,6 @@ def add_stream(p: argparse.ArgumentParser) -> None:
                         "resolution); frames without depth over the service's limit for them are downscaled to it anyway")
     p.add_argument("--in-flight", type=positive_int, default=IN_FLIGHT, help="frames posted at once (the service "
                                                                               "folds them in order; 1: one at a time)")
-    p.add_argument("--depth-scale", type=positive_number, default=None, metavar="UNITS",
-                   help="depth units per metre of the capture's depth images, where they are not its layout's (e.g. "
-                        "1000 for a TUM-layout capture written in millimetres; default: the layout's)")
     p.add_argument("--strict", action="store_true", help="refuse a capture that lists frames whose images are missing "
                                                          "(default: skip them, with a warning that counts them)")
     add_json(p, "the session's stats when the stream ends, with the frames sent and the seconds taken")
@@ -168,23 +160,11 @@ def refused_files(frames, position: int) -> str:
 
 
 def run_stream(args) -> int:
-    from canonical_core.datasets import MissingIntrinsics, load_dataset
-
     if args.session and args.settings:
         raise UsageError("--set: settings belong to a new session (without --session), not to an existing one")
     if any(name == "voxel_size" for name, _ in args.settings):
         raise UsageError("--set: voxel_size is set by --voxel-size")
-    try:
-        with warnings_on_stderr():
-            frames = load_dataset(args.dataset, stride=args.stride, max_frames=args.max_frames, strict=args.strict,
-                                  K=args.K, depth_scale=args.depth_scale)
-    except MissingIntrinsics as exc:
-        raise UsageError(f"--K: {exc} (here: --K fx,fy,cx,cy)") from None
-    except ValueError as exc:  # an option the capture's layout does not take is a usage error (the capture's own: 1)
-        for field, option in (("K: ", "--K"), ("depth_scale: ", "--depth-scale")):
-            if str(exc).startswith(field):
-                raise UsageError(f"{option}: {str(exc).removeprefix(field)}") from None
-        raise
+    frames = load_capture(args.dataset, args, stride=args.stride, max_frames=args.max_frames, strict=args.strict)
 
     def announce(session) -> None:  # the id on stdout as soon as the session holds a frame: S=$(canonical stream ...)
         if not args.json:

@@ -271,6 +271,21 @@ def test_demo_of_a_capture_given_lets_the_service_choose_the_voxel_size(tmp_path
     assert float(printed.split(" voxels of ")[1].split(" mm")[0]) > 4 * 2
 
 
+@pytest.mark.realdata
+def test_demo_and_depth_take_the_intrinsics_a_capture_lacks_from_K(tmp_path, capsys):
+    """The demo and the plane sweep read a capture as the stream does: a TUM capture without an
+    intrinsics file is a usage error naming --K, and fused or swept with it."""
+    capture = str(require_capture(DATA / "slambook_rgbd5"))
+    K = ["--K", "518,519,325.5,253.5"]
+    for argv in (["demo", capture, "--out", str(tmp_path / "demo")], ["depth", capture, "--out", str(tmp_path / "depth")]):
+        assert cli.main(argv) == 2
+        assert "error: --K: " in capsys.readouterr().err and not (tmp_path / argv[-1]).exists()
+    assert cli.main(["demo", capture, "--out", str(tmp_path / "demo"), "--voxel-size", "0.02", *K]) == 0
+    assert "5 frames in" in capsys.readouterr().out and (tmp_path / "demo" / "scene.ply").is_file()
+    assert cli.main(["depth", capture, "--out", str(tmp_path / "depth"), "--max-frames", "2", *K]) == 0
+    assert len(list((tmp_path / "depth").glob("*.depth.png"))) == 2
+
+
 def test_demo_of_a_missing_capture_creates_nothing(tmp_path, capsys):
     assert cli.main(["demo", str(tmp_path / "no-such-capture"), "--out", str(tmp_path / "demo")]) == 1
     assert "no-such-capture" in capsys.readouterr().err and not (tmp_path / "demo").exists()
