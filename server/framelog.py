@@ -46,7 +46,7 @@ FIELDS = struct.Struct("<4sIQI")
 HEADER = struct.Struct("<4sIQII")
 MAGICS = {FRAME_MAGIC: 2, CHECKPOINT_MAGIC: 2, b"CGF1": 1, b"CGK1": 1}  # magic -> format
 CHECKPOINT_MAGICS = (CHECKPOINT_MAGIC, b"CGK1")
-NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # EFBIG: a file-size limit (ulimit -f), space as well
 
 
 class StorageError(OSError):

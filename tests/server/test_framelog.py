@@ -96,6 +96,32 @@ def test_a_failed_append_is_cut_off_at_once_and_the_log_takes_the_next(tmp_path,
     assert [r.payload for r in scan(path.read_bytes()).records] == payloads(3)
 
 
+def test_a_file_size_limit_is_storage_the_service_cannot_use_as_a_full_disk_is(tmp_path):
+    """``ulimit -f`` (RLIMIT_FSIZE; Python ignores SIGXFSZ, so a write past it fails with EFBIG): the
+    append is refused as a full disk's (507, retry once space is made), its partial record cut off."""
+    script = f"""
+import resource, sys
+from pathlib import Path
+sys.path.insert(0, {str(Path(__file__).resolve().parents[2])!r})
+from server.framelog import FrameLog, StorageError
+resource.setrlimit(resource.RLIMIT_FSIZE, (3000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+log = FrameLog(Path({str(tmp_path / "log")!r}))
+try:
+    for i in range(100):
+        log.append(i, bytes(1000))
+except StorageError as exc:
+    print(i, exc.full, exc)
+"""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    refused, full, message = done.stdout.split(" ", 2)
+    assert full == "True" and "too large" in message, done.stdout + done.stderr
+    found = scan((tmp_path / "log").read_bytes())
+    assert len(found.records) == int(refused) >= 1 and found.end == found.size  # no partial record left
+
+
 def test_an_append_whose_cut_fails_too_is_wedged(tmp_path, monkeypatch):
     path = tmp_path / "log"
     log = FrameLog(path)
