@@ -33,7 +33,8 @@ class Gaussians:
     Attributes:
         means: [N, 3] centres, world coordinates.
         scales: [N, 3] standard deviations along the principal axes (linear, not log).
-        quats: [N, 4] unit rotations, (w, x, y, z).
+        quats: [N, 4] rotations, (w, x, y, z): unit, or within float16's rounding of unit as a scene's
+            decode keeps them (norms 1 +- 1e-3); the renderer and the exports normalise them.
         opacities: [N] in [0, 1].
         sh: [N, K, 3] spherical-harmonics colour coefficients, K = (degree + 1)^2, DC first.
         features: optional [N, L] fused features (the "feature splat" channels).

@@ -11,6 +11,7 @@ shows) and the fused features and label scores as ``feat_*`` / ``label_*``.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +19,10 @@ import torch
 
 from .container import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
 
-_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
-              "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4", "short": "<i2", "ushort": "<u2"}
+# the PLY specification's type names and the sized names other writers use
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "char": "i1", "int8": "i1",
+              "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+              "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4"}
 _OPACITY_EPS = 1e-6
 
 
@@ -109,10 +112,10 @@ def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
 
 def _parse_ply(data: bytes, name: str) -> dict[str, np.ndarray]:
     """The vertex properties of a binary little-endian PLY (``name``: the file, for the messages)."""
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply") or end < 0:
+    end = re.search(rb"end_header\r?\n", data)  # a header written with Windows line ends too
+    if not data.startswith(b"ply") or end is None:
         raise ValueError(f"{name}: not a PLY file (missing 'ply' magic or 'end_header')")
-    lines = data[:end].decode("ascii", errors="replace").splitlines()
+    lines = data[:end.start()].decode("ascii", errors="replace").splitlines()
     fmt, count, props, in_vertex = None, None, [], False
     for line in lines:
         parts = line.split()
@@ -149,7 +152,7 @@ def _parse_ply(data: bytes, name: str) -> dict[str, np.ndarray]:
     if count is None:
         raise ValueError(f"{name}: no vertex element")
     dtype = np.dtype(props)
-    body = data[end + len(b"end_header\n"):]
+    body = data[end.end():]
     if len(body) < dtype.itemsize * count:
         raise ValueError(f"{name}: body holds {len(body)} bytes, expected {dtype.itemsize * count} for {count} "
                          "vertices")

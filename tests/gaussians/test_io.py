@@ -150,6 +150,23 @@ def test_a_malformed_ply_is_refused_naming_the_file_and_the_problem(tmp_path, ol
         load_ply(path)
 
 
+def test_a_ply_with_windows_line_ends_and_small_integer_extras_is_read(tmp_path):
+    """Other writers' PLYs: a header ended by CRLF, extra properties of the specification's small
+    integer types (char, short, ushort) or their sized names (int8, int16, uint16)."""
+    g = random_gaussians(6, degree=1, features=0, labels=0)
+    header, body = ply_bytes(g).split(b"end_header\n", 1)
+    header += b"property char a\nproperty int16 b\nproperty uint16 c\nproperty int8 d\n"
+    rows = np.frombuffer(body, ply_rows(ply_bytes(g)).dtype)
+    extra = np.dtype(rows.dtype.descr + [("a", "i1"), ("b", "<i2"), ("c", "<u2"), ("d", "i1")])
+    joined = np.zeros(len(rows), extra)
+    for name in rows.dtype.names:
+        joined[name] = rows[name]
+    path = tmp_path / "crlf.ply"
+    path.write_bytes((header + b"end_header\n").replace(b"\n", b"\r\n") + joined.tobytes())
+    h = load_ply(path)
+    assert torch.equal(h.means, g.means) and torch.equal(h.sh, g.sh)
+
+
 def test_a_ply_holding_nan_is_refused_naming_the_property(tmp_path):
     g = random_gaussians(6, degree=1, features=0, labels=0)
     g.means[2, 1] = float("nan")
