@@ -86,15 +86,23 @@ def _block_surface(members, origin, cells, weight, point, normal, colour, block)
     return verts + origin, trilinear(colours, verts), faces.astype(np.int64)
 
 
+NODE_EPS = 1e-5  # of a voxel: a vertex this near a lattice node is on it (float32 rounding of the volume's fractions)
+
+
 def merge_vertices(
     vertices: np.ndarray,  # [N, 3] float64 node coordinates
     faces: np.ndarray,  # [F, 3] int64
 ) -> tuple[np.ndarray, np.ndarray]:  # keep [K] int64 rows of vertices, faces [F', 3] over them
     """One vertex per lattice edge: marching cubes puts a vertex on the edge between two nodes, so
     the edge (its lower node and its axis) names it, and the copies that two blocks make of a vertex
-    on their shared face become one. Faces that collapse are dropped."""
-    lower = np.floor(vertices).astype(np.int64)
-    axis = np.argmax(vertices - lower, 1)
+    on their shared face become one. A vertex on a node (the surface through it exactly) lies on every
+    edge that meets there, and rounding puts each edge's copy a hair to one side or the other: within
+    `NODE_EPS` of a node, the node names it (axis 3). Faces that collapse are dropped."""
+    lower = np.floor(vertices)
+    upper = vertices - lower > 1 - NODE_EPS
+    lower = (lower + upper).astype(np.int64)
+    fraction = np.where(upper, 0.0, vertices - lower)
+    axis = np.where(fraction.max(1) < NODE_EPS, 3, np.argmax(fraction, 1))
     key = pack_cells(lower)
     order = np.lexsort((axis, key))
     new = np.ones(len(order), bool)

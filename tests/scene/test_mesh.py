@@ -189,3 +189,13 @@ def test_copies_of_a_vertex_on_one_lattice_edge_merge():
     keep, faces = merge_vertices(vertices, np.array([[0, 2, 3], [1, 3, 2], [0, 1, 2]]))
     assert len(keep) == 3  # vertex 1 is vertex 0's copy (the same edge along x)
     assert faces.tolist() == [[0, 1, 2], [0, 2, 1]]  # the face over both copies collapsed and went
+
+
+def test_copies_of_a_vertex_on_a_lattice_node_merge_whichever_edge_made_them():
+    """The surface through a node: the edges meeting there each put a copy on it, rounded a hair
+    above or below it (3.0 as 2.9999999 along y, 4.0000001 along z); one vertex, no sliver faces."""
+    vertices = np.array([[2.0, 3.0, 4.0], [2.0, 2.9999999, 4.0], [2.0, 3.0, 4.0000001],
+                         [2.5, 3.0, 4.0], [2.0, 3.5, 4.0]])
+    keep, faces = merge_vertices(vertices, np.array([[0, 1, 2], [1, 3, 4], [2, 4, 3]]))
+    assert len(keep) == 3 and np.abs(vertices[keep[2]] - [2, 3, 4]).max() < 1e-6  # the node's copies are one
+    assert faces.tolist() == [[2, 0, 1], [2, 1, 0]]  # the sliver over the copies went
