@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import colorsys
 import io
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from canonical_core import Camera, Frame
-from canonical_core.datasets.images import DEPTH_INVALID_CODE, depth_from_uint16, png_pixels
+from canonical_core.datasets.images import DEPTH_INVALID_CODE, check_depth_scale, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
 from canonical_wire import (DTYPES, FLOATS, INTEGERS, NO_LABEL, WireError, array_shape, decode_array,  # noqa: F401
                             encode_array, is_array, pack, unpack)
@@ -159,12 +158,6 @@ class FrameLimits:
     max_channel_values: int | None = None
 
 
-def _positive_number(value, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise WireError(field, f"expected a positive finite number, got {value!r}")
-    return float(value)
-
-
 def _matrix(value, field: str):
     if isinstance(value, dict):
         return decode_array(value, field, FLOATS)
@@ -254,13 +247,16 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
                                f"{limits.max_rgb_only_pixels} for frames without depth; send depth or a smaller image",
                         413, "too_large")
     if scale is not None:
-        scale = _positive_number(scale, "depth_scale")
+        scale = check_depth_scale(scale)
     if isinstance(depth, (bytes, bytearray)):
         if scale is None:
             raise WireError("depth_scale", "required with a depth PNG (units per metre, e.g. 1000 for millimetres)")
         depth = decode_depth_png(bytes(depth), scale, "depth", max_pixels)
     elif depth is not None:
         depth = decode_array(depth, "depth", ("uint16", *FLOATS), ndim=2)
+        if depth.dtype != np.uint16 and scale is not None:  # it would be ignored: the frame folded at the wrong depth
+            raise WireError("depth_scale", f"goes with integer depth (uint16 sensor units or a depth PNG); {depth.dtype} "
+                                           "depth is in metres: send it without depth_scale")
         if depth.dtype == np.uint16:
             if scale is None:
                 raise WireError("depth_scale", "required with uint16 depth (units per metre, e.g. 1000 for millimetres)")

@@ -6,11 +6,11 @@ Example:
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Literal
 
 from .deep_video_mvs import is_deep_video_mvs, load_deep_video_mvs
+from .images import check_depth_scale
 from .label_fusion import has_label_maps, load_label_fusion
 from .redwood import is_redwood, load_redwood
 from .sequence import FrameSequence
@@ -95,7 +95,5 @@ def load_dataset(path: str | Path, strict: bool = False, K=None, depth_scale: fl
     if depth_scale is not None:
         if layout not in _DEPTH_SCALED:
             raise ValueError(f"depth_scale: a {layout} capture's depth carries its own scale; give none")
-        if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
-            raise ValueError(f"depth_scale: expected a positive number of depth units per metre, got {depth_scale!r}")
-        kwargs["depth_scale"] = float(depth_scale)
+        kwargs["depth_scale"] = check_depth_scale(depth_scale)
     return _LOADERS[layout](path, **kwargs)

@@ -166,6 +166,26 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:  # [H, W] fl
     return depth_from_uint16(raw, depth_scale)
 
 
+DEPTH_SCALE_RANGE = (1e-3, 1e9)  # depth units per metre: from a unit of a kilometre to one of a nanometre
+
+
+def check_depth_scale(value, field: str = "depth_scale") -> float:
+    """``value`` (integer depth units per metre: a code / ``value`` = metres) as a float. ValueError
+    naming ``field`` for what is not a number within `DEPTH_SCALE_RANGE`: a scale near 0 would put
+    every code at an infinite depth.
+
+    Example:
+        >>> check_depth_scale(1000)
+        1000.0
+    """
+    low, high = DEPTH_SCALE_RANGE
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not low <= value <= high:
+        raise ValueError(f"{field}: expected depth units per metre between {low:g} and {high:g} (e.g. 1000 for "
+                         f"millimetres), got {value!r}")
+    return float(value)
+
+
 def depth_from_uint16(raw: np.ndarray, depth_scale: float) -> np.ndarray:  # [H, W] uint16 -> float32 metres
     """Metres = value / depth_scale (divided in float64, then rounded to float32); 0 and 65535 (the
     7-Scenes invalid code) become 0 = missing. One pass: the service converts every 16-bit frame it

@@ -180,8 +180,9 @@ def test_a_depth_scale_given_replaces_the_layouts_where_its_depth_has_none(tmp_p
     root = write_tsdf_fusion(synthetic_rgbd(num_frames=2, width=40, height=30), tmp_path / "cap")  # millimetres
     own, halved = load_dataset(root)[1].depth.numpy(), load_dataset(root, depth_scale=2000)[1].depth.numpy()
     assert np.allclose(halved, own / 2, atol=1e-6) and own.max() > 0
-    with pytest.raises(ValueError, match="depth_scale: expected a positive number of depth units per metre, got 0"):
-        load_dataset(root, depth_scale=0)
+    for scale in (0, 1e-300, float("nan")):  # 1e-300: every code infinitely far
+        with pytest.raises(ValueError, match=rf"depth_scale: expected depth units per metre between 0.001 and 1e\+09 .*, got {scale}"):
+            load_dataset(root, depth_scale=scale)
     for color in root.rglob("frame-*.color.png"):  # label maps beside the frames: a label-fusion capture
         Image.fromarray(np.zeros((30, 40), np.uint8)).save(color.with_name(color.name.replace(".color.", ".mask.")))
     with pytest.raises(ValueError, match="depth_scale: a label_fusion capture's depth carries its own scale"):

@@ -135,6 +135,10 @@ CASES = [
     ("depth png without scale", lambda c: c.post_frame(c.msg(depth=_depth_png(c))), 422, "depth_scale"),
     ("depth_scale zero", lambda c: c.post_frame(c.msg(depth=_depth_png(c), depth_scale=0)), 422, "depth_scale"),
     ("depth_scale a string", lambda c: c.post_frame(c.msg(depth=_depth_png(c), depth_scale="mm")), 422, "depth_scale"),
+    # a scale near 0 puts every code at an infinite depth
+    ("depth_scale overflowing", lambda c: c.post_frame(c.msg(depth=_depth_png(c), depth_scale=1e-300)), 422, "depth_scale"),
+    # metres already: the scale would have been ignored, the frame folded at another depth than the client meant
+    ("depth_scale with float depth", lambda c: c.post_frame(c.msg(depth_scale=10)), 422, "depth_scale"),
     ("depth png is colour", lambda c: c.post_frame(c.msg(depth=png(c.frame["rgb"]), depth_scale=1000)), 422, "depth"),
     ("c2w NaN", lambda c: c.post_frame(c.msg(c2w=_nan_pose(c.frame["c2w"]))), 422, "c2w"),
     ("c2w not a rotation", lambda c: c.post_frame(c.msg(c2w=_rotated(c.frame["c2w"], 1.1))), 422, "c2w"),
