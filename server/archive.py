@@ -33,7 +33,6 @@ leave the scene at the first correction; ``none`` keeps no archive and refuses c
 
 from __future__ import annotations
 
-import hashlib
 import os
 import queue
 import threading
@@ -44,17 +43,16 @@ from typing import Callable, Iterator, Literal
 
 import msgpack
 import numpy as np
-import xxhash
 import zstandard
 
 from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
 
 from . import wire
+from .digests import names_payload, payload_digest
 from .framelog import FrameLog, LogWedged, Record, scan
 
 ARCHIVE = "archive.log"
-DIGEST_PREFIX = "xxh3:"
 KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
 Retention = Literal["all", "keyframes", "none"]
 RETENTIONS = ("all", "keyframes", "none")
@@ -64,22 +62,6 @@ def archive_failure(exc: Exception) -> str:
     """The archive's `problem` after a frame could not be archived."""
     reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else f"{type(exc).__name__}: {exc}"
     return f"{ARCHIVE}: a frame could not be archived ({reason}); corrections are refused until a restart"
-
-
-def payload_digest(payload: bytes) -> str:
-    """The digest that names a frame's wire payload (a retry with the same frame_id must match it).
-
-    XXH3-128: a retry check, not a signature (the client names its own frames), so a fast 128-bit
-    hash will do, and it runs on the acknowledged path (about 1/50 of BLAKE2b's time on a frame)."""
-    return DIGEST_PREFIX + xxhash.xxh3_128_hexdigest(payload)
-
-
-def names_payload(digest: str, payload: bytes) -> bool:
-    """Whether ``digest`` (a `payload_digest`, or a bare BLAKE2b-128 hex one as sessions written
-    before XXH3 hold) names ``payload``."""
-    if digest.startswith(DIGEST_PREFIX):
-        return digest == payload_digest(payload)
-    return digest == hashlib.blake2b(payload, digest_size=16).hexdigest()
 
 
 # zstandard's fast levels: -1 packs a 640x480 RGB-D frame of raw arrays as small as level 1 does

@@ -42,7 +42,8 @@ from canonical_core.scene.choices import filled_from
 from canonical_core.scene.snapshot import read_config
 
 from . import wire
-from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive, payload_digest
+from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive
+from .digests import payload_digest
 from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
 from .session_errors import Unrestorable
 from .track import append_camera, tracked, write_track

@@ -34,7 +34,8 @@ from canonical_core.scene.mesh import Mesh, scene_mesh
 from canonical_core.scene.scene import DEFAULT_UNDO_DEPTH
 from canonical_core.scene.undo import MAX_UNDO_SHARE
 
-from .archive import SessionArchive, names_payload, payload_digest
+from .archive import SessionArchive
+from .digests import names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene, write_chosen
 from .framelog import FrameLog, LogWedged, StorageError

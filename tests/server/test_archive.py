@@ -10,10 +10,11 @@ import zlib
 import numpy as np
 import pytest
 import torch
+import xxhash
 
 from canonical_wire import encode_array, pack
-from server.archive import (ARCHIVE, DamagedFrame, SessionArchive, compress_payload, decompress_message, names_payload,
-                            payload_digest)
+from server.archive import ARCHIVE, DamagedFrame, SessionArchive, compress_payload, decompress_message
+from server.digests import names_payload, payload_digest
 from server.wire import encode_png, frame_from_message
 
 
@@ -107,13 +108,28 @@ def test_keyframes_retention_keeps_one_frame_in_five(tmp_path):
         SessionArchive(tmp_path / "other.log", "some")
 
 
-def test_a_payload_digest_names_its_payload_and_so_does_an_older_blake2b_digest():
+def test_a_payload_digest_names_its_payload_and_so_do_the_older_digests_of_its_bytes():
     a, b = pack(message(1, "f1")), pack(message(2, "f2"))
     digest = payload_digest(a)
-    assert re.fullmatch(r"xxh3:[0-9a-f]{32}", digest) and digest == payload_digest(bytes(a))
+    assert re.fullmatch(r"xxh3m:[0-9a-f]{32}", digest) and digest == payload_digest(bytes(a))
     assert names_payload(digest, a) and not names_payload(digest, b)
-    older = hashlib.blake2b(a, digest_size=16).hexdigest()  # what sessions written before XXH3 hold
-    assert names_payload(older, a) and not names_payload(older, b)
+    for older in ("xxh3:" + xxhash.xxh3_128_hexdigest(a), hashlib.blake2b(a, digest_size=16).hexdigest()):
+        assert names_payload(older, a) and not names_payload(older, b)  # what sessions written before hold
+    assert payload_digest(b"not msgpack") == "xxh3:" + xxhash.xxh3_128_hexdigest(b"not msgpack")
+
+
+def test_a_message_encoded_otherwise_has_the_same_digest_and_another_message_another():
+    """A retry that packs the same message otherwise names the same frame: keys in another order (a
+    Go client's maps), nested ones too, and 615 for 615.0; any other value, key or type does not."""
+    msg = message(3, "f3")
+    reordered = {k: (dict(reversed(v.items())) if isinstance(v, dict) else v) for k, v in reversed(msg.items())}
+    as_ints = {**msg, "K": [[20, 0, 8], [0, 20, 6], [0, 0, 1]]}
+    assert pack(reordered) != pack(msg) and pack(as_ints) != pack(msg)
+    assert payload_digest(pack(reordered)) == payload_digest(pack(as_ints)) == payload_digest(pack(msg))
+    others = [{**msg, "frame_id": "f4"}, {**msg, "K": [[20.5, 0, 8], [0, 20, 6], [0, 0, 1]]},
+              {**msg, "depth_scale": 1.0}, {**msg, "frame_id": b"f3"},
+              {**msg, "rgb": {**msg["rgb"], "data": msg["rgb"]["data"][:-1] + b"\x00"}}]
+    assert len({payload_digest(pack(m)) for m in [msg, *others]}) == 1 + len(others)
 
 
 def test_deferred_frames_are_archived_in_order_by_the_writer(tmp_path):

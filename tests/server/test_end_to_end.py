@@ -149,6 +149,14 @@ def test_multipart_frame_equals_msgpack_frame(client, server, frames, reference)
     assert r.status_code == 200, r.text
     assert r.json()["frame_index"] == 0
     assert session.digest()["sha256"] == reference[1]["sha256"]
+    # its retry written otherwise (the parts in another order, the camera's keys too, 1000.0 for 1000):
+    # the same frame, answered as a replay, not a conflict
+    retry = {**dict(reversed(camera.items())), "depth_scale": 1000.0}
+    r = httpx.post(f"{server.url}/v1/sessions/{session.id}/frames", headers={"Authorization": f"Bearer {TOKEN}"},
+                   files={"depth": ("d.png", depth_png.getvalue(), "image/png"), "camera": (None, json.dumps(retry)),
+                          "rgb": ("c.png", rgb_png.getvalue(), "image/png")})
+    assert r.status_code == 200 and r.headers["Idempotent-Replay"] == "true", r.text
+    assert session.stats()["frames"] == 1
     session.delete()
 
     # a class map as a PNG part (0 no class, k + 1 class k, K in the camera JSON): the scene its ids give

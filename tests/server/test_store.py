@@ -24,7 +24,7 @@ from canonical_core.scene import Scene
 from client.cli.capture import frame_arrays
 from server import framelog, wire
 from server.framelog import StorageError
-from server.archive import payload_digest
+from server.digests import payload_digest
 from server.durability import restore_scene
 from server.session_errors import FrameIdConflict, SessionUnavailable
 from server.store import SessionStore
@@ -175,7 +175,7 @@ def test_a_retry_matches_a_frame_logged_under_the_older_digest(store, shelf_fram
     payloads = [wire.pack(msgpack_frame({**frame_arrays(f), "frame_id": f"cam0/{k}"})) for k, f in enumerate(shelf_frames[:2])]
     report, replay = session.add_frame(payloads[0], wire.frame_from_message(wire.unpack(payloads[0])), 10**6, 1e9)
     known = session.frame_ids["cam0/0"]
-    assert not replay and known.digest == payload_digest(payloads[0]) and known.digest.startswith("xxh3:")
+    assert not replay and known.digest == payload_digest(payloads[0]) and known.digest.startswith("xxh3m:")
     session.frame_ids["cam0/0"] = dataclasses.replace(known, digest=hashlib.blake2b(payloads[0], digest_size=16).hexdigest())
     again, replay = session.add_frame(payloads[0], wire.frame_from_message(wire.unpack(payloads[0])), 10**6, 1e9)
     assert replay and again == report and session.scene.frames == 1
