@@ -103,8 +103,8 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
         rgb, K = fit_colour_to_depth(rgb, K, depth)
     if isinstance(rgb, (bytes, bytearray)):
         rgb = bytes(rgb)
-    elif codec == "compact" and np.asarray(rgb).dtype == np.uint8 and np.ndim(rgb) == 3:
-        rgb = encode_png(np.asarray(rgb))
+    elif codec == "compact" and np.asarray(rgb).dtype == np.uint8 and np.shape(rgb)[2:] == (3,):
+        rgb = encode_png(np.asarray(rgb))  # not [H, W, 4] or [H, W, 1]: as an array the service refuses them, as "raw" does
     else:
         rgb = encode_array(rgb)
     msg: dict = {"rgb": rgb, "K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w")}

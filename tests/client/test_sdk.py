@@ -179,6 +179,19 @@ def test_sensor_depth_errors_name_the_field_before_anything_is_sent(depth, depth
         session.add_frame(rgb, K, c2w, depth=depth, depth_scale=depth_scale)
 
 
+@pytest.mark.parametrize("channels", [4, 2, 1])
+def test_colour_that_is_not_rgb_is_refused_by_the_service_whatever_the_codec(channels):
+    """[H, W, 4] or grey [H, W, 1] arrays: the compact codec does not make a PNG of them (which the
+    service would take, its alpha dropped or its grey copied), so both codecs get the same 422."""
+    from server.wire import frame_from_message
+
+    rgb = np.zeros((12, 16, channels), np.uint8)
+    K = np.array([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]])
+    for codec in ("compact", "raw"):
+        with pytest.raises(ValueError, match=r"rgb: expected shape \[H, W, 3\]"):
+            frame_from_message(unpack(frame_body(rgb, K, np.eye(4), codec=codec)))
+
+
 def test_compact_frames_are_lossless_and_small(shelf_dir):
     """Every form of `frame_body`'s compact codec decodes, on the service's side, to the frame the
     raw arrays give: colour as PNG, depth as zstandard uint16 (integer, or float that 16-bit units
