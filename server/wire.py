@@ -280,8 +280,11 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
             else:
                 _check_channels(name, array_shape(value), width * height, limits)
             extras[name] = decode_array(value, name, FLOATS, ndim=2 if name == "depth_std" else 3)
-    size = (_size(msg.get("width"), "width", width), _size(msg.get("height"), "height", height))
-    camera = Camera(_matrix(msg["K"], "K"), _matrix(msg["c2w"], "c2w"), *size)
+    for name, size in (("width", width), ("height", height)):  # a check: K of another size would fold elsewhere
+        if _size(msg.get(name), name, size) != size:
+            raise WireError(name, f"{msg[name]} does not match the rgb image's {size} pixels ({width}x{height}); K "
+                                  "is the colour image's (resize it with the image, or leave width and height out)")
+    camera = Camera(_matrix(msg["K"], "K"), _matrix(msg["c2w"], "c2w"), width, height)
     frame = Frame(rgb=rgb, camera=camera, depth=depth, frame_id=msg.get("frame_id"), **extras)
     check_rgb_only(frame)
     return frame
