@@ -130,6 +130,7 @@ class GuardMiddleware:
                 return await self._reject(scope, receive, send, 400, "malformed_body", "Content-Length: not a non-negative integer",
                                           "Content-Length")
             if size > self.max_bytes:
+                frames.body_refused(scope, f"body: {size} bytes exceed the limit of {self.max_bytes} bytes")
                 return await self._reject(scope, receive, send, 413, "too_large",
                                           f"body: {size} bytes exceed the limit of {self.max_bytes} bytes", "body")
             if not self.bodies.take(size):
@@ -148,12 +149,14 @@ class GuardMiddleware:
         try:
             body = await self._read_body(receive, held, chunked)
         except BodyTimeout as exc:
+            frames.body_refused(scope, f"body: {exc}")
             return await error_response(408, "timeout", f"body: {exc}", "body", {"Connection": "close"})(scope, receive, send)
         except BodiesFull:
             return await self._reject(scope, receive, send, *self._bodies_full(held[0]))
         if body is None:  # the client went away
             return None
         if len(body) > self.max_bytes:
+            frames.body_refused(scope, f"body: more than {self.max_bytes} bytes (the limit)")
             return await self._reject(scope, receive, send, 413, "too_large",
                                       f"body: more than {self.max_bytes} bytes (the limit)", "body")
         sent = False

@@ -226,6 +226,10 @@ class SessionStore:
     def new_session_id(self) -> str:
         return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
 
+    def find(self, session_id: str) -> Session | None:
+        """The loaded session of this id, or None."""
+        return self._sessions.get(session_id)
+
     def get(self, session_id: str) -> Session:
         session = self._sessions.get(session_id)
         if session is None:

@@ -22,7 +22,8 @@ router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 CAMERA_FIELDS = ("K", "c2w", "depth_scale", "num_classes", "frame_id", "width", "height")
 STOPPING_RETRY_AFTER_S = 5  # a first resend soon: while the service is down, the SDK backs off on its own
-FrameIndex = Annotated[int | None, Header(alias="Frame-Index", ge=0, description=(
+# digits only: int() would also read "1_0" as 10, "+1" and " 1" as 1
+FrameIndex = Annotated[str | None, Header(alias="Frame-Index", pattern=r"^[0-9]{1,18}$", description=(
     "the frame's place in the session's stream (0 for its first frame): numbered frames fold in this order"))]
 
 
@@ -79,6 +80,19 @@ def check_session_accepts(frame, config) -> None:
                                          f"with features.backend='client'")
 
 
+def body_refused(scope, why: str) -> None:
+    """A numbered frame whose body the service refused before its route ran (too large, too slow to
+    arrive): the frames numbered after it stop waiting for it, as for a frame the route refuses."""
+    headers = dict(scope["headers"])
+    index, parts = headers.get(b"frame-index", b""), scope.get("path", "").split("/")
+    if scope.get("method") != "POST" or not index.isdigit() or len(parts) != 5 or parts[:3] != ["", "v1", "sessions"] \
+            or parts[4] != "frames":
+        return
+    session = scope["app"].state.store.find(parts[3])
+    if session is not None:
+        session.order.refused(int(index), ValueError(why))
+
+
 def still_wanted(request: Request, session, index: int) -> None:
     """Raise where a frame waiting for its turn will not get it: its session was deleted (404), or the
     service is stopping (503: not folded, so a client sends it again once the service is back)."""
@@ -106,11 +120,14 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     holds the frames before it, in that order whatever order they arrive in; 409 when one of those
     was refused, when a correction removed frames while it was in flight, or when they do not come
     within ``frame_order_wait_s``; 404 once its session is deleted, 503 once the service stops."""
+    frame_index = None if frame_index is None else int(frame_index)
     kind = media_type(request)
     if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
-        raise ApiError(415, "unsupported_media_type",
+        exc = ApiError(415, "unsupported_media_type",
                        f"Content-Type: expected application/msgpack or multipart/form-data, got {kind or 'none'!r}",
                        "Content-Type")
+        session.order.refused(frame_index, exc)
+        raise exc
     body = await request.body()
 
     def parse():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import shutil
+import socket
 import threading
 import time
 
@@ -118,11 +119,36 @@ def test_frame_index_out_of_place_is_refused_naming_it(service, frames):
         gap = post(http, session.id, frames[2], 2)  # frame 1 never comes
         assert gap.status_code == 409
         assert gap.json()["error"]["message"].startswith(f"Frame-Index: frame 2 waited {WAIT_S:g} s for frame 1")
-        for value in ("-1", "one"):
+        for value in ("-1", "one", "1_0", "+1", "1.0", "0x1"):  # int() reads "1_0" as 10, "+1" as 1
             bad = http.post(f"/v1/sessions/{session.id}/frames", content=frame_body(**frames[1]),
                             headers={"Content-Type": MSGPACK, "Frame-Index": value})
             assert bad.status_code == 422 and bad.json()["error"]["field"] == "Frame-Index"
         assert session.stats()["frames"] == 1  # nothing of these changed the session
+
+
+def test_a_numbered_frame_refused_before_it_is_read_stops_the_frames_behind_it_at_once(service, frames):
+    """A body of the wrong type (415) or over the size limit (413, by its Content-Length, answered
+    before the route runs) refuses its frame as a malformed one does: the frame numbered after it
+    is told at once, not after frame_order_wait_s."""
+    with Client(service.url) as sdk, httpx.Client(base_url=service.url, timeout=60) as http:
+        for refuse in ("type", "size"):
+            session = sdk.create_session(voxel_size=VOXEL)
+            assert post(http, session.id, frames[0], 0).status_code == 200
+            if refuse == "type":
+                r = http.post(f"/v1/sessions/{session.id}/frames", content=frame_body(**frames[1]),
+                              headers={"Content-Type": "application/json", "Frame-Index": "1"})
+                assert r.status_code == 415, r.text
+            else:
+                with socket.create_connection(("127.0.0.1", service.port)) as raw:
+                    raw.sendall(f"POST /v1/sessions/{session.id}/frames HTTP/1.1\r\nHost: x\r\nContent-Type: {MSGPACK}"
+                                f"\r\nContent-Length: {10**12}\r\nFrame-Index: 1\r\n\r\n".encode())
+                    assert raw.recv(64).startswith(b"HTTP/1.1 413")
+            start = time.perf_counter()
+            behind = post(http, session.id, frames[2], 2)
+            assert behind.status_code == 409 and time.perf_counter() - start < WAIT_S / 2, behind.text
+            assert "follows frame 1, which was refused" in behind.json()["error"]["message"]
+            assert post(http, session.id, frames[1], 1).status_code == 200  # resent, the stream goes on
+            assert session.stats()["frames"] == 2
 
 
 def test_a_retried_frame_with_its_frame_id_is_a_replay_in_a_pipeline(service, frames):
