@@ -50,12 +50,12 @@ def _open_image(data: bytes, field: str, max_pixels: int | None, modes: tuple[st
     check_pixels(image.width, image.height, field, max_pixels)  # before decoding the pixels
     if image.mode not in modes:
         raise WireError(field, f"expected {expected}, got PIL mode {image.mode!r}")
-    pixels = png_pixels(image, data)
-    if pixels is None:
-        try:
+    try:
+        pixels = png_pixels(image, data)
+        if pixels is None:
             image.load()
-        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
-            raise WireError(field, f"corrupt {image.format} image ({exc})") from None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise WireError(field, f"corrupt {image.format} image ({exc})") from None
     return image, pixels
 
 

@@ -34,8 +34,9 @@ _LIBPNG_LAYOUTS = {"RGB": (3, np.uint8), "I;16": (0, np.uint16)}
 def png_pixels(image: Image.Image, data: bytes) -> np.ndarray | None:  # [H, W, 3] uint8 or [H, W] uint16
     """The pixels of ``image``, opened from ``data`` with only its header read, decoded by libpng
     (imagecodecs) straight into a numpy array, for the two layouts cameras write: 8-bit RGB and
-    16-bit grey PNG, not interlaced. None for every other image, and for a file libpng refuses: then
-    Pillow decodes it (the reference, and its error names the problem).
+    16-bit grey PNG, not interlaced; None for every other image (Pillow decodes those). A file libpng
+    refuses raises ValueError with libpng's reason: Pillow would take some such files, filling what
+    is missing (rows a short data stream lacks) with black.
 
     Why not Pillow alone: a service decodes every frame it is sent, and Pillow decodes into its own
     buffer and copies it out, where libpng here writes the array once with faster row filters.
@@ -54,8 +55,8 @@ def png_pixels(image: Image.Image, data: bytes) -> np.ndarray | None:  # [H, W, 
 
     try:
         pixels = imagecodecs.png_decode(data)
-    except Exception:  # libpng's errors surface as several types (its message is not always text)
-        return None
+    except Exception as exc:  # libpng's errors surface as several types (its message is not always text)
+        raise ValueError(f"libpng: {str(exc)[:200] or type(exc).__name__}") from None
     channels, dtype = layout
     shape = (image.height, image.width, channels) if channels else (image.height, image.width)
     return pixels if pixels.shape == shape and pixels.dtype == dtype else None
@@ -77,12 +78,12 @@ def _pixels(path: Path, modes: tuple[str, ...], expected: str) -> tuple[Image.Im
     image, data = _open_image(path, with_bytes=True)
     if image.mode not in modes:
         raise ValueError(f"{path}: expected {expected}, got PIL mode {image.mode!r}")
-    pixels = png_pixels(image, data)
-    if pixels is None:
-        try:
+    try:
+        pixels = png_pixels(image, data)
+        if pixels is None:
             image.load()
-        except (OSError, SyntaxError, ValueError) as exc:
-            raise ValueError(f"{path}: unreadable image ({exc})") from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable image ({exc})") from None
     return image, pixels
 
 

@@ -136,11 +136,12 @@ def _broken(data: bytes) -> dict[str, bytes]:
 
 
 @pytest.mark.parametrize("damage", ["truncated", "zeroed"])
-def test_a_broken_png_fails_as_pillow_says_naming_the_file_or_field(damage, tmp_path):
+def test_a_broken_png_fails_as_libpng_says_naming_the_file_or_field(damage, tmp_path):
     colour = _broken(_png(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)))[damage]
     depth = _broken(_png(rng.integers(1, 60000, (64, 64), dtype=np.uint16)))[damage]
     for data in (colour, depth):
-        assert png_pixels(Image.open(io.BytesIO(data)), data) is None  # libpng refuses it: Pillow decodes
+        with pytest.raises(ValueError, match="^libpng: "):
+            png_pixels(Image.open(io.BytesIO(data)), data)
     (tmp_path / "c.png").write_bytes(colour)
     (tmp_path / "d.png").write_bytes(depth)
     with pytest.raises(ValueError, match=r"c\.png: unreadable image"):
@@ -153,6 +154,27 @@ def test_a_broken_png_fails_as_pillow_says_naming_the_file_or_field(damage, tmp_
     with pytest.raises(WireError, match="corrupt PNG image") as err:
         decode_depth_png(depth, 1000.0)
     assert err.value.field == "depth"
+
+
+def test_a_png_whose_data_stream_ends_before_its_last_row_is_refused(tmp_path):
+    """A complete compressed stream that holds fewer rows than the header says: libpng refuses it
+    where Pillow would fill the missing rows with black."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    rows = b"".join(b"\x00" + bytes(range(48)) for _ in range(4))  # 4 of the 16 rows the header says
+    data = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 16, 16, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+    assert Image.open(io.BytesIO(data)).convert("RGB").size == (16, 16)  # Pillow takes it
+    (tmp_path / "short.png").write_bytes(data)
+    with pytest.raises(ValueError, match=r"short\.png: unreadable image \(libpng: Not enough image data\)"):
+        read_rgb(tmp_path / "short.png")
+    with pytest.raises(WireError, match=r"corrupt PNG image \(libpng: Not enough image data\)") as err:
+        decode_rgb(data)
+    assert err.value.field == "rgb"
 
 
 def test_the_sdks_and_the_services_png_encoders_round_trip_and_pack_as_small_as_pillows_fast_level(shelf_path):
