@@ -99,15 +99,20 @@ def is_array(obj) -> bool:
     return isinstance(obj, dict) and (set(obj) == _KEYS or set(obj) == _KEYS | {"codec"})
 
 
-def array_shape(obj) -> list[int] | None:
-    """The declared shape of an array map when it is a list of non-negative ints, else None.
+MAX_SIDE = 2**31  # an array's sides are below this
 
-    Lets a caller check sizes (pixels, channels) before `decode_array` copies the data.
+
+def array_shape(obj) -> list[int] | None:
+    """The declared shape of an array map when it is a list of ints in 0 .. 2^31 - 1, else None.
+
+    Lets a caller check sizes (pixels, channels) before `decode_array` copies the data. (A side of
+    2^62 beside a side of 0 declares no bytes, yet no array can be made of it.)
     """
     if not is_array(obj):
         return None
     shape = obj["shape"]
-    if not isinstance(shape, (list, tuple)) or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape):
+    if not isinstance(shape, (list, tuple)) or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < MAX_SIDE
+                                                       for s in shape):
         return None
     return list(shape)
 
@@ -122,7 +127,7 @@ def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | No
         raise WireError(field, f"dtype {dtype!r} is not accepted here; expected one of {list(dtypes)}")
     shape = array_shape(obj)
     if shape is None:
-        raise WireError(field, f"shape must be a list of non-negative integers, got {obj['shape']!r}")
+        raise WireError(field, f"shape must be a list of integers in 0 .. {MAX_SIDE - 1}, got {obj['shape']!r}")
     if ndim is not None and len(shape) != ndim:
         raise WireError(field, f"expected {ndim} dimensions, got shape {shape}")
     if not isinstance(data, (bytes, bytearray)):

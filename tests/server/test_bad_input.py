@@ -126,6 +126,9 @@ CASES = [
     ("truncated msgpack", lambda c: c.post_frame(body=msgpack.packb(c.msg(), use_bin_type=True)[:-100]), 400, "body"),
     ("rgb wrong dtype", lambda c: c.post_frame(c.msg(rgb=encode_array(c.frame["rgb"].astype(np.float32)))), 422, "rgb"),
     ("rgb wrong shape", lambda c: c.post_frame(c.msg(rgb=encode_array(np.zeros((240, 320, 4), np.uint8)))), 422, "rgb"),
+    # no bytes declared, yet no array can be made of it
+    ("rgb side beside an empty one", lambda c: c.post_frame(c.msg(rgb={**encode_array(np.zeros((0, 640, 3), np.uint8)),
+                                                                      "shape": [2**62, 0, 3]})), 422, "rgb"),
     ("rgb data length", lambda c: c.post_frame(c.msg(rgb={**encode_array(c.frame["rgb"]), "shape": [240, 321, 3]})), 422, "rgb"),
     ("rgb unknown dtype", lambda c: c.post_frame(c.msg(rgb={**encode_array(c.frame["rgb"]), "dtype": "int8"})), 422, "rgb"),
     ("rgb non-image bytes", lambda c: c.post_frame(c.msg(rgb=b"this is not a png at all")), 422, "rgb"),
