@@ -100,6 +100,10 @@ class FeatureSettings(SettingsGroup):
     image and projected to ``dim`` channels)."""
     dim: Annotated[int, Field(ge=1, le=512)] = 16
     """L, channels of the fused features."""
+    client_channels: Annotated[int | None, Field(ge=1, le=512)] = None
+    """With ``backend`` ``client``: the channels a pixel of every frame's features carries (each
+    count is projected to ``dim`` its own way, so a frame with another count would mix unrelated
+    channels in). None: the first frame's (`scene.choices`), fixed for the session's life."""
 
 
 class ColourSolve(SettingsGroup):
@@ -326,8 +330,9 @@ class SceneConfig(SettingsGroup):
     @property
     def chosen(self) -> bool:
         """Whether nothing is left to choose from the first frame (`scene.choices`): the voxel size is
-        set and the sensor's family and values are known."""
-        return self.voxel_size is not None and self.sensor.chosen
+        set, the sensor's family and values are known, and so are client features' channels."""
+        return self.voxel_size is not None and self.sensor.chosen and (
+            self.features.backend != "client" or self.features.client_channels is not None)
 
     @property
     def uses_reliability(self) -> bool:

@@ -95,11 +95,22 @@ def lift_pixels(frame: Frame, rows: np.ndarray, cols: np.ndarray) -> tuple[np.nd
     return points, colors
 
 
+def check_client_features(frame: Frame, config: SceneConfig) -> None:
+    """A frame's client features as a session with ``features.backend`` ``client`` takes them: there,
+    with the session's channels (`FeatureSettings.client_channels`). ValueError naming ``features``."""
+    if config.features.backend != "client":
+        return
+    if frame.features is None:
+        raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+    expected, got = config.features.client_channels, int(frame.features.shape[-1])
+    if expected is not None and got != expected:
+        raise ValueError(f"features: expected {expected} channels a pixel (this session's, its first frame's), got {got}")
+
+
 def frame_features(frame: Frame, rows: np.ndarray, cols: np.ndarray, config: SceneConfig) -> np.ndarray:  # [M, L]
     """F_view at the given pixels from the configured backend, with ``config.features.dim`` channels."""
     if config.features.backend == "client":
-        if frame.features is None:
-            raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+        check_client_features(frame, config)
         feats = sample_client_features(frame.features.numpy(), rows, cols, (frame.height, frame.width))
     else:
         feats = default_features_at(frame.rgb.numpy(), rows, cols)

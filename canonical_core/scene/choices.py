@@ -1,4 +1,5 @@
-"""Settings a scene may leave to its first frame: the voxel size and the depth sensor's family.
+"""Settings a scene may leave to its first frame: the voxel size, the depth sensor's family and the
+channels of client features.
 
 `choose_settings` fills what a `SceneConfig` leaves open from the first frame a scene folds, once;
 the scene then keeps the result for its life (snapshots, corrections and rollbacks included):
@@ -9,6 +10,7 @@ the scene then keeps the result for its life (snapshots, corrections and rollbac
   refused, naming ``voxel_size``.
 - ``sensor.family`` ``auto``: the family its depth's quantisation shows (`config.detect_family`),
   else `config.DEFAULT_FAMILY`; the family's preset then fills every sensor value left None.
+- ``features.client_channels`` None, with client features: the channels of that frame's features.
 
 Each choice comes with the reason a fold report and the session's stats show.
 """
@@ -61,6 +63,10 @@ def choose_settings(config: SceneConfig, frame: Frame | None) -> tuple[SceneConf
         if family == "auto":
             family, why["sensor"] = detect_family(depth)
         changes["sensor"] = config.sensor.with_preset(family)
+    features = config.features
+    if features.backend == "client" and features.client_channels is None and frame is not None \
+            and frame.features is not None:  # a frame without them is refused by its fold
+        changes["features"] = features.model_copy(update={"client_channels": int(frame.features.shape[-1])})
     return (config.replace(**changes) if changes else config), why
 
 
@@ -79,5 +85,8 @@ def filled_from(config: SceneConfig, made: SceneConfig) -> SceneConfig:
     if config.chosen:
         return config
     given = {k: v for k, v in config.sensor.model_dump().items() if v not in (None, "auto")}
+    channels = config.features.client_channels
     return config.replace(voxel_size=made.voxel_size if config.voxel_size is None else config.voxel_size,
-                          sensor={**made.sensor.model_dump(), **given})
+                          sensor={**made.sensor.model_dump(), **given},
+                          features={**config.features.model_dump(), "client_channels":
+                                    made.features.client_channels if channels is None else channels})

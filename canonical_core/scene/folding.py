@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 from ..evidence import FrameEvidence, extract_evidence, observation_sh_basis
+from ..evidence.extract import check_client_features
 from ..frame import Frame, depth_warnings
 from ..config import SceneConfig
 from . import snapshot
@@ -230,8 +231,7 @@ def _integrate(scene: Scene, frame: Frame, made: tuple[FrameEvidence, np.ndarray
 
 def _check_foldable(scene: Scene, frame: Frame) -> None:
     """The checks evidence extraction makes that do not need depth (so a waiting frame cannot fail later)."""
-    if scene.config.features.backend == "client" and frame.features is None:
-        raise ValueError("features: this session uses client-supplied features, but the frame carries none")
+    check_client_features(frame, scene.config)
     _check_labels(scene, frame)
 
 

@@ -133,6 +133,32 @@ def test_a_refused_first_frame_chooses_nothing(shelf):
     assert (scene.config, scene.chosen) == (SceneConfig(features={"backend": "client"}), {})
 
 
+def test_client_features_keep_the_first_frames_channels_for_the_scenes_life(shelf):
+    """Each count of client channels is projected to ``features.dim`` its own way: a frame with
+    another count would mix unrelated channels in. The first frame's count is the scene's, through a
+    snapshot too; a frame with another is refused naming features, and changes nothing."""
+    import torch
+
+    def with_features(frame, channels):
+        return dataclasses.replace(frame, features=torch.rand(frame.height // 4, frame.width // 4, channels))
+
+    scene = Scene(SceneConfig(voxel_size=0.01, features={"backend": "client"}))
+    assert not scene.config.chosen
+    scene.fold(with_features(shelf[0], 8))
+    assert scene.config.features.client_channels == 8 and scene.config.chosen
+    before = scene.digest()
+    with pytest.raises(ValueError, match=r"^features: expected 8 channels a pixel \(this session's, its first frame's\), got 16"):
+        scene.fold(with_features(shelf[1], 16))
+    assert scene.digest() == before and scene.frames == 1
+    again = Scene.from_bytes(scene.to_bytes())
+    with pytest.raises(ValueError, match="^features: expected 8 channels"):
+        again.fold(with_features(shelf[1], 4))
+    again.fold(with_features(shelf[1], 8))
+    assert again.frames == 2
+    recorded = SceneConfig(voxel_size=0.01, features={"backend": "client"})  # as a session's files hold it before
+    assert filled_from(recorded, scene.config) == scene.config
+
+
 def test_settings_recorded_before_the_choice_name_the_same_scene(shelf):
     scene = Scene(SceneConfig(sensor={"registration_px": 1.0}))
     scene.fold(shelf[0])

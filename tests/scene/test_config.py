@@ -30,6 +30,7 @@ BOUNDS = {
     "range.near": (float, 0.0, INF, False),
     "range.far": (float, 0.0, 1e5, True),
     "features.dim": (int, 1, 512, False),
+    "features.client_channels": (int, 1, 512, False),
     "colour_solve.views": (int, 0, 64, False),
     "colour_solve.scale": (float, 0.0, 1.0, True),
     "colour_solve.refresh": (int, 1, 1_000_000, False),
@@ -61,7 +62,7 @@ CHOICES = {
     "sensor.family": ("auto", "structured_light", "active_stereo", "time_of_flight", "phone_lidar", "hololens"),
 }
 # settings whose None means "chosen for the scene": from its first frame or its sensor family's preset
-OPTIONAL = ("voxel_size", "max_voxels", "decoder.opacity_bias", "sensor.sigma0", "sensor.sigma2", "sensor.sigma_ref",
+OPTIONAL = ("voxel_size", "max_voxels", "features.client_channels", "decoder.opacity_bias", "sensor.sigma0", "sensor.sigma2", "sensor.sigma_ref",
             "sensor.edge_weight", "sensor.registration_px")
 SWITCHES = ("depth.completion", "free_space.enabled")
 
