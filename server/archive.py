@@ -33,6 +33,7 @@ leave the scene at the first correction; ``none`` keeps no archive and refuses c
 
 from __future__ import annotations
 
+import mmap
 import os
 import queue
 import threading
@@ -135,6 +136,17 @@ class Entry:
     kept: bool  # whether its message is in the archive (retention)
 
 
+def _mapped(path: Path) -> bytes | mmap.mmap:
+    """The archive's bytes mapped rather than read: it holds every frame its session kept (hundreds of
+    kilobytes each, gigabytes in a long session), which a start scans once, record by record."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return b""
+    with open(path, "rb") as f:
+        mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    mapped.madvise(mmap.MADV_SEQUENTIAL)
+    return mapped
+
+
 class SessionArchive:
     """An open archive: its file, appended by one writer (the session's lock), and its replayed state."""
 
@@ -151,12 +163,13 @@ class SessionArchive:
         self.next_arrival = 0
         self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
         self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
-        data = path.read_bytes() if path.is_file() else b""
-        found = scan(data)
+        found = scan(_mapped(path))
         for record in found.records:
             self._apply(record)
         if found.damaged:
             self.problem = f"{ARCHIVE}: {found.describe()}; corrections are refused (the scene itself is served)"
+        torn, end = found.torn, found.end
+        del found  # its records' payloads are views of the mapping, which goes with them
         self._log = FrameLog(path)  # appends: written, fsynced, cut back on failure, as the frame log's
         self._fd = os.open(path, os.O_RDONLY)  # reads of archived messages
         # held by each read and by `close`: a read never sees the descriptor closed under it, nor its
@@ -164,8 +177,8 @@ class SessionArchive:
         self._reading = threading.Lock()
         self._queue: queue.Queue = queue.Queue()  # frames deferred to the writer: (frame_id, digest, payload)
         self._writer: threading.Thread | None = None
-        if found.torn:
-            self._log.truncate(found.end)
+        if torn:
+            self._log.truncate(end)
 
     # -- state ------------------------------------------------------------------------------------
     def _apply(self, record: Record) -> None:

@@ -80,7 +80,7 @@ class Fenced(StorageError):
 class Record:
     offset: int
     index: int  # frame index; for a checkpoint, the frames its snapshot holds
-    payload: bytes
+    payload: memoryview  # of the scanned bytes: scanning a file (mapped) copies none of its payloads
     checkpoint: bool
     version: int = 2  # its format
 
@@ -143,7 +143,7 @@ def _parse(data: bytes, pos: int) -> tuple[str, Record | None]:
     end = pos + header + length
     if end > len(data):
         return SHORT, None
-    payload = data[pos + header:end]
+    payload = memoryview(data)[pos + header:end]
     if (zlib.crc32(payload) if version == 2 else _crc_v1(length, index, payload)) != crc:
         return BAD, None
     return RECORD, Record(pos, index, payload, magic in CHECKPOINT_MAGICS, version)

@@ -72,6 +72,22 @@ def test_records_the_snapshot_holds_go_at_a_repair(tmp_path):
     assert kept == 2 and [(r.index, r.payload) for r in scan(b"".join(records)).records] == [(2, payloads(4)[2]), (3, payloads(4)[3])]
 
 
+def test_a_scan_copies_no_payload_so_a_mapped_archive_is_never_read_whole_into_memory(tmp_path):
+    """A session's archive holds every frame it kept (gigabytes in a long session): a start scans it
+    mapped, and each record's payload is a view of the mapping, not a copy."""
+    import mmap
+
+    from server.archive import _mapped
+
+    data = written(tmp_path / "log", 3)
+    mapped = _mapped(tmp_path / "log")
+    assert isinstance(mapped, mmap.mmap)
+    records = scan(mapped).records
+    assert [bytes(r.payload) for r in records] == payloads(3)
+    assert all(r.payload.obj is mapped for r in records) and len(mapped) == len(data)
+    assert _mapped(tmp_path / "absent") == b""
+
+
 def test_a_failed_append_is_cut_off_at_once_and_the_log_takes_the_next(tmp_path, monkeypatch):
     path = tmp_path / "log"
     written(path, 2)
