@@ -22,6 +22,7 @@ from canonical_core.scene.undo import MAX_UNDO_SHARE
 from . import wire
 from .archive import ArchiveClosed, SessionArchive
 from .durability import LOG, SNAPSHOT, archived_frame_ids
+from .frame_ids import FrameIds
 from .framelog import scan, write_atomic
 from .session_errors import CorrectionRefused, SessionUnavailable
 from .track import correct_track
@@ -169,7 +170,7 @@ class Corrections:
                                   [entries[k].arrival for k in removed], first, job, summary)
         self.session.version += 1
         if job is None:
-            self.session.frame_ids = archived_frame_ids(archive, self.session.frame_ids)
+            self.session.frame_ids = FrameIds(archived_frame_ids(archive, self.session.frame_ids))
 
     def _check_no_background(self) -> None:
         job = self.background
@@ -226,7 +227,7 @@ class Corrections:
         before = session.scene.frames
         session.scene, session.version = scene, session.version + 1
         self._renumbered(before, changed, removed)
-        session.frame_ids = archived_frame_ids(archive, session.frame_ids)
+        session.frame_ids = FrameIds(archived_frame_ids(archive, session.frame_ids))
         self.background = None
         self._persist()
         self._keep_base(checkpoints)

@@ -38,6 +38,7 @@ from .archive import SessionArchive
 from .digests import names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
 from .durability import FoldedFrame, checkpoint_payload, restore_scene, write_chosen
+from .frame_ids import FrameIds
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
 from .ordering import FrameOrder
@@ -108,6 +109,7 @@ class Session:
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
 
     def __post_init__(self, snapshot_frames: int):
+        self.frame_ids = FrameIds(self.frame_ids)
         self.order = FrameOrder()
         self.snapshots = self.snapshots_class(self, snapshot_frames)
         self.corrections = Corrections(self)
@@ -263,7 +265,8 @@ class Session:
     def _reload(self) -> None:
         self.snapshots.cancel()
         self.log.close()
-        self.scene, self.log, self.snapshots.frames, self.frame_ids = restore_scene(self.path, self.config, chosen=self.chosen)
+        self.scene, self.log, self.snapshots.frames, frame_ids = restore_scene(self.path, self.config, chosen=self.chosen)
+        self.frame_ids = FrameIds(frame_ids)
         self._prepare_scene()
 
     def snapshot(self, background: bool = False) -> None:

@@ -169,6 +169,31 @@ def test_a_frame_is_acknowledged_only_after_its_record_is_fsynced(store, shelf_f
 
 
 @pytest.mark.realdata
+def test_the_frame_id_table_keeps_the_latest_reports_and_still_knows_older_frames(store, shelf_frames, monkeypatch):
+    """A long stream's table holds a whole fold report for its latest frames only (it is written into
+    every checkpoint): an older frame's retry is still a replay, answered with its index and zero
+    counts, through a restart too."""
+    from server import frame_ids
+
+    monkeypatch.setattr(frame_ids, "REPORTS_KEPT", 2)
+    session = store.create(SceneConfig(voxel_size=0.008))
+    payloads = [wire.pack(msgpack_frame({**frame_arrays(f), "frame_id": f"cam0/{k}"})) for k, f in enumerate(shelf_frames[:4])]
+    reports = [session.add_frame(p, wire.frame_from_message(wire.unpack(p)), 10**6, 1e9)[0] for p in payloads]
+    assert [session.frame_ids[f"cam0/{k}"].report is not None for k in range(4)] == [False, False, True, True]
+    for restarted in (False, True):
+        if restarted:
+            session.snapshot()
+            store.close()
+            store.open()
+            session = store.get(session.id)
+        old, replay = session.add_frame(payloads[0], wire.frame_from_message(wire.unpack(payloads[0])), 10**6, 1e9)
+        assert replay and (old.frame_index, old.new_voxels) == (0, 0) and reports[0].new_voxels > 0
+        latest, replay = session.add_frame(payloads[3], wire.frame_from_message(wire.unpack(payloads[3])), 10**6, 1e9)
+        assert replay and latest == reports[3]
+        assert session.scene.frames == 4
+
+
+@pytest.mark.realdata
 def test_a_retry_matches_a_frame_logged_under_the_older_digest(store, shelf_frames):
     """Sessions written before XXH3 hold BLAKE2b digests of their frames: a retry still matches them."""
     session = store.create(SceneConfig(voxel_size=0.008))
