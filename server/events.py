@@ -19,6 +19,7 @@ import asyncio
 import json
 import signal
 import time
+import weakref
 from collections import defaultdict
 from typing import NamedTuple
 
@@ -124,7 +125,8 @@ class FoldEvents:
         self._subscribers: dict[str, set[asyncio.Queue]] = defaultdict(set)  # those that keep up
         self._open: dict[str, int] = defaultdict(int)  # open streams per session, dropped ones included
         self.dropped = 0  # streams dropped for falling behind, since start
-        self.last_fold: dict[str, float] = {}  # session id -> unix time of its last acknowledged fold
+        # session -> unix time of its last acknowledged fold; a deleted session's entry goes with it
+        self.last_fold: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.closing = asyncio.Event()  # set when the service begins to stop: open streams end
 
     def close_streams_on_exit(self) -> None:
@@ -199,7 +201,7 @@ class FoldEvents:
         """After an acknowledged fold (the session has added its camera to its track): tell the
         session's subscribers."""
         now = time.time()
-        self.last_fold[session.id] = now
+        self.last_fold[session] = now
         camera = camera_json(camera_row(report.frame_index, camera))
         self.publish(session.id, {"type": "fold", "time": now, "frames": session.scene.frames,
                                   "voxels": len(session.scene), "report": report.to_dict(), "camera": camera})
@@ -210,8 +212,8 @@ class FoldEvents:
 
     def last_fold_time(self, session) -> float | None:
         """Unix time of the last fold: known since start, else the camera file's mtime, else None."""
-        if session.id in self.last_fold:
-            return self.last_fold[session.id]
+        if session in self.last_fold:
+            return self.last_fold[session]
         try:
             return (session.path / CAMERAS_FILE).stat().st_mtime
         except OSError:

@@ -194,6 +194,26 @@ def test_the_frame_id_table_keeps_the_latest_reports_and_still_knows_older_frame
 
 
 @pytest.mark.realdata
+def test_the_time_of_a_deleted_sessions_last_fold_goes_with_it(store, shelf_frames):
+    """The event hub remembers each session's last fold (the viewer shows its age): a service that
+    makes and deletes sessions for months must not keep one entry for every session it ever had."""
+    from server.events import FoldEvents
+
+    events = FoldEvents(4, 16)
+    session = store.create(SceneConfig(voxel_size=0.01))
+    payload = wire.pack(msgpack_frame(frame_arrays(shelf_frames[0])))
+    frame = wire.frame_from_message(wire.unpack(payload))
+    report, _ = session.add_frame(payload, frame, 10**6, 1e9)
+    events.folded(session, frame.camera, report)
+    assert abs(events.last_fold_time(session) - time.time()) < 60 and len(events.last_fold) == 1
+    assert store.delete(session.id)
+    del session
+    gc.collect()
+    store.release_departed()
+    assert len(events.last_fold) == 0
+
+
+@pytest.mark.realdata
 def test_a_retry_matches_a_frame_logged_under_the_older_digest(store, shelf_frames):
     """Sessions written before XXH3 hold BLAKE2b digests of their frames: a retry still matches them."""
     session = store.create(SceneConfig(voxel_size=0.008))
