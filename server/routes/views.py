@@ -19,6 +19,7 @@ from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError
 from ..scheduler import Kind as JobKind
 from ..schemas import ErrorBody, ViewRequest
+from ..memory import trim_heap
 from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["views"])
@@ -97,6 +98,9 @@ def check_view_bytes(view: ViewRequest, channels: int, max_bytes: int) -> None:
                                          f"above the limit of {max_bytes} (max_response_bytes); ask for a smaller view", "width")
 
 
+# a view this large (4 MP) gives its work arrays' memory back once answered: glibc would keep it, and
+# a few large views a minute would hold gigabytes
+LARGE_VIEW_PIXELS = 1 << 22
 # every map a view of each kind can give (a response may need fewer: `Encoder.outputs`)
 OUTPUTS = {"render": ("rgb", "depth", "alpha"), "features": ("features", "alpha"), "segmentation": ("labels", "alpha")}
 
@@ -125,7 +129,11 @@ async def _view(kind: str, session, view: ViewRequest, settings, jobs, metrics, 
         result = render(gaussians, camera, outputs, background=view.background, colour=view.colour, depth_mode=view.depth,
                         num_threads=settings.threads)
         maps = {name: getattr(result, name).numpy() for name in outputs}
-        return encode(maps), len(gaussians)
+        encoded = encode(maps)
+        del result, maps
+        if camera.width * camera.height >= LARGE_VIEW_PIXELS:  # its work arrays' heap back to the system
+            trim_heap()
+        return encoded, len(gaussians)
 
     t0 = time.perf_counter()
     (content, media), n = await jobs.run(job, kind=lane, session=session.id, coalesce=coalesce)

@@ -122,3 +122,26 @@ def test_a_deleted_sessions_memory_goes_back_to_the_system(tmp_path):
         assert after - start < (peak - start) / 4, (start, peak, after)
     finally:
         proc.stop()
+
+
+def test_the_memory_of_large_views_goes_back_to_the_system_once_they_are_answered(tmp_path):
+    """Renders of 7 MP work in arrays of hundreds of megabytes that glibc would keep in its heap
+    after the answer: a service that draws a few such views a minute would hold gigabytes."""
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", warm_up="false").start()
+    try:
+        session = create(proc.url, voxel_size=0.004).json()["id"]
+        assert post_ramp(proc.url, session).status_code == 200
+        view = {"pose": ",".join(map(str, np.eye(4).ravel())), "width": 3240, "height": 2160,
+                "K": f"{3 * SIDE},{3 * SIDE},1620,1080"}
+
+        def draw() -> None:
+            r = httpx.get(f"{proc.url}/v1/sessions/{session}/render", params=view, timeout=300)
+            assert r.status_code == 200, r.text
+
+        draw()  # the first loads what every later one uses
+        before = resident_mib(proc.proc.pid)
+        for _ in range(4):
+            draw()
+        assert resident_mib(proc.proc.pid) - before < 100, before  # 470 MB more without giving it back
+    finally:
+        proc.stop()
