@@ -21,7 +21,7 @@ import numpy as np
 from ..calibration import validate_image_intrinsics, validate_intrinsics
 from ..resample import depth_size_problem
 from .distortion import undistort_image
-from .images import image_size, read_depth, read_rgb
+from .images import check_depth_scale, image_size, read_depth, read_rgb
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -118,6 +118,30 @@ def intrinsics_arg(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy in pixels (four numbers, positive focal "
                                          f"lengths, e.g. 517.3,516.5,318.6,255.3), got {text!r}")
     return values
+
+
+def depth_scale_arg(text: str) -> float:
+    """Depth units per metre (`images.check_depth_scale`): the command lines' ``--depth-scale``.
+
+    Example:
+        >>> depth_scale_arg("1000")
+        1000.0
+    """
+    try:
+        return check_depth_scale(float(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("depth_scale: ")) from None
+
+
+def add_capture_options(parser: argparse.ArgumentParser) -> None:
+    """``--K`` and ``--depth-scale`` of a command that reads a capture: what its own files do not
+    say, or say otherwise (`detect.load_dataset`'s ``K`` and ``depth_scale``)."""
+    parser.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
+                        help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
+                             "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
+    parser.add_argument("--depth-scale", type=depth_scale_arg, default=None, metavar="UNITS",
+                        help="depth units per metre of the capture's depth images, where they are not its layout's "
+                             "(e.g. 1000 for a TUM-layout capture written in millimetres; default: the layout's)")
 
 
 class MissingFile(ValueError):

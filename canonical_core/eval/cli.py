@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import get_args
 
 from ..datasets import MissingIntrinsics, load_dataset
-from ..datasets.files import intrinsics_arg
+from ..datasets.files import add_capture_options
 from ..rendering import Colour
 from .methods import METHODS
 
@@ -37,12 +37,7 @@ def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
 
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("dataset", type=Path, help="capture folder (any layout load_dataset detects: tsdf-fusion/7-Scenes, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
-    parser.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
-                        help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
-                             "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
-    parser.add_argument("--depth-scale", type=float, default=None, metavar="UNITS",
-                        help="depth units per metre of the capture's depth images, where they are not its layout's "
-                             "(e.g. 1000 for a TUM-layout capture written in millimetres)")
+    add_capture_options(parser)
     parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
     parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
     parser.add_argument("--methods", type=_list(str, "methods"), default=None,

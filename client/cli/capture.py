@@ -3,25 +3,12 @@ travel as they are, else the decoded frame (optionally resized)."""
 
 from __future__ import annotations
 
-import argparse
 from typing import Iterator
 
 import numpy as np
 
-from canonical_core.datasets.files import intrinsics_arg  # imports no torch, no numba
-
 from ..sdk import exact_sensor_depth
-from .common import UsageError, positive_number, warnings_on_stderr
-
-
-def add_capture_options(p: argparse.ArgumentParser) -> None:
-    """``--K`` and ``--depth-scale``: what a capture's own files do not say, or say otherwise."""
-    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
-                   help="the camera's intrinsics in pixels, for a capture without an intrinsics file (a TUM "
-                        "capture's, e.g. 517.3,516.5,318.6,255.3 for freiburg1), or in place of its own")
-    p.add_argument("--depth-scale", type=positive_number, default=None, metavar="UNITS",
-                   help="depth units per metre of the capture's depth images, where they are not its layout's (e.g. "
-                        "1000 for a TUM-layout capture written in millimetres; default: the layout's)")
+from .common import UsageError, warnings_on_stderr
 
 
 def load_capture(path, args, **options):

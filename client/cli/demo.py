@@ -8,8 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from canonical_core.datasets.files import add_capture_options  # imports no torch, no numba
+
 from ..sdk import Client
-from .capture import add_capture_options, load_capture
+from .capture import load_capture
 from .common import UsageError, positive_number
 from .launch import free_port, start_service
 from .stream import FirstFrameSession, stream_frames, stream_summary

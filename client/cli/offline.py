@@ -8,7 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import add_capture_options, load_capture
+from canonical_core.datasets.files import add_capture_options  # imports no torch, no numba
+
+from .capture import load_capture
 from .common import UsageError, positive_int
 
 

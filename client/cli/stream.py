@@ -12,8 +12,10 @@ import time
 import warnings
 from typing import Callable, Iterator
 
+from canonical_core.datasets.files import add_capture_options  # imports no torch, no numba
+
 from ..sdk import Client, Session, StreamRefused
-from .capture import add_capture_options, capture_frames, load_capture
+from .capture import capture_frames, load_capture
 from .common import UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id
 
 
