@@ -183,9 +183,10 @@ def stream_watched(cmd: list[str], cwd: Path, env: dict, url: str, voxel: float,
 
 
 @contextlib.contextmanager
-def running_service(repo: Path, data_dir: Path, threads: int | None = None):
+def running_service(repo: Path, data_dir: Path, threads: int | None = None, sampled=None):
     """`canonical serve` of ``repo`` (``--threads`` when given) on a free port, its data in ``data_dir``,
-    once healthy: (url, process, environment); stopped gracefully (SIGTERM: it snapshots) on exit."""
+    once healthy: (url, process, environment); stopped gracefully (SIGTERM: it snapshots) on exit.
+    ``sampled(pid)``, where given, is called as soon as the process exists (to watch its start)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("CANONICAL_")}
     env["NUMBA_CACHE_DIR"] = str(repo / ".numba_cache")
     port = free_port()
@@ -194,6 +195,8 @@ def running_service(repo: Path, data_dir: Path, threads: int | None = None):
                                 str(data_dir), "--log-level", "warning"] + ([] if threads is None else
                                                                           ["--threads", str(threads)]),
                                cwd=repo, env=env)
+    if sampled is not None:
+        sampled(service.pid)
     try:
         wait_until_healthy(url, service, timeout=600.0)
         yield url, service, env
