@@ -64,7 +64,7 @@ from client.cli.capture import capture_frames, frame_arrays  # noqa: E402
 from client.cli.launch import free_port, wait_until_healthy  # noqa: E402
 from client.cli.sessions import viewer_url  # noqa: E402
 from client.sdk import encode_png, frame_body, scaled_intrinsics  # noqa: E402
-from server.archive import ZSTD_LEVEL  # noqa: E402
+from server.payloads import ZSTD_LEVEL  # noqa: E402
 from server.scheduler import RENDER_NICE  # noqa: E402
 from server.wire import frame_from_message, unpack  # noqa: E402
 

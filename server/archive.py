@@ -37,23 +37,21 @@ import mmap
 import os
 import queue
 import threading
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Literal
 
 import msgpack
 import numpy as np
-import zstandard
 
 from canonical_core import Frame
 from canonical_core.scene.corrections import FrameRef
 
 from . import wire
-from .digests import names_payload, payload_digest
+from .digests import payload_digest
 from .framelog import FrameLog, LogWedged, Record, scan
+from .payloads import ARCHIVE, compress_payload, decompress_message, decompress_payload
 
-ARCHIVE = "archive.log"
 KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
 Retention = Literal["all", "keyframes", "none"]
 RETENTIONS = ("all", "keyframes", "none")
@@ -65,63 +63,9 @@ def archive_failure(exc: Exception) -> str:
     return f"{ARCHIVE}: a frame could not be archived ({reason}); corrections are refused until a restart"
 
 
-# zstandard's fast levels: -1 packs a 640x480 RGB-D frame of raw arrays as small as level 1 does
-# (2.8x) in four fifths of its time, and level 3 takes twice as long for 8 % smaller
-ZSTD_LEVEL = -1
-_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-_MSGPACK_MAPS = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}  # a payload's first byte (a map); zlib's and zstd's differ
-
-
-def compress_payload(payload: bytes) -> bytes:
-    """A frame's wire payload (its packed message) as the archive keeps it, losslessly: as it is when
-    its images came compressed (`arrived_compressed`: zstandard over PNG and zstandard bytes gains
-    nothing and costs milliseconds a frame), else zstandard over it as it is, so the writer neither
-    unpacks nor packs the arrays again."""
-    if arrived_compressed(payload):
-        return payload
-    # with the frame's checksum, so a damaged record is detected when it is read back
-    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(payload)
-
-
-def arrived_compressed(payload: bytes) -> bool:
-    """Whether a frame's colour came as PNG/JPEG bytes and its depth (if any) as a PNG or a zstandard
-    array: what the SDK and the CLI send by default."""
-    msg = msgpack.unpackb(payload, strict_map_key=False)  # a validated frame's payload
-    depth = msg.get("depth")
-    return isinstance(msg.get("rgb"), bytes) and (depth is None or isinstance(depth, bytes)
-                                                  or (isinstance(depth, dict) and depth.get("codec") == "zstd"))
-
-
 class ArchiveClosed(Exception):
     """The archive was closed (its session deleted, or the service stopping) while something still
     read it: a background re-fold then stops."""
-
-
-class DamagedFrame(Exception):
-    """An archived frame's message does not decompress (or no longer matches its digest): the archive's
-    file was damaged."""
-
-
-def decompress_payload(data: bytes, digest: str | None = None) -> bytes:
-    """The wire payload of `compress_payload`'s bytes (of earlier archives: the packed map with its colour
-    as PNG, which the wire takes too). Raises `DamagedFrame` when the bytes are not what either wrote,
-    or, for a payload kept as it arrived, when they no longer match ``digest`` (its `payload_digest`)."""
-    if data[:1] and data[0] in _MSGPACK_MAPS:
-        if digest is not None and not names_payload(digest, data):
-            raise DamagedFrame(f"{ARCHIVE}: an archived frame no longer matches its digest")
-        return data
-    try:
-        if data[:4] == _ZSTD_MAGIC:
-            return zstandard.ZstdDecompressor().decompress(data)
-        return zlib.decompress(data)
-    except (zstandard.ZstdError, zlib.error) as exc:
-        raise DamagedFrame(f"{ARCHIVE}: an archived frame does not decompress ({exc})") from None
-
-
-def decompress_message(data: bytes, digest: str | None = None) -> dict:
-    """The message of `compress_payload`'s bytes, and of the PNG + zlib form of earlier archives. Raises
-    `DamagedFrame` when the bytes are not what either wrote (or do not match ``digest``)."""
-    return wire.unpack(decompress_payload(data, digest))
 
 
 @dataclass(frozen=True)
@@ -159,7 +103,9 @@ class SessionArchive:
         self.corrections = 0
         self.firsts: list[int] = []  # per correction: the stream position of the first frame it touched
         # of the background corrections archived: what each did (its answer's counts), for its status
-        self.corrections_done: dict[str, dict] = {}
+        self.corrections_done: dict[str, dict] = {}  # or {"failed": why}, for one undone
+        # the latest background correction: its id, the entries it removed and the poses it replaced
+        self._before_background: tuple[str, list[Entry], dict[int, list[float] | None]] | None = None
         self.next_arrival = 0
         self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
         self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
@@ -192,7 +138,14 @@ class SessionArchive:
                                       body["message"] is not None))
             self.next_arrival = max(self.next_arrival, body["arrival"] + 1)
             return
+        if "undoes" in body:
+            self._undo(body["undoes"], body["error"])
+            return
         gone = set(body["removed"])
+        if body.get("id") is not None:  # a background correction: what it changes, should it fail (`append_undo`)
+            touched = gone | {int(a) for a in body["poses"]}
+            self._before_background = (body["id"], [e for e in self.entries if e.arrival in gone],
+                                       {a: self.poses.get(a) for a in touched})
         self.entries = [e for e in self.entries if e.arrival not in gone]
         self.poses = {a: p for a, p in self.poses.items() if a not in gone} | {int(a): p for a, p in body["poses"].items()}
         self.firsts.append(body.get("first", 0))
@@ -200,6 +153,36 @@ class SessionArchive:
             self.corrections_done[body["id"]] = body.get("summary") or {
                 "corrected": len(set(body["poses"]) - gone), "removed": len(gone), "dropped": 0}
         self.corrections += 1
+
+    def _undo(self, correction_id: str, error: str) -> None:
+        """The state as if the background correction ``correction_id`` (the latest correction: no other
+        is taken while one re-folds) had never been archived; the frames archived since stay."""
+        held, removed, poses = self._before_background
+        assert held == correction_id, (held, correction_id)
+        self.entries = sorted(self.entries + removed, key=lambda e: e.arrival)  # entries are in arrival order
+        for arrival, pose in poses.items():
+            if pose is None:
+                self.poses.pop(arrival, None)
+            else:
+                self.poses[arrival] = pose
+        self.firsts.pop()
+        self.corrections -= 1
+        self.corrections_done[correction_id] = {"failed": error}
+
+    def status(self, correction_id: str, session_id: str, frames: int) -> dict | None:
+        """The status of a background correction this archive holds, as a restart left it (None for
+        one it does not): done, with the counts it was answered with and the session's ``frames``
+        now, or failed, with why."""
+        counts = self.corrections_done.get(correction_id)
+        if counts is None:
+            return None
+        if "failed" in counts:
+            return {"correction_id": correction_id, "state": "failed", "refolded": 0, "total": 0,
+                    "error": counts["failed"], "result": None}
+        result = {"frames_before": frames + counts["removed"] + counts["dropped"], **counts, "id": session_id,
+                  "frames": frames, "state": "done", "correction_id": correction_id}
+        return {"correction_id": correction_id, "state": "done", "refolded": 0, "total": 0, "error": None,
+                "result": result}
 
     def refs(self) -> list[FrameRef]:
         return [FrameRef(e.arrival, e.frame_id) for e in self.entries]
@@ -304,6 +287,12 @@ class SessionArchive:
         body = {"poses": {a: np.asarray(c2w, np.float64).reshape(16).tolist() for a, c2w in poses.items()},
                 "removed": sorted(removed), "first": first, "id": correction_id, "summary": summary}
         self._append(msgpack.packb(body))
+
+    def append_undo(self, correction_id: str, error: str) -> None:
+        """Archive that the background correction ``correction_id`` failed (fsynced): its re-fold could
+        not be made, so the archive is again what the served scene holds (`_undo`), and a restart
+        neither retries it nor counts it."""
+        self._append(msgpack.packb({"undoes": correction_id, "error": error}))
 
     def _append(self, payload: bytes) -> None:
         try:

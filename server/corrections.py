@@ -183,8 +183,10 @@ class Corrections:
                               appearance, done: dict, changed: dict, removed: set) -> None:
         """Re-fold the archived (corrected) stream from the latest valid saved state, then catch up on
         the frames that arrived meanwhile, in arrival order, and swap the scene in under the lock once
-        none is left: the result equals the corrected stream folded afresh. A failure leaves the old
-        scene served and the session read-only (the archive holds the correction: a restart retries)."""
+        none is left: the result equals the corrected stream folded afresh. A failure (the voxel cap,
+        say) leaves the old scene served and the correction undone in the archive (`append_undo`):
+        frames go on, and a restart neither retries nor counts it; where that cannot be written, the
+        session is read-only until a restart, which retries it."""
         session = self.session
         job.state = "running"
         try:
@@ -216,8 +218,11 @@ class Corrections:
             log.exception("session %s: background correction %s failed", session.id, job.id)
             with session.lock:
                 job.state, job.error, self.background = "failed", f"{type(exc).__name__}: {exc}", None
-                session.wedged = (f"correction {job.id} failed while re-folding ({job.error}); it is in the archive, "
-                                  "so a restart retries it")
+                try:  # the archive as the served scene again: frames go on, a restart neither retries nor counts it
+                    archive.append_undo(job.id, job.error)
+                except Exception as undo:  # noqa: BLE001 - the correction stays archived: read-only until a restart
+                    session.wedged = (f"correction {job.id} failed while re-folding ({job.error}), and could not be "
+                                      f"undone in the archive ({undo}); a restart retries it")
 
     def _swap_in(self, scene: Scene, checkpoints: dict[int, bytes], archive: SessionArchive, changed: dict,
                  removed: set) -> None:
@@ -250,14 +255,10 @@ class Corrections:
         if job is not None:
             return job.status()
         archive = self.session.archive
-        if archive is not None and correction_id in archive.corrections_done:
-            counts = archive.corrections_done[correction_id]
-            result = {"frames_before": self.session.scene.frames + counts["removed"] + counts["dropped"], **counts,
-                      "id": self.session.id, "frames": self.session.scene.frames, "state": "done",
-                      "correction_id": correction_id}
-            return {"correction_id": correction_id, "state": "done", "refolded": 0, "total": 0, "error": None,
-                    "result": result}
-        raise KeyError(correction_id)
+        held = None if archive is None else archive.status(correction_id, self.session.id, self.session.scene.frames)
+        if held is None:
+            raise KeyError(correction_id)
+        return held
 
     def _correct_in_place(self, archive: SessionArchive, entries: list, changed: dict, removed: set,
                           first: int) -> None:

@@ -30,7 +30,6 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -43,7 +42,9 @@ from canonical_core.scene.choices import filled_from
 from canonical_core.scene.snapshot import read_config
 
 from . import wire
-from .archive import ARCHIVE, DamagedFrame, Retention, SessionArchive
+from .archive import ARCHIVE, Retention, SessionArchive
+from .frame_ids import FoldedFrame
+from .payloads import DamagedFrame
 from .digests import payload_digest
 from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
 from .session_errors import Unrestorable
@@ -53,15 +54,6 @@ log = logging.getLogger("canonical.store")  # the store's logger: one name for a
 
 LOG, SNAPSHOT, QUARANTINE, META = "frames.log", "scene.snap", "quarantine", "meta.json"
 PENDING_SNAPSHOT = "scene.snap.{}.next"  # a snapshot written off the acknowledged path, not yet committed
-
-
-@dataclass(frozen=True)
-class FoldedFrame:
-    """What the session remembers of a frame that carried a frame_id: enough to answer its retry."""
-
-    index: int
-    digest: str  # of its log record's payload
-    report: dict | None  # its fold's; None where a crash left only its record (a retry gets zero counts)
 
 
 class Restored(NamedTuple):

@@ -16,11 +16,19 @@ import dataclasses
 REPORTS_KEPT = 1024
 
 
+@dataclasses.dataclass(frozen=True)
+class FoldedFrame:
+    """What the session remembers of a frame that carried a frame_id: enough to answer its retry."""
+
+    index: int
+    digest: str  # of its log record's payload
+    report: dict | None  # its fold's; None where a crash left only its record (a retry gets zero counts)
+
+
 class FrameIds(dict):
-    """``frame_id`` -> `durability.FoldedFrame`, holding the reports of the `REPORTS_KEPT` latest.
+    """``frame_id`` -> `FoldedFrame`, holding the reports of the `REPORTS_KEPT` latest.
 
     Example:
-        >>> from server.durability import FoldedFrame
         >>> ids = FrameIds({f"f{k}": FoldedFrame(k, "d", {"frame_index": k}) for k in range(REPORTS_KEPT + 2)})
         >>> ids["f0"].report, ids["f2"].report
         (None, {'frame_index': 2})

@@ -37,8 +37,8 @@ from canonical_core.scene.undo import MAX_UNDO_SHARE
 from .archive import SessionArchive
 from .digests import names_payload, payload_digest
 from .corrections import BACKGROUND_FRAMES, Corrections
-from .durability import FoldedFrame, checkpoint_payload, restore_scene, write_chosen
-from .frame_ids import FrameIds
+from .durability import checkpoint_payload, restore_scene, write_chosen
+from .frame_ids import FoldedFrame, FrameIds
 from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
 from .ordering import FrameOrder

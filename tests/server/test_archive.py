@@ -13,7 +13,8 @@ import torch
 import xxhash
 
 from canonical_wire import encode_array, pack
-from server.archive import ARCHIVE, DamagedFrame, SessionArchive, compress_payload, decompress_message
+from server.archive import ARCHIVE, SessionArchive
+from server.payloads import DamagedFrame, compress_payload, decompress_message
 from server.digests import names_payload, payload_digest
 from server.wire import encode_png, frame_from_message
 

@@ -9,7 +9,8 @@ import pytest
 
 from client.sdk import Client, frame_body
 from server import framelog
-from server.archive import ARCHIVE, decompress_payload
+from server.archive import ARCHIVE
+from server.payloads import decompress_payload
 from server.wire import unpack
 
 from .harness import VOXEL, ServerProcess, wait_for

@@ -14,7 +14,8 @@ from canonical_wire import encode_array, pack
 from client.cli.capture import frame_arrays
 from server import corrections, wire
 from server import session as session_module
-from server.archive import ARCHIVE, DamagedFrame
+from server.archive import ARCHIVE
+from server.payloads import DamagedFrame
 from server.corrections import BASE
 from server.session_errors import CorrectionRefused
 from server.track import CAMERAS_FILE, read_track

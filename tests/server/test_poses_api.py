@@ -15,7 +15,7 @@ from canonical_core.scene.corrections import drift_walk
 from client.sdk import CanonicalError, Client
 from server.archive import ARCHIVE, SessionArchive
 
-from .harness import VOXEL, ServerProcess
+from .harness import VOXEL, ServerProcess, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.realdata]
 
@@ -329,3 +329,47 @@ def test_long_corrections_refold_in_the_background_and_a_restart_finishes_them(t
                 "dropped": 0, "state": "done", "correction_id": status["correction_id"]}
     finally:
         proc.kill9()
+
+
+def test_a_background_correction_that_fails_is_undone_and_the_session_goes_on(tmp_path, few):
+    """A correction answered 202 whose re-fold fails (a pose moved 3 m passes the session's voxel cap)
+    is undone in the archive: the old scene is served and takes frames, its status says failed with
+    the reason before and after a restart (a graceful one and a kill -9), a restart neither retries it
+    nor counts it, and a later correction re-folds the frames as they were."""
+    data = tmp_path / "data"
+    proc = ServerProcess(data, tmp_path / "server.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            voxels = streamed(c, few[:4]).stats()["voxels"]
+            session = streamed(c, few[:4], max_voxels=int(voxels * 1.2))  # room for its frames, not for the move
+            before = session.digest()["sha256"]
+            far = few[0]["c2w"].copy()
+            far[:3, 3] += 3.0
+            accepted = session.update_poses({few[0]["frame_id"]: far}, wait=False)
+            assert accepted["state"] == "pending"
+            assert wait_for(lambda: session.correction(accepted["correction_id"])["state"] == "failed", 60)
+            failed = session.correction(accepted["correction_id"])
+            assert "max_voxels" in failed["error"], failed
+            assert session.digest()["sha256"] == before
+            session.add_frame(**few[4])  # frames go on
+            served = session.digest()["sha256"]
+    finally:
+        proc.stop()
+    for kill in (False, True):
+        proc = ServerProcess(data, tmp_path / f"server_{kill}.log", snapshot_every_seconds=3600, warm_up="false").start()
+        try:
+            with Client(proc.url) as c:
+                again = c.session(session.id)
+                assert again.digest()["sha256"] == served
+                status = again.correction(failed["correction_id"])
+                assert status["state"] == "failed" and "max_voxels" in status["error"]
+        finally:
+            proc.kill9() if kill else proc.stop()
+    proc = ServerProcess(data, tmp_path / "server_last.log", snapshot_every_seconds=3600, warm_up="false").start()
+    try:
+        with Client(proc.url) as c:
+            again = c.session(session.id)
+            done = again.update_poses({few[1]["frame_id"]: few[1]["c2w"]})  # its own pose: the same frames
+            assert done["state"] == "done" and again.digest()["sha256"] == served
+    finally:
+        proc.stop()
