@@ -47,11 +47,10 @@ def memory_mb(pid: int) -> dict[str, float]:
     return {k: int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "RssAnon", "RssFile") if k in fields}
 
 
-def fill(data_dir: Path, capture: Path, frames: int, voxel: float) -> int:
-    """One session of ``frames`` frames in ``data_dir``; its archive's bytes."""
-    sequence = load_dataset(capture)
-    payloads = [frame_arrays(f, sensor_units=True) for f in sequence]
-    with running_service(REPO, data_dir) as (url, _, _), Client(url) as client:
+def fill(repo: Path, data_dir: Path, payloads: list[dict], frames: int, voxel: float) -> int:
+    """One session of ``frames`` frames in ``data_dir``, streamed into ``repo``'s service (each tree
+    writes the files it reads); its archive's bytes."""
+    with running_service(repo, data_dir) as (url, _, _), Client(url) as client:
         session = client.create_session(voxel_size=voxel)
         sent = ({**p, "frame_id": f"{k}"} for k, p in zip(range(frames), itertools.cycle(payloads)))
         for k, _ in enumerate(session.add_frames(sent, in_flight=3), 1):
@@ -93,15 +92,17 @@ def main() -> None:
     args = p.parse_args()
     print(machine_summary())
     trees = [("this tree", REPO)] + ([] if args.base is None else [(f"base tree {args.base}", args.base.resolve())])
+    payloads = [frame_arrays(f, sensor_units=True) for f in load_dataset(args.data)]
     with tempfile.TemporaryDirectory() as tmp:
-        data_dir = Path(tmp) / "data"
-        archive = fill(data_dir, args.data, args.frames, args.voxel)
-        print(f"\none session of {args.frames} frames of {args.data.name} at {args.voxel * 1000:g} mm; its archive "
-              f"{archive / 2**20:.0f} MiB\n")
+        dirs = {name: Path(tmp) / f"data{k}" for k, (name, _) in enumerate(trees)}
+        for name, repo in trees:
+            archive = fill(repo, dirs[name], payloads, args.frames, args.voxel)
+            print(f"{name}: one session of {args.frames} frames of {args.data.name} at {args.voxel * 1000:g} mm; "
+                  f"its archive {archive / 2**20:.0f} MiB")
         runs = {name: [] for name, _ in trees}
         for _ in range(args.rounds):
             for name, repo in trees:
-                runs[name].append(one_start(repo, data_dir))
+                runs[name].append(one_start(repo, dirs[name]))
     rows = []
     for name, results in runs.items():
         row = {"tree": name}

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from canonical_core.config import MAX_VOXELS
@@ -118,9 +118,18 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
 
-    @model_validator(mode="after")
-    def _body_fits_in_flight(self) -> "Settings":
-        if self.max_inflight_body_bytes < self.max_body_bytes:
-            raise ValueError(f"max_inflight_body_bytes ({self.max_inflight_body_bytes}) must be at least "
-                             f"max_body_bytes ({self.max_body_bytes}): a largest body would never be taken")
-        return self
+    @field_validator("max_inflight_body_bytes")
+    @classmethod
+    def _body_fits_in_flight(cls, value: int, info: ValidationInfo) -> int:
+        largest = info.data.get("max_body_bytes")  # absent when it was refused itself
+        if largest is not None and value < largest:
+            raise ValueError(f"must be at least max_body_bytes ({largest}): a largest body would never be taken")
+        return value
+
+    @field_validator("api_token")
+    @classmethod
+    def _token_not_blank(cls, value: SecretStr | None) -> SecretStr | None:
+        # an empty token would be a check anyone passes with "Authorization: Bearer "
+        if value is not None and not value.get_secret_value().strip():
+            raise ValueError("is empty: unset it to serve without a token, or set a long random string")
+        return value

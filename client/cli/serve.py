@@ -145,6 +145,9 @@ def _setting_source(args, name: str) -> str:
     return f"--{name.replace('_', '-')}" if given else f"CANONICAL_{name.upper()}"
 
 
+SECRET_SETTINGS = ("api_token",)  # their values are never printed
+
+
 def serve_settings(args):
     """The service's settings (`server.settings.Settings`, or the cluster's) from the environment that
     `run_serve` filled; UsageError naming the option or variable of the first invalid one."""
@@ -160,7 +163,8 @@ def serve_settings(args):
         first = exc.errors()[0]
         name = str(first["loc"][0]) if first["loc"] else "settings"
         message = first["msg"].removeprefix("Value error, ")
-        raise UsageError(f"{_setting_source(args, name)}: {message[:1].lower()}{message[1:]}, got {first['input']}") from None
+        given = "" if name in SECRET_SETTINGS or not first["loc"] else f", got {first['input']}"  # never a secret
+        raise UsageError(f"{_setting_source(args, name)}: {message[:1].lower()}{message[1:]}{given}") from None
 
 
 # -- repair -------------------------------------------------------------------------------------

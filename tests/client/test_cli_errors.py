@@ -154,12 +154,17 @@ def test_a_bad_frame_like_is_one_line_before_any_request(shelf_dir, tmp_path, su
     (["--port", "99999"], {}, ["--port", "65535", "got 99999"]),
     (["--threads", "0"], {}, ["--threads", "greater than 0", "got 0"]),
     ([], {"CANONICAL_QUEUE_LIMIT": "0"}, ["CANONICAL_QUEUE_LIMIT", "got 0"]),
-], ids=["port", "threads", "from the environment"])
+    # two settings that do not fit together: the one to change named, the token of the others never shown
+    ([], {"CANONICAL_API_TOKEN": "s3cr3t-token", "CANONICAL_MAX_BODY_BYTES": "2000000000"},
+     ["CANONICAL_MAX_INFLIGHT_BODY_BYTES", "at least max_body_bytes (2000000000)"]),
+    # a blank token would be a check anyone passes with "Authorization: Bearer "
+    ([], {"CANONICAL_API_TOKEN": " "}, ["CANONICAL_API_TOKEN: is empty: unset it"]),
+], ids=["port", "threads", "from the environment", "two that do not fit", "a blank token"])
 def test_a_bad_serve_setting_is_one_line_naming_it_and_creates_nothing(tmp_path, argv, env, words):
     data = tmp_path / "data"
     result = canonical("serve", "--data-dir", str(data), *argv, env=env)
     assert_one_line_error(result, 2, *words)
-    assert not data.exists()
+    assert "s3cr3t" not in result.stderr + result.stdout and not data.exists()
 
 
 def test_a_data_dir_that_cannot_be_created_is_one_line():
