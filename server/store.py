@@ -168,13 +168,15 @@ class SessionStore:
         log.error("session %s is not served: %s", session_id, reason)
         self.unavailable[session_id] = reason
 
-    def close(self) -> None:
-        """Snapshot sessions with unsnapshotted frames (a faster next start), close their logs, unlock."""
+    def close(self, snapshot: bool = True) -> None:
+        """Snapshot sessions with unsnapshotted frames (a faster next start; not with ``snapshot`` False),
+        close their logs, unlock."""
         try:
             for session in self.list():
                 try:
                     session.snapshots.wait()  # one being written lands first: then nothing, or little, is left
-                    session.snapshot()
+                    if snapshot:
+                        session.snapshot()
                 finally:
                     session.log.close()
                     if session.archive is not None:

@@ -189,8 +189,9 @@ def run_repair(args) -> int:
             f"is not a data directory (no {store.root.name}/ in it)"
         print(f"error: {_setting_source(args, 'data_dir')}: {data_dir} {problem}", file=sys.stderr)
         return 1
+    listing = args.session is None
     try:
-        if args.session is None:
+        if listing:  # opened as a start opens it (which cuts torn tails and restores logs from the archive)
             store.open()
             for name, problem in sorted(store.unavailable.items()):
                 print(f"{name}: {problem}")
@@ -201,5 +202,5 @@ def run_repair(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     finally:
-        store.close()
+        store.close(snapshot=not listing)  # a listing writes no snapshot of every session
     return 0

@@ -127,6 +127,7 @@ def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, fr
     data = tmp_path / "data"
     with serving(server(tmp_path, data)) as proc:
         sid = new_session(proc, frames[:6], archive_retention="none")  # no second copy (test_log_damage.py has one)
+        healthy = new_session(proc, frames[:2])  # frames its snapshot lacks: a listing snapshots no session
         proc.kill9()
         damaged = bytearray(log_of(data, sid).read_bytes())
         third = framelog.scan(bytes(damaged)).records[2]
@@ -151,7 +152,8 @@ def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, fr
         assert busy.returncode == 1 and "in use by another server" in busy.stderr
         proc.kill9()
         listing = subprocess.run(cli, cwd=REPO, capture_output=True, text=True, timeout=300)
-        assert listing.returncode == 0 and sid in listing.stdout and "1 of 1 sessions need repair" in listing.stdout
+        assert listing.returncode == 0 and sid in listing.stdout and "1 of 2 sessions need repair" in listing.stdout
+        assert not (data / "sessions" / healthy / "scene.snap").exists()
         asked = subprocess.run(cli + ["--session", sid], cwd=REPO, capture_output=True, text=True, timeout=300)
         assert asked.returncode == 1 and asked.stderr.startswith("error: action:") and "Traceback" not in asked.stderr
         fixed = subprocess.run(cli + ["--session", sid, "--action", "skip"], cwd=REPO, capture_output=True, text=True, timeout=300)
