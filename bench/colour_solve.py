@@ -107,7 +107,7 @@ def stream(sequence, split, voxel: float, refreshes: list[int], kept: int) -> No
 def solves_done(client: Client) -> int:
     text = client._request("GET", "/metrics").text
     return int(float(next(line.split()[1] for line in text.splitlines()
-                          if line.startswith("canonical_colour_solves_done "))))
+                          if line.startswith("canonical_colour_solves_done_total "))))
 
 
 def pause(sequence, frames: int, rounds: int, solve_nice: int) -> None:

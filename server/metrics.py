@@ -54,7 +54,8 @@ class Metrics:
         self.storage_errors = 0  # requests refused because their data could not be made durable
 
     def exposition(self, gauges: dict[str, tuple[str, float]]) -> str:
-        """The text format; ``gauges`` maps name -> (help, value) for values read at scrape time."""
+        """The text format; ``gauges`` maps name -> (help, value) for values read at scrape time (those
+        named ``*_total`` are counters: they only grow while the process lives)."""
         lines = ["# HELP canonical_fold_seconds Time to decode, log (fsync) and fold one frame.",
                  "# TYPE canonical_fold_seconds histogram", *self.fold_seconds.lines("canonical_fold_seconds", {}),
                  "# HELP canonical_view_seconds Time to decode (if not cached), render and encode one view.",
@@ -67,5 +68,6 @@ class Metrics:
                   "# TYPE canonical_http_responses_total counter"]
         lines += [f'canonical_http_responses_total{{status="{s}"}} {n}' for s, n in sorted(self.responses.items())]
         for name, (help_text, value) in gauges.items():
-            lines += [f"# HELP {name} {help_text}", f"# TYPE {name} gauge", f"{name} {_num(value)}"]
+            kind = "counter" if name.endswith("_total") else "gauge"
+            lines += [f"# HELP {name} {help_text}", f"# TYPE {name} {kind}", f"{name} {_num(value)}"]
         return "\n".join(lines) + "\n"

@@ -56,7 +56,7 @@ def exposition(reports: list[dict], sessions_on_disk: int, unreachable: int) -> 
                                            total("unavailable")),
         "canonical_sessions_read_only": ("Sessions whose log cannot take frames until a restart.", total("wedged")),
         "canonical_snapshot_failures": ("Snapshots that failed (frames stay in the log).", total("snapshot_failures")),
-        "canonical_storage_errors": ("Requests refused because storage could not make them durable.", metrics.storage_errors),
+        "canonical_storage_errors_total": ("Requests refused because storage could not make them durable.", metrics.storage_errors),
         "canonical_cluster_owners_unreachable": ("Owners that did not answer this scrape (restarting or lost).", unreachable),
     }
     lines = [metrics.exposition(gauges).rstrip("\n")]

@@ -102,9 +102,9 @@ def test_a_frame_sent_while_a_solve_runs_is_taken_at_once_and_stops_the_solve(tm
         for k in range(5, len(frames)):
             assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_running") == 1, SOLVE_WAIT_S)
             time.sleep(2 * QUIET_S)  # past the solve's wait for a pause: solving (a frame before would only cancel it)
-            stopped, done = session.stats()["colour_solves_stopped"], gauge(proc.url, "canonical_colour_solves_done")
+            stopped, done = session.stats()["colour_solves_stopped"], gauge(proc.url, "canonical_colour_solves_done_total")
             assert session.add_frame(**frames[k])["frame_index"] == k
-            assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_done") > done, SOLVE_WAIT_S)
+            assert wait_for(lambda: gauge(proc.url, "canonical_colour_solves_done_total") > done, SOLVE_WAIT_S)
             if session.stats()["colour_solves_stopped"] == stopped + 1:
                 stopped_by = k
                 break

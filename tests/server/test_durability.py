@@ -90,7 +90,7 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
         found = framelog.scan(log_of(data, sid).read_bytes())
         assert log_of(data, sid).stat().st_size == size and found.end == found.size and len(found.records) == 2
         assert Client(proc.url).session(sid).digest()["frames"] == 2
-        assert "canonical_storage_errors 2" in httpx.get(f"{proc.url}/metrics").text
+        assert "canonical_storage_errors_total 2" in httpx.get(f"{proc.url}/metrics").text
         # space again: the same frames are taken, then a crash
         (tmpfs / "filler").unlink()
         for kwargs in frames[2:4]:

@@ -262,6 +262,12 @@ def test_health_and_metrics(client, server):
     for name in ("canonical_fold_seconds_bucket", "canonical_fold_seconds_count", "canonical_frames_folded_total",
                  "canonical_sessions", "canonical_voxels", "# TYPE canonical_fold_seconds histogram"):
         assert name in text
+    # what grows only while the process lives is a counter, named as counters are (rate() reads them so)
+    types = dict(line.split()[2:4] for line in text.splitlines() if line.startswith("# TYPE "))
+    assert {n for n, t in types.items() if t == "counter"} == {n for n in types if n.endswith("_total")}
+    for name in ("canonical_storage_errors_total", "canonical_colour_solves_done_total",
+                 "canonical_viewer_superseded_total", "canonical_event_streams_dropped_total"):
+        assert types[name] == "counter"
 
 
 @pytest.mark.realdata
