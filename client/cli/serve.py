@@ -146,6 +146,19 @@ def _setting_source(args, name: str) -> str:
 
 
 SECRET_SETTINGS = ("api_token",)  # their values are never printed
+OTHER_VARIABLES = {"CANONICAL_URL", "CANONICAL_NODE"}  # the clients' service, a cluster node's name
+
+
+def _warn_unknown_variables(settings: set[str]) -> None:
+    """A warning on stderr for each CANONICAL_* variable that is no setting (a misspelt one would be
+    ignored without a word), naming the setting it most resembles."""
+    import difflib
+
+    known = settings | OTHER_VARIABLES
+    for name in sorted(n for n in os.environ if n.startswith("CANONICAL_") and n not in known):
+        close = difflib.get_close_matches(name, sorted(known), 1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        print(f"warning: {name} is not a setting of the service{hint}; ignored", file=sys.stderr)
 
 
 def serve_settings(args):
@@ -153,10 +166,11 @@ def serve_settings(args):
     `run_serve` filled; UsageError naming the option or variable of the first invalid one."""
     from pydantic import ValidationError
 
-    if args.cluster:
-        from server.cluster.settings import ClusterSettings as kind
-    else:
-        from server.settings import Settings as kind
+    from server.cluster.settings import ClusterSettings  # pydantic only: no Ray
+    from server.settings import Settings
+
+    kind = ClusterSettings if args.cluster else Settings
+    _warn_unknown_variables({f"CANONICAL_{name.upper()}" for name in ClusterSettings.model_fields})  # either's
     try:
         return kind()
     except ValidationError as exc:

@@ -284,3 +284,16 @@ def test_a_ray_cluster_that_does_not_answer_is_one_line_at_once(tmp_path, addres
                        *(a.format(port=port) for a in address), env={k: v.format(port=port) for k, v in env.items()},
                        timeout=60)
     assert_one_line_error(result, 2, *(w.format(port=port) for w in words))
+
+
+def test_a_variable_that_is_no_setting_is_warned_of_naming_the_setting_it_resembles(monkeypatch, capsys):
+    """CANONICAL_QUEUE_LIMT=3 would otherwise leave the queue limit at its default without a word."""
+    from client.cli.serve import serve_settings
+
+    monkeypatch.setenv("CANONICAL_QUEUE_LIMT", "3")
+    monkeypatch.setenv("CANONICAL_OWNERS", "2")  # the cluster's: no warning without --cluster either
+    settings = serve_settings(build_parser().parse_args(["serve"]))
+    assert settings.queue_limit == 8
+    warned = capsys.readouterr().err.splitlines()
+    assert ("warning: CANONICAL_QUEUE_LIMT is not a setting of the service (did you mean CANONICAL_QUEUE_LIMIT?); "
+            "ignored") in warned and not any("CANONICAL_OWNERS" in line for line in warned)
