@@ -80,10 +80,24 @@ def run_serve(args) -> int:
         print(f"error: {_setting_source(args, 'data_dir')}: cannot create {exc.filename or settings.data_dir}: "
               f"{exc.strerror or exc}", file=sys.stderr)
         return 1
+    _service_logging(args.log_level)
     # The protocol closes connections whose request head is late (slowloris); bodies get 408 in the app.
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
                 http="server.protocol:HeadTimeoutH11Protocol", timeout_keep_alive=5)
     return 0
+
+
+def _service_logging(level: str) -> None:
+    """The service's own lines (its ``canonical.*`` loggers: start-up, restores, retention) on stderr
+    at ``--log-level``, as uvicorn writes its own; without a handler only warnings came out, bare."""
+    import logging
+
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s:     %(name)s: %(message)s"))
+    logger = logging.getLogger("canonical")
+    logger.addHandler(handler)
+    logger.setLevel("DEBUG" if level == "trace" else level.upper())
+    logger.propagate = False
 
 
 def _probe_folder(path) -> None:
