@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from canonical_core.scene import Scene
-from canonical_core.scene.corrections import check_poses, corrected_stream, resolve_frames
+from canonical_core.scene.corrections import FieldError, check_poses, corrected_stream, resolve_frames
 from canonical_core.scene.undo import MAX_UNDO_SHARE
 
 from . import wire
@@ -118,6 +118,10 @@ class Corrections:
             session.snapshots.cancel()  # the correction rewrites the files: a snapshot of before must not land after
             refs, entries, version = archive.refs(), list(archive.entries), session.version
             changed = check_poses(poses, refs) if poses else {}
+            for key, k in zip(poses or {}, resolve_frames(list(poses or {}), refs, "poses")):  # "keyframes" keeps some
+                if not entries[k].kept:
+                    raise FieldError(f"poses.{key}", "the archive does not keep this frame (archive_retention "
+                                                     "keyframes), so no correction can fold it again")
             removed = set(resolve_frames(remove or [], refs, "frames"))
             if not changed and not removed:
                 raise ValueError("poses: names no frame")

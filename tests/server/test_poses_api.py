@@ -220,6 +220,11 @@ def test_keyframes_retention_refolds_the_kept_frames(tmp_path, frames):
         with Client(proc.url) as c:
             session = streamed(c, drifted(frames[:7]))
             assert session.stats()["archive_frames"] == 2  # arrivals 0 and 5
+            before = session.digest()["sha256"]
+            with pytest.raises(CanonicalError) as info:  # a frame it does not keep: its pose could not be used
+                session.update_poses({frames[1]["frame_id"]: frames[1]["c2w"]})
+            assert info.value.status == 422 and info.value.field == f"poses.{frames[1]['frame_id']}"
+            assert "does not keep this frame" in str(info.value) and session.digest()["sha256"] == before
             done = session.update_poses({frames[0]["frame_id"]: frames[0]["c2w"]})
             assert done["dropped"] == 5 and done["frames"] == 2
             kept = [frames[0], drifted(frames[:7])[5]]
