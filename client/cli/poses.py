@@ -39,6 +39,14 @@ def pose_text(path: str | Path) -> str:
         raise ValueError(f"{path}: unreadable text file ({exc})") from None
 
 
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
 def read_pose_file(path: str | Path, text: str | None = None) -> dict[str, np.ndarray]:
     """A pose file (see ``canonical poses --help``; ``text`` its text where it was read already) ->
     {frame key: validated 4x4 c2w}; '#' comments and blank lines skipped. Raises ValueError naming the
@@ -53,14 +61,16 @@ def read_pose_file(path: str | Path, text: str | None = None) -> dict[str, np.nd
         if not words:
             continue
         where = f"{path}:{number}"
-        key, numbers = (words[0], words[1:]) if len(words) in (8, 17) else (str(len(poses)), words)
+        keyed = len(words) in (8, 17) or not _is_number(words[0])  # a TUM timestamp is a key too
+        key, numbers = (words[0], words[1:]) if keyed else (str(len(poses)), words)
         if len(numbers) == 7:
             c2w = tum_pose_to_matrix(parse_floats(numbers, where), where)
         elif len(numbers) == 16:
             c2w = validate_pose(parse_floats(numbers, where).reshape(4, 4), where)
         else:
+            after = f" after the key {key!r}" if keyed else ""
             raise ValueError(f"{where}: expected 7 (tx ty tz qx qy qz qw) or 16 (a 4x4 matrix) numbers, optionally "
-                             f"after a key, got {len(words)} words")
+                             f"after a key, got {len(numbers)}{after}")
         if key in poses:
             raise ValueError(f"{where}: frame {key!r} has a pose on an earlier line")
         poses[key] = c2w

@@ -48,7 +48,8 @@ def test_keyed_lines_and_errors_name_the_line(tmp_path):
     assert list(poses) == ["a", "b"]
     np.testing.assert_allclose(poses["a"], T, atol=1e-9)
     np.testing.assert_allclose(poses["b"], T, atol=1e-12)
-    for text, problem in (("1 2 3\n", "expected 7"), ("0 0 0 0 0 0 x\n", "could not convert"),
+    for text, problem in (("1 2 3\n", "expected 7 .* got 3$"), ("0 0 0 0 0 0 x\n", "could not convert"),
+                          ("frame-7 0 0 0 0 0 1\n", "expected 7 .* got 6 after the key 'frame-7'"),
                           ("a 0 0 0 0 0 0 1\na 0 0 0 0 0 0 1\n", "earlier line"),
                           (" ".join(["2"] * 16) + "\n", "bottom row")):
         path.write_text(text)
