@@ -71,6 +71,9 @@ def run_sessions(args) -> int:
     for row in rows:  # the id and the state left-aligned, the figures right-aligned
         cells = [cell.ljust(w) if k in (0, 6) else cell.rjust(w) for k, (cell, w) in enumerate(zip(row, widths))]
         print("  ".join(cells).rstrip())
+    for s in sessions:  # what an operator has to do about a session not served, under the table
+        if s.get("problem"):
+            print(f"{s['id']}: {s['problem']}")
     return 0
 
 

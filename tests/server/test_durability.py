@@ -141,6 +141,9 @@ def test_a_damaged_log_is_kept_quarantined_and_refused_until_repair(tmp_path, fr
         assert httpx.post(f"{proc.url}/v1/sessions/{sid}/frames", content=b"x", headers=MSGPACK).status_code == 409
         listed = {s["id"]: s for s in httpx.get(f"{proc.url}/v1/sessions").json()["sessions"]}
         assert listed[sid]["state"] == "unavailable" and listed[sid]["frames"] is None
+        table = subprocess.run([sys.executable, "-m", "client.cli", "sessions", "--url", proc.url], cwd=REPO,
+                               capture_output=True, text=True, timeout=120)  # the problem under the table
+        assert any(line.startswith(f"{sid}: ") and "damaged record" in line for line in table.stdout.splitlines())
         assert "canonical_sessions_unavailable 1" in httpx.get(f"{proc.url}/metrics").text
         assert log_of(data, sid).read_bytes() == bytes(damaged)  # never cut
         copies = list((data / "sessions" / sid / "quarantine").iterdir())
