@@ -142,7 +142,8 @@ class SessionArchive:
             self._undo(body["undoes"], body["error"])
             return
         gone = set(body["removed"])
-        if body.get("id") is not None:  # a background correction: what it changes, should it fail (`append_undo`)
+        self._before_background = None  # what the latest correction changed, if a background one: should it fail
+        if body.get("id") is not None:
             touched = gone | {int(a) for a in body["poses"]}
             self._before_background = (body["id"], [e for e in self.entries if e.arrival in gone],
                                        {a: self.poses.get(a) for a in touched})
@@ -168,6 +169,12 @@ class SessionArchive:
         self.firsts.pop()
         self.corrections -= 1
         self.corrections_done[correction_id] = {"failed": error}
+        self._before_background = None
+
+    @property
+    def background_correction(self) -> str | None:
+        """The id of a background correction that is the archive's latest correction and not undone."""
+        return None if self._before_background is None else self._before_background[0]
 
     def status(self, correction_id: str, session_id: str, frames: int) -> dict | None:
         """The status of a background correction this archive holds, as a restart left it (None for

@@ -160,8 +160,15 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention,
     entries = list(archive.entries)
     dropped = {k for k, e in enumerate(entries) if not e.kept}
     cameras: list = []  # the re-folded frames' track (the file may predate the correction)
-    scene.adopt(Scene.refolded(scene.config, corrected_stream(tracked(archive.frames(entries), cameras), {}, dropped),
-                               scene.appearance))
+    try:
+        scene.adopt(Scene.refolded(scene.config, corrected_stream(tracked(archive.frames(entries), cameras), {}, dropped),
+                                   scene.appearance))
+    except ValueError as exc:  # a background correction that cannot be made (the voxel cap): undone, as its job does
+        if archive.background_correction is None:
+            raise
+        archive.append_undo(archive.background_correction, f"{type(exc).__name__}: {exc}")
+        archive.close()
+        return restore_session(path, config, retention, chosen)
     write_track(path, cameras)
     if dropped:
         archive.append_correction({}, [entries[k].arrival for k in dropped], min(dropped))

@@ -346,3 +346,34 @@ def test_sessions_commit_the_preallocated_memory_when_made_corrected_and_restore
     finally:
         plain.close()
         store.close()
+
+
+def test_a_background_correction_a_restart_cannot_make_is_undone_and_the_session_served(tmp_path, shelf):
+    """A kill -9 after a background correction was archived and before its re-fold ended: the restart
+    re-folds it, and where that fails (a pose past the voxel cap) it undoes it as the job would have:
+    the session is served as it was, not left unloadable, and the correction's status says failed."""
+    from canonical_core import Scene
+
+    far = shelf[0]["c2w"].copy()
+    far[:3, 3] += 3.0
+    moved = Scene(CONFIG)
+    for k, kwargs in enumerate(shelf[:4]):
+        moved.fold(payload(kwargs, far if k == 0 else None)[1])
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    plain = len(streamed(store, shelf[:4]).scene)
+    assert len(moved) > plain + 100  # the move makes the scene larger than the cap below lets it be
+    session = store.create(SceneConfig(voxel_size=0.01, max_voxels=(plain + len(moved)) // 2))
+    for kwargs in shelf[:4]:
+        session.add_frame(*payload(kwargs), 1000, 3600)
+    before = session.digest()["sha256"]
+    session.archive.flush()
+    session.archive.append_correction({session.archive.entries[0].arrival: far}, [], 0, "job1",
+                                      {"corrected": 1, "removed": 0, "dropped": 0, "frames_before": 4})
+    for _ in range(2):  # the restart undoes it; the next reads the undo
+        store = reopened(store, tmp_path)
+        again = store.get(session.id)
+        assert again.digest()["sha256"] == before and again.scene.frames == 4
+        status = again.corrections.status("job1")
+        assert status["state"] == "failed" and "max_voxels" in status["error"]
+    store.close()
