@@ -3,7 +3,7 @@ frames removed after the fact (`Scene.refolded` of the corrected stream).
 
 File ``archive.log`` in the session folder, in the frame log's record format (`server.framelog`:
 magic, length, index, CRCs, payload; ``index`` is the record's number), appended and fsynced.
-Each payload is a msgpack map of one of two kinds:
+Each payload is a msgpack map of one of three kinds:
 
 - a frame: ``{"arrival", "frame_id", "digest", "message"}``: its arrival index, the client's
   frame_id, the digest of its wire payload (to recognise a retry), and its wire payload as it
@@ -13,7 +13,9 @@ Each payload is a msgpack map of one of two kinds:
   setting did not keep it;
 - a correction: ``{"poses": {arrival: 16 numbers, row-major c2w}, "removed": [arrival, ...],
   "first": the stream position of the first frame it touches, "id": the id of a background
-  correction or None}``.
+  correction or None}``;
+- an undo: ``{"undoes": a background correction's id, "error": why}``: its re-fold failed, and the
+  state is again as before it (`append_undo`).
 
 The archive's state is the replay of its records in order: the frames the scene holds, in fold
 order, each with its current pose. A correction is archived (the commit point) before it is
@@ -158,8 +160,10 @@ class SessionArchive:
     def _undo(self, correction_id: str, error: str) -> None:
         """The state as if the background correction ``correction_id`` (the latest correction: no other
         is taken while one re-folds) had never been archived; the frames archived since stay."""
-        held, removed, poses = self._before_background
-        assert held == correction_id, (held, correction_id)
+        if self._before_background is None or self._before_background[0] != correction_id:
+            self.problem = f"{ARCHIVE}: it undoes correction {correction_id}, not its latest; corrections are refused"
+            return
+        _, removed, poses = self._before_background
         self.entries = sorted(self.entries + removed, key=lambda e: e.arrival)  # entries are in arrival order
         for arrival, pose in poses.items():
             if pose is None:

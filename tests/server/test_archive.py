@@ -205,3 +205,19 @@ def test_an_archive_reads_back_the_bytes_the_client_sent(tmp_path):
     again = SessionArchive(tmp_path / ARCHIVE, "all")
     assert list(again.payloads(again.entries)) == payloads
     again.close()
+
+
+def test_an_undo_restores_what_its_background_correction_changed_and_keeps_the_frames_since(tmp_path):
+    archive = archive_of(tmp_path, 3)
+    moved = np.eye(4)
+    moved[0, 3] = 1.0
+    archive.append_correction({archive.entries[0].arrival: moved}, [archive.entries[1].arrival], 0, "job", {})
+    archive.append_frame("f3", "digest3", pack(message(3, "f3")))  # arrived while it re-folded
+    assert [e.frame_id for e in archive.entries] == ["f0", "f2", "f3"] and archive.corrections == 1
+    archive.append_undo("job", "CapacityError: max_voxels")
+    for state in (archive, SessionArchive(tmp_path / ARCHIVE, "all")):  # in memory, and replayed
+        assert [e.frame_id for e in state.entries] == ["f0", "f1", "f2", "f3"] and state.poses == {}
+        assert state.corrections == 0 and state.problem is None
+        assert state.status("job", "s", 4)["state"] == "failed" and state.background_correction is None
+    archive.append_undo("other", "?")  # names no background correction: the archive serves no correction
+    assert "undoes correction other" in archive.problem
