@@ -233,6 +233,8 @@ class ViewerInfo(BaseModel):
                                                         "colour map")
     label_palette: list[list[int]] = Field(description="[R, G, B] 0-255: entry k + 1 is label k's colour, entry 0 "
                                                        "where no label is drawn")
+    max_picture_pixels: int = Field(description="the most pixels of a colour or depth picture the service renders "
+                                                "(max_image_pixels, and max_response_bytes for its five float maps)")
 
 
 class _LastFold(BaseModel):

@@ -30,6 +30,7 @@ from ..events import DROPPED, FoldBatch, Published, TooManyStreams, sse
 from ..scheduler import Superseded
 from ..schemas import ErrorBody, InputCamerasOut, ViewerInfo, ViewerSessionList
 from ..session_errors import SessionNotFound
+from .views import view_channels
 from . import views
 
 pages = APIRouter(include_in_schema=False)
@@ -84,10 +85,13 @@ def is_page(path: str) -> bool:
 
 # -- data for the pages ----------------------------------------------------------------------------
 @info_router.get("/info", response_model=ViewerInfo, responses={401: {"model": ErrorBody}})
-async def viewer_info() -> ViewerInfo:
+async def viewer_info(settings: SettingsDep) -> ViewerInfo:
     """The depth colour map (near first) and the label palette (index k + 1 = label k), so the page
-    draws the scale bar and the legend in the server's colours."""
-    return ViewerInfo(depth_colormap=viewer.DEPTH_LUT.tolist(), label_palette=viewer.PALETTE.tolist())
+    draws the scale bar and the legend in the server's colours; the largest picture it renders, so
+    the page fits its size to it."""
+    most = min(settings.max_image_pixels, settings.max_response_bytes // (4 * view_channels("render", 0, 0)))
+    return ViewerInfo(depth_colormap=viewer.DEPTH_LUT.tolist(), label_palette=viewer.PALETTE.tolist(),
+                      max_picture_pixels=most)
 
 
 @info_router.get("/sessions", response_model=ViewerSessionList, responses={401: {"model": ErrorBody}})

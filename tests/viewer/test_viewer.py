@@ -11,6 +11,7 @@ import io
 import threading
 import time
 
+import httpx
 import numpy as np
 import pytest
 from PIL import Image
@@ -115,6 +116,17 @@ def test_a_view_size_the_page_cannot_use_is_said_and_the_default_drawn(page, ser
     assert page.evaluate("[viewer.width, viewer.height]") == [512, 384] and canvas(page).shape == (384, 512, 3)
     assert page.locator("#warning").inner_text() == ("?width=-5: expected a whole number from 16 to 4096; 512 used · "
                                                      "?height=2.5: expected a whole number from 16 to 4096; 384 used")
+    page.goto(f"{server.url}/sessions/{shelf_session.id}/view?width=1e3")  # digits only
+    page.wait_for_function("window.viewer && window.viewer.info", timeout=WAIT_MS)
+    assert page.evaluate("viewer.width") == 512 and "?width=1e3: expected a whole number" in page.locator("#warning").inner_text()
+    # a size every full picture of which the service would refuse (max_response_bytes): fitted to the largest it renders
+    most = httpx.get(f"{server.url}/v1/viewer/info", headers={"Authorization": f"Bearer {TOKEN}"}).json()["max_picture_pixels"]
+    page.goto(f"{server.url}/sessions/{shelf_session.id}/view?width=4096&height=4000")
+    page.wait_for_function("window.viewer && window.viewer.info", timeout=WAIT_MS)
+    width, height = page.evaluate("[viewer.width, viewer.height]")
+    assert most * 0.99 < width * height <= most < 4096 * 4000 and abs(width / height - 4096 / 4000) < 0.01
+    assert f"?width=4096&height=4000: above the largest picture the service renders ({most} pixels); " \
+           f"{width}x{height} used" in page.locator("#warning").inner_text()
 
 
 def test_the_view_shows_a_focus_outline_only_when_reached_by_tab(page, server, shelf_session):
@@ -193,6 +205,13 @@ def test_keys_fly_the_wheel_dollies_and_the_scrubber_snaps_to_input_cameras(page
     _, snapped, _, _ = view_camera(page)
     np.testing.assert_allclose(snapped, shelf[1]["c2w"], atol=1e-6)
     assert page.locator("#camera-k").inner_text() == "camera 2 / 4"
+    # a mode picked from its list: the keys fly again (the list would take D for "depth")
+    page.locator("#mode").select_option("rgb")
+    before = page.evaluate("viewer.pose.p")
+    page.keyboard.down("KeyD")
+    page.wait_for_timeout(300)
+    page.keyboard.up("KeyD")
+    assert page.evaluate("viewer.mode") == "rgb" and page.evaluate("viewer.pose.p") != before
 
 
 
@@ -331,9 +350,17 @@ def test_a_correction_and_a_deletion_reach_the_open_page(page, server, client, s
     session.delete()
     page.wait_for_function("!document.getElementById('error').hidden", timeout=WAIT_MS)
     assert page.locator("#error").inner_text() == "this session was deleted"
+    asked = page.evaluate("viewer.asked.at")  # a drag asks for no picture of a deleted session
+    page.mouse.move(*center(page))
+    page.mouse.down()
+    page.mouse.move(center(page)[0] + 60, center(page)[1], steps=5)
+    page.mouse.up()
+    page.wait_for_timeout(500)
+    assert page.evaluate("viewer.asked.at") == asked and page.locator("#status").inner_text() == "deleted"
+    assert page.locator("#error").inner_text() == "this session was deleted"
 
 
-@pytest.mark.parametrize("width, height", [(1280, 720), (1400, 420), (700, 900)])
+@pytest.mark.parametrize("width, height", [(1280, 720), (1400, 420), (700, 900), (390, 844)])
 def test_the_picture_keeps_its_aspect_in_any_window(browser, server, shelf_session, width, height):
     context = browser.new_context(viewport={"width": width, "height": height})
     context.add_init_script(f"sessionStorage.setItem('canonical.token', {TOKEN!r})")
@@ -345,6 +372,7 @@ def test_the_picture_keeps_its_aspect_in_any_window(browser, server, shelf_sessi
         assert stage["width"] / stage["height"] == pytest.approx(view[0] / view[1], rel=0.01)
         assert stage["width"] <= panel["width"] + 1 and stage["height"] <= panel["height"] + 1
         assert max(stage["width"] / panel["width"], stage["height"] / panel["height"]) > 0.99  # as large as fits
+        assert stage["width"] > 0.9 * width or width > 640  # a phone's window: the view across it, the panel below
     finally:
         context.close()
 

@@ -8,13 +8,13 @@ const badParams = [];
 // a whole number from the page's query, within [low, high]; else the default, and the page says so
 function countParam(name, fallback, low, high) {
   if (!params.has(name)) return fallback;
-  const value = Number(params.get(name));
-  if (Number.isInteger(value) && value >= low && value <= high) return value;
+  const value = Number(params.get(name));  // digits only: Number() would take 1e3 and 0x10 too
+  if (/^[0-9]+$/.test(params.get(name)) && value >= low && value <= high) return value;
   badParams.push(`?${name}=${params.get(name)}: expected a whole number from ${low} to ${high}; ${fallback} used`);
   return fallback;
 }
-const WIDTH = countParam("width", 512, 16, 4096);  // full-quality view size (pixels)
-const HEIGHT = countParam("height", 384, 16, 4096);
+let WIDTH = countParam("width", 512, 16, 4096);  // full-quality view size (pixels; `fitSize` may shrink it)
+let HEIGHT = countParam("height", 384, 16, 4096);
 const LOW = 0.5;  // size factor of the images asked for while the pose moves
 // ... and their level of detail: the best-supported N Gaussians (rendering time grows with N)
 const PREVIEW_GAUSSIANS = countParam("preview_gaussians", 60000, 1, 1e9);
@@ -46,9 +46,27 @@ const sessionId = decodeURIComponent(location.pathname.split("/")[2]);
 const $ = (id) => document.getElementById(id);
 
 const view = $("view"), overlay = $("overlay"), stage = $("stage");
-for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
-stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
-stage.style.width = `min(100cqw, calc(100cqh * ${WIDTH} / ${HEIGHT}))`;
+function setSize(width, height) {
+  WIDTH = width;
+  HEIGHT = height;
+  for (const c of [view, overlay]) { c.width = WIDTH; c.height = HEIGHT; }
+  stage.style.aspectRatio = `${WIDTH} / ${HEIGHT}`;
+  stage.style.width = `min(100cqw, calc(100cqh * ${WIDTH} / ${HEIGHT}))`;
+}
+setSize(WIDTH, HEIGHT);
+
+// The view's size within the largest picture the service renders (`/v1/viewer/info`): a larger
+// ?width= and ?height= would be refused at every full picture, so they are scaled down, and the page
+// says so.
+function fitSize(most) {
+  if (WIDTH * HEIGHT <= most) return;
+  const s = Math.sqrt(most / (WIDTH * HEIGHT));
+  const w = Math.max(16, Math.floor(WIDTH * s)), h = Math.max(16, Math.floor(HEIGHT * s));
+  badParams.push(`?width=${WIDTH}&height=${HEIGHT}: above the largest picture the service renders ` +
+                 `(${most} pixels); ${w}x${h} used`);
+  setSize(w, h);
+  Object.assign(state, { width: w, height: h, K: cam.viewIntrinsics(null, w, h) });
+}
 
 const NOT_ASKED = { version: -1, full: false, at: -Infinity };
 // Everything a test (or the console) may want to read is on window.viewer.
@@ -121,7 +139,7 @@ function imageUrl(full) {
 // which then gets one at once.
 function pump() {
   showText();
-  if (!state.info || !state.frames) return;
+  if (!state.info || !state.frames || state.deleted) return;
   const { version, frames } = state;
   if (state.failed === version) return;  // asked and refused: wait for the next change
   const resting = performance.now() - state.changedAt >= REST_MS && fullDue();
@@ -188,6 +206,7 @@ function pump() {
 function showStatus() {
   const n = state.frames;
   let text = "connecting…";
+  if (state.deleted) return;  // the deletion's text stays
   if (state.info && !n) text = "waiting for the first frame";
   else if (state.info) {
     const folded = `${n} frame${n === 1 ? "" : "s"} folded`;
@@ -375,7 +394,12 @@ function onEvent(name, data) {
     else if (stale) refreshTrack();
     return;
   }
-  if (name === "deleted") { showError(new Error("this session was deleted")); return; }
+  if (name === "deleted") {  // nothing more to ask for: no picture, and the status says why
+    state.deleted = true;
+    $("status").textContent = state.status = "deleted";
+    showError(new Error("this session was deleted"));
+    return;
+  }
   if (name !== "fold") return;
   // one event stands for the folds of the last EVENT_EVERY_S (`?every=`): the latest fold's counts,
   // every camera of them, and the latest advice among them
@@ -510,13 +534,16 @@ $("mode").addEventListener("change", (e) => {
   state.mode = e.target.value;
   state.depthRange = null;
   changed(false);
+  focusView();  // the keys fly again: the list would take them as a search for a mode (D: depth)
 });
 $("scrub").addEventListener("input", (e) => snapTo(Number(e.target.value)));
 $("latest").addEventListener("click", () => snapTo(state.cameras.length - 1));
 $("frustums").addEventListener("change", drawFrustums);
 const base = `/v1/sessions/${encodeURIComponent(sessionId)}`;
-$("ply").addEventListener("click", () => download(`${base}/gaussians.ply`, `${sessionId}.ply`).catch(showError));
-$("splat").addEventListener("click", () => download(`${base}/gaussians.splat`, `${sessionId}.splat`).catch(showError));
+// a download refused for its token asks for one, as every other request of the page does
+$("ply").addEventListener("click", () => withToken(() => download(`${base}/gaussians.ply`, `${sessionId}.ply`)).catch(showError));
+$("splat").addEventListener("click", () => withToken(() => download(`${base}/gaussians.splat`, `${sessionId}.splat`))
+  .catch(showError));
 
 // -- start -----------------------------------------------------------------------------------------
 // The input cameras and the session's counts (`GET .../cameras`); the view goes to the latest camera.
@@ -537,9 +564,10 @@ function showTrack(track) {
 async function start() {
   $("title").textContent = sessionId;
   document.title = `CanonicalGS Fusion · ${sessionId.slice(0, 8)}`;
-  if (badParams.length) { $("warning").textContent = badParams.join(" · "); $("warning").hidden = false; }
   focusView();
   const [info, track] = await withToken(() => Promise.all([json("/v1/viewer/info"), json(`${base}/cameras`)]));
+  fitSize(info.max_picture_pixels);
+  if (badParams.length) { $("warning").textContent = badParams.join(" · "); $("warning").hidden = false; }
   state.info = info;
   drawScaleBar();
   showTrack(track);
