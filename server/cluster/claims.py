@@ -78,10 +78,15 @@ def fitted(settings: ClusterSettings, nodes: list[float]) -> ClusterSettings:
                                  f"has {describe(nodes)}; lower it, or unset it to fit it to the cluster")
         return settings
     owner_cpus = largest_owner_claim(settings, nodes)
+    alone = settings.model_copy(update={"ingress_cpus": 0.0})  # the owners' smallest claims without the ingress
+    if owner_cpus < CLAIM_STEP and not packs(all_claims(alone, CLAIM_STEP), nodes):
+        raise ClaimsDoNotFit("owners", f"{settings.owners} owners of at least {CLAIM_STEP:g} CPU each, with room for "
+                             f"one restart, do not fit a cluster of {describe(nodes)} whatever the ingress takes; "
+                             "lower it")
     if owner_cpus < CLAIM_STEP:
         raise ClaimsDoNotFit("ingress_cpus", f"{ingress} (ingress_max_replicas) and room for one restart leave no CPU "
-                             f"for {settings.owners} owners on a cluster of {describe(nodes)}; lower it or "
-                             "ingress_max_replicas")
+                             f"for {settings.owners} owners on a cluster of {describe(nodes)}; lower it, "
+                             "ingress_max_replicas or owners")
     return settings.model_copy(update={"owner_cpus": owner_cpus})
 
 

@@ -55,6 +55,15 @@ def test_ingress_claims_that_leave_no_room_for_owners_are_refused_naming_ingress
     assert fitted(settings(tmp_path, ingress_max_replicas=1), [1.0]).owner_cpus == 0.25
 
 
+def test_more_owners_than_any_ingress_leaves_room_for_are_refused_naming_owners(tmp_path):
+    with pytest.raises(ClaimsDoNotFit) as refused:
+        fitted(settings(tmp_path, owners=300), [2.0])
+    assert refused.value.setting == "owners" and refused.value.problem.startswith("300 owners of at least")
+    with pytest.raises(ClaimsDoNotFit) as refused:  # they fit alone, not beside the ingress: either may give
+        fitted(settings(tmp_path, owners=100), [2.0])
+    assert refused.value.setting == "ingress_cpus" and refused.value.problem.endswith("ingress_max_replicas or owners")
+
+
 @pytest.mark.slow
 def test_serve_cluster_refuses_claims_the_local_cluster_cannot_place_in_one_line(tmp_path, ray_tmpdir):
     pytest.importorskip("ray.serve")
