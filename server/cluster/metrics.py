@@ -52,6 +52,12 @@ def exposition(reports: list[dict], sessions_on_disk: int, unreachable: int) -> 
         "canonical_frames": ("Frames folded over the sessions held in memory.", total("frames")),
         "canonical_jobs_active": ("Compute jobs running or waiting, over all owners.", total("jobs_active")),
         "canonical_jobs_limit": ("The queue limits, summed over owners.", total("jobs_limit")),
+        "canonical_colour_solves_running": ("Background colour solves running now, over all owners.",
+                                            total("solves_running")),
+        "canonical_colour_solves_done_total": ("Background colour solves finished since the owners started.",
+                                               total("solves_done")),
+        "canonical_viewer_superseded_total": ("Viewer pictures replaced by a newer one while they waited, since "
+                                              "the owners started.", total("superseded")),
         "canonical_sessions_unavailable": ("Sessions not served: their files need an operator (canonical repair).",
                                            total("unavailable")),
         "canonical_sessions_read_only": ("Sessions whose log cannot take frames until a restart.", total("wedged")),

@@ -367,6 +367,8 @@ class SessionOwner:
             "unavailable": totals["unavailable"], "wedged": totals["wedged"], "snapshot_failures": totals["snapshot_failures"],
             "memory_bytes": self.store.memory_bytes(), "restores": self.store.restores, "evictions": self.store.evictions,
             "jobs_active": self.app.state.jobs.active, "jobs_limit": self.app.state.jobs.limit,
+            "solves_running": self.app.state.jobs.background_running, "solves_done": self.app.state.jobs.background_done,
+            "superseded": self.app.state.jobs.superseded,
         }
 
     def pid(self) -> int:

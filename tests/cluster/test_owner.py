@@ -231,6 +231,9 @@ def test_metrics_sum_the_owners_and_label_each_by_node_and_owner(tmp_path, frame
     per_owner = [int(lines[f'canonical_cluster_sessions{{node="{p.node}",owner="{p.shard}"}}']) for p in parts]
     assert per_owner == [len(p.store) for p in parts] and sum(per_owner) == 2
     assert float(lines['canonical_fold_seconds_quantile{quantile="0.5"}']) > 0
+    # the single process's families of the owners' work, under the same names
+    for name in ("canonical_colour_solves_running", "canonical_colour_solves_done_total", "canonical_viewer_superseded_total"):
+        assert int(lines[name]) >= 0 and f"# TYPE {name} " in text
 
 
 def test_the_single_process_service_and_the_owners_run_without_ray():
