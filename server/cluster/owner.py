@@ -67,6 +67,9 @@ def _log_failure(task: asyncio.Task) -> None:
         log.error("eviction failed: %r", task.exception())
 
 
+RATE_WINDOW_S = 10.0  # the folds/s figure of /metrics: over the last whole window this long
+
+
 class FencedSnapshots(Snapshots):
     """The snapshots of an `OwnedSession`: a snapshot holds the lease over both its files, and a fenced
     one marks the session ``stale``."""
@@ -302,7 +305,9 @@ class SessionOwner:
         self.busy: Counter[str] = Counter()
         self._evicting: asyncio.Task | None = None
         self._snapshotter: asyncio.Task | None = None
-        self._rate = (time.monotonic(), 0)  # (when, frames) at the last `report`, for folds/s
+        # (when, frames, folds/s) at the last window's start: the rate over whole windows of RATE_WINDOW_S,
+        # so that it does not depend on how often, or by how many, /metrics is read
+        self._rate = (time.monotonic(), 0, 0.0)
         self.node = os.environ.get("CANONICAL_NODE") or socket.gethostname()
         self.closed = False
 
@@ -353,8 +358,10 @@ class SessionOwner:
     def report(self) -> dict:
         """This owner's figures for the cluster's /metrics (`server.cluster.metrics.exposition`)."""
         m, now = self.app.state.metrics, time.monotonic()
-        then, frames = self._rate
-        self._rate = (now, m.frames_total)
+        then, frames, rate = self._rate
+        if now - then >= RATE_WINDOW_S:
+            rate = (m.frames_total - frames) / (now - then)
+            self._rate = (now, m.frames_total, rate)
         totals = self.store.totals()
         return {
             "node": self.node, "owner": self.shard, "pid": os.getpid(),
@@ -362,7 +369,7 @@ class SessionOwner:
             "view": {k: (h.counts, h.sum) for k, h in m.view_seconds.items()},
             "restore": (self.store.restore_seconds.counts, self.store.restore_seconds.sum),
             "frames_total": m.frames_total, "responses": dict(m.responses), "storage_errors": m.storage_errors,
-            "folds_per_second": (m.frames_total - frames) / max(now - then, 1e-9),
+            "folds_per_second": rate,
             "sessions": totals["sessions"], "voxels": totals["voxels"], "frames": totals["frames"],
             "unavailable": totals["unavailable"], "wedged": totals["wedged"], "snapshot_failures": totals["snapshot_failures"],
             "memory_bytes": self.store.memory_bytes(), "restores": self.store.restores, "evictions": self.store.evictions,

@@ -7,6 +7,7 @@ import asyncio
 import json
 import subprocess
 import sys
+import time
 
 import httpx
 import pytest
@@ -211,6 +212,26 @@ def test_a_request_for_an_owner_not_running_is_never_sent_and_gets_429_after_the
             assert (1, "handle") in owners.sent
 
     run(scenario())
+
+
+def test_the_folds_per_second_are_over_whole_windows_whoever_reads_them(tmp_path, frames, monkeypatch):
+    """Two scrapers (Prometheus and a person with curl) each read the rate over a whole window, not
+    over the moments since the other's read."""
+    from server.cluster import owner
+
+    monkeypatch.setattr(owner, "RATE_WINDOW_S", 0.5)
+    parts, client = cluster_client(tmp_path)
+
+    async def scenario():
+        async with client:
+            sid = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+            for kwargs in frames[:2]:
+                await client.post(f"/v1/sessions/{sid}/frames", content=frame_body(kwargs), headers=MSGPACK)
+
+    run(scenario())
+    time.sleep(0.6)
+    rates = [sum(p.report()["folds_per_second"] for p in parts) for _ in range(3)]  # read back to back
+    assert rates[0] > 0 and rates[0] == rates[1] == rates[2]
 
 
 def test_metrics_sum_the_owners_and_label_each_by_node_and_owner(tmp_path, frames):
