@@ -46,6 +46,16 @@ def status_bytes(field: str) -> int:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith(field + ":"))
 
 
+def process_mib(pid: int) -> dict[str, float]:
+    """VmRSS, RssAnon and RssFile of process ``pid`` in MiB (empty once it is gone)."""
+    try:
+        lines = open(f"/proc/{pid}/status").read().splitlines()
+    except OSError:
+        return {}
+    fields = dict(line.split(":", 1) for line in lines if ":" in line)
+    return {k: int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "RssAnon", "RssFile") if k in fields}
+
+
 def peak_growth(fn, *args) -> tuple[float, int]:
     """(ms, bytes) of ``fn(*args)``: its time, and how far resident memory rose above where it
     started, at its peak (the peak is reset to the current figure first: /proc/self/clear_refs)."""

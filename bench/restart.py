@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import machine_summary, print_table  # noqa: E402
+from common import machine_summary, print_table, process_mib  # noqa: E402
 from ingest import running_service  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
@@ -35,16 +35,6 @@ from client.sdk import Client  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "hololens_office"
-
-
-def memory_mb(pid: int) -> dict[str, float]:
-    """VmRSS, RssAnon and RssFile of ``pid`` in MiB (empty once it is gone)."""
-    try:
-        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
-    except OSError:
-        return {}
-    fields = dict(line.split(":", 1) for line in lines if ":" in line)
-    return {k: int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "RssAnon", "RssFile") if k in fields}
 
 
 def fill(repo: Path, data_dir: Path, payloads: list[dict], frames: int, voxel: float) -> int:
@@ -68,14 +58,14 @@ def one_start(repo: Path, data_dir: Path) -> dict:
         ready = time.perf_counter() - t0
         done.set()
         time.sleep(1.0)
-        after = memory_mb(service.pid)
+        after = process_mib(service.pid)
     return {"ready s": ready, **{f"peak {k}": v for k, v in peaks.items()}, **{f"serving {k}": v for k, v in after.items()}}
 
 
 def _sample(pid: int, peaks: dict, done: threading.Event) -> None:
     def loop() -> None:
         while not done.is_set():
-            for k, v in memory_mb(pid).items():
+            for k, v in process_mib(pid).items():
                 peaks[k] = max(peaks.get(k, 0.0), v)
             time.sleep(0.02)
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import machine_summary, print_table  # noqa: E402
+from common import machine_summary, print_table, process_mib  # noqa: E402
 
 from canonical_core.datasets import load_dataset  # noqa: E402
 from client.cli.capture import frame_arrays  # noqa: E402
@@ -37,10 +37,7 @@ DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / 
 
 
 def resident_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no VmRSS for pid {pid}")
+    return process_mib(pid)["VmRSS"]
 
 
 def one_round(client: Client, pid: int, payloads: list[dict], sessions: int, voxel: float) -> dict:
@@ -90,7 +87,7 @@ def run(config: str, env: dict, payloads: list[dict], args) -> list[dict]:
     finally:
         for k, v in saved.items():
             if v is None:
-                del os.environ[k]
+                os.environ.pop(k, None)  # unset before, or unset by the configuration
             else:
                 os.environ[k] = v
 

@@ -43,10 +43,10 @@ from canonical_core.scene.snapshot import read_config
 
 from . import wire
 from .archive import ARCHIVE, Retention, SessionArchive
-from .frame_ids import FoldedFrame
-from .payloads import DamagedFrame
 from .digests import payload_digest
+from .frame_ids import FoldedFrame
 from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
+from .payloads import DamagedFrame
 from .session_errors import Unrestorable
 from .track import append_camera, tracked, write_track
 

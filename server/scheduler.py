@@ -54,8 +54,8 @@ import sys
 import threading
 import time
 from collections import Counter, OrderedDict, deque
-from dataclasses import dataclass, field
 from collections.abc import Awaitable
+from dataclasses import dataclass, field
 from typing import Any, Callable, Literal, TypeVar
 
 T = TypeVar("T")

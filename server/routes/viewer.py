@@ -30,7 +30,6 @@ from ..events import DROPPED, FoldBatch, Published, TooManyStreams, sse
 from ..scheduler import Superseded
 from ..schemas import ErrorBody, InputCamerasOut, ViewerInfo, ViewerSessionList
 from ..session_errors import SessionNotFound
-from .views import view_channels
 from . import views
 
 pages = APIRouter(include_in_schema=False)
@@ -89,7 +88,7 @@ async def viewer_info(settings: SettingsDep) -> ViewerInfo:
     """The depth colour map (near first) and the label palette (index k + 1 = label k), so the page
     draws the scale bar and the legend in the server's colours; the largest picture it renders, so
     the page fits its size to it."""
-    most = min(settings.max_image_pixels, settings.max_response_bytes // (4 * view_channels("render", 0, 0)))
+    most = min(settings.max_image_pixels, settings.max_response_bytes // (4 * views.view_channels("render", 0, 0)))
     return ViewerInfo(depth_colormap=viewer.DEPTH_LUT.tolist(), label_palette=viewer.PALETTE.tolist(),
                       max_picture_pixels=most)
 

@@ -17,9 +17,9 @@ from canonical_core.rendering.preview import feature_preview
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError
+from ..memory import trim_heap
 from ..scheduler import Kind as JobKind
 from ..schemas import ErrorBody, ViewRequest
-from ..memory import trim_heap
 from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["views"])
