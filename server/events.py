@@ -206,9 +206,10 @@ class FoldEvents:
         self.publish(session.id, {"type": "fold", "time": now, "frames": session.scene.frames,
                                   "voxels": len(session.scene), "report": report.to_dict(), "camera": camera})
 
-    def track(self, session) -> list[dict]:
-        """The session's input cameras, oldest first."""
-        return [camera_json(r) for r in read_track(session.path / CAMERAS_FILE, session.scene.frames)]
+    def track(self, session, since: int = 0) -> list[dict]:
+        """The session's input cameras from frame ``since`` on, oldest first."""
+        rows = read_track(session.path / CAMERAS_FILE, session.scene.frames)
+        return [camera_json(r) for r in rows[rows[:, 0] >= since]]
 
     def last_fold_time(self, session) -> float | None:
         """Unix time of the last fold: known since start, else the camera file's mtime, else None."""

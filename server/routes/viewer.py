@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import math
 import mimetypes
 import time
@@ -113,17 +114,25 @@ async def viewer_sessions(request: Request, store: StoreDep, jobs: JobsDep) -> V
 
 
 @router.get("/{session_id}/cameras", response_model=InputCamerasOut,
-            responses={c: {"model": ErrorBody} for c in (401, 404)})
-async def input_cameras(request: Request, session: SessionDep) -> InputCamerasOut:
+            responses={c: {"model": ErrorBody} for c in (401, 404, 422)})
+async def input_cameras(
+    request: Request,
+    session: SessionDep,
+    since: Annotated[int | None, Query(ge=0, description=(
+        "only the cameras of frames from this frame_index on (a client that follows a stream reads "
+        "what is new); absent: every camera"))] = None,
+) -> Response:
     """The input cameras, oldest first: ``frame_index``, ``width``, ``height``, ``K`` (fx, fy, cx, cy),
     ``c2w`` (16 numbers, row-major, OpenCV axes): the poses the viewer snaps to and draws. With the
     last fold's unix time and its age in seconds on the service's clock, so that a page tells a
-    running stream from its own clock's skew."""
+    running stream from its own clock's skew. The body is written from the track's rows directly:
+    validating a long track's thousands of cameras as models cost more than reading them."""
     events = request.app.state.events
-    cameras = await run_in_threadpool(events.track, session)
+    cameras = await run_in_threadpool(events.track, session, since or 0)
     last = events.last_fold_time(session)
-    return InputCamerasOut(id=session.id, frames=session.scene.frames, label_dim=session.scene.label_dim, last_fold=last,
-                           last_fold_age=None if last is None else max(0.0, time.time() - last), cameras=cameras)
+    head = {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim, "last_fold": last,
+            "last_fold_age": None if last is None else max(0.0, time.time() - last), "cameras": cameras}
+    return Response(json.dumps(head, separators=(",", ":")), media_type="application/json")
 
 
 async def _next_event(queue: asyncio.Queue, closing: asyncio.Event, timeout: float) -> Published | None:

@@ -10,6 +10,7 @@ import pytest
 
 from canonical_core import Camera
 from client.sdk import Client
+from server.schemas import InputCamerasOut
 from server.track import CAMERAS_FILE, ROW_BYTES, append_camera, correct_track, read_track
 
 from .harness import VOXEL, ServerProcess, wait_for
@@ -73,6 +74,12 @@ def test_the_service_track_follows_corrections_removals_and_kill9(tmp_path, fram
         cameras = track()
         assert [c["frame_index"] for c in cameras] == list(range(6))
         assert np.allclose(np.reshape(cameras[5]["c2w"], (4, 4)), few[4]["c2w"])
+        url = f"{proc.url}/v1/sessions/{session.id}/cameras"
+        newer = InputCamerasOut.model_validate(httpx.get(url, params={"since": 4}).json())  # the documented shape
+        assert newer.frames == 6 and [c.model_dump() for c in newer.cameras] == cameras[4:]
+        assert httpx.get(url, params={"since": 6}).json()["cameras"] == []
+        refused = httpx.get(url, params={"since": -1})
+        assert refused.status_code == 422 and "since" in refused.text
 
         proc.kill9()
         session = Client(proc.start().url).session(session.id)
