@@ -283,8 +283,7 @@ def posed_images(images: Path, depth: Path, K: np.ndarray, poses: Sequence[np.nd
     """One `RGBDFile` per kept colour image of ``images`` (file-name order, `natural_key`), the k-th taking
     ``poses[k]`` and, where it exists, the depth image of the same stem (``.png``) in ``depth``
     (else the frame is RGB-only). Layouts whose poses are listed in image order share this."""
-    if not depth_scale > 0:
-        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    check_depth_scale(depth_scale)
     files = sorted((p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
     if len(poses) != len(files):
         raise ValueError(f"{pose_file}: {len(poses)} poses for {len(files)} images in {images} "

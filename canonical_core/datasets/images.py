@@ -152,8 +152,7 @@ def read_depth(path: str | Path, depth_scale: float) -> np.ndarray:  # [H, W] fl
         >>> d = read_depth("frame-000015.depth.png", depth_scale=1000.0)  # doctest: +SKIP
     """
     path = Path(path)
-    if not depth_scale > 0:
-        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    check_depth_scale(depth_scale)
     if path.suffix.lower() in _PGM_SUFFIXES:
         raw = read_pgm(path)
     else:

@@ -32,6 +32,7 @@ import numpy as np
 from ..calibration import quaternion_to_matrix, validate_pose
 from .files import (MissingFile, MissingIntrinsics, RGBDFile, SkippedFrames, as_intrinsics, find_one, found_frames,
                     one_size, parse_floats, read_intrinsics_file, read_text, select)
+from .images import check_depth_scale
 from .sequence import FrameSequence
 
 INTRINSICS_NAMES = ("intrinsics.txt", "camera.txt")
@@ -174,8 +175,8 @@ def load_tum(
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"{root}: not a folder")
-    if depth_scale is not None and not depth_scale > 0:
-        raise ValueError(f"depth_scale: expected a positive number or None, got {depth_scale!r}")
+    if depth_scale is not None:
+        check_depth_scale(depth_scale)
     if not max_dt >= 0:
         raise ValueError(f"max_dt: expected a non-negative number of seconds, got {max_dt!r}")
     if (root / "groundtruth.txt").is_file():

@@ -65,8 +65,9 @@ def test_malformed_folders_name_the_file_and_the_problem(small_copy, tmp_path):
     with pytest.raises(ValueError, match="not a deep-video-mvs folder"):
         load_deep_video_mvs(tmp_path)
     (small_copy / "poses.txt").write_text("\n".join(lines) + "\n")
-    with pytest.raises(ValueError, match="depth_scale: expected a positive number"):
-        load_deep_video_mvs(small_copy, depth_scale=0)
+    for scale in (0, 1e-300):  # near 0 every code would lie at an infinite depth
+        with pytest.raises(ValueError, match="depth_scale: expected depth units per metre"):
+            load_deep_video_mvs(small_copy, depth_scale=scale)
 
 
 def test_images_named_without_zero_padding_take_their_poses_in_numeric_order(small_copy):

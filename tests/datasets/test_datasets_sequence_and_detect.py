@@ -169,8 +169,9 @@ def test_pgm_and_depth_errors(tmp_path):
         read_pgm(tmp_path / "a.pgm")
     with pytest.raises(ValueError, match=r"x\.pgm: file not found"):
         read_depth(tmp_path / "x.pgm", 1000.0)
-    with pytest.raises(ValueError, match="depth_scale: expected a positive number, got 0"):
-        read_depth(tmp_path / "a.pgm", 0)
+    for scale in (0, 1e-300, float("nan")):  # near 0 every code would lie at an infinite depth
+        with pytest.raises(ValueError, match=f"depth_scale: expected depth units per metre .* got {scale}"):
+            read_depth(tmp_path / "a.pgm", scale)
     Image.new("RGB", (2, 2)).save(tmp_path / "c.png")
     with pytest.raises(ValueError, match=r"c\.png: expected a 16-bit single-channel depth image, got PIL mode 'RGB'"):
         read_depth(tmp_path / "c.png", 1000.0)

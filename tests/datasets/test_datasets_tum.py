@@ -115,6 +115,8 @@ def test_tum_errors(tum_layout, slambook_K):
     (tum_layout / "groundtruth.txt").write_text("\n".join(lines[:3] + ["1305031102.5 1 2 3 0 0 1"] + lines[4:]))
     with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected 8 columns, got 7"):
         load_tum(tum_layout, K=slambook_K)
+    with pytest.raises(ValueError, match="depth_scale: expected depth units per metre"):
+        load_tum(tum_layout, K=slambook_K, depth_scale=1e-300)  # every code at an infinite depth
     (tum_layout / "groundtruth.txt").write_text("\n".join(lines[:3] + ["1305031102.501 1 2 3 0 0 0 0"] + lines[4:]))
     with pytest.raises(ValueError, match=r"groundtruth\.txt:4: expected finite values and a non-zero quaternion"):
         load_tum(tum_layout, K=slambook_K)
