@@ -116,12 +116,19 @@ class Camera:
         return self._c2w64.copy()
 
     def scaled(self, factor: float) -> "Camera":
-        """The same camera for an image resized by ``factor`` (pixel centres stay consistent)."""
+        """The same camera for its image resized by about ``factor``: to round(width x factor) x
+        round(height x factor) pixels, each axis by the factor its rounded size makes (`resized`), so
+        that the image's edges stay its edges and pixel centres stay consistent.
+
+        Example:
+            >>> cam = Camera([[500, 0, 32], [0, 500, 24], [0, 0, 1]], np.eye(4), 65, 49)
+            >>> half = cam.scaled(0.5)
+            >>> (half.width, half.height), half.K64()[0].tolist()
+            ((32, 24), [246.15384615384616, 0.0, 15.5])
+        """
         if not factor > 0:
             raise ValueError(f"factor: expected a positive number, got {factor!r}")
-        w = max(1, int(round(self.width * factor)))
-        h = max(1, int(round(self.height * factor)))
-        return Camera(self._resized_K(factor, factor), self._c2w64, w, h)
+        return self.resized(max(1, int(round(self.width * factor))), max(1, int(round(self.height * factor))))
 
     def resized(self, width: int, height: int) -> "Camera":
         """The same camera for its image resized to ``width`` x ``height`` (each axis by its own

@@ -60,6 +60,18 @@ def test_scaled_keeps_pixel_centres():
     assert torch.allclose(uv, torch.tensor([[0.25, 0.25]]), atol=1e-5)
 
 
+def test_scaled_to_a_rounded_size_keeps_the_images_edges():
+    """65 x 49 at 0.5 is 32 x 24 pixels: K follows that size, so the full image's far corner (the edge
+    of pixel 64, 48) still projects to the edge of the small image's last pixel, not half a pixel past."""
+    cam = Camera(K, np.eye(4), 65, 49)
+    small = cam.scaled(0.5)
+    assert (small.width, small.height) == (32, 24)
+    corner = cam.lift(torch.tensor([[64.5, 48.5], [-0.5, -0.5]]), torch.tensor([1.0, 1.0]))
+    uv, _ = small.project(corner)
+    assert torch.allclose(uv, torch.tensor([[31.5, 23.5], [-0.5, -0.5]]), atol=1e-4)
+    assert np.array_equal(small.K64(), cam.resized(32, 24).K64())
+
+
 @pytest.mark.parametrize(
     "kwargs, field, message",
     [
