@@ -188,7 +188,8 @@ class Frame:
             probabilities, each of magnitude at most `MAX_STORED_VALUE`), or a class map, integer
             [H', W'] of any integer type (one class id a pixel, negative for none), kept as int16 and
             fused as one-hot scores over ``num_classes`` channels (the same scene as its one-hot
-            scores give, without an [H', W', S] array per frame).
+            scores give, without an [H', W', S] array per frame). A pixel whose scores are all 0 (a
+            negative id) is no label evidence: a surface only such pixels saw renders no label.
         frame_id: optional free-form identifier.
         num_classes: K of a class map (required with one; None for scores, whose last axis is S).
     """

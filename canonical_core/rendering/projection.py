@@ -63,13 +63,18 @@ def channel_values(
     colour: Callable[[Tensor, Tensor], Tensor] = sh_to_rgb,  # (sh [N, K, 3], dirs [N, 3]) -> rgb [N, 3]
 ) -> Tensor:  # [N, D]
     """The per-Gaussian values to composite, concatenated in the order of ``channels``; ``colour``
-    evaluates the SH (`sh_to_rgb`, or its fast path for the cpu backend)."""
+    evaluates the SH (`sh_to_rgb`, or its fast path for the cpu backend). "labels" is S + 1 columns:
+    the scores, then whether the Gaussian has any label evidence (its scores not all 0), whose blend
+    says how much of a pixel's weight has labels."""
     dtype = gaussians.means.dtype
     parts = []
     for channel in channels:
         if channel == "rgb":
             center = torch.from_numpy(camera.c2w64()[:3, 3]).to(dtype=dtype, device=gaussians.means.device)
             parts.append(colour(gaussians.sh.to(dtype), gaussians.means - center).to(gaussians.means))
+        elif channel == "labels":  # the scores, and 1 for a Gaussian with label evidence
+            scores = gaussians.labels.to(dtype)
+            parts += [scores, scores.ne(0).any(-1, keepdim=True).to(dtype)]
         else:
             parts.append(getattr(gaussians, channel).to(dtype))
     if not parts:

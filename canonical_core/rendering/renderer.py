@@ -32,7 +32,9 @@ class RenderResult:
         depth: [H, W] view-space depth (``depth_mode``); 0 where alpha is 0.
         alpha: [H, W] accumulated opacity, 1 - final transmittance.
         features: [H, W, C] composited features sum(w_i f_i) (no background, not normalised).
-        labels: [H, W] int64 argmax of the composited label scores; -1 where alpha is 0.
+        labels: [H, W] int64 argmax of the composited label scores; -1 where alpha is 0, and where
+            under half the pixel's weight comes from Gaussians with label evidence (surfaces that only
+            unlabelled pixels saw: a class map's negative ids, frames without labels).
     """
 
     rgb: Tensor | None = None  # [H, W, 3]
@@ -68,8 +70,8 @@ def _background(background) -> Tensor:  # [3] float64
 
 
 
-def _channel_width(gaussians: Gaussians, channel: Channel) -> int:
-    return 3 if channel == "rgb" else getattr(gaussians, channel).shape[1]
+def _channel_width(gaussians: Gaussians, channel: Channel) -> int:  # columns in `channel_values`
+    return 3 if channel == "rgb" else getattr(gaussians, channel).shape[1] + (channel == "labels")
 
 
 def _resolve_backend(backend: str, device: torch.device, median_depth: bool) -> str:
@@ -202,6 +204,8 @@ def render(
     if "features" in outputs:
         result.features = split["features"]
     if "labels" in outputs:
-        result.labels = torch.where(covered, split["labels"].argmax(-1), -1)
+        scores, labelled = split["labels"][..., :-1], split["labels"][..., -1]
+        # a pixel drawn mostly by Gaussians without label evidence (surfaces no labelled pixel saw) has none
+        result.labels = torch.where(covered & (labelled >= 0.5 * blend.weight_sums), scores.argmax(-1), -1)
     return result
 

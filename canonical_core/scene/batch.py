@@ -87,7 +87,7 @@ def aggregate_batch(
     S = label_dims.pop() if label_dims else 0
     labels = torch.from_numpy(np.concatenate(
         [e.labels if e.labels is not None else np.zeros((len(e), S), np.float32) for e in evidence]))
-    has_label = torch.from_numpy(np.concatenate([np.full(len(e), e.labels is not None) for e in evidence]))
+    has_label = labels.ne(0).any(-1)  # a row of zeros (no class; a frame without labels) is no label evidence
 
     keys = voxel_keys(points, config.voxel_size)
     inside = keys >= 0

@@ -259,8 +259,10 @@ def _direction(x: Tensor) -> Tensor:  # [V, L] -> [V, L] unit length (0 for a ze
     return x.float() / x.float().norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def _labels(t: dict[str, Tensor], eps: float) -> Tensor:  # [V, S] label scores from their sums
-    return t["label_sum"] / (t["label_w"] + eps)[:, None]
+def _labels(t: dict[str, Tensor]) -> Tensor:  # [V, S] label scores from their sums
+    """The weighted mean of a voxel's label evidence; zeros where it has none (no labelled pixel)."""
+    w = t["label_w"][:, None]
+    return torch.where(w > 0, t["label_sum"] / torch.where(w > 0, w, 1.0), 0.0)
 
 
 def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, sort: bool = True) -> dict[str, Tensor]:
@@ -311,7 +313,7 @@ def fields_from_sums(sums: dict[str, np.ndarray | Tensor], config: SceneConfig, 
         "sh": solve_sh(r + eps, color_sum, t["sh_a"], t["sh_b"], config.decoder.sh_regularization),
     }
     if t["label_sum"].shape[1] > 0:
-        out["labels"] = _labels(t, eps)
+        out["labels"] = _labels(t)
     return out
 
 
@@ -328,5 +330,5 @@ def decoder_fields(sums: dict[str, np.ndarray], config: SceneConfig, features: b
     out = {"sh": solve_sh_stored(sums, config)} | ({"features": scene_features(sums, rows, eps)} if features else {})
     if "label_mean" in sums:  # stored only with label channels (without them, label_sum is [V, 0])
         t = {k: torch.as_tensor(v) for k, v in raw_sums({k: sums[k] for k in ("r_sum", "label_mean", "label_w")}).items()}
-        out["labels"] = _labels(t, eps)
+        out["labels"] = _labels(t)
     return out

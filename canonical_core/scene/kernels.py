@@ -280,10 +280,14 @@ def fold_kernel(
                     if p > 0:
                         for c in range(3):
                             row[SH_B + 3 * (p - 1) + c] += wb * (rgb[i, c] - np.float32(0.5))
-            if has_labels:
-                row[LABEL_W] += w
+            if has_labels:  # a row of zeros (a class map's pixel of no class) is no label evidence
+                labelled = False
                 for c in range(S):
-                    row[LABEL_SUM + c] += w * labels[i, c]
+                    labelled = labelled or labels[i, c] != 0
+                if labelled:
+                    row[LABEL_W] += w
+                    for c in range(S):
+                        row[LABEL_SUM + c] += w * labels[i, c]
             i = next_obs[i]
         n_obs[vi] += count
         row[R_SUM] += r_acc
