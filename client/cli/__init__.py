@@ -38,7 +38,7 @@ from typing import Callable
 
 import httpx
 
-from ..sdk import CanonicalError
+from ..sdk import CanonicalError, ServiceUnreachable
 from . import demo, offline, poses, render, serve, sessions, stream
 from .common import UsageError
 
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     except CanonicalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    except httpx.TransportError as exc:  # unreachable, refused, timed out
+    except (httpx.TransportError, ServiceUnreachable) as exc:  # unreachable, refused, timed out
         where = f"--url: cannot reach the service at {url}" if url is not None else "cannot reach the service"
         print(f"error: {where}: {str(exc) or type(exc).__name__}", file=sys.stderr)
         return 1

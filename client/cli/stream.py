@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 
 from canonical_core.datasets.files import add_capture_options  # imports no torch, no numba
 
-from ..sdk import Client, Session, StreamRefused
+from ..sdk import Client, Session, StreamStopped
 from .capture import capture_frames, load_capture
 from .common import UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id
 
@@ -106,7 +106,7 @@ def stream_frames(session, frames, scale: float = 1.0, start: int = 0, in_flight
     seconds). The fold reports' warnings and those raised while a frame is read and sent (a frame
     downscaled to the service's limit) go to stderr, each kind once.
 
-    Ctrl-C stops after the frames in flight; a refused frame stops the stream (`StreamRefused`)."""
+    Ctrl-C stops after the frames in flight; a refused frame stops the stream (`StreamRefused`, a `StreamStopped`)."""
     from tqdm import tqdm
 
     t0, new, sent = time.perf_counter(), 0, 0
@@ -198,7 +198,7 @@ def run_stream(args) -> int:
             sent, elapsed = stream_frames(target, frames, args.scale, start, args.in_flight)
         except StreamInterrupted as stop:
             sent, elapsed, interrupted = stop.sent, stop.elapsed, True
-        except StreamRefused as exc:
+        except StreamStopped as exc:  # refused by the service, or a frame the client could not send
             sent, elapsed, refused = exc.index - held, time.perf_counter() - t0, exc
         except ValueError as exc:  # a frame the capture cannot give (an unreadable image): the stream stops there
             sent, elapsed, refused = None, time.perf_counter() - t0, exc
@@ -222,7 +222,7 @@ def run_stream(args) -> int:
         if interrupted or refused:
             summary = f"{'interrupted' if interrupted else 'stopped'}: {summary}; continue with --session {session.id}"
         if refused:
-            print(f"error: {refused}{refused_files(frames, start + sent) if isinstance(refused, StreamRefused) else ''}",
+            print(f"error: {refused}{refused_files(frames, start + sent) if isinstance(refused, StreamStopped) else ''}",
                   file=sys.stderr)
             print(summary, file=sys.stderr)
             return 1

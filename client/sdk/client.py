@@ -8,8 +8,9 @@ import os
 import time
 
 import httpx
+import numpy as np
 
-from .errors import CanonicalError
+from .errors import CanonicalError, ServiceUnreachable
 from .session import Session, path_segment
 
 
@@ -24,17 +25,23 @@ def default_url() -> str:
     return os.environ.get("CANONICAL_URL") or "http://127.0.0.1:8000"
 
 
-def _check_finite(value, name: str) -> None:
-    """ValueError naming the setting (``range.near``) where ``value`` holds a NaN or an infinity, which
-    JSON cannot carry (the service would never see it to name it)."""
+def _setting(value, name: str):
+    """A session setting as JSON carries it: numpy scalars and arrays as Python numbers and lists;
+    ValueError naming the setting (``range.near``) where it holds a NaN or an infinity, which JSON
+    cannot carry (the service would never see it to name it)."""
     if isinstance(value, dict):
-        for key, item in value.items():
-            _check_finite(item, f"{name}.{key}")
-    elif isinstance(value, (list, tuple)):
-        for item in value:
-            _check_finite(item, name)
-    elif isinstance(value, float) and not math.isfinite(value):
+        return {key: _setting(item, f"{name}.{key}") for key, item in value.items()}
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_setting(item, name) for item in value]
+    if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    return value
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 class Client:
@@ -44,7 +51,7 @@ class Client:
         url: base URL, e.g. ``http://127.0.0.1:8000`` (default: `default_url`, as the CLI's ``--url``,
             so that scripts and the CLI find the same service).
         token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
-        timeout: seconds per request.
+        timeout: seconds per request (None: no limit).
         max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each);
             a frame with a ``frame_id`` is also retried this often, with growing waits, when the service
             cannot be reached or answers 500, 502, 503 or 504 (a restart, a proxy whose backend died):
@@ -53,6 +60,12 @@ class Client:
 
     def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 120.0, max_retries: int = 8,
                  max_wait: float = 10.0):
+        if isinstance(max_retries, bool) or not isinstance(max_retries, int) or max_retries < 0:
+            raise ValueError(f"max_retries: expected a whole number of at least 0, got {max_retries!r}")
+        if timeout is not None and not (_number(timeout) and 0 < timeout < math.inf):
+            raise ValueError(f"timeout: expected seconds above 0 (or None: no limit), got {timeout!r}")
+        if not (_number(max_wait) and 0 <= max_wait < math.inf):
+            raise ValueError(f"max_wait: expected seconds, 0 or more, got {max_wait!r}")
         url = url if url is not None else default_url()
         token = token if token is not None else os.environ.get("CANONICAL_API_TOKEN") or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
@@ -62,13 +75,16 @@ class Client:
 
     def _request(self, method: str, path: str, idempotent: bool = False, **kwargs) -> httpx.Response:
         """``method`` on ``path``, 429s retried; with ``idempotent`` (a request the service takes once
-        however often it comes), failures to reach the service and `RETRIED_SERVER_ERRORS` too."""
+        however often it comes: every GET, a view, a frame with its ``frame_id``), failures to reach
+        the service and `RETRIED_SERVER_ERRORS` too. `ServiceUnreachable` when no answer came."""
+        idempotent = idempotent or method == "GET"
         for attempt in range(self.max_retries + 1):
             try:
                 r = self._http.request(method, path, **kwargs)
-            except httpx.TransportError:
+            except httpx.TransportError as exc:
                 if not idempotent or attempt == self.max_retries:
-                    raise
+                    raise ServiceUnreachable(f"{method} {self._http.base_url}{path}: {type(exc).__name__}: "
+                                             f"{exc or 'no answer'}") from exc
                 time.sleep(self._retry_after(None, attempt))
                 continue
             again = r.status_code == 429 or (idempotent and r.status_code in RETRIED_SERVER_ERRORS)
@@ -90,10 +106,13 @@ class Client:
 
     @staticmethod
     def _error(r: httpx.Response) -> CanonicalError:
+        """The service's error answer (``{"error": {"code", "message", "field"}}``), or one with the body's
+        text where another server (a proxy) answered otherwise."""
         try:
             err = r.json()["error"]
-            return CanonicalError(r.status_code, err.get("code", "error"), err.get("message", ""), err.get("field"))
-        except (ValueError, KeyError, TypeError):
+            return CanonicalError(r.status_code, str(err.get("code", "error")), str(err.get("message", "")),
+                                  err.get("field"))
+        except (ValueError, KeyError, TypeError, AttributeError):
             return CanonicalError(r.status_code, "error", r.text[:500])
 
     def create_session(self, voxel_size: float | None = None, **settings) -> Session:
@@ -101,8 +120,7 @@ class Client:
         max_voxels, sh_degree, ..., groups as dicts, e.g. ``range={"near": 0.2}, sensor={"family": "hololens"}``).
         Without ``voxel_size`` the service chooses it from the first frame with depth (its stats say which)."""
         body = settings if voxel_size is None else {"voxel_size": voxel_size, **settings}
-        for name, value in body.items():
-            _check_finite(value, name)
+        body = {name: _setting(value, name) for name, value in body.items()}
         r = self._request("POST", "/v1/sessions", json=body)
         return Session(self, r.json()["id"], label_dim=0)
 
@@ -125,6 +143,7 @@ class Client:
         return self._limits
 
     def sessions(self) -> list[dict]:
+        """Every session's summary (``GET /v1/sessions``: id, frames, voxels, ...), oldest first."""
         return self._request("GET", "/v1/sessions").json()["sessions"]
 
     def prune_sessions(self, dry_run: bool = False) -> dict:
@@ -133,13 +152,19 @@ class Client:
         return self._request("POST", "/v1/sessions/prune", params={"dry_run": "true" if dry_run else "false"}).json()
 
     def health(self) -> dict:
+        """The service's health (``GET /healthz``)."""
         return self._request("GET", "/healthz").json()
 
     def metrics(self) -> str:
+        """The service's metrics in Prometheus' text format (``GET /metrics``)."""
         return self._request("GET", "/metrics").text
 
     def close(self) -> None:
+        """Close the client's connections (also on leaving a ``with Client(...)`` block)."""
         self._http.close()
+
+    def __repr__(self) -> str:
+        return f"Client({str(self._http.base_url)!r})"
 
     def __enter__(self) -> "Client":
         return self

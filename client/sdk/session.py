@@ -3,12 +3,10 @@ corrections, renders, features, segmentation, exports and live fold events out."
 
 from __future__ import annotations
 
-import collections
-import itertools
 import json
+import tempfile
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Iterator
 from urllib.parse import quote
@@ -18,24 +16,39 @@ import numpy as np
 
 from canonical_wire import decode_array, unpack
 
-from .errors import CanonicalError, StreamRefused
+from .errors import CanonicalError, ServiceUnreachable
 from .frames import MSGPACK, FrameCodec, fit_rgb_only, frame_body, is_class_map, wire_matrix
+from .stream import stream_frames
 
 if TYPE_CHECKING:
     from .client import Client
 
 
+def _whole(value, name: str) -> int:
+    """``value`` as an int; ValueError naming ``name`` where it is not a whole number."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name}: expected a whole number, got {value!r}")
+    return int(value)
+
+
 def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None,
           depth: str | None = None) -> dict:
-    body = {"K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w"), "width": int(width),
-            "height": int(height)}
+    """A view's JSON body; ValueError naming the field for what JSON or the service would refuse
+    unnamed (NaN in a matrix, a width that is no number)."""
+    body = {"K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w"), "width": _whole(width, "width"),
+            "height": _whole(height, "height")}
+    for name in ("K", "c2w"):
+        if not np.isfinite(body[name]).all():  # JSON has no NaN
+            raise ValueError(f"{name}: contains NaN or inf")
     if colour is not None:
         body["colour"] = colour
     if depth is not None:
         body["depth"] = depth
     if max_gaussians is not None:
-        body["max_gaussians"] = int(max_gaussians)
+        body["max_gaussians"] = _whole(max_gaussians, "max_gaussians")
     if background is not None:
+        if np.shape(background) != (3,) or not np.isfinite(np.asarray(background, np.float64)).all():
+            raise ValueError(f"background: expected 3 finite numbers (RGB in [0, 1]), got {background!r}")
         body["background"] = [float(x) for x in background]
     return body
 
@@ -61,10 +74,13 @@ def _write(path: str | os.PathLike, data: bytes) -> Path:
     file; the temporary file is removed if the write fails, and the error names ``path``, not it.
     Missing parent folders are created."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".part")
     path.parent.mkdir(parents=True, exist_ok=True)
+    # a name of its own, so that downloads to one path at once never write or move each other's file
+    handle, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".part")
+    tmp = Path(name)
     try:
-        tmp.write_bytes(data)
+        with os.fdopen(handle, "wb") as f:
+            f.write(data)
         os.replace(tmp, path)
     except BaseException as exc:  # Ctrl-C too: no half file of the download's size left behind
         tmp.unlink(missing_ok=True)
@@ -124,42 +140,25 @@ class Session:
         one gives. A frame whose ``frame_id`` the session holds already is answered with its report
         (its ``frame_index`` the place it holds) and takes no new place: the frames from the first go
         alone until one takes a new place, so a stream resumed from a point before the last frame the
-        session holds skips those it holds. A refused frame stops the stream: `StreamRefused` (the
+        session holds skips those it holds. A frame that repeats the ``frame_id`` of an earlier frame of
+        the same stream is posted once that one is answered and answered as it (a replay; 409 where its
+        content differs), taking no place. A refused frame stops the stream: `StreamRefused` (the
         refusal's status, code and field) says which frame it was and how many were acknowledged (the
-        reports yielded); the frames posted after it are not folded. ``frames`` is read lazily,
-        ``in_flight`` ahead."""
+        reports yielded); the frames posted after it are not folded. A frame the client cannot send
+        (its arguments refused by the SDK's own checks, the service unreachable) stops it too, with
+        `StreamStopped` (the error as its cause), before any frame after it is posted. ``frames`` is
+        read lazily, ``in_flight`` ahead."""
         if isinstance(in_flight, bool) or not isinstance(in_flight, int) or in_flight < 1:
             raise ValueError(f"in_flight: expected a positive integer, got {in_flight!r}")
-        index = self.stats()["frames"] if first_index is None else int(first_index)
-        pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="canonical-frames")
-        pending: collections.deque = collections.deque()  # (future, its Frame-Index)
-        acknowledged, alone = 0, True
-        try:
-            for frame in itertools.chain(frames, [None]):
-                if frame is not None:
-                    pending.append((pool.submit(self._post_frame, frame, index), index))
-                    index += 1
-                # alone: where an earlier stream's frame was refused, the frames after it are refused
-                # until a frame takes its place; and a frame the session holds takes none
-                while pending and (frame is None or len(pending) >= (1 if alone else in_flight)):
-                    future, place = pending[0]
-                    try:
-                        report = future.result()
-                    except CanonicalError as exc:
-                        raise StreamRefused(exc, place, acknowledged) from exc
-                    pending.popleft()
-                    acknowledged += 1
-                    if alone and report.get("frame_index", place) < place:  # held already: its place is free again
-                        index -= 1
-                    else:
-                        alone = False
-                    yield report
-        finally:
-            # frames not yet posted are dropped; posted ones finish (the service answers them, in order)
-            pool.shutdown(wait=True, cancel_futures=True)
+        return stream_frames(self, frames, in_flight, first_index)
 
     def _post_frame(self, frame: dict, index: int | None = None) -> dict:
         """POST one frame (`add_frame`'s keyword arguments), with its ``Frame-Index`` when given."""
+        return self._send_frame(*self._frame_body(frame), index)
+
+    def _frame_body(self, frame: dict) -> tuple[bytes, dict]:
+        """A frame's body (`add_frame`'s keyword arguments checked and encoded) and the arguments it was
+        made of (K as sent, ``num_classes`` found)."""
         frame = dict(frame)
         downscale = frame.pop("downscale", True)
         if frame.get("labels") is not None:
@@ -168,9 +167,13 @@ class Session:
             limit = self.client.limits().get("max_rgb_only_pixels")
             if limit is not None:
                 frame["rgb"], frame["K"] = fit_rgb_only(frame["rgb"], frame["K"], limit)
+        return frame_body(**frame), frame
+
+    def _send_frame(self, body: bytes, frame: dict, index: int | None) -> dict:
+        """POST a built frame ``body`` (`_frame_body`), at stream place ``index`` when given."""
         headers = {"Content-Type": MSGPACK} | ({} if index is None else {"Frame-Index": str(index)})
         report = self.client._request("POST", f"{self._path}/frames", idempotent=frame.get("frame_id") is not None,
-                                      content=frame_body(**frame), headers=headers).json()
+                                      content=body, headers=headers).json()
         if frame.get("labels") is not None:
             self.label_dim = frame["num_classes"] or int(np.shape(frame["labels"])[-1])
         return report
@@ -245,33 +248,40 @@ class Session:
 
     def render_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None, background=None,
                    colour: str | None = None) -> bytes:
+        """The view's colour as PNG bytes (arguments as `render`)."""
         body = _view(K, c2w, width, height, max_gaussians, background, colour)
-        return self.client._request("POST", f"{self._path}/render", json=body, headers={"Accept": "image/png"}).content
+        return self.client._request("POST", f"{self._path}/render", json=body, headers={"Accept": "image/png"},
+                                    idempotent=True).content
 
     def features(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
         """{"features": float16 [H,W,C], "alpha": float32 [H,W]}."""
         return self._arrays("features", _view(K, c2w, width, height, max_gaussians, None))
 
     def features_preview_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        """The view's features as a picture (their first three principal components as RGB), PNG bytes."""
         return self.client._request("POST", f"{self._path}/features", params={"preview": "png"},
-                                    json=_view(K, c2w, width, height, max_gaussians, None)).content
+                                    json=_view(K, c2w, width, height, max_gaussians, None), idempotent=True).content
 
     def segmentation(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> dict:
         """{"labels": uint16 [H,W] (65535 where nothing is drawn), "alpha": float32 [H,W]}."""
         return self._arrays("segmentation", _view(K, c2w, width, height, max_gaussians, None))
 
     def segmentation_png(self, K, c2w, width: int, height: int, max_gaussians: int | None = None) -> bytes:
+        """The view's labels as a palette PNG (index 0 nothing drawn, k + 1 label k), bytes."""
         return self.client._request("POST", f"{self._path}/segmentation", json=_view(K, c2w, width, height, max_gaussians, None),
-                                    headers={"Accept": "image/png"}).content
+                                    headers={"Accept": "image/png"}, idempotent=True).content
 
     def _arrays(self, route: str, body: dict) -> dict:
-        r = self.client._request("POST", f"{self._path}/{route}", json=body, headers={"Accept": MSGPACK})
+        r = self.client._request("POST", f"{self._path}/{route}", json=body, headers={"Accept": MSGPACK}, idempotent=True)
         return {k: decode_array(v, k) for k, v in unpack(r.content, route).items()}
 
     def export_ply(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        """The scene's Gaussians as a 3DGS PLY file at ``path`` (at most ``max_gaussians``, the most
+        opaque); returns the path. Written beside it first, so that a failed download leaves no half file."""
         return self._export(".ply", path, max_gaussians)
 
     def export_splat(self, path: str | os.PathLike, max_gaussians: int | None = None) -> Path:
+        """The scene's Gaussians as a ``.splat`` file (the web viewers' 32-byte rows) at ``path``, as `export_ply`."""
         return self._export(".splat", path, max_gaussians)
 
     def export_mesh(self, path: str | os.PathLike, min_support: float | None = None) -> Path:
@@ -293,20 +303,29 @@ class Session:
         ends when the service stops or the iterator is closed. Raises `CanonicalError` when the
         service refuses the stream (e.g. 429 over its cap of open streams, 422 for a bad ``every``)."""
         params = {} if every is None else {"every": every}
-        with self.client._http.stream("GET", f"{self._path}/events", params=params,
-                                      headers={"Accept": "text/event-stream"}) as r:
-            if r.status_code >= 400:
-                r.read()
-                raise self.client._error(r)
-            name = "message"
-            for line in r.iter_lines():
-                if line.startswith("event:"):
-                    name = line[6:].strip()
-                elif line.startswith("data:"):
-                    yield name, json.loads(line[5:])
-                    name = "message"
+        # no read timeout: a quiet session's stream sends only a comment every 15 s
+        timeout = self.client._http.timeout.as_dict() | {"read": None}
+        try:
+            with self.client._http.stream("GET", f"{self._path}/events", params=params, timeout=httpx.Timeout(**timeout),
+                                          headers={"Accept": "text/event-stream"}) as r:
+                if r.status_code >= 400:
+                    r.read()
+                    raise self.client._error(r)
+                name = "message"
+                for line in r.iter_lines():
+                    if line.startswith("event:"):
+                        name = line[6:].strip()
+                    elif line.startswith("data:"):
+                        yield name, json.loads(line[5:])
+                        name = "message"
+        except (httpx.RemoteProtocolError, httpx.ReadError):  # the service went (killed) mid-stream: it ends
+            return
+        except httpx.TransportError as exc:
+            raise ServiceUnreachable(f"GET {self.client._http.base_url}{self._path}/events: {type(exc).__name__}: "
+                                     f"{exc or 'no answer'}") from exc
 
     def stats(self) -> dict:
+        """The session's stats (``GET /v1/sessions/{id}``: frames, voxels, gaussians, label_dim, config, ...)."""
         return self.client._request("GET", self._path).json()
 
     def wait_for_colours(self, timeout: float = 120.0, poll: float = 0.25, progress=None) -> dict:
@@ -331,9 +350,11 @@ class Session:
         return stats
 
     def digest(self) -> dict:
+        """The scene's digest (``sha256`` of its state, and its frames): equal digests, equal scenes."""
         return self.client._request("GET", f"{self._path}/digest").json()
 
     def delete(self) -> None:
+        """Delete the session and its files on the service."""
         self.client._request("DELETE", self._path)
 
     def __repr__(self) -> str:

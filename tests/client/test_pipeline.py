@@ -18,7 +18,7 @@ from PIL import Image
 from canonical_core.datasets import load_tsdf_fusion
 from client.cli import main
 from client.cli.capture import capture_frames
-from client.sdk import MSGPACK, Client, StreamRefused, frame_body, unpack
+from client.sdk import MSGPACK, Client, ServiceUnreachable, StreamRefused, StreamStopped, frame_body, unpack
 from tests.conftest import folded_scene
 from tests.server.harness import VOXEL, ServerProcess, small_frames
 
@@ -105,6 +105,46 @@ def test_a_refused_frame_stops_the_stream_and_says_what_was_acknowledged(service
         # the stream goes on from the refused frame, corrected
         assert [r["frame_index"] for r in session.add_frames(frames[3:])] == list(range(3, len(frames)))
         assert session.digest()["sha256"] == digests[len(frames)]
+
+
+def test_a_frame_the_client_cannot_send_stops_the_stream_at_once_and_posts_nothing_after_it(service, frames, digests):
+    """A 4x4 K on the third frame (the SDK's own check refuses it while the frames around it are built on
+    other workers): the stream stops with `StreamStopped` naming the frame and what was acknowledged,
+    at once, and no frame after it was posted (the service would have held those, numbered for a place
+    no frame fills, for frame_order_wait_s)."""
+    bad = {**frames[2], "K": np.eye(4)}
+    with Client(service.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        got, start = [], time.perf_counter()
+        with pytest.raises(StreamStopped) as info:
+            for report in session.add_frames(frames[:2] + [bad] + frames[3:6], in_flight=3):
+                got.append(report["frame_index"])
+        assert time.perf_counter() - start < WAIT_S / 2
+        stopped = info.value
+        assert not isinstance(stopped, StreamRefused) and isinstance(stopped.__cause__, ValueError)
+        assert got == [0, 1] and stopped.index == 2 and stopped.acknowledged == 2 and "K:" in str(stopped)
+        # nothing was posted after it: the corrected stream goes on from it at once
+        assert [r["frame_index"] for r in session.add_frames(frames[2:], in_flight=3)] == list(range(2, len(frames)))
+        assert session.digest()["sha256"] == digests[len(frames)]
+
+
+def test_a_frame_id_repeated_within_a_stream_is_a_replay_that_takes_no_place(service, frames, digests):
+    """f0, f1, f2, f1 again, f3, ...: the repeat is answered with f1's report and the frames after it
+    keep their places (before, they were numbered one place too far and waited frame_order_wait_s for
+    a frame that never came)."""
+    named = [{**f, "frame_id": f"f{k}"} for k, f in enumerate(frames[:5])]
+    with Client(service.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        start = time.perf_counter()
+        reports = list(session.add_frames(named[:3] + [named[1]] + named[3:], in_flight=3))
+        assert time.perf_counter() - start < WAIT_S
+        assert [r["frame_index"] for r in reports] == [0, 1, 2, 1, 3, 4] and reports[3] == reports[1]
+        assert session.digest()["sha256"] == digests[5]
+        # a frame the session held before the stream, met mid-stream: stopped at once, saying what to do
+        with pytest.raises(StreamStopped, match="frame_id 'f1': the session holds it already .* first_index=6"):
+            list(session.add_frames([{**frames[5], "frame_id": "f5"}, named[1], {**frames[6], "frame_id": "f6"}],
+                                    in_flight=3, first_index=5))
+        assert time.perf_counter() - start < 2 * WAIT_S
 
 
 def test_frame_index_out_of_place_is_refused_naming_it(service, frames):
@@ -268,7 +308,7 @@ def test_frames_with_ids_ride_through_a_kill9_and_restart_of_the_service_and_fra
         assert session.digest()["sha256"] == digests[len(frames)]  # every frame folded once
 
         proc.kill9()
-        with pytest.raises(httpx.TransportError):  # without an id a resent frame might fold twice: not resent
+        with pytest.raises(ServiceUnreachable):  # without an id a resent frame might fold twice: not resent
             session.add_frame(**{**frames[0], "frame_id": None})
     finally:
         proc.kill9()

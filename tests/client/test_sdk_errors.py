@@ -1,0 +1,117 @@
+"""The SDK's own errors and edges against a real service: no answer is `ServiceUnreachable`, odd
+arguments are refused naming them before anything is sent, numpy values travel as numbers, a quiet
+session's event stream outlives the request timeout, and downloads to one path at once stay whole."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from client.sdk import CanonicalError, Client, ServiceUnreachable
+
+VOXEL = 0.008
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # free once closed: nothing listens there
+
+
+def test_no_answer_is_service_unreachable_naming_the_request():
+    with Client(f"http://127.0.0.1:{closed_port()}", max_retries=1, max_wait=0.01) as client:
+        with pytest.raises(ServiceUnreachable, match=r"GET http://127\.0\.0\.1:\d+/healthz: ConnectError") as info:
+            client.health()  # a GET: retried, then said in the SDK's terms
+        assert isinstance(info.value, ConnectionError) and isinstance(info.value.__cause__, httpx.ConnectError)
+        with pytest.raises(ServiceUnreachable, match="POST .*/v1/sessions: ConnectError"):
+            client.create_session(voxel_size=VOXEL)  # not retried: a POST that may have made a session
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"max_retries": -1}, "max_retries"), ({"max_retries": 1.5}, "max_retries"), ({"max_retries": True}, "max_retries"),
+    ({"timeout": 0}, "timeout"), ({"timeout": float("nan")}, "timeout"), ({"max_wait": -1}, "max_wait"),
+])
+def test_client_arguments_are_checked_naming_them(kwargs, field):
+    with pytest.raises(ValueError, match=f"^{field}: "):
+        Client("http://127.0.0.1:1", **kwargs)
+    Client("http://127.0.0.1:1", timeout=None, max_retries=0, max_wait=0).close()  # the edges that are fine
+
+
+@pytest.mark.parametrize("body", [b'{"error": null}', b'{"error": "x"}', b"[1, 2]", b"<html>bad gateway</html>"])
+def test_an_error_answer_in_another_shape_is_still_a_canonical_error(body):
+    error = Client._error(httpx.Response(502, content=body))
+    assert isinstance(error, CanonicalError) and error.status == 502 and error.code == "error"
+
+
+def test_view_arguments_are_refused_naming_them_before_anything_is_sent(server):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        K, pose = np.array([[300.0, 0, 80], [0, 300, 60], [0, 0, 1]]), np.eye(4)
+        bad_pose = pose.copy()
+        bad_pose[0, 3] = np.nan
+        for args, kwargs, field in [((K, bad_pose, 160, 120), {}, "c2w"), ((K, pose, "abc", 120), {}, "width"),
+                                    ((K, pose, 160, 12.5), {}, "height"), ((K, pose, 160, 120), {"background": 0.5}, "background"),
+                                    ((K, pose, 160, 120), {"max_gaussians": 1.5}, "max_gaussians")]:
+            with pytest.raises(ValueError, match=f"^{field}: "):
+                session.render(*args, **kwargs)
+        assert session.render(K, pose, np.int64(160), 120)["rgb"].shape == (120, 160, 3)  # numpy integers are numbers
+
+
+def test_numpy_numbers_in_session_settings_travel_as_numbers(server):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=np.float32(0.01), max_voxels=np.int64(10**6),
+                                        range={"near": np.float64(0.2)})
+        config = session.stats()["config"]
+        assert config["max_voxels"] == 10**6 and config["range"]["near"] == 0.2
+        assert abs(config["voxel_size"] - 0.01) < 1e-6
+        with pytest.raises(ValueError, match=r"^range\.near: expected a finite number"):
+            client.create_session(range={"near": np.float32("nan")})
+
+
+def test_a_quiet_sessions_events_outlive_the_request_timeout(server, frames):
+    """The service writes a keep-alive comment every 15 s; a client timeout of 1 s used to end the
+    stream with a ReadTimeout after a second of quiet."""
+    with Client(server.url, timeout=1.0) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        events, got, failed = session.events(), [], []
+
+        def read():
+            try:
+                got.extend(name for name, _ in (next(events), next(events)))
+            except Exception as exc:  # what a reader would see
+                failed.append(exc)
+
+        reader = threading.Thread(target=read)
+        reader.start()
+        time.sleep(2.5)
+        session.add_frame(**frames[0])
+        reader.join(30)
+        events.close()
+        assert not failed and got == ["state", "fold"]
+
+
+def test_downloads_to_one_path_at_once_each_leave_a_whole_file(server, frames, tmp_path):
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        session.add_frame(**frames[0])
+        target, errors = tmp_path / "scene.ply", []
+
+        def export():
+            try:
+                session.export_ply(target)
+            except Exception as exc:
+                errors.append(exc)
+
+        threads = [threading.Thread(target=export) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        expected = httpx.get(f"{server.url}/v1/sessions/{session.id}/gaussians.ply").content
+        assert not errors and target.read_bytes() == expected
+        assert [p.name for p in tmp_path.iterdir()] == ["scene.ply"]  # no temporary file left
