@@ -54,10 +54,30 @@ class WireError(ValueError):
         self.field, self.status, self.code = field, status, code
 
 
+# A message holds a few small containers (a frame: its field map, its arrays' maps, a matrix's rows,
+# an array's shape): bounded, so that a body of a byte an empty list cannot make a Python object of
+# fifty bytes for each of its bytes before anything looks at it
+MAX_ITEMS = 64  # entries of one list or map
+MAX_CONTAINERS = 1024  # lists and maps in one message
+MAX_STR_BYTES = 1 << 20  # one string (a frame_id, a dtype's name); bytes (images, arrays) are not strings
+
+
 def unpack(body: bytes, field: str = "body") -> dict:
-    """A msgpack map from ``body``; WireError(400) naming ``field`` when it is not one."""
+    """A msgpack map from ``body``; WireError(400) naming ``field`` when it is not one, or when it holds
+    more than `MAX_CONTAINERS` lists and maps, a list or map of more than `MAX_ITEMS` entries or a
+    string of more than `MAX_STR_BYTES`."""
+    made = 0
+
+    def counted(container):
+        nonlocal made
+        made += 1
+        if made > MAX_CONTAINERS:
+            raise ValueError(f"more than {MAX_CONTAINERS} lists and maps")
+        return container
+
     try:
-        obj = msgpack.unpackb(body, raw=False, strict_map_key=False)
+        obj = msgpack.unpackb(body, raw=False, strict_map_key=False, max_array_len=MAX_ITEMS, max_map_len=MAX_ITEMS,
+                              max_str_len=MAX_STR_BYTES, list_hook=counted, object_hook=counted)
     except Exception as exc:  # msgpack raises several unrelated types for broken input
         raise WireError(field, f"malformed msgpack ({type(exc).__name__}: {exc})", 400, "malformed_body") from None
     if not isinstance(obj, dict):
@@ -117,8 +137,11 @@ def array_shape(obj) -> list[int] | None:
     return list(shape)
 
 
-def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | None = None) -> np.ndarray:
-    """An owned, writable, native-order numpy array from an array map; WireError(422) naming ``field``."""
+def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | None = None,
+                 sides: tuple[int | None, ...] | None = None) -> np.ndarray:
+    """An owned, writable, native-order numpy array from an array map; WireError(422) naming ``field``.
+    ``ndim`` and ``sides`` (the sizes each dimension must have, None for any) are checked against the
+    declared shape before a byte is decompressed: a small body may declare a shape of gigabytes."""
     if not is_array(obj):
         got = sorted(map(str, obj)) if isinstance(obj, dict) else type(obj).__name__
         raise WireError(field, f"expected an array map {{dtype, shape, data}}, got {got}")
@@ -130,6 +153,8 @@ def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | No
         raise WireError(field, f"shape must be a list of integers in 0 .. {MAX_SIDE - 1}, got {obj['shape']!r}")
     if ndim is not None and len(shape) != ndim:
         raise WireError(field, f"expected {ndim} dimensions, got shape {shape}")
+    if sides is not None and (len(shape) != len(sides) or any(s is not None and s != n for s, n in zip(sides, shape))):
+        raise WireError(field, f"expected shape [{', '.join('N' if s is None else str(s) for s in sides)}], got {shape}")
     if not isinstance(data, (bytes, bytearray)):
         raise WireError(field, f"data must be bytes, got {type(data).__name__}")
     expected = math.prod(shape) * DTYPES[dtype].itemsize
@@ -154,3 +179,6 @@ def _decompress(data: bytes, expected: int, field: str) -> bytes:
         return zstandard.ZstdDecompressor().decompress(data, max_output_size=expected)
     except zstandard.ZstdError as exc:
         raise WireError(field, f"data is not a zstandard frame of at most {expected} bytes ({exc})") from None
+    except MemoryError:  # a shape no caller bounded: its bytes cannot be had
+        raise WireError(field, f"shape and dtype need {expected} bytes, more than this process can hold", 413,
+                        "too_large") from None

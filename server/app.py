@@ -129,10 +129,11 @@ class GuardMiddleware:
             if size < 0:
                 return await self._reject(scope, receive, send, 400, "malformed_body", "Content-Length: not a non-negative integer",
                                           "Content-Length")
-            if size > self.max_bytes:
-                frames.body_refused(scope, f"body: {size} bytes exceed the limit of {self.max_bytes} bytes")
+            limit, setting = self._limit(headers)
+            if size > limit:
+                frames.body_refused(scope, f"body: {size} bytes exceed the limit of {limit} bytes ({setting})")
                 return await self._reject(scope, receive, send, 413, "too_large",
-                                          f"body: {size} bytes exceed the limit of {self.max_bytes} bytes", "body")
+                                          f"body: {size} bytes exceed the limit of {limit} bytes ({setting})", "body")
             if not self.bodies.take(size):
                 return await self._reject(scope, receive, send, *self._bodies_full(size))
         elif headers.get(b"transfer-encoding", b"").lower() != b"chunked":
@@ -146,8 +147,9 @@ class GuardMiddleware:
             self.bodies.give(held[0])
 
     async def _with_body(self, scope, receive, send, held: list[int], chunked: bool):
+        limit, setting = self._limit(dict(scope["headers"]))
         try:
-            body = await self._read_body(receive, held, chunked)
+            body = await self._read_body(receive, held, chunked, limit)
         except BodyTimeout as exc:
             frames.body_refused(scope, f"body: {exc}")
             return await error_response(408, "timeout", f"body: {exc}", "body", {"Connection": "close"})(scope, receive, send)
@@ -155,10 +157,10 @@ class GuardMiddleware:
             return await self._reject(scope, receive, send, *self._bodies_full(held[0]))
         if body is None:  # the client went away
             return None
-        if len(body) > self.max_bytes:
-            frames.body_refused(scope, f"body: more than {self.max_bytes} bytes (the limit)")
+        if len(body) > limit:
+            frames.body_refused(scope, f"body: more than {limit} bytes (the limit, {setting})")
             return await self._reject(scope, receive, send, 413, "too_large",
-                                      f"body: more than {self.max_bytes} bytes (the limit)", "body")
+                                      f"body: more than {limit} bytes (the limit, {setting})", "body")
         sent = False
 
         async def replay():
@@ -169,6 +171,15 @@ class GuardMiddleware:
             return await receive()
 
         return await self.app(scope, replay, send)
+
+    def _limit(self, headers: dict) -> tuple[int, str]:
+        """The body limit of a request and its setting's name: frames (msgpack, multipart) may take
+        ``max_body_bytes``; any other body is JSON to FastAPI (it parses a body without a Content-Type
+        as JSON too), parsed whole on the event loop into tens of times its bytes: ``max_json_body_bytes``."""
+        kind = headers.get(b"content-type", b"").partition(b";")[0].strip().lower().decode("latin-1")
+        if kind in frames.FRAME_TYPES:
+            return self.max_bytes, "max_body_bytes"
+        return min(self.max_bytes, self.settings.max_json_body_bytes), "max_json_body_bytes"
 
     def _open(self, scope) -> bool:
         return scope.get("path") in self.OPEN_PATHS or viewer.is_page(scope.get("path", ""))
@@ -187,8 +198,8 @@ class GuardMiddleware:
         scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
         return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())
 
-    async def _read_body(self, receive, held: list[int], chunked: bool) -> bytes | None:
-        """The whole body (stopping once it passes the limit), or None when the client disconnected. A
+    async def _read_body(self, receive, held: list[int], chunked: bool, limit: int) -> bytes | None:
+        """The whole body (stopping once it passes ``limit``), or None when the client disconnected. A
         chunked body takes its bytes from the bodies in flight as they arrive (counted in ``held[0]``),
         `BodiesFull` once they have no more."""
         chunks, size = [], 0
@@ -212,7 +223,7 @@ class GuardMiddleware:
                         if not self.bodies.take(len(chunks[-1])):
                             raise BodiesFull
                         held[0] = size
-                    if size > self.max_bytes or not message.get("more_body", False):
+                    if size > limit or not message.get("more_body", False):
                         return b"".join(chunks)
         except TimeoutError:
             raise BodyTimeout(f"no data for {self.settings.read_timeout_s:g} s" if stalled

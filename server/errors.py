@@ -20,7 +20,8 @@ from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
 from .scheduler import ClientGone, QueueFull
-from .session_errors import FrameIdConflict, FrameOutOfOrder, MemoryBudgetExceeded, SessionNotFound, SessionUnavailable, TooManySessions
+from .session_errors import (FrameIdConflict, FrameOutOfOrder, FramesAhead, MemoryBudgetExceeded, SessionNotFound,
+                             SessionUnavailable, TooManySessions)
 from .wire import WireError
 
 log = logging.getLogger("canonical.server")
@@ -102,6 +103,10 @@ def install_error_handlers(app: FastAPI) -> None:
         status, code = (507, "insufficient_storage") if exc.full else (503, "storage_unavailable")
         return error_response(status, code, f"data_dir: {exc.strerror}; the request was not applied", "data_dir",
                               {"Retry-After": "30"})
+
+    @app.exception_handler(FramesAhead)
+    async def _ahead(request: Request, exc: FramesAhead):
+        return error_response(429, "busy", str(exc), exc.field, {"Retry-After": "1"})
 
     @app.exception_handler(MemoryBudgetExceeded)
     async def _over_budget(request: Request, exc: MemoryBudgetExceeded):

@@ -18,12 +18,17 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Iterator
+from contextlib import contextmanager
 from typing import Callable
 
-from .session_errors import FrameOutOfOrder
+from .session_errors import FrameOutOfOrder, FramesAhead
 
 FIELD = "Frame-Index"
+# numbered frames of one session read (or being read) ahead of their turn: each holds its decoded
+# arrays and its begun fold while it waits outside any job queue, so they are bounded; a client keeps
+# a few in flight (the SDK 3), one past the bound gets 429 and comes again
+MAX_AHEAD = 16
 CHECK_S = 1.0  # a waiting frame looks this often whether it is still wanted (its session deleted, the service stopping)
 
 
@@ -38,6 +43,7 @@ class FrameOrder:
         # stream place -> why no numbered frame will fold there (the end of a message that begins
         # "frame N "): the frames numbered after it give up until a frame takes that place
         self._refused: dict[int, str] = {}
+        self._ahead = 0  # numbered frames read or waiting, not yet folding (`ahead`)
 
     async def wait_turn(self, index: int, frames: Callable[[], int], wait_s: float,
                         check: Callable[[], None] = lambda: None,
@@ -75,6 +81,21 @@ class FrameOrder:
                 with self._mutex:  # a waiter that looks again is not left registered once per look
                     if (loop, woken) in self._waiters:
                         self._waiters.remove((loop, woken))
+
+    @contextmanager
+    def ahead(self) -> Iterator[None]:
+        """Count a numbered frame from before it is read until its turn came (or it was refused);
+        `FramesAhead` where `MAX_AHEAD` are already."""
+        with self._mutex:
+            if self._ahead >= MAX_AHEAD:
+                raise FramesAhead(FIELD, f"{MAX_AHEAD} numbered frames of this session are already read ahead of their "
+                                         "turn; send it again once the frames before it are folded")
+            self._ahead += 1
+        try:
+            yield
+        finally:
+            with self._mutex:
+                self._ahead -= 1
 
     def check_turn(self, index: int, held: int) -> None:
         """Refuse a frame that is not next in the session's stream (it holds ``held`` frames): one

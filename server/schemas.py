@@ -133,6 +133,8 @@ class Deleted(BaseModel):
 FoldReportOut = model_of_dataclass(FoldReport, "FoldReportOut")
 
 
+MAX_FRAME_KEYS = 1_000_000  # frames one correction may name: nine hours of a 30 Hz stream
+
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
 Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=3, max_length=4)]
 
@@ -180,7 +182,8 @@ class Limits(BaseModel):
     that reads them can fit its frames first (the SDK downscales frames without depth to
     ``max_rgb_only_pixels``)."""
 
-    max_body_bytes: int
+    max_body_bytes: int = Field(description="a frame's body")
+    max_json_body_bytes: int = Field(description="any other body (JSON: views, settings, pose corrections)")
     max_image_pixels: int = Field(description="pixels of a frame's images or of a requested view")
     max_rgb_only_pixels: int = Field(description="pixels of a frame without depth")
     max_label_channels: int
@@ -195,8 +198,10 @@ class PosesRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    poses: dict[str, Matrix4] = Field(default_factory=dict, description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
-    remove: list[str] = Field(default_factory=list, description="frame keys to remove")
+    # bounded first: each item that fails validation would otherwise make an error object of its own
+    poses: dict[str, Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
+                                      description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
+    remove: list[str] = Field(default_factory=list, max_length=MAX_FRAME_KEYS, description="frame keys to remove")
     wait: bool = Field(True, description="answer once the scene is corrected (200), unless the re-fold is long "
                                          "(then 202 and a status to poll); false: always 202 at once")
 

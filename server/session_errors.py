@@ -39,6 +39,15 @@ class FrameOutOfOrder(ValueError):
         self.field = field
 
 
+class FramesAhead(Exception):
+    """A numbered frame past the frames a session may hold read ahead of their turn: 429, sent again
+    later (not a refusal: the frames numbered after it go on waiting for it)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+
 class CorrectionRefused(ValueError):
     """A correction the session cannot take (no archive, or one that cannot serve it): 409 naming ``field``."""
 

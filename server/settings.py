@@ -37,6 +37,9 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="where sessions are stored (one folder per session)")
     api_token: SecretStr | None = Field(None, description="when set, every route but /healthz needs 'Authorization: Bearer <token>'")
     max_body_bytes: int = Field(64 * 1024 * 1024, gt=0, description="larger request bodies get 413")
+    max_json_body_bytes: int = Field(4 * 1024 * 1024, gt=0, description=(
+        "larger bodies other than frames (JSON: views, settings, pose corrections of about 12,000 frames) get "
+        "413: JSON is parsed whole, on the event loop, into up to a hundred times its bytes"))
     max_image_pixels: int = Field(4096 * 4096, gt=0, description="larger images (frames or requested views) get 413")
     max_rgb_only_pixels: int = Field(1280 * 1024, gt=0, description="larger frames without depth get 413 (they are plane-swept and kept whole until folded)")
     max_label_channels: int = Field(64, gt=0, description="frames with more label channels get 413 (each is a float per voxel)")

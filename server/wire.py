@@ -158,8 +158,14 @@ class FrameLimits:
     max_channel_values: int | None = None
 
 
+MATRIX_SHAPES = {"K": ([3, 3],), "c2w": ([4, 4], [3, 4])}
+
+
 def _matrix(value, field: str):
     if isinstance(value, dict):
+        shape = array_shape(value)  # checked before its bytes are read: a small body may declare gigabytes
+        if shape is not None and shape not in MATRIX_SHAPES[field]:
+            raise WireError(field, f"expected shape {' or '.join(map(str, MATRIX_SHAPES[field]))}, got {shape}")
         return decode_array(value, field, FLOATS)
     if not _is_number_matrix(value):
         raise WireError(field, f"expected a matrix of numbers (a list of rows), got {str(value)[:80]!r}")
@@ -239,7 +245,7 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
         shape = array_shape(rgb)
         if shape is not None and len(shape) == 3:
             check_pixels(shape[1], shape[0], "rgb", max_pixels)
-        rgb = decode_array(rgb, "rgb", ("uint8",), ndim=3)
+        rgb = decode_array(rgb, "rgb", ("uint8",), sides=(None, None, 3))
     height, width = rgb.shape[:2]
     depth, scale = msg.get("depth"), msg.get("depth_scale")
     if depth is None and limits.max_rgb_only_pixels is not None and width * height > limits.max_rgb_only_pixels:
@@ -253,6 +259,9 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
             raise WireError("depth_scale", "required with a depth PNG (units per metre, e.g. 1000 for millimetres)")
         depth = decode_depth_png(bytes(depth), scale, "depth", max_pixels)
     elif depth is not None:
+        shape = array_shape(depth)
+        if shape is not None and len(shape) == 2:
+            check_pixels(shape[1], shape[0], "depth", max_pixels)
         depth = decode_array(depth, "depth", ("uint16", *FLOATS), ndim=2)
         if depth.dtype != np.uint16 and scale is not None:  # it would be ignored: the frame folded at the wrong depth
             raise WireError("depth_scale", f"goes with integer depth (uint16 sensor units or a depth PNG); {depth.dtype} "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import time
-
+from contextlib import nullcontext
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Request, Response
@@ -20,6 +20,7 @@ from ..solves import solve_soon
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
+FRAME_TYPES = (*MSGPACK_TYPES, "multipart/form-data")  # the bodies `max_body_bytes` is for
 CAMERA_FIELDS = ("K", "c2w", "depth_scale", "num_classes", "frame_id", "width", "height")
 STOPPING_RETRY_AFTER_S = 5  # a first resend soon: while the service is down, the SDK backs off on its own
 # digits only: int() would also read "1_0" as 10, "+1" and " 1" as 1
@@ -122,7 +123,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     within ``frame_order_wait_s``; 404 once its session is deleted, 503 once the service stops."""
     frame_index = None if frame_index is None else int(frame_index)
     kind = media_type(request)
-    if kind not in MSGPACK_TYPES and kind != "multipart/form-data":
+    if kind not in FRAME_TYPES:
         exc = ApiError(415, "unsupported_media_type",
                        f"Content-Type: expected application/msgpack or multipart/form-data, got {kind or 'none'!r}",
                        "Content-Type")
@@ -150,11 +151,13 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
 
     t0, ahead = time.perf_counter(), None
     try:
-        record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
-        decoded = time.perf_counter() - t0
-        if frame_index is not None:  # on the loop, holding no job
-            await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s,
-                                          lambda: still_wanted(request, session, frame_index), left)
+        # a numbered frame holds its arrays while it waits, outside any job queue: counted (`FrameOrder.ahead`)
+        with session.order.ahead() if frame_index is not None else nullcontext():
+            record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
+            decoded = time.perf_counter() - t0
+            if frame_index is not None:  # on the loop, holding no job
+                await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s,
+                                              lambda: still_wanted(request, session, frame_index), left)
         t0 = time.perf_counter()
         report, replay = await jobs.run(session.add_frame, record, frame, settings.snapshot_every_frames,
                                         settings.snapshot_every_seconds, frame_index, ahead and ahead.frame,

@@ -156,7 +156,7 @@ def test_features_a_session_would_ignore_are_refused(hard, sid, frames):
 def labelled(hard, frames):
     r = httpx.post(f"{hard.url}/v1/sessions", json={"voxel_size": VOXEL}, headers=AUTH)
     session_id = r.json()["id"]
-    labels = encode_array(np.random.default_rng(0).random((8, 8, 4)).astype(np.float32))
+    labels = encode_array(np.random.default_rng(0).random((6, 8, 4)).astype(np.float32))  # the image's shape
     assert post_frame(hard, session_id, {**msgpack_frame(frames[0]), "labels": labels}).status_code == 200
     return session_id
 

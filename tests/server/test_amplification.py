@@ -1,0 +1,132 @@
+"""Small requests that would make large objects, on a real server: array maps whose declared shapes
+are gigabytes, msgpack of empty lists, JSON bodies of invalid items, and numbered frames read ahead
+of their turn. Each is refused before it costs what it declares, and the service's resident memory
+stays within tens of megabytes of where it was."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+import zstandard
+
+from server.ordering import MAX_AHEAD
+
+from .harness import VOXEL, ServerProcess, msgpack_frame
+
+MSGPACK = {"Content-Type": "application/msgpack"}
+WAIT_S = 3.0
+GROWTH_MIB = 150  # far below what each request declares (gigabytes); a fold of a small frame stays under it
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    root = tmp_path_factory.mktemp("amplification")
+    proc = ServerProcess(root / "data", root / "server.log", frame_order_wait_s=WAIT_S, snapshot_every_seconds=3600,
+                         warm_up="false")
+    proc.start()
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def sid(service, frames):
+    session_id = httpx.post(f"{service.url}/v1/sessions", json={"voxel_size": VOXEL}).json()["id"]
+    assert post(service, session_id, msgpack.packb(msgpack_frame(frames[0]), use_bin_type=True)).status_code == 200
+    return session_id
+
+
+def post(service, session_id: str, body: bytes, **headers) -> httpx.Response:
+    return httpx.post(f"{service.url}/v1/sessions/{session_id}/frames", content=body, headers={**MSGPACK, **headers},
+                      timeout=60)
+
+
+def resident_mib(service, peak: bool = True) -> float:
+    """The service's resident memory: its peak so far (what a request that let go again still raised)."""
+    status = Path(f"/proc/{service.proc.pid}/status").read_text()
+    return int(status.split("VmHWM:" if peak else "VmRSS:")[1].split()[0]) / 1024
+
+
+def zstd_of_zeros(nbytes: int) -> bytes:
+    """A zstandard frame of ``nbytes`` zeros that does not declare its size: kilobytes on the wire."""
+    out = zstandard.ZstdCompressor(write_content_size=False).compressobj()
+    chunk = bytes(1 << 20)
+    data = b"".join(out.compress(chunk) for _ in range(nbytes >> 20))
+    return data + out.flush()
+
+
+def bomb(shape: list[int], dtype: str, nbytes: int) -> dict:
+    return {"dtype": dtype, "shape": shape, "data": zstd_of_zeros(nbytes), "codec": "zstd"}
+
+
+@pytest.mark.parametrize("field, array, status", [
+    ("rgb", bomb([1, 1, 600 << 20], "uint8", 600 << 20), 422),  # a pixel of 600 million channels
+    ("K", bomb([8192, 8192], "float32", 256 << 20), 422),  # an 8192 x 8192 "matrix"
+    ("c2w", bomb([8192, 8192], "float32", 256 << 20), 422),
+    ("depth", bomb([1 << 30, 1 << 30], "float32", 1 << 20), 413),  # was a MemoryError: a 500
+], ids=["rgb-channels", "K", "c2w", "depth-sides"])
+def test_array_maps_declaring_gigabytes_are_refused_before_their_bytes_are_read(service, sid, frames, field, array, status):
+    message = {**msgpack_frame(frames[1]), field: array}
+    before = resident_mib(service)
+    r = post(service, sid, msgpack.packb(message, use_bin_type=True))
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["field"] == field
+    assert resident_mib(service) - before < GROWTH_MIB
+    assert httpx.get(f"{service.url}/v1/sessions/{sid}").json()["frames"] == 1
+
+
+@pytest.mark.parametrize("body", [msgpack.packb([[]] * 2_000_000), msgpack.packb({"rgb": [[[[]] * 60] * 60] * 60}),
+                                  msgpack.packb({"frame_id": "x" * (2 << 20)})], ids=["list", "nested", "string"])
+def test_msgpack_that_would_make_millions_of_objects_is_malformed_at_once(service, sid, body):
+    before = resident_mib(service)
+    r = post(service, sid, body)
+    assert r.status_code == 400 and r.json()["error"]["code"] == "malformed_body", r.text
+    assert resident_mib(service) - before < GROWTH_MIB
+
+
+def test_a_json_body_of_invalid_items_is_one_error_and_json_bodies_are_bounded(service, sid):
+    """Parsed and validated, 3.3 MB of empty lists are about 300 MB at the peak, one body at a time on
+    the event loop (the JSON bound keeps that so); an error object for each invalid item made it a
+    gigabyte more, and a 60 MB body ended in the kernel's OOM killer."""
+    before = resident_mib(service)
+    items = json.dumps({"remove": [[]] * 1_100_000}, separators=(",", ":")).encode()
+    r = httpx.post(f"{service.url}/v1/sessions/{sid}/poses", content=items, headers={"Content-Type": "application/json"},
+                   timeout=60)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "remove", r.text
+    assert "at most 1000000" in r.json()["error"]["message"]  # one error, not one per item
+    assert resident_mib(service) - before < 400
+    limits = httpx.get(f"{service.url}/v1/limits").json()
+    over = b" " * (limits["max_json_body_bytes"] + 1)
+    for headers in ({"Content-Type": "application/json"}, {}):  # a body without a type is parsed as JSON too
+        r = httpx.post(f"{service.url}/v1/sessions/{sid}/render", content=over, headers=headers, timeout=60)
+        assert r.status_code == 413 and "max_json_body_bytes" in r.json()["error"]["message"], r.text
+    assert httpx.get(f"{service.url}/v1/sessions/{sid}").json()["frames"] == 1
+
+
+def test_numbered_frames_read_ahead_of_their_turn_are_bounded(service, frames):
+    """Frames numbered far past the session's count wait, each holding its decoded arrays: past
+    `MAX_AHEAD` of them a frame gets 429 (sent again later; not a refusal), and the waiting ones are
+    refused once no frame comes for the wait."""
+    session_id = httpx.post(f"{service.url}/v1/sessions", json={"voxel_size": VOXEL}).json()["id"]
+    body = msgpack.packb(msgpack_frame(frames[1]), use_bin_type=True)
+    answers: dict[int, httpx.Response] = {}
+
+    def send(k: int):
+        answers[k] = post(service, session_id, body, **{"Frame-Index": str(1000 + k)})
+
+    threads = [threading.Thread(target=send, args=(k,)) for k in range(MAX_AHEAD + 4)]
+    for t in threads:  # one after another, each read before the next comes (well within the wait)
+        t.start()
+        time.sleep(0.1)
+    for t in threads:
+        t.join()
+    ahead = [r for r in answers.values() if r.status_code == 429 and "read ahead" in r.json()["error"]["message"]]
+    assert ahead and all(r.json()["error"]["field"] == "Frame-Index" and r.headers["Retry-After"] == "1" for r in ahead)
+    assert all(r.status_code in (409, 429) for r in answers.values())
+    assert httpx.get(f"{service.url}/v1/sessions/{session_id}").json()["frames"] == 0
