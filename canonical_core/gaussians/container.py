@@ -50,13 +50,18 @@ class Gaussians:
     labels: Tensor | None = None  # [N, S]
 
     def __post_init__(self):
-        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        n = self.means.shape[0] if isinstance(self.means, Tensor) and self.means.ndim == 2 else -1
         expected = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,)}
         for name, shape in expected.items():
             t = getattr(self, name)
             if not isinstance(t, Tensor) or tuple(t.shape) != shape:
                 got = list(t.shape) if isinstance(t, Tensor) else type(t).__name__
-                raise ValueError(f"{name}: expected shape {list(shape)}, got {got}")
+                want = ["N" if s == -1 else s for s in shape] if n == -1 else list(shape)
+                raise ValueError(f"{name}: expected shape [{', '.join(map(str, want))}], got {got}")
+        for name in ("means", "scales", "quats", "opacities", "sh", "features", "labels"):
+            t = getattr(self, name)
+            if isinstance(t, Tensor) and not t.is_floating_point():  # the backends would disagree on what it means
+                raise ValueError(f"{name}: expected a floating-point tensor, got dtype {t.dtype}")
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"sh: expected shape [{n}, K, 3], got {list(self.sh.shape)}")
         sh_degree_from_bases(self.sh.shape[1])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Sequence, get_args
 
@@ -42,6 +43,10 @@ class RenderResult:
     alpha: Tensor | None = None  # [H, W]
     features: Tensor | None = None  # [H, W, C]
     labels: Tensor | None = None  # [H, W] int64
+
+    def __repr__(self) -> str:  # the maps' shapes, not their pixels
+        shown = (f"{name}={list(t.shape)}" for name, t in vars(self).items() if t is not None)
+        return f"RenderResult({', '.join(shown)})"
 
 
 def _check_outputs(outputs: Sequence[str], gaussians: Gaussians) -> tuple[str, ...]:
@@ -167,8 +172,8 @@ def render(
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
     if depth_mode not in get_args(DepthMode):
         raise ValueError(f"depth_mode: expected one of {list(get_args(DepthMode))}, got {depth_mode!r}")
-    if not near_plane > 0:
-        raise ValueError(f"near_plane: expected a positive distance, got {near_plane!r}")
+    if not 0 < near_plane < math.inf:  # an infinite plane would cull every Gaussian, silently
+        raise ValueError(f"near_plane: expected a positive, finite distance, got {near_plane!r}")
     num_threads = torch.get_num_threads() if num_threads is None else num_threads
     if isinstance(num_threads, bool) or not isinstance(num_threads, int) or num_threads < 1:
         raise ValueError(f"num_threads: expected a positive integer, got {num_threads!r}")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core import Gaussians, load_ply, load_splat, save_ply, save_splat
+from canonical_core import Camera, Gaussians, load_ply, load_splat, render, save_ply, save_splat
 from canonical_core.gaussians import SH_C0, ply_bytes
 
 THREE_DGS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]  # then f_rest_*, opacity, ...
@@ -182,6 +182,12 @@ def test_container_validates_shapes():
         Gaussians(means=g.means, scales=g.scales[:3], quats=g.quats, opacities=g.opacities, sh=g.sh)
     with pytest.raises(ValueError, match="sh: expected 1, 4, 9 or 16"):
         Gaussians(means=g.means, scales=g.scales, quats=g.quats, opacities=g.opacities, sh=torch.zeros(4, 5, 3))
+    with pytest.raises(ValueError, match=r"^means: expected shape \[N, 3\], got \[5\]"):
+        Gaussians(means=torch.zeros(5), scales=g.scales, quats=g.quats, opacities=g.opacities, sh=g.sh)
+    with pytest.raises(ValueError, match="^means: expected a floating-point tensor, got dtype torch.int64"):
+        Gaussians(means=g.means.long(), scales=g.scales, quats=g.quats, opacities=g.opacities, sh=g.sh)
+    assert repr(render(g, Camera(np.eye(3), np.eye(4), 4, 3), outputs=("rgb", "alpha"))) == \
+        "RenderResult(rgb=[3, 4, 3], alpha=[3, 4])"  # shapes, not pixels
     assert len(g.index(torch.tensor([0, 2]))) == 2
 
 

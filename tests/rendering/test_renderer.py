@@ -292,6 +292,7 @@ def test_auto_backend_on_cpu_is_the_fast_path():
         (dict(colour="premultiplied"), "colour"),
         (dict(backend="gsplat"), "backend"),
         (dict(near_plane=0.0), "near_plane"),
+        (dict(near_plane=float("inf")), "^near_plane: expected a positive, finite distance"),  # it culled everything
         (dict(num_threads=0), "num_threads"),
     ],
 )
