@@ -209,6 +209,14 @@ def _opened(source) -> tuple:
     try:
         try:
             size = memoryview(source).nbytes if in_memory else os.path.getsize(source)
+            if in_memory:
+                magic = bytes(memoryview(source)[:4])
+            else:
+                with open(source, "rb") as f:
+                    magic = f.read(4)
+            if magic != ZIP_MAGIC:  # numpy would try other formats, and name its pickle option for them
+                raise ValueError(f"it starts with {magic!r}, not as a snapshot's zip archive does"
+                                 + ("; a PLY file is read by load_ply" if magic[:3] == b"ply" else ""))
             npz = np.load(io.BytesIO(source) if in_memory else source, allow_pickle=False)
             if not isinstance(npz, np.lib.npyio.NpzFile):
                 raise ValueError(f"a single {type(npz).__name__}, not an archive of arrays")
@@ -229,6 +237,8 @@ def _opened(source) -> tuple:
         raise
     return npz, header
 
+
+ZIP_MAGIC = b"PK\x03\x04"  # a snapshot is an .npz: a zip archive of arrays
 
 # deflate's largest expansion: a member that claims to unpack to more is damaged
 MAX_DEFLATE_RATIO = 1032

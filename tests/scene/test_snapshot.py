@@ -136,6 +136,11 @@ def test_damaged_bytes_are_refused_naming_the_file(snapshot, tmp_path):
     path.write_bytes(rewritten(snapshot, header(config={"voxel_size": "x"})))
     with pytest.raises(ValueError, match=f"^{re.escape(str(path))}: header config: voxel_size"):
         read_config(path)
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n")  # an export given as a snapshot
+    with pytest.raises(ValueError, match=r"not a readable scene file \(it starts with b'ply\\n', not as a snapshot's zip "
+                                         r"archive does; a PLY file is read by load_ply\)$") as err:
+        Scene.load(path)
+    assert "pickle" not in str(err.value)  # numpy's own message pointed at an unsafe option
 
 
 def test_anything_but_bytes_is_refused_naming_the_argument():
