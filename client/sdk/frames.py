@@ -22,7 +22,8 @@ FRAME_CODECS = get_args(FrameCodec)
 
 def wire_matrix(m, shape: tuple[int, int], name: str) -> list:
     """``m`` as the nested lists of floats a body carries (msgpack or JSON); ValueError naming the
-    argument ``name`` unless it is numbers of shape ``shape``, before anything is sent.
+    argument ``name`` unless it is numbers of shape ``shape``, before anything is sent. A pose (4x4)
+    may be its top three rows, 3x4, as the service takes it.
 
     Example:
         >>> wire_matrix(np.eye(4), (3, 3), "K")
@@ -33,7 +34,7 @@ def wire_matrix(m, shape: tuple[int, int], name: str) -> list:
         a = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: expected a {shape[0]}x{shape[1]} matrix of numbers ({exc})") from None
-    if a.shape != shape:
+    if a.shape != shape and not (shape == (4, 4) and a.shape == (3, 4)):
         raise ValueError(f"{name}: expected a {shape[0]}x{shape[1]} matrix, got shape {list(a.shape)}")
     return a.tolist()
 

@@ -59,7 +59,9 @@ def test_view_arguments_are_refused_naming_them_before_anything_is_sent(server):
                                     ((K, pose, 160, 120), {"max_gaussians": 1.5}, "max_gaussians")]:
             with pytest.raises(ValueError, match=f"^{field}: "):
                 session.render(*args, **kwargs)
-        assert session.render(K, pose, np.int64(160), 120)["rgb"].shape == (120, 160, 3)  # numpy integers are numbers
+        view = session.render(K, pose, np.int64(160), 120)  # numpy integers are numbers
+        assert view["rgb"].shape == (120, 160, 3)
+        assert np.array_equal(session.render(K, pose[:3], 160, 120)["rgb"], view["rgb"])  # a 3x4 pose, as the service takes
 
 
 def test_numpy_numbers_in_session_settings_travel_as_numbers(server):
