@@ -21,6 +21,7 @@ from ..datasets import MissingIntrinsics, load_dataset
 from ..datasets.files import add_capture_options
 from ..rendering import Colour
 from .methods import METHODS
+from .report import UnwritableFolder
 
 
 def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
@@ -73,16 +74,18 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _not_for_segmentation(args: argparse.Namespace) -> list[str]:
-    """The options given that the segmentation experiment does not use (it would ignore them)."""
+    """The options given that the segmentation experiment does not use (it would ignore them); those
+    that only turn a part off (``--stability-views none``, ``--no-extrapolation``) ask for what it does
+    anyway, so a command line shared by both experiments passes."""
     given = {"--noise": bool(args.noise), "--mixed-noise": args.mixed_noise is not None,
-             "--stability-views": args.stability_views is not None,
-             "--no-extrapolation": args.no_extrapolation, "--colour": args.colour != "normalised"}
+             "--stability-views": bool(args.stability_views), "--colour": args.colour != "normalised"}
     return [option for option, set_ in given.items() if set_]
 
 
 def run_eval(args: argparse.Namespace) -> int:
     """Run `evaluate` (`evaluate_segmentation` with --segmentation) with the parsed arguments; prints
-    results.md unless --quiet. Returns 0, or 2 (with the message on stderr) for invalid arguments."""
+    results.md unless --quiet. Returns 0, or 2 (with the message on stderr) for invalid arguments,
+    an --out that cannot be written among them (checked before the runs)."""
     from .run import evaluate
     from .segmentation import evaluate_segmentation
 
@@ -101,6 +104,9 @@ def run_eval(args: argparse.Namespace) -> int:
                      out_dir=args.out, progress=not args.quiet, scale=args.scale, voxel_size=args.voxel_size,
                      stability_views=args.stability_views, extrapolation=not args.no_extrapolation,
                      colour=args.colour)
+    except UnwritableFolder as exc:
+        print(f"canonical eval: error: --out: {exc.detail}", file=sys.stderr)
+        return 2
     except (ValueError, ImportError) as exc:
         hint = " (here: --K fx,fy,cx,cy)" if isinstance(exc, MissingIntrinsics) else ""
         print(f"canonical eval: error: {exc}{hint}", file=sys.stderr)
@@ -112,4 +118,9 @@ def run_eval(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = configure_parser(argparse.ArgumentParser(prog="python -m canonical_core.eval", description=__doc__.split("\n\n")[0]))
-    return run_eval(parser.parse_args(argv))
+    args = parser.parse_args(argv)
+    try:
+        return run_eval(args)
+    except KeyboardInterrupt:  # as the ``canonical`` command: one line, the shell's code for Ctrl-C
+        print("interrupted", file=sys.stderr)
+        return 130

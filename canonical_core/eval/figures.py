@@ -112,8 +112,29 @@ def plot_stability(results: Mapping, path: Path) -> None:
     plt.close(fig)
 
 
+_LABEL_MARGIN = 4  # pixels: a grid label's inset from its column's left edge, and the gap kept on its right
+
+
+def fit_label(label: str, font, width: int) -> str:
+    """``label`` as it fits a grid column ``width`` pixels wide in ``font`` (margins kept): a
+    ``model=`` setting's path shown by its file name (the folders say nothing the name does not), then,
+    where it is still too wide, the text cut and ended with "..."; a label that fits is kept as it is.
+    Without this a long label runs under its neighbours' and both become unreadable."""
+    room = width - 2 * _LABEL_MARGIN
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength
+    if measure(label, font=font) <= room:
+        return label
+    label = ":".join(f"model={Path(part[6:]).name}" if part.startswith("model=") else part for part in label.split(":"))
+    if measure(label, font=font) <= room:
+        return label
+    while label and measure(label + "...", font=font) > room:
+        label = label[:-1]
+    return label + "..." if label or measure("...", font=font) <= room else ""
+
+
 def image_grid(columns: Mapping[str, Sequence[np.ndarray]]) -> Image.Image:
-    """Columns of uint8 [H, W, 3] images (one row per held-out frame) under their names."""
+    """Columns of uint8 [H, W, 3] images (one row per held-out frame) under their names, each name
+    fitted to its column (`fit_label`)."""
     names = list(columns)
     h, w = columns[names[0]][0].shape[:2]
     factor = min(1.0, GRID_TILE_WIDTH / w)
@@ -123,7 +144,7 @@ def image_grid(columns: Mapping[str, Sequence[np.ndarray]]) -> Image.Image:
     draw = ImageDraw.Draw(canvas)
     font = ImageFont.load_default()
     for c, name in enumerate(names):
-        draw.text((c * tw + 4, 3), name, fill="black", font=font)
+        draw.text((c * tw + _LABEL_MARGIN, 3), fit_label(name, font, tw), fill="black", font=font)
         for r, img in enumerate(columns[name]):
             canvas.paste(Image.fromarray(img).resize((tw, th), Image.BOX), (c * tw, _HEADER + r * th))
     return canvas

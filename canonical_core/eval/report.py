@@ -11,12 +11,16 @@ Files in the output folder:
 - ``noise_psnr.png``: PSNR vs depth-noise level per method, one panel per N (with --noise);
 - ``stability.png``: feature-splat cosine to the reference vs input views (when computed);
 - ``grid_N{N}.png``: ground truth and every method at a few held-out frames, clean depth.
+
+Figures of an earlier run in the folder that this one does not write (the segmentation experiment's,
+a grid of an N not run now) are removed.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -263,6 +267,35 @@ def markdown(results: Mapping) -> str:
     return "\n".join(lines) + "\n"
 
 
+EVALUATION_FIGURES = ("psnr_vs_views.png", "noise_psnr.png", "stability.png", "grid_N*.png")
+SEGMENTATION_FIGURES = ("miou_vs_views.png", "grid_*_N*.png")
+"""The figures of each experiment: a report removes the other's from a folder the two share, so
+that the folder shows one run only."""
+
+
+class UnwritableFolder(ValueError):
+    """An output folder that cannot be made or written; ``field`` names the argument that gave it and
+    ``detail`` says the path and why, so that a command can name its own flag instead."""
+
+    def __init__(self, field: str, detail: str):
+        super().__init__(f"{field}: {detail}")
+        self.field, self.detail = field, detail
+
+
+def check_writable(folder: str | Path, field: str = "out_dir") -> Path:
+    """Make ``folder`` (and its parents) and check that a file can be written in it; `UnwritableFolder`
+    naming ``field`` otherwise. Called before a long run, which would otherwise fail only at the end
+    when it writes its results (a path under a file, an existing file, a folder without write access)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise UnwritableFolder(field, f"cannot write {folder}: {exc.strerror or exc}") from None
+    return folder
+
+
 def write_report(results: Mapping, grids: Mapping[int, Mapping[str, Sequence[np.ndarray]]], out_dir: Path) -> list[Path]:
     """Write every file listed in the module docstring; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -279,7 +312,33 @@ def write_report(results: Mapping, grids: Mapping[int, Mapping[str, Sequence[np.
     for n, columns in grids.items():
         written.append(out_dir / f"grid_N{n}.png")
         image_grid(columns).save(written[-1])
-    remove_stale(out_dir, ["noise_psnr.png", "stability.png", "grid_N*.png"], written)
+    remove_stale(out_dir, [*EVALUATION_FIGURES, *SEGMENTATION_FIGURES], written)
+    return written
+
+
+def write_partial_report(results: Mapping, out_dir: Path) -> list[Path]:
+    """results.json and results.md of an interrupted evaluation: the groups of runs that finished, in
+    plain tables, under a note that says so. The pivots and figures need every method at every N, so
+    none are drawn, and an earlier run's figures are removed so that none stand beside these numbers."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [out_dir / "results.json", out_dir / "results.md"]
+    written[0].write_text(json.dumps(_finite(results), indent=1, allow_nan=False))
+    methods = results["methods"]
+    order = lambda runs: sorted(runs, key=lambda r: (r["views"], methods.index(r["method"])))  # noqa: E731
+    lines = [f"# Evaluation on {results['dataset']}: partial (interrupted)", "",
+             "The run was interrupted: these are the groups of runs (every method at one N) that finished before it. "
+             "The comparisons across N and the figures of a full report are left out."]
+    for level in [0.0, *results["noise_levels"]]:
+        done = [r for r in results["runs"] if r["noise"] == level]
+        if done:
+            title = "clean depth" if level == 0 else f"depth noise {level:g}"
+            lines += ["", f"## Held-out views, {title}", "", *_table(_METRIC_HEADER, _metric_rows(order(done)))]
+    for key, title in (("mixed_noise", "Mixed-quality inputs"), ("extrapolation", "Extrapolation, clean depth")):
+        done = (results[key] or {}).get("runs") or []
+        if done:
+            lines += ["", f"## {title}", "", *_table(_METRIC_HEADER, _metric_rows(order(done)))]
+    written[1].write_text("\n".join(lines) + "\n")
+    remove_stale(out_dir, [*EVALUATION_FIGURES, *SEGMENTATION_FIGURES], written)
     return written
 
 

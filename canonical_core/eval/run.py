@@ -48,7 +48,7 @@ from .methods import METHODS, Model, build, check_methods, parse_method
 from .metrics import DEPTH_TOLERANCE_VOXELS, cosine_map, coverage_ceiling, covered, coverage, depth_agreement, depth_edge_band, psnr, ssim
 from .protocol import Split, extrapolation_split, interpolation_split, stability_inputs
 from .figures import require_matplotlib
-from .report import write_report
+from .report import check_writable, write_partial_report, write_report
 
 
 def add_depth_noise(frame: Frame, level: float, position: int) -> Frame:
@@ -204,7 +204,9 @@ def evaluate(
     colour: Colour = "normalised",
 ) -> dict:
     """Run the protocol (module docstring) and write results.json, results.md, PNG plots and image
-    grids into ``out_dir``; returns the results dict (the JSON content).
+    grids into ``out_dir``; returns the results dict (the JSON content). Interrupted (Ctrl-C), it
+    writes the groups of runs finished so far, marked partial (`report.write_partial_report`), and
+    raises KeyboardInterrupt again.
 
     Args:
         dataset: a path any loader reads (`load_dataset`), or a FrameSequence.
@@ -223,7 +225,6 @@ def evaluate(
         colour: how Gaussians' renders are scored, "normalised" or "composited" (`rendering.render`).
     """
     require_matplotlib()
-    sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
     methods = check_methods(list(METHODS) if methods is None else methods)
     noise = sorted(set(_positive_level("noise", level) for level in noise))
     if mixed_noise is not None:
@@ -232,6 +233,7 @@ def evaluate(
         raise ValueError(f"voxel_size: expected a positive number, got {voxel_size!r}")
     if colour not in get_args(Colour):
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")
+    sequence = dataset if isinstance(dataset, FrameSequence) else load_dataset(dataset)
     n = len(sequence)
     split = interpolation_split(n, views)
     extra: Split | None = extrapolation_split(n, views, split.heldout) if extrapolation else None
@@ -242,6 +244,7 @@ def evaluate(
     stab = stability_inputs(n, split.heldout, stability_views)  # checked even when no method has features
     stab = stab if feature_methods else {}
     stab_methods = feature_methods if stab else []
+    out_dir = check_writable(out_dir)  # once the arguments are known good, before the runs take their minutes
 
     input_sets = [*split.inputs.values(), *(extra.inputs.values() if extra else ()), *stab.values()]
     positions = sorted(set(split.heldout).union(*input_sets))
@@ -283,21 +286,25 @@ def evaluate(
         add_common_psnr(runs, scored, targets)
         return runs
 
-    runs = []
-    for level in [0.0, *noise]:
-        noisy = {p: add_depth_noise(frames[p], level, p) for p in set().union(*split.inputs.values())}
-        first: dict[str, list[Tensor]] = {}
-        for n_views, inputs in sorted(split.inputs.items()):
-            runs += run_group([noisy[p] for p in inputs], n_views, first, level, keep_grid=level == 0)
-    mixed_runs, first = [], {}
-    if mixed_noise is not None:
-        for n_views, inputs in sorted(split.inputs.items()):
+    runs, mixed_runs, extrapolation_runs, stability_rows = [], [], [], []
+    try:  # Ctrl-C: the groups finished so far are written as partial results, then the interrupt goes on
+        for level in [0.0, *noise]:
+            noisy = {p: add_depth_noise(frames[p], level, p) for p in set().union(*split.inputs.values())}
+            first: dict[str, list[Tensor]] = {}
+            for n_views, inputs in sorted(split.inputs.items()):
+                runs += run_group([noisy[p] for p in inputs], n_views, first, level, keep_grid=level == 0)
+        first = {}
+        for n_views, inputs in sorted(split.inputs.items()) if mixed_noise is not None else ():
             mixed_runs += run_group(add_mixed_depth_noise([frames[p] for p in inputs], inputs, mixed_noise), n_views,
                                     first, mixed_noise)
-    first = {}
-    extrapolation_runs = [run for n_views, inputs in sorted(extra.inputs.items() if extra else ())
-                          for run in run_group([frames[p] for p in inputs], n_views, first)]
-    stability_rows = [row for name in stab_methods for row in stability(name, stab, frames, targets, voxel_size, bar)]
+        first = {}
+        for n_views, inputs in sorted(extra.inputs.items() if extra else ()):
+            extrapolation_runs += run_group([frames[p] for p in inputs], n_views, first)
+        for name in stab_methods:
+            stability_rows += stability(name, stab, frames, targets, voxel_size, bar)
+        interrupted = False
+    except KeyboardInterrupt:
+        interrupted = True
     bar.close()
 
     results = {
@@ -325,5 +332,8 @@ def evaluate(
         "stability": stability_rows,
         "grid_heldout": grid_targets,
     }
-    write_report(results, grids, Path(out_dir))
+    if interrupted:
+        write_partial_report({**results, "partial": True}, out_dir)
+        raise KeyboardInterrupt
+    write_report(results, grids, out_dir)
     return results

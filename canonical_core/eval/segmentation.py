@@ -60,7 +60,7 @@ from .metrics import covered
 from .probe import PROBE_STEPS, PROBE_WEIGHT_DECAY, fit_probe
 from .protocol import Split, spread
 from .figures import require_matplotlib
-from .report import _num
+from .report import _num, check_writable
 from .segmentation_report import write_segmentation_report
 
 HELDOUT_EVERY = 3
@@ -182,7 +182,7 @@ def segmentation_split(n: int, views: Sequence[int], every: int = HELDOUT_EVERY)
     heldout = tuple(range(1, n, every))
     free = [p for p in range(n) if p not in heldout]
     if not heldout or max(views) > len(free):
-        raise ValueError(f"views: {max(views)} input views requested, but {n} frames with every {every}th held out "
+        raise ValueError(f"views: {max(views)} input views requested, but {n} frames with one in every {every} held out "
                          f"leave {len(free)} inputs and {len(heldout)} held out")
     return Split(heldout=heldout, inputs={v: tuple(free[i] for i in spread(len(free), v)) for v in sorted(set(views))})
 
@@ -358,6 +358,7 @@ def evaluate_segmentation(
         sequences = list(dataset)
     for seq in sequences:
         segmentation_split(len(seq), views, heldout_every)  # checks before the long run
+    out_dir = check_writable(out_dir)  # once the arguments are known good, before the runs take their minutes
     bar = tqdm(total=len(sequences) * len(specs) * len(set(views)), disable=not progress, file=sys.stderr,
                desc="segmentation", unit="run", dynamic_ncols=True)
     bins, grids = [], {}
@@ -371,7 +372,7 @@ def evaluate_segmentation(
                "probe_settings": {"steps": PROBE_STEPS, "pixels": PROBE_PIXELS, "weight_decay": PROBE_WEIGHT_DECAY,
                                   "seed": PROBE_SEED},
                "bins": bins, "mean": mean_runs(bins) if len(bins) > 1 else []}
-    write_segmentation_report(results, grids, Path(out_dir))
+    write_segmentation_report(results, grids, out_dir)
     return results
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .figures import _method_colours, _pyplot, _save, image_grid
-from .report import _finite, _num, _table, remove_stale
+from .report import EVALUATION_FIGURES, _finite, _num, _table, remove_stale
 
 TABLE_COLUMNS = (("fusion_miou", "label mIoU"), ("fusion_miou_covered", "label mIoU covered"),
                  ("fusion_accuracy", "label acc."), ("fusion_accuracy_covered", "label acc. covered"),
@@ -84,5 +84,5 @@ def write_segmentation_report(results: Mapping, grids: Mapping[str, Mapping[int,
         for n, columns in by_views.items():
             written.append(out_dir / f"grid_{name}_N{n}.png")
             image_grid(columns).save(written[-1])
-    remove_stale(out_dir, ["grid_*_N*.png"], written)
+    remove_stale(out_dir, ["grid_*_N*.png", *EVALUATION_FIGURES], written)
     return written

@@ -307,6 +307,33 @@ def write_report(results: dict, out: Path) -> None:
     plt.close(fig)
 
 
+def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[list[Variant], tuple[int, ...], dict | None]:
+    """The variants, the view counts and the saved results of --decide-from (None without it), each
+    checked before any capture is read; a bad one exits 2 through ``parser.error``, naming its flag."""
+    by_name = {v.name: v for v in VARIANTS}
+    names = [] if args.variants is None else [n.strip() for n in args.variants.split(",") if n.strip()]
+    if args.variants is not None and (unknown := [n for n in names if n not in by_name]):
+        parser.error(f"--variants: unknown {', '.join(map(repr, unknown))}; expected names from: {', '.join(by_name)}")
+    chosen = list(VARIANTS) if args.variants is None else [DEFAULT] + [by_name[n] for n in names if n != DEFAULT.name]
+    if not (math.isfinite(args.scale) and 0 < args.scale <= 1):
+        parser.error(f"--scale: expected a number in (0, 1], got {args.scale:g}")
+    try:
+        views = tuple(int(v) for v in args.views.split(","))
+    except ValueError:
+        parser.error(f"--views: expected comma-separated integers, got {args.views!r}")
+    if not views or min(views) < 1:
+        parser.error(f"--views: expected positive input counts, got {args.views!r}")
+    saved = None
+    if args.decide_from is not None:
+        try:
+            saved = json.loads(Path(args.decide_from).read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            parser.error(f"--decide-from: cannot read {args.decide_from} as JSON: {getattr(exc, 'strerror', None) or exc}")
+        if not (isinstance(saved, dict) and isinstance(saved.get("captures"), list)):
+            parser.error(f"--decide-from: {args.decide_from} holds no tuning results (a 'captures' list)")
+    return chosen, views, saved
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m canonical_core.eval.tuning", description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, help="output folder (results.json, results.md, objectives.png)")
@@ -316,17 +343,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--decide-from", metavar="RESULTS_JSON", default=None,
                         help="no runs: decide again from a saved results.json (with today's rule) and write the report")
     args = parser.parse_args(argv)
-    if args.decide_from:
-        saved = json.loads(Path(args.decide_from).read_text())
+    chosen, views, saved = _checked(parser, args)
+    if saved is not None:
         captures = saved["captures"]
         knobs = choose_per_knob(group_changes(captures), group_changes(captures, agreement))
         command = f"python -m canonical_core.eval.tuning --out {args.out} --decide-from {args.decide_from}"
         write_report({**saved, "group_changes": group_changes(captures), "knobs": knobs, "decided_by": command}, Path(args.out))
         print((Path(args.out) / "results.md").read_text())
         return 0
-    by_name = {v.name: v for v in VARIANTS}
-    chosen = VARIANTS if args.variants is None else [DEFAULT] + [by_name[n] for n in args.variants.split(",") if n != DEFAULT.name]
-    views = tuple(int(v) for v in args.views.split(","))
     steps = sum(len(chosen) * len(allowed_views(len(load_dataset(c.path)), views)) for c in CAPTURES)
     bar = tqdm(total=steps, file=sys.stderr, desc="tuning", unit="run", dynamic_ncols=True)
     captures = [score_capture(c, chosen, views, args.scale, bar) for c in CAPTURES]

@@ -42,27 +42,52 @@ class Capture:
     report_inputs: tuple[int, ...]  # the protocol's inputs for `REPORT_VIEWS` views
 
 
-def _sequences(path: Path) -> list:
+EVALUATION_CAPTURE = "realsense_shelf"  # the folder name of the capture the decoder is evaluated on
+
+
+class RefusedCapture(ValueError):
+    """A path given as a training capture that cannot be one whatever its files hold: nothing is
+    there, or it is the evaluation capture. The message starts with ``captures:``."""
+
+
+def check_capture_path(path: str | Path) -> Path:
+    """`RefusedCapture` unless ``path`` exists and is not the evaluation capture or inside it. The
+    test is on the resolved path, so that ``.`` in the capture's folder, a symbolic link to it or a
+    path through ``..`` is refused as its own name is."""
+    path = Path(path)
+    if not path.exists():
+        raise RefusedCapture(f"captures: {path}: no such file or folder")
+    resolved = path.resolve()
+    if any(EVALUATION_CAPTURE in part.name for part in (resolved, *resolved.parents)):
+        shown = str(path) if resolved == path else f"{path} ({resolved})"
+        raise RefusedCapture(f"captures: {shown} is the evaluation capture; the decoder is never trained on it")
+    return path
+
+
+def _sequences(path: Path, **options) -> list:
     """The frame sequences of a capture folder; a folder whose subfolders each hold a capture (two
-    bins of one rig) gives one sequence per subfolder."""
+    bins of one rig) gives one sequence per subfolder. ``options``: `load_dataset`'s ``K`` and
+    ``depth_scale``."""
     try:
-        return [load_dataset(path)]
+        return [load_dataset(path, **options)]
     except ValueError as exc:
         subfolders = sorted(d for d in path.iterdir() if d.is_dir()) if path.is_dir() else []
         if "several subfolders" not in str(exc) or not subfolders:
             raise
-        return [load_dataset(d) for d in subfolders]
+        return [load_dataset(check_capture_path(d), **options) for d in subfolders]  # never the evaluation capture
 
 
-def load_captures(paths: Sequence[str | Path], width: int = 160) -> list[Capture]:
-    """Read every frame of the captures at ``paths``, resized to about ``width`` pixels across."""
+def load_captures(paths: Sequence[str | Path], width: int = 160, K=None, depth_scale: float | None = None) -> list[Capture]:
+    """Read every frame of the captures at ``paths``, resized to about ``width`` pixels across; ``K``
+    and ``depth_scale`` go to `load_dataset` for every capture (intrinsics for a capture without an
+    intrinsics file, depth units where they are not its layout's). All paths are checked
+    (`check_capture_path`) before any is read."""
     if isinstance(width, bool) or not isinstance(width, int) or width < 32:
         raise ValueError(f"width: expected an integer of at least 32 pixels, got {width!r}")
+    paths = [check_capture_path(p) for p in paths]
     captures = []
-    for path in map(Path, paths):
-        if "realsense_shelf" in path.name:
-            raise ValueError(f"captures: {path} is the evaluation capture; the decoder is never trained on it")
-        for seq in _sequences(path):
+    for path in paths:
+        for seq in _sequences(path, K=K, depth_scale=depth_scale):
             first = seq[0]
             scale = min(1.0, width / first.width)
             frames = [resize_frame(f, scale) for f in seq]

@@ -26,7 +26,6 @@ from __future__ import annotations
 import json
 import math
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -41,6 +40,7 @@ from ..camera import Camera
 from ..decode import GaussianDecoder
 from ..frame import Frame
 from ..eval.methods import SplatModel
+from ..eval.report import check_writable
 from ..eval.run import score
 from ..rendering import render
 from ..rendering.gsplat_backend import gsplat_available
@@ -266,27 +266,23 @@ def _settings_dict(settings: TrainSettings) -> dict:
 
 
 def _check_writable(out: Path) -> None:
-    """ValueError naming ``out`` unless its folder can be made and written, before the captures are
-    loaded and trained on (minutes that a late failure to save would waste)."""
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=out.parent):
-            pass
-    except OSError as exc:
-        raise ValueError(f"out: cannot write {out}: {exc.strerror or exc}") from None
+    """ValueError naming ``out`` unless its folder can be made and written (`report.check_writable`)
+    and ``out`` is no folder, before the captures are loaded and trained on (minutes that a late
+    failure to save would waste)."""
+    check_writable(out.parent, "out")
     if out.is_dir():
         raise ValueError(f"out: {out} is a folder; expected a .safetensors file to write")
 
 
 def run_training(capture_paths: Sequence[str | Path], out: str | Path, settings: TrainSettings = TrainSettings(),
-                 progress: bool = True) -> TrainResult:
-    """``canonical train``: load the captures, train, write the checkpoint at ``out`` and the report
-    folder next to it (``<out stem>_report/``)."""
+                 progress: bool = True, K=None, depth_scale: float | None = None) -> TrainResult:
+    """``canonical train``: load the captures (with ``K`` and ``depth_scale``, `data.load_captures`),
+    train, write the checkpoint at ``out`` and the report folder next to it (``<out stem>_report/``)."""
     out = Path(out)
     if out.suffix != ".safetensors":
         raise ValueError(f"out: expected a path ending in .safetensors, got {str(out)!r}")
     _check_writable(out)
-    captures = load_captures(capture_paths, settings.width)
+    captures = load_captures(capture_paths, settings.width, K=K, depth_scale=depth_scale)
     result = train(captures, settings, progress=progress)
     names = [c.name for c in captures]
     save_checkpoint(out, result.decoder, {**_settings_dict(settings), "captures": names, "steps_done": result.steps},

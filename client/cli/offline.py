@@ -48,9 +48,19 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="weight of the coverage term (1 - alpha)^2 at pixels with measured depth (default 0)")
     p.add_argument("--heads", default=None,
                    help="comma-separated heads to train (default all: opacity,free_space_penalty,offset,log_scale_delta,color_delta)")
+    add_capture_options(p)
+
+
+# run_training's ValueErrors that are about an argument, whatever the captures' files hold: their field -> its flag
+_TRAIN_FLAGS = (("out: ", "--out"), ("K: ", "--K"), ("depth_scale: ", "--depth-scale"))
 
 
 def run_train(args) -> int:
+    """Train with the parsed arguments. A usage error (exit 2) names its flag or argument: a setting, a
+    capture path with nothing there or the evaluation capture's, an --out that cannot be written, a
+    capture without intrinsics and no --K; a capture's own files' problems exit 1, as the stream's."""
+    from canonical_core.datasets import MissingIntrinsics
+    from canonical_core.train.data import RefusedCapture
     from canonical_core.train.loop import TrainSettings, run_training
 
     heads = {} if args.heads is None else {"heads": tuple(h.strip() for h in args.heads.split(",") if h.strip())}
@@ -59,7 +69,17 @@ def run_train(args) -> int:
                                  device=args.device, coverage_weight=args.coverage_weight, **heads)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    result = run_training(args.captures, args.out, settings)  # the captures' or --out's errors: 1, as the stream's
+    try:
+        result = run_training(args.captures, args.out, settings, K=args.K, depth_scale=args.depth_scale)
+    except MissingIntrinsics as exc:
+        raise UsageError(f"--K: {exc} (here: --K fx,fy,cx,cy)") from None
+    except RefusedCapture as exc:
+        raise UsageError(str(exc)) from None
+    except ValueError as exc:
+        for field, flag in _TRAIN_FLAGS:
+            if str(exc).startswith(field):
+                raise UsageError(f"{flag}: {str(exc).removeprefix(field)}") from None
+        raise
     report = Path(args.out).with_name(Path(args.out).stem + "_report")
     print(f"{result.steps} steps in {result.seconds / 60:.1f} min; wrote {args.out} and {report}/")
     print((report / "report.md").read_text())

@@ -28,3 +28,14 @@ def test_canonical_eval_writes_its_results_and_refuses_bad_settings(tmp_path):
     assert (out / "psnr_vs_views.png").stat().st_size > 0
     refused = canonical("eval", str(data), "--views", "2", "--out", str(out), "--methods", "nerf", "--quiet")
     assert refused.returncode == 2 and "methods" in refused.stderr
+
+
+def test_canonical_eval_refuses_an_out_it_cannot_write_before_it_runs(tmp_path):
+    data = write_tsdf_fusion(synthetic_rgbd(num_frames=14, width=40, height=30), tmp_path / "cap")
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    for out in (blocker, blocker / "out"):
+        refused = canonical("eval", str(data), "--views", "2", "--out", str(out), "--methods", "canonical", "--quiet")
+        assert refused.returncode == 2, refused.stderr
+        assert refused.stderr.startswith(f"canonical eval: error: --out: cannot write {out}: ")
+        assert "Traceback" not in refused.stderr

@@ -47,7 +47,7 @@ def test_cli_runs_a_tiny_evaluation_and_reports_errors(tmp_path, capsys):
     # the segmentation experiment would ignore them: said, and nothing runs
     assert main([str(data), "--segmentation", "--out", str(tmp_path / "seg"), "--noise", "0.1", "--no-extrapolation",
                  "--quiet"]) == 2
-    assert capsys.readouterr().err.startswith("canonical eval: error: --noise, --no-extrapolation: not used by "
+    assert capsys.readouterr().err.startswith("canonical eval: error: --noise: not used by "
                                               "--segmentation") and not (tmp_path / "seg").exists()
 
 

@@ -262,3 +262,21 @@ def test_cli_segmentation_runs_end_to_end_on_a_small_real_bin(tmp_path, apc_bins
     assert (out / "miou_vs_views.png").is_file() and "| capture | method | N |" in (out / "results.md").read_text()
     assert main([str(data), "--segmentation", "--views", "9", "--out", str(out), "--quiet"]) == 2
     assert "views" in capsys.readouterr().err
+
+
+def test_a_split_that_does_not_fit_says_how_many_frames_are_held_out():
+    with pytest.raises(ValueError, match=r"^views: 5 input views requested, but 6 frames with one in every 3 held out "
+                                         r"leave 4 inputs and 2 held out$"):
+        segmentation_split(6, [5], 3)
+
+
+def test_a_segmentation_run_removes_the_evaluations_figures_from_its_folder(tmp_path, labelled_frames):
+    from canonical_core.eval.segmentation import evaluate_segmentation
+
+    stale = ("psnr_vs_views.png", "noise_psnr.png", "stability.png", "grid_N2.png")
+    for name in (*stale, "notes.png"):
+        (tmp_path / name).write_bytes(b"")
+    sequence = FrameSequence("gen", [Held(str(k), f) for k, f in enumerate(labelled_frames)])
+    evaluate_segmentation([sequence], views=[2], methods=["canonical"], out_dir=tmp_path, progress=False,
+                          voxel_size=VOXEL, probe=False)
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["grid_gen_N2.png", "miou_vs_views.png", "notes.png"]

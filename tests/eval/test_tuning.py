@@ -61,3 +61,28 @@ def test_the_recorded_rounds_decide_the_defaults_in_the_code(tmp_path, capsys, r
     assert (default_of("free_space.margin"), default_of("decoder.opacity_slope")) == (0.0, 3.0)
     assert json.loads((tmp_path / "results.json").read_text())["decided_by"].endswith(f"{recorded}/results.json")
     assert (tmp_path / "objectives.png").stat().st_size > 0 and "Leave-one-capture-out" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["--variants", "foo"], "--variants"),
+    (["--scale", "0"], "--scale"),
+    (["--scale", "1.5"], "--scale"),
+    (["--views", "2,x"], "--views"),
+    (["--views", "0"], "--views"),
+    (["--decide-from", "/nonexistent.json"], "--decide-from"),
+])
+def test_bad_arguments_exit_2_naming_the_flag_before_any_run(tmp_path, capsys, monkeypatch, args, flag):
+    monkeypatch.setattr("canonical_core.eval.tuning.load_dataset", lambda *a, **k: pytest.fail("a capture was loaded"))
+    with pytest.raises(SystemExit) as exit_:
+        main(["--out", str(tmp_path / "out"), *args])
+    assert exit_.value.code == 2
+    assert f"error: {flag}: " in capsys.readouterr().err
+
+
+def test_decide_from_a_file_that_is_not_tuning_results_exits_2(tmp_path, capsys):
+    for text in ("{not json", json.dumps({"captures": "x"})):
+        saved = tmp_path / "results.json"
+        saved.write_text(text)
+        with pytest.raises(SystemExit) as exit_:
+            main(["--out", str(tmp_path / "out"), "--decide-from", str(saved)])
+        assert exit_.value.code == 2 and "error: --decide-from: " in capsys.readouterr().err

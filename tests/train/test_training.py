@@ -216,13 +216,14 @@ def test_canonical_train_names_a_bad_setting_before_it_loads_anything(tmp_path, 
     assert "heads: " in capsys.readouterr().err
     assert main(["train", str(tmp_path / "none"), "--out", out, "--coverage-weight", "-1"]) == 2
     assert "coverage_weight: " in capsys.readouterr().err
-    # the captures and --out: one line (exit 1, as the stream's), and --out is checked before the work
-    assert main(["train", str(tmp_path / "none"), "--out", out]) == 1
-    assert "none: not a folder" in capsys.readouterr().err
+    # a capture path with nothing there and an --out that cannot be written: usage errors naming the
+    # argument, and --out is checked before the work
+    assert main(["train", str(tmp_path / "none"), "--out", out]) == 2
+    assert f"captures: {tmp_path / 'none'}: no such file or folder" in capsys.readouterr().err
     blocker = tmp_path / "file"
     blocker.write_text("")
-    assert main(["train", str(tmp_path / "none"), "--out", str(blocker / "m.safetensors")]) == 1
-    assert capsys.readouterr().err.startswith(f"error: out: cannot write {blocker / 'm.safetensors'}: ")
+    assert main(["train", str(tmp_path / "none"), "--out", str(blocker / "m.safetensors")]) == 2
+    assert capsys.readouterr().err.startswith(f"error: --out: cannot write {blocker}: ")
     assert main(["train", str(tmp_path / "none"), "--out", str(tmp_path / "d.safetensors"), "--steps", "-1"]) == 2
     assert "steps: " in capsys.readouterr().err
 
