@@ -38,6 +38,13 @@ class BodyTimeout(Exception):
     """The request body stalled or took too long (the middleware answers 408)."""
 
 
+SEND_PIECE_BYTES = 1 << 20  # a large answer goes out in pieces of this size, each within send_timeout_s
+
+
+class ReaderStalled(Exception):
+    """A client that took no bytes of its answer for ``send_timeout_s``."""
+
+
 class BodiesFull(Exception):
     """A chunked body grew past what the service's bodies in flight may hold (the middleware answers 429)."""
 
@@ -104,10 +111,14 @@ class GuardMiddleware:
             if message["type"] == "http.response.start":
                 started = True
                 self.metrics.responses[message["status"]] += 1
+            if message["type"] == "http.response.body" and len(message.get("body", b"")) > SEND_PIECE_BYTES:
+                return await self._send_in_pieces(send, message)
             await send(message)
 
         try:
             await self._guarded(scope, receive, counting_send)
+        except ReaderStalled as exc:  # its connection is closed: the response's bytes go back
+            log.warning("%s %s: %s", scope.get("method"), scope.get("path"), exc)
         except Exception:
             if not started:  # Starlette's ServerErrorMiddleware answers 500 outside this middleware
                 self.metrics.responses[500] += 1
@@ -171,6 +182,21 @@ class GuardMiddleware:
             return await receive()
 
         return await self.app(scope, replay, send)
+
+    async def _send_in_pieces(self, send, message: dict) -> None:
+        """A large body sent a piece at a time, each within ``send_timeout_s``: a client that takes no
+        bytes for that long (it never reads its answer) is `ReaderStalled`, so that the answer it holds
+        in the service's memory goes back, instead of staying there for as long as its connection does."""
+        body, more = memoryview(message["body"]), message.get("more_body", False)
+        timeout = self.settings.send_timeout_s
+        for start in range(0, len(body), SEND_PIECE_BYTES):
+            piece = {"type": "http.response.body", "body": bytes(body[start:start + SEND_PIECE_BYTES]),
+                     "more_body": more or start + SEND_PIECE_BYTES < len(body)}
+            try:
+                await asyncio.wait_for(send(piece), timeout)
+            except TimeoutError:
+                raise ReaderStalled(f"the client took no bytes of its answer for {timeout:g} s (send_timeout_s); "
+                                    f"{len(body) - start} bytes unsent, its connection closed") from None
 
     def _limit(self, headers: dict) -> tuple[int, str]:
         """The body limit of a request and its setting's name: frames (msgpack, multipart) may take

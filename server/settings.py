@@ -47,6 +47,9 @@ class Settings(BaseSettings):
     max_response_bytes: int = Field(256 * 1024 * 1024, gt=0, description="views whose float maps (pixels x channels x 4 bytes) exceed this get 413")
     header_timeout_s: float = Field(10.0, gt=0, description="a connection whose request head has not arrived in this time is closed")
     read_timeout_s: float = Field(15.0, gt=0, description="a request body that stalls this long between reads gets 408")
+    send_timeout_s: float = Field(60.0, gt=0, description=(
+        "a client that takes no bytes of a large answer (a render, an export) for this long has its connection "
+        "closed, so that the answer does not stay in the service's memory"))
     body_timeout_s: float = Field(120.0, gt=0, description="a request body not complete in this time gets 408")
     max_inflight_body_bytes: int = Field(1 << 30, gt=0, description=(
         "the request bodies being received or held, all requests together; a request whose body would pass it "

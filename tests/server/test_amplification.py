@@ -6,6 +6,7 @@ stays within tens of megabytes of where it was."""
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 from pathlib import Path
@@ -130,3 +131,29 @@ def test_numbered_frames_read_ahead_of_their_turn_are_bounded(service, frames):
     assert ahead and all(r.json()["error"]["field"] == "Frame-Index" and r.headers["Retry-After"] == "1" for r in ahead)
     assert all(r.status_code in (409, 429) for r in answers.values())
     assert httpx.get(f"{service.url}/v1/sessions/{session_id}").json()["frames"] == 0
+
+
+def test_a_client_that_never_reads_its_large_answer_is_let_go(tmp_path, frames):
+    """A render of 2000x1500 in msgpack (about 40 MB) asked for and never read: the service sends it a
+    piece at a time, each within send_timeout_s, then closes the connection, and its bytes go back;
+    before, it held them for as long as the connection stayed open."""
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", send_timeout_s=1, warm_up="false",
+                         snapshot_every_seconds=3600).start()
+    try:
+        session_id = httpx.post(f"{proc.url}/v1/sessions", json={"voxel_size": VOXEL}).json()["id"]
+        assert post(proc, session_id, msgpack.packb(msgpack_frame(frames[0]), use_bin_type=True)).status_code == 200
+        K = frames[0]["K"] * [[2000 / 320], [1500 / 240], [1]]
+        view = json.dumps({"K": K.tolist(), "c2w": frames[0]["c2w"].tolist(), "width": 2000, "height": 1500}).encode()
+        with socket.create_connection(("127.0.0.1", proc.port), timeout=30) as s:
+            s.sendall(b"POST /v1/sessions/%s/render HTTP/1.1\r\nHost: x\r\nAccept: application/msgpack\r\n"
+                      b"Content-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (session_id.encode(), len(view), view))
+            time.sleep(6)  # reads nothing meanwhile
+            got = b""
+            while chunk := s.recv(1 << 20):
+                got += chunk
+        head, _, body = got.partition(b"\r\n\r\n")
+        length = int(next(line.split(b":")[1] for line in head.lower().split(b"\r\n") if line.startswith(b"content-length")))
+        assert head.startswith(b"HTTP/1.1 200") and len(body) < length  # closed before the whole answer
+        assert "took no bytes of its answer for 1 s (send_timeout_s)" in proc.log()
+    finally:
+        proc.stop()
