@@ -137,11 +137,9 @@ def array_shape(obj) -> list[int] | None:
     return list(shape)
 
 
-def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | None = None,
-                 sides: tuple[int | None, ...] | None = None) -> np.ndarray:
+def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | None = None) -> np.ndarray:
     """An owned, writable, native-order numpy array from an array map; WireError(422) naming ``field``.
-    ``ndim`` and ``sides`` (the sizes each dimension must have, None for any) are checked against the
-    declared shape before a byte is decompressed: a small body may declare a shape of gigabytes."""
+    A caller checks the declared shape (`array_shape`) before: a small body may declare gigabytes."""
     if not is_array(obj):
         got = sorted(map(str, obj)) if isinstance(obj, dict) else type(obj).__name__
         raise WireError(field, f"expected an array map {{dtype, shape, data}}, got {got}")
@@ -153,8 +151,6 @@ def decode_array(obj, field: str = "array", dtypes=tuple(DTYPES), ndim: int | No
         raise WireError(field, f"shape must be a list of integers in 0 .. {MAX_SIDE - 1}, got {obj['shape']!r}")
     if ndim is not None and len(shape) != ndim:
         raise WireError(field, f"expected {ndim} dimensions, got shape {shape}")
-    if sides is not None and (len(shape) != len(sides) or any(s is not None and s != n for s, n in zip(sides, shape))):
-        raise WireError(field, f"expected shape [{', '.join('N' if s is None else str(s) for s in sides)}], got {shape}")
     if not isinstance(data, (bytes, bytearray)):
         raise WireError(field, f"data must be bytes, got {type(data).__name__}")
     expected = math.prod(shape) * DTYPES[dtype].itemsize

@@ -243,9 +243,11 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
         rgb = decode_rgb(bytes(rgb), "rgb", max_pixels)
     else:
         shape = array_shape(rgb)
-        if shape is not None and len(shape) == 3:
+        if shape is not None and (len(shape) != 3 or shape[2] != 3):  # before its bytes are read
+            raise WireError("rgb", f"expected shape [H, W, 3], got {shape}")
+        if shape is not None:
             check_pixels(shape[1], shape[0], "rgb", max_pixels)
-        rgb = decode_array(rgb, "rgb", ("uint8",), sides=(None, None, 3))
+        rgb = decode_array(rgb, "rgb", ("uint8",), ndim=3)
     height, width = rgb.shape[:2]
     depth, scale = msg.get("depth"), msg.get("depth_scale")
     if depth is None and limits.max_rgb_only_pixels is not None and width * height > limits.max_rgb_only_pixels:
