@@ -201,7 +201,7 @@ class GuardMiddleware:
     def _limit(self, headers: dict) -> tuple[int, str]:
         """The body limit of a request and its setting's name: frames (msgpack, multipart) may take
         ``max_body_bytes``; any other body is JSON to FastAPI (it parses a body without a Content-Type
-        as JSON too), parsed whole on the event loop into tens of times its bytes: ``max_json_body_bytes``."""
+        as JSON too), parsed whole on the event loop into up to a hundred times its bytes: ``max_json_body_bytes``."""
         kind = headers.get(b"content-type", b"").partition(b";")[0].strip().lower().decode("latin-1")
         if kind in frames.FRAME_TYPES:
             return self.max_bytes, "max_body_bytes"

@@ -120,7 +120,9 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     keep several frames in flight. The frame is validated at once, then folded once the session
     holds the frames before it, in that order whatever order they arrive in; 409 when one of those
     was refused, when a correction removed frames while it was in flight, or when they do not come
-    within ``frame_order_wait_s``; 404 once its session is deleted, 503 once the service stops."""
+    within ``frame_order_wait_s``; 404 once its session is deleted, 503 once the service stops; 429
+    (sent again later, not a refusal) when `ordering.MAX_AHEAD` numbered frames of the session are
+    already read ahead of their turn."""
     frame_index = None if frame_index is None else int(frame_index)
     kind = media_type(request)
     if kind not in FRAME_TYPES:
