@@ -39,7 +39,8 @@ def _list(kind: Callable[[str], object], name: str) -> Callable[[str], list]:
 def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("dataset", type=Path, help="capture folder (any layout load_dataset detects: tsdf-fusion/7-Scenes, TUM, transforms.json, deep-video-mvs, Redwood, label-fusion)")
     add_capture_options(parser)
-    parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16)")
+    parser.add_argument("--views", type=_list(int, "views"), default=[2, 4, 8, 16], help="input view counts N (default 2,4,8,16); a capture needs at least "
+                        "6 frames, and the inputs of every N with 10 frames left to hold out")
     parser.add_argument("--out", type=Path, required=True, help="output folder for results.json, results.md, PNGs")
     parser.add_argument("--methods", type=_list(str, "methods"), default=None,
                         help=f"comma-separated subset of {','.join(METHODS)} (default: all); a Scene method also as "
