@@ -127,16 +127,6 @@ def _channel_map(value, field: str, max_channels: int, mixed: bool = False) -> T
     return t.contiguous()
 
 
-def _check_map_shape(t: Tensor, field: str, image: tuple[int, int]) -> None:
-    """A client map [H', W', ...] is looked up at the image's pixels at its own resolution, so it must
-    have the image's shape (its sides the image's scaled by one factor, within a pixel): a map of
-    another shape, a transposed [W, H] one most often, would put each value on other pixels."""
-    (h, w), (H, W) = t.shape[:2], image
-    if abs(w * H - h * W) > max(W, H, w, h):
-        raise ValueError(f"{field}: a {w}x{h} map (shape {list(t.shape)}) does not have the shape of the {W}x{H} image; "
-                         "send it at the image's resolution or at another one of the same shape ([H', W'], not [W', H'])")
-
-
 def _class_map(t: Tensor, num_classes) -> Tensor:  # [H', W'] integer ids -> int16, -1 = none
     """A class map checked against ``num_classes``: ids 0..K-1, any negative id meaning no class."""
     if t.is_floating_point() or t.is_complex():
@@ -192,8 +182,8 @@ class Frame:
             flight) is taken too: the frame's rgb becomes the image area-averaged to h x w and its
             camera that image's (`Camera.resized`), so that evidence is made per depth pixel.
         depth_std: optional float32 [H, W] per-pixel depth standard deviation in metres (>= 0).
-        features: optional float32 [H', W', C] client-supplied features, at any resolution of the
-            image's shape (looked up nearest at its pixels); each pixel's feature vector of norm at most
+        features: optional float32 [H', W', C] client-supplied features at any resolution, spanning
+            the image (looked up nearest at its pixels); each pixel's feature vector of norm at most
             `MAX_STORED_VALUE` (float16's largest value).
         labels: optional client-supplied labels: float32 [H', W', S] scores (e.g. class
             probabilities, each of magnitude at most `MAX_STORED_VALUE`), or a class map, integer
@@ -249,19 +239,15 @@ class Frame:
             object.__setattr__(self, "depth_std", std)
         if self.features is not None:
             features = _channel_map(self.features, "features", MAX_FEATURE_CHANNELS, mixed=True)
-            _check_map_shape(features, "features", (H, W))
             object.__setattr__(self, "features", features)
         if self.labels is None:
             if self.num_classes is not None:
                 raise ValueError("num_classes: given without labels")
         elif (labels := _tensor(self.labels, "labels")).ndim == 2:
-            labels = _class_map(labels, self.num_classes)
-            _check_map_shape(labels, "labels", (H, W))
-            object.__setattr__(self, "labels", labels)
+            object.__setattr__(self, "labels", _class_map(labels, self.num_classes))
             object.__setattr__(self, "num_classes", int(self.num_classes))
         else:
             labels = _channel_map(labels, "labels", MAX_LABEL_CHANNELS)
-            _check_map_shape(labels, "labels", (H, W))
             if self.num_classes is not None and self.num_classes != labels.shape[-1]:
                 raise ValueError(f"num_classes: {self.num_classes}, but the label scores have {labels.shape[-1]} channels")
             object.__setattr__(self, "labels", labels)

@@ -55,6 +55,29 @@ def resized_intrinsics(
     return K
 
 
+def transposed_map_problem(
+    field: str,
+    image: tuple[int, int],  # (width, height) of the image
+    size: tuple[int, int],  # (width, height) of a client's feature or label map
+) -> str | None:
+    """Why a map of ``size`` looks transposed ([W', H'] sent as [H', W']): it has the image's shape
+    turned a quarter (within a pixel) and not the image's own; else None. A map of any other size
+    spans the image whatever its shape (a network's square output stretched back is meant so).
+
+    Example:
+        >>> transposed_map_problem("labels", (640, 480), (120, 160)) is not None
+        True
+        >>> transposed_map_problem("labels", (640, 480), (512, 512)) is None
+        True
+    """
+    (W, H), (w, h) = image, size
+    tolerance = max(W, H, w, h)
+    if abs(h * H - w * W) <= tolerance and abs(w * H - h * W) > tolerance:
+        return (f"{field}: a {w}x{h} map has the {W}x{H} image's shape turned a quarter: an array [W', H'] "
+                "where [H', W'] is meant? (transpose it)")
+    return None
+
+
 def depth_size_problem(
     image: tuple[int, int],  # (width, height) of the colour image
     depth: tuple[int, int],  # (width, height) of the depth map

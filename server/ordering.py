@@ -83,11 +83,13 @@ class FrameOrder:
                         self._waiters.remove((loop, woken))
 
     @contextmanager
-    def ahead(self) -> Iterator[None]:
-        """Count a numbered frame from before it is read until its turn came (or it was refused);
-        `FramesAhead` where `MAX_AHEAD` are already."""
+    def ahead(self, index: int, held: int) -> Iterator[None]:
+        """Count numbered frame ``index`` (the session holds ``held``) from before it is read until its
+        turn came (or it was refused); `FramesAhead` where `MAX_AHEAD` are already, unless it is the
+        next one (or one too late, refused as such): the frames waiting for it would otherwise wait
+        in vain."""
         with self._mutex:
-            if self._ahead >= MAX_AHEAD:
+            if self._ahead >= MAX_AHEAD and index > held:
                 raise FramesAhead(FIELD, f"{MAX_AHEAD} numbered frames of this session are already read ahead of their "
                                          "turn; send it again once the frames before it are folded")
             self._ahead += 1

@@ -133,7 +133,9 @@ class Deleted(BaseModel):
 FoldReportOut = model_of_dataclass(FoldReport, "FoldReportOut")
 
 
-MAX_FRAME_KEYS = 1_000_000  # frames one correction may name: nine hours of a 30 Hz stream
+# frames one correction may name, checked before any item is: a bound on the items' validation; the
+# body's own bound (max_json_body_bytes) comes first for most (4 MiB carries about 12,000 poses)
+MAX_FRAME_KEYS = 1_000_000
 
 Matrix3 = Annotated[list[Annotated[list[float], Field(min_length=3, max_length=3)]], Field(min_length=3, max_length=3)]
 Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=3, max_length=4)]

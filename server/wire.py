@@ -23,6 +23,7 @@ from PIL import Image, UnidentifiedImageError
 from canonical_core import Camera, Frame
 from canonical_core.datasets.images import DEPTH_INVALID_CODE, check_depth_scale, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
+from canonical_core.resample import transposed_map_problem
 from canonical_wire import (DTYPES, FLOATS, INTEGERS, NO_LABEL, WireError, array_shape, decode_array,  # noqa: F401
                             encode_array, is_array, pack, unpack)
 
@@ -227,9 +228,12 @@ def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.nd
     return decode_array(labels, "labels", INTEGERS, ndim=2), num_classes
 
 
-def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLimits | None = None) -> Frame:
+def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLimits | None = None,
+                       fresh: bool = False) -> Frame:
     """Decode and validate one frame message. Raises WireError (decoding, sizes over ``limits``) or
-    ValueError (the library's validation, message starting with the field name)."""
+    ValueError (the library's validation, message starting with the field name). ``fresh``: a frame
+    as a client sends it, not one logged before (those are folded as they were taken): a feature or
+    label map that looks transposed is refused (`resample.transposed_map_problem`)."""
     limits = limits or FrameLimits(max_pixels=max_pixels)
     max_pixels = limits.max_pixels
     unknown = sorted(str(k) for k in msg if k not in FRAME_FIELDS)
@@ -291,6 +295,9 @@ def frame_from_message(msg: dict, max_pixels: int | None = None, limits: FrameLi
             else:
                 _check_channels(name, array_shape(value), width * height, limits)
             extras[name] = decode_array(value, name, FLOATS, ndim=2 if name == "depth_std" else 3)
+    for name in ("features", "labels") if fresh else ():
+        if name in extras and (problem := transposed_map_problem(name, (width, height), extras[name].shape[1::-1])):
+            raise WireError(name, problem.removeprefix(f"{name}: "))
     for name, size in (("width", width), ("height", height)):  # a check: K of another size would fold elsewhere
         if _size(msg.get(name), name, size) != size:
             raise WireError(name, f"{msg[name]} does not match the rgb image's {size} pixels ({width}x{height}); K "

@@ -58,7 +58,7 @@ def check_capture_path(path: str | Path) -> Path:
     if not path.exists():
         raise RefusedCapture(f"captures: {path}: no such file or folder")
     resolved = path.resolve()
-    if any(EVALUATION_CAPTURE in part.name for part in (resolved, *resolved.parents)):
+    if any(part.name == EVALUATION_CAPTURE for part in (resolved, *resolved.parents)):
         shown = str(path) if resolved == path else f"{path} ({resolved})"
         raise RefusedCapture(f"captures: {shown} is the evaluation capture; the decoder is never trained on it")
     return path

@@ -76,8 +76,9 @@ def run_train(args) -> int:
     except RefusedCapture as exc:
         raise UsageError(str(exc)) from None
     except ValueError as exc:
-        for field, flag in _TRAIN_FLAGS:
-            if str(exc).startswith(field):
+        for field, flag in _TRAIN_FLAGS:  # a capture's own K or depth units: its files' problem, exit 1
+            if str(exc).startswith(field) and (flag != "--K" or args.K is not None) \
+                    and (flag != "--depth-scale" or args.depth_scale is not None):
                 raise UsageError(f"{flag}: {str(exc).removeprefix(field)}") from None
         raise
     report = Path(args.out).with_name(Path(args.out).stem + "_report")

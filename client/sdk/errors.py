@@ -26,8 +26,8 @@ class StreamStopped(Exception):
     the service is the `StreamRefused` subclass."""
 
     def __init__(self, error: BaseException, index: int, acknowledged: int):
-        super().__init__(f"frame {index} of the stream was not sent ({acknowledged} acknowledged before it): "
-                         f"{type(error).__name__}: {error}")
+        super().__init__(f"the stream stopped at frame {index} ({acknowledged} acknowledged before it; where the "
+                         f"connection broke after it was sent, it may have been folded): {type(error).__name__}: {error}")
         self.index, self.acknowledged = index, acknowledged
 
 

@@ -4,7 +4,7 @@ corrections, renders, features, segmentation, exports and live fold events out."
 from __future__ import annotations
 
 import json
-import tempfile
+import secrets
 import os
 import time
 from pathlib import Path
@@ -25,8 +25,9 @@ if TYPE_CHECKING:
 
 
 def _whole(value, name: str) -> int:
-    """``value`` as an int; ValueError naming ``name`` where it is not a whole number."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+    """``value`` as an int (an integer of any kind, or a float that is one); ValueError naming ``name``
+    where it is not a whole number."""
+    if isinstance(value, bool) or not (hasattr(value, "__index__") or (isinstance(value, float) and value.is_integer())):
         raise ValueError(f"{name}: expected a whole number, got {value!r}")
     return int(value)
 
@@ -75,11 +76,11 @@ def _write(path: str | os.PathLike, data: bytes) -> Path:
     Missing parent folders are created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # a name of its own, so that downloads to one path at once never write or move each other's file
-    handle, name = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".part")
-    tmp = Path(name)
+    # a name of its own, so that downloads to one path at once never write or move each other's file;
+    # made as open() makes files (the umask's mode, where mkstemp's would be private)
+    tmp = path.with_name(f"{path.name}.{secrets.token_hex(6)}.part")
     try:
-        with os.fdopen(handle, "wb") as f:
+        with open(tmp, "xb") as f:
             f.write(data)
         os.replace(tmp, path)
     except BaseException as exc:  # Ctrl-C too: no half file of the download's size left behind

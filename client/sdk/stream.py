@@ -26,15 +26,17 @@ class _NotSent(Exception):
 
 
 def _built_then_sent(session: "Session", frame: dict, index: int, before: Future | None, built: Future) -> dict:
-    """Build ``frame``'s body, then post it at ``index`` once the frame before it was built (``before``)."""
+    """Build ``frame``'s body (beside the others' builds), then post it at ``index`` once every frame
+    before it was built (``before``, which stands for them all: a failure is passed down the chain)."""
     try:
         prepared = session._frame_body(frame)
     except BaseException as exc:
         built.set_exception(exc)
         raise
-    built.set_result(None)
     if before is not None and before.exception() is not None:  # waits for it; it stops the stream
+        built.set_exception(_NotSent())
         raise _NotSent()
+    built.set_result(None)
     return session._send_frame(*prepared, index)
 
 

@@ -140,7 +140,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
                 record = wire.pack(msg)
             else:
                 msg, record = wire.unpack(body), body
-            frame = wire.frame_from_message(msg, limits=frame_limits(settings))  # validated before it is logged
+            frame = wire.frame_from_message(msg, limits=frame_limits(settings), fresh=True)  # validated before it is logged
             check_session_accepts(frame, session.scene.config)
         except ValueError as exc:
             session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
@@ -154,7 +154,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     t0, ahead = time.perf_counter(), None
     try:
         # a numbered frame holds its arrays while it waits, outside any job queue: counted (`FrameOrder.ahead`)
-        with session.order.ahead() if frame_index is not None else nullcontext():
+        with session.order.ahead(frame_index, session.scene.frames) if frame_index is not None else nullcontext():
             record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
             decoded = time.perf_counter() - t0
             if frame_index is not None:  # on the loop, holding no job

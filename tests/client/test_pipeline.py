@@ -5,6 +5,7 @@ refused frame stops the stream with what was acknowledged."""
 from __future__ import annotations
 
 import io
+import re
 import shutil
 import socket
 import threading
@@ -20,7 +21,7 @@ from client.cli import main
 from client.cli.capture import capture_frames
 from client.sdk import MSGPACK, Client, ServiceUnreachable, StreamRefused, StreamStopped, frame_body, unpack
 from tests.conftest import folded_scene
-from tests.server.harness import VOXEL, ServerProcess, small_frames
+from tests.server.harness import VOXEL, ServerProcess, small_frames, wait_for
 
 pytestmark = pytest.mark.realdata
 
@@ -117,9 +118,13 @@ def test_a_frame_the_client_cannot_send_stops_the_stream_at_once_and_posts_nothi
         session = client.create_session(voxel_size=VOXEL)
         got, start = [], time.perf_counter()
         with pytest.raises(StreamStopped) as info:
-            for report in session.add_frames(frames[:2] + [bad] + frames[3:6], in_flight=3):
+            for report in session.add_frames(frames[:2] + [bad] + frames[3:8], in_flight=4):
                 got.append(report["frame_index"])
         assert time.perf_counter() - start < WAIT_S / 2
+        # no frame after it is waiting on the service (their bodies would be held until WAIT_S)
+        held = lambda: int(re.search(r"^canonical_request_body_bytes (\d+)",  # noqa: E731
+                                     httpx.get(f"{service.url}/metrics").text, re.M).group(1))
+        assert wait_for(lambda: held() == 0, WAIT_S / 3)
         stopped = info.value
         assert not isinstance(stopped, StreamRefused) and isinstance(stopped.__cause__, ValueError)
         assert got == [0, 1] and stopped.index == 2 and stopped.acknowledged == 2 and "K:" in str(stopped)

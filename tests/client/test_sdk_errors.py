@@ -4,6 +4,7 @@ session's event stream outlives the request timeout, and downloads to one path a
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -15,6 +16,12 @@ import pytest
 from client.sdk import CanonicalError, Client, ServiceUnreachable
 
 VOXEL = 0.008
+
+
+def umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def closed_port() -> int:
@@ -59,7 +66,7 @@ def test_view_arguments_are_refused_naming_them_before_anything_is_sent(server):
                                     ((K, pose, 160, 120), {"max_gaussians": 1.5}, "max_gaussians")]:
             with pytest.raises(ValueError, match=f"^{field}: "):
                 session.render(*args, **kwargs)
-        view = session.render(K, pose, np.int64(160), 120)  # numpy integers are numbers
+        view = session.render(K, pose, np.int64(160), 120.0)  # numpy integers and whole floats are whole numbers
         assert view["rgb"].shape == (120, 160, 3)
         assert np.array_equal(session.render(K, pose[:3], 160, 120)["rgb"], view["rgb"])  # a 3x4 pose, as the service takes
 
@@ -116,4 +123,5 @@ def test_downloads_to_one_path_at_once_each_leave_a_whole_file(server, frames, t
             t.join()
         expected = httpx.get(f"{server.url}/v1/sessions/{session.id}/gaussians.ply").content
         assert not errors and target.read_bytes() == expected
+        assert target.stat().st_mode & 0o777 == 0o666 & ~umask()  # as any file the user makes
         assert [p.name for p in tmp_path.iterdir()] == ["scene.ply"]  # no temporary file left

@@ -19,7 +19,7 @@ import zstandard
 
 from server.ordering import MAX_AHEAD
 
-from .harness import VOXEL, ServerProcess, msgpack_frame
+from .harness import VOXEL, ServerProcess, msgpack_frame, small_frames
 
 MSGPACK = {"Content-Type": "application/msgpack"}
 WAIT_S = 3.0
@@ -157,3 +157,33 @@ def test_a_client_that_never_reads_its_large_answer_is_let_go(tmp_path, frames):
         assert "took no bytes of its answer for 1 s (send_timeout_s)" in proc.log()
     finally:
         proc.stop()
+
+
+def test_the_next_frame_is_taken_whatever_waits_ahead_of_it(tmp_path, shelf_dir):
+    """`MAX_AHEAD` frames numbered after a gap wait; the frame that fills the gap is still taken (were it
+    refused, they would all wait in vain), and then every one of them folds in its place. (A service of
+    its own, whose frames wait long enough for the folds of a loaded machine.)"""
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", warm_up="false", snapshot_every_seconds=3600).start()
+    try:
+        _frames_ahead_then_the_next(proc, small_frames(shelf_dir, count=MAX_AHEAD + 1, step=2))
+    finally:
+        proc.stop()
+
+
+def _frames_ahead_then_the_next(service, frames):
+    session_id = httpx.post(f"{service.url}/v1/sessions", json={"voxel_size": VOXEL}).json()["id"]
+    answers: dict[int, httpx.Response] = {}
+
+    def send(k: int):
+        body = msgpack.packb(msgpack_frame(frames[k]), use_bin_type=True)
+        answers[k] = post(service, session_id, body, **{"Frame-Index": str(k)})
+
+    threads = [threading.Thread(target=send, args=(k,)) for k in range(1, MAX_AHEAD + 1)]
+    for t in threads:  # each read before the next comes, well within the wait
+        t.start()
+        time.sleep(0.1)
+    send(0)
+    for t in threads:
+        t.join()
+    assert {k: r.status_code for k, r in answers.items()} == {k: 200 for k in range(MAX_AHEAD + 1)}, answers[0].text
+    assert httpx.get(f"{service.url}/v1/sessions/{session_id}").json()["frames"] == MAX_AHEAD + 1

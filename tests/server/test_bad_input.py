@@ -158,6 +158,9 @@ CASES = [
     ("frame_id not a string", lambda c: c.post_frame(c.msg(frame_id=7)), 422, "frame_id"),
     ("frame_id over 256 bytes", lambda c: c.post_frame(c.msg(frame_id="x" * 257)), 422, "frame_id"),
     ("features wrong ndim", lambda c: c.post_frame(c.msg(features=encode_array(np.zeros((4, 4), np.float32)))), 422, "features"),
+    # a map with the image's shape turned a quarter ([W', H'] sent as [H', W']) would put values on other pixels
+    ("labels transposed", lambda c: c.post_frame(c.msg(labels=encode_array(np.zeros(c.frame["rgb"].shape[1::-1], np.int16)),
+                                                       num_classes=2)), 422, "labels"),
     ("labels NaN", lambda c: c.post_frame(c.msg(labels=encode_array(np.full((4, 4, 2), np.nan, np.float32)))), 422, "labels"),
     ("class map without num_classes", lambda c: c.post_frame(c.msg(labels=encode_array(np.zeros((4, 4), np.uint8)))),
      422, "num_classes"),

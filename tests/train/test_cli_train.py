@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from canonical_core.datasets import synthetic_rgbd, write_tsdf_fusion
-from canonical_core.train.data import load_captures
+from canonical_core.train.data import check_capture_path, load_captures
 from client.cli import main
 
 SLAMBOOK = Path(__file__).resolve().parents[3] / "shared" / "data" / "slambook_rgbd5"
@@ -35,6 +35,9 @@ def test_the_evaluation_capture_is_refused_through_a_link_and_as_the_working_fol
     (rig / "b").symlink_to(shelf, target_is_directory=True)
     with pytest.raises(ValueError, match=r"^captures: .*evaluation capture"):
         load_captures([rig], 48)
+    other = tmp_path / "realsense_shelf_kitchen"  # another capture whose name only begins as its does
+    write_tsdf_fusion(synthetic_rgbd(num_frames=8, width=48, height=32), other)
+    assert check_capture_path(other) == other
 
 
 def test_usage_errors_exit_2_naming_the_flag_or_argument(tmp_path, shelf, capsys, monkeypatch):
