@@ -132,6 +132,7 @@ class GuardMiddleware:
             return await self._reject(scope, receive, send, 401, "unauthorized", "Authorization: missing or wrong bearer token",
                                       "Authorization", {"WWW-Authenticate": "Bearer"})
         length = headers.get(b"content-length")
+        limit, setting = self._limit(headers)
         if length is not None:
             try:
                 size = int(length)
@@ -140,11 +141,10 @@ class GuardMiddleware:
             if size < 0:
                 return await self._reject(scope, receive, send, 400, "malformed_body", "Content-Length: not a non-negative integer",
                                           "Content-Length")
-            limit, setting = self._limit(headers)
             if size > limit:
-                frames.body_refused(scope, f"body: {size} bytes exceed the limit of {limit} bytes ({setting})")
-                return await self._reject(scope, receive, send, 413, "too_large",
-                                          f"body: {size} bytes exceed the limit of {limit} bytes ({setting})", "body")
+                message = f"body: {size} bytes exceed the limit of {limit} bytes ({setting})"
+                frames.body_refused(scope, message)
+                return await self._reject(scope, receive, send, 413, "too_large", message, "body")
             if not self.bodies.take(size):
                 return await self._reject(scope, receive, send, *self._bodies_full(size))
         elif headers.get(b"transfer-encoding", b"").lower() != b"chunked":
@@ -153,12 +153,12 @@ class GuardMiddleware:
             size = None  # chunked: taken from the bodies in flight as it arrives
         held = [size or 0]
         try:
-            return await self._with_body(scope, receive, send, held, chunked=size is None)
+            return await self._with_body(scope, receive, send, held, size is None, limit, setting)
         finally:
             self.bodies.give(held[0])
 
-    async def _with_body(self, scope, receive, send, held: list[int], chunked: bool):
-        limit, setting = self._limit(dict(scope["headers"]))
+    async def _with_body(self, scope, receive, send, held: list[int], chunked: bool, limit: int, setting: str):
+        """The body read whole (at most ``limit`` bytes: `_limit`, named by ``setting``), then the app."""
         try:
             body = await self._read_body(receive, held, chunked, limit)
         except BodyTimeout as exc:
@@ -169,9 +169,9 @@ class GuardMiddleware:
         if body is None:  # the client went away
             return None
         if len(body) > limit:
-            frames.body_refused(scope, f"body: more than {limit} bytes (the limit, {setting})")
-            return await self._reject(scope, receive, send, 413, "too_large",
-                                      f"body: more than {limit} bytes (the limit, {setting})", "body")
+            message = f"body: more than {limit} bytes (the limit, {setting})"
+            frames.body_refused(scope, message)
+            return await self._reject(scope, receive, send, 413, "too_large", message, "body")
         sent = False
 
         async def replay():

@@ -32,15 +32,21 @@ def _whole(value, name: str) -> int:
     return int(value)
 
 
+def _json_matrix(m, shape: tuple[int, int], name: str) -> list:
+    """`wire_matrix` for a JSON body, which has no NaN: ValueError naming ``name`` for one, as the
+    service would name it."""
+    rows = wire_matrix(m, shape, name)
+    if not np.isfinite(rows).all():
+        raise ValueError(f"{name}: contains NaN or inf")
+    return rows
+
+
 def _view(K, c2w, width: int, height: int, max_gaussians: int | None, background, colour: str | None = None,
           depth: str | None = None) -> dict:
     """A view's JSON body; ValueError naming the field for what JSON or the service would refuse
     unnamed (NaN in a matrix, a width that is no number)."""
-    body = {"K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w"), "width": _whole(width, "width"),
+    body = {"K": _json_matrix(K, (3, 3), "K"), "c2w": _json_matrix(c2w, (4, 4), "c2w"), "width": _whole(width, "width"),
             "height": _whole(height, "height")}
-    for name in ("K", "c2w"):
-        if not np.isfinite(body[name]).all():  # JSON has no NaN
-            raise ValueError(f"{name}: contains NaN or inf")
     if colour is not None:
         body["colour"] = colour
     if depth is not None:
@@ -207,11 +213,8 @@ class Session:
         status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
         without, the service answers at once and this returns the status (``correction_id``, ``state``;
         see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
-        body = {"poses": {str(k): wire_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items()},
+        body = {"poses": {str(k): _json_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items()},
                 "remove": [str(k) for k in remove], "wait": bool(wait)}
-        for k, c2w in body["poses"].items():
-            if not np.isfinite(c2w).all():  # JSON has no NaN: say which pose, as the service would
-                raise ValueError(f"poses.{k}: contains NaN or inf")
         return self._finished(self.client._request("POST", f"{self._path}/poses", json=body), wait, progress, poll)
 
     def remove_frame(self, frame_id, wait: bool = True, progress=None, poll: float = 0.5) -> dict:

@@ -167,6 +167,13 @@ class RenderLoop:
             self.errors.append(exc)
 
 
+def resident_mib(pid: int, peak: bool = False) -> float:
+    """Process ``pid``'s resident memory in MiB; ``peak``: its high-water mark so far (what a request
+    that let its memory go again still raised)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(status.split("VmHWM:" if peak else "VmRSS:")[1].split()[0]) / 1024
+
+
 def wait_for(condition, timeout: float = 30.0, interval: float = 0.02) -> bool:
     """Poll ``condition()`` until it is true (True) or ``timeout`` seconds pass (False): for what the
     service does off the request's path, such as a due snapshot."""

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import io
 import json
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from PIL import Image
 
-from .harness import SOLVE_WAIT_S, ServerProcess, wait_for
+from .harness import SOLVE_WAIT_S, ServerProcess, resident_mib, wait_for
 
 SIDE = 1024
 FINE = 0.0005  # metres: every pixel of the ramp its own voxel
@@ -42,11 +41,6 @@ def post_ramp(url: str, session_id: str) -> httpx.Response:
 
 def create(url: str, **settings) -> httpx.Response:
     return httpx.post(f"{url}/v1/sessions", json={"voxel_size": FINE, **settings}, timeout=60)
-
-
-def resident_mib(pid: int) -> float:
-    status = Path(f"/proc/{pid}/status").read_text()
-    return int(status.split("VmRSS:")[1].split()[0]) / 1024
 
 
 def ramp_cost() -> int:
