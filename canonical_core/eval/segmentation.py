@@ -61,7 +61,7 @@ from .probe import PROBE_STEPS, PROBE_WEIGHT_DECAY, fit_probe
 from .protocol import Split, spread
 from .figures import require_matplotlib
 from .report import _num, check_writable
-from .segmentation_report import write_segmentation_report
+from .segmentation_report import write_partial_segmentation_report, write_segmentation_report
 
 HELDOUT_EVERY = 3
 PROBE_PIXELS = 20000  # most training pixels per probe, drawn with a fixed seed
@@ -251,8 +251,10 @@ def _row(kind: str, all_pixels: Tensor, on_covered: Tensor, label_ids: Sequence[
 
 
 def run_bin(sequence: FrameSequence, views: Sequence[int], specs: Sequence[MethodSpec], scale: float,
-            voxel_size: float | None, heldout_every: int, probe: bool, bar: tqdm) -> tuple[dict, dict]:
-    """Every method and N on one capture: (its results, its grids {N: {column: images}})."""
+            voxel_size: float | None, heldout_every: int, probe: bool, bar: tqdm, bins: list[dict]) -> dict:
+    """Every method and N on one capture: its results are appended to ``bins`` as soon as its frames
+    are read, each run's row as it finishes (an interrupted experiment reports what finished); returns
+    its grids {N: {column: images}}."""
     from .run import default_voxel_size
 
     label_ids = list(getattr(sequence, "label_ids", ()))
@@ -271,6 +273,10 @@ def run_bin(sequence: FrameSequence, views: Sequence[int], specs: Sequence[Metho
     grids = {n: {"image": [targets[i].rgb.numpy() for i in grid_at],
                  "ground truth": [colour_labels(label_map(targets[i])) for i in grid_at]} for n in split.inputs}
     runs = []
+    bins.append({"dataset": sequence.name, "frames": len(sequence), "frame_ids": sequence.frame_ids,
+                 "label_ids": label_ids, "image_size": [targets[0].width, targets[0].height], "voxel_size": voxel_size,
+                 "heldout": list(split.heldout), "inputs": {str(k): list(v) for k, v in split.inputs.items()},
+                 "client_features": client, "runs": runs})
     for n, positions in split.inputs.items():
         inputs = [frames[p] for p in positions]
         for spec in specs:
@@ -295,11 +301,7 @@ def run_bin(sequence: FrameSequence, views: Sequence[int], specs: Sequence[Metho
             runs.append(row)
             bar.set_postfix_str(f"{sequence.name} {spec.label} N={n}: mIoU {_num(row['fusion_miou'], 3)}")
             bar.update()
-    info = {"dataset": sequence.name, "frames": len(sequence), "frame_ids": sequence.frame_ids, "label_ids": label_ids,
-            "image_size": [targets[0].width, targets[0].height], "voxel_size": voxel_size,
-            "heldout": list(split.heldout), "inputs": {str(k): list(v) for k, v in split.inputs.items()},
-            "client_features": client, "runs": runs}
-    return info, grids
+    return grids
 
 
 def mean_runs(bins: Sequence[Mapping]) -> list[dict]:
@@ -362,16 +364,21 @@ def evaluate_segmentation(
     bar = tqdm(total=len(sequences) * len(specs) * len(set(views)), disable=not progress, file=sys.stderr,
                desc="segmentation", unit="run", dynamic_ncols=True)
     bins, grids = [], {}
-    for seq in sequences:
-        info, grid = run_bin(seq, views, specs, scale, voxel_size, heldout_every, probe, bar)
-        bins.append(info)
-        grids[seq.name] = grid
+    try:
+        for seq in sequences:
+            grids[seq.name] = run_bin(seq, views, specs, scale, voxel_size, heldout_every, probe, bar, bins)
+        interrupted = False
+    except KeyboardInterrupt:  # Ctrl-C: the runs that finished are reported, then the interrupt goes on
+        interrupted = True
     bar.close()
     results = {"methods": [s.label for s in specs], "views": sorted(set(views)), "scale": scale,
                "heldout_every": heldout_every, "probe": probe,
                "probe_settings": {"steps": PROBE_STEPS, "pixels": PROBE_PIXELS, "weight_decay": PROBE_WEIGHT_DECAY,
                                   "seed": PROBE_SEED},
-               "bins": bins, "mean": mean_runs(bins) if len(bins) > 1 else []}
+               "bins": [b for b in bins if b["runs"]], "mean": mean_runs(bins) if len(bins) > 1 and not interrupted else []}
+    if interrupted:
+        write_partial_segmentation_report({**results, "partial": True}, out_dir)
+        raise KeyboardInterrupt
     write_segmentation_report(results, grids, out_dir)
     return results
 

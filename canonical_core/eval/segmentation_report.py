@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .figures import _method_colours, _pyplot, _save, image_grid
-from .report import EVALUATION_FIGURES, _finite, _num, _table, remove_stale
+from .report import EVALUATION_FIGURES, SEGMENTATION_FIGURES, _finite, _num, _table, remove_stale
 
 TABLE_COLUMNS = (("fusion_miou", "label mIoU"), ("fusion_miou_covered", "label mIoU covered"),
                  ("fusion_accuracy", "label acc."), ("fusion_accuracy_covered", "label acc. covered"),
@@ -30,8 +30,12 @@ def segmentation_table(runs: Sequence[Mapping]) -> list[str]:
 
 
 def segmentation_markdown(results: Mapping) -> str:
-    """results.md: the protocol and the table (every capture, then the mean over captures)."""
-    lines = ["# Segmentation", "",
+    """results.md: the protocol and the table (every capture, then the mean over captures); an
+    interrupted experiment's says so and holds the runs that finished."""
+    partial = ["The run was interrupted: these are the runs (one method at one N of a capture) that finished "
+               "before it; the mean over captures and the figures of a full report are left out.", ""]
+    lines = ["# Segmentation" + (": partial (interrupted)" if results.get("partial") else ""), "",
+             *(partial if results.get("partial") else []),
              f"Held out: one frame in {results['heldout_every']}, from position 1; the N inputs spread evenly over the rest. "
              f"Images at scale {results['scale']:g}; label maps looked up nearest at the render's pixels.",
              "Label mIoU / acc.: the argmax of the fused label scores splatted at the held-out cameras. Probe: a linear "
@@ -75,14 +79,27 @@ def write_segmentation_report(results: Mapping, grids: Mapping[str, Mapping[int,
                               out_dir: Path) -> list[Path]:
     """results.json, results.md, miou_vs_views.png and grid_{capture}_N{N}.png (image, ground truth
     and every method's label map at a few held-out frames); returns the paths."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    written = [out_dir / "results.json", out_dir / "results.md", out_dir / "miou_vs_views.png"]
-    written[0].write_text(json.dumps(_finite(results), indent=1))
-    written[1].write_text(segmentation_markdown(results))
+    written = _write_tables(results, out_dir) + [out_dir / "miou_vs_views.png"]
     plot_segmentation(results, written[2])
     for name, by_views in grids.items():
         for n, columns in by_views.items():
             written.append(out_dir / f"grid_{name}_N{n}.png")
             image_grid(columns).save(written[-1])
     remove_stale(out_dir, ["grid_*_N*.png", *EVALUATION_FIGURES], written)
+    return written
+
+
+def write_partial_segmentation_report(results: Mapping, out_dir: Path) -> list[Path]:
+    """results.json and results.md of an interrupted experiment (`segmentation_markdown` says so); an
+    earlier run's figures are removed so that none stand beside these numbers."""
+    written = _write_tables(results, out_dir)
+    remove_stale(out_dir, [*SEGMENTATION_FIGURES, *EVALUATION_FIGURES], written)
+    return written
+
+
+def _write_tables(results: Mapping, out_dir: Path) -> list[Path]:  # results.json and results.md
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [out_dir / "results.json", out_dir / "results.md"]
+    written[0].write_text(json.dumps(_finite(results), indent=1))
+    written[1].write_text(segmentation_markdown(results))
     return written

@@ -52,8 +52,7 @@ def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
     scales = np.log(g.scales.detach().cpu().double().numpy().clip(1e-12, None)).astype(np.float32)
     for i in range(3):
         cols[f"scale_{i}"] = scales[:, i]
-    q = g.quats.detach().cpu().float().numpy()
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+    q = unit_quats(g.quats.detach().cpu().numpy())
     for i in range(4):
         cols[f"rot_{i}"] = q[:, i]
     rgb8 = _dc_rgb8(g)
@@ -65,6 +64,14 @@ def _ply_columns(g: Gaussians) -> dict[str, np.ndarray]:
             for j in range(arr.shape[1]):
                 cols[f"{prefix}_{j}"] = arr[:, j]
     return cols
+
+
+def unit_quats(q: np.ndarray) -> np.ndarray:  # [N, 4] -> [N, 4] float32
+    """Rotations of unit length (a zero quaternion stays zero: the renderer draws it as a point). Trained
+    3DGS files keep quaternions unnormalised, at any length; their norms are taken in float64, where
+    float32's squares overflow from a length of about 1e19 (a rotation of zeros, or infinity)."""
+    q64 = np.asarray(q, np.float64)
+    return (q64 / np.linalg.norm(q64, axis=1, keepdims=True).clip(1e-300, None)).astype(np.float32)
 
 
 def atomic_write(path: str | os.PathLike, payload: list[bytes], sync_folder: bool = False) -> None:
@@ -195,7 +202,7 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     return Gaussians(
         means=torch.from_numpy(np.stack([cols["x"], cols["y"], cols["z"]], 1)),
         scales=torch.from_numpy(np.exp(np.stack([cols[f"scale_{i}"] for i in range(3)], 1))),
-        quats=torch.from_numpy(np.stack([cols[f"rot_{i}"] for i in range(4)], 1)),
+        quats=torch.from_numpy(unit_quats(np.stack([cols[f"rot_{i}"] for i in range(4)], 1))),
         opacities=torch.sigmoid(torch.from_numpy(cols["opacity"])),
         sh=torch.from_numpy(sh),
         features=None if feats is None else torch.from_numpy(feats),
@@ -217,8 +224,7 @@ def splat_bytes(g: Gaussians) -> bytes:
     rec["scale"] = scales[order]
     rec["rgba"][:, :3] = _dc_rgb8(g)[order]
     rec["rgba"][:, 3] = np.clip(np.round(opac[order] * 255), 0, 255)
-    q = g.quats.detach().cpu().float().numpy()[order]
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+    q = unit_quats(g.quats.detach().cpu().numpy()[order])
     rec["rot"] = np.clip(np.round(q * 128 + 128), 0, 255)
     return rec.tobytes()
 
@@ -235,8 +241,7 @@ def load_splat(path: str | os.PathLike) -> Gaussians:
         raise ValueError(f"splat: file size {len(data)} is not a multiple of 32 bytes")
     rec = np.frombuffer(data, SPLAT_DTYPE)
     rgba = rec["rgba"].astype(np.float32) / 255.0
-    q = (rec["rot"].astype(np.float32) - 128.0) / 128.0
-    q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(1e-12, None)
+    q = unit_quats((rec["rot"].astype(np.float32) - 128.0) / 128.0)
 
     return Gaussians(
         means=torch.from_numpy(rec["position"].copy()),

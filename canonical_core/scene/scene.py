@@ -394,6 +394,7 @@ class Scene:
 
     from_bytes = classmethod(snapshot.from_bytes)  # the scene a `to_bytes` snapshot holds
     load = classmethod(snapshot.load)  # the scene a `save` file holds
+    __reduce__ = snapshot.reduce  # pickle and deepcopy carry the snapshot
 
     def __repr__(self) -> str:
         return f"Scene(frames={self.frames}, voxels={len(self)}, voxel_size={self.config.voxel_size})"

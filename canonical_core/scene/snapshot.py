@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from .scene import Scene
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "copied_parts", "encode", "encode_snapshot", "from_bytes", "load",
-           "model_arrays", "read_config", "save", "snapshot_parts", "state_arrays"]
+           "model_arrays", "read_config", "reduce", "save", "snapshot_parts", "state_arrays"]
 
 FORMAT_NAME = "canonicalgs-scene"
 # 4 adds the per-view observation density (v3 files load with a density of 1); 5 stores the records
@@ -120,6 +120,13 @@ def from_bytes(scene_type: type[Scene], data: bytes) -> Scene:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ValueError(f"data: expected the bytes of a snapshot, got {type(data).__name__}")
     return _read(scene_type, data, "snapshot")
+
+
+def reduce(scene: Scene) -> tuple:
+    """`Scene.__reduce__`: a pickled or deep-copied scene (a process pool's or a Ray task's argument)
+    is rebuilt from its snapshot, so the copy has its digest and folds on alike; the undo records are
+    not carried (the copy cannot `rollback` what the original folded), nor `keep_frames`."""
+    return (type(scene).from_bytes, (scene.to_bytes(),))
 
 
 def load(scene_type: type[Scene], path: str | os.PathLike) -> Scene:

@@ -116,3 +116,33 @@ def test_ctrl_c_writes_the_runs_finished_so_far_marked_partial(tmp_path, capture
     text = (out / "results.md").read_text()
     assert "partial" in text.lower() and "| canonical | 2 |" in text and "| canonical | 4 |" not in text
     assert not list(out.glob("*.png"))
+
+
+def test_ctrl_c_in_the_segmentation_experiment_writes_the_runs_finished_so_far(tmp_path, labelled, capsys, monkeypatch):
+    import json
+
+    from canonical_core.eval import segmentation
+
+    fusion_rows = []
+
+    def interrupt_the_second_run(kind, *args):
+        if kind == "fusion":
+            fusion_rows.append(1)
+            if len(fusion_rows) == 2:
+                raise KeyboardInterrupt
+        return row(kind, *args)
+
+    row = segmentation._row
+    monkeypatch.setattr(segmentation, "_row", interrupt_the_second_run)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "miou_vs_views.png").write_bytes(b"")  # an earlier run's figure: not of these results
+    assert main([str(labelled), "--segmentation", "--views", "2,4", "--methods", "canonical", "--scale", "0.25",
+                 "--out", str(out), "--quiet"]) == 130
+    assert capsys.readouterr().err.endswith("interrupted\n")
+    results = json.loads((out / "results.json").read_text())
+    assert results["partial"] is True and results["mean"] == []
+    assert [(b["dataset"], r["method"], r["views"]) for b in results["bins"] for r in b["runs"]] == [("bin_labels", "canonical", 2)]
+    text = (out / "results.md").read_text()
+    assert "partial" in text.lower() and "| bin_labels | canonical | 2 |" in text and "| 4 |" not in text
+    assert not list(out.glob("*.png"))

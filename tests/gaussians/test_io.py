@@ -95,6 +95,27 @@ def test_ply_round_trip(tmp_path, degree):
     assert torch.allclose(h.quats, g.quats, atol=1e-6)
 
 
+@pytest.mark.parametrize("length", [1e-3, 7.0, 1e20])
+def test_quaternions_of_any_length_are_written_and_read_as_rotations(tmp_path, length):
+    """Trained 3DGS files keep rotations unnormalised: a quaternion of any length is the rotation of
+    its unit form, in a PLY read and in both exports (float32 squares overflow from about 1e19)."""
+    g = random_gaussians(features=0, labels=0)
+    long = Gaussians(g.means, g.scales, g.quats * length, g.opacities, g.sh)
+    rows = ply_rows(ply_bytes(long))
+    assert np.allclose(np.stack([rows[f"rot_{i}"] for i in range(4)], 1), g.quats.numpy(), atol=1e-6)
+    raw = bytearray(ply_bytes(g))
+    body = np.frombuffer(raw, np.uint8)[raw.index(b"end_header\n") + 11:]
+    table = body.view(ply_rows(bytes(raw)).dtype)
+    for i in range(4):
+        table[f"rot_{i}"] *= np.float32(length)
+    (tmp_path / "long.ply").write_bytes(bytes(raw))
+    assert torch.allclose(load_ply(tmp_path / "long.ply").quats, g.quats, atol=1e-6)
+    save_splat(long, tmp_path / "long.splat")
+    h = load_splat(tmp_path / "long.splat")
+    order = torch.cdist(h.means, g.means).argmin(1)
+    assert (h.quats * g.quats[order]).sum(1).abs().min() > 0.999
+
+
 def test_splat_round_trip_is_quantised(tmp_path):
     g = random_gaussians(features=0, labels=0)
     save_splat(g, tmp_path / "g.splat")

@@ -144,3 +144,19 @@ def test_a_failed_save_leaves_no_temporary_file_and_names_the_path_given(tmp_pat
         Scene(SceneConfig(voxel_size=0.01)).save(tmp_path / "scene.cgs")
     assert err.value.filename == str(tmp_path / "scene.cgs")
     assert [p.name for p in tmp_path.iterdir()] == ["scene.cgs"]
+
+
+def test_a_pickled_or_deep_copied_scene_is_its_snapshot_and_folds_on_alike(shelf_frames):
+    """Pickling (a process pool's or a Ray task's argument) and `copy.deepcopy` carry the snapshot:
+    the copy has the scene's digest and folds the next frame to the same digest."""
+    import copy
+    import pickle
+
+    scene = Scene(SceneConfig(voxel_size=0.008))
+    for f in shelf_frames[:2]:
+        scene.fold(f)
+    for twin in (pickle.loads(pickle.dumps(scene)), copy.deepcopy(scene)):
+        assert type(twin) is Scene and twin is not scene and twin.digest() == scene.digest()
+        twin.fold(shelf_frames[2])
+    scene.fold(shelf_frames[2])
+    assert twin.digest() == scene.digest()
