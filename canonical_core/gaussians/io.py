@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -74,7 +76,7 @@ def unit_quats(q: np.ndarray) -> np.ndarray:  # [N, 4] -> [N, 4] float32
     return (q64 / np.linalg.norm(q64, axis=1, keepdims=True).clip(1e-300, None)).astype(np.float32)
 
 
-def atomic_write(path: str | os.PathLike, payload: list[bytes], sync_folder: bool = False) -> None:
+def atomic_write(path: str | os.PathLike, payload: Iterable[bytes], sync_folder: bool = False) -> None:
     """``payload``'s chunks to ``path`` atomically: a temporary file beside it, fsync, rename, and with
     ``sync_folder`` an fsync of the folder (so the rename itself survives a crash). A failed write
     (``path`` a folder, a full disk, Ctrl-C) removes the temporary file, and its OSError names ``path``."""
@@ -100,21 +102,52 @@ def atomic_write(path: str | os.PathLike, payload: list[bytes], sync_folder: boo
             os.close(folder)
 
 
+class Encoded(NamedTuple):
+    """A file of Gaussians as it is written a block of rows at a time (`ply_file`, `splat_file`): its
+    size is known before any row is encoded (an HTTP answer's Content-Length), and each block is
+    encoded as it is taken, so that the file's bytes never all sit in memory (a scene of millions of
+    Gaussians makes a file of hundreds of MB, which a whole encode held four times over)."""
+
+    size: int  # bytes of the whole file
+    chunks: Iterator[bytes]  # the file's bytes: the header, then blocks of `ENCODE_ROWS` rows
+
+
+ENCODE_ROWS = 1 << 14  # rows encoded at a time: a few MB of PLY, a few ms of work
+
+
+def _rows(g: Gaussians, start: int, stop: int) -> Gaussians:
+    return g.map(lambda t: t[start:stop])
+
+
+def ply_file(g: Gaussians) -> Encoded:
+    """The PLY file of ``g`` (header + binary body), a block of rows at a time."""
+    layout = _ply_columns(_rows(g, 0, 0))  # the columns' names and types, from no rows
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
+    header += [f"property {'uchar' if v.dtype == np.uint8 else 'float'} {name}" for name, v in layout.items()]
+    head = ("\n".join(header + ["end_header"]) + "\n").encode("ascii")
+    dtype = np.dtype([(name, "u1" if v.dtype == np.uint8 else "<f4") for name, v in layout.items()])
+
+    def chunks() -> Iterator[bytes]:
+        yield head
+        for start in range(0, len(g), ENCODE_ROWS):
+            cols = _ply_columns(_rows(g, start, start + ENCODE_ROWS))
+            body = np.empty(len(cols["x"]), dtype)
+            for name, values in cols.items():
+                body[name] = values
+            yield body.tobytes()
+
+    return Encoded(len(head) + len(g) * dtype.itemsize, chunks())
+
+
 def ply_bytes(g: Gaussians) -> bytes:
     """The PLY file as bytes (header + binary body)."""
-    cols = _ply_columns(g)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
-    header += [f"property {'uchar' if v.dtype == np.uint8 else 'float'} {name}" for name, v in cols.items()]
-    header.append("end_header")
-    body = np.empty(len(g), dtype=[(name, "u1" if v.dtype == np.uint8 else "<f4") for name, v in cols.items()])
-    for name, values in cols.items():
-        body[name] = values
-    return ("\n".join(header) + "\n").encode("ascii") + body.tobytes()
+    return b"".join(ply_file(g).chunks)
 
 
 def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
-    """Write ``g`` in the standard 3DGS PLY layout (atomically: temp file, fsync, rename)."""
-    atomic_write(path, [ply_bytes(g)])
+    """Write ``g`` in the standard 3DGS PLY layout (atomically: temp file, fsync, rename), a block
+    of rows at a time."""
+    atomic_write(path, ply_file(g).chunks)
 
 
 def _parse_ply(data: bytes, name: str) -> dict[str, np.ndarray]:
@@ -214,24 +247,37 @@ SPLAT_DTYPE = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u
 assert SPLAT_DTYPE.itemsize == 32
 
 
+def splat_file(g: Gaussians) -> Encoded:
+    """antimatter15 `.splat`: 32 bytes per splat, most important (volume x opacity) first, a block of
+    rows at a time."""
+    # the order is the one array of the file's length (8 bytes a row of 32); its key is made in place
+    importance = g.scales.detach().cpu().float().numpy().prod(1)
+    importance *= g.opacities.detach().cpu().float().numpy()
+    order = torch.from_numpy(np.argsort(np.negative(importance, out=importance), kind="stable"))
+    del importance
+
+    def chunks() -> Iterator[bytes]:
+        for start in range(0, len(g), ENCODE_ROWS):
+            block = g.map(lambda t: t[order[start:start + ENCODE_ROWS]])
+            rec = np.empty(len(block), SPLAT_DTYPE)
+            rec["position"] = block.means.detach().cpu().float().numpy()
+            rec["scale"] = block.scales.detach().cpu().float().numpy()
+            rec["rgba"][:, :3] = _dc_rgb8(block)
+            rec["rgba"][:, 3] = np.clip(np.round(block.opacities.detach().cpu().float().numpy() * 255), 0, 255)
+            rec["rot"] = np.clip(np.round(unit_quats(block.quats.detach().cpu().numpy()) * 128 + 128), 0, 255)
+            yield rec.tobytes()
+
+    return Encoded(len(g) * SPLAT_DTYPE.itemsize, chunks())
+
+
 def splat_bytes(g: Gaussians) -> bytes:
-    """antimatter15 `.splat`: 32 bytes per splat, most important (volume x opacity) first."""
-    scales = g.scales.detach().cpu().float().numpy()
-    opac = g.opacities.detach().cpu().float().numpy()
-    order = np.argsort(-(scales.prod(1) * opac), kind="stable")
-    rec = np.empty(len(g), SPLAT_DTYPE)
-    rec["position"] = g.means.detach().cpu().float().numpy()[order]
-    rec["scale"] = scales[order]
-    rec["rgba"][:, :3] = _dc_rgb8(g)[order]
-    rec["rgba"][:, 3] = np.clip(np.round(opac[order] * 255), 0, 255)
-    q = unit_quats(g.quats.detach().cpu().numpy()[order])
-    rec["rot"] = np.clip(np.round(q * 128 + 128), 0, 255)
-    return rec.tobytes()
+    """antimatter15 `.splat` as bytes (`splat_file`)."""
+    return b"".join(splat_file(g).chunks)
 
 
 def save_splat(g: Gaussians, path: str | os.PathLike) -> None:
     """Write the antimatter15 `.splat` layout (atomically). View-dependent SH is dropped (DC only)."""
-    atomic_write(path, [splat_bytes(g)])
+    atomic_write(path, splat_file(g).chunks)
 
 
 def load_splat(path: str | os.PathLike) -> Gaussians:

@@ -3,9 +3,11 @@ its sessions, limits, health and metrics."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
+from collections.abc import Iterator
 
 import httpx
 import numpy as np
@@ -73,27 +75,50 @@ class Client:
         self.max_retries, self.max_wait = max_retries, max_wait
         self._limits: dict | None = None
 
-    def _request(self, method: str, path: str, idempotent: bool = False, **kwargs) -> httpx.Response:
+    def _request(self, method: str, path: str, idempotent: bool = False, stream: bool = False, **kwargs) -> httpx.Response:
         """``method`` on ``path``, 429s retried; with ``idempotent`` (a request the service takes once
         however often it comes: every GET, a view, a frame with its ``frame_id``), failures to reach
-        the service and `RETRIED_SERVER_ERRORS` too. `ServiceUnreachable` when no answer came."""
+        the service and `RETRIED_SERVER_ERRORS` too. `ServiceUnreachable` when no answer came. With
+        ``stream``, a successful answer's body is left to the caller to read (`_download`)."""
         idempotent = idempotent or method == "GET"
         for attempt in range(self.max_retries + 1):
             try:
-                r = self._http.request(method, path, **kwargs)
+                r = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
             except httpx.TransportError as exc:
                 if not idempotent or attempt == self.max_retries:
-                    raise ServiceUnreachable(f"{method} {self._http.base_url}{path}: {type(exc).__name__}: "
-                                             f"{exc or 'no answer'}") from exc
+                    raise self._unreachable(method, path, exc) from exc
                 time.sleep(self._retry_after(None, attempt))
                 continue
             again = r.status_code == 429 or (idempotent and r.status_code in RETRIED_SERVER_ERRORS)
             if not again or attempt == self.max_retries:
                 break
+            r.close()
             time.sleep(self._retry_after(r, attempt))
         if r.status_code >= 400:
+            r.read()
             raise self._error(r)
         return r
+
+    @contextlib.contextmanager
+    def _download(self, path: str, **kwargs) -> Iterator[Iterator[bytes]]:
+        """The body of a GET of ``path``, to iterate as it arrives (a file of hundreds of MB never all
+        in memory). The request is made, and retried as `_request` does, on entering, so a refusal is
+        raised before the caller makes any file; `ServiceUnreachable` when the connection fails on
+        the way. The answer is closed on leaving, however the caller's write ended."""
+        r = self._request("GET", path, stream=True, **kwargs)
+        try:
+            yield self._body(r, path)
+        finally:
+            r.close()
+
+    def _body(self, r: httpx.Response, path: str) -> Iterator[bytes]:
+        try:
+            yield from r.iter_bytes()
+        except httpx.TransportError as exc:
+            raise self._unreachable("GET", path, exc) from exc
+
+    def _unreachable(self, method: str, path: str, exc: Exception) -> ServiceUnreachable:
+        return ServiceUnreachable(f"{method} {self._http.base_url}{path}: {type(exc).__name__}: {exc or 'no answer'}")
 
     def _retry_after(self, r: httpx.Response | None, attempt: int) -> float:
         """Seconds before retry ``attempt``: the answer's Retry-After, else (no answer, or none in it)

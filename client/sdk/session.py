@@ -76,10 +76,10 @@ def path_segment(value, name: str) -> str:
     return "%2E" * len(text) if text in (".", "..") else quote(text, safe="")
 
 
-def _write(path: str | os.PathLike, data: bytes) -> Path:
-    """``data`` to ``path`` by way of a temporary file beside it, so a failed download leaves no half
-    file; the temporary file is removed if the write fails, and the error names ``path``, not it.
-    Missing parent folders are created."""
+def _write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
+    """A download's ``chunks`` to ``path`` as they arrive, by way of a temporary file beside it, so a
+    failed download leaves no half file; the temporary file is removed if the write fails, and the
+    error names ``path``, not it. Missing parent folders are created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     # a name of its own, so that downloads to one path at once never write or move each other's file;
@@ -87,7 +87,8 @@ def _write(path: str | os.PathLike, data: bytes) -> Path:
     tmp = path.with_name(f"{path.name}.{secrets.token_hex(6)}.part")
     try:
         with open(tmp, "xb") as f:
-            f.write(data)
+            for chunk in chunks:
+                f.write(chunk)
         os.replace(tmp, path)
     except BaseException as exc:  # Ctrl-C too: no half file of the download's size left behind
         tmp.unlink(missing_ok=True)
@@ -291,11 +292,13 @@ class Session:
     def export_mesh(self, path: str | os.PathLike, min_support: float | None = None) -> Path:
         """The surface as a coloured triangle mesh (binary PLY: vertex x, y, z, red, green, blue; faces)."""
         params = {} if min_support is None else {"min_support": float(min_support)}
-        return _write(path, self.client._request("GET", f"{self._path}/mesh.ply", params=params).content)
+        with self.client._download(f"{self._path}/mesh.ply", params=params) as chunks:
+            return _write(path, chunks)
 
     def _export(self, suffix: str, path, max_gaussians) -> Path:
         params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
-        return _write(path, self.client._request("GET", f"{self._path}/gaussians{suffix}", params=params).content)
+        with self.client._download(f"{self._path}/gaussians{suffix}", params=params) as chunks:
+            return _write(path, chunks)
 
     def events(self, every: float | None = None) -> Iterator[tuple[str, dict]]:
         """The session's live events as (name, fields), read from its Server-Sent Events stream:

@@ -5,9 +5,9 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 
-from canonical_core.gaussians import ply_bytes, splat_bytes
+from canonical_core.gaussians import ply_file, splat_file
 from canonical_core.scene.mesh import mesh_ply_bytes
 
 from ..deps import JobsDep, SessionDep
@@ -22,29 +22,32 @@ MinSupport = Annotated[float, Query(ge=0, allow_inf_nan=False, description="R_sc
 MaxGaussians = Annotated[int | None, Query(ge=0, description="level of detail: the best-supported N Gaussians")]
 
 
-async def _export(session, jobs, max_gaussians, encode, suffix: str, features: bool) -> Response:
-    def job():
-        gaussians, _ = session.gaussians(max_gaussians, features=features)
-        return encode(gaussians), len(gaussians)
-
-    data, n = await jobs.run(job, kind="work", session=session.id)
+async def _export(session, jobs, max_gaussians, encode, suffix: str, features: bool) -> StreamingResponse:
+    """The decode is a job of the session's; the file is then encoded a block of rows at a time as the
+    client takes it (on the server's thread pool: `StreamingResponse` runs a plain iterator there), so
+    a scene of millions of Gaussians never holds its whole file in memory. The decoded Gaussians are
+    not changed by later folds (a fold makes new ones), so the file is of one state."""
+    gaussians = await jobs.run(lambda: session.gaussians(max_gaussians, features=features)[0], kind="work",
+                               session=session.id)
     solve_soon(jobs.scheduler, session)  # as a render does: a session whose colours are due gets them solved
-    return Response(data, media_type="application/octet-stream", headers={
-        "Content-Disposition": f'attachment; filename="{session.id}{suffix}"', "X-Canonical-Gaussians": str(n)})
+    file = encode(gaussians)
+    return StreamingResponse(file.chunks, media_type="application/octet-stream", headers={
+        "Content-Length": str(file.size), "Content-Disposition": f'attachment; filename="{session.id}{suffix}"',
+        "X-Canonical-Gaussians": str(len(gaussians))})
 
 
-@router.get("/{session_id}/gaussians.ply", response_class=Response,
+@router.get("/{session_id}/gaussians.ply", response_class=StreamingResponse,
             responses={200: {"content": {"application/octet-stream": {}}}})
-async def export_ply(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> Response:
+async def export_ply(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> StreamingResponse:
     """The 3DGS PLY layout (binary little-endian float32), with feat_* / label_* extra properties."""
-    return await _export(session, jobs, max_gaussians, ply_bytes, ".ply", features=True)
+    return await _export(session, jobs, max_gaussians, ply_file, ".ply", features=True)
 
 
-@router.get("/{session_id}/gaussians.splat", response_class=Response,
+@router.get("/{session_id}/gaussians.splat", response_class=StreamingResponse,
             responses={200: {"content": {"application/octet-stream": {}}}})
-async def export_splat(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> Response:
+async def export_splat(session: SessionDep, jobs: JobsDep, max_gaussians: MaxGaussians = None) -> StreamingResponse:
     """antimatter15 .splat: 32 bytes per Gaussian, most important first."""
-    return await _export(session, jobs, max_gaussians, splat_bytes, ".splat", features=False)  # colour only
+    return await _export(session, jobs, max_gaussians, splat_file, ".splat", features=False)  # colour only
 
 
 @router.get("/{session_id}/mesh.ply", response_class=Response,

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from client.sdk import CanonicalError, Client, ServiceUnreachable
+from client.sdk.session import Session
 
 VOXEL = 0.008
 
@@ -121,7 +122,40 @@ def test_downloads_to_one_path_at_once_each_leave_a_whole_file(server, frames, t
             t.start()
         for t in threads:
             t.join()
-        expected = httpx.get(f"{server.url}/v1/sessions/{session.id}/gaussians.ply").content
+        answer = httpx.get(f"{server.url}/v1/sessions/{session.id}/gaussians.ply")
+        expected = answer.content  # sent a block of rows at a time, its length said up front
+        assert int(answer.headers["content-length"]) == len(expected) and "transfer-encoding" not in answer.headers
         assert not errors and target.read_bytes() == expected
         assert target.stat().st_mode & 0o777 == 0o666 & ~umask()  # as any file the user makes
         assert [p.name for p in tmp_path.iterdir()] == ["scene.ply"]  # no temporary file left
+
+
+def test_a_download_cut_short_is_service_unreachable_and_leaves_no_file(tmp_path):
+    """Exports are written as they arrive: a connection that ends before the answer's Content-Length
+    is `ServiceUnreachable` naming the request, and neither the file nor its temporary file is left;
+    a refused export makes no file or folder at all (the request is answered before any is made)."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def serve_one_cut_answer():
+        conn, _ = listener.accept()
+        with conn:
+            conn.recv(65536)
+            conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/octet-stream\r\nContent-Length: 1000000\r\n\r\n"
+                         + b"ply\n" + b"x" * 5000)
+
+    server = threading.Thread(target=serve_one_cut_answer, daemon=True)
+    server.start()
+    with Client(f"http://127.0.0.1:{port}", max_retries=0) as client:
+        with pytest.raises(ServiceUnreachable, match=r"GET http://127\.0\.0\.1:\d+/v1/sessions/s/gaussians\.ply: RemoteProtocolError"):
+            Session(client, "s").export_ply(tmp_path / "scene.ply")
+    server.join(10)
+    listener.close()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_export_makes_no_folder(server, tmp_path):
+    with Client(server.url) as client:
+        with pytest.raises(CanonicalError) as err:
+            Session(client, "no-such-session").export_ply(tmp_path / "new" / "scene.ply")
+    assert err.value.status == 404 and list(tmp_path.iterdir()) == []
