@@ -97,6 +97,7 @@ class Session:
     archive: SessionArchive | None = None  # the kept frames (None: retention "none")
     version: int = 0  # bumped by every fold and correction: a correction computed on an older one is refused
     corrected: int = 0  # corrections that changed the served scene (its open event streams tell their pages)
+    recoloured: int = 0  # colour solves kept for the served scene (its open pages redraw: `fold_events`)
     background_frames: int = BACKGROUND_FRAMES  # re-folds longer than this run in the background
     undo_depth: int = field(default_factory=lambda: UNDO_DEPTH)  # folds its scene can roll back in place
     preallocate_voxels: int = 0  # voxels whose memory its scenes commit up front (`Scene.preallocate`)
@@ -308,10 +309,12 @@ class Session:
             self.check_alive()
             scene = self.scene
         try:
-            return scene.solve_colours(stop)
+            solved = scene.solve_colours(stop)
         except SolveStopped:
             self.colour_solves_stopped += 1
             return False
+        self.recoloured += solved
+        return solved
 
     def mesh(self, min_support: float = 0.0) -> Mesh:
         """The scene's surface mesh (`scene_mesh`: its sums copied under the scene's own lock, so folds

@@ -159,7 +159,8 @@ async def fold_events(
     acknowledged fold (frames, voxels, the fold report, the frame's camera), or with ``every`` at most
     one per interval (`events.FoldBatch`: the first fold after a quiet interval at once, the rest when
     the interval is up); ``corrected`` (as ``state``) once a pose correction or a frame removal has
-    changed the scene, within `DELETED_CHECK_S`; a comment every 15 s when idle; the stream ends when the session is deleted
+    changed the scene, and ``recoloured`` (as ``state``) once a colour solve in the background has
+    changed its colours (a page redraws), each within `DELETED_CHECK_S`; a comment every 15 s when idle; the stream ends when the session is deleted
     (with a ``deleted`` event, within `DELETED_CHECK_S`), the service stops, or the client falls
     behind by more than the stream's queue (a last ``dropped`` event; reconnect for the latest
     state). Open streams are capped per session and per service: 429 over a cap, naming its setting."""
@@ -172,16 +173,18 @@ async def fold_events(
     loop = asyncio.get_running_loop()
     last_sent = loop.time()  # when the stream last sent anything, keep-alives included
 
-    seen_corrections = session.corrected
+    seen = (session.corrected, session.recoloured)
 
-    def corrected() -> bytes | None:
+    def changed() -> bytes | None:
         """A ``corrected`` event once a correction changed the served scene since the stream last
-        looked (the page then reads the track again and redraws), else None."""
-        nonlocal seen_corrections
-        if session.corrected == seen_corrections:
-            return None
-        seen_corrections = session.corrected
-        return sse("corrected", state())
+        looked (the page then reads the track again and redraws), else ``recoloured`` once a colour
+        solve did (the page redraws), else None (a solve seen at the same look as a correction needs
+        no event of its own: the page redraws for the correction)."""
+        nonlocal seen
+        before, seen = seen, (session.corrected, session.recoloured)
+        if before[0] != seen[0]:
+            return sse("corrected", state())
+        return sse("recoloured", state()) if before[1] != seen[1] else None
 
     def state() -> dict:
         return {"frames": session.scene.frames, "voxels": len(session.scene), "label_dim": session.scene.label_dim}
@@ -199,7 +202,7 @@ async def fold_events(
     async def each_fold():
         while not events.closing.is_set():
             item = await _next_event(queue, events.closing, DELETED_CHECK_S)
-            if (news := corrected()) is not None:
+            if (news := changed()) is not None:
                 yield news
             if item is not None:
                 yield item.data
@@ -222,7 +225,7 @@ async def fold_events(
                 return
             if item is not None:
                 batch.add(item.event)
-            if (news := corrected()) is not None:  # after the folds before it
+            if (news := changed()) is not None:  # after the folds before it
                 if batch.pending:
                     yield sse("fold", batch.take())
                     batch_sent_at = loop.time()

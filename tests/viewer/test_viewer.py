@@ -360,6 +360,66 @@ def test_a_correction_and_a_deletion_reach_the_open_page(page, server, client, s
     assert page.locator("#error").inner_text() == "this session was deleted"
 
 
+def drawn_is_current(page) -> bool:
+    """Whether the page's last full picture is what the service draws now at its URL."""
+    drawn = page.evaluate("viewer.drawn")
+    if not drawn["full"]:
+        return False
+    fresh = httpx.get(drawn["url"], headers={"Authorization": f"Bearer {TOKEN}"})
+    fresh.raise_for_status()
+    now = np.asarray(Image.open(io.BytesIO(fresh.content)).convert("RGB"))
+    return now.shape == canvas(page).shape and np.abs(now.astype(int) - canvas(page)).mean() < 0.5
+
+
+def test_colours_solved_in_the_background_and_the_corrected_stats_reach_the_open_page(page, server, client, shelf):
+    """A correction's re-fold shows the fused colours, then the service solves them in the background:
+    the open page redraws once they land (it no longer keeps the picture of the colours before), and
+    its stats panel shows the corrected scene's Gaussians."""
+    session = open_on_a_new_session(page, server, client, shelf[:4])
+    assert colours_solved(session)
+    session.remove_frame(shelf[3]["frame_id"])
+    assert colours_solved(session)  # the re-fold's solve has landed
+    stats = session.stats()
+    deadline = time.monotonic() + 30
+    while not drawn_is_current(page) and time.monotonic() < deadline:
+        page.wait_for_timeout(250)
+    assert drawn_is_current(page), "the page kept a picture of the colours before the solve"
+    page.wait_for_function(f"document.getElementById('gaussians').textContent === '{stats['gaussians']}'",
+                           timeout=WAIT_MS)
+    assert page.evaluate("window.notReloaded === true")
+
+
+def test_a_page_in_labels_mode_goes_back_to_colour_when_its_labels_are_removed(page, server, client):
+    session = client.create_session(voxel_size=0.02)
+    labelled = wall_frames()
+    for kwargs in labelled:
+        session.add_frame(**kwargs)
+    open_viewer(page, server, session.id)
+    version = page.evaluate("viewer.version")
+    page.select_option("#mode", "labels")
+    wait_new_image(page, version, "labels")
+    session.add_frame(**{k: v for k, v in labelled[0].items() if k != "labels"})
+    session.update_poses({}, remove=[0, 1])  # left: the one frame without labels
+    # (a label picture asked for in the second before the page hears of the correction is refused)
+    page.wait_for_function("viewer.labelDim === 0 && viewer.mode === 'rgb' && viewer.drawn.mode === 'rgb'"
+                           f" && {FULL}", timeout=WAIT_MS)
+    assert page.locator("#mode").input_value() == "rgb" and page.locator("#legend").is_hidden()
+    assert page.locator("#mode option[value=labels]").is_disabled() and page.locator("#error").is_hidden()
+    refused = []
+    page.on("response", lambda r: refused.append(r.url) if r.status >= 400 else None)
+    version = page.evaluate("viewer.version")
+    session.add_frame(**{k: v for k, v in labelled[1].items() if k != "labels"})
+    wait_new_image(page, version, "rgb")  # it goes on following the session, in colour
+    assert not refused, refused
+
+
+def test_the_page_of_a_missing_session_says_so(page, server):
+    page.goto(f"{server.url}/sessions/no-such-session/view")
+    page.wait_for_function("document.getElementById('status').textContent === 'no such session'", timeout=WAIT_MS)
+    assert page.locator("#live").inner_text() == "gone"
+    assert "no such session" in page.locator("#error").inner_text()
+
+
 @pytest.mark.parametrize("width, height", [(1280, 720), (1400, 420), (700, 900), (390, 844)])
 def test_the_picture_keeps_its_aspect_in_any_window(browser, server, shelf_session, width, height):
     context = browser.new_context(viewport={"width": width, "height": height})

@@ -225,7 +225,21 @@ function serverTiming(text) {
 }
 
 function showError(error) {
+  if (error.status === 404 && error.message.startsWith("session_id:")) { sessionGone(error.message); return; }
+  if (state.deleted) return;  // what the page says of the session's end stays
   $("error").textContent = error.message;
+  $("error").hidden = false;
+}
+
+// The session is gone, whichever of the page's requests or its event stream learns it first: a page
+// that showed it says it was deleted; one that never found it (a stale link) says there is no such
+// session. Nothing more is asked for.
+function sessionGone(message) {
+  const shown = state.info !== null;
+  state.deleted = true;
+  $("status").textContent = state.status = shown ? "deleted" : "no such session";
+  $("live").textContent = "gone";
+  $("error").textContent = shown ? "this session was deleted" : message;
   $("error").hidden = false;
 }
 
@@ -378,6 +392,11 @@ function refreshTrack() {
 function setLabels(labelDim) {
   state.labelDim = labelDim;
   $("mode").querySelector("option[value=labels]").disabled = labelDim === 0;
+  if (labelDim === 0 && state.mode === "labels") {  // its labels removed: every label picture would be refused
+    $("mode").value = state.mode = "rgb";
+    $("legend").hidden = true;
+    changed(false);
+  }
 }
 
 function onEvent(name, data) {
@@ -392,12 +411,16 @@ function onEvent(name, data) {
     setLabels(data.label_dim);
     if (missed) json(`${base}/cameras`).then(showTrack).catch(showError);
     else if (stale) refreshTrack();
+    if (name === "corrected") refreshStats();  // its Gaussians and memory changed too
+    return;
+  }
+  if (name === "recoloured") {  // colours solved in the background: the picture shown is older
+    changed(false);
+    refreshStats();
     return;
   }
   if (name === "deleted") {  // nothing more to ask for: no picture, and the status says why
-    state.deleted = true;
-    $("status").textContent = state.status = "deleted";
-    showError(new Error("this session was deleted"));
+    sessionGone();
     return;
   }
   if (name !== "fold") return;
