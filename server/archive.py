@@ -35,6 +35,7 @@ leave the scene at the first correction; ``none`` keeps no archive and refuses c
 
 from __future__ import annotations
 
+import errno
 import mmap
 import os
 import queue
@@ -51,7 +52,7 @@ from canonical_core.scene.corrections import FrameRef
 
 from . import wire
 from .digests import payload_digest
-from .framelog import FrameLog, LogWedged, Record, scan
+from .framelog import FrameLog, LogWedged, Record, StorageError, scan
 from .payloads import ARCHIVE, compress_payload, decompress_message, decompress_payload
 
 KEYFRAME_EVERY = 5  # retention "keyframes": frames whose arrival index is a multiple of this are kept
@@ -111,6 +112,7 @@ class SessionArchive:
         self.next_arrival = 0
         self._records: list[tuple[int, bool]] = []  # (file offset, is a frame) of every record
         self.problem: str | None = None  # why corrections cannot be served (a damaged or incomplete archive)
+        self.problem_errno = errno.EIO  # the OSError's number where a write failed (a full disk: ENOSPC)
         found = scan(_mapped(path))
         for record in found.records:
             self._apply(record)
@@ -256,19 +258,33 @@ class SessionArchive:
 
     def keep_folded(self, frame_id: str | None, digest: str, payload: bytes, at_once: bool) -> None:
         """Archive a folded frame: off the acknowledged path (`defer_frame`: the session's frame log
-        holds it durably until the archive does), but ``at_once`` while a background correction
-        re-folds, which catches up on the archive's frames. A failure leaves the frame in the log and
-        corrections refused (`problem`) until a restart archives it from there."""
-        if self.problem is not None:
-            return
+        holds it durably until the archive does; a failure leaves it there and corrections refused
+        (`problem`) until a restart archives it from the log), but ``at_once`` while a background
+        correction re-folds: the corrected scene that replaces the served one is made of the
+        archive's frames, so a frame the archive cannot take raises `StorageError` (`check_at_once`),
+        and the caller takes the frame back instead of acknowledging it."""
         if not at_once:
-            self.defer_frame(frame_id, digest, payload)
+            if self.problem is None:
+                self.defer_frame(frame_id, digest, payload)
             return
+        self.check_at_once()
         self.flush()
         try:
             self.append_frame(frame_id, digest, payload)
-        except Exception as exc:  # noqa: BLE001 - the frame is folded and in the log; a restart archives it
-            self.problem = archive_failure(exc)
+        except Exception as exc:  # noqa: BLE001 - any failure: the frame is not archived
+            self._write_failed(exc)
+        self.check_at_once()
+
+    def check_at_once(self) -> None:
+        """Raise `StorageError` while the archive cannot take frames at once (`problem`): a frame
+        folded during a background correction would not be in the scene it swaps in."""
+        if self.problem is not None:
+            raise StorageError("frame", OSError(self.problem_errno, f"{self.problem}; frames are refused until the "
+                                                                    "background correction ends"))
+
+    def _write_failed(self, exc: Exception) -> None:
+        self.problem = archive_failure(exc)
+        self.problem_errno = exc.errno if isinstance(exc, OSError) and exc.errno else errno.EIO
 
     def flush(self) -> None:
         """Wait until every deferred frame is archived (or the archive has a `problem`)."""
@@ -285,7 +301,7 @@ class SessionArchive:
                     try:
                         self.append_frame(frame_id, digest, payload)
                     except Exception as exc:  # noqa: BLE001 - the frame stays in the frame log; a restart archives it
-                        self.problem = archive_failure(exc)
+                        self._write_failed(exc)
             finally:
                 self._queue.task_done()
 

@@ -225,7 +225,9 @@ class CorrectionStatus(BaseModel):
 
     correction_id: str
     state: Literal["pending", "running", "done", "failed"] = Field(
-        description="failed: the old scene is still served and the session is read-only; a restart retries")
+        description="failed: the old scene is still served and the correction is undone in the "
+                    "archive, so frames go on and a restart does not retry it (only where that cannot "
+                    "be written is the session read-only until a restart, which retries it)")
     refolded: int = Field(description="frames re-folded so far")
     total: int = Field(description="frames to re-fold, including those that arrived meanwhile")
     error: str | None = None

@@ -203,6 +203,9 @@ class Session:
             self.order.check_turn(index, self.scene.frames)
         if self.wedged:
             raise SessionUnavailable(self.id, self.wedged, retry_later=True)
+        refolding = self.archive is not None and self.corrections.background is not None
+        if refolding:  # the re-fold catches up on the archive: it must take this frame at once
+            self.archive.check_at_once()
         frames = self.scene.frames
         with self.budget.reserve(fold_cost(self.scene, frame)) if self.budget is not None else nullcontext():
             logged = LOG_WRITERS.submit(lambda: (payload_digest(payload), self.log.append(frames, payload)))
@@ -212,14 +215,18 @@ class Session:
                 self._fold_failed(logged, exc)
                 raise
         try:
-            digest, _ = logged.result()
+            digest, offset = logged.result()
         except StorageError as exc:
             self._append_failed(exc, frames)
             raise
-        append_camera(self.path, report.frame_index, frame.camera)
         if self.archive is not None:
-            refolding = self.corrections.background is not None  # the re-fold catches up on the archive
-            self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
+            try:
+                self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
+            except StorageError:  # not in the scene the correction swaps in: taken back, not acknowledged
+                self.log.truncate(offset)
+                self._recover(frames, "a fold whose frame was not archived")
+                raise
+        append_camera(self.path, report.frame_index, frame.camera)
         if frame.frame_id is not None:
             self.frame_ids[frame.frame_id] = FoldedFrame(report.frame_index, digest, report.to_dict())
         self.version += 1

@@ -12,6 +12,8 @@ from ..schemas import (Deleted, Digest, ErrorBody, PruneReport, SessionCreate, S
                        SessionSummary)
 from ..solves import solve_soon
 
+HTTP_MODELS = ("default", "none")  # a client must not make the service read a file of its choosing
+
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"],
                    responses={401: {"model": ErrorBody}, 404: {"model": ErrorBody}, 422: {"model": ErrorBody}})
 
@@ -26,6 +28,10 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  #
     that sets no ``max_voxels`` gets the service's ``max_session_voxels``, and may set no more."""
     settings = body.model_dump(exclude_unset=True)
     retention = settings.pop("archive_retention", None)
+    model = settings.get("model", "default")
+    if model not in HTTP_MODELS:  # before the library's check, whose message offers a checkpoint path
+        raise ApiError(422, "invalid_value", f"model: 'default' or 'none' over HTTP (a client cannot make the service "
+                                               f"read a file, a checkpoint included), got {model!r}", "model")
     config = SceneConfig(**settings)  # ValueError naming the field -> 422
     cap = service.max_session_voxels
     if config.max_voxels is None:
@@ -33,9 +39,6 @@ async def create_session(body: SessionCreate, store: StoreDep, jobs: JobsDep,  #
     elif config.max_voxels > cap:
         raise ApiError(422, "invalid_value", f"max_voxels: at most {cap} on this service (CANONICAL_MAX_SESSION_VOXELS), "
                                                f"got {config.max_voxels}", "max_voxels")
-    if config.model not in ("default", "none"):  # a client must not make the service read a file of its choosing
-        raise ApiError(422, "invalid_value", "model: a checkpoint path cannot be chosen over HTTP; use 'default' "
-                                               "or 'none'", "model")
     session = await jobs.run(store.create, config, retention, kind="frame")
     return SessionCreated(id=session.id, config=session.config.to_dict(), archive_retention=session.retention)
 

@@ -223,6 +223,61 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
         again.close()
 
 
+def test_a_frame_the_archive_cannot_take_during_a_background_correction_is_refused_not_lost(tmp_path, shelf,
+                                                                                            monkeypatch):
+    """The scene a background correction swaps in is made of the archive's frames: a frame folded
+    meanwhile that the archive cannot take (a full disk) is taken back and refused (507, nothing
+    applied), and so are the frames after it until the correction ends, instead of being acknowledged
+    and then dropped by the swap (and by the restart, which re-folds the archive)."""
+    import errno
+    import threading
+    import time
+
+    from server.framelog import StorageError
+
+    started, gate = threading.Event(), threading.Event()
+    real = corrections.counted
+
+    def gated(frames, job):  # the background re-fold waits here until the frames below were sent
+        started.set()
+        gate.wait(120)
+        yield from real(frames, job)
+
+    monkeypatch.setattr(corrections, "counted", gated)
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
+    before = session.digest()["sha256"]
+    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, wait=False)
+    assert started.wait(120)
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(session.archive, "append_frame", full)
+    for kwargs in shelf[5:]:
+        with pytest.raises(StorageError) as refused:
+            session.add_frame(*payload(kwargs), 1000, 3600)
+        assert refused.value.full  # a full disk: 507, retry later
+    assert session.scene.frames == 5 and session.digest()["sha256"] == before
+    gate.set()
+    for _ in range(600):
+        status = session.corrections.status(done["correction_id"])
+        if status["state"] != "running":
+            break
+        time.sleep(0.2)
+    assert status["state"] == "done" and status["result"]["frames"] == 5, status
+    expected = streamed(store, shelf[:5]).digest()["sha256"]
+    assert session.digest()["sha256"] == expected
+    again = reopened(store, tmp_path)
+    try:
+        assert again.get(session.id).digest()["sha256"] == expected
+    finally:
+        again.close()
+
+
 def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restart(tmp_path, shelf):
     """A kill -9 after frames were acknowledged (in the fsynced log) but before the archive's writer
     wrote them: the restart archives them from the log, and a correction then reaches them."""

@@ -53,6 +53,23 @@ def test_create_refuses_naming_the_field_and_makes_nothing(server, client, body,
         assert error["message"] == "free_space_margin: unknown field (it is free_space.margin now)"
 
 
+def test_a_model_other_than_default_or_none_is_refused_with_what_http_allows(server, client):
+    """Any path, a checkpoint's or not, gets the one answer of what a client may choose: the library's
+    own message (which offers a checkpoint path) would invite what the service then refuses."""
+    before = len(client.sessions())
+    messages = []
+    for model in ("/etc/passwd", "/tmp/trained.safetensors"):
+        r = create(server, {"voxel_size": 0.01, "model": model})
+        assert r.status_code == 422, r.text
+        error = r.json()["error"]
+        assert error["field"] == "model" and error["message"].startswith("model: "), error
+        messages.append(error["message"].replace(repr(model), "MODEL"))
+    assert messages[0] == messages[1], messages
+    assert "over HTTP" in messages[0] and "'default'" in messages[0] and "'none'" in messages[0], messages[0]
+    assert ".safetensors" not in messages[0] and "path of" not in messages[0], messages[0]
+    assert len(client.sessions()) == before
+
+
 def test_create_takes_groups_and_fills_their_defaults(server, client):
     r = create(server, {"voxel_size": 0.01, "free_space": {"margin": 3}, "depth": {"sources": 3}, "max_voxels": 1000})
     assert r.status_code == 201, r.text
