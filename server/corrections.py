@@ -274,10 +274,8 @@ class Corrections:
         scene = self.session.scene
         frames_before = scene.frames
 
-        def fold_from_first(frames) -> None:
-            scene.rollback(first)
-            for frame in frames:
-                scene.fold(frame)
+        def fold_from_first(frames) -> None:  # one step for renders and exports: never a half-corrected scene
+            scene.refold_after(first, frames)
 
         tail = entries[first:]
         try:

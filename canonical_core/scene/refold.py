@@ -52,6 +52,22 @@ def roll_back(scene: Scene, frames: int) -> None:
     carry_solution(scene, carried)  # on the voxels that are still there, due for a re-solve
 
 
+def refold_after(scene: Scene, first: int, frames: Iterable[Frame]) -> None:
+    """`Scene.rollback` to ``first`` frames, then a `Scene.fold` of each of ``frames``, as one step:
+    the decode lock and the state's lock are held throughout (as `Scene.update_poses` holds them), so a
+    decode, a mesh, a digest or a snapshot sees the scene before or after, never a state between (a
+    service's correction of its recent frames; readers wait for its folds). A fold that raises leaves
+    the scene rolled back with the frames before it folded (the caller folds the old ones again)."""
+    if isinstance(first, bool) or not isinstance(first, int) or not 0 <= first <= scene.frames:
+        raise ValueError(f"first: expected a frame count in [0, {scene.frames}], got {first!r}")
+    with scene._decoding.lock, scene._lock:
+        roll_back(scene, first)
+        for frame in frames:
+            if not isinstance(frame, Frame):
+                raise ValueError(f"frames: expected Frames, got {type(frame).__name__}")
+            fold_kept(scene, frame, scene._arrivals[-1] + 1 if scene._arrivals else 0, time.perf_counter())
+
+
 def refold(scene: Scene, poses: dict[int, np.ndarray], removed: Iterable[int]) -> None:  # poses: position -> c2w [4, 4]
     """Fold the kept frames (``poses`` by position applied, ``removed`` positions left out) and
     adopt the result. The frames before the first one touched are unchanged, so the re-fold starts

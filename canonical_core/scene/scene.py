@@ -142,8 +142,7 @@ class Scene:
     def preallocate(self, voxels: int) -> None:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block
         count: folds that grow the scene up to that size then never wait for the system to fault in
-        and zero fresh pages (dear on a virtual machine, where a page's first touch goes through the
-        hypervisor). The memory counts in `memory_bytes` from now on. A snapshot does not keep it, nor
+        and zero fresh pages (dear on a virtual machine). The memory counts in `memory_bytes` from now on. A snapshot does not keep it, nor
         does the state a re-fold brings (`update_poses` and `remove_frames` past the undo records,
         `adopt`): call this again after `load` or those. Raises ValueError naming ``voxels`` for a
         negative count, one above ``max_voxels`` or `config.MAX_VOXELS`, or one whose memory the
@@ -206,6 +205,7 @@ class Scene:
             refold.refold(self, {}, resolve_frames(keys, self._refs(), "frames"))
 
     refolded = classmethod(refold.refolded)  # a scene that folded a stream, fresh or on a base
+    refold_after = refold.refold_after  # `rollback`, then folds, as one step for every reader
 
     def adopt(self, other: "Scene") -> None:
         """Take ``other``'s fused state (a re-fold of this scene's corrected frames) in one step; this

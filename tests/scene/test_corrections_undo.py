@@ -217,3 +217,24 @@ def test_a_bounded_ring_keeps_within_its_share_and_rolls_back_exactly(shelf_fram
     assert floor == 8 - MIN_KEPT  # the share, not the depth (32), dropped the older records
     scene.rollback(floor)
     assert scene.digest() == digests[floor - 1]
+
+
+def test_refold_after_is_a_rollback_and_folds_in_one_step():
+    """`Scene.refold_after` gives the scene a rollback and the folds give (the service's correction of
+    recent frames takes it, so that no reader sees the state between); a bad count names ``first``."""
+    frames = stream(8)
+    a, b = Scene(CONFIG, undo_depth=8), Scene(CONFIG, undo_depth=8)
+    for f in frames:
+        a.fold(f)
+        b.fold(f)
+    shift = torch.as_tensor(pose(0.02), dtype=frames[0].camera.c2w.dtype)
+    moved = [replace(f, camera=replace(f.camera, c2w=shift @ f.camera.c2w)) for f in frames[5:]]
+    a.refold_after(5, moved)
+    b.rollback(5)
+    for f in moved:
+        b.fold(f)
+    assert a.digest() == b.digest() and a.frames == 8
+    for first in (-1, 9, True, 2.0):
+        with pytest.raises(ValueError, match="^first: "):
+            a.refold_after(first, [])
+    assert a.digest() == b.digest()

@@ -278,6 +278,43 @@ def test_a_frame_the_archive_cannot_take_during_a_background_correction_is_refus
         again.close()
 
 
+def test_a_correction_in_place_is_one_step_for_renders_exports_and_digests(tmp_path, shelf, monkeypatch):
+    """A correction of recent frames rolls the served scene back and re-folds them in place: a reader
+    that comes in between (a render's or an export's decode, a digest) waits for the step and sees the
+    corrected scene, never the rolled-back one or a part of the re-fold (an export of a scene that
+    never existed)."""
+    import threading
+
+    from canonical_core.scene import Scene, refold
+
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    session = streamed(store, shelf[:5])
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    seen, readers = [], []
+
+    def reader_first(fold):  # ``fold`` with a reader started before the correction's first fold
+        def folded(*args):
+            if not readers:  # the scene is rolled back now
+                reader = threading.Thread(target=lambda: seen.append((session.scene.digest(),
+                                                                       len(session.scene.gaussians(colours="last")))))
+                readers.append(reader)
+                reader.start()
+                reader.join(0.5)
+            return fold(*args)
+        return folded
+
+    monkeypatch.setattr(Scene, "fold", reader_first(Scene.fold))  # between a rollback and a fold
+    monkeypatch.setattr(refold, "fold_kept", reader_first(refold.fold_kept))  # within one step
+    assert session.corrections.correct({shelf[4]["frame_id"]: shift @ shelf[4]["c2w"]})["frames"] == 5
+    readers[0].join(60)
+    monkeypatch.undo()
+    corrected = streamed(store, shelf[:5], {4: shift @ shelf[4]["c2w"]})
+    assert seen == [(corrected.scene.digest(), len(corrected.scene.gaussians(colours="last")))]
+    store.close()
+
+
 def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restart(tmp_path, shelf):
     """A kill -9 after frames were acknowledged (in the fsynced log) but before the archive's writer
     wrote them: the restart archives them from the log, and a correction then reaches them."""
