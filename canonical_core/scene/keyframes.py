@@ -40,9 +40,50 @@ def view_from_arrays(prefix: str, arrays, **extra) -> Frame:
     return Frame(rgb=rgb.copy(), camera=camera, frame_id=arrays[f"{prefix}.id"].tobytes().decode() or None, **extra)
 
 
+FILL_LEVELS = 2  # a line of the image that spans at most this many levels in each channel is one colour
+MAX_FILL_SHARE = 0.25  # of each side: more is no border but the picture of something
+
+
+def fill_margins(frame: Frame) -> tuple[int, int, int, int]:
+    """Rows and columns at the image's edges (top, bottom, left, right) of one colour and without valid
+    depth: the fill a colour image warped onto the depth camera gets at its edges (Kinect-style
+    registration pads it with white or black). The fold never fuses them (they have no depth), but a
+    colour solve that fitted them would paint each kept view's outline into the scene. At most
+    `MAX_FILL_SHARE` of each side; none where a line holds valid depth, nor in a frame without depth.
+
+    Example:
+        >>> camera = Camera(K=[[20, 0, 8], [0, 20, 6], [0, 0, 1]], c2w=np.eye(4), width=16, height=12)
+        >>> rgb = np.full((12, 16, 3), 255, np.uint8); rgb[2:, 1:14] = np.arange(13)[None, :, None] * 9
+        >>> depth = np.zeros((12, 16), np.float32); depth[5:, 4:13] = 1.0
+        >>> fill_margins(Frame(rgb=rgb, camera=camera, depth=depth))
+        (2, 0, 1, 2)
+    """
+    if frame.depth is None:
+        return 0, 0, 0, 0
+    rgb, depth = frame.rgb.numpy(), frame.depth.numpy()
+
+    def run(lines: np.ndarray, depths: np.ndarray) -> int:  # lines: [n, length, 3], from the edge in
+        n = 0
+        while n < int(len(lines) * MAX_FILL_SHARE) and np.ptp(lines[n], axis=0).max() <= FILL_LEVELS \
+                and not (depths[n] > 0).any():
+            n += 1
+        return n
+
+    rows, cols = (rgb, depth), (rgb.transpose(1, 0, 2), depth.T)
+    return run(*rows), run(*(a[::-1] for a in rows)), run(*cols), run(*(a[::-1] for a in cols))
+
+
 def kept_view(frame: Frame, scale: float) -> Frame:
-    """What a scene keeps of ``frame`` for the colour solve: its colour and camera, resized by ``scale``."""
-    return resize_frame(Frame(rgb=frame.rgb, camera=frame.camera, frame_id=frame.frame_id), scale)
+    """What a scene keeps of ``frame`` for the colour solve: its colour and camera, without the fill at
+    its edges (`fill_margins`: the view cropped, its principal point moved with it), resized by ``scale``."""
+    top, bottom, left, right = fill_margins(frame)
+    rgb, camera = frame.rgb, frame.camera
+    width, height = camera.width - left - right, camera.height - top - bottom
+    K = camera.K64()
+    K[:2, 2] -= (left, top)
+    if (top or bottom or left or right) and 0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height:  # a camera's K
+        rgb, camera = rgb[top:top + height, left:left + width].contiguous(), Camera(K, camera.c2w64(), width, height)
+    return resize_frame(Frame(rgb=rgb, camera=camera, frame_id=frame.frame_id), scale)
 
 
 class Keyframes:
