@@ -75,8 +75,8 @@ def _resolve_K(root: Path, K) -> np.ndarray:
     found = find_one([root], INTRINSICS_NAMES)
     if found is None:
         raise MissingIntrinsics(
-            f"{root}: camera intrinsics are needed: pass K=(fx, fy, cx, cy) or a 3x3 K, or put a 3x3 "
-            f"{' / '.join(INTRINSICS_NAMES)} in the folder (TUM freiburg1, e.g.: K=(517.3, 516.5, 318.6, 255.3))"
+            f"{root}: camera intrinsics are needed (the capture has none): pass K=(fx, fy, cx, cy) or a 3x3 K of "
+            f"the camera that took it, or put a 3x3 {' / '.join(INTRINSICS_NAMES)} in the folder"
         )
     return read_intrinsics_file(found)
 

@@ -62,14 +62,14 @@ def band_edge(band: int) -> float:
 
 @numba.njit(cache=True)
 def _compare_kernel(depth, fx, fy, cx, cy, to_previous, previous, pfx, pfy, pcx, pcy, stride,
-                    start, agree_m, agree_rel, sampled, compared, agreed):
+                    start, agree_m, agree_rel, near, sampled, compared, agreed):
     H, W = depth.shape
     h, w = previous.shape
     n = sampled.shape[0]
     for v in range(0, H, stride):
         for u in range(0, W, stride):
             z = depth[v, u]
-            if not z > 0:
+            if not (z > 0 and z >= near):
                 continue
             b = _band(z, start, n)
             sampled[b] += 1
@@ -85,7 +85,7 @@ def _compare_kernel(depth, fx, fy, cx, cy, to_previous, previous, pfx, pfy, pcx,
             if pu < 0 or pu >= w or pv < 0 or pv >= h:
                 continue
             d = previous[pv, pu]
-            if not d > 0:
+            if not (d > 0 and d >= near):
                 continue
             compared[b] += 1
             if abs(d - pz) <= max(agree_m, agree_rel * pz):
@@ -96,19 +96,22 @@ def compare_depth(
     frame: Frame,  # with depth
     previous: Frame,  # with depth
     stride: int = STRIDE,
+    near: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # sampled [BANDS], compared [BANDS], agreed [BANDS] int64
     """Per band of ``frame``'s depth: its sampled valid pixels, those that land on measured depth of
-    ``previous``, and those that agree with it (module docstring)."""
+    ``previous``, and those that agree with it (module docstring); depth under ``near`` counts as
+    missing in both (a session's `range.near`: depth it ignores already)."""
     if frame.depth is None or previous.depth is None:
         raise ValueError("depth: comparing frames needs depth in both")
-    return _compare(frame.depth.numpy(), frame.camera, previous.depth.numpy(), previous.camera, stride)
+    return _compare(frame.depth.numpy(), frame.camera, previous.depth.numpy(), previous.camera, stride, near)
 
 
-def _compare(depth: np.ndarray, cam: Camera, previous: np.ndarray, prev: Camera, stride: int = STRIDE):
+def _compare(depth: np.ndarray, cam: Camera, previous: np.ndarray, prev: Camera, stride: int = STRIDE,
+             near: float = 0.0):
     to_previous = np.linalg.inv(prev.c2w64()) @ cam.c2w64()
     counts = [np.zeros(BANDS, np.int64) for _ in range(3)]
-    _compare_kernel(depth, cam.fx, cam.fy, cam.cx, cam.cy, np.ascontiguousarray(to_previous[:3]),
-                    previous, prev.fx, prev.fy, prev.cx, prev.cy, stride, BAND_START, AGREE_M, AGREE_REL, *counts)
+    _compare_kernel(depth, cam.fx, cam.fy, cam.cx, cam.cy, np.ascontiguousarray(to_previous[:3]), previous,
+                    prev.fx, prev.fy, prev.cx, prev.cy, stride, BAND_START, AGREE_M, AGREE_REL, float(near), *counts)
     return counts[0], counts[1], counts[2]
 
 
@@ -145,10 +148,17 @@ class DepthConsistency:
         self._previous: tuple[np.ndarray, Camera] | None = None  # the last frame's depth and camera, nothing more
 
     def limit(self) -> float | None:
-        """Metres: the depth under which this stream's consecutive frames disagree (`inconsistent_below`'s
-        band's upper edge), or None while they agree or too few were compared."""
+        """Metres: the depth under which this stream's consecutive frames disagree, or None while they
+        agree or too few were compared: the lower edge of the first band beyond `inconsistent_below`'s
+        that was compared enough (they all agree), so that the bands between, too thinly sampled to
+        tell, count with the disagreeing ones (a near limit set at the disagreeing band's upper edge
+        would keep their depth, as unreliable as the bands under it)."""
         top = inconsistent_below(self.compared, self.agreed)
-        return None if top is None else band_edge(top + 1)
+        return None if top is None else band_edge(self._agreeing_from(top))
+
+    def _agreeing_from(self, top: int) -> int:
+        beyond = np.flatnonzero(self.compared[top + 1:] >= MIN_COMPARED)
+        return top + 1 + int(beyond[0])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The counts, for a snapshot (the previous frame is not kept: a restored stream compares its
@@ -174,29 +184,30 @@ class DepthConsistency:
         """Compare the next frame with none (the last one was rolled back); the counts stay."""
         self._previous = None
 
-    def observe(self, frame: Frame) -> list[str]:
-        """Compare ``frame`` (with depth) with the previous one and return the warnings for it."""
+    def observe(self, frame: Frame, near: float = 0.0) -> list[str]:
+        """Compare ``frame`` (with depth) with the previous one and return the warnings for it; depth
+        under ``near`` (the session's `range.near`, ignored already) is neither compared nor warned about."""
         if frame.depth is None:
             raise ValueError("depth: the consistency check needs a frame with depth")
         current = (frame.depth.numpy(), frame.camera)
         previous, self._previous = self._previous, current
         if previous is None:
             return []
-        sampled, compared, agreed = _compare(*current, *previous)
+        sampled, compared, agreed = _compare(*current, *previous, near=near)
         self.compared += compared
         self.agreed += agreed
         top = inconsistent_below(self.compared, self.agreed)
         if top is None or sampled.sum() == 0:
             return []
-        share = sampled[: top + 1].sum() / sampled.sum()
+        first = self._agreeing_from(top)  # the first band known to agree: `limit`
+        share = sampled[:first].sum() / sampled.sum()
         if share < WARN_SHARE:
             return []
-        limit = band_edge(top + 1)
-        below = self.compared[: top + 1].sum(), self.agreed[: top + 1].sum()
-        beyond = np.flatnonzero(self.compared >= MIN_COMPARED)
-        beyond = beyond[beyond > top]
+        limit = band_edge(first)
+        below = self.compared[:first].sum(), self.agreed[:first].sum()
+        beyond = np.flatnonzero(self.compared[first:] >= MIN_COMPARED) + first
         agree = self.agreed[beyond].sum() / self.compared[beyond].sum()
         return [f"depth: {share:.0%} of this frame's depth lies under {limit:.2f} m, where this session's consecutive "
                 f"frames disagree ({below[1]} of {below[0]} sampled pixels agree; {agree:.0%} from "
-                f"{band_edge(int(beyond[0])):.2f} m on): likely under the sensor's working range; the setting "
+                f"{limit:.2f} m on): likely under the sensor's working range; the setting "
                 f"range.near={limit:.2f} ignores it"]

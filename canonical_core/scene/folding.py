@@ -206,7 +206,7 @@ def _fold(scene: Scene, ahead: PreparedFrame, t0: float) -> FoldReport:
     gave_nothing = frame.depth is not None and counts[0] == 0
     warnings = depth_warnings(frame.depth, scene.config.range.near, scene.config.range.far) if gave_nothing else []
     if frame.depth is not None:  # the sensor's depth (as folded: denoised or completed), not a sweep's
-        warnings += scene._consistency.observe(prepared.frame)
+        warnings += scene._consistency.observe(prepared.frame, scene.config.range.near)
     return FoldReport(index, *counts, ms=(time.perf_counter() - t0) * 1000.0, pending=prepared.pending,
                       also_folded=also, completed_pixels=prepared.completed_pixels, denoised=prepared.denoised,
                       warnings=warnings, sensor=scene.config.sensor.family, sensor_chosen=scene.chosen.get("sensor"))

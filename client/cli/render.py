@@ -37,7 +37,9 @@ def add_render(p: argparse.ArgumentParser) -> None:
                        help="one view per line: TUM 'timestamp tx ty tz qx qy qz qw' (camera-to-world, quaternion "
                             "scalar last; the timestamp optional) or the 16 numbers of a 4x4 matrix; '#' comments. "
                             "Needs --K and --size, or --frame-like")
-    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY", help="intrinsics in pixels (with --pose or --trajectory)")
+    p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
+                   help="intrinsics in pixels: the views' with --pose or --trajectory; with --frame-like alone, "
+                        "its capture's where the capture has none (as `canonical stream --K`)")
     p.add_argument("--size", type=image_size_arg, metavar="WxH", help="image size (with --K), e.g. 640x480")
     p.add_argument("--width", type=int, help="image width (or --size)")
     p.add_argument("--height", type=int, help="image height (or --size)")
@@ -110,11 +112,15 @@ def image_size_arg(text: str) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=None)
-def _capture(path: str):
-    """A capture read once however many --frame-like views name it."""
-    from canonical_core.datasets import load_dataset
+def _capture(path: str, K: tuple | None = None):
+    """A capture read once however many --frame-like views name it; ``K``: its intrinsics where it has
+    none (--K), a usage error naming --K when it needs them."""
+    from canonical_core.datasets import MissingIntrinsics, load_dataset
 
-    return load_dataset(path)
+    try:
+        return load_dataset(path, K=K)
+    except MissingIntrinsics as exc:
+        raise UsageError(f"--frame-like: {exc} (here: --K fx,fy,cx,cy)") from None
 
 
 def view_poses(path: str, option: str) -> list[np.ndarray]:
@@ -142,9 +148,10 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
     """(K, c2w, width, height) of each view the arguments name, in order: each --frame-like's camera,
     or each pose of --pose / --trajectory with --K and --size (else the --frame-like camera's)."""
     pose_file = args.pose or args.trajectory
-    if pose_file is None and (args.K or args.size or args.width or args.height):
+    if pose_file is None and (args.size or args.width or args.height):
         raise UsageError("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
-    cameras = [frame_like_camera(spec) for spec in args.frame_like]
+    capture_K = tuple(args.K) if pose_file is None and args.K else None  # the intrinsics a capture lacks
+    cameras = [frame_like_camera(spec, capture_K) for spec in args.frame_like]
     if pose_file is None:
         return cameras
     width, height = args.size or (args.width, args.height)
@@ -182,15 +189,16 @@ def output_paths(output: str, count: int) -> list[Path]:
     return [Path(output)]
 
 
-def frame_like_camera(spec: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+def frame_like_camera(spec: str, K: tuple | None = None) -> tuple[np.ndarray, np.ndarray, int, int]:
     """The camera of ``--frame-like DATASET:INDEX`` as (K, c2w, width, height), read without decoding
-    the frame (`FrameSource.view`): UsageError for a spec without an index or an index the dataset
-    does not have, ValueError naming the option for a dataset or a frame that cannot be read."""
+    the frame (`FrameSource.view`; ``K``: the capture's intrinsics where it has none): UsageError for a
+    spec without an index or an index the dataset does not have, or a capture that needs ``K``,
+    ValueError naming the option for a dataset or a frame that cannot be read."""
     path, _, index = spec.rpartition(":")
     if not path or re.fullmatch(r"-?[0-9]{1,18}", index) is None:
         raise UsageError(f"--frame-like: expected DATASET:INDEX (INDEX a frame's number from 0), got {spec!r}")
     try:
-        frames = _capture(path)
+        frames = _capture(path, K)
         if not 0 <= int(index) < len(frames):
             raise UsageError(f"--frame-like: {path} has {len(frames)} frames (0..{len(frames) - 1}), got {index}")
         return frames.source(int(index)).view()

@@ -123,7 +123,7 @@ def stream_frames(session, frames, scale: float = 1.0, start: int = 0, in_flight
                 raised = [str(w.message) for w in caught]
                 caught.clear()
                 for warning in raised + report.get("warnings", []):
-                    kind = re.sub(r"[0-9.,%]+", "#", warning)  # each kind of warning once, whatever its figures
+                    kind = warning_kind(warning)
                     if kind not in shown:
                         shown.add(kind)
                         bar.write(f"frame {i}: {warning}", file=sys.stderr)
@@ -143,12 +143,25 @@ class StreamInterrupted(Exception):
         self.sent, self.elapsed = sent, elapsed
 
 
+def warning_kind(warning: str) -> str:
+    """What makes two warnings one kind, shown once: their words and the setting they advise
+    (``range.near=0.24``: a new figure is new advice), not their other figures (shares, counts).
+
+    Example:
+        >>> warning_kind("depth: 13% under 0.28 m; range.near=0.28 ignores it")
+        'depth: # under # m; range.near=0.28 ignores it'
+    """
+    return re.sub(r"(?<![=0-9.])[0-9][0-9.,]*%?", "#", warning)
+
+
 def stream_summary(n: int, elapsed: float, session, stats: dict) -> str:
     size = "" if stats.get("voxel_size") is None else f" of {stats['voxel_size'] * 1000:g} mm"
     sensor = "" if stats.get("sensor", "auto") == "auto" else f"; {stats['sensor']} noise model ({stats['chosen']['sensor']})"
+    near = stats.get("inconsistent_depth_below")  # the stream's final word on it, however its warnings went
+    near = "" if near is None else f"; depth under {near:.2f} m disagrees between frames (range.near={near:.2f} ignores it)"
     return (f"{n} frames in {elapsed:.1f} s ({n / max(elapsed, 1e-9):.2f} frames/s); "
             f"session {session.id}: {stats['frames']} frames, {stats['voxels']} voxels{size}, "
-            f"{stats['gaussians']} Gaussians{sensor}")
+            f"{stats['gaussians']} Gaussians{sensor}{near}")
 
 
 def refused_files(frames, position: int) -> str:

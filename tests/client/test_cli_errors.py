@@ -51,7 +51,7 @@ BAD_ARGUMENTS = [
     ("a log level uvicorn lacks", ["serve", "--log-level", "loud"], "--log-level"),
     ("an empty session id", ["view", "--session", ""], "--session"),
     ("no view to render", ["render", "--session", "x", "-o", "a.png"], "give the view(s)"),
-    ("intrinsics without a pose", ["render", "--session", "x", "--frame-like", "a:0", "--K", "1,2,3,4", "-o", "a.png"],
+    ("a size without a pose", ["render", "--session", "x", "--frame-like", "a:0", "--size", "64x48", "-o", "a.png"],
      "--K and --size go with --pose"),
     ("intrinsics without a size", ["render", "--session", "x", "--pose", "p", "--K", "1,2,3,4", "-o", "a.png"],
      "--K needs --size"),

@@ -123,7 +123,7 @@ def test_a_stream_is_warned_about_readings_that_change_and_not_about_a_near_surf
     tracker = DepthConsistency()
     warnings = [tracker.observe(f) for f in stream("image")]
     assert warnings[0] == [] and all(warnings[1:])  # the first frame has nothing to compare with
-    assert f"range.near={band_edge(band_of(PLATE + 0.03) + 1):.2f}" in warnings[-1][0]
+    assert f"range.near={tracker.limit():.2f}" in warnings[-1][0] and tracker.limit() >= band_edge(band_of(PLATE + 0.03) + 1)
     assert warnings[-1][0].startswith("depth: 50% ") and "under the sensor's working range" in warnings[-1][0]
     for plate in ("world", "none"):
         tracker = DepthConsistency()
@@ -159,9 +159,15 @@ def test_the_bins_near_range_depth(apc_bins_path, capture, flagged):
     tracker = DepthConsistency()
     warned = [w for f in load_dataset(apc_bins_path / capture) for w in tracker.observe(f)]
     assert bool(warned) == flagged
-    if flagged:  # the labels bin's readings from 0.09 to 0.15 m land elsewhere in every frame
+    if flagged:  # the labels bin's readings from 0.09 to 0.2 m land elsewhere in every frame
         top = inconsistent_below(tracker.compared, tracker.agreed)
         assert 0.1 < band_edge(top + 1) <= 0.2
+        # the limit is where frames are seen to agree: past the bands too thinly sampled to tell (the
+        # foam's last readings), under the bin's floor
+        assert 0.2 < tracker.limit() <= 0.25 and f"range.near={tracker.limit():.2f}" in warned[-1]
+        again = DepthConsistency()  # with the advice taken, nothing more to say
+        assert not any(again.observe(f, near=tracker.limit()) for f in load_dataset(apc_bins_path / capture))
+        assert again.limit() is None
 
 
 def test_the_shelf_is_not_flagged(shelf_frames):
@@ -175,7 +181,7 @@ def test_the_limit_is_in_the_stats_and_a_snapshot_keeps_the_counts():
     for f in frames[:4]:
         scene.fold(f)
     limit = scene.stats()["inconsistent_depth_below"]
-    assert limit == pytest.approx(band_edge(band_of(PLATE + 0.03) + 1))
+    assert limit == scene._consistency.limit() and limit >= band_edge(band_of(PLATE + 0.03) + 1)
     restored = Scene.from_bytes(scene.to_bytes())
     assert restored.stats()["inconsistent_depth_below"] == limit and restored.digest() == scene.digest()
     assert np.array_equal(restored._consistency.compared, scene._consistency.compared)
