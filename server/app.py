@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import secrets
 
@@ -274,13 +275,21 @@ class GuardMiddleware:
         await error_response(status, code, message, field, {**(headers or {}), "Connection": "close"})(scope, receive, send)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or Settings()
-    store = SessionStore(settings.data_dir, settings.max_sessions, settings.threads, settings.archive_retention)
+def configured(store: SessionStore, settings: Settings) -> SessionStore:
+    """``store`` with the service's settings that its sessions carry: the archive's retention, how
+    corrections run, the memory committed up front and the memory budget (a process's: each owner of a
+    cluster has its own)."""
+    store.retention = settings.archive_retention
     store.background_frames = settings.correction_background_frames
     store.undo_depth = settings.correction_undo_frames
     store.preallocate_voxels = settings.preallocate_voxels
     store.budget = MemoryBudget(settings.memory_budget_bytes, store.memory_in_use)
+    return store
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    store = configured(SessionStore(settings.data_dir, settings.max_sessions, settings.threads), settings)
     metrics = Metrics()
 
     @contextlib.asynccontextmanager
@@ -324,6 +333,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.store = store
+    app.state.frame_refused = functools.partial(frames.frame_refused, store)  # a cluster's ingress tells the owner
     app.state.metrics = metrics
     app.state.jobs = Scheduler(settings.frame_workers, settings.render_workers, settings.queue_limit, settings.render_nice,
                                init=lambda: configure_thread(settings.threads), solve_workers=settings.solve_workers,

@@ -33,8 +33,8 @@ from ..app import create_app
 from ..errors import error_response
 from ..metrics import CONTENT_TYPE
 from ..schemas import Health, SessionList, SessionSummary
-from ..store import TOMBSTONE
 from .asgi import read_body, send_response
+from .lease import sessions_on_disk
 from .metrics import exposition
 from .owner import session_of, shard_of
 from .settings import ClusterSettings
@@ -65,13 +65,6 @@ class LocalOwners:
         return await result if asyncio.iscoroutine(result) else result
 
 
-def sessions_on_disk(settings: ClusterSettings) -> int:
-    root = settings.data_dir / "sessions"
-    if not root.is_dir():
-        return 0
-    return sum(1 for p in root.iterdir() if p.is_dir() and not p.name.startswith(TOMBSTONE))
-
-
 def owner_busy(reason: str):
     return error_response(429, "busy", f"session_id: {reason}; retry later", "session_id", {"Retry-After": "1"})
 
@@ -99,8 +92,8 @@ class ClusterRouter:
         if session_id is not None:
             shard = shard_of(session_id, self.owners.count)
         elif path == "/v1/sessions" and method == "POST":
-            held = await asyncio.to_thread(sessions_on_disk, self.settings)
-            if held >= self.settings.max_sessions:
+            held = await asyncio.to_thread(sessions_on_disk, self.settings.data_dir)
+            if held >= self.settings.max_sessions:  # the owner counts again, the creates in turn (`one_creator`)
                 return await error_response(409, "too_many_sessions", f"max_sessions: the service holds {held} sessions, "
                                             "its limit", "max_sessions")(scope, receive, send)
             shard = secrets.randbelow(self.owners.count)
@@ -156,7 +149,7 @@ class ClusterRouter:
 
     async def _gathered(self, path: str):
         if path == "/healthz":
-            return JSONResponse(Health(status="ok", sessions=await asyncio.to_thread(sessions_on_disk, self.settings)).model_dump())
+            return JSONResponse(Health(status="ok", sessions=await asyncio.to_thread(sessions_on_disk, self.settings.data_dir)).model_dump())
         method = "summaries" if path == "/v1/sessions" else "report"
         answers = await asyncio.gather(*(self._call(k, method) for k in range(self.owners.count)), return_exceptions=True)
         failed = [a for a in answers if isinstance(a, BaseException)]
@@ -165,7 +158,7 @@ class ClusterRouter:
                 raise exc
         if path == "/metrics":
             reports = [a for a in answers if not isinstance(a, BaseException)]
-            text = exposition(reports, await asyncio.to_thread(sessions_on_disk, self.settings), len(failed))
+            text = exposition(reports, await asyncio.to_thread(sessions_on_disk, self.settings.data_dir), len(failed))
             return PlainTextResponse(text, media_type=CONTENT_TYPE)
         if failed:
             return owner_busy(str(failed[0]))
@@ -204,7 +197,28 @@ def ingress_app(settings: ClusterSettings, owners: Owners) -> FastAPI:
     app = create_app(settings)
     app.router.lifespan_context = _stateless
     app.user_middleware.append(Middleware(ClusterRouter, settings=settings, owners=owners))  # innermost: after the guard
+    app.state.frame_refused = RefusalsToOwners(owners)
     return app
 
 
-__all__ = ["ClusterRouter", "LocalOwners", "OwnerUnreachable", "Owners", "ingress_app"]
+class RefusalsToOwners:
+    """`frames.body_refused` in the ingress: a numbered frame whose body the guard refused is told to
+    its session's owner, where the frames numbered after it wait (they are then refused at once,
+    naming it, instead of waiting for it in vain); sent off the guard's path, a lost owner logged."""
+
+    def __init__(self, owners: Owners):
+        self.owners, self.sending = owners, set()
+
+    def __call__(self, session_id: str, index: int, why: str) -> None:
+        task = asyncio.get_running_loop().create_task(self._send(session_id, index, why))
+        self.sending.add(task)  # held until done: the loop keeps only weak references to tasks
+        task.add_done_callback(self.sending.discard)
+
+    async def _send(self, session_id: str, index: int, why: str) -> None:
+        try:
+            await self.owners.call(shard_of(session_id, self.owners.count), "frame_refused", session_id, index, why)
+        except Exception as exc:  # noqa: BLE001 - the owner is gone: its restart holds no waiting frames
+            log.warning("session %s: frame %d refused at the ingress, its owner not told (%s)", session_id, index, exc)
+
+
+__all__ = ["ClusterRouter", "LocalOwners", "OwnerUnreachable", "Owners", "RefusalsToOwners", "ingress_app"]

@@ -11,8 +11,35 @@ import threading
 from pathlib import Path
 
 from ..framelog import Fenced
+from ..session_errors import TooManySessions
+from ..store import TOMBSTONE
 
 EPOCH = "owner.epoch"
+CREATING = "creating.lock"  # in the data directory: the owners create sessions one at a time
+
+
+def sessions_on_disk(data_dir: Path) -> int:
+    """The sessions a data directory holds (deleted ones, still being removed, not counted)."""
+    root = Path(data_dir) / "sessions"
+    if not root.is_dir():
+        return 0
+    return sum(1 for p in root.iterdir() if p.is_dir() and not p.name.startswith(TOMBSTONE))
+
+
+@contextlib.contextmanager
+def one_creator(data_dir: Path, max_sessions: int):
+    """Held while an owner creates a session: the owners of a data directory take turns (an exclusive
+    flock of its `CREATING` file), so that each counts the sessions the others made and, together,
+    they never pass ``max_sessions`` (`TooManySessions`, 409)."""
+    fd = os.open(Path(data_dir) / CREATING, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        held = sessions_on_disk(data_dir)
+        if held >= max_sessions:
+            raise TooManySessions(f"max_sessions: the service holds {held} sessions, its limit")
+        yield
+    finally:
+        os.close(fd)  # and with it the lock
 
 
 class Lease:

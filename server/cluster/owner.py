@@ -7,9 +7,8 @@ it can be used and tested in-process.
   a previous owner that still runs cannot write to it any more.
 - Sessions are restored lazily: on their first request after a start, or after an eviction.
 - Idle sessions are evicted (snapshot, then drop) least recently used first while the scenes held
-  (``Scene.memory_bytes``) exceed the owner's memory budget; a session with a request in flight is
-  never evicted, and a request that arrives during an eviction restores the session after it (the
-  lease serialises the two).
+  (``Scene.memory_bytes``) exceed the owner's memory budget; never one with a request in flight, and
+  a request during an eviction restores the session after it (the lease serialises the two).
 """
 
 from __future__ import annotations
@@ -30,19 +29,20 @@ import torch
 
 from canonical_core import SceneConfig
 
-from ..app import create_app
+from ..app import configured, create_app
 from ..archive import Retention
 from ..durability import restore_session, session_meta
 from ..framelog import Fenced
 from ..memory import release_memory
 from ..metrics import Histogram
+from ..routes import frames
 from ..session import Session
 from ..session_errors import SessionNotFound, SessionUnavailable, Unrestorable
 from ..snapshots import Snapshots
 from ..store import META, SessionStore, configure_thread
 from ..warmup import warm_up
 from .asgi import call_app
-from .lease import Lease
+from .lease import Lease, one_creator
 from .settings import ClusterSettings
 
 log = logging.getLogger("canonical.cluster")
@@ -152,7 +152,8 @@ class OwnerStore(SessionStore):
                 return session_id
 
     def create(self, config: SceneConfig, retention: Retention | None = None) -> Session:
-        session = super().create(config, retention)
+        with one_creator(self.data_dir, self.max_sessions):  # max_sessions is the directory's, not an owner's
+            session = super().create(config, retention)
         lease = Lease(session.path)
         with lease.take():
             session.fence(lease)
@@ -194,7 +195,7 @@ class OwnerStore(SessionStore):
             lease.close()
             raise
         session = OwnedSession(meta["id"], path, config, meta["created"], *restored, archive=archive,
-                               chosen=meta.get("chosen", {}))
+                               chosen=meta.get("chosen", {}), **self._session_options())
         session.fence(lease)
         with self._lock:
             self._sessions[session_id] = session
@@ -298,7 +299,8 @@ class SessionOwner:
             torch.set_num_threads(settings.threads)
         if settings.warm_up:
             warm_up(settings.threads)
-        self.store = OwnerStore(settings.data_dir, settings.max_sessions, settings.threads, shard, settings.owners)
+        self.store = configured(OwnerStore(settings.data_dir, settings.max_sessions, settings.threads, shard,
+                                           settings.owners), settings)
         self.store.open()
         self.app = create_app(settings)
         self.app.state.store = self.store  # the app's lifespan does not run here: this object is its life
@@ -310,6 +312,10 @@ class SessionOwner:
         self._rate = (time.monotonic(), 0, 0.0)
         self.node = os.environ.get("CANONICAL_NODE") or socket.gethostname()
         self.closed = False
+
+    def frame_refused(self, session_id: str, index: int, why: str) -> None:
+        """Numbered frame ``index`` of a held session was refused at the ingress (`frames.body_refused`)."""
+        frames.frame_refused(self.store, session_id, index, why)
 
     async def handle(self, method: str, path: str, query: bytes, headers: list, body: bytes) -> tuple[int, list, bytes]:
         """One HTTP request through the app: (status, headers, body); 503 once the owner is closed."""

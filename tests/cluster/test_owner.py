@@ -109,6 +109,83 @@ def test_an_evicted_session_restores_to_the_same_digest_and_png_bytes_under_conc
     assert run(reference()) == digest["sha256"]
 
 
+def test_an_owners_sessions_carry_the_services_settings_created_and_restored(tmp_path, frames):
+    """The settings a single-process service gives its sessions reach every owner's, new and restored
+    after an eviction: the archive's retention (`none`: no frame kept, corrections 409), the undo
+    records and the background corrections, and the memory budget (a fold that could pass it: 413)."""
+    parts, client = cluster_client(tmp_path, owner_memory_bytes=1, archive_retention="none",
+                                   correction_undo_frames=0, correction_background_frames=7)
+
+    async def scenario():
+        async with client:
+            created = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()
+            sid = created["id"]
+            assert created["archive_retention"] == "none"
+            r = await client.post(f"/v1/sessions/{sid}/frames", content=frame_body(frames[0]), headers=MSGPACK)
+            assert r.status_code == 200, r.text
+            owner = parts[shard_of(sid, 2)]
+            await asyncio.gather(*(p._evicting for p in parts if p._evicting))
+            await owner.evict(0)
+            assert sid not in owner.store._sessions
+            r = await client.delete(f"/v1/sessions/{sid}/frames/0")  # restores it first
+            assert r.status_code == 409 and r.json()["error"]["field"] == "archive_retention", r.text
+            session = owner.store.find(sid)
+            assert (session.undo_depth, session.background_frames, session.budget) == (0, 7, owner.store.budget)
+            assert session.budget is not None and session.archive is None
+
+    run(scenario())
+    parts, client = cluster_client(tmp_path / "small", memory_budget_bytes=1 << 20)
+
+    async def over_budget():
+        async with client:
+            sid = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+            r = await client.post(f"/v1/sessions/{sid}/frames", content=frame_body(frames[0]), headers=MSGPACK)
+            assert r.status_code == 413 and r.json()["error"]["field"] == "frame", r.text
+
+    run(over_budget())
+
+
+def test_a_numbered_frame_refused_at_the_ingress_stops_the_frames_behind_it_at_once(tmp_path, frames):
+    """The guard refuses a body before any route runs, in the ingress: the session's owner, where the
+    frames numbered after it wait, is told, so they are refused at once naming it, as in one process
+    (not after frame_order_wait_s, told to send a frame that was sent)."""
+    limit = len(frame_body(frames[0])) + 1000
+    parts, client = cluster_client(tmp_path, max_body_bytes=limit)
+
+    async def scenario():
+        async with client:
+            sid = (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).json()["id"]
+            frames_url = f"/v1/sessions/{sid}/frames"
+            first = await client.post(frames_url, content=frame_body(frames[0]), headers={**MSGPACK, "Frame-Index": "0"})
+            assert first.status_code == 200, first.text
+            big = await client.post(frames_url, content=b"x" * (limit + 1), headers={**MSGPACK, "Frame-Index": "1"})
+            assert big.status_code == 413, big.text
+            start = time.perf_counter()
+            behind = await client.post(frames_url, content=frame_body(frames[2]), headers={**MSGPACK, "Frame-Index": "2"})
+            assert behind.status_code == 409 and time.perf_counter() - start < 10, behind.text
+            assert "follows frame 1, which was refused (body: " in behind.json()["error"]["message"]
+            resent = await client.post(frames_url, content=frame_body(frames[1]), headers={**MSGPACK, "Frame-Index": "1"})
+            assert resent.status_code == 200, resent.text  # the stream goes on
+
+    run(scenario())
+
+
+def test_concurrent_creates_on_several_owners_never_pass_max_sessions(tmp_path):
+    """max_sessions is the data directory's: owners that create at once take turns to count it."""
+    parts, client = cluster_client(tmp_path, max_sessions=2)
+
+    async def scenario():
+        async with client:
+            assert (await client.post("/v1/sessions", json={"voxel_size": VOXEL})).status_code == 201
+            answers = await asyncio.gather(*(client.post("/v1/sessions", json={"voxel_size": VOXEL}) for _ in range(6)))
+            codes = sorted(r.status_code for r in answers)
+            assert codes == [201, 409, 409, 409, 409, 409], [r.text for r in answers]
+            assert all(r.json()["error"]["field"] == "max_sessions" for r in answers if r.status_code == 409)
+            assert len((await client.get("/v1/sessions")).json()["sessions"]) == 2
+
+    run(scenario())
+
+
 def test_the_ingress_keeps_the_services_auth_errors_and_answers_429_for_a_lost_owner(tmp_path):
     parts, client = cluster_client(tmp_path, max_sessions=1, owner_restart_wait_s=0.5)
 
