@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 import secrets
 
@@ -333,7 +332,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.store = store
-    app.state.frame_refused = functools.partial(frames.frame_refused, store)  # a cluster's ingress tells the owner
+    app.state.frame_refused = store.frame_refused  # a cluster's ingress tells the session's owner instead
     app.state.metrics = metrics
     app.state.jobs = Scheduler(settings.frame_workers, settings.render_workers, settings.queue_limit, settings.render_nice,
                                init=lambda: configure_thread(settings.threads), solve_workers=settings.solve_workers,

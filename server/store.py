@@ -228,6 +228,13 @@ class SessionStore:
     def new_session_id(self) -> str:
         return secrets.token_hex(16)  # not urlsafe: an id that starts with '-' reads as a CLI flag
 
+    def frame_refused(self, session_id: str, index: int, why: str) -> None:
+        """Numbered frame ``index`` of a held session was refused before its route ran (its body: too
+        large, too slow): the frames numbered after it stop waiting for it (`routes.frames.body_refused`)."""
+        session = self.find(session_id)
+        if session is not None:
+            session.order.refused(index, ValueError(why))
+
     def find(self, session_id: str) -> Session | None:
         """The loaded session of this id, or None."""
         return self._sessions.get(session_id)

@@ -35,7 +35,6 @@ from ..durability import restore_session, session_meta
 from ..framelog import Fenced
 from ..memory import release_memory
 from ..metrics import Histogram
-from ..routes import frames
 from ..session import Session
 from ..session_errors import SessionNotFound, SessionUnavailable, Unrestorable
 from ..snapshots import Snapshots
@@ -314,8 +313,8 @@ class SessionOwner:
         self.closed = False
 
     def frame_refused(self, session_id: str, index: int, why: str) -> None:
-        """Numbered frame ``index`` of a held session was refused at the ingress (`frames.body_refused`)."""
-        frames.frame_refused(self.store, session_id, index, why)
+        """Numbered frame ``index`` of a held session was refused at the ingress (`SessionStore.frame_refused`)."""
+        self.store.frame_refused(session_id, index, why)
 
     async def handle(self, method: str, path: str, query: bytes, headers: list, body: bytes) -> tuple[int, list, bytes]:
         """One HTTP request through the app: (status, headers, body); 503 once the owner is closed."""

@@ -84,20 +84,13 @@ def check_session_accepts(frame, config) -> None:
 def body_refused(scope, why: str) -> None:
     """A numbered frame whose body the service refused before its route ran (too large, too slow to
     arrive): the frames numbered after it stop waiting for it, as for a frame the route refuses
-    (``app.state.frame_refused``: `frame_refused` of the app's store, or a cluster's owner told)."""
+    (``app.state.frame_refused``: the app's `SessionStore.frame_refused`, or a cluster's owner told)."""
     headers = dict(scope["headers"])
     index, parts = headers.get(b"frame-index", b""), scope.get("path", "").split("/")
     if scope.get("method") != "POST" or not index.isdigit() or len(parts) != 5 or parts[:3] != ["", "v1", "sessions"] \
             or parts[4] != "frames":
         return
     scope["app"].state.frame_refused(parts[3], int(index), why)
-
-
-def frame_refused(store, session_id: str, index: int, why: str) -> None:
-    """Numbered frame ``index`` of a session of ``store`` was refused before its route (`body_refused`)."""
-    session = store.find(session_id)
-    if session is not None:
-        session.order.refused(index, ValueError(why))
 
 
 def still_wanted(request: Request, session, index: int) -> None:

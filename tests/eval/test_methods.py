@@ -16,7 +16,7 @@ from canonical_core.eval.baselines import full_support_opacity
 from canonical_core.eval.methods import METHODS, build, check_methods, configured, parse_method
 from canonical_core.eval.metrics import covered, psnr
 from canonical_core.eval.open3d_tsdf import Open3DTSDF, open3d_available
-from canonical_core.frame import resize_frame
+from canonical_core.scene.keyframes import kept_view  # what a scene keeps of a view for its solve
 
 from ..conftest import solved_as_kept
 
@@ -100,7 +100,7 @@ def test_canonical_solves_its_colours_against_its_inputs_by_default(frames):
     fused, _ = build("canonical:colour_solve.views=0", frames[:2], 0.02)
     canonical, _ = build("canonical", frames[:2], 0.02)
     solved, _ = build("colour_solve", frames[:2], 0.02)
-    expected = solved_as_kept(fused.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
+    expected = solved_as_kept(fused.splats, [kept_view(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in frames[:2]])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(solved.splats, name)), name
         assert torch.equal(getattr(expected, name), getattr(canonical.splats, name)), name
@@ -112,7 +112,7 @@ def test_completion_solve_is_depth_completion_with_colours_solved():
     completed, _ = build("depth_completion:colour_solve.views=0", holed, 0.02)
     both, _ = build("completion_solve", holed, 0.02)
     assert both.gaussians == completed.gaussians > build("canonical", holed, 0.02)[0].gaussians
-    expected = solved_as_kept(completed.splats, [resize_frame(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])
+    expected = solved_as_kept(completed.splats, [kept_view(f, SceneConfig(voxel_size=1).colour_solve.scale) for f in holed])
     for name in ("means", "scales", "quats", "opacities", "sh"):
         assert torch.equal(getattr(expected, name), getattr(both.splats, name)), name
 
