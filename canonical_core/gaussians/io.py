@@ -258,7 +258,8 @@ def splat_file(g: Gaussians) -> Encoded:
 
     def chunks() -> Iterator[bytes]:
         for start in range(0, len(g), ENCODE_ROWS):
-            block = g.map(lambda t: t[order[start:start + ENCODE_ROWS]])
+            rows = order[start:start + ENCODE_ROWS]  # the fields a .splat keeps, gathered (not the features)
+            block = Gaussians(g.means[rows], g.scales[rows], g.quats[rows], g.opacities[rows], g.sh[rows, :1])
             rec = np.empty(len(block), SPLAT_DTYPE)
             rec["position"] = block.means.detach().cpu().float().numpy()
             rec["scale"] = block.scales.detach().cpu().float().numpy()
