@@ -67,7 +67,8 @@ def _float_array(value, field: str, shape: tuple[int, int]) -> np.ndarray:
     else:
         raise ValueError(f"{field}: expected a numpy array or torch tensor, got {type(value).__name__}")
     if tuple(array.shape) != shape:
-        raise ValueError(f"{field}: expected shape {list(shape)} to match the image, got {list(array.shape)}")
+        raise ValueError(f"{field}: expected shape {list(shape)} to match the {'depth' if field == 'depth_std' else 'image'}, "
+                         f"got {list(array.shape)}")
     return array
 
 

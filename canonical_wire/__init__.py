@@ -26,8 +26,8 @@ import msgpack
 import numpy as np
 import zstandard
 
-__all__ = ["CODECS", "DTYPES", "FLOATS", "INTEGERS", "NO_LABEL", "WireError", "array_shape", "decode_array", "encode_array",
-           "is_array", "pack", "unpack"]
+__all__ = ["CODECS", "COLOUR_MODES", "DTYPES", "FLOATS", "IMAGE_FORMATS", "INTEGERS", "NO_LABEL", "WireError", "array_shape",
+           "decode_array", "encode_array", "is_array", "pack", "unpack"]
 
 DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2"), "int16": np.dtype("<i2"), "float16": np.dtype("<f2"),
           "float32": np.dtype("<f4")}
@@ -36,6 +36,10 @@ FLOATS = ("float16", "float32")
 Codec = Literal["raw", "zstd"]
 CODECS = ("raw", "zstd")
 _KEYS = frozenset({"dtype", "shape", "data"})
+# image files a frame's colour may be (as Pillow names them; MPO: a JPEG with the MPF extension, as
+# phones write HDR pictures: its first image), and the 8-bit modes of those the service converts to RGB
+IMAGE_FORMATS = ("PNG", "JPEG", "MPO")
+COLOUR_MODES = ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr")
 NO_LABEL = 65535  # a rendered uint16 label map's pixels that nothing covers (the service writes them, clients read them)
 # zstandard's level 1: depth maps pack about as small as at level 3, in less time (the client's CPU
 # is often the service's too)

@@ -24,19 +24,18 @@ from canonical_core import Camera, Frame
 from canonical_core.datasets.images import DEPTH_INVALID_CODE, check_depth_scale, depth_from_uint16, png_pixels
 from canonical_core.frame import check_rgb_only
 from canonical_core.resample import transposed_map_problem
-from canonical_wire import (DTYPES, FLOATS, INTEGERS, NO_LABEL, WireError, array_shape, decode_array,  # noqa: F401
-                            encode_array, is_array, pack, unpack)
+from canonical_wire import (COLOUR_MODES, DTYPES, FLOATS, IMAGE_FORMATS, INTEGERS, NO_LABEL, WireError,  # noqa: F401
+                            array_shape, decode_array, encode_array, is_array, pack, unpack)
 
-IMAGE_FORMATS = ("PNG", "JPEG")
 FRAME_FIELDS = ("rgb", "K", "c2w", "depth", "depth_scale", "depth_std", "features", "labels", "num_classes", "frame_id",
                 "width", "height")
 
 
 # -- images -------------------------------------------------------------------------------------
-def _open_image(data: bytes, field: str, max_pixels: int | None, modes: tuple[str, ...], expected: str
-                ) -> tuple[Image.Image, np.ndarray | None]:
-    """The image in one of ``modes``, and its pixels where libpng decoded them (`png_pixels`; else Pillow
-    has loaded them)."""
+def _open_image(data: bytes, field: str, max_pixels: int | None, modes: tuple[str, ...], expected: str,
+                expected_png: bool = False) -> tuple[Image.Image, np.ndarray | None]:
+    """The image in one of ``modes`` (with ``expected_png``, a PNG's only), and its pixels where libpng
+    decoded them (`png_pixels`; else Pillow has loaded them)."""
     # Image.open reads only the header; the size is checked before a pixel is decoded, so a small
     # file that decodes to gigapixels (a decompression bomb) costs nothing. Pillow refuses the
     # largest ones already in open().
@@ -46,8 +45,8 @@ def _open_image(data: bytes, field: str, max_pixels: int | None, modes: tuple[st
         raise WireError(field, f"image too large ({exc})", 413, "too_large") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
         raise WireError(field, f"not a PNG or JPEG image ({len(data)} bytes starting {data[:8]!r})") from None
-    if image.format not in IMAGE_FORMATS:
-        raise WireError(field, f"image format {image.format} is not accepted; send PNG or JPEG")
+    if image.format not in IMAGE_FORMATS or (image.format != "PNG" and expected_png):
+        raise WireError(field, f"image format {image.format} is not accepted; send {'a PNG' if expected_png else 'PNG or JPEG'}")
     check_pixels(image.width, image.height, field, max_pixels)  # before decoding the pixels
     if image.mode not in modes:
         raise WireError(field, f"expected {expected}, got PIL mode {image.mode!r}")
@@ -66,8 +65,7 @@ def check_pixels(width: int, height: int, field: str, max_pixels: int | None) ->
 
 
 def decode_rgb(data: bytes, field: str = "rgb", max_pixels: int | None = None) -> np.ndarray:  # [H, W, 3] uint8
-    image, pixels = _open_image(data, field, max_pixels, ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr"),
-                                "an 8-bit colour image")
+    image, pixels = _open_image(data, field, max_pixels, COLOUR_MODES, "an 8-bit colour image")
     if pixels is not None:
         return pixels
     # asarray reads the pixels out once (read-only; `Frame` copies such an array into its tensor), where
@@ -78,7 +76,7 @@ def decode_rgb(data: bytes, field: str = "rgb", max_pixels: int | None = None) -
 def decode_depth_png(data: bytes, depth_scale, field: str = "depth", max_pixels: int | None = None) -> np.ndarray:
     """A 16-bit depth PNG -> float32 metres (value / depth_scale; 0 and 65535 = missing)."""
     image, raw = _open_image(data, field, max_pixels, ("I;16", "I;16B", "I;16L", "I"),
-                             "a 16-bit single-channel depth PNG")
+                             "a 16-bit single-channel depth PNG", expected_png=True)
     if raw is None:
         raw = np.asarray(image)
     if raw.dtype != np.uint16:
@@ -92,8 +90,11 @@ def decode_class_png(data: bytes, field: str = "labels", max_pixels: int | None 
     """A class map as an 8- or 16-bit single-channel PNG (grey or palette indices) -> class ids: value
     0 no class (-1), k + 1 class k, the layout of the service's own label PNGs (and ScanNet's label
     images). JPEG is refused: its compression changes ids at every edge."""
-    image, pixels = _open_image(data, field, max_pixels, ("L", "P", "I;16", "I;16B", "I;16L", "I"),
-                                "an 8- or 16-bit single-channel class map PNG (0 no class, k + 1 class k)")
+    expected = "an 8- or 16-bit single-channel class map PNG (0 no class, k + 1 class k)"
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) > 25 and data[24] < 8 \
+            and data[25] == 0:  # grey of 1, 2 or 4 bits: Pillow scales its samples to 8 bits, which changes ids
+        raise WireError(field, f"expected {expected}, got a {data[24]}-bit grey PNG")
+    image, pixels = _open_image(data, field, max_pixels, ("L", "P", "I;16", "I;16B", "I;16L", "I"), expected)
     if image.format != "PNG":
         raise WireError(field, f"a class map travels as PNG, got {image.format}: lossy compression changes class ids")
     return (pixels if pixels is not None else np.asarray(image)).astype(np.int32) - 1

@@ -13,7 +13,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from canonical_wire import encode_array, pack
+from canonical_wire import COLOUR_MODES, IMAGE_FORMATS, encode_array, pack
 
 MSGPACK = "application/msgpack"
 FrameCodec = Literal["compact", "raw"]
@@ -194,12 +194,20 @@ def _image_size(image) -> tuple[int, int] | None:
     return (shape[1], shape[0]) if len(shape) in (2, 3) else None
 
 
-def _colour_array(rgb) -> np.ndarray:
-    """``rgb`` as an array: image bytes decoded to uint8 [H, W, 3] (Pillow, as the service decodes them)."""
+def _colour_array(rgb) -> np.ndarray | None:
+    """``rgb`` as an array: image bytes decoded to uint8 [H, W, 3] (Pillow, as the service decodes them),
+    or None for bytes the service would refuse (another format, or not 8-bit colour): they are sent as
+    they are, so that the service names the problem whatever the frame's depth."""
     if isinstance(rgb, (bytes, bytearray)):
-        from PIL import Image
+        from PIL import Image, UnidentifiedImageError
 
-        return np.asarray(Image.open(io.BytesIO(bytes(rgb))).convert("RGB"))
+        try:
+            with Image.open(io.BytesIO(bytes(rgb))) as image:
+                if image.format not in IMAGE_FORMATS or image.mode not in COLOUR_MODES:
+                    return None
+                return np.asarray(image.convert("RGB"))
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+            return None
     return np.asarray(rgb)
 
 
@@ -227,7 +235,7 @@ def fit_colour_to_depth(rgb, K, depth) -> tuple[object, object]:
     if depth_size_problem(image, size) is not None:
         return rgb, K
     colour = _colour_array(rgb)
-    if colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3:  # not an image: the service says so
+    if colour is None or colour.dtype != np.uint8 or colour.ndim != 3 or colour.shape[2] != 3:  # the service says why
         return rgb, K
     return area_resize(colour, size), scaled_intrinsics(K, size[0] / image[0], size[1] / image[1])
 
@@ -237,8 +245,9 @@ def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
     else the image area-averaged down to the largest size within it (aspect kept) and K scaled to
     match (`scaled_intrinsics`), with a `DownscaledFrame` warning."""
     width, height = _image_size(rgb) or (0, 0)
-    if width * height <= max_pixels or not (isinstance(rgb, (bytes, bytearray)) or np.ndim(rgb) == 3):
-        return rgb, K  # within the limit, or not an image (the service names the problem)
+    colour = None if width * height <= max_pixels else _colour_array(rgb)
+    if colour is None or colour.ndim != 3:
+        return rgb, K  # within the limit, or not an image the service takes (it names the problem)
     from canonical_core.resample import area_resize  # numpy and Pillow, no torch
 
     factor = math.sqrt(max_pixels / (width * height))
@@ -246,7 +255,7 @@ def fit_rgb_only(rgb, K, max_pixels: int) -> tuple[object, object]:
     warnings.warn(f"rgb: a frame without depth of {width}x{height} pixels is over the service's limit of {max_pixels} "
                   f"pixels for such frames; sent downscaled to {size[0]}x{size[1]}, with K scaled to match (or send "
                   f"depth)", DownscaledFrame, stacklevel=4)  # the caller of `Session.add_frame`
-    return area_resize(_colour_array(rgb), size), scaled_intrinsics(K, size[0] / width, size[1] / height)
+    return area_resize(colour, size), scaled_intrinsics(K, size[0] / width, size[1] / height)
 
 
 def is_class_map(labels) -> bool:

@@ -159,3 +159,28 @@ def test_a_refused_export_makes_no_folder(server, tmp_path):
         with pytest.raises(CanonicalError) as err:
             Session(client, "no-such-session").export_ply(tmp_path / "new" / "scene.ply")
     assert err.value.status == 404 and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kind", ["webp", "16-bit grey png"])
+def test_colour_bytes_the_service_refuses_are_refused_whatever_the_depths_size(server, frames, kind):
+    """The SDK fits colour to lower-resolution depth (and big frames without depth to the service's
+    limit) by decoding it: bytes the service would not take are sent as they are instead, so that the
+    frame is refused naming rgb as it is with depth at the colour's size (not folded in wrong colours)."""
+    import io
+
+    from PIL import Image
+
+    rgb = frames[0]["rgb"]
+    buf = io.BytesIO()
+    if kind == "webp":
+        Image.fromarray(rgb).save(buf, format="WEBP", lossless=True)
+    else:
+        Image.fromarray((rgb[..., 0].astype(np.uint16) * 257)).save(buf, format="PNG")
+    depth = frames[0]["depth"]
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=VOXEL)
+        for d in (depth, depth[::2, ::2]):  # at the colour's size, and at half of it
+            with pytest.raises(CanonicalError) as err:
+                session.add_frame(rgb=buf.getvalue(), K=frames[0]["K"], c2w=frames[0]["c2w"], depth=d)
+            assert err.value.status == 422 and err.value.field == "rgb", err.value
+        assert session.stats()["frames"] == 0
