@@ -47,7 +47,7 @@ from torch import Tensor
 
 from ..frame import Frame
 from ..gaussians import Gaussians
-from ..gaussians.container import SH_C0
+from ..gaussians.container import GEOMETRY, SH_C0, check_finite
 from ..rendering import Colour
 from ..rendering.renderer import blend_rgb
 from ..rendering.sh import SH_C1, sh_basis_at_points
@@ -283,6 +283,7 @@ def colour_offsets(
         SolveStopped: ``stop`` answered True.
     """
     _check(views, ridge, prior, iterations, degree, colour)
+    check_finite(gaussians, (*GEOMETRY, "sh"))  # one NaN would spread through the system to every Gaussian
     num_bases = (min(degree, gaussians.sh_degree) + 1) ** 2
     if initial is not None and tuple(initial.shape) != (len(gaussians), num_bases, 3):
         raise ValueError(f"initial: expected shape {[len(gaussians), num_bases, 3]}, got {list(initial.shape)}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -24,6 +25,32 @@ def sh_degree_from_bases(num_bases: int) -> int:
     if (degree + 1) ** 2 != num_bases or not 0 <= degree <= 3:
         raise ValueError(f"sh: expected 1, 4, 9 or 16 SH bases per channel, got {num_bases}")
     return degree
+
+
+GEOMETRY = ("means", "scales", "quats", "opacities")  # the fields that say where and how opaque a Gaussian is
+ALL_FIELDS = (*GEOMETRY, "sh", "features", "labels")
+
+
+def check_finite(gaussians: "Gaussians", fields: tuple[str, ...] = ALL_FIELDS) -> None:
+    """ValueError naming the first of ``fields`` that holds NaN or inf: a render would drop such a
+    Gaussian (or draw NaN), and one NaN in a colour solve's system spreads to every Gaussian it fits.
+    A float64 sum is finite exactly when every value is (it cannot overflow on float32 values), and
+    costs a fraction of an elementwise test; a field found finite is not summed again while it holds
+    the same tensor, unchanged (its in-place version counter), so the renders of one decode pay once.
+
+    Example:
+        >>> g = Gaussians.empty(); g.means = torch.tensor([[0.0, float("nan"), 1.0]]); check_finite(g, ("means",))
+        Traceback (most recent call last):
+        ValueError: means: NaN or inf among its values
+    """
+    checked = gaussians.__dict__.setdefault("_finite", {})  # field -> (tensor id, version) found finite
+    for name in fields:
+        t = getattr(gaussians, name)
+        if t is None or not t.numel() or checked.get(name) == (id(t), t._version):
+            continue
+        if not math.isfinite(float(t.sum(dtype=torch.float64))):
+            raise ValueError(f"{name}: NaN or inf among its values")
+        checked[name] = (id(t), t._version)
 
 
 @dataclass(eq=False)

@@ -19,13 +19,14 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from .container import Gaussians, rgb_to_sh_dc, sh_dc_to_rgb
+from .container import GEOMETRY, Gaussians, check_finite, rgb_to_sh_dc, sh_dc_to_rgb
 
 # the PLY specification's type names and the sized names other writers use
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "char": "i1", "int8": "i1",
               "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
               "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4"}
 _OPACITY_EPS = 1e-6
+MAX_LOG_SCALE = 88.0  # exp(88.7) is float32's largest value
 
 
 def _dc_rgb8(g: Gaussians) -> np.ndarray:  # [N, 3] uint8: the colour seen head-on (SH degree 0)
@@ -120,7 +121,9 @@ def _rows(g: Gaussians, start: int, stop: int) -> Gaussians:
 
 
 def ply_file(g: Gaussians) -> Encoded:
-    """The PLY file of ``g`` (header + binary body), a block of rows at a time."""
+    """The PLY file of ``g`` (header + binary body), a block of rows at a time; ValueError for a field
+    with NaN or inf (`load_ply` would refuse the file)."""
+    check_finite(g)
     layout = _ply_columns(_rows(g, 0, 0))  # the columns' names and types, from no rows
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}"]
     header += [f"property {'uchar' if v.dtype == np.uint8 else 'float'} {name}" for name, v in layout.items()]
@@ -232,9 +235,12 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     if rest is not None:
         sh[:, 1:] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
     feats, labels = _stack(cols, "feat_"), _stack(cols, "label_")
+    log_scales = np.stack([cols[f"scale_{i}"] for i in range(3)], 1)
+    if (log_scales > MAX_LOG_SCALE).any():  # exp of it is inf in float32: a Gaussian no render draws
+        raise ValueError(f"{path}: scale_* properties over {MAX_LOG_SCALE:g} (log scales: exp overflows float32)")
     return Gaussians(
         means=torch.from_numpy(np.stack([cols["x"], cols["y"], cols["z"]], 1)),
-        scales=torch.from_numpy(np.exp(np.stack([cols[f"scale_{i}"] for i in range(3)], 1))),
+        scales=torch.from_numpy(np.exp(log_scales)),
         quats=torch.from_numpy(unit_quats(np.stack([cols[f"rot_{i}"] for i in range(4)], 1))),
         opacities=torch.sigmoid(torch.from_numpy(cols["opacity"])),
         sh=torch.from_numpy(sh),
@@ -249,7 +255,8 @@ assert SPLAT_DTYPE.itemsize == 32
 
 def splat_file(g: Gaussians) -> Encoded:
     """antimatter15 `.splat`: 32 bytes per splat, most important (volume x opacity) first, a block of
-    rows at a time."""
+    rows at a time; ValueError for NaN or inf in what it keeps."""
+    check_finite(g, (*GEOMETRY, "sh"))
     # the order is the one array of the file's length (8 bytes a row of 32); its key is made in place
     importance = g.scales.detach().cpu().float().numpy().prod(1)
     importance *= g.opacities.detach().cpu().float().numpy()
@@ -285,8 +292,10 @@ def load_splat(path: str | os.PathLike) -> Gaussians:
     """Read a `.splat` file (colours and rotations come back quantised to 8 bits)."""
     data = Path(path).read_bytes()
     if len(data) % SPLAT_DTYPE.itemsize:
-        raise ValueError(f"splat: file size {len(data)} is not a multiple of 32 bytes")
+        raise ValueError(f"{path}: file size {len(data)} is not a multiple of 32 bytes (a .splat's rows)")
     rec = np.frombuffer(data, SPLAT_DTYPE)
+    if bad := [name for name in ("position", "scale") if not np.isfinite(rec[name]).all()]:
+        raise ValueError(f"{path}: NaN or inf in the {' and '.join(bad)} of its rows")
     rgba = rec["rgba"].astype(np.float32) / 255.0
     q = unit_quats((rec["rot"].astype(np.float32) - 128.0) / 128.0)
 

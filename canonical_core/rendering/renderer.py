@@ -11,6 +11,7 @@ from torch import Tensor
 
 from ..camera import Camera
 from ..gaussians import Gaussians
+from ..gaussians.container import GEOMETRY, check_finite
 from .gsplat_backend import composite_gsplat, gsplat_available
 from .cpu_tiles import render_cpu
 from .projection import Blend, Channel, project_splats
@@ -167,6 +168,7 @@ def render(
     if not isinstance(camera, Camera):
         raise ValueError(f"camera: expected a Camera, got {type(camera).__name__}")
     outputs = _check_outputs(outputs, gaussians)
+    check_finite(gaussians, (*GEOMETRY, "sh", *(c for c in ("features", "labels") if c in outputs)))
     background = _background(background)
     if colour not in get_args(Colour):
         raise ValueError(f"colour: expected one of {list(get_args(Colour))}, got {colour!r}")

@@ -11,6 +11,7 @@ bins (the render's own arithmetic): both agree to float rounding.
 
 from __future__ import annotations
 
+import math
 from typing import Literal, NamedTuple, get_args
 
 import numba
@@ -20,6 +21,7 @@ from torch import Tensor
 
 from ..camera import Camera
 from ..gaussians import Gaussians
+from ..gaussians.container import GEOMETRY, check_finite
 from .cpu_tiles import bin_splats_by_tile, composite_weights, project_records
 from .projection import Blend, project_splats
 from .reference import composite_reference, tiles, tile_weights
@@ -174,11 +176,14 @@ def _weights_cpu(gaussians: Gaussians, camera: Camera, near_plane: float, min_we
     return BlendWeights(*(torch.from_numpy(a) for a in _compact(*entries)))
 
 
-def _check(backend: str, min_weight: float) -> None:
+def _check(gaussians: Gaussians, backend: str, min_weight: float, near_plane: float) -> None:
     if backend not in get_args(WeightsBackend):
         raise ValueError(f"backend: expected one of {list(get_args(WeightsBackend))}, got {backend!r}")
     if not min_weight >= 0:
         raise ValueError(f"min_weight: expected a non-negative weight, got {min_weight!r}")
+    if not 0 < near_plane < math.inf:  # as `render` refuses it: a Gaussian behind the camera would be weighed
+        raise ValueError(f"near_plane: expected a positive, finite distance, got {near_plane!r}")
+    check_finite(gaussians, GEOMETRY)
 
 
 def blend_weights(
@@ -203,9 +208,10 @@ def blend_weights(
         (0.8, True)
 
     Raises:
-        ValueError: an unknown backend, or a negative ``min_weight``.
+        ValueError: an unknown backend, a negative ``min_weight``, a near plane that is not a positive
+            distance, or Gaussians with NaN or inf where they are.
     """
-    _check(backend, min_weight)
+    _check(gaussians, backend, min_weight, near_plane)
     if backend == "reference":
         return _weights_reference(gaussians, camera, near_plane, min_weight)
     return _weights_cpu(gaussians, camera, near_plane, min_weight)
@@ -243,11 +249,12 @@ def _rows_reference(w: BlendWeights, num_pixels: int, normalised_from: float | N
                       (weights[kept].double() * scale[pixels[kept]]).float().numpy(), scale.numpy())
 
 
-def _check_rows(normalised_from: float | None, backend: str, min_weight: float) -> None:
+def _check_rows(gaussians: Gaussians, normalised_from: float | None, backend: str, min_weight: float,
+                near_plane: float) -> None:
     if normalised_from is not None and (isinstance(normalised_from, bool) or not isinstance(normalised_from, (int, float))
                                         or not normalised_from > 0):
         raise ValueError(f"normalised_from: expected a positive alpha or None, got {normalised_from!r}")
-    _check(backend, min_weight)
+    _check(gaussians, backend, min_weight, near_plane)
 
 
 def _rows(entries, num_pixels: int, normalised_from: float | None) -> WeightRows:
@@ -293,10 +300,9 @@ def blend_weight_rows(
         ([0], 1.25)
 
     Raises:
-        ValueError: an unknown backend, a negative ``min_weight``, or a ``normalised_from`` that
-            is not a positive number.
+        ValueError: as `blend_weights`, or a ``normalised_from`` that is not a positive number.
     """
-    _check_rows(normalised_from, backend, min_weight)
+    _check_rows(gaussians, normalised_from, backend, min_weight, near_plane)
     num_pixels = camera.height * camera.width
     if backend == "reference":
         return _rows_reference(_weights_reference(gaussians, camera, near_plane, min_weight), num_pixels, normalised_from)
@@ -319,7 +325,7 @@ def weight_rows_and_blend(
     Raises:
         ValueError: as `blend_weight_rows`.
     """
-    _check_rows(normalised_from, backend, min_weight)
+    _check_rows(gaussians, normalised_from, backend, min_weight, near_plane)
     num_pixels, shape = camera.height * camera.width, (camera.height, camera.width)
     if backend == "reference":
         rows = _rows_reference(_weights_reference(gaussians, camera, near_plane, min_weight), num_pixels, normalised_from)

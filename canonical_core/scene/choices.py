@@ -5,9 +5,10 @@ channels of client features.
 the scene then keeps the result for its life (snapshots, corrections and rollbacks included):
 
 - ``voxel_size`` None: `default_voxel_size` of that frame, ``VOXEL_PIXELS`` pixel footprints at its
-  median depth, the rule `canonical eval` uses for its captures too (`eval.run`), so a voxel covers
-  a similar patch of pixels on any capture. It needs depth: a first frame without depth is
-  refused, naming ``voxel_size``.
+  median depth (of the depth within ``range``: what the scene folds), the rule `canonical eval`
+  uses for its captures too (`eval.run`), so a voxel covers a similar patch of pixels on any
+  capture. It needs depth: a first frame without depth, or with none in range (millimetres sent as
+  metres), is refused, naming ``voxel_size`` and where its depth lies.
 - ``sensor.family`` ``auto``: the family its depth's quantisation shows (`config.detect_family`),
   else `config.DEFAULT_FAMILY`; the family's preset then fills every sensor value left None.
 - ``features.client_channels`` None, with client features: the channels of that frame's features.
@@ -32,13 +33,18 @@ __all__ = ["VOXEL_PIXELS", "choose_settings", "choose_without_frame", "default_v
 VOXEL_PIXELS = 6.0
 
 
-def default_voxel_size(frames: Sequence[Frame]) -> float:
-    """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth of ``frames``, to 2
-    significant digits. Raises ValueError naming ``voxel_size`` when they carry no valid depth."""
-    depths = [f.depth[f.depth > 0] for f in frames if f.depth is not None]
-    depths = torch.cat(depths) if depths else torch.zeros(0)
+def default_voxel_size(frames: Sequence[Frame], near: float = 0.0, far: float = float("inf")) -> float:
+    """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth of ``frames`` (within
+    [``near``, ``far``]: the depth a scene folds), to 2 significant digits. Raises ValueError naming
+    ``voxel_size`` when they carry none, saying where their depth lies instead."""
+    valid = [f.depth[f.depth > 0] for f in frames if f.depth is not None]
+    valid = torch.cat(valid) if valid else torch.zeros(0)
+    depths = valid[(valid >= near) & (valid <= far)]
     if depths.numel() == 0:
-        raise ValueError("voxel_size: no valid depth to choose it from (it is 6 pixel footprints at the median depth)")
+        found = "" if valid.numel() == 0 else (
+            f": its depth lies at {float(valid.median()):g} m (median), outside range.near..range.far = {near:g}..{far:g} m; "
+            "is it in metres?")
+        raise ValueError(f"voxel_size: no valid depth to choose it from (it is 6 pixel footprints at the median depth){found}")
     focal = float(np.mean([(f.camera.fx + f.camera.fy) / 2 for f in frames]))
     size = VOXEL_PIXELS * float(depths.median()) / focal
     return float(f"{size:.2g}")
@@ -56,7 +62,7 @@ def choose_settings(config: SceneConfig, frame: Frame | None) -> tuple[SceneConf
         if depth is None:
             raise ValueError("voxel_size: the session chooses it from its first frame with depth, and this frame has "
                              "none: send a frame with depth first, or set voxel_size")
-        changes["voxel_size"] = default_voxel_size([frame])
+        changes["voxel_size"] = default_voxel_size([frame], config.range.near, config.range.far)
         why["voxel_size"] = f"{VOXEL_PIXELS:g} pixel footprints at the first frame's median depth"
     if not config.sensor.chosen:
         family = config.sensor.family

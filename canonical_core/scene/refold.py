@@ -74,6 +74,8 @@ def refold(scene: Scene, poses: dict[int, np.ndarray], removed: Iterable[int]) -
     from the last checkpoint before it (exact: a checkpoint round-trips the state bit for bit) and
     re-folds the rest."""
     removed = set(removed)
+    if not poses and not removed:  # `update_poses` names no frame before it comes here; `remove_frames([])` does
+        raise ValueError("frames: names no frame")
     first = min(set(poses) | removed)
     frames = list(corrected_stream(scene._kept, poses, removed))
     arrivals = [a for k, a in enumerate(scene._arrivals) if k not in removed]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from canonical_core import Camera, Gaussians, load_ply, load_splat, render, save_ply, save_splat
+from canonical_core import Camera, Frame, Gaussians, load_ply, load_splat, render, save_ply, save_splat
 from canonical_core.gaussians import SH_C0, ply_bytes, splat_bytes
 
 THREE_DGS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]  # then f_rest_*, opacity, ...
@@ -216,9 +216,11 @@ def test_a_ply_with_windows_line_ends_and_small_integer_extras_is_read(tmp_path)
 
 def test_a_ply_holding_nan_is_refused_naming_the_property(tmp_path):
     g = random_gaussians(6, degree=1, features=0, labels=0)
-    g.means[2, 1] = float("nan")
+    raw = bytearray(ply_bytes(g))  # written by another tool: ours refuses NaN
+    body = np.frombuffer(raw, np.uint8)[raw.index(b"end_header\n") + 11:]
+    body.view(ply_rows(bytes(raw)).dtype)["y"][2] = np.nan
     path = tmp_path / "nan.ply"
-    path.write_bytes(ply_bytes(g))
+    path.write_bytes(bytes(raw))
     with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: NaN or inf in the properties \['y'\]"):
         load_ply(path)
 
@@ -248,3 +250,60 @@ def test_a_failed_save_leaves_no_temporary_file_and_names_the_path_given(save, t
         save(random_gaussians(5), tmp_path / "missing" / "b.ply")
     assert err.value.filename == str(tmp_path / "missing" / "b.ply")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply"]
+
+
+@pytest.mark.parametrize("field", ["means", "scales", "quats", "opacities", "sh"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nan_or_inf_in_gaussians_is_refused_naming_the_field_where_they_are_used(tmp_path, field, bad):
+    """A render drops a Gaussian with a NaN mean (or draws NaN), and one NaN in a colour solve's
+    system blackens every Gaussian it fits: render, the blend weights, the colour solve and the
+    exports refuse NaN or inf, naming the field, where the library used to go on."""
+    from canonical_core.rendering.weights import blend_weights
+    from canonical_core.decode import colour_offsets
+
+    g = random_gaussians(features=0, labels=0)
+    getattr(g, field).view(-1)[7] = bad
+    camera = Camera(K=[[40, 0, 15.5], [0, 40, 11.5], [0, 0, 1]], c2w=np.eye(4), width=32, height=24)
+    frame = Frame(rgb=np.zeros((24, 32, 3), np.uint8), camera=camera)
+    for call in (lambda: render(g, camera), lambda: render(g, camera, backend="reference"),
+                 lambda: colour_offsets(g, [frame]), lambda: save_ply(g, tmp_path / "g.ply"),
+                 lambda: save_splat(g, tmp_path / "g.splat")):
+        with pytest.raises(ValueError, match=f"^{field}: NaN or inf"):
+            call()
+    if field != "sh":  # the weights read where Gaussians are and how opaque, not their colours
+        with pytest.raises(ValueError, match=f"^{field}: NaN or inf"):
+            blend_weights(g, camera)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_ply_whose_log_scales_overflow_and_a_splat_with_nan_are_refused_naming_the_file(tmp_path):
+    g = random_gaussians(features=0, labels=0)
+    raw = bytearray(ply_bytes(g))
+    body = np.frombuffer(raw, np.uint8)[raw.index(b"end_header\n") + 11:]
+    body.view(ply_rows(bytes(raw)).dtype)["scale_0"][3] = 100.0
+    (tmp_path / "big.ply").write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"big\.ply: scale_\* properties over 88"):
+        load_ply(tmp_path / "big.ply")
+    data = bytearray(splat_bytes(g))
+    np.frombuffer(data, np.float32)[0] = np.nan  # the first row's x
+    (tmp_path / "nan.splat").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"nan\.splat: NaN or inf in the position"):
+        load_splat(tmp_path / "nan.splat")
+    (tmp_path / "short.splat").write_bytes(bytes(data[:-2]))
+    with pytest.raises(ValueError, match=r"short\.splat: file size"):
+        load_splat(tmp_path / "short.splat")
+
+
+def test_a_field_found_finite_is_checked_again_once_it_changes():
+    from canonical_core.gaussians.container import check_finite
+
+    g = random_gaussians(features=0, labels=0)
+    check_finite(g)
+    g.means[3, 0] = float("nan")  # in place: the tensor's version moves on
+    with pytest.raises(ValueError, match="^means: NaN or inf"):
+        check_finite(g)
+    g.means = torch.zeros_like(g.means)  # another tensor
+    check_finite(g)
+    g.sh = torch.full_like(g.sh, float("inf"))
+    with pytest.raises(ValueError, match="^sh: NaN or inf"):
+        check_finite(g)

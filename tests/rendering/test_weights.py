@@ -72,6 +72,10 @@ def test_bad_arguments_name_the_field(scene):
         blend_weights(g, camera, backend="gpu")
     with pytest.raises(ValueError, match="min_weight"):
         blend_weights(g, camera, min_weight=-1.0)
+    for near in (-1.0, 0.0, float("nan"), float("inf")):  # as `render` refuses it: behind the camera would count
+        for weights in (blend_weights, blend_weight_rows, weight_rows_and_blend):
+            with pytest.raises(ValueError, match="^near_plane: "):
+                weights(g, camera, near_plane=near)
 
 
 def row_entries(rows, num_pixels: int) -> torch.Tensor:  # [P, 2]: (pixel, id) of each entry, in row order

@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 
 from canonical_core import Scene, SceneConfig
 from canonical_core.config import DEFAULT_FAMILY, SENSOR_PRESETS, detect_family, disparity_step
@@ -124,6 +125,27 @@ def test_a_first_frame_without_depth_is_refused_naming_voxel_size_and_changes_no
     # with the voxel size given, such a frame waits for a partner; the sensor takes the default family
     scene = Scene(SceneConfig(voxel_size=0.01))
     assert scene.fold(dataclasses.replace(shelf[0], depth=None)).sensor_chosen == "default: no depth to detect it from"
+
+
+@pytest.mark.parametrize("out_of_range", [lambda d: torch.where(d > 0, 25.0, 0.0),  # all beyond range.far
+                                          lambda d: d * 1000.0], ids=["beyond far", "millimetres as metres"])
+def test_a_first_frame_whose_depth_is_out_of_range_chooses_no_voxel_and_says_where_its_depth_lies(shelf, out_of_range):
+    """The voxel is chosen from the depth a scene folds: a first frame with none in range (all beyond
+    range.far, or millimetres sent as metres) is refused naming voxel_size and its depth's median,
+    instead of fixing a voxel from depth that made no voxel (0.24 m, then 58 voxels of five good
+    frames), or a 24 m one; the good frames after it choose as they do alone."""
+    far = dataclasses.replace(shelf[0], depth=out_of_range(shelf[0].depth))
+    scene = Scene(SceneConfig())
+    with pytest.raises(ValueError, match=r"^voxel_size: no valid depth .* its depth lies at [0-9.]+ m \(median\), outside "
+                                         r"range.near..range.far = 0.05..20 m; is it in metres\?"):
+        scene.fold(far)
+    assert (scene.frames, scene.config, scene.chosen) == (0, SceneConfig(), {})
+    for frame in shelf[:3]:
+        scene.fold(frame)
+    alone = Scene(SceneConfig())
+    for frame in shelf[:3]:
+        alone.fold(frame)
+    assert scene.config == alone.config and scene.digest() == alone.digest()
 
 
 def test_a_refused_first_frame_chooses_nothing(shelf):

@@ -144,6 +144,9 @@ def test_bad_removals_and_scenes_without_frames():
         scene.remove_frames(["f0", "f9"])
     with pytest.raises(ValueError, match=r"^frames: expected a list"):
         scene.remove_frames("f0")
+    for nothing in ([], set()):
+        with pytest.raises(ValueError, match=r"^frames: names no frame$"):
+            scene.remove_frames(nothing)
     assert scene.digest() == before
     plain = fold(stream(2))
     with pytest.raises(ValueError, match=r"^poses: this scene keeps no frames"):
