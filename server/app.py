@@ -111,7 +111,7 @@ class GuardMiddleware:
             if message["type"] == "http.response.start":
                 started = True
                 self.metrics.responses[message["status"]] += 1
-            if message["type"] == "http.response.body" and len(message.get("body", b"")) > SEND_PIECE_BYTES:
+            if message["type"] == "http.response.body":  # every piece, of a whole answer or a streamed one
                 return await self._send_in_pieces(send, message)
             await send(message)
 
@@ -184,12 +184,14 @@ class GuardMiddleware:
         return await self.app(scope, replay, send)
 
     async def _send_in_pieces(self, send, message: dict) -> None:
-        """A large body sent a piece at a time, each within ``send_timeout_s``: a client that takes no
-        bytes for that long (it never reads its answer) is `ReaderStalled`, so that the answer it holds
-        in the service's memory goes back, instead of staying there for as long as its connection does."""
-        body, more = memoryview(message["body"]), message.get("more_body", False)
+        """A body sent a piece at a time (a large one in pieces of `SEND_PIECE_BYTES`), each within
+        ``send_timeout_s``: a client that takes no bytes for that long (it never reads its answer) is
+        `ReaderStalled`, so that the answer it holds in the service's memory goes back (a streamed
+        export's blocks and the Gaussians behind them too), instead of staying there for as long as
+        its connection does."""
+        body, more = memoryview(message.get("body", b"")), message.get("more_body", False)
         timeout = self.settings.send_timeout_s
-        for start in range(0, len(body), SEND_PIECE_BYTES):
+        for start in range(0, max(len(body), 1), SEND_PIECE_BYTES):
             piece = {"type": "http.response.body", "body": bytes(body[start:start + SEND_PIECE_BYTES]),
                      "more_body": more or start + SEND_PIECE_BYTES < len(body)}
             try:

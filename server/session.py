@@ -223,8 +223,12 @@ class Session:
             try:
                 self.archive.keep_folded(frame.frame_id, digest, payload, at_once=refolding)
             except StorageError:  # not in the scene the correction swaps in: taken back, not acknowledged
-                self.log.truncate(offset)
-                self._recover(frames, "a fold whose frame was not archived")
+                try:
+                    self.log.truncate(offset)
+                except OSError as exc:  # its record stays in the log: no more frames until a restart reads it
+                    self.wedged = f"frames.log: a refused frame's record could not be cut off ({exc.strerror or exc})"
+                finally:
+                    self._recover(frames, "a fold whose frame was not archived")
                 raise
         append_camera(self.path, report.frame_index, frame.camera)
         if frame.frame_id is not None:

@@ -154,11 +154,17 @@ class DepthConsistency:
         tell, count with the disagreeing ones (a near limit set at the disagreeing band's upper edge
         would keep their depth, as unreliable as the bands under it)."""
         top = inconsistent_below(self.compared, self.agreed)
-        return None if top is None else band_edge(self._agreeing_from(top))
+        return None if top is None else self._advised(self._agreeing_from(top))
 
     def _agreeing_from(self, top: int) -> int:
-        beyond = np.flatnonzero(self.compared[top + 1:] >= MIN_COMPARED)
+        beyond = np.flatnonzero(self.compared[top + 1:] >= MIN_COMPARED)  # not empty: `inconsistent_below`
         return top + 1 + int(beyond[0])
+
+    @staticmethod
+    def _advised(band: int) -> float:
+        """The lower edge of ``band`` rounded up to the centimetre: a near limit set to the figure
+        shown (two decimals) then leaves no depth of the bands under it."""
+        return math.ceil(round(band_edge(band) * 100, 6)) / 100
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The counts, for a snapshot (the previous frame is not kept: a restored stream compares its
@@ -203,7 +209,7 @@ class DepthConsistency:
         share = sampled[:first].sum() / sampled.sum()
         if share < WARN_SHARE:
             return []
-        limit = band_edge(first)
+        limit = self._advised(first)
         below = self.compared[:first].sum(), self.agreed[:first].sum()
         beyond = np.flatnonzero(self.compared[first:] >= MIN_COMPARED) + first
         agree = self.agreed[beyond].sum() / self.compared[beyond].sum()

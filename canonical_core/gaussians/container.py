@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -34,23 +35,29 @@ ALL_FIELDS = (*GEOMETRY, "sh", "features", "labels")
 def check_finite(gaussians: "Gaussians", fields: tuple[str, ...] = ALL_FIELDS) -> None:
     """ValueError naming the first of ``fields`` that holds NaN or inf: a render would drop such a
     Gaussian (or draw NaN), and one NaN in a colour solve's system spreads to every Gaussian it fits.
-    A float64 sum is finite exactly when every value is (it cannot overflow on float32 values), and
-    costs a fraction of an elementwise test; a field found finite is not summed again while it holds
-    the same tensor, unchanged (its in-place version counter), so the renders of one decode pay once.
+    A float64 sum of float32 or float16 values is finite exactly when every value is (it cannot
+    overflow), and costs a fraction of an elementwise test (float64 fields get the elementwise one). A
+    field found finite is not tested again while it holds the same tensor object, unchanged by torch's
+    in-place operations (its version counter), so the renders of one decode pay once; writes through a
+    numpy view of it (``.numpy()``) are not seen.
 
     Example:
         >>> g = Gaussians.empty(); g.means = torch.tensor([[0.0, float("nan"), 1.0]]); check_finite(g, ("means",))
         Traceback (most recent call last):
         ValueError: means: NaN or inf among its values
     """
-    checked = gaussians.__dict__.setdefault("_finite", {})  # field -> (tensor id, version) found finite
+    checked = gaussians.__dict__.setdefault("_finite", {})  # field -> (weak reference, version) found finite
     for name in fields:
         t = getattr(gaussians, name)
-        if t is None or not t.numel() or checked.get(name) == (id(t), t._version):
+        if t is None or not t.numel():
             continue
-        if not math.isfinite(float(t.sum(dtype=torch.float64))):
+        ref, version = checked.get(name, (None, None))
+        if ref is not None and ref() is t and version == t._version:  # the same object (an id may be reused)
+            continue
+        finite = bool(torch.isfinite(t).all()) if t.dtype == torch.float64 else math.isfinite(float(t.sum(dtype=torch.float64)))
+        if not finite:
             raise ValueError(f"{name}: NaN or inf among its values")
-        checked[name] = (id(t), t._version)
+        checked[name] = (weakref.ref(t), t._version)
 
 
 @dataclass(eq=False)

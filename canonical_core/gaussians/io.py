@@ -107,7 +107,7 @@ class Encoded(NamedTuple):
     """A file of Gaussians as it is written a block of rows at a time (`ply_file`, `splat_file`): its
     size is known before any row is encoded (an HTTP answer's Content-Length), and each block is
     encoded as it is taken, so that the file's bytes never all sit in memory (a scene of millions of
-    Gaussians makes a file of hundreds of MB, which a whole encode held four times over)."""
+    Gaussians makes a file of hundreds of MB, which an encode of the whole held several times over)."""
 
     size: int  # bytes of the whole file
     chunks: Iterator[bytes]  # the file's bytes: the header, then blocks of `ENCODE_ROWS` rows

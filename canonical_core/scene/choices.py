@@ -35,11 +35,11 @@ VOXEL_PIXELS = 6.0
 
 def default_voxel_size(frames: Sequence[Frame], near: float = 0.0, far: float = float("inf")) -> float:
     """``VOXEL_PIXELS`` pixel footprints (z / f) at the median valid depth of ``frames`` (within
-    [``near``, ``far``]: the depth a scene folds), to 2 significant digits. Raises ValueError naming
-    ``voxel_size`` when they carry none, saying where their depth lies instead."""
+    (``near``, ``far``): the depth a scene folds; the evaluation gives no range), to 2 significant
+    digits. Raises ValueError naming ``voxel_size`` when they carry none, saying where their depth lies."""
     valid = [f.depth[f.depth > 0] for f in frames if f.depth is not None]
     valid = torch.cat(valid) if valid else torch.zeros(0)
-    depths = valid[(valid >= near) & (valid <= far)]
+    depths = valid[(valid > near) & (valid < far)]
     if depths.numel() == 0:
         found = "" if valid.numel() == 0 else (
             f": its depth lies at {float(valid.median()):g} m (median), outside range.near..range.far = {near:g}..{far:g} m; "

@@ -142,9 +142,9 @@ class Scene:
     def preallocate(self, voxels: int) -> None:
         """Commit the memory of ``voxels`` voxels now, as Open3D's VoxelBlockGrid does for its block
         count: folds that grow the scene up to that size then never wait for the system to fault in
-        and zero fresh pages (dear on a virtual machine). The memory counts in `memory_bytes` from now on. A snapshot does not keep it, nor
-        does the state a re-fold brings (`update_poses` and `remove_frames` past the undo records,
-        `adopt`): call this again after `load` or those. Raises ValueError naming ``voxels`` for a
+        and zero fresh pages (dear on a virtual machine). It counts in `memory_bytes` from now on; a
+        snapshot does not keep it, nor does the state a re-fold brings (`update_poses` and
+        `remove_frames` past the undo records, `adopt`): call this again after `load` or those. Raises ValueError naming ``voxels`` for a
         negative count, one above ``max_voxels`` or `config.MAX_VOXELS`, or one whose memory the
         system refuses; the scene and its results are unchanged.
 

@@ -38,8 +38,8 @@ def add_render(p: argparse.ArgumentParser) -> None:
                             "scalar last; the timestamp optional) or the 16 numbers of a 4x4 matrix; '#' comments. "
                             "Needs --K and --size, or --frame-like")
     p.add_argument("--K", type=intrinsics_arg, metavar="FX,FY,CX,CY",
-                   help="intrinsics in pixels: the views' with --pose or --trajectory; with --frame-like alone, "
-                        "its capture's where the capture has none (as `canonical stream --K`)")
+                   help="intrinsics in pixels: the views' with --pose or --trajectory, and the --frame-like "
+                        "capture's (as `canonical stream --K`: for a capture without its own)")
     p.add_argument("--size", type=image_size_arg, metavar="WxH", help="image size (with --K), e.g. 640x480")
     p.add_argument("--width", type=int, help="image width (or --size)")
     p.add_argument("--height", type=int, help="image height (or --size)")
@@ -149,9 +149,9 @@ def render_views(args) -> list[tuple[np.ndarray, np.ndarray, int, int]]:
     or each pose of --pose / --trajectory with --K and --size (else the --frame-like camera's)."""
     pose_file = args.pose or args.trajectory
     if pose_file is None and (args.size or args.width or args.height):
-        raise UsageError("--K and --size go with --pose or --trajectory (--frame-like brings its own)")
-    capture_K = tuple(args.K) if pose_file is None and args.K else None  # the intrinsics a capture lacks
-    cameras = [frame_like_camera(spec, capture_K) for spec in args.frame_like]
+        raise UsageError("--size goes with --pose or --trajectory (--frame-like brings its own)")
+    # --K: the views' intrinsics, and those of a --frame-like capture that has none
+    cameras = [frame_like_camera(spec, tuple(args.K) if args.K else None) for spec in args.frame_like]
     if pose_file is None:
         return cameras
     width, height = args.size or (args.width, args.height)

@@ -3,17 +3,19 @@ its sessions, limits, health and metrics."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import httpx
 import numpy as np
 
 from .errors import CanonicalError, ServiceUnreachable
 from .session import Session, path_segment
+
+T = TypeVar("T")
 
 
 # answers that say the service (or a proxy before it) could not take the request now, not that the
@@ -95,21 +97,33 @@ class Client:
             r.close()
             time.sleep(self._retry_after(r, attempt))
         if r.status_code >= 400:
-            r.read()
+            try:
+                r.read()
+            except httpx.TransportError as exc:  # the error answer cut short: no answer to tell
+                raise self._unreachable(method, path, exc) from exc
+            finally:
+                r.close()
             raise self._error(r)
         return r
 
-    @contextlib.contextmanager
-    def _download(self, path: str, **kwargs) -> Iterator[Iterator[bytes]]:
-        """The body of a GET of ``path``, to iterate as it arrives (a file of hundreds of MB never all
-        in memory). The request is made, and retried as `_request` does, on entering, so a refusal is
-        raised before the caller makes any file; `ServiceUnreachable` when the connection fails on
-        the way. The answer is closed on leaving, however the caller's write ended."""
-        r = self._request("GET", path, stream=True, **kwargs)
-        try:
-            yield self._body(r, path)
-        finally:
-            r.close()
+    def _download(self, path: str, write: Callable[[Iterator[bytes]], T], **kwargs) -> T:
+        """``write(chunks)`` of the body of a GET of ``path`` as it arrives (a file of hundreds of MB
+        never all in memory). The request is made, and retried as `_request` does, before ``write`` is
+        called, so a refusal is raised before the caller makes any file; a connection that fails on
+        the way is retried from the start (``write`` is called again: it must begin afresh), and is
+        `ServiceUnreachable` after the last retry. The answer is closed however ``write`` ends."""
+        attempt = 0
+        while True:
+            r = self._request("GET", path, stream=True, **kwargs)
+            try:
+                return write(self._body(r, path))
+            except ServiceUnreachable:
+                if attempt == self.max_retries:
+                    raise
+            finally:
+                r.close()
+            time.sleep(self._retry_after(None, attempt))
+            attempt += 1
 
     def _body(self, r: httpx.Response, path: str) -> Iterator[bytes]:
         try:

@@ -3,6 +3,7 @@ corrections, renders, features, segmentation, exports and live fold events out."
 
 from __future__ import annotations
 
+import functools
 import json
 import secrets
 import os
@@ -292,13 +293,11 @@ class Session:
     def export_mesh(self, path: str | os.PathLike, min_support: float | None = None) -> Path:
         """The surface as a coloured triangle mesh (binary PLY: vertex x, y, z, red, green, blue; faces)."""
         params = {} if min_support is None else {"min_support": float(min_support)}
-        with self.client._download(f"{self._path}/mesh.ply", params=params) as chunks:
-            return _write(path, chunks)
+        return self.client._download(f"{self._path}/mesh.ply", functools.partial(_write, path), params=params)
 
     def _export(self, suffix: str, path, max_gaussians) -> Path:
         params = {} if max_gaussians is None else {"max_gaussians": int(max_gaussians)}
-        with self.client._download(f"{self._path}/gaussians{suffix}", params=params) as chunks:
-            return _write(path, chunks)
+        return self.client._download(f"{self._path}/gaussians{suffix}", functools.partial(_write, path), params=params)
 
     def events(self, every: float | None = None) -> Iterator[tuple[str, dict]]:
         """The session's live events as (name, fields), read from its Server-Sent Events stream:

@@ -303,6 +303,7 @@ class SessionOwner:
         self.store.open()
         self.app = create_app(settings)
         self.app.state.store = self.store  # the app's lifespan does not run here: this object is its life
+        self.app.state.frame_refused = self.store.frame_refused
         self.busy: Counter[str] = Counter()
         self._evicting: asyncio.Task | None = None
         self._snapshotter: asyncio.Task | None = None

@@ -23,17 +23,20 @@ MaxGaussians = Annotated[int | None, Query(ge=0, description="level of detail: t
 
 
 async def _export(session, jobs, max_gaussians, encode, suffix: str, features: bool) -> StreamingResponse:
-    """The decode is a job of the session's; the file is then encoded a block of rows at a time as the
-    client takes it (on the server's thread pool: `StreamingResponse` runs a plain iterator there), so
-    a scene of millions of Gaussians never holds its whole file in memory. The decoded Gaussians are
-    not changed by later folds (a fold makes new ones), so the file is of one state."""
-    gaussians = await jobs.run(lambda: session.gaussians(max_gaussians, features=features)[0], kind="work",
-                               session=session.id)
+    """The decode and what the file needs of all the Gaussians at once (their check, a .splat's order)
+    are a job of the session's; the file is then encoded a block of rows at a time as the client takes
+    it (on the server's thread pool: `StreamingResponse` runs a plain iterator there), so a scene of
+    millions of Gaussians never holds its whole file in memory. The decoded Gaussians are not changed
+    by later folds (a fold makes new ones), so the file is of one state."""
+    def job():
+        gaussians, _ = session.gaussians(max_gaussians, features=features)
+        return encode(gaussians), len(gaussians)
+
+    file, n = await jobs.run(job, kind="work", session=session.id)
     solve_soon(jobs.scheduler, session)  # as a render does: a session whose colours are due gets them solved
-    file = encode(gaussians)
     return StreamingResponse(file.chunks, media_type="application/octet-stream", headers={
         "Content-Length": str(file.size), "Content-Disposition": f'attachment; filename="{session.id}{suffix}"',
-        "X-Canonical-Gaussians": str(len(gaussians))})
+        "X-Canonical-Gaussians": str(n)})
 
 
 @router.get("/{session_id}/gaussians.ply", response_class=StreamingResponse,

@@ -52,7 +52,7 @@ BAD_ARGUMENTS = [
     ("an empty session id", ["view", "--session", ""], "--session"),
     ("no view to render", ["render", "--session", "x", "-o", "a.png"], "give the view(s)"),
     ("a size without a pose", ["render", "--session", "x", "--frame-like", "a:0", "--size", "64x48", "-o", "a.png"],
-     "--K and --size go with --pose"),
+     "--size goes with --pose"),
     ("intrinsics without a size", ["render", "--session", "x", "--pose", "p", "--K", "1,2,3,4", "-o", "a.png"],
      "--K needs --size"),
     ("a pose without intrinsics", ["render", "--session", "x", "--pose", "p", "-o", "a.png"], "--pose and --trajectory need"),

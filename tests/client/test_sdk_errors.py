@@ -132,26 +132,34 @@ def test_downloads_to_one_path_at_once_each_leave_a_whole_file(server, frames, t
 
 def test_a_download_cut_short_is_service_unreachable_and_leaves_no_file(tmp_path):
     """Exports are written as they arrive: a connection that ends before the answer's Content-Length
-    is `ServiceUnreachable` naming the request, and neither the file nor its temporary file is left;
-    a refused export makes no file or folder at all (the request is answered before any is made)."""
+    is asked again from the start (as a GET that got no answer is), and after the last retry it is
+    `ServiceUnreachable` naming the request, neither the file nor its temporary file left."""
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
+    whole = b"ply\n" + b"x" * 100_000
 
-    def serve_one_cut_answer():
-        conn, _ = listener.accept()
-        with conn:
-            conn.recv(65536)
-            conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/octet-stream\r\nContent-Length: 1000000\r\n\r\n"
-                         + b"ply\n" + b"x" * 5000)
+    def serve(answers: int, cut: int):  # the first ``cut`` answers end early, the rest are whole
+        for k in range(answers):
+            conn, _ = listener.accept()
+            with conn:
+                conn.recv(65536)
+                conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/octet-stream\r\nContent-Length: %d\r\n"
+                             b"Connection: close\r\n\r\n" % len(whole) + (whole[:5000] if k < cut else whole))
 
-    server = threading.Thread(target=serve_one_cut_answer, daemon=True)
+    server = threading.Thread(target=serve, args=(2, 2), daemon=True)
     server.start()
-    with Client(f"http://127.0.0.1:{port}", max_retries=0) as client:
+    with Client(f"http://127.0.0.1:{port}", max_retries=1, max_wait=0.01) as client:
         with pytest.raises(ServiceUnreachable, match=r"GET http://127\.0\.0\.1:\d+/v1/sessions/s/gaussians\.ply: RemoteProtocolError"):
             Session(client, "s").export_ply(tmp_path / "scene.ply")
     server.join(10)
-    listener.close()
     assert list(tmp_path.iterdir()) == []
+    server = threading.Thread(target=serve, args=(2, 1), daemon=True)  # cut once: the retry writes it whole
+    server.start()
+    with Client(f"http://127.0.0.1:{port}", max_retries=1, max_wait=0.01) as client:
+        assert Session(client, "s").export_ply(tmp_path / "scene.ply").read_bytes() == whole
+    server.join(10)
+    listener.close()
+    assert [p.name for p in tmp_path.iterdir()] == ["scene.ply"]
 
 
 def test_a_refused_export_makes_no_folder(server, tmp_path):

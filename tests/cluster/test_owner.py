@@ -151,6 +151,7 @@ def test_a_numbered_frame_refused_at_the_ingress_stops_the_frames_behind_it_at_o
     (not after frame_order_wait_s, told to send a frame that was sent)."""
     limit = len(frame_body(frames[0])) + 1000
     parts, client = cluster_client(tmp_path, max_body_bytes=limit)
+    assert all(p.app.state.frame_refused.__self__ is p.store for p in parts)  # an owner's own guard tells its store
 
     async def scenario():
         async with client:

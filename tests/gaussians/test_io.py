@@ -125,7 +125,7 @@ def test_files_are_encoded_a_block_of_rows_at_a_time_in_a_fraction_of_their_size
 
     from canonical_core.gaussians import ENCODE_ROWS, ply_file, splat_file
 
-    g = random_gaussians(n=24 * ENCODE_ROWS + 5, degree=1, features=16, labels=2)
+    g = random_gaussians(n=24 * ENCODE_ROWS + 5, degree=1, features=16, labels=2)  # many blocks and a short last one
     encode, save, whole = {"ply": (ply_file, save_ply, ply_bytes), "splat": (splat_file, save_splat, splat_bytes)}[kind]
     file = encode(g)
     chunks = list(file.chunks)
@@ -140,6 +140,25 @@ def test_files_are_encoded_a_block_of_rows_at_a_time_in_a_fraction_of_their_size
     assert (tmp_path / f"g.{kind}").read_bytes() == whole(g)
     # at most two blocks in flight; the .splat's order (8 bytes a row of its 32) is computed whole
     assert peak < file.size / (2 if kind == "splat" else 4), (peak, file.size)
+
+
+def test_the_files_bytes_are_those_of_the_whole_file_encoder():
+    """The blocks give the very bytes the files had when they were encoded whole (digests of that
+    encoder's files of these Gaussians: several blocks, labels and features, rotations of any length)."""
+    import hashlib
+
+    from canonical_core.gaussians import ENCODE_ROWS, ply_file, splat_file
+
+    g = torch.Generator().manual_seed(1)
+    n = 40000
+    assert n > 2 * ENCODE_ROWS
+    gaussians = Gaussians(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), torch.randn(n, 4, generator=g),
+                          torch.rand(n, generator=g), torch.randn(n, 4, 3, generator=g),
+                          features=torch.randn(n, 5, generator=g), labels=torch.rand(n, 3, generator=g))
+    assert hashlib.sha256(b"".join(ply_file(gaussians).chunks)).hexdigest() == \
+        "456fce1c540ce1af44dec16e2f15c57d256cf66f610251b49e45f49728bbdfed"
+    assert hashlib.sha256(b"".join(splat_file(gaussians).chunks)).hexdigest() == \
+        "b65dc2bee8465e316967f14618d5721ba100f93ac320553e603c2adb4a5e8692"
 
 
 def test_splat_round_trip_is_quantised(tmp_path):
@@ -255,9 +274,9 @@ def test_a_failed_save_leaves_no_temporary_file_and_names_the_path_given(save, t
 @pytest.mark.parametrize("field", ["means", "scales", "quats", "opacities", "sh"])
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_nan_or_inf_in_gaussians_is_refused_naming_the_field_where_they_are_used(tmp_path, field, bad):
-    """A render drops a Gaussian with a NaN mean (or draws NaN), and one NaN in a colour solve's
-    system blackens every Gaussian it fits: render, the blend weights, the colour solve and the
-    exports refuse NaN or inf, naming the field, where the library used to go on."""
+    """A render would drop a Gaussian with a NaN mean (or draw NaN), and one NaN in a colour solve's
+    system would blacken every Gaussian it fits: render, the blend weights, the colour solve and the
+    exports refuse NaN or inf, naming the field."""
     from canonical_core.rendering.weights import blend_weights
     from canonical_core.decode import colour_offsets
 
@@ -307,3 +326,28 @@ def test_a_field_found_finite_is_checked_again_once_it_changes():
     g.sh = torch.full_like(g.sh, float("inf"))
     with pytest.raises(ValueError, match="^sh: NaN or inf"):
         check_finite(g)
+
+
+def test_a_new_tensor_at_a_freed_ones_address_is_checked_and_float64_does_not_overflow():
+    """The check's memory is of tensor objects, not addresses: a NaN tensor made where a checked one
+    was freed is tested (a reused id with a fresh version counter would have passed); float64 values
+    that would overflow a sum are finite."""
+    import gc
+
+    from canonical_core.gaussians.container import check_finite
+
+    g = random_gaussians(features=0, labels=0)
+    n, reused = len(g), 0
+    for _ in range(50):  # an id is often reused once the old tensor is gone
+        check_finite(g, ("means",))
+        address = id(g.means)
+        g.means = None
+        gc.collect()
+        g.means = torch.full((n, 3), float("nan"))
+        reused += id(g.means) == address
+        with pytest.raises(ValueError, match="^means: NaN or inf"):
+            check_finite(g, ("means",))
+        g.means = torch.zeros(n, 3)
+    assert reused  # the case this guards against did happen here
+    g.scales = torch.full((n, 3), 1e307, dtype=torch.float64)
+    check_finite(g, ("scales",))

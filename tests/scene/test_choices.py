@@ -132,8 +132,8 @@ def test_a_first_frame_without_depth_is_refused_naming_voxel_size_and_changes_no
 def test_a_first_frame_whose_depth_is_out_of_range_chooses_no_voxel_and_says_where_its_depth_lies(shelf, out_of_range):
     """The voxel is chosen from the depth a scene folds: a first frame with none in range (all beyond
     range.far, or millimetres sent as metres) is refused naming voxel_size and its depth's median,
-    instead of fixing a voxel from depth that made no voxel (0.24 m, then 58 voxels of five good
-    frames), or a 24 m one; the good frames after it choose as they do alone."""
+    rather than fixing for the scene's life a voxel sized by depth that made no voxel; the good
+    frames after it choose as they do alone."""
     far = dataclasses.replace(shelf[0], depth=out_of_range(shelf[0].depth))
     scene = Scene(SceneConfig())
     with pytest.raises(ValueError, match=r"^voxel_size: no valid depth .* its depth lies at [0-9.]+ m \(median\), outside "

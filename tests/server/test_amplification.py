@@ -152,6 +152,48 @@ def test_a_client_that_never_reads_its_large_answer_is_let_go(tmp_path, frames):
         proc.stop()
 
 
+def test_a_reader_that_stalls_in_a_streamed_answer_of_small_pieces_is_let_go():
+    """A streamed export goes out in blocks (a .splat's are half a MiB): each is sent within
+    send_timeout_s as a large answer's pieces are, so a client that stops reading lets go of the
+    blocks still to come and the Gaussians behind them."""
+    import asyncio
+
+    from starlette.responses import StreamingResponse
+
+    from server.app import BodyBytes, GuardMiddleware
+    from server.metrics import Metrics
+    from server.settings import Settings
+
+    made = []
+
+    def blocks():  # endless blocks of 512 KiB, as long as anyone takes them
+        while True:
+            made.append(1)
+            yield bytes(1 << 19)
+
+    async def app(scope, receive, send):
+        await StreamingResponse(blocks(), media_type="application/octet-stream")(scope, receive, send)
+
+    async def scenario():
+        guard = GuardMiddleware(app, Settings(send_timeout_s=0.5), Metrics(), BodyBytes(1 << 30))
+        taken = []
+
+        async def send(message):  # takes the head and one block, then nothing more
+            if message["type"] == "http.response.body":
+                if taken:
+                    await asyncio.Event().wait()
+                taken.append(len(message["body"]))
+
+        async def receive():
+            await asyncio.Event().wait()
+
+        scope = {"type": "http", "method": "GET", "path": "/x", "headers": [], "query_string": b""}
+        await asyncio.wait_for(guard(scope, receive, send), 10)  # let go (ReaderStalled), not held
+        return taken
+
+    assert asyncio.run(scenario()) == [1 << 19] and len(made) <= 3
+
+
 def test_the_next_frame_is_taken_whatever_waits_ahead_of_it(tmp_path, shelf_dir):
     """`MAX_AHEAD` frames numbered after a gap wait; the frame that fills the gap is still taken (were it
     refused, they would all wait in vain), and then every one of them folds in its place. (A service of

@@ -257,6 +257,14 @@ def test_a_frame_the_archive_cannot_take_during_a_background_correction_is_refus
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(session.archive, "append_frame", full)
+    # were the refused frame's log record not to be cut off either, its fold is still taken back, and
+    # the session takes no more frames until a restart reads its log
+    truncate = session.log.truncate
+    session.log.truncate = lambda offset: (_ for _ in ()).throw(OSError(errno.EIO, "I/O error"))
+    with pytest.raises(StorageError):
+        session.add_frame(*payload(shelf[5]), 1000, 3600)
+    assert session.scene.frames == 5 and session.digest()["sha256"] == before and "could not be cut off" in session.wedged
+    session.log.truncate, session.wedged = truncate, None  # (as a restart would: the rest of the story below)
     for kwargs in shelf[5:]:
         with pytest.raises(StorageError) as refused:
             session.add_frame(*payload(kwargs), 1000, 3600)
