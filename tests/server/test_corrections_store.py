@@ -4,6 +4,8 @@ scene back in place, or starts from the state a previous correction kept, and eq
 from __future__ import annotations
 
 import os
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -172,30 +174,47 @@ def test_a_kill_after_a_correction_is_archived_restores_its_camera_track_too(tmp
         again.close()
 
 
-def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_path, shelf, monkeypatch):
-    """``wait=False``: the correction is archived and answered at once; frames sent while it re-folds
-    fold into the served (old) scene, and the re-fold catches up on them before the swap, so the
-    corrected scene equals the corrected stream folded afresh; a second correction meanwhile is refused."""
-    import threading
-    import time
-
+def held_background_correction(monkeypatch, store: SessionStore, shelf: list[dict], remove: list) -> tuple:
+    """A session of the shelf's first 5 frames, their poses shifted 1 cm, and a background correction
+    of them back to the capture's poses (``remove``: frames it removes too) whose re-fold has started
+    and waits: (session, its answer, the gate that lets the re-fold go on)."""
     started, gate = threading.Event(), threading.Event()
     real = corrections.counted
 
-    def gated(frames, job):  # the background re-fold waits here until the frames below have arrived
+    def gated(frames, job):  # the background re-fold waits here until the test lets it go
         started.set()
         gate.wait(120)
         yield from real(frames, job)
 
     monkeypatch.setattr(corrections, "counted", gated)
-    store = SessionStore(tmp_path, 8)
-    store.open()
     shift = np.eye(4)
     shift[:3, 3] = [0.01, 0.0, 0.0]
     session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
-    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, [shelf[1]["frame_id"]], wait=False)
-    assert done["state"] == "pending" and done["frames"] == 5
+    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, remove, wait=False)
     assert started.wait(120)
+    return session, done, gate
+
+
+def finished(session, correction_id: str) -> dict:
+    """The status of a background correction once it is no longer running (at most 2 minutes)."""
+    for _ in range(600):
+        status = session.corrections.status(correction_id)
+        if status["state"] != "running":
+            return status
+        time.sleep(0.2)
+    return status
+
+
+def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_path, shelf, monkeypatch):
+    """``wait=False``: the correction is archived and answered at once; frames sent while it re-folds
+    fold into the served (old) scene, and the re-fold catches up on them before the swap, so the
+    corrected scene equals the corrected stream folded afresh; a second correction meanwhile is refused."""
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    session, done, gate = held_background_correction(monkeypatch, store, shelf, [shelf[1]["frame_id"]])
+    assert done["state"] == "pending" and done["frames"] == 5
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
     for kwargs in shelf[5:]:  # folded into the old scene meanwhile, not refused
         session.add_frame(*payload(kwargs), 1000, 3600)
     old = streamed(store, [{**kw, "c2w": shift @ kw["c2w"]} for kw in shelf[:5]] + shelf[5:]).digest()["sha256"]
@@ -204,11 +223,7 @@ def test_a_background_correction_catches_up_on_frames_that_arrive_meanwhile(tmp_
         session.corrections.correct({shelf[0]["frame_id"]: shelf[0]["c2w"]})
     assert session.corrections.status(done["correction_id"])["state"] == "running"
     gate.set()
-    for _ in range(600):
-        status = session.corrections.status(done["correction_id"])
-        if status["state"] != "running":
-            break
-        time.sleep(0.2)
+    status = finished(session, done["correction_id"])
     assert status["state"] == "done" and status["refolded"] == status["total"] == len(shelf) - 1, status
     assert status["result"]["frames"] == len(shelf) - 1
     expected = streamed(store, shelf[:1] + shelf[2:]).digest()["sha256"]
@@ -230,28 +245,13 @@ def test_a_frame_the_archive_cannot_take_during_a_background_correction_is_refus
     applied), and so are the frames after it until the correction ends, instead of being acknowledged
     and then dropped by the swap (and by the restart, which re-folds the archive)."""
     import errno
-    import threading
-    import time
 
     from server.framelog import StorageError
 
-    started, gate = threading.Event(), threading.Event()
-    real = corrections.counted
-
-    def gated(frames, job):  # the background re-fold waits here until the frames below were sent
-        started.set()
-        gate.wait(120)
-        yield from real(frames, job)
-
-    monkeypatch.setattr(corrections, "counted", gated)
     store = SessionStore(tmp_path, 8)
     store.open()
-    shift = np.eye(4)
-    shift[:3, 3] = [0.01, 0.0, 0.0]
-    session = streamed(store, shelf[:5], {k: shift @ kw["c2w"] for k, kw in enumerate(shelf)})
+    session, done, gate = held_background_correction(monkeypatch, store, shelf, [])
     before = session.digest()["sha256"]
-    done = session.corrections.correct({kw["frame_id"]: kw["c2w"] for kw in shelf[:5]}, wait=False)
-    assert started.wait(120)
 
     def full(*args):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -271,11 +271,7 @@ def test_a_frame_the_archive_cannot_take_during_a_background_correction_is_refus
         assert refused.value.full  # a full disk: 507, retry later
     assert session.scene.frames == 5 and session.digest()["sha256"] == before
     gate.set()
-    for _ in range(600):
-        status = session.corrections.status(done["correction_id"])
-        if status["state"] != "running":
-            break
-        time.sleep(0.2)
+    status = finished(session, done["correction_id"])
     assert status["state"] == "done" and status["result"]["frames"] == 5, status
     expected = streamed(store, shelf[:5]).digest()["sha256"]
     assert session.digest()["sha256"] == expected
@@ -291,8 +287,6 @@ def test_a_correction_in_place_is_one_step_for_renders_exports_and_digests(tmp_p
     that comes in between (a render's or an export's decode, a digest) waits for the step and sees the
     corrected scene, never the rolled-back one or a part of the re-fold (an export of a scene that
     never existed)."""
-    import threading
-
     from canonical_core.scene import Scene, refold
 
     store = SessionStore(tmp_path, 8)
