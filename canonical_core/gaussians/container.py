@@ -54,7 +54,9 @@ def check_finite(gaussians: "Gaussians", fields: tuple[str, ...] = ALL_FIELDS) -
         ref, version = checked.get(name, (None, None))
         if ref is not None and ref() is t and version == t._version:  # the same object (an id may be reused)
             continue
-        finite = bool(torch.isfinite(t).all()) if t.dtype == torch.float64 else math.isfinite(float(t.sum(dtype=torch.float64)))
+        values = t.detach()  # a trained model's parameters: the check takes no part in their gradients
+        finite = bool(torch.isfinite(values).all()) if t.dtype == torch.float64 else \
+            math.isfinite(float(values.sum(dtype=torch.float64)))
         if not finite:
             raise ValueError(f"{name}: NaN or inf among its values")
         checked[name] = (weakref.ref(t), t._version)

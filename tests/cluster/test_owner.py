@@ -129,7 +129,7 @@ def test_an_owners_sessions_carry_the_services_settings_created_and_restored(tmp
             assert sid not in owner.store._sessions
             r = await client.delete(f"/v1/sessions/{sid}/frames/0")  # restores it first
             assert r.status_code == 409 and r.json()["error"]["field"] == "archive_retention", r.text
-            session = owner.store.find(sid)
+            session = owner.store.get(sid)  # restored (again, where the owner's budget evicted it after the request)
             assert (session.undo_depth, session.background_frames, session.budget) == (0, 7, owner.store.budget)
             assert session.budget is not None and session.archive is None
 
