@@ -209,7 +209,8 @@ def test_the_service_prunes_by_the_cli_and_by_its_periodic_loop(tmp_path, frames
     server = ServerProcess(data, tmp_path / "server.log", token=TOKEN, retention_every_s=0.2, **settings).start()
     try:
         assert wait_for(lambda: session_ids(server) == set(), timeout=30), server.log()
-        assert list((data / "sessions").iterdir()) == []
+        # unlisted at once; the folder goes once its tombstone (`.deleted-<id>`) is removed, just after
+        assert wait_for(lambda: list((data / "sessions").iterdir()) == [], timeout=30), list((data / "sessions").iterdir())
     finally:
         server.stop()
 
