@@ -46,7 +46,7 @@ def _weights_reference(gaussians: Gaussians, camera: Camera, near_plane: float, 
         parts = []
         for ids, pixels in tiles(splats, camera.width, camera.height):
             weights, _ = tile_weights(splats, ids, pixels)
-            pixel, splat = ((weights >= min_weight) & (pixels[:, 0:1] < camera.width)
+            pixel, splat = ((weights >= min_weight) & (weights > 0) & (pixels[:, 0:1] < camera.width)
                             & (pixels[:, 1:2] < camera.height)).nonzero(as_tuple=True)  # fmt: skip
             index = pixels[pixel, 1].long() * camera.width + pixels[pixel, 0].long()
             parts.append((index, splats.ids[ids[splat]], weights[pixel, splat].float()))
@@ -193,7 +193,8 @@ def blend_weights(
     near_plane: float = 0.01,
     min_weight: float = 1e-4,
 ) -> BlendWeights:
-    """The compositing weights of ``gaussians`` at ``camera``, at least ``min_weight`` each.
+    """The compositing weights of ``gaussians`` at ``camera``, at least ``min_weight`` each (a
+    weight of zero is no entry, whatever ``min_weight``).
 
     Summing ``weights[k] * values[ids[k]]`` into ``pixels[k]`` reproduces what `render` composites
     (up to the dropped weights below ``min_weight``), e.g. the colour before the background.

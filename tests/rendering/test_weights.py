@@ -44,6 +44,15 @@ def test_weights_reproduce_the_render(scene, backend):
     assert (image.clamp(0, 1) - rgb).abs().max() < 1e-5
 
 
+def test_no_entry_weighs_zero_on_either_backend(scene):
+    """At ``min_weight`` 0 an entry is still a weight the pixel takes: both backends list the same
+    entries, none of them zero (the reference once listed every pixel of every tile it visited)."""
+    g, camera = scene
+    fast, reference = (blend_weights(g, camera, backend=b, min_weight=0.0) for b in ("cpu", "reference"))
+    assert bool((fast.weights > 0).all()) and bool((reference.weights > 0).all())
+    assert len(fast.weights) == len(reference.weights)
+
+
 def test_min_weight_drops_only_the_small_weights(scene):
     g, camera = scene
     every, some = blend_weights(g, camera, min_weight=0.0), blend_weights(g, camera, min_weight=0.05)
