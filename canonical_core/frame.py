@@ -256,6 +256,10 @@ class Frame:
         if self.frame_id is not None:
             if not isinstance(self.frame_id, str):
                 raise ValueError(f"frame_id: expected a string, got {type(self.frame_id).__name__}")
+            try:  # a lone surrogate (which JSON can carry) is no text: it could be neither logged nor named back
+                self.frame_id.encode("utf-8")
+            except UnicodeEncodeError as error:
+                raise ValueError(f"frame_id: not valid text (a lone surrogate at character {error.start})") from None
             if len(self.frame_id.encode("utf-8", "surrogatepass")) > MAX_FRAME_ID_BYTES:
                 raise ValueError(f"frame_id: at most {MAX_FRAME_ID_BYTES} bytes (UTF-8), got "
                                  f"{len(self.frame_id.encode('utf-8', 'surrogatepass'))}")

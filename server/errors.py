@@ -6,6 +6,7 @@ Library errors are ValueErrors whose message starts with the offending field and
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 
@@ -39,8 +40,16 @@ class ApiError(Exception):
         self.status, self.code, self.message, self.field, self.headers = status, code, message, field, headers
 
 
+class _AsciiJSON(JSONResponse):
+    """JSON with every non-ASCII character escaped: an error names what the client sent, and a key
+    that is not valid text (a lone surrogate, which JSON can carry) has no UTF-8 to be written in."""
+
+    def render(self, content) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
+
+
 def error_response(status: int, code: str, message: str, field: str | None = None, headers: dict | None = None) -> JSONResponse:
-    return JSONResponse({"error": {"code": code, "message": message, "field": field}}, status_code=status, headers=headers)
+    return _AsciiJSON({"error": {"code": code, "message": message, "field": field}}, status_code=status, headers=headers)
 
 
 def field_of(message: str) -> str | None:
@@ -142,6 +151,12 @@ def install_error_handlers(app: FastAPI) -> None:
             # a settings group's own check names the full path of its field (``range.near: ...``)
             return error_response(422, "invalid_value", own, field_of(own))
         status, code = 422, "invalid_value"
+        media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if (tuple(first.get("loc", ())) == ("body",) and first.get("type") != "missing"
+                and not (media == "application/json" or media.endswith("+json"))):
+            # FastAPI decodes a body as JSON only when it says it is; any other is bytes, "not an object"
+            return error_response(415, "unsupported_media_type", f"Content-Type: expected application/json, got "
+                                  f"{media or 'none'}", "Content-Type")
         if first.get("type") == "json_invalid":
             status, code, field = 400, "malformed_body", "body"
             msg = f"not valid JSON ({first.get('ctx', {}).get('error', msg)})"

@@ -203,12 +203,13 @@ class FoldEvents:
         now = time.time()
         self.last_fold[session] = now
         camera = camera_json(camera_row(report.frame_index, camera))
-        self.publish(session.id, {"type": "fold", "time": now, "frames": session.scene.frames,
-                                  "voxels": len(session.scene), "report": report.to_dict(), "camera": camera})
+        frames, voxels = session.counts()
+        self.publish(session.id, {"type": "fold", "time": now, "frames": frames,
+                                  "voxels": voxels, "report": report.to_dict(), "camera": camera})
 
     def track(self, session, since: int = 0) -> list[dict]:
         """The session's input cameras from frame ``since`` on, oldest first."""
-        rows = read_track(session.path / CAMERAS_FILE, session.scene.frames)
+        rows = read_track(session.path / CAMERAS_FILE, session.counts()[0])
         return [camera_json(r) for r in rows[rows[:, 0] >= since]]
 
     def last_fold_time(self, session) -> float | None:

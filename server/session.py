@@ -108,6 +108,7 @@ class Session:
     snapshots: Snapshots = field(init=False, repr=False)  # its snapshot, and the one being written
     corrections: Corrections = field(init=False, repr=False)  # its corrections, and the one re-folding
     snapshots_class: ClassVar[type[Snapshots]] = Snapshots  # what makes `snapshots` (`server.cluster` fences them)
+    _counts: tuple[int, int] = field(init=False, repr=False)  # (frames, voxels) as last read under the lock
 
     def __post_init__(self, snapshot_frames: int):
         self.frame_ids = FrameIds(self.frame_ids)
@@ -123,6 +124,7 @@ class Session:
         memory of `preallocate_voxels` voxels up front."""
         if self.archive is not None:
             self.scene.keep_undo(self.undo_depth, MAX_UNDO_SHARE)
+        self._counts = (self.scene.frames, len(self.scene))
         self.preallocate(self.scene)
         self._keep_chosen()
 
@@ -186,6 +188,7 @@ class Session:
                 self.order.refused(index, exc)
                 raise
             self.order.folded(self.scene.frames)
+            self._counts = (self.scene.frames, len(self.scene))
             return result
 
     def _add_frame(self, payload: bytes, frame: Frame, snapshot_every_frames: int, snapshot_every_seconds: float,
@@ -298,6 +301,18 @@ class Session:
             raise SessionNotFound(self.id)
 
     # -- reading --------------------------------------------------------------------------------
+
+    def counts(self) -> tuple[int, int]:
+        """(frames, voxels) as a reader that does not wait may show them: read now when the session's
+        lock is free, else as last read under it. A fold or a correction holds the lock, and a
+        correction of recent frames rolls the scene back before it folds them again: a state no one
+        was answered with, which the session list, the viewer and the track must not show."""
+        if self.lock.acquire(blocking=False):
+            try:
+                self._counts = (self.scene.frames, len(self.scene))
+            finally:
+                self.lock.release()
+        return self._counts
     def gaussians(self, max_gaussians: int | None = None, features: bool = True) -> tuple[Gaussians, int]:
         """Decoded Gaussians (`Scene.gaussians`: decoded once per change, in the last colour solution,
         never waiting for a solve; without ``features``, F_scene may be left out) and their label_dim."""
@@ -344,7 +359,8 @@ class Session:
         Its files are read without the lock: one that a snapshot commit or a delete removes meanwhile
         counts as gone."""
         usage = folder_usage(self.path)
-        return {"id": self.id, "frames": self.scene.frames, "voxels": len(self.scene), "created": self.created,
+        frames, voxels = self.counts()
+        return {"id": self.id, "frames": frames, "voxels": voxels, "created": self.created,
                 "last_active": usage.last_active or self.created,
                 "voxel_size": self.scene.config.voxel_size, "memory_bytes": self.scene.memory_bytes(),
                 "disk_bytes": usage.bytes, "archive_retention": self.retention,
@@ -354,6 +370,7 @@ class Session:
         gaussians = len(self.gaussians(features=False)[0])  # a decode if none is cached, outside the scene's lock
         with self.lock:
             self.check_alive()
+            self._counts = (self.scene.frames, len(self.scene))  # the summary's, read under the lock held here
             stats = self.scene.stats()
             archive = self.archive
             return {

@@ -334,8 +334,9 @@ class SessionStore:
 
     def totals(self) -> dict:
         sessions = self.list()
-        return {"sessions": len(sessions), "voxels": sum(len(s.scene) for s in sessions),
-                "frames": sum(s.scene.frames for s in sessions), "unavailable": len(self.unavailable),
+        counts = [s.counts() for s in sessions]
+        return {"sessions": len(sessions), "voxels": sum(v for _, v in counts),
+                "frames": sum(f for f, _ in counts), "unavailable": len(self.unavailable),
                 "wedged": sum(s.wedged is not None for s in sessions),
                 "snapshot_failures": sum(s.snapshots.failures for s in sessions)}
 

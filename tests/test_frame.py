@@ -72,6 +72,7 @@ def test_depth_is_cleaned_as_the_torch_rule_has_it_from_any_float_input():
         (dict(frame_id=5), "frame_id", "string"),
         (dict(frame_id="x" * 257), "frame_id", "at most 256 bytes"),
         (dict(frame_id="é" * 129), "frame_id", "got 258"),  # bytes of UTF-8, not characters
+        (dict(frame_id="a\ud800"), "frame_id", "lone surrogate at character 1"),  # JSON carries it; no text holds it
     ],
 )
 def test_validation_names_field_and_problem(kwargs, field, message):

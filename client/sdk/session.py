@@ -208,13 +208,15 @@ class Session:
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
-        re-fold of the session's archived frames. A key is a frame's ``frame_id``, or its arrival
-        index for frames sent without one. Returns what changed (frames, corrected, removed, ...).
+        re-fold of the session's archived frames. A key is a frame's ``frame_id`` or its arrival index
+        (a ``frame_id`` first). Returns what changed (frames, corrected, removed, ...).
 
         A long re-fold runs in the service's background (it answers 202): with ``wait`` this polls its
         status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
         without, the service answers at once and this returns the status (``correction_id``, ``state``;
         see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
+        if isinstance(remove, (str, bytes)):  # one key, which a list of its characters would not mean
+            raise ValueError(f"remove: expected a list of frame keys, got the {type(remove).__name__} {remove!r}")
         body = {"poses": {str(k): _json_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items()},
                 "remove": [str(k) for k in remove], "wait": bool(wait)}
         return self._finished(self.client._request("POST", f"{self._path}/poses", json=body), wait, progress, poll)

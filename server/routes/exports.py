@@ -67,8 +67,12 @@ async def export_mesh(session: SessionDep, jobs: JobsDep, min_support: MinSuppor
 
     mesh, data = await jobs.run(job, kind="work", session=session.id)
     if not len(mesh):
+        frames = session.scene.frames
+        if frames and min_support > 0:  # the frames made voxels; none has the support asked for
+            raise ApiError(409, "no_surface", f"min_support: no voxel of session {session.id} reaches {min_support:g} "
+                           f"({frames} frames folded); ask for less", "min_support")
         raise ApiError(409, "no_surface", f"frames: session {session.id} holds no surface to mesh yet "
-                       f"({session.scene.frames} frames folded, min_support {min_support:g}); send frames first", "frames")
+                       f"({frames} frames folded, min_support {min_support:g}); send frames first", "frames")
     return Response(data, media_type="application/octet-stream", headers={
         "Content-Disposition": f'attachment; filename="{session.id}.mesh.ply"',
         "X-Canonical-Vertices": str(len(mesh.vertices)), "X-Canonical-Faces": str(len(mesh))})

@@ -135,12 +135,12 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     def parse():
         try:
             if kind == "multipart/form-data":
-                msg = parse_multipart(request.headers["content-type"], body)
-                record = wire.pack(msg)
+                msg, record = parse_multipart(request.headers["content-type"], body), None
             else:
                 msg, record = wire.unpack(body), body
             frame = wire.frame_from_message(msg, limits=frame_limits(settings), fresh=True)  # validated before it is logged
             check_session_accepts(frame, session.scene.config)
+            record = wire.pack(msg) if record is None else record  # a form's parts, logged as one message
         except ValueError as exc:
             session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
             raise

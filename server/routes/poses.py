@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
+from starlette.convertors import Convertor, register_url_convertor
 
 from ..deps import JobsDep, SessionDep
 from ..errors import ApiError
@@ -45,8 +46,23 @@ async def correct_poses(body: PosesRequest, session: SessionDep, jobs: JobsDep):
     return await _correct(session, jobs, dict(body.poses), list(body.remove), body.wait)
 
 
-# ``path``: a frame_id may hold '/' (sent as is or as %2F), which a plain parameter stops at
-@router.delete("/{session_id}/frames/{frame_id:path}", response_model=Correction,
+class _AnyText(Convertor[str]):
+    """A path parameter of any characters: '/' (sent as is or as %2F), which a plain parameter stops
+    at, and line breaks, which Starlette's ``path`` does not match."""
+
+    regex = r"[\s\S]*"
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("any_text", _AnyText())
+
+
+@router.delete("/{session_id}/frames/{frame_id:any_text}", response_model=Correction,
                responses={202: {"model": CorrectionStatus}})
 async def remove_frame(frame_id: str, session: SessionDep, jobs: JobsDep):
     """Remove one frame (its ``frame_id``, any characters, percent-encoded; or its arrival index):

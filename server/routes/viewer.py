@@ -130,7 +130,7 @@ async def input_cameras(
     events = request.app.state.events
     cameras = await run_in_threadpool(events.track, session, since or 0)
     last = events.last_fold_time(session)
-    head = {"id": session.id, "frames": session.scene.frames, "label_dim": session.scene.label_dim, "last_fold": last,
+    head = {"id": session.id, "frames": session.counts()[0], "label_dim": session.scene.label_dim, "last_fold": last,
             "last_fold_age": None if last is None else max(0.0, time.time() - last), "cameras": cameras}
     return Response(json.dumps(head, separators=(",", ":")), media_type="application/json")
 
@@ -187,7 +187,8 @@ async def fold_events(
         return sse("recoloured", state()) if before[1] != seen[1] else None
 
     def state() -> dict:
-        return {"frames": session.scene.frames, "voxels": len(session.scene), "label_dim": session.scene.label_dim}
+        frames, voxels = session.counts()
+        return {"frames": frames, "voxels": voxels, "label_dim": session.scene.label_dim}
 
     def after_wait() -> tuple[bytes | None, bool]:
         """What a stream sends after a wait with no fold to send, and whether it ends there: the end

@@ -71,7 +71,15 @@ async def view_from_query(
 ) -> ViewRequest:
     p = _numbers(pose, "pose", 16)
     fx, fy, cx, cy = _numbers(K, "K", 4)
-    return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=[p[0:4], p[4:8], p[8:12], p[12:16]],
+    c2w = [p[0:4], p[4:8], p[8:12], p[12:16]]
+    try:  # the camera's own check names its c2w, which this request calls pose
+        Camera([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w, width, height)
+    except ValueError as error:
+        message = str(error)
+        if message.startswith("c2w: "):
+            raise ApiError(422, "invalid_value", "pose: " + message.removeprefix("c2w: "), "pose") from None
+        raise
+    return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=c2w,
                        width=width, height=height, max_gaussians=max_gaussians,
                        background=None if background is None else _numbers(background, "background", 3, 0.0, 1.0), colour=colour,
                        depth=depth)

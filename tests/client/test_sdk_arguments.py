@@ -25,7 +25,9 @@ def session():
     (lambda s: s.render(np.eye(4), np.eye(4), 4, 4), r"^K: expected a 3x3 matrix"),
     (lambda s: s.render(K, np.eye(3), 4, 4), r"^c2w: expected a 4x4 matrix"),
     (lambda s: s.update_poses({"frame-7": np.eye(3)}), r"^poses\.frame-7: expected a 4x4 matrix, got shape \[3, 3\]$"),
-], ids=["frame K", "frame c2w", "K not numbers", "render K", "render c2w", "a pose"])
+    # one key as a string: sent as its characters it would remove frames 3 and 4
+    (lambda s: s.update_poses({}, remove="34"), r"^remove: expected a list of frame keys, got the str '34'$"),
+], ids=["frame K", "frame c2w", "K not numbers", "render K", "render c2w", "a pose", "remove one string"])
 def test_matrix_errors_name_the_argument(session, call, message):
     with pytest.raises(ValueError, match=message):
         call(session)

@@ -62,7 +62,7 @@ class Ctx:
 
     def get_view(self, route: str = "render", **params):
         """GET .../render (or another view route) with an identity pose, a 32x24 view and ``params`` over them."""
-        params = {"pose": ",".join(["1", "0", "0", "0"] * 4), "K": "300,300,160,120", "width": 32, "height": 24, **params}
+        params = {"pose": ",".join(map(str, np.eye(4).ravel())), "K": "30,30,16,12", "width": 32, "height": 24, **params}
         return httpx.get(f"{self.url}/v1/sessions/{self.sid}/{route}", params=params, headers=AUTH, timeout=60)
 
     def view(self, route: str = "render", **changes):
@@ -227,6 +227,18 @@ CASES = [
     ("create opacity_slope zero", lambda c: c.create({"voxel_size": 0.01, "decoder": {"opacity_slope": 0}}), 422,
      "decoder.opacity_slope"),
     ("create malformed JSON", lambda c: c.create(content=b"{voxel_size: 1"), 400, "body"),
+    # curl's default for -d: the JSON object is there, under another type
+    ("create form-encoded", lambda c: httpx.post(f"{c.url}/v1/sessions", content=b'{"voxel_size": 0.01}',
+                                                 headers={**AUTH, "Content-Type": "application/x-www-form-urlencoded"}),
+     415, "Content-Type"),
+    ("render GET pose not a rotation", lambda c: c.get_view(pose=",".join(["0"] * 15 + ["1"])), 422, "pose"),
+    # JSON carries lone surrogates (escaped), which no text holds: named back, never a codec's message
+    ("multipart frame_id lone surrogate",
+     lambda c: c.multipart({"rgb": ("c.png", png(c.frame["rgb"]), "image/png")},
+                           {"camera": json.dumps({"K": c.frame["K"].tolist(), "c2w": c.frame["c2w"].tolist(),
+                                                  "frame_id": "a\ud800"})}), 422, "frame_id"),
+    ("poses key lone surrogate", lambda c: httpx.post(f"{c.url}/v1/sessions/{c.sid}/poses", content=b'{"remove": ["\\ud800"]}',
+                                                      headers={**AUTH, "Content-Type": "application/json"}), 422, "frames.\ud800"),
 ]
 
 

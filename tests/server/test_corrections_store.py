@@ -317,6 +317,35 @@ def test_a_correction_in_place_is_one_step_for_renders_exports_and_digests(tmp_p
     store.close()
 
 
+def test_the_session_list_never_shows_a_correction_rolled_back(tmp_path, shelf, monkeypatch):
+    """While a correction of recent frames folds them again (the scene rolled back, under the lock),
+    what is read without the lock (the session list, the service's totals) shows the counts it
+    was answered with before, not the rolled-back scene's; afterwards, the corrected scene's."""
+    from canonical_core.scene import refold
+
+    store = SessionStore(tmp_path, 8)
+    store.open()
+    session = streamed(store, shelf[:5])
+    before = (5, len(session.scene))
+    seen = []
+
+    def looked(*args):  # the scene is rolled back, or part re-folded, here
+        seen.append(((session.scene.frames, len(session.scene)), (session.summary()["frames"], session.summary()["voxels"]),
+                     (store.totals()["frames"], store.totals()["voxels"])))
+        return fold_kept(*args)
+
+    fold_kept = refold.fold_kept
+    monkeypatch.setattr(refold, "fold_kept", looked)
+    shift = np.eye(4)
+    shift[:3, 3] = [0.01, 0.0, 0.0]
+    session.corrections.correct({shelf[3]["frame_id"]: shift @ shelf[3]["c2w"]})
+    monkeypatch.undo()
+    assert len(seen) == 2 and seen[0][0][0] == 3  # rolled back to 3 frames, then 3 and 4 folded again
+    assert all(listed == totals == before for _, listed, totals in seen), (before, seen)
+    assert session.summary()["frames"] == 5 and session.summary()["voxels"] == len(session.scene)
+    store.close()
+
+
 def test_frames_acknowledged_before_the_archive_caught_up_are_archived_at_restart(tmp_path, shelf):
     """A kill -9 after frames were acknowledged (in the fsynced log) but before the archive's writer
     wrote them: the restart archives them from the log, and a correction then reaches them."""

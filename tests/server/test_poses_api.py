@@ -147,11 +147,12 @@ def test_errors_name_frame_keys_with_any_character(service, api, few):
 
 
 def test_frame_ids_with_slashes_or_dot_segments_name_their_frames(service, api, few):
-    """DELETE .../frames/{key} reaches a frame_id holding '/' (sent as is or as %2F), and '.' and '..'
-    sent as %2E and %2E%2E (a client resolves them as they are, as path segments)."""
-    keys = ["shelf/1", "a/b/", ".", ".."]
+    """DELETE .../frames/{key} reaches a frame_id holding '/' (sent as is or as %2F), '.' and '..'
+    sent as %2E and %2E%2E (a client resolves them as they are, as path segments), and a line break."""
+    keys = ["shelf/1", "a/b/", ".", "..", "line 1\nline 2"]
+    assert len(few) > len(keys)
     session = streamed(api, [few[0]] + [{**kw, "frame_id": key} for kw, key in zip(few[1:], keys)])
-    for sent in ("shelf/1", "a%2Fb%2F", "%2E", "%2E%2E"):
+    for sent in ("shelf/1", "a%2Fb%2F", "%2E", "%2E%2E", "line%201%0Aline%202"):
         r = httpx.delete(httpx.URL(f"{service.url}/v1/sessions/{session.id}/frames/{sent}"), timeout=60)
         assert r.status_code == 200 and r.json()["removed"] == 1, (sent, r.text)
     assert session.digest()["sha256"] == streamed(api, few[:1]).digest()["sha256"]
