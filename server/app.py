@@ -38,7 +38,9 @@ class BodyTimeout(Exception):
     """The request body stalled or took too long (the middleware answers 408)."""
 
 
-SEND_PIECE_BYTES = 1 << 20  # a large answer goes out in pieces of this size, each within send_timeout_s
+# a large answer goes out in pieces of this size, each within send_timeout_s: small enough that a client
+# reading slowly but steadily (a few kB/s) is never taken for one that reads nothing
+SEND_PIECE_BYTES = 1 << 16
 
 
 class ReaderStalled(Exception):
@@ -46,7 +48,7 @@ class ReaderStalled(Exception):
 
 
 class BodiesFull(Exception):
-    """A chunked body grew past what the service's bodies in flight may hold (the middleware answers 429)."""
+    """A body grew past what the service's bodies in flight may hold (the middleware answers 429)."""
 
 
 class BodyBytes:
@@ -84,12 +86,14 @@ class GuardMiddleware:
     - the bearer token (with ``api_token`` set, everything but /healthz and the viewer's static pages
       needs it), checked from the headers before a byte of the body is read; whether the request
       carried it is ``request.state.authenticated`` (/healthz tells more to those that did);
-    - the body size: 413 at once by Content-Length, or while reading a chunked body;
+    - the body size: 413 at once by Content-Length, or while reading a chunked body; 400 for a body
+      framed both ways (Content-Length and Transfer-Encoding: a request smuggler's, RFC 9112);
     - body deadlines: 408 when the body stalls ``read_timeout_s`` between reads or is not complete
       within ``body_timeout_s``; the route then gets the whole body at once;
-    - the bodies in flight, all requests together (`BodyBytes`): a body that would pass
-      ``max_inflight_body_bytes`` gets 429 with Retry-After (by Content-Length before a byte is read,
-      or while reading a chunked one); a body's bytes count until its request is answered;
+    - the bodies in flight, all requests together (`BodyBytes`): a body whose bytes, as they arrive,
+      would pass ``max_inflight_body_bytes`` gets 429 with Retry-After; a body's bytes count until its
+      request is answered. Counted as they arrive, not by Content-Length: connections that declare
+      large bodies and send nothing then hold nothing, where they could take every frame's room;
     - the count of responses by status for /metrics, 500s from unhandled errors included (those
       are answered by Starlette's outermost error middleware, outside this one).
     """
@@ -133,6 +137,9 @@ class GuardMiddleware:
                                       "Authorization", {"WWW-Authenticate": "Bearer"})
         length = headers.get(b"content-length")
         limit, setting = self._limit(headers)
+        if length is not None and b"transfer-encoding" in headers:
+            return await self._reject(scope, receive, send, 400, "malformed_body", "Transfer-Encoding: given with "
+                                      "Content-Length; a body is framed one way", "Transfer-Encoding")
         if length is not None:
             try:
                 size = int(length)
@@ -145,27 +152,23 @@ class GuardMiddleware:
                 message = f"body: {size} bytes exceed the limit of {limit} bytes ({setting})"
                 frames.body_refused(scope, message)
                 return await self._reject(scope, receive, send, 413, "too_large", message, "body")
-            if not self.bodies.take(size):
-                return await self._reject(scope, receive, send, *self._bodies_full(size))
         elif headers.get(b"transfer-encoding", b"").lower() != b"chunked":
             return await self.app(scope, receive, send)
-        else:
-            size = None  # chunked: taken from the bodies in flight as it arrives
-        held = [size or 0]
+        held = [0]  # taken from the bodies in flight as it arrives
         try:
-            return await self._with_body(scope, receive, send, held, size is None, limit, setting)
+            return await self._with_body(scope, receive, send, held, limit, setting)
         finally:
             self.bodies.give(held[0])
 
-    async def _with_body(self, scope, receive, send, held: list[int], chunked: bool, limit: int, setting: str):
+    async def _with_body(self, scope, receive, send, held: list[int], limit: int, setting: str):
         """The body read whole (at most ``limit`` bytes: `_limit`, named by ``setting``), then the app."""
         try:
-            body = await self._read_body(receive, held, chunked, limit)
+            body = await self._read_body(receive, held, limit)
         except BodyTimeout as exc:
             frames.body_refused(scope, f"body: {exc}")
             return await error_response(408, "timeout", f"body: {exc}", "body", {"Connection": "close"})(scope, receive, send)
-        except BodiesFull:
-            return await self._reject(scope, receive, send, *self._bodies_full(held[0]))
+        except BodiesFull as full:
+            return await self._reject(scope, receive, send, *self._bodies_full(full.args[0]))
         if body is None:  # the client went away
             return None
         if len(body) > limit:
@@ -226,10 +229,10 @@ class GuardMiddleware:
         scheme, _, given = headers.get(b"authorization", b"").partition(b" ")
         return scheme.lower() == b"bearer" and secrets.compare_digest(given.strip(), token.get_secret_value().encode())
 
-    async def _read_body(self, receive, held: list[int], chunked: bool, limit: int) -> bytes | None:
-        """The whole body (stopping once it passes ``limit``), or None when the client disconnected. A
-        chunked body takes its bytes from the bodies in flight as they arrive (counted in ``held[0]``),
-        `BodiesFull` once they have no more."""
+    async def _read_body(self, receive, held: list[int], limit: int) -> bytes | None:
+        """The whole body (stopping once it passes ``limit``), or None when the client disconnected. Its
+        bytes are taken from the bodies in flight as they arrive (counted in ``held[0]``), `BodiesFull`
+        (with the size it would have reached) once they have no more."""
         chunks, size = [], 0
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.settings.body_timeout_s
@@ -247,10 +250,9 @@ class GuardMiddleware:
                         return None
                     chunks.append(message.get("body", b""))
                     size += len(chunks[-1])
-                    if chunked:
-                        if not self.bodies.take(len(chunks[-1])):
-                            raise BodiesFull
-                        held[0] = size
+                    if not self.bodies.take(len(chunks[-1])):
+                        raise BodiesFull(size)
+                    held[0] = size
                     if size > limit or not message.get("more_body", False):
                         return b"".join(chunks)
         except TimeoutError:

@@ -21,7 +21,7 @@ from canonical_core.scene.corrections import FieldError
 
 from .framelog import StorageError
 from .scheduler import ClientGone, QueueFull
-from .session_errors import (FrameIdConflict, FrameOutOfOrder, FramesAhead, MemoryBudgetExceeded, SessionNotFound,
+from .session_errors import (FrameIdConflict, FrameOutOfOrder, FramesAhead, MemoryBudgetBusy, MemoryBudgetExceeded, SessionNotFound,
                              SessionUnavailable, TooManySessions)
 from .wire import WireError
 
@@ -120,6 +120,10 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(MemoryBudgetExceeded)
     async def _over_budget(request: Request, exc: MemoryBudgetExceeded):
         return error_response(413, "too_large", str(exc), "frame")
+
+    @app.exception_handler(MemoryBudgetBusy)
+    async def _budget_busy(request: Request, exc: MemoryBudgetBusy):
+        return error_response(429, "busy", str(exc), "frame", {"Retry-After": "1"})
 
     @app.exception_handler(ClientGone)
     async def _client_gone(request: Request, exc: ClientGone):

@@ -4,8 +4,14 @@ return of a deleted or evicted session's memory to the system.
 A frame of a few kilobytes can fold into a million voxels (a flat black image over a smooth depth ramp
 at fine voxels), so the request's size says nothing of what it costs. What bounds it is the frame
 itself: a fold adds at most one voxel per pixel it lifts, so `canonical_core.scene.folding.fold_cost`
-prices a frame before it folds, and `MemoryBudget.reserve` refuses it (`MemoryBudgetExceeded`, a 413
-naming the budget) when the sessions' memory plus the folds under way would pass the service's budget.
+prices a frame before it folds, and `MemoryBudget.reserve` refuses it when the sessions' memory plus the
+folds under way would pass the service's budget. A frame's decoded arrays are held from the budget too,
+from their decode until the frame is answered: a compressed body of kilobytes can decode to hundreds of
+megabytes, and numbered frames wait decoded for their turn.
+
+A frame that cannot fit beside what the sessions hold is refused for good (`MemoryBudgetExceeded`, 413);
+one that fits beside them but not beside the folds and frames under way now waits for nothing and is
+answered 429 (`MemoryBudgetBusy`): those give their share back within moments, and a client sends it again.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ from contextlib import contextmanager
 
 from canonical_core.scene import release_scratch
 
-from .session_errors import MemoryBudgetExceeded
+from .session_errors import MemoryBudgetBusy, MemoryBudgetExceeded
 
 
 class MemoryBudget:
@@ -44,18 +50,52 @@ class MemoryBudget:
     @contextmanager
     def reserve(self, nbytes: int) -> Iterator[None]:
         """Hold ``nbytes`` of the budget while the block runs (a fold), or raise before it runs."""
-        with self._lock:
-            left = self.limit - self._in_use() - self.reserved
-            if nbytes > left:
-                raise MemoryBudgetExceeded(
-                    f"frame: folding it may take up to {_size(nbytes)}; the service's memory budget "
-                    f"(CANONICAL_MEMORY_BUDGET_BYTES, {_size(self.limit)}) has {_size(max(left, 0))} left")
-            self.reserved += nbytes
+        self.take(nbytes)
         try:
             yield
         finally:
-            with self._lock:
-                self.reserved -= nbytes
+            self.give(nbytes)
+
+    def take(self, nbytes: int, use: str = "folding it may take") -> None:
+        """Hold ``nbytes`` until `give`; `MemoryBudgetExceeded` if they do not fit beside the sessions'
+        memory, `MemoryBudgetBusy` if they do but not beside what is held now."""
+        with self._lock:
+            free = self.limit - self._in_use()
+            if nbytes > free - self.reserved:
+                message = (f"frame: {use} up to {_size(nbytes)}; the service's memory budget (CANONICAL_MEMORY_BUDGET_BYTES, "
+                           f"{_size(self.limit)}) has {_size(max(free - self.reserved, 0))} left")
+                if nbytes > free:
+                    raise MemoryBudgetExceeded(message)
+                raise MemoryBudgetBusy(f"{message}, beside {_size(self.reserved)} that folds and decoded frames hold "
+                                       "for moments; send it again")
+            self.reserved += nbytes
+
+    def give(self, nbytes: int) -> None:
+        with self._lock:
+            self.reserved -= nbytes
+
+
+def hold_decoded(budget: MemoryBudget | None, frame) -> Callable[[], None]:
+    """Hold ``frame``'s decoded bytes from ``budget`` (nothing without one) until the returned call
+    gives them back (once; later calls do nothing). Raises as `MemoryBudget.take`."""
+    if budget is None:
+        return lambda: None
+    nbytes = frame_bytes(frame)
+    budget.take(nbytes, "holding its decoded arrays takes")
+    given = threading.Event()
+
+    def give() -> None:
+        if not given.is_set():
+            given.set()
+            budget.give(nbytes)
+
+    return give
+
+
+def frame_bytes(frame) -> int:
+    """Bytes of a decoded frame's arrays (what it holds while it waits for its turn and folds)."""
+    tensors = (frame.rgb, frame.depth, frame.depth_std, frame.features, frame.labels)
+    return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
 
 def _size(nbytes: int) -> str:

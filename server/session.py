@@ -43,7 +43,7 @@ from .framelog import FrameLog, LogWedged, StorageError
 from .memory import MemoryBudget
 from .ordering import FrameOrder
 from .retention import folder_usage
-from .session_errors import FrameIdConflict, FrameOutOfOrder, SessionNotFound, SessionUnavailable
+from .session_errors import FrameIdConflict, FrameOutOfOrder, MemoryBudgetBusy, SessionNotFound, SessionUnavailable
 from .snapshots import Snapshots
 from .track import append_camera
 
@@ -182,7 +182,7 @@ class Session:
             self.check_alive()
             try:
                 result = self._add_frame(payload, frame, snapshot_every_frames, snapshot_every_seconds, index, prepared)
-            except FrameOutOfOrder:
+            except (FrameOutOfOrder, MemoryBudgetBusy):  # not refused: its turn stays, and the client sends it again
                 raise
             except Exception as exc:
                 self.order.refused(index, exc)

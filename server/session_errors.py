@@ -24,7 +24,13 @@ class SessionUnavailable(RuntimeError):
 
 
 class MemoryBudgetExceeded(RuntimeError):
-    """A frame whose fold could pass the service's memory budget (`server.memory`): 413."""
+    """A frame whose fold could pass the service's memory budget (`server.memory`) beside what the
+    sessions hold: 413."""
+
+
+class MemoryBudgetBusy(RuntimeError):
+    """A frame that fits the memory budget beside the sessions, but not beside the folds and decoded
+    frames under way now, which give theirs back within moments: 429 with Retry-After."""
 
 
 class FrameIdConflict(ValueError):

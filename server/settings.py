@@ -52,8 +52,8 @@ class Settings(BaseSettings):
         "closed, so that the answer does not stay in the service's memory"))
     body_timeout_s: float = Field(120.0, gt=0, description="a request body not complete in this time gets 408")
     max_inflight_body_bytes: int = Field(1 << 30, gt=0, description=(
-        "the request bodies being received or held, all requests together; a request whose body would pass it "
-        "gets 429 with Retry-After naming this setting, before its body is read (at least max_body_bytes)"))
+        "the request bodies being received or held, all requests together, counted as their bytes arrive; a "
+        "request whose body would pass it gets 429 with Retry-After naming this setting (at least max_body_bytes)"))
     max_event_streams_per_session: int = Field(32, gt=0, description=(
         "open event streams (GET /v1/sessions/{id}/events) of one session; one more gets 429"))
     max_event_streams: int = Field(256, gt=0, description=(
@@ -63,8 +63,9 @@ class Settings(BaseSettings):
         "the voxels a session may hold: its max_voxels when it sets none, and the most it may set (422 above); "
         "about 400 bytes of memory a voxel"))
     memory_budget_bytes: int = Field(default_factory=default_memory_budget, gt=0, description=(
-        "the sessions' scenes and the folds under way together; a frame whose fold could pass it (one new voxel "
-        "per pixel it lifts, at worst) gets 413 naming this budget (default: half the machine's RAM)"))
+        "the sessions' scenes, the folds under way and the decoded frames waiting for them together; a frame whose "
+        "fold (one new voxel per pixel it lifts, at worst) or decoded arrays could pass it gets 413 naming this "
+        "budget, or 429 where only what is under way leaves too little (default: half the machine's RAM)"))
     archive_retention: Literal["all", "keyframes", "none"] = Field("all", description=(
         "the frames new sessions keep for pose corrections and frame removal: all, keyframes (one in five; a "
         "correction then re-folds those alone) or none (corrections get 409)"))

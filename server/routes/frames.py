@@ -12,9 +12,11 @@ from fastapi import APIRouter, Header, Request, Response
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError, unparsable
+from ..memory import hold_decoded
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
 from ..scheduler import ClientGone
+from ..session_errors import MemoryBudgetExceeded
 from ..solves import solve_soon
 
 router = APIRouter(prefix="/v1/sessions", tags=["frames"])
@@ -141,20 +143,25 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             frame = wire.frame_from_message(msg, limits=frame_limits(settings), fresh=True)  # validated before it is logged
             check_session_accepts(frame, session.scene.config)
             record = wire.pack(msg) if record is None else record  # a form's parts, logged as one message
-        except ValueError as exc:
+            held = hold_decoded(session.budget, frame)
+        except (ValueError, MemoryBudgetExceeded) as exc:
             session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
             raise
-        return record, frame, session.prepare(frame)  # its fold begun: evidence made while others fold
+        try:
+            return record, frame, held, session.prepare(frame)  # its fold begun: evidence made while others fold
+        except BaseException:
+            held()
+            raise
 
     async def left() -> None:  # a numbered frame whose client went while it waited: never answered, never folded
         if await request.is_disconnected():
             raise ClientGone(session.id)
 
-    t0, ahead = time.perf_counter(), None
+    t0, ahead, held = time.perf_counter(), None, None
     try:
         # a numbered frame holds its arrays while it waits, outside any job queue: counted (`FrameOrder.ahead`)
         with session.order.ahead(frame_index, session.scene.frames) if frame_index is not None else nullcontext():
-            record, frame, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
+            record, frame, held, ahead = await jobs.run(parse, kind="ingest", session=session.id)  # while the frames before it fold
             decoded = time.perf_counter() - t0
             if frame_index is not None:  # on the loop, holding no job
                 await session.order.wait_turn(frame_index, lambda: session.scene.frames, settings.frame_order_wait_s,
@@ -166,6 +173,8 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
     finally:  # the colours of what the session holds now, solved while no frame of it waits
         if ahead is not None:
             ahead.release()
+        if held is not None:
+            held()
         solve_soon(jobs.scheduler, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"

@@ -139,3 +139,68 @@ def test_the_memory_of_large_views_goes_back_to_the_system_once_they_are_answere
         assert resident_mib(proc.proc.pid) - before < 100, before  # 470 MB more without giving it back
     finally:
         proc.stop()
+
+
+def bomb(side: int) -> bytes:
+    """A frame of a few kilobytes whose arrays decode to ``side``² x 7 bytes (zstd of zeros: no depth
+    anywhere, so its fold adds nothing)."""
+    import msgpack
+
+    from canonical_wire import encode_array
+
+    K = [[side, 0, side / 2], [0, side, side / 2], [0, 0, 1]]
+    return msgpack.packb({"rgb": encode_array(np.zeros((side, side, 3), np.uint8), codec="zstd"),
+                          "depth": encode_array(np.zeros((side, side), np.float32), codec="zstd"),
+                          "K": K, "c2w": np.eye(4).tolist()}, use_bin_type=True)
+
+
+def test_decoded_frames_are_held_from_the_budget_until_answered(tmp_path):
+    """Numbered frames wait decoded for their turn: what their arrays hold counts against the memory
+    budget from their decode on, so a few compressed kilobytes cannot make the service hold gigabytes.
+    One that does not fit beside those waiting now is 429 (sent again, it is taken once they folded)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    side, decoded = 2048, 2048 * 2048 * 7  # 28 MiB a frame once decoded
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", warm_up="false",
+                         memory_budget_bytes=int(2.5 * decoded), frame_order_wait_s=60).start()
+    try:
+        sid = create(proc.url, voxel_size=0.05).json()["id"]
+        url, body = f"{proc.url}/v1/sessions/{sid}/frames", bomb(side)
+
+        def post(index: int, data: bytes = body) -> httpx.Response:
+            return httpx.post(url, content=data, timeout=120,
+                              headers={"content-type": "application/msgpack", "Frame-Index": str(index)})
+
+        def held() -> float:
+            lines = httpx.get(f"{proc.url}/metrics", timeout=60).text.splitlines()
+            return next(float(line.split()[1]) for line in lines if line.startswith("canonical_memory_held_bytes "))
+
+        with ThreadPoolExecutor(2) as pool:
+            waiting = [pool.submit(post, i) for i in (1, 2)]  # decoded, held while frame 0 has not come
+            assert wait_for(lambda: held() == 2 * decoded, 60)
+            refused = post(3)
+            error = refused.json()["error"]
+            assert refused.status_code == 429 and refused.headers["retry-after"] == "1", refused.text
+            assert error["field"] == "frame" and "CANONICAL_MEMORY_BUDGET_BYTES" in error["message"], error
+            assert post(0, bomb(64)).status_code == 200  # frame 0: the two waiting fold after it
+            assert [f.result().status_code for f in waiting] == [200, 200]
+        assert post(3).status_code == 200  # their share given back: taken now, in its place
+        assert httpx.get(f"{proc.url}/v1/sessions/{sid}", timeout=60).json()["frames"] == 4
+    finally:
+        proc.stop()
+
+
+def test_the_budget_tells_a_frame_that_never_fits_from_one_that_fits_once_others_are_done():
+    """413 (`MemoryBudgetExceeded`) only when the sessions' memory leaves too little; when what folds
+    and decoded frames hold for moments does, 429 (`MemoryBudgetBusy`): the client sends it again."""
+    from server.memory import MemoryBudget
+    from server.session_errors import MemoryBudgetBusy, MemoryBudgetExceeded
+
+    budget = MemoryBudget(100, lambda: 40)
+    with budget.reserve(50):
+        with pytest.raises(MemoryBudgetBusy, match="has 10 bytes left, beside 50 bytes"):
+            budget.take(30)
+        with pytest.raises(MemoryBudgetExceeded, match="has 10 bytes left$"):
+            budget.take(61)
+    budget.take(30)  # the fold's share given back: it fits
+    assert budget.reserved == 30
