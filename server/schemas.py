@@ -111,7 +111,8 @@ class PrunedSession(BaseModel):
     id: str
     reason: Literal["ttl", "disk_budget"] = Field(description="idle longer than session_ttl_s, or the oldest idle "
                                                               "while the data directory exceeded disk_budget_bytes")
-    last_active: float = Field(description="unix time of its last frame or correction")
+    last_active: float = Field(description=(
+        "unix time of the newest change of its files: its last frame or correction, or the snapshot written after them"))
     disk_bytes: int
 
 

@@ -157,8 +157,8 @@ def watch_line(name: str, event: dict) -> str:
 
 
 def run_watch(args) -> int:
-    """Print the session's events until it is deleted (exit 0) or the stream falls behind (exit 1);
-    Ctrl-C stops it."""
+    """Print the session's events until it is deleted (exit 0), or the stream falls behind or the
+    service ends it (it stopped, or restarted: exit 1); Ctrl-C stops it."""
     with connect(args) as client:
         try:
             for name, event in client.session(args.session).events(every=args.every or None):
@@ -167,6 +167,9 @@ def run_watch(args) -> int:
                     print("error: the stream fell behind (this terminal read too slowly); run watch again",
                           file=sys.stderr)
                     return 1
+                if name == "deleted":
+                    return 0
         except KeyboardInterrupt:
-            pass
-    return 0
+            return 0
+    print("error: the service ended the stream (it stopped or restarted); run watch again", file=sys.stderr)
+    return 1

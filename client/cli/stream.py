@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 
 from canonical_core.datasets.files import add_capture_options  # imports no torch, no numba
 
-from ..sdk import Client, Session, StreamStopped
+from ..sdk import Client, ServiceUnreachable, Session, StreamStopped
 from .capture import capture_frames, load_capture
 from .common import UsageError, add_connection, add_json, connect, positive_int, positive_number, session_id
 
@@ -222,7 +222,16 @@ def run_stream(args) -> int:
             print(("interrupted" if interrupted else f"{frames.name}: no frames streamed" if refused else
                    f"{frames.name}: no frames to stream") + "; no session was created", file=sys.stderr)
             return 130 if interrupted else 1
-        stats = session.stats()
+        client.max_retries = min(client.max_retries, 1)  # the frames' retries are over: the summary waits no half minute
+        try:
+            stats = session.stats()
+        except ServiceUnreachable as exc:  # what was acknowledged stays told, and how to go on
+            if refused is not None:
+                print(f"error: {refused}", file=sys.stderr)
+            done = "interrupted" if interrupted else "stopped" if refused else f"all {len(frames) - start} frames acknowledged"
+            print(f"{done}; the service could not be reached for the session's summary ({exc}); "
+                  f"continue with --session {session.id}", file=sys.stderr)
+            return 130 if interrupted else 1
         skipped = 0
         if interrupted or sent is None:  # the frames in flight at Ctrl-C, or before the unreadable one, were folded too
             sent = stats["frames"] - held

@@ -57,13 +57,16 @@ class Client:
         token: bearer token (default: ``CANONICAL_API_TOKEN`` from the environment, if set).
         timeout: seconds per request (None: no limit).
         max_retries: how often a 429 is retried (waiting its Retry-After, at most ``max_wait`` s each);
-            a frame with a ``frame_id`` is also retried this often, with growing waits, when the service
-            cannot be reached or answers 500, 502, 503 or 504 (a restart, a proxy whose backend died):
-            its ``frame_id`` makes the retry safe, as the service folds one id once.
+            a request the service takes once however often it comes (every GET, a view, a frame with a
+            ``frame_id``: the service folds one id once) is also retried this often, with growing waits,
+            when the service cannot be reached or answers 500, 502, 503 or 504 (a restart, a proxy whose
+            backend died): about half a minute in all with the defaults. A client that has never reached
+            the service is not kept waiting: a refused connection is `ServiceUnreachable` at once (a
+            wrong URL, or a service not started).
     """
 
-    def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 120.0, max_retries: int = 8,
-                 max_wait: float = 10.0):
+    def __init__(self, url: str | None = None, token: str | None = None, timeout: float | None = 120.0,
+                 max_retries: int = 8, max_wait: float = 10.0):
         if isinstance(max_retries, bool) or not isinstance(max_retries, int) or max_retries < 0:
             raise ValueError(f"max_retries: expected a whole number of at least 0, got {max_retries!r}")
         if timeout is not None and not (_number(timeout) and 0 < timeout < math.inf):
@@ -71,11 +74,18 @@ class Client:
         if not (_number(max_wait) and 0 <= max_wait < math.inf):
             raise ValueError(f"max_wait: expected seconds, 0 or more, got {max_wait!r}")
         url = url if url is not None else default_url()
+        try:
+            scheme = httpx.URL(url).scheme if isinstance(url, str) else None
+        except httpx.InvalidURL:
+            scheme = None
+        if scheme not in ("http", "https"):
+            raise ValueError(f"url: expected the service's http:// or https:// address, got {url!r}")
         token = token if token is not None else os.environ.get("CANONICAL_API_TOKEN") or None
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
         self.max_retries, self.max_wait = max_retries, max_wait
         self._limits: dict | None = None
+        self._reached = False  # whether the service ever answered this client
 
     def _request(self, method: str, path: str, idempotent: bool = False, stream: bool = False, **kwargs) -> httpx.Response:
         """``method`` on ``path``, 429s retried; with ``idempotent`` (a request the service takes once
@@ -87,10 +97,12 @@ class Client:
             try:
                 r = self._http.send(self._http.build_request(method, path, **kwargs), stream=stream)
             except httpx.TransportError as exc:
-                if not idempotent or attempt == self.max_retries:
+                never = not self._reached and isinstance(exc, httpx.ConnectError)  # nothing listens there
+                if not idempotent or attempt == self.max_retries or never:
                     raise self._unreachable(method, path, exc) from exc
                 time.sleep(self._retry_after(None, attempt))
                 continue
+            self._reached = True
             again = r.status_code == 429 or (idempotent and r.status_code in RETRIED_SERVER_ERRORS)
             if not again or attempt == self.max_retries:
                 break

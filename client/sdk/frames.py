@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import math
 import numbers
+import os
 import warnings
 from typing import Literal, get_args
 
@@ -99,6 +100,10 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     """
     if codec not in FRAME_CODECS:
         raise ValueError(f"codec: expected one of {list(FRAME_CODECS)}, got {codec!r}")
+    for name, value in (("rgb", rgb), ("depth", depth)):
+        if isinstance(value, (str, os.PathLike)):  # what a new user tries first: the file's bytes are what travel
+            raise ValueError(f"{name}: expected an array or the image file's bytes, got the path {str(value)!r} "
+                             "(pass pathlib.Path(...).read_bytes())")
     array_codec = "zstd" if codec == "compact" else "raw"
     if codec == "compact" and depth is not None:
         rgb, K = fit_colour_to_depth(rgb, K, depth)
@@ -107,7 +112,7 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
     elif codec == "compact" and np.asarray(rgb).dtype == np.uint8 and np.shape(rgb)[2:] == (3,):
         rgb = encode_png(np.asarray(rgb))  # not [H, W, 4] or [H, W, 1]: as an array the service refuses them, as "raw" does
     else:
-        rgb = encode_array(rgb)
+        rgb = encode_array(rgb, "rgb")
     msg: dict = {"rgb": rgb, "K": wire_matrix(K, (3, 3), "K"), "c2w": wire_matrix(c2w, (4, 4), "c2w")}
     if depth is not None and depth_scale is None and codec == "compact" and np.issubdtype(np.asarray(depth).dtype, np.floating):
         depth, depth_scale = exact_sensor_depth(depth) or (depth, None)

@@ -201,6 +201,28 @@ def test_watch_prints_each_fold_as_it_comes_and_ends_when_the_session_is_deleted
     assert [e["report"] for e in events[:2]] == reports and events[1]["frames"] == 2
 
 
+def test_watch_of_a_service_that_dies_ends_with_an_error_not_as_a_deleted_session(tmp_path):
+    """Exit 0 means the session was deleted: a service killed under the stream is an error the user
+    is told of (a script watching for the end would otherwise take a crash for it)."""
+    from tests.server.harness import ServerProcess
+
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", warm_up="false").start()
+    try:
+        with Client(proc.url) as client:
+            session = client.create_session(voxel_size=0.02)
+        watch = subprocess.Popen([sys.executable, "-m", "client.cli", "watch", "--url", proc.url, "--session", session.id],
+                                 cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert "waiting for folds" in watch.stdout.readline()
+            proc.kill9()
+            _, err = watch.communicate(timeout=60)
+        finally:
+            watch.kill()
+    finally:
+        proc.kill9()
+    assert watch.returncode == 1 and "the service ended the stream" in err, err
+
+
 def test_watch_lines_say_the_fold_its_counts_and_the_latest_warning():
     fold = {"frames": 7, "voxels": 1200, "report": {"frame_index": 6, "warnings": []}}
     assert watch_line("fold", fold) == "frame 6: 7 frames, 1200 voxels"

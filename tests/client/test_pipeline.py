@@ -292,6 +292,26 @@ def test_stream_stops_at_a_refused_frame_and_says_how_to_go_on(service, shelf_di
         assert client.session(session_id).stats()["frames"] == 2
 
 
+def test_a_service_gone_after_the_last_frame_still_gets_the_stream_told_and_how_to_go_on(shelf_dir, tmp_path, capsys,
+                                                                                          monkeypatch):
+    """The service dies once every frame is acknowledged, before the summary is read: the stream says
+    what was acknowledged and how to go on, at once, instead of a bare connection error after a
+    second half minute of retries."""
+    from client.sdk import Session
+
+    proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_seconds=3600).start()
+    stats = Session.stats
+    monkeypatch.setattr(Session, "stats", lambda self: proc.kill9() or stats(self))
+    try:
+        code = main(["stream", str(shelf_dir), "--max-frames", "3", "--stride", "10", "--scale", "0.25",
+                     "--voxel-size", str(VOXEL), "--url", proc.url])
+    finally:
+        proc.kill9()
+    err = capsys.readouterr().err
+    assert code == 1 and "all 3 frames acknowledged; the service could not be reached" in err, err
+    assert re.search(r"continue with --session \w+", err), err
+
+
 def test_frames_with_ids_ride_through_a_kill9_and_restart_of_the_service_and_frames_without_are_not_resent(
         tmp_path, frames, digests):
     proc = ServerProcess(tmp_path / "data", tmp_path / "server.log", snapshot_every_seconds=3600).start()

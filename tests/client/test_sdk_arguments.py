@@ -33,6 +33,16 @@ def test_matrix_errors_name_the_argument(session, call, message):
         call(session)
 
 
+@pytest.mark.parametrize("kwargs, message", [
+    ({"rgb": np.zeros((4, 4, 3), np.int64)}, r"^rgb: dtype int64 cannot travel"),
+    ({"rgb": "frame-000000.color.png"}, r"^rgb: expected an array or the image file's bytes, got the path"),
+    ({"depth": "frame-000000.depth.png"}, r"^depth: expected an array or the image file's bytes, got the path"),
+], ids=["rgb dtype", "rgb a path", "depth a path"])
+def test_frame_arrays_the_wire_cannot_carry_are_named(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        frame_body(**{"rgb": RGB, "K": K, "c2w": np.eye(4), **kwargs})
+
+
 def test_frame_body_names_the_matrix_too():
     with pytest.raises(ValueError, match=r"^K: expected a 3x3 matrix, got shape \[2\]$"):
         frame_body(RGB, [1.0, 2.0], np.eye(4))

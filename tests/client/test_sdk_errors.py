@@ -34,10 +34,28 @@ def closed_port() -> int:
 def test_no_answer_is_service_unreachable_naming_the_request():
     with Client(f"http://127.0.0.1:{closed_port()}", max_retries=1, max_wait=0.01) as client:
         with pytest.raises(ServiceUnreachable, match=r"GET http://127\.0\.0\.1:\d+/healthz: ConnectError") as info:
-            client.health()  # a GET: retried, then said in the SDK's terms
+            client.health()  # said in the SDK's terms
         assert isinstance(info.value, ConnectionError) and isinstance(info.value.__cause__, httpx.ConnectError)
         with pytest.raises(ServiceUnreachable, match="POST .*/v1/sessions: ConnectError"):
             client.create_session(voxel_size=VOXEL)  # not retried: a POST that may have made a session
+
+
+def test_a_client_that_never_reached_the_service_is_not_kept_waiting():
+    """Nothing listens at the URL (a typo, a service not started): the default retries, which ride
+    through a restart of a service the client was using, would only make the user wait half a minute."""
+    with Client(f"http://127.0.0.1:{closed_port()}") as client:
+        attempts = []
+        send = client._http.send
+        client._http.send = lambda *a, **k: attempts.append(1) or send(*a, **k)
+        with pytest.raises(ServiceUnreachable, match="ConnectError"):
+            client.sessions()
+        assert len(attempts) == 1
+
+
+@pytest.mark.parametrize("url", ["127.0.0.1:8000", "ftp://127.0.0.1:8000", "", "http://[::1"])
+def test_a_url_the_client_cannot_use_is_refused_naming_it(url):
+    with pytest.raises(ValueError, match="^url: expected the service's http:// or https:// address"):
+        Client(url)
 
 
 @pytest.mark.parametrize("kwargs, field", [
