@@ -23,7 +23,7 @@ Example:
 """
 
 from .deep_video_mvs import load_deep_video_mvs
-from .detect import load_dataset
+from .detect import UnknownLayout, load_dataset
 from .files import MissingIntrinsics, SkippedFrames
 from .label_fusion import load_label_fusion
 from .redwood import load_redwood
@@ -37,6 +37,7 @@ __all__ = [
     "FrameSequence",
     "MissingIntrinsics",
     "SkippedFrames",
+    "UnknownLayout",
     "load_dataset",
     "load_deep_video_mvs",
     "load_label_fusion",

@@ -21,17 +21,21 @@ from .tum import load_tum
 Layout = Literal["transforms_json", "tum", "tsdf_fusion", "deep_video_mvs", "redwood", "label_fusion"]
 
 
+class UnknownLayout(ValueError):
+    """A path that holds no capture a loader reads (nothing of any layout there)."""
+
+
 def detect_layout(path: str | Path) -> Layout:
     """Which loader reads ``path``: a transforms.json (file or in the folder) -> "transforms_json";
     groundtruth.txt, or pose.txt with a color/ folder -> "tum"; K.txt, poses.txt and images/ ->
     "deep_video_mvs"; trajectory.log and image/ -> "redwood"; frame-*.pose.txt (in the folder or one
     subfolder) -> "label_fusion" with frame-*.segm.png or .mask.png label maps beside them, else
-    "tsdf_fusion". Raises ValueError naming the path when nothing matches."""
+    "tsdf_fusion". Raises `UnknownLayout` (a ValueError) naming the path when nothing matches."""
     path = Path(path)
     if path.is_file() and path.suffix == ".json":
         return "transforms_json"
     if not path.is_dir():
-        raise ValueError(f"{path}: not a folder or a transforms.json file")
+        raise UnknownLayout(f"{path}: not a folder or a transforms.json file")
     if (path / "transforms.json").is_file():
         return "transforms_json"
     if (path / "groundtruth.txt").is_file() or ((path / "pose.txt").is_file() and (path / "color").is_dir()):
@@ -43,7 +47,7 @@ def detect_layout(path: str | Path) -> Layout:
     folder = find_frames_folder(path)
     if folder is not None:
         return "label_fusion" if has_label_maps(folder) else "tsdf_fusion"
-    raise ValueError(
+    raise UnknownLayout(
         f"{path}: no known capture layout (looked for transforms.json; groundtruth.txt or pose.txt + color/; "
         "K.txt + poses.txt + images/; trajectory.log + image/; frame-*.pose.txt)"
     )

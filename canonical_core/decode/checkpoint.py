@@ -72,8 +72,19 @@ def save_checkpoint(path: str | os.PathLike, decoder: GaussianDecoder, settings:
     path.parent.mkdir(parents=True, exist_ok=True)
     metadata = {"format": CHECKPOINT_FORMAT, "version": str(CHECKPOINT_VERSION), "feature_dim": str(decoder.feature_dim),
                 "heads": json.dumps(list(heads)), "settings": json.dumps(settings, sort_keys=True)}
-    atomic_write(path, [save(decoder_tensors(decoder, heads), metadata=metadata)])
+    atomic_write(path, [_stable_header(save(decoder_tensors(decoder, heads), metadata=metadata))])
     return path
+
+
+def _stable_header(blob: bytes) -> bytes:
+    """A safetensors file with its JSON header's keys sorted: safetensors writes its metadata in a hash
+    map's order, which changes from call to call, so the same decoder made files of other bytes (and
+    another `model_sha256`, which names the model that decoded a scene). Offsets in the header count
+    from the end of the header, so only the header changes; it stays padded to 8 bytes, as written."""
+    size = int.from_bytes(blob[:8], "little")
+    header = json.dumps(json.loads(blob[8:8 + size]), sort_keys=True, separators=(",", ":"))
+    header += " " * (-len(header) % 8)
+    return len(header).to_bytes(8, "little") + header.encode("utf-8") + blob[8 + size:]
 
 
 def _header(metadata: dict[str, str] | None, path: Path) -> tuple[int, tuple[str, ...], dict]:

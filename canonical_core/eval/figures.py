@@ -44,8 +44,13 @@ def _method_colours(plt, methods: Sequence[str]) -> dict[str, tuple]:
 
 
 def _save(fig, ax, path: Path) -> None:
-    """Legend beside the last panel, not over its lines."""
-    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    """Legend beside the last panel, not over its lines: every line of every panel, once (a line drawn
+    only in another panel, as the coverage ceiling, is named too)."""
+    lines: dict[str, object] = {}
+    for panel in fig.axes:
+        for handle, label in zip(*panel.get_legend_handles_labels()):
+            lines.setdefault(label, handle)
+    ax.legend(list(lines.values()), list(lines), fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=100, bbox_inches="tight")
 

@@ -216,6 +216,8 @@ def configured(name: str, settings: Mapping[str, Any]) -> Method:
         return method
     if not isinstance(method.build, SceneBuilder):
         raise ValueError(f"methods: {name} builds no Scene and takes no settings (got {dict(settings)!r})")
+    if "voxel_size" in settings:  # what the run gives every method alike
+        raise ValueError(f"methods: {name}:voxel_size is the run's, the same for every method (--voxel-size)")
     builder = replace(method.build, settings=_merged(method.build.settings, _nested(settings)))
     return replace(method, build=builder)
 

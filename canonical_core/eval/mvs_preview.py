@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +110,7 @@ def write_depth_previews(
     search: int = 30,
     indices: Sequence[int] | None = None,
     rule: SelectionRule | None = None,
+    progress: Callable[[], object] | None = None,
 ) -> list[dict]:
     """Estimate depth for frames of a capture and write colour-mapped PNGs with legends.
 
@@ -125,6 +126,7 @@ def write_depth_previews(
         max_uncertainty: top of the U_pos colours, metres; default: the first frame's 95 % percentile.
         typical_depth: scene depth used to judge baselines (default: sqrt(near * far)).
         indices: which frames to write (default: all).
+        progress: called once per frame done (written, or skipped for want of sources): a bar's step.
 
     Returns one dict per written frame: ``frame_id``, ``depth_png``, ``uncertainty_png``,
     ``sensor_png`` (or None), ``sources`` (frame ids), ``coverage`` (share of pixels with depth) and,
@@ -168,6 +170,8 @@ def write_depth_previews(
         picked = [others[k] for k in select_sources(ref.camera, [frame(j).camera for j in others], k=num_sources,
                                                     depth=z, rule=rule)]
         if not picked:
+            if progress is not None:
+                progress()
             continue
         est = estimate_depth_detailed(without_depth(ref), [view(j) for j in picked], near, far, num_hypotheses,
                                       scale, reference=view(i))
@@ -199,4 +203,6 @@ def write_depth_previews(
             record["sensor_png"] = str(sensor_png)
             record["median_abs_rel"] = float(np.median(abs_rel)) if abs_rel.size else math.nan
         results.append(record)
+        if progress is not None:
+            progress()
     return results

@@ -35,6 +35,7 @@ from ..frame import resize_frame
 from ..scene import Scene, SceneConfig
 from .methods import SplatModel
 from .protocol import interpolation_split
+from .report import UnwritableFolder, check_writable
 from .run import default_voxel_size, score
 
 VIEWS = (2, 4, 8, 16)
@@ -329,8 +330,16 @@ def _checked(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple
             saved = json.loads(Path(args.decide_from).read_text())
         except (OSError, UnicodeDecodeError, ValueError) as exc:
             parser.error(f"--decide-from: cannot read {args.decide_from} as JSON: {getattr(exc, 'strerror', None) or exc}")
-        if not (isinstance(saved, dict) and isinstance(saved.get("captures"), list)):
-            parser.error(f"--decide-from: {args.decide_from} holds no tuning results (a 'captures' list)")
+        captures = saved.get("captures") if isinstance(saved, dict) else None
+        if not (isinstance(captures, list) and captures and all(
+                isinstance(c, dict) and "group" in c and isinstance(c.get("variants"), dict) and DEFAULT.name in c["variants"]
+                for c in captures)):
+            parser.error(f"--decide-from: {args.decide_from} holds no tuning results (a 'captures' list, each with "
+                         f"its 'group' and its 'variants', '{DEFAULT.name}' among them)")
+    try:  # before the runs, which would otherwise fail only when they write their results
+        check_writable(args.out, "--out")
+    except UnwritableFolder as exc:
+        parser.error(str(exc))
     return chosen, views, saved
 
 
@@ -351,7 +360,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_report({**saved, "group_changes": group_changes(captures), "knobs": knobs, "decided_by": command}, Path(args.out))
         print((Path(args.out) / "results.md").read_text())
         return 0
-    steps = sum(len(chosen) * len(allowed_views(len(load_dataset(c.path)), views)) for c in CAPTURES)
+    try:
+        steps = sum(len(chosen) * len(allowed_views(len(load_dataset(c.path)), views)) for c in CAPTURES)
+    except ValueError as exc:  # a capture too short for the first input count
+        parser.error(f"--views: {exc}")
     bar = tqdm(total=steps, file=sys.stderr, desc="tuning", unit="run", dynamic_ncols=True)
     captures = [score_capture(c, chosen, views, args.scale, bar) for c in CAPTURES]
     bar.close()

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..datasets import load_dataset
+from ..datasets import UnknownLayout, load_dataset
 from ..decode import GaussianDecoder, support_unit
 from ..eval.protocol import interpolation_split
 from ..eval.run import default_voxel_size
@@ -70,6 +70,8 @@ def _sequences(path: Path, **options) -> list:
     ``depth_scale``."""
     try:
         return [load_dataset(path, **options)]
+    except UnknownLayout as exc:  # no capture there: the argument's fault, as a path with nothing there
+        raise RefusedCapture(f"captures: {exc}") from None
     except ValueError as exc:
         subfolders = sorted(d for d in path.iterdir() if d.is_dir()) if path.is_dir() else []
         if "several subfolders" not in str(exc) or not subfolders:

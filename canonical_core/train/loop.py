@@ -197,7 +197,13 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
     rng = np.random.default_rng(settings.seed)
     device = torch.device(settings.device)
     decoder = new_decoder().to(device)
-    before = heldout_report(decoder, captures) if report else []
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
+    if report:
+        say(f"train: held-out PSNR before training, {len(captures)} captures")
+        before = heldout_report(decoder, captures)
+    else:
+        before = []
+    say(f"train: folding the {settings.pool} training samples")
     pool = [_to(s, device) for s in draw_pool(captures, settings.pool, settings.seed, settings.views)]
     for name, p in decoder.named_parameters():  # the heads not trained keep their analytic start
         p.requires_grad_(name.split(".")[0] in settings.heads)
@@ -220,6 +226,8 @@ def train(captures: Sequence[Capture], settings: TrainSettings = TrainSettings()
         bar.update()
     bar.close()
     decoder = decoder.cpu().requires_grad_(True)
+    if report:
+        say("train: held-out PSNR after training")
     after = heldout_report(decoder, captures) if report else []
     heldout = [{"capture": b["capture"], "views": b["views"], "before": b, "after": a} for b, a in zip(before, after)]
     return TrainResult(decoder, losses, len(losses), time.perf_counter() - t0, heldout)

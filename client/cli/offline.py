@@ -25,10 +25,20 @@ def add_depth(p: argparse.ArgumentParser) -> None:
 
 
 def run_depth(args) -> int:
+    import sys
+
+    from tqdm import tqdm
+
     from canonical_core.eval.mvs_preview import write_depth_previews
+    from canonical_core.eval.report import UnwritableFolder, check_writable
 
     frames = load_capture(args.dataset, args, stride=args.stride, max_frames=args.max_frames)
-    rows = write_depth_previews(frames, args.out, num_sources=args.sources)
+    try:  # before the frames are swept, which take a second or more each
+        check_writable(args.out, "--out")
+    except UnwritableFolder as exc:
+        raise UsageError(str(exc)) from None
+    with tqdm(total=len(frames), file=sys.stderr, desc="depth", unit="frame", dynamic_ncols=True) as bar:
+        rows = write_depth_previews(frames, args.out, num_sources=args.sources, progress=bar.update)
     errors = [r["median_abs_rel"] for r in rows if r.get("median_abs_rel") is not None]
     summary = f"; median AbsRel vs the sensor {np.median(errors):.4f}" if errors else ""
     print(f"wrote depth and uncertainty pictures of {len(rows)} frames to {args.out}{summary}")

@@ -302,6 +302,10 @@ def test_demo_and_depth_take_the_intrinsics_a_capture_lacks_from_K(tmp_path, cap
     assert "5 frames in" in capsys.readouterr().out and (tmp_path / "demo" / "scene.ply").is_file()
     assert cli.main(["depth", capture, "--out", str(tmp_path / "depth"), "--max-frames", "2", *K]) == 0
     assert len(list((tmp_path / "depth").glob("*.depth.png"))) == 2
+    assert "depth: 100%" in capsys.readouterr().err  # a bar over the frames: each sweep takes a second or more
+    (tmp_path / "a-file").write_text("")
+    assert cli.main(["depth", capture, "--out", str(tmp_path / "a-file" / "depth"), "--max-frames", "2", *K]) == 2
+    assert "error: --out: cannot write" in capsys.readouterr().err
 
 
 def test_demo_of_a_missing_capture_creates_nothing(tmp_path, capsys):

@@ -46,3 +46,21 @@ def test_fit_label_shows_a_model_path_by_its_file_name_and_shortens_what_does_no
     assert fit_label("ground truth", font, 120) == "ground truth"  # a label that fits is kept
     assert fit_label("average:support=count", font, 320) == "average:support=count"
     assert fit_label("a" * 200, font, 60).endswith("...") and _measure(fit_label("a" * 200, font, 60), font) <= 52
+
+
+def test_the_legend_names_every_line_of_every_panel(monkeypatch, tmp_path):
+    """The coverage ceiling is drawn in the first panel only (without extrapolation): the legend,
+    beside the last panel, named only what that panel drew."""
+    from canonical_core.eval import figures
+
+    runs = [{"method": m, "views": n, "noise": 0, "psnr": 10.0 + n, "psnr_covered": 12.0, "psnr_common": 12.0,
+             "psnr_ceiling": 14.0 + n} for m in ("canonical", "open3d_tsdf") for n in (2, 4)]
+    results = {"runs": runs, "methods": ["canonical", "open3d_tsdf"], "extrapolation": None, "inputs": {"2": [], "4": []},
+               "dataset": "x"}
+    legends = []
+    save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, ax, path: (save(fig, ax, path),
+                                                                 legends.append([t.get_text() for t in ax.get_legend().get_texts()])))
+    figures.plot_views(results, tmp_path / "views.png")
+    assert legends == [["canonical", "canonical: coverage ceiling", "open3d_tsdf"]]
+    assert (tmp_path / "views.png").stat().st_size > 0

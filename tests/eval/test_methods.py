@@ -53,6 +53,9 @@ def test_method_specs_carry_scene_settings_and_only_scene_methods_take_them():
         parse_method("nerf")
     with pytest.raises(ValueError, match="^no_such_setting:"):
         parse_method("canonical:no_such_setting=1")
+    # the run's voxel is not a method's setting: refused before any run (it crashed the first build)
+    with pytest.raises(ValueError, match=r"^methods: canonical:voxel_size is the run's.*\(--voxel-size\)"):
+        parse_method("canonical:voxel_size=0.05")
     assert check_methods(["canonical:sh_degree=0", "canonical:sh_degree=0", "canonical"]) == ["canonical:sh_degree=0", "canonical"]
 
 

@@ -70,6 +70,7 @@ def test_the_recorded_rounds_decide_the_defaults_in_the_code(tmp_path, capsys, r
     (["--views", "2,x"], "--views"),
     (["--views", "0"], "--views"),
     (["--decide-from", "/nonexistent.json"], "--decide-from"),
+    (["--out", "/proc/no/such/folder"], "--out"),  # found only once every run had ended, before
 ])
 def test_bad_arguments_exit_2_naming_the_flag_before_any_run(tmp_path, capsys, monkeypatch, args, flag):
     monkeypatch.setattr("canonical_core.eval.tuning.load_dataset", lambda *a, **k: pytest.fail("a capture was loaded"))
@@ -80,9 +81,16 @@ def test_bad_arguments_exit_2_naming_the_flag_before_any_run(tmp_path, capsys, m
 
 
 def test_decide_from_a_file_that_is_not_tuning_results_exits_2(tmp_path, capsys):
-    for text in ("{not json", json.dumps({"captures": "x"})):
+    for text in ("{not json", json.dumps({"captures": "x"}), json.dumps({"captures": []}),
+                 json.dumps({"captures": [{"x": 1}]}), json.dumps({"captures": [{"group": "g", "variants": {"other": {}}}]})):
         saved = tmp_path / "results.json"
         saved.write_text(text)
         with pytest.raises(SystemExit) as exit_:
             main(["--out", str(tmp_path / "out"), "--decide-from", str(saved)])
-        assert exit_.value.code == 2 and "error: --decide-from: " in capsys.readouterr().err
+        assert exit_.value.code == 2 and "error: --decide-from: " in capsys.readouterr().err, text
+
+
+def test_views_no_capture_allows_exit_2_naming_the_flag(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--out", str(tmp_path / "out"), "--views", "100", "--variants", "default"])
+    assert exit_.value.code == 2 and "error: --views: " in capsys.readouterr().err

@@ -55,6 +55,16 @@ def test_round_trip_restores_every_trained_parameter(tmp_path):
         assert torch.equal(p, q), name
 
 
+def test_the_same_decoder_saves_the_same_bytes(tmp_path):
+    """A checkpoint's sha256 names the model that decoded a scene (its snapshot keeps it): the same
+    decoder and settings must make the same file, every time and in every process."""
+    decoder = perturbed()
+    files = [save_checkpoint(tmp_path / f"m{k}.safetensors", decoder, {"seed": 3, "steps": 10}).read_bytes()
+             for k in range(4)]
+    assert all(f == files[0] for f in files)
+    assert load_checkpoint(tmp_path / "m3.safetensors").settings == {"seed": 3, "steps": 10}
+
+
 def test_scene_with_a_checkpoint_decodes_as_the_decoder_it_was_saved_from(tmp_path, frames):
     decoder = perturbed()
     path = save_checkpoint(tmp_path / "m.safetensors", decoder, {})

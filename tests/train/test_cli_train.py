@@ -44,6 +44,9 @@ def test_usage_errors_exit_2_naming_the_flag_or_argument(tmp_path, shelf, capsys
     out = str(tmp_path / "m.safetensors")
     assert main(["train", str(tmp_path / "none"), "--out", out]) == 2
     assert capsys.readouterr().err.startswith(f"error: captures: {tmp_path / 'none'}: ")
+    (tmp_path / "empty").mkdir()  # a folder with no capture in it: the argument's fault too, as for eval
+    assert main(["train", str(tmp_path / "empty"), "--out", out]) == 2
+    assert capsys.readouterr().err.startswith(f"error: captures: {tmp_path / 'empty'}: no known capture layout")
     assert main(["train", str(shelf), "--out", str(tmp_path / "m.txt")]) == 2
     assert capsys.readouterr().err.startswith("error: --out: expected a path ending in .safetensors")
     blocker = tmp_path / "file"
@@ -70,6 +73,8 @@ def test_a_capture_without_an_intrinsics_file_trains_with_K(tmp_path, capsys):
     K = f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}"
     assert main(["train", str(data), "--out", str(out), "--K", K, "--steps", "1", "--width", "48"]) == 0
     assert out.stat().st_size > 0
+    err = capsys.readouterr().err  # what the minutes around the bar's steps are spent on, said
+    assert all(step in err for step in ("held-out PSNR before training", "folding the", "held-out PSNR after training"))
     (capture,) = load_captures([data], 48, K=(cam.fx, cam.fy, cam.cx, cam.cy))
     assert capture.frames[0].camera.fx == pytest.approx(cam.fx * 48 / 64)
 
