@@ -178,7 +178,7 @@ def test_a_reader_that_stalls_in_a_streamed_answer_of_small_pieces_is_let_go():
         guard = GuardMiddleware(app, Settings(send_timeout_s=0.5), Metrics(), BodyBytes(1 << 30))
         taken = []
 
-        async def send(message):  # takes the head and one block, then nothing more
+        async def send(message):  # takes the head and one piece of the first block, then nothing more
             if message["type"] == "http.response.body":
                 if taken:
                     await asyncio.Event().wait()
@@ -191,7 +191,9 @@ def test_a_reader_that_stalls_in_a_streamed_answer_of_small_pieces_is_let_go():
         await asyncio.wait_for(guard(scope, receive, send), 10)  # let go (ReaderStalled), not held
         return taken
 
-    assert asyncio.run(scenario()) == [1 << 19] and len(made) <= 3
+    from server.app import SEND_PIECE_BYTES
+
+    assert asyncio.run(scenario()) == [SEND_PIECE_BYTES] and len(made) <= 3
 
 
 def test_the_next_frame_is_taken_whatever_waits_ahead_of_it(tmp_path, shelf_dir):
