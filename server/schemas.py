@@ -6,7 +6,7 @@ import dataclasses
 import typing
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, Strict, create_model
 
 from canonical_core.rendering import Colour, DepthMode
 from canonical_core.scene import FoldReport
@@ -197,14 +197,21 @@ class Limits(BaseModel):
 class PosesRequest(BaseModel):
     """One correction: new camera-to-world poses and/or frames to remove, applied as one re-fold.
 
-    Frames are named by their ``frame_id``, or by their arrival index (decimal) when they carry none."""
+    A key in ``poses`` (a string) names a frame by its ``frame_id``, else, where it is digits and no
+    frame has it as its ``frame_id``, by its arrival index. ``poses_by_arrival`` and the integers of
+    ``remove`` name frames by their arrival index only: a client whose frame ids are numbers too
+    (line numbers, timestamps) says which it means."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
     # bounded first: each item that fails validation would otherwise make an error object of its own
     poses: dict[str, Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
                                       description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
-    remove: list[str] = Field(default_factory=list, max_length=MAX_FRAME_KEYS, description="frame keys to remove")
+    # JSON's keys are strings: the arrival index is read from one (lax), and is never negative
+    poses_by_arrival: dict[Annotated[int, Strict(False), Field(ge=0)], Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
+                                                 description="arrival index -> 4x4 (or 3x4) c2w, as poses")
+    remove: list[str | int] = Field(default_factory=list, max_length=MAX_FRAME_KEYS,
+                                    description="frames to remove: frame keys (strings, as poses') or arrival indices (integers)")
     wait: bool = Field(True, description="answer once the scene is corrected (200), unless the re-fold is long "
                                          "(then 202 and a status to poll); false: always 202 at once")
 

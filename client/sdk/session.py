@@ -33,6 +33,11 @@ def _whole(value, name: str) -> int:
     return int(value)
 
 
+def _arrival(key) -> bool:
+    """Whether a frame key is an arrival index: an integer (numpy's too), not a bool or a string."""
+    return hasattr(key, "__index__") and not isinstance(key, (bool, np.bool_))
+
+
 def _json_matrix(m, shape: tuple[int, int], name: str) -> list:
     """`wire_matrix` for a JSON body, which has no NaN: ValueError naming ``name`` for one, as the
     service would name it."""
@@ -208,8 +213,9 @@ class Session:
 
     def update_poses(self, poses: dict, remove=(), wait: bool = True, progress=None, poll: float = 0.5) -> dict:
         """Correct poses (``{frame key: 4x4 c2w}``) and/or remove frames (``remove``: keys), as one
-        re-fold of the session's archived frames. A key is a frame's ``frame_id`` or its arrival index
-        (a ``frame_id`` first). Returns what changed (frames, corrected, removed, ...).
+        re-fold of the session's archived frames. A key that is an integer is an arrival index (as in
+        the library); a string is a ``frame_id``, else, where it is digits no frame has as its
+        ``frame_id``, an arrival index. Returns what changed (frames, corrected, removed, ...).
 
         A long re-fold runs in the service's background (it answers 202): with ``wait`` this polls its
         status every ``poll`` seconds, calling ``progress(status)`` each time, until it is done;
@@ -217,13 +223,18 @@ class Session:
         see `correction`). Raises CanonicalError (field ``correction_id``) if the re-fold failed."""
         if isinstance(remove, (str, bytes)):  # one key, which a list of its characters would not mean
             raise ValueError(f"remove: expected a list of frame keys, got the {type(remove).__name__} {remove!r}")
-        body = {"poses": {str(k): _json_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items()},
-                "remove": [str(k) for k in remove], "wait": bool(wait)}
+        by_id = {str(k): _json_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items() if not _arrival(k)}
+        by_arrival = {str(int(k)): _json_matrix(c2w, (4, 4), f"poses.{k}") for k, c2w in poses.items() if _arrival(k)}
+        body = {"poses": by_id, "remove": [int(k) if _arrival(k) else str(k) for k in remove], "wait": bool(wait)}
+        if by_arrival:  # a service of before this field took every key as a string
+            body["poses_by_arrival"] = by_arrival
         return self._finished(self.client._request("POST", f"{self._path}/poses", json=body), wait, progress, poll)
 
     def remove_frame(self, frame_id, wait: bool = True, progress=None, poll: float = 0.5) -> dict:
-        """Remove one frame (its ``frame_id`` or arrival index) from the session's scene (``wait``,
-        ``progress``, ``poll``: as for `update_poses`)."""
+        """Remove one frame (its ``frame_id``, or its arrival index as an integer: see `update_poses`)
+        from the session's scene (``wait``, ``progress``, ``poll``: as for `update_poses`)."""
+        if _arrival(frame_id):
+            return self.update_poses({}, remove=[frame_id], wait=wait, progress=progress, poll=poll)
         r = self.client._request("DELETE", f"{self._path}/frames/{path_segment(frame_id, 'frame_id')}")
         return self._finished(r, wait, progress, poll)
 

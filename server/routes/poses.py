@@ -39,11 +39,12 @@ async def correct_poses(body: PosesRequest, session: SessionDep, jobs: JobsDep):
     archived, answered 202 with its status (``state`` pending, a ``correction_id``), and re-folds in
     the background: the old scene is served and takes frames meanwhile, which the re-fold catches up
     on before it swaps the corrected scene in; ``GET .../corrections/{correction_id}`` tells its
-    progress. The correction is durable before it is answered. An unknown frame key, a pose that is
+    progress. The correction is durable before it is answered. ``poses_by_arrival`` and the integers
+    of ``remove`` name frames by arrival index only. An unknown frame key, a pose that is
     not a rigid transform or holds NaN: 422 naming ``poses.<key>`` (``frames.<key>`` for removals);
     a session without a frame archive, a frame folded while a short correction was computed, or a
     correction while a background one runs: 409. Nothing changes then."""
-    return await _correct(session, jobs, dict(body.poses), list(body.remove), body.wait)
+    return await _correct(session, jobs, {**body.poses, **body.poses_by_arrival}, list(body.remove), body.wait)
 
 
 class _AnyText(Convertor[str]):

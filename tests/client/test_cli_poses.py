@@ -27,14 +27,14 @@ def matrix_to_tum(T: np.ndarray) -> list[float]:
 @pytest.mark.realdata
 def test_pose_files_read_as_the_loaders_read_them(slambook_path, hololens_path):
     seq = load_tum(slambook_path, K=(518.0, 519.0, 325.5, 253.5))
-    poses = read_pose_file(slambook_path / "pose.txt")  # 7 columns: line k = frame k
-    assert list(poses) == [str(k) for k in range(len(seq))]
+    poses = read_pose_file(slambook_path / "pose.txt")  # 7 columns: line k = frame k (its arrival index)
+    assert list(poses) == list(range(len(seq)))
     for k, frame in enumerate(seq):
-        np.testing.assert_allclose(poses[str(k)], frame.camera.c2w64(), atol=1e-6)
+        np.testing.assert_allclose(poses[k], frame.camera.c2w64(), atol=1e-6)
     walk = load_deep_video_mvs(hololens_path, max_frames=3)
     poses = read_pose_file(hololens_path / "poses.txt")  # 16 numbers a line
     for k, frame in enumerate(walk):
-        np.testing.assert_allclose(poses[str(k)], frame.camera.c2w64(), atol=1e-6)
+        np.testing.assert_allclose(poses[k], frame.camera.c2w64(), atol=1e-6)
 
 
 def test_keyed_lines_and_errors_name_the_line(tmp_path):
@@ -44,6 +44,7 @@ def test_keyed_lines_and_errors_name_the_line(tmp_path):
     path = tmp_path / "poses.txt"
     path.write_text("# key tx ty tz qx qy qz qw\n" + "a " + " ".join(map(str, matrix_to_tum(T))) + "\n\n"
                     + "b " + " ".join(map(str, T.reshape(16))) + "\n")
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())  # a Windows editor's byte-order mark: not part of the key
     poses = read_pose_file(path)
     assert list(poses) == ["a", "b"]
     np.testing.assert_allclose(poses["a"], T, atol=1e-9)
@@ -78,4 +79,28 @@ def test_canonical_poses_corrects_a_drifted_session(server, frames, tmp_path, ca
         path.write_text("nope " + " ".join(map(repr, np.eye(4).reshape(16).tolist())) + "\n")
         assert cli.main(["poses", str(path), "--session", session.id, "--url", server.url]) == 1
         assert "poses.nope" in capsys.readouterr().err
+        assert session.digest()["sha256"] == clean.digest()["sha256"]
+
+
+@pytest.mark.realdata
+def test_lines_without_keys_name_arrivals_even_where_frame_ids_are_numbers(server, frames, tmp_path, capsys):
+    """A capture whose frame ids are numbers (slambook's are its lines counted from 1): line k of a
+    pose file without keys is still frame k, not the frame whose id is "k"; a line the session has
+    no frame for is named by the file's line."""
+    numbered = [{**kw, "frame_id": str(k + 1)} for k, kw in enumerate(frames[:4])]
+    with Client(server.url) as client:
+        session = client.create_session(voxel_size=0.008)
+        for kwargs in drifted(numbered):
+            session.add_frame(**kwargs)
+        clean = client.create_session(voxel_size=0.008)
+        for kwargs in numbered:
+            clean.add_frame(**kwargs)
+        path = tmp_path / "true.txt"
+        path.write_text("".join(" ".join(map(repr, kw["c2w"].reshape(16).tolist())) + "\n" for kw in numbered))
+        assert cli.main(["poses", str(path), "--session", session.id, "--url", server.url]) == 0, capsys.readouterr().err
+        assert session.digest()["sha256"] == clean.digest()["sha256"]
+        with path.open("a") as f:  # a fifth pose for a session of four frames
+            f.write(" ".join(["0", "0", "0", "0", "0", "0", "1"]) + "\n")
+        assert cli.main(["poses", str(path), "--session", session.id, "--url", server.url]) == 1
+        assert f"{path}:5: poses.4: no kept frame" in capsys.readouterr().err
         assert session.digest()["sha256"] == clean.digest()["sha256"]

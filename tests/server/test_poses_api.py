@@ -158,6 +158,25 @@ def test_frame_ids_with_slashes_or_dot_segments_name_their_frames(service, api, 
     assert session.digest()["sha256"] == streamed(api, few[:1]).digest()["sha256"]
 
 
+def test_integer_keys_are_arrival_indices_whatever_the_frame_ids(api, few):
+    """Frame ids that are numbers (a capture's line numbers) and arrival indices: an integer key is an
+    arrival index (as in the library), a string a frame_id first, over HTTP as in process."""
+    numbered = [{**kw, "frame_id": str(k + 1)} for k, kw in enumerate(few[:4])]
+    shift = np.eye(4)
+    shift[:3, 3] = [0.02, 0.0, 0.0]
+    moved = [{**kw, "c2w": shift @ kw["c2w"]} if k == 1 else kw for k, kw in enumerate(numbered)]
+    session = streamed(api, numbered)
+    session.update_poses({1: shift @ numbered[1]["c2w"]})  # arrival 1, whose frame_id is "2"
+    assert session.digest()["sha256"] == streamed(api, moved).digest()["sha256"]
+    session.remove_frame(1)  # arrival 1
+    assert session.digest()["sha256"] == streamed(api, [numbered[k] for k in (0, 2, 3)]).digest()["sha256"]
+    session.update_poses({}, remove=["1"])  # frame_id "1": arrival 0
+    assert session.digest()["sha256"] == streamed(api, [numbered[k] for k in (2, 3)]).digest()["sha256"]
+    with pytest.raises(CanonicalError) as info:  # one frame named both ways in one request
+        session.update_poses({2: numbered[2]["c2w"], "3": numbered[2]["c2w"]})
+    assert info.value.status == 422 and info.value.field in ("poses.2", "poses.3")
+
+
 def test_retention_is_chosen_per_session(service, api, few):
     """``archive_retention`` at creation overrides the service's default, shows in the session's info,
     and a bad value is a 422 naming it that creates nothing."""
