@@ -1,4 +1,4 @@
-"""A session's files, and how they are read back: restore, repair, quarantine. No locks here: a session is
+"""A session's files, and how they are read back: restore, quarantine (`server.repair` repairs them). No locks here: a session is
 restored before it is served, and repaired while no server runs on its directory.
 
 - ``frames.log``: the append-only frame log (`server.framelog`). A frame is appended and fsynced before it is
@@ -29,7 +29,6 @@ import hashlib
 import json
 import logging
 import os
-import time
 from pathlib import Path
 from typing import NamedTuple
 
@@ -45,9 +44,9 @@ from . import wire
 from .archive import ARCHIVE, Retention, SessionArchive
 from .digests import payload_digest
 from .frame_ids import FoldedFrame
-from .framelog import FrameLog, RepairAction, Scan, encode, repaired, scan, torn_at, write_atomic
+from .framelog import FrameLog, Scan, encode, scan, torn_at, write_atomic
 from .payloads import DamagedFrame
-from .session_errors import Unrestorable
+from .session_errors import SnapshotLost, Unrestorable
 from .track import append_camera, tracked, write_track
 
 log = logging.getLogger("canonical.store")  # the store's logger: one name for all that the store holds
@@ -143,11 +142,19 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention,
                     chosen: dict | None = None) -> tuple[Restored, SessionArchive | None]:
     """`restore_scene` (``chosen`` as it takes it) with the session's archive. An archived correction the
     snapshot lacks (a crash before the files caught up) re-folds the archive, snapshotted, and remakes
-    the camera track: a restart gives the corrected scene, never a mixture."""
+    the camera track: a restart gives the corrected scene, never a mixture. So does a snapshot lost (gone,
+    unreadable) where the archive, with the log's frames it lacks, holds every frame: the snapshot is
+    moved to ``quarantine/`` and made again from the frames."""
     archive = SessionArchive(path / ARCHIVE, retention) if retention != "none" else None
     if archive is None or archive.problem or archive.corrections <= _corrections_of(path):
         try:
             restored = restore_scene(path, config, archive, chosen)
+        except SnapshotLost as lost:
+            if _holds_every_frame(path, archive):
+                return _refolded(path, config, retention, chosen, archive, lost)
+            if archive is not None:
+                archive.close()
+            raise
         except BaseException:
             if archive is not None:
                 archive.close()
@@ -155,7 +162,29 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention,
         if archive is not None and archive.problem is None:
             archive.cut_to(restored.scene.frames, logged_frames(path))
         return restored, archive
+    return _refolded(path, config, retention, chosen, archive)
+
+
+def _holds_every_frame(path: Path, archive: SessionArchive | None) -> bool:
+    """Whether ``archive`` holds, once the log's frames it lacks are added, every frame the session
+    acknowledged (retention "keyframes" keeps some only): then the scene can be folded from it alone."""
+    if archive is None or archive.problem is not None:
+        return False
+    found = scan((path / LOG).read_bytes() if (path / LOG).is_file() else b"")
+    frames = max([r.index + (not r.checkpoint) for r in found.records], default=0)
+    archive.cut_to(max(frames, len(archive.entries)), logged_frames(path))
+    return archive.problem is None and not found.damaged and all(e.kept for e in archive.entries)
+
+
+def _refolded(path: Path, config: SceneConfig, retention: Retention, chosen: dict | None, archive: SessionArchive,
+              lost: SnapshotLost | None = None) -> tuple[Restored, SessionArchive]:
+    """The session's scene folded again from its archive, snapshotted, with its log restarted and its
+    camera track made again (`restore_session`): for a correction the snapshot lacks, or where the
+    snapshot was ``lost`` (then it is kept under ``quarantine/``, not cut away, and folded from zero)."""
     snap = path / SNAPSHOT
+    if lost is not None and snap.exists():
+        quarantine(path, snap.read_bytes(), SNAPSHOT)
+        snap.unlink()
     scene = Scene.load(snap) if snap.exists() else Scene(config)
     entries = list(archive.entries)
     dropped = {k for k, e in enumerate(entries) if not e.kept}
@@ -175,7 +204,8 @@ def restore_session(path: Path, config: SceneConfig, retention: Retention,
     frame_ids = archived_frame_ids(archive, {})
     write_atomic(snap, scene.to_bytes())
     write_atomic(path / LOG, encode(scene.frames, checkpoint_payload(frame_ids, archive.corrections), checkpoint=True))
-    log.warning("%s: re-folded %d frames from the archive (a correction the snapshot did not hold)", path, scene.frames)
+    why = "a correction the snapshot did not hold" if lost is None else f"the snapshot lost: {lost}"
+    log.warning("%s: re-folded %d frames from the archive (%s)", path, scene.frames, why)
     return Restored(scene, FrameLog(path / LOG), scene.frames, frame_ids), archive
 
 
@@ -288,7 +318,7 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
     try:
         scene = Scene.load(snap) if snap.exists() else Scene(config)
     except ValueError as exc:
-        raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup") from None
+        raise SnapshotLost(f"{SNAPSHOT}: {exc}; restore it from a backup") from None
     if chosen and scene.config == config:  # settings chosen from the first frame, and kept in meta.json
         scene.chosen = dict(chosen)
     data = (path / LOG).read_bytes()
@@ -303,7 +333,7 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
     first = checkpoints[-1].index if checkpoints else (records[0].index if records else 0)
     if first > scene.frames:
         what = "missing" if not snap.exists() else f"older than the log (it holds {scene.frames} frames)"
-        raise Unrestorable(f"{SNAPSHOT} is {what}: the log continues from frame {first}, so frames "
+        raise SnapshotLost(f"{SNAPSHOT} is {what}: the log continues from frame {first}, so frames "
                            f"{scene.frames}..{first - 1} are not on disk. Restore {SNAPSHOT} from a backup, or "
                            "`canonical repair` keeps the log's frames without them")
     frame_log = FrameLog(path / LOG)
@@ -336,57 +366,6 @@ def restore_scene(path: Path, config: SceneConfig, archive: SessionArchive | Non
             digest = known.digest if known is not None else payload_digest(record.payload)
             frame_ids[msg["frame_id"]] = FoldedFrame(record.index, digest, report)
     return Restored(scene, frame_log, snapshot_frames, frame_ids)
-
-
-def repair(path: Path, action: RepairAction) -> str:
-    """Make an unrestorable session's files add up again, keeping every frame that can be kept (see
-    `server.framelog.repaired`); the log as it was stays under ``quarantine/``, and the frame archive is
-    made to match the log (`_archive_after_repair`). Returns what it did."""
-    snap = path / SNAPSHOT
-    try:
-        snapshot_frames = Scene.load(snap).frames if snap.exists() else 0
-    except ValueError as exc:
-        raise Unrestorable(f"{SNAPSHOT}: {exc}; restore it from a backup (repair cannot rebuild it)") from None
-    data = (path / LOG).read_bytes() if (path / LOG).is_file() else b""
-    if data:
-        quarantine(path, data)
-    found = scan(data)
-    checkpoints = [r for r in found.records + found.later if r.checkpoint]
-    records, kept, dropped = repaired(data, action, snapshot_frames, checkpoints[-1].payload if checkpoints else None)
-    write_atomic(path / LOG, b"".join(records))
-    # the frames kept, by their index before the repair: in order unless a skip left one out
-    kept_frames = [r.index for r in found.records + (found.later if action == "skip" else [])
-                   if not r.checkpoint and r.index >= snapshot_frames]
-    archived = _archive_after_repair(path, kept_frames == list(range(snapshot_frames, snapshot_frames + kept)),
-                                     snapshot_frames + kept)
-    return (f"the snapshot's {snapshot_frames} frames and {kept} logged frames after them kept; {dropped} intact "
-            f"frames after the damage dropped (the old log is under {QUARANTINE}/){archived}")
-
-
-def _archive_after_repair(path: Path, in_order: bool, frames: int) -> str:
-    """The frame archive made to match a repaired log of ``frames`` frames, so that a start does not take
-    the frames it holds beyond them for frames the log lost: those are cut off (copied to ``quarantine/``
-    first). Where the log's frames no longer follow the archive's (``in_order`` false: a repair skipped a
-    frame) or they cannot be cut (a correction follows them), the archive is moved to ``quarantine/``
-    whole: the session starts a new one, which cannot serve corrections of the frames before it."""
-    if not (path / ARCHIVE).is_file():
-        return ""
-    archive = SessionArchive(path / ARCHIVE, "all")
-    extra = len(archive.entries) - frames
-    try:
-        if in_order and extra <= 0:
-            return ""
-        if in_order:
-            archive.cut(extra, aside=lambda data: quarantine(path, data, ARCHIVE))
-            return f"; the {extra} frames of {ARCHIVE} after them dropped (copied to {QUARANTINE}/)"
-    except ValueError:
-        pass
-    finally:
-        archive.close()
-    (path / QUARANTINE).mkdir(exist_ok=True)
-    target = path / QUARANTINE / f"{ARCHIVE}.{int(time.time())}"
-    os.replace(path / ARCHIVE, target)
-    return f"; {ARCHIVE} no longer matches the log: moved to {target} (corrections need a new archive)"
 
 
 def restored_frames(path: Path, config: SceneConfig, retention: Retention) -> int:

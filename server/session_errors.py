@@ -68,3 +68,8 @@ class DataDirLocked(RuntimeError):
 
 class Unrestorable(RuntimeError):
     """The files of a session do not add up; the message says how, and what ``canonical repair`` can do."""
+
+
+class SnapshotLost(Unrestorable):
+    """A snapshot missing, unreadable or older than the log's first frame: the frames before the log's
+    are not in the log (the frame archive may hold them)."""

@@ -36,11 +36,12 @@ from canonical_core.scene import Scene
 
 from .archive import ARCHIVE, RETENTIONS, Retention, SessionArchive
 from .corrections import BACKGROUND_FRAMES
-from .durability import (LOG, META, config_digest, remove_quietly, repair, restore_session, restored_frames,
+from .durability import (LOG, META, config_digest, remove_quietly, restore_session, restored_frames,
                          session_meta)
 from .framelog import FrameLog, RepairAction, StorageError, fsync_dir, write_atomic
 from .memory import MemoryBudget, release_memory
 from .retention import prune as prune_idle
+from .repair import repair
 from .session import Session
 from .session_errors import DataDirLocked, SessionNotFound, SessionUnavailable, TooManySessions, Unrestorable
 

@@ -127,3 +127,47 @@ def test_a_format_1_log_is_read_by_its_rules_and_goes_on_in_format_2(session, pa
     restarted.log.close()
     archive.close()
     assert [r.version for r in records(session)][-2:] == [1 if cut == "last 1000 bytes" else 2, 2]
+
+
+@pytest.mark.parametrize("lose", ["deleted", "truncated"])
+def test_a_lost_snapshot_is_folded_again_from_the_archive_and_the_log(tmp_path, payloads, lose):
+    """A snapshot gone or unreadable while the log goes on after it: the frames it held are in the
+    archive, the later ones in the log (the last not archived yet), so the session is folded again from
+    them, as it was, and the snapshot kept under quarantine/; a start no longer says they are lost."""
+    store = SessionStore(tmp_path, max_sessions=4)
+    store.open()
+    session = store.create(SceneConfig(voxel_size=0.05))
+    for k, payload in enumerate(payloads):
+        session.add_frame(payload, wire.frame_from_message(wire.unpack(payload)), 10**6, 1e9)
+        if k == 3:
+            session.snapshot()  # the log restarts at frame 4, after a checkpoint
+    session.archive.flush()
+    digest = session.scene.digest()
+    session.archive.close()
+    session.log.close()
+    archive_lags(session, FRAMES - 1)  # frame 5 is only in the log
+    snap = session.path / "scene.snap"
+    held = snap.read_bytes()
+    snap.unlink() if lose == "deleted" else snap.write_bytes(held[: len(held) // 2])
+    back, archive = restored(session)
+    assert back.scene.frames == FRAMES and back.scene.digest() == digest
+    assert len(archive.entries) == FRAMES and snap.is_file()
+    assert restored(session)[0].scene.digest() == digest  # and from the files it wrote
+    kept = [p.read_bytes() for p in (session.path / QUARANTINE).glob("scene.snap.*")]
+    assert kept == ([] if lose == "deleted" else [held[: len(held) // 2]])
+
+
+def test_a_lost_snapshot_the_archive_cannot_make_whole_is_reported(tmp_path, payloads):
+    """Retention "keyframes" keeps some frames only: the scene cannot be folded from them as it was."""
+    store = SessionStore(tmp_path, max_sessions=4)
+    store.open()
+    session = store.create(SceneConfig(voxel_size=0.05), "keyframes")
+    for k, payload in enumerate(payloads):
+        session.add_frame(payload, wire.frame_from_message(wire.unpack(payload)), 10**6, 1e9)
+        if k == 3:
+            session.snapshot()
+    session.archive.close()
+    session.log.close()
+    (session.path / "scene.snap").unlink()
+    with pytest.raises(Unrestorable, match="scene.snap is missing"):
+        restore_session(session.path, session.config, "keyframes")
