@@ -110,9 +110,18 @@ def session_meta(path: Path) -> tuple[dict, SceneConfig]:
     of earlier versions have none: theirs are taken as they are). The log folds again only with the
     settings it was folded with, so a difference (meta.json edited by hand) raises `Unrestorable`
     naming meta.json and the setting; nothing is changed."""
-    meta = json.loads((path / META).read_text())
-    config = SceneConfig.from_dict(meta["config"])
     restore = f"restore {META} from a backup (the session's other files are kept as they are)"
+    try:  # garbled by hand or by a disk: a file to put back, not a fault of the service's
+        meta = json.loads((path / META).read_text())
+    except ValueError as exc:
+        raise Unrestorable(f"{META}: not valid JSON ({exc}); {restore}") from None
+    missing = [key for key in ("id", "created", "config") if not isinstance(meta, dict) or key not in meta]
+    if missing:
+        raise Unrestorable(f"{META}: lacks {', '.join(missing)}; {restore}")
+    try:
+        config = SceneConfig.from_dict(meta["config"])
+    except (ValueError, TypeError) as exc:
+        raise Unrestorable(f"{META}: config: {exc}; {restore}") from None
     if (path / SNAPSHOT).exists():
         try:
             held = read_config(path / SNAPSHOT)

@@ -109,6 +109,8 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _storage(request: Request, exc: StorageError):
         # nothing of the request was applied: the frame was not logged, so it was not folded either
         request.app.state.metrics.storage_errors += 1
+        # the operator's to fix (a full or failing disk): said where they look, not only to the client
+        log.error("%s %s: %s; the request was not applied", request.method, request.url.path, exc.strerror)
         status, code = (507, "insufficient_storage") if exc.full else (503, "storage_unavailable")
         return error_response(status, code, f"data_dir: {exc.strerror}; the request was not applied", "data_dir",
                               {"Retry-After": "30"})

@@ -113,8 +113,10 @@ def _probe_folder(path) -> None:
 
 
 def _check_port(args, host: str, port: int) -> None:
-    """UsageError naming the port's option when another process listens there already, before the
-    service starts anything (uvicorn, or Ray, would say so only after a start-up and in many lines)."""
+    """UsageError naming the port's option when another process listens there already, or the host's
+    when no address of this machine has that name, before the service starts anything (uvicorn, or Ray,
+    would say so only after a start-up and in many lines)."""
+    import errno
     import socket
 
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
@@ -122,8 +124,9 @@ def _check_port(args, host: str, port: int) -> None:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, port))
-        except OSError as exc:
-            raise UsageError(f"{_setting_source(args, 'port')}: cannot listen on {host}:{port}: "
+        except OSError as exc:  # a name that resolves to nothing, or to no address of this machine: the host's
+            unknown = isinstance(exc, socket.gaierror) or exc.errno == errno.EADDRNOTAVAIL
+            raise UsageError(f"{_setting_source(args, 'host' if unknown else 'port')}: cannot listen on {host}:{port}: "
                              f"{exc.strerror or exc}") from None
 
 

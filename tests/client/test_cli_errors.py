@@ -159,7 +159,11 @@ def test_a_bad_frame_like_is_one_line_before_any_request(shelf_dir, tmp_path, su
      ["CANONICAL_MAX_INFLIGHT_BODY_BYTES", "at least max_body_bytes (2000000000)"]),
     # a blank token would be a check anyone passes with "Authorization: Bearer "
     ([], {"CANONICAL_API_TOKEN": " "}, ["CANONICAL_API_TOKEN: is empty: unset it"]),
-], ids=["port", "threads", "from the environment", "two that do not fit", "a blank token"])
+    # a host no address of this machine has: that setting named, not the port
+    (["--host", "host.invalid"], {}, ["--host: cannot listen on host.invalid"]),
+    ([], {"CANONICAL_HOST": "192.0.2.1"}, ["CANONICAL_HOST: cannot listen on 192.0.2.1"]),
+], ids=["port", "threads", "from the environment", "two that do not fit", "a blank token", "an unknown host",
+        "a host of another machine"])
 def test_a_bad_serve_setting_is_one_line_naming_it_and_creates_nothing(tmp_path, argv, env, words):
     data = tmp_path / "data"
     result = canonical("serve", "--data-dir", str(data), *argv, env=env)

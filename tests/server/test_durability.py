@@ -91,6 +91,7 @@ def test_a_full_disk_refuses_frames_with_507_and_loses_nothing_acknowledged(tmp_
         assert log_of(data, sid).stat().st_size == size and found.end == found.size and len(found.records) == 2
         assert Client(proc.url).session(sid).digest()["frames"] == 2
         assert "canonical_storage_errors_total 2" in httpx.get(f"{proc.url}/metrics").text
+        assert proc.log().count(f"/v1/sessions/{sid}/frames: frames.log: cannot append a record: No space left") == 2
         # space again: the same frames are taken, then a crash
         (tmpfs / "filler").unlink()
         for kwargs in frames[2:4]:
@@ -219,6 +220,7 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
     with serving(server(tmp_path, data, snapshot_every_frames=2)) as proc:
         ids = [new_session(proc, frames[:3]) for _ in range(3)]  # a snapshot at 2 frames, one frame in the log after it
         ids.append(new_session(proc, frames[:3], archive_retention="none"))  # no second copy of its frames
+        ids.append(new_session(proc, frames[:3]))
         assert all(wait_for(lambda: Client(proc.url).session(sid).stats()["snapshot_frames"] == 2) for sid in ids)
         digest = Client(proc.url).session(ids[0]).digest()["sha256"]
 
@@ -234,6 +236,7 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
             (data / "sessions" / sid / "scene.snap").unlink()
         (data / "sessions" / ids[1] / "frames.log").unlink()
         (data / "sessions" / ids[2] / "meta.json").unlink()
+        (data / "sessions" / ids[4] / "meta.json").write_text("{garbled")
         proc.start()
         problems = {s["id"]: s["problem"] for s in httpx.get(f"{proc.url}/v1/sessions").json()["sessions"]}
         # the frames the snapshot held are in the frame archive: folded again from it, as they were
@@ -241,6 +244,7 @@ def test_files_removed_by_hand_are_loud_and_one_server_holds_a_directory(tmp_pat
         assert "scene.snap is missing" in problems[ids[3]] and "frames 0..1 are not on disk" in problems[ids[3]]
         assert "frames.log is missing" in problems[ids[1]]
         assert "meta.json is missing" in problems[ids[2]]
+        assert problems[ids[4]].startswith("meta.json: not valid JSON") and "Traceback" not in proc.log()
         assert all((data / "sessions" / sid).is_dir() for sid in ids)  # nothing removed
         # an operator may delete an unavailable session
         assert httpx.delete(f"{proc.url}/v1/sessions/{ids[2]}").status_code == 200
