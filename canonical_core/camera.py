@@ -126,7 +126,7 @@ class Camera:
             >>> (half.width, half.height), half.K64()[0].tolist()
             ((32, 24), [246.15384615384616, 0.0, 15.5])
         """
-        if not factor > 0:
+        if isinstance(factor, bool) or not isinstance(factor, (int, float, np.integer, np.floating)) or not factor > 0:
             raise ValueError(f"factor: expected a positive number, got {factor!r}")
         return self.resized(max(1, int(round(self.width * factor))), max(1, int(round(self.height * factor))))
 

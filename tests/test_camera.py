@@ -60,6 +60,12 @@ def test_scaled_keeps_pixel_centres():
     assert torch.allclose(uv, torch.tensor([[0.25, 0.25]]), atol=1e-5)
 
 
+@pytest.mark.parametrize("bad", [0, -0.5, float("nan"), "a", None, True])
+def test_scaled_names_a_factor_that_is_no_positive_number(bad):
+    with pytest.raises(ValueError, match="^factor: expected a positive number"):
+        Camera(K, np.eye(4), 640, 480).scaled(bad)
+
+
 def test_scaled_to_a_rounded_size_keeps_the_images_edges():
     """65 x 49 at 0.5 is 32 x 24 pixels: K follows that size, so the full image's far corner (the edge
     of pixel 64, 48) still projects to the edge of the small image's last pixel, not half a pixel past."""

@@ -228,6 +228,7 @@ class RGBDFile:
         rgb = read_rgb(self.color)
         depth = None if self.depth is None else read_depth(self.depth, self.depth_scale)
         height, width = rgb.shape[:2]
+        self._check_size(width, height)  # a colour image of another size than the capture's: named as such
         if depth is not None and depth.shape != (height, width):  # a lower resolution's registered depth?
             mismatch = (f"{self.depth}: depth size {depth.shape[1]}x{depth.shape[0]} does not match the colour image "
                         f"{self.color} ({width}x{height})")
@@ -236,7 +237,6 @@ class RGBDFile:
             problem = depth_size_problem((width, height), (depth.shape[1], depth.shape[0]))  # `Frame`'s own check
             if problem is not None:
                 raise ValueError(f"{mismatch}: {problem.removeprefix('depth: ')}")
-        self._check_size(width, height)
         if self.distortion is not None:
             rgb = undistort_image(rgb, self.K, self.distortion, mode="bilinear")
             if depth is not None:

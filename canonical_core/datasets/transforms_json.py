@@ -34,7 +34,7 @@ import numpy as np
 
 from ..calibration import OPENGL_TO_OPENCV, validate_pose
 from .files import MissingFile, RGBDFile, as_intrinsics, found_frames, read_text, select
-from .images import image_size
+from .images import DEPTH_SCALE_RANGE, image_size
 from .sequence import FrameSequence
 
 DEFAULT_DEPTH_UNIT_SCALE_FACTOR = 1e-3
@@ -94,6 +94,18 @@ def camera_from_params(
     return K, (w, h), (distortion if any(distortion) else None)
 
 
+def _frame_params(defaults: dict, frame: dict) -> dict:
+    """A frame's camera parameters: its own over the file's. A focal length it gives one way (``fl_x``
+    or ``camera_angle_x``) replaces the file's given either way: a frame's own angle is not overruled
+    by the file's focal length (which `camera_from_params` would read first)."""
+    params = dict(defaults)
+    for axis in ("x", "y"):
+        if f"fl_{axis}" in frame or f"camera_angle_{axis}" in frame:
+            params.pop(f"fl_{axis}", None)
+            params.pop(f"camera_angle_{axis}", None)
+    return params | {k: frame[k] for k in CAMERA_KEYS if k in frame}
+
+
 def load_transforms_json(
     path: str | Path,
     depth_unit_scale_factor: float | None = None,
@@ -129,8 +141,10 @@ def load_transforms_json(
         raise ValueError(f"{json_path}: expected an object with a non-empty 'frames' list")
     factor = meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE_FACTOR)
     factor = factor if depth_unit_scale_factor is None else depth_unit_scale_factor
-    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not factor > 0:
-        raise ValueError(f"depth_unit_scale_factor: expected a positive number, got {factor!r}")
+    low, high = DEPTH_SCALE_RANGE  # of units per metre: the factor is its inverse, metres per unit
+    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not 1.0 / high <= factor <= 1.0 / low:
+        raise ValueError(f"depth_unit_scale_factor: expected metres per depth unit between {1.0 / high:g} and "
+                         f"{1.0 / low:g} (e.g. 0.001 for millimetres), got {factor!r}")
     root = json_path.parent
     defaults = {k: meta[k] for k in CAMERA_KEYS if k in meta}
 
@@ -150,7 +164,7 @@ def load_transforms_json(
     sources = []
     listed = found_frames(enumerate(meta["frames"]), files, json_path, strict)
     for where, frame, color, depth in select(listed, stride, max_frames):
-        K, size, distortion = camera_from_params({**defaults, **{k: frame[k] for k in CAMERA_KEYS if k in frame}}, color, where)
+        K, size, distortion = camera_from_params(_frame_params(defaults, frame), color, where)
         if "transform_matrix" not in frame:
             raise ValueError(f"{where}: no transform_matrix")
         try:

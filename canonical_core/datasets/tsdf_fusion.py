@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 from ..calibration import validate_pose
 from .files import (MissingFile, MissingIntrinsics, RGBDFile, as_intrinsics, find_one, found_frames, natural_key,
                     one_size, read_intrinsics_file, read_matrix, select, write_matrix)
-from .images import write_depth, write_rgb
+from .images import check_depth_scale, write_depth, write_rgb
 from .sequence import FrameSequence
 
 if TYPE_CHECKING:
@@ -91,8 +91,7 @@ def load_tsdf_fusion(
     root = Path(path)
     if not root.is_dir():
         raise ValueError(f"{root}: not a folder")
-    if not depth_scale > 0:
-        raise ValueError(f"depth_scale: expected a positive number, got {depth_scale!r}")
+    check_depth_scale(depth_scale)  # now, not at the first frame read
     folder = find_frames_folder(root)
     if folder is None:
         raise ValueError(f"{root}: no {POSE_PATTERN} files (tsdf-fusion / 7-Scenes layout) in it or its subfolders")

@@ -57,14 +57,21 @@ class FrameRef(NamedTuple):
 def resolve_frames(keys: Iterable[FrameKey], refs: Sequence[FrameRef], field: str) -> list[int]:
     """Positions in ``refs`` of the frames ``keys`` name, in the order given. Raises ValueError
     ``"field.key: ..."`` for a key that names no kept frame, or a frame named twice."""
-    by_id = {r.frame_id: k for k, r in enumerate(refs) if r.frame_id is not None}
+    by_id: dict[str, list[int]] = {}
+    for k, r in enumerate(refs):
+        if r.frame_id is not None:
+            by_id.setdefault(r.frame_id, []).append(k)
     by_arrival = {r.arrival: k for k, r in enumerate(refs)}
     positions: list[int] = []
     for key in keys:
         if isinstance(key, bool) or not isinstance(key, (int, str)):
             raise ValueError(f"{field}: frame keys are frame_id strings or arrival indices, got {type(key).__name__}")
         if isinstance(key, str) and key in by_id:
-            position = by_id[key]
+            if len(by_id[key]) > 1:  # a library's frames may share an id (a capture listing one image twice)
+                arrivals = [refs[k].arrival for k in by_id[key]]
+                raise FieldError(f"{field}.{key}", f"names {len(arrivals)} kept frames (arrival indices {arrivals}); "
+                                                   "name the one meant by its arrival index, an integer")
+            position = by_id[key][0]
         elif isinstance(key, int) or (key.isascii() and key.isdigit() and len(key) <= MAX_ARRIVAL_DIGITS):
             position = by_arrival.get(int(key))
         else:

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..config import SceneConfig
+from .decoding import check_decode_arguments
 from .selection import decoded_rows
 from .scene import Scene
 from .fields import unpack_keys
@@ -131,6 +132,7 @@ def surface_mesh(
     """
     if isinstance(block, bool) or not isinstance(block, int) or block < 4:
         raise ValueError(f"block: expected an integer of at least 4, got {block!r}")
+    check_decode_arguments(None, min_support)  # as a decode takes it: NaN would read as no support anywhere
     chosen = decoded_rows(sums, min_support, config)
     rows = chosen.rows
     empty = Mesh(torch.zeros((0, 3)), torch.zeros((0, 3), dtype=torch.int64), torch.zeros((0, 3), dtype=torch.uint8))

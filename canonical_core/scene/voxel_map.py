@@ -112,6 +112,10 @@ class VoxelMap:
 
     def __init__(self, feature_dim: int, sh_degree: int, initial_capacity: int = 1 << 15,
                  max_voxels: int | None = None):
+        if isinstance(initial_capacity, bool) or not isinstance(initial_capacity, (int, np.integer)) \
+                or not 0 <= initial_capacity <= MAX_VOXELS:
+            raise ValueError(f"initial_capacity: expected a whole number of voxels in [0, {MAX_VOXELS}], "
+                             f"got {initial_capacity!r}")
         self.feature_dim, self.sh_degree, self.max_voxels = feature_dim, sh_degree, max_voxels
         self.layout = VoxelRows(feature_dim, sh_sum_widths(sh_degree))
         self.stored = StoredRows(self.layout)

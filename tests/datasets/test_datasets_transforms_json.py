@@ -73,6 +73,9 @@ def test_depth_unit_scale_factor(shelf, shelf_path, tmp_path):
     reference = shelf[0].depth
     assert torch.allclose(load_transforms_json(tmp_path / "ns")[0].depth, 2 * reference)
     assert torch.allclose(load_transforms_json(tmp_path / "ns", depth_unit_scale_factor=1e-3)[0].depth, reference)
+    for bad in (1e-12, 1e4, 0, float("inf")):  # said when the capture is opened, naming the factor
+        with pytest.raises(ValueError, match="^depth_unit_scale_factor: expected metres per depth unit between"):
+            load_transforms_json(tmp_path / "ns", depth_unit_scale_factor=bad)
 
 
 @pytest.mark.realdata
@@ -89,6 +92,12 @@ def test_per_frame_intrinsics_and_camera_angle(shelf, shelf_path, tmp_path):
     assert math.isclose(a.camera.fx, 500.0) and math.isclose(a.camera.fy, 500.0)  # fl_y defaults to fl_x
     assert (a.camera.cx, a.camera.cy) == (319.5, 239.5)  # image centre; w, h read from the image
     assert b.camera.fx == 600.0 and b.camera.cx == 330.0
+    # a frame's own angle against the file's focal length: the frame's wins, as every per-frame key does
+    meta["fl_x"] = 615.0
+    meta["frames"][0]["camera_angle_x"] = 2 * math.atan(320 / 450.0)
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    a, b = load_transforms_json(tmp_path / "ns")
+    assert math.isclose(a.camera.fx, 450.0) and b.camera.fx == 600.0
 
 
 @pytest.mark.realdata

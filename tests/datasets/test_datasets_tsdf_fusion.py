@@ -101,6 +101,12 @@ def test_error_not_a_folder(tmp_path):
         load_tsdf_fusion(tmp_path)
 
 
+@pytest.mark.parametrize("scale", [1e-9, float("inf"), 0])
+def test_a_depth_scale_out_of_range_is_refused_when_the_capture_is_opened(capture, scale):
+    with pytest.raises(ValueError, match="^depth_scale: expected depth units per metre between"):
+        load_tsdf_fusion(capture, depth_scale=scale)
+
+
 def test_error_missing_intrinsics(capture):
     (capture / "camera-intrinsics.txt").unlink()
     with pytest.raises(ValueError, match="intrinsics="):
@@ -148,6 +154,8 @@ def test_error_unreadable_and_mismatched_images(capture):
     Image.fromarray(np.zeros((50, 64, 3), np.uint8)).save(capture / "frame-000000.color.png")
     with pytest.raises(ValueError, match=r"frame-000000\.color\.png: image is 64x50, the capture's are 64x48"):
         seq.source(0).view()  # a frame of another size than the first: the intrinsics are not this image's
+    with pytest.raises(ValueError, match=r"frame-000000\.color\.png: image is 64x50, the capture's are 64x48"):
+        seq[0]  # the colour image's size is the problem: named before its depth is compared with it
     with pytest.raises(ValueError, match=r"frame-000001\.depth\.png: depth size 30x24 does not match.*64x48.*: .*field of view"):
         seq[1]
     with pytest.raises(ValueError, match=r"frame-000002\.depth\.png: expected a 16-bit"):

@@ -164,6 +164,15 @@ def test_keys_prefer_a_frame_id_over_an_arrival_index():
         resolve_frames([1.0], refs, "frames")
 
 
+def test_a_frame_id_two_kept_frames_share_names_neither():
+    """A library's frames may share an id (a capture listing one image twice): the key is refused,
+    naming the arrival indices that tell them apart, instead of the last one taken silently."""
+    refs = [FrameRef(0, "same"), FrameRef(1, "same"), FrameRef(2, "other")]
+    with pytest.raises(ValueError, match=r"^frames\.same: names 2 kept frames \(arrival indices \[0, 1\]\)"):
+        resolve_frames(["same"], refs, "frames")
+    assert resolve_frames([1, "other"], refs, "frames") == [1, 2]
+
+
 def test_a_key_of_thousands_of_digits_names_no_frame():
     """Such a key once reached int() and CPython's digit limit: an error that named no field."""
     refs = [FrameRef(0, None)]

@@ -134,6 +134,12 @@ def test_min_support_keeps_the_better_supported_surface(scene, mesh):
     assert 0 < len(strict) < len(mesh)
 
 
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), "1"])
+def test_min_support_is_checked_as_a_decode_checks_it(scene, bad):
+    with pytest.raises(ValueError, match="^min_support: expected >= 0"):
+        surface_mesh(scene.sums(), scene.config, min_support=bad)
+
+
 def test_ply_holds_the_mesh(mesh):
     xyz, rgb, faces = parse_mesh_ply(mesh_ply_bytes(mesh))
     assert np.array_equal(xyz, mesh.vertices.numpy())

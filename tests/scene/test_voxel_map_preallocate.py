@@ -36,3 +36,11 @@ def test_a_preallocation_the_system_refuses_names_the_memory_it_asked_for(monkey
     scene.fold(frame)
     plain.fold(frame)
     assert scene.digest() == plain.digest()
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, "a", True, 2**40])
+def test_a_scene_takes_only_a_whole_number_of_voxels_as_its_initial_capacity(bad):
+    """-1 once gave a capacity of 2^24 - 1, 2^40 a MemoryError, a string a TypeError."""
+    with pytest.raises(ValueError, match=r"^initial_capacity: expected a whole number of voxels in \[0, "):
+        Scene(SceneConfig(voxel_size=0.01), initial_capacity=bad)
+    assert Scene(SceneConfig(voxel_size=0.01), initial_capacity=0).capacity >= 0
