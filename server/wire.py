@@ -223,7 +223,11 @@ def _class_map(msg: dict, image_pixels: int, limits: FrameLimits) -> tuple[np.nd
     _check_channel_values("labels", num_classes, image_pixels, limits)
     labels = msg["labels"]
     if isinstance(labels, (bytes, bytearray)):  # its size is checked from its header
-        return decode_class_png(bytes(labels), "labels", limits.max_pixels), num_classes
+        ids = decode_class_png(bytes(labels), "labels", limits.max_pixels)
+        if ids.size and ids.max() >= num_classes:  # said in the PNG's values, which the sender wrote
+            raise WireError("labels", f"PNG value {int(ids.max()) + 1} (class {int(ids.max())}) does not fit "
+                                      f"num_classes = {num_classes} (values 0 = no class, 1..{num_classes})")
+        return ids, num_classes
     shape = array_shape(labels)
     check_pixels(shape[1], shape[0], "labels", limits.max_pixels)
     return decode_array(labels, "labels", INTEGERS, ndim=2), num_classes

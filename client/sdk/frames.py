@@ -127,7 +127,11 @@ def frame_body(rgb, K, c2w, depth=None, depth_std=None, features=None, labels=No
         raise ValueError("depth_scale: only with integer depth (sensor units); float depth is in metres")
     if depth is not None:
         msg["depth"] = encode_array(np.asarray(depth, np.float32), "depth", array_codec)
-    if labels is not None and is_class_map(labels):
+    if isinstance(labels, (bytes, bytearray)):  # a class map PNG (0 no class, k + 1 class k), as a file holds it
+        if num_classes is None:
+            raise ValueError("num_classes: required with a class map PNG (labels as PNG bytes)")
+        msg["labels"], msg["num_classes"], labels = bytes(labels), int(num_classes), None
+    elif labels is not None and is_class_map(labels):
         if num_classes is None:
             raise ValueError("num_classes: required with a class map (labels as integer [H', W'])")
         ids = np.asarray(labels)

@@ -133,7 +133,8 @@ class Session:
         ``labels``: per-pixel label scores, float [H',W',K], or a class map, integer [H',W'] (one
         class id a pixel, negative for none), fused as one-hot scores over K = ``num_classes``, else
         the session's label channels, else (its first labelled frame) the map's largest id + 1. A
-        class map travels as its ids (with K), not one-hot.
+        class map travels as its ids (with K), not one-hot. A class map PNG's bytes (0 no class, k + 1
+        class k, as label files hold them) travel as they are, with ``num_classes`` (or the session's K).
 
         With ``downscale``, a frame without depth that is over the service's limit for such frames
         (`Client.limits`) is sent downscaled to it, K scaled to match, with a `DownscaledFrame`
@@ -196,7 +197,12 @@ class Session:
         """A class map's K (None for scores, which carry theirs); ValueError naming K when the labels
         disagree with the session's K."""
         known = self.label_dim
-        if is_class_map(labels):
+        if isinstance(labels, (bytes, bytearray)):  # a class map PNG: its K is not in its pixels
+            num_classes = num_classes or known or self.stats()["label_dim"] or None
+            if num_classes is None:
+                raise ValueError("num_classes: required with a class map PNG while the session's K is not known yet")
+            channels = num_classes
+        elif is_class_map(labels):
             if num_classes is None:
                 known = self.stats()["label_dim"] if known is None else known
                 num_classes = known or int(np.asarray(labels, np.int64).max(initial=-1)) + 1
@@ -244,7 +250,9 @@ class Session:
         return self.client._request("GET", f"{self._path}/corrections/{path_segment(correction_id, 'correction_id')}").json()
 
     def _finished(self, r: httpx.Response, wait: bool, progress, poll: float) -> dict:
-        """A correction's answer: as it came (200, or 202 without ``wait``), else its polled result."""
+        """A correction's answer: as it came (200, or 202 without ``wait``), else its polled result. The
+        session's K is read again at its next class map: removing its labelled frames frees it."""
+        self.label_dim = None
         status = r.json()
         if r.status_code != 202 or not wait:
             return status

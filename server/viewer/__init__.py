@@ -81,8 +81,10 @@ def coverage_picture(alpha: np.ndarray) -> np.ndarray:  # [H, W] -> [H, W, 3] ui
 
 
 def label_picture(labels: np.ndarray) -> np.ndarray:  # [H, W] int (-1 none) -> [H, W, 3] uint8
-    """Label k in the label PNG's palette colour k + 1 (labels past 254 wrap), black where none."""
-    return PALETTE[(labels.astype(np.int64) + 1) % 256]
+    """Label k in the label PNG's palette colour k + 1, black where none; labels past 254 (the palette
+    holds 255 labels) take the colours of those 255 below them, never black, which says nothing is drawn."""
+    labels = labels.astype(np.int64)
+    return PALETTE[np.where(labels < 0, 0, 1 + labels % 255)]
 
 
 def visible_labels(labels: np.ndarray) -> list[int]:

@@ -403,7 +403,23 @@ def test_integer_class_maps_fold_as_one_hot_scores(server, frames):
         wide = client.create_session(voxel_size=VOXEL)  # K chosen up front for classes later frames bring
         wide.add_frame(**first, labels=classes, num_classes=6)
         assert wide.stats()["label_dim"] == 6
+        # its one labelled frame removed, the session takes any K again: so does this handle
+        wide.add_frame(**second)
+        wide.remove_frame(0)
+        wide.add_frame(**first, labels=classes, num_classes=5)
+        assert wide.stats()["label_dim"] == 5
         wide.delete()
+
+        png = io.BytesIO()  # a class map as its PNG file holds it (0 no class, k + 1 class k), with K
+        Image.fromarray((classes + 1).astype(np.uint8)).save(png, format="PNG")
+        as_png = client.create_session(voxel_size=VOXEL)
+        with pytest.raises(ValueError, match="^num_classes: required with a class map PNG"):
+            as_png.add_frame(**first, labels=png.getvalue())
+        as_png.add_frame(**first, labels=png.getvalue(), num_classes=3)
+        as_ids = client.create_session(voxel_size=VOXEL)
+        as_ids.add_frame(**first, labels=classes, num_classes=3)
+        assert as_png.digest()["sha256"] == as_ids.digest()["sha256"]
+        as_png.delete(), as_ids.delete()
 
         digests = []
         for labels in (classes, np.eye(3, dtype=np.float32)[classes]):  # the map, then its one-hot scores

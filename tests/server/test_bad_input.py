@@ -381,3 +381,12 @@ def test_mutated_frames_are_refused_naming_a_field_or_folded_and_refusals_change
     finally:
         fuzzed.delete()
         accepted_only.delete()
+
+
+@pytest.mark.realdata
+def test_a_class_map_png_over_K_is_told_in_its_own_values(server, target, frames):
+    """A PNG holds 0 for no class and k + 1 for class k: a value past K is named as written, not as
+    the class id it stands for (which read as an off-by-one)."""
+    c = Ctx(server.url, target.id, frames[2])
+    r = c.post_frame(c.msg(labels=png((_classes(c) + 2).astype(np.uint8)), num_classes=4))  # values 2..5
+    assert r.status_code == 422 and "PNG value 5 (class 4) does not fit num_classes = 4" in r.json()["error"]["message"], r.text

@@ -73,6 +73,8 @@ def test_label_picture_uses_the_label_pngs_palette():
     np.testing.assert_array_equal(label_picture(labels), np.asarray(png))
     np.testing.assert_array_equal(label_picture(np.array([[-1]]))[0, 0], PALETTE[0])
     assert visible_labels(labels) == [0, 1, 2, 7, 254]
+    # past the palette's 255 labels: another label's colour, never the black of nothing drawn
+    np.testing.assert_array_equal(label_picture(np.array([[255, 256]])), label_picture(np.array([[0, 1]])))
 
 
 def test_camera_track_round_trip_drops_a_torn_row_and_frames_the_session_lacks(tmp_path):

@@ -262,7 +262,7 @@ function showReading(mode, headers) {
       const li = document.createElement("li");
       li.dataset.label = k;
       const swatch = document.createElement("span");
-      const [r, g, b] = state.info.label_palette[(k + 1) % 256];
+      const [r, g, b] = state.info.label_palette[1 + (k % 255)];  // as the pictures: labels past 254 take the colours of those 255 below them
       swatch.style.background = `rgb(${r},${g},${b})`;
       li.append(swatch, `label ${k}`);
       return li;
