@@ -20,6 +20,7 @@ import ctypes
 import ctypes.util
 import gc
 import threading
+import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -44,7 +45,8 @@ class MemoryBudget:
 
     def __init__(self, limit: int, in_use: Callable[[], int]):
         self.limit, self._in_use = limit, in_use
-        self.reserved = 0
+        self.reserved = 0  # by the folds under way
+        self.decoded = 0  # by decoded frames waiting for their turn or their fold
         self._lock = threading.Lock()
 
     @contextmanager
@@ -56,40 +58,50 @@ class MemoryBudget:
         finally:
             self.give(nbytes)
 
-    def take(self, nbytes: int, use: str = "folding it may take") -> None:
+    def take(self, nbytes: int, use: str = "folding it may take", decoded: bool = False) -> None:
         """Hold ``nbytes`` until `give`; `MemoryBudgetExceeded` if they do not fit beside the sessions'
-        memory, `MemoryBudgetBusy` if they do but not beside what is held now."""
+        memory, `MemoryBudgetBusy` if they do but not beside what is held now. A fold (``decoded``
+        false) is weighed against the folds under way only, never against the ``decoded`` frames
+        waiting: those wait for it (the numbered frames after it, and its own arrays), and a fold
+        refused for them would never be taken. The decoded frames give way to the folds instead."""
         with self._lock:
             free = self.limit - self._in_use()
-            if nbytes > free - self.reserved:
+            held = self.reserved + (self.decoded if decoded else 0)
+            if nbytes > free - held:
                 message = (f"frame: {use} up to {_size(nbytes)}; the service's memory budget (CANONICAL_MEMORY_BUDGET_BYTES, "
-                           f"{_size(self.limit)}) has {_size(max(free - self.reserved, 0))} left")
+                           f"{_size(self.limit)}) has {_size(max(free - held, 0))} left")
                 if nbytes > free:
                     raise MemoryBudgetExceeded(message)
-                raise MemoryBudgetBusy(f"{message}, beside {_size(self.reserved)} that folds and decoded frames hold "
+                raise MemoryBudgetBusy(f"{message}, beside {_size(held)} that folds and decoded frames hold "
                                        "for moments; send it again")
-            self.reserved += nbytes
+            if decoded:
+                self.decoded += nbytes
+            else:
+                self.reserved += nbytes
 
-    def give(self, nbytes: int) -> None:
+    def give(self, nbytes: int, decoded: bool = False) -> None:
         with self._lock:
-            self.reserved -= nbytes
+            if decoded:
+                self.decoded -= nbytes
+            else:
+                self.reserved -= nbytes
 
 
-def hold_decoded(budget: MemoryBudget | None, frame) -> Callable[[], None]:
-    """Hold ``frame``'s decoded bytes from ``budget`` (nothing without one) until the returned call
-    gives them back (once; later calls do nothing). Raises as `MemoryBudget.take`."""
-    if budget is None:
-        return lambda: None
-    nbytes = frame_bytes(frame)
-    budget.take(nbytes, "holding its decoded arrays takes")
-    given = threading.Event()
+class DecodedHold:
+    """``frame``'s decoded bytes held from ``budget`` (nothing without one) until `release` (once;
+    later calls do nothing), or until the hold is dropped unreleased (a request cancelled while its
+    frame was decoded in a worker: the result never reached the route). Raises as `MemoryBudget.take`."""
 
-    def give() -> None:
-        if not given.is_set():
-            given.set()
-            budget.give(nbytes)
+    def __init__(self, budget: MemoryBudget | None, frame):
+        nbytes = frame_bytes(frame) if budget is not None else 0
+        if budget is not None:
+            budget.take(nbytes, "holding its decoded arrays takes", decoded=True)
+            self._give = weakref.finalize(self, budget.give, nbytes, True)
+        else:
+            self._give = lambda: None
 
-    return give
+    def release(self) -> None:
+        self._give()
 
 
 def frame_bytes(frame) -> int:

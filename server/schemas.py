@@ -6,7 +6,7 @@ import dataclasses
 import typing
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator
 
 from canonical_core.rendering import Colour, DepthMode
 from canonical_core.scene import FoldReport
@@ -207,13 +207,36 @@ class PosesRequest(BaseModel):
     # bounded first: each item that fails validation would otherwise make an error object of its own
     poses: dict[str, Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
                                       description="frame key -> 4x4 (or 3x4) c2w, OpenCV axes, metres")
-    # JSON's keys are strings: the arrival index is read from one (lax), and is never negative
-    poses_by_arrival: dict[Annotated[int, Strict(False), Field(ge=0)], Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
-                                                 description="arrival index -> 4x4 (or 3x4) c2w, as poses")
-    remove: list[str | int] = Field(default_factory=list, max_length=MAX_FRAME_KEYS,
-                                    description="frames to remove: frame keys (strings, as poses') or arrival indices (integers)")
+    # JSON's keys are strings: an arrival index is one of digits (`_arrivals`)
+    poses_by_arrival: dict[str, Matrix4] = Field(default_factory=dict, max_length=MAX_FRAME_KEYS,
+                                                 description="arrival index (digits) -> 4x4 (or 3x4) c2w, as poses")
+    # items checked one by one after the bound (`_keys`): a union type made two error objects an invalid item
+    remove: list[Any] = Field(default_factory=list, max_length=MAX_FRAME_KEYS,
+                              description="frames to remove: frame keys (strings, as poses') or arrival indices (integers)")
     wait: bool = Field(True, description="answer once the scene is corrected (200), unless the re-fold is long "
                                          "(then 202 and a status to poll); false: always 202 at once")
+
+    @field_validator("poses_by_arrival")
+    @classmethod
+    def _arrivals(cls, poses: dict) -> dict:
+        """Keys of digits (as ``Frame-Index``: no sign, space or underscore) as integers, none twice."""
+        out: dict = {}
+        for key, c2w in poses.items():
+            if not (key.isascii() and key.isdigit() and len(key) <= 18):
+                raise ValueError(f"poses_by_arrival.{key}: expected an arrival index (digits)")
+            if int(key) in out:
+                raise ValueError(f"poses_by_arrival.{key}: names arrival {int(key)}, which another key names too")
+            out[int(key)] = c2w
+        return out
+
+    @field_validator("remove")
+    @classmethod
+    def _keys(cls, keys: list) -> list:
+        for k, key in enumerate(keys):
+            if not (isinstance(key, str) or (type(key) is int and key >= 0)):
+                raise ValueError(f"remove.{k}: expected a frame key (a string) or an arrival index (an integer >= 0), "
+                                 f"got {type(key).__name__}")
+        return keys
 
 
 class Correction(BaseModel):

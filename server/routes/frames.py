@@ -12,7 +12,7 @@ from fastapi import APIRouter, Header, Request, Response
 from .. import wire
 from ..deps import JobsDep, MetricsDep, SessionDep, SettingsDep
 from ..errors import ApiError, unparsable
-from ..memory import hold_decoded
+from ..memory import DecodedHold
 from ..multipart import parse_form_data
 from ..schemas import ErrorBody, FoldReportOut
 from ..scheduler import ClientGone
@@ -143,14 +143,14 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
             frame = wire.frame_from_message(msg, limits=frame_limits(settings), fresh=True)  # validated before it is logged
             check_session_accepts(frame, session.scene.config)
             record = wire.pack(msg) if record is None else record  # a form's parts, logged as one message
-            held = hold_decoded(session.budget, frame)
+            held = DecodedHold(session.budget, frame)
         except (ValueError, MemoryBudgetExceeded) as exc:
             session.order.refused(frame_index, exc)  # the frames numbered after it are not folded
             raise
         try:
             return record, frame, held, session.prepare(frame)  # its fold begun: evidence made while others fold
         except BaseException:
-            held()
+            held.release()
             raise
 
     async def left() -> None:  # a numbered frame whose client went while it waited: never answered, never folded
@@ -174,7 +174,7 @@ async def add_frame(request: Request, response: Response, session: SessionDep, s
         if ahead is not None:
             ahead.release()
         if held is not None:
-            held()
+            held.release()
         solve_soon(jobs.scheduler, session)
     if replay:
         response.headers["Idempotent-Replay"] = "true"

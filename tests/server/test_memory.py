@@ -15,6 +15,7 @@ import json
 import httpx
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from .harness import SOLVE_WAIT_S, ServerProcess, resident_mib, wait_for
@@ -204,3 +205,30 @@ def test_the_budget_tells_a_frame_that_never_fits_from_one_that_fits_once_others
             budget.take(61)
     budget.take(30)  # the fold's share given back: it fits
     assert budget.reserved == 30
+
+
+def test_a_fold_is_never_refused_for_the_decoded_frames_that_wait_for_it():
+    """The numbered frames after a frame, and its own arrays, hold their decoded bytes until it has
+    folded: were its fold weighed against them, it would be refused every time it was sent again and
+    they would wait for it until refused too. The decoded frames give way to the folds instead; and a
+    hold whose request was dropped unreleased (cancelled while a worker decoded it) gives its bytes back."""
+    import gc
+
+    from server.memory import DecodedHold, MemoryBudget
+    from server.session_errors import MemoryBudgetBusy
+
+    budget = MemoryBudget(100, lambda: 0)
+    budget.take(60, decoded=True)  # frames waiting for the next one's fold
+    with budget.reserve(40):  # that fold: taken
+        with pytest.raises(MemoryBudgetBusy):
+            budget.take(1, decoded=True)  # another decoded frame waits for room instead
+    budget.give(60, decoded=True)
+
+    class Frame:
+        rgb, depth, depth_std, features, labels = torch.zeros(10, dtype=torch.uint8), None, None, None, None
+
+    held = DecodedHold(budget, Frame())
+    assert budget.decoded == 10
+    del held
+    gc.collect()
+    assert budget.decoded == 0
