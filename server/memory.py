@@ -49,6 +49,11 @@ class MemoryBudget:
         self.decoded = 0  # by decoded frames waiting for their turn or their fold
         self._lock = threading.Lock()
 
+    @property
+    def held(self) -> int:
+        """What the folds under way and the decoded frames hold now."""
+        return self.reserved + self.decoded
+
     @contextmanager
     def reserve(self, nbytes: int) -> Iterator[None]:
         """Hold ``nbytes`` of the budget while the block runs (a fold), or raise before it runs."""
@@ -66,7 +71,7 @@ class MemoryBudget:
         refused for them would never be taken. The decoded frames give way to the folds instead."""
         with self._lock:
             free = self.limit - self._in_use()
-            held = self.reserved + (self.decoded if decoded else 0)
+            held = self.held if decoded else self.reserved
             if nbytes > free - held:
                 message = (f"frame: {use} up to {_size(nbytes)}; the service's memory budget (CANONICAL_MEMORY_BUDGET_BYTES, "
                            f"{_size(self.limit)}) has {_size(max(free - held, 0))} left")
@@ -93,12 +98,11 @@ class DecodedHold:
     frame was decoded in a worker: the result never reached the route). Raises as `MemoryBudget.take`."""
 
     def __init__(self, budget: MemoryBudget | None, frame):
-        nbytes = frame_bytes(frame) if budget is not None else 0
+        self._give = lambda: None
         if budget is not None:
+            nbytes = frame_bytes(frame)
             budget.take(nbytes, "holding its decoded arrays takes", decoded=True)
             self._give = weakref.finalize(self, budget.give, nbytes, True)
-        else:
-            self._give = lambda: None
 
     def release(self) -> None:
         self._give()

@@ -100,8 +100,7 @@ def run_poses(args) -> int:
         try:
             done = client.session(args.session).update_poses(poses, remove=args.remove, progress=progress)
         except CanonicalError as exc:  # a key the service refused: the line of the file it came from
-            key = (exc.field or "").removeprefix("poses.") if (exc.field or "").startswith("poses.") else None
-            number = next((n for k, n in lines.items() if str(k) == key), None)
+            number = next((n for k, n in lines.items() if f"poses.{k}" == exc.field), None)
             if number is None:
                 raise
             raise CanonicalError(exc.status, exc.code, f"{args.poses}:{number}: {exc.message}", exc.field) from None

@@ -46,7 +46,7 @@ async def metrics(request: Request, store: StoreDep, jobs: JobsDep, metrics: Met
                                          request.app.state.bodies.held),
         "canonical_memory_held_bytes": ("Memory budget held by folds under way and decoded frames waiting "
                                         "(memory_budget_bytes bounds them with the sessions' memory).",
-                                        store.budget.reserved + store.budget.decoded if store.budget is not None else 0),
+                                        store.budget.held if store.budget is not None else 0),
         "canonical_event_streams": ("Open event streams (max_event_streams bounds them).", events.open_streams()),
         "canonical_event_streams_dropped_total": ("Event streams dropped since start for falling behind.", events.dropped),
     }

@@ -11,6 +11,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
 from canonical_core import Camera
+from canonical_core.calibration import validate_pose
 from canonical_core.rendering import Colour, DepthMode, render
 from canonical_core.rendering.preview import feature_preview
 
@@ -72,13 +73,7 @@ async def view_from_query(
     p = _numbers(pose, "pose", 16)
     fx, fy, cx, cy = _numbers(K, "K", 4)
     c2w = [p[0:4], p[4:8], p[8:12], p[12:16]]
-    try:  # the camera's own check names its c2w, which this request calls pose
-        Camera([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w, width, height)
-    except ValueError as error:
-        message = str(error)
-        if message.startswith("c2w: "):
-            raise ApiError(422, "invalid_value", "pose: " + message.removeprefix("c2w: "), "pose") from None
-        raise
+    validate_pose(c2w, "pose")  # the camera's own check, named as this request names the matrix
     return ViewRequest(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], c2w=c2w,
                        width=width, height=height, max_gaussians=max_gaussians,
                        background=None if background is None else _numbers(background, "background", 3, 0.0, 1.0), colour=colour,
